@@ -1,0 +1,46 @@
+"""clebsch-jax: structure-preserving integrators from Clebsch variational principles.
+
+Importing the package turns on 64-bit floats in JAX (`jax_enable_x64`): variational
+integrators are judged by conservation to round-off, which float32 cannot show.
+
+The data path, one module each:
+system (`ClebschSystem`) → discrete action (`discrete_action`) → residual (Lemma 20, by
+`jax.grad`) → Newton (`newton_solve`) → scan (`integrate`) → `Solution` → `diagnostics`.
+"""
+
+import jax as _jax
+
+_jax.config.update("jax_enable_x64", True)
+
+from . import diagnostics as diagnostics  # noqa: E402
+from . import lie as lie  # noqa: E402
+from . import models as models  # noqa: E402
+from ._derivative_maps import (  # noqa: E402
+    DerivativeMap as DerivativeMap,
+    MatrixGroupDifference as MatrixGroupDifference,
+    VectorSpaceDifference as VectorSpaceDifference,
+    cayley as cayley,
+    exponential as exponential,
+    forward_difference as forward_difference,
+)
+from ._discrete_action import (  # noqa: E402
+    SCHEMES as SCHEMES,
+    discrete_action as discrete_action,
+    discrete_lagrangian as discrete_lagrangian,
+)
+from ._integrate import (  # noqa: E402
+    initial_multiplier as initial_multiplier,
+    integrate as integrate,
+    nodal_velocity as nodal_velocity,
+)
+from ._newton import NewtonStats as NewtonStats, Status as Status, newton_solve as newton_solve  # noqa: E402
+from ._residual import (  # noqa: E402
+    StepUnknowns as StepUnknowns,
+    legendre_residual as legendre_residual,
+    outgoing_momentum as outgoing_momentum,
+    step_residual as step_residual,
+)
+from ._solution import IntegrationError as IntegrationError, Solution as Solution  # noqa: E402
+from ._system import ClebschSystem as ClebschSystem, diamond as diamond, momentum_map as momentum_map  # noqa: E402
+
+__version__ = "0.1.0"

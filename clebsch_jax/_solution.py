@@ -1,0 +1,173 @@
+"""The result of `integrate`: trajectory, per-step Newton statistics and an overall result."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._newton import NewtonStats, Status
+
+__all__ = ["Solution", "IntegrationError"]
+
+
+class IntegrationError(RuntimeError):
+    """Raised (once, at the end) when a step of the march fails."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    r"""A discrete Clebsch trajectory.
+
+    **Fields** (N = `n_steps`; every array gains leading batch axes under `jax.vmap`):
+
+    - `ts` (N+1,): times $t_n = t_0 + n\Delta t$.
+    - `Q` (N+1, *Q.shape): the nodes $Q^n$.
+    - `p` (N+1, *Q.shape): the discrete momenta $p^n \in T^*_{Q^n}M$ (discrete Legendre
+      transform; `p[0]` is the initial multiplier $P^0$).
+    - `xi` (N+1, *xi.shape): nodal velocities, the root of Lemma 7's
+      $\delta l/\delta\xi(\xi, Q^n) = -p^n \diamond Q^n$ (so `xi[0]` is the given `xi0`).
+    - `xi_step` (N, *xi.shape): the velocity $\xi^n$ of step n, with
+      $\phi_{\Delta t}(Q^{n+1}, Q^n) = \mathcal L_{\xi^n} Q^n$ (Lemma 20). For symmetric
+      derivative maps it approximates $\xi(t_n + \Delta t/2)$.
+    - `P` (N, *Q.shape): the multipliers $P^n$ of Lemma 20, one per step.
+    - `stats`: `NewtonStats` of the step solves, each (N,): `iterations`,
+      `residual_norm` (max-norm of the final Lemma 20 residual), `status` (`Status` codes).
+    - `nodal_stats`: `NewtonStats` of the nodal-velocity solves, each (N+1,).
+    - `result`: overall `Status` code (0 = success). `failed_step`: index of the first failing
+      step (or node, for a nodal failure), -1 if none.
+    - `valid` (N+1,): False at nodes after a failure. Their values are NaN on purpose, never
+      plausible-looking numbers.
+    - Static facts: `scheme`, `form` ("full" here), `order` (nominal order of the method),
+      `derivative_map` (its name), `q_ndim` and `xi_ndim` (ranks of one Q and one ξ).
+    """
+
+    ts: jax.Array
+    Q: jax.Array
+    p: jax.Array
+    xi: jax.Array
+    xi_step: jax.Array
+    P: jax.Array
+    stats: NewtonStats
+    nodal_stats: NewtonStats
+    result: jax.Array
+    failed_step: jax.Array
+    valid: jax.Array
+    scheme: str = "left"
+    form: str = "full"
+    order: int = 1
+    derivative_map: str = ""
+    q_ndim: int = 0
+    xi_ndim: int = 0
+
+    @property
+    def batch_ndim(self) -> int:
+        """Number of leading batch axes (0 for a single trajectory)."""
+        return self.Q.ndim - 1 - self.q_ndim
+
+    @property
+    def succeeded(self) -> jax.Array:
+        """True where the whole march succeeded (an array under vmap)."""
+        return self.result == Status.SUCCESS
+
+    def raise_if_failed(self) -> "Solution":
+        """Raise `IntegrationError` naming the first failing batch member and step.
+
+        Works on concrete (not traced) solutions, batched or not: the recipe for a vmapped
+        batch is `integrate(..., throw=False)` inside `vmap`, then `raise_if_failed()`
+        outside it. Returns `self` when everything succeeded.
+        """
+        result = np.asarray(self.result)
+        if not np.any(result != Status.SUCCESS):
+            return self
+        failed = np.argwhere(result != Status.SUCCESS)
+        member = tuple(int(i) for i in failed[0])
+        pick = (lambda a: np.asarray(a)[member]) if member else np.asarray
+        step = int(pick(self.failed_step))
+        code = int(pick(self.result))
+        n_steps = np.asarray(self.ts).shape[-1] - 1
+        stats = self.nodal_stats if code == Status.LEGENDRE else self.stats
+        iters = pick(stats.iterations)[..., step]
+        res = pick(stats.residual_norm)[..., step]
+        t = pick(self.ts)[..., step]
+        msg = failure_message(code, step, n_steps, float(t), int(iters), float(res), member or None)
+        if len(failed) > 1:
+            msg += f" ({len(failed)} batch members failed in all.)"
+        raise IntegrationError(msg)
+
+
+jax.tree_util.register_dataclass(
+    Solution,
+    data_fields=[
+        "ts", "Q", "p", "xi", "xi_step", "P", "stats", "nodal_stats", "result", "failed_step", "valid",
+    ],
+    meta_fields=["scheme", "form", "order", "derivative_map", "q_ndim", "xi_ndim"],
+)
+
+
+def failure_message(code, step, n_steps, t, iterations, residual, member=None) -> str:
+    """A readable failure message: what failed, where, and what to try."""
+    where = f"batch member {member if len(member) > 1 else member[0]}, " if member else ""
+    what = Status.MESSAGES.get(code, f"status {code}")
+    if code == Status.LEGENDRE:
+        return (
+            f"clebsch_jax.integrate: {where}node {step} (t = {t:.6g}): {what} "
+            f"(residual {residual:.3e} after {iterations} iterations). The step solves succeeded; "
+            "the Lagrangian may be degenerate in xi. Use throw=False to inspect the solution."
+        )
+    return (
+        f"clebsch_jax.integrate: {where}step {step} of {n_steps} (t = {t:.6g}): {what} "
+        f"(residual {residual:.3e} after {iterations} Newton iterations). Later states are "
+        "marked invalid (NaN). Try a smaller dt, a larger max_newton_iterations, or "
+        "throw=False to inspect the partial solution."
+    )
+
+
+def _host_check(result, failed_step, iterations, residual, t, n_steps, batched):
+    result = np.asarray(result)
+    if not np.any(result != Status.SUCCESS):
+        return
+    if batched:
+        member = tuple(int(i) for i in np.argwhere(result != Status.SUCCESS)[0])
+    else:
+        member = ()
+    pick = (lambda a: np.asarray(a)[member]) if member else np.asarray
+    raise IntegrationError(
+        failure_message(
+            int(pick(result)), int(pick(failed_step)), int(np.asarray(n_steps).ravel()[0]), float(pick(t)),
+            int(pick(iterations)), float(pick(residual)), member or None,
+        )
+    )
+
+
+@jax.custom_batching.custom_vmap
+def _traced_check(result, failed_step, iterations, residual, t, n_steps):
+    jax.debug.callback(
+        lambda *a: _host_check(*a, batched=False), result, failed_step, iterations, residual, t, n_steps
+    )
+    return result
+
+
+@_traced_check.def_vmap
+def _traced_check_vmap(axis_size, in_batched, result, failed_step, iterations, residual, t, n_steps):
+    args = [result, failed_step, iterations, residual, t, n_steps]
+    args = [a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a)) for a, b in zip(args, in_batched)]
+    jax.debug.callback(lambda *a: _host_check(*a, batched=True), *args)
+    return args[0], True
+
+
+def check_traced(sol: Solution) -> jax.Array:
+    """Insert the end-of-run failure check into a traced computation (jit/vmap).
+
+    A failure raises from a host callback; under `jax.vmap` the message names the member.
+    """
+    stats_at = lambda s: jnp.take(s, jnp.clip(sol.failed_step, 0, s.shape[-1] - 1), axis=-1)
+    is_nodal = sol.result == Status.LEGENDRE
+    iters = jnp.where(is_nodal, stats_at(sol.nodal_stats.iterations), stats_at(sol.stats.iterations))
+    res = jnp.where(is_nodal, stats_at(sol.nodal_stats.residual_norm), stats_at(sol.stats.residual_norm))
+    t = stats_at(sol.ts)
+    n_steps = jnp.asarray(sol.ts.shape[-1] - 1)
+    args = jax.lax.stop_gradient((sol.result, sol.failed_step, iters, res, t, n_steps))
+    return _traced_check(*args)

@@ -1,0 +1,151 @@
+"""Matrix Lie group helpers: hat/vee maps, the Cayley transform, exp and log.
+
+All functions are pure `jax.numpy` code: jit-, vmap- and grad-compatible.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = [
+    "hat",
+    "vee",
+    "se2_hat",
+    "cayley_exp",
+    "cayley_log",
+    "expm",
+    "logm",
+    "so3_exp",
+    "so3_log",
+]
+
+
+def hat(w: jax.Array) -> jax.Array:
+    r"""The isomorphism $\mathbb R^3 \to \mathfrak{so}(3)$, $\hat w v = w \times v$."""
+    w = jnp.asarray(w)
+    z = jnp.zeros_like(w[..., 0])
+    return jnp.stack(
+        [
+            jnp.stack([z, -w[..., 2], w[..., 1]], axis=-1),
+            jnp.stack([w[..., 2], z, -w[..., 0]], axis=-1),
+            jnp.stack([-w[..., 1], w[..., 0], z], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def vee(W: jax.Array) -> jax.Array:
+    r"""Inverse of `hat` on the skew part: $\mathfrak{so}(3) \to \mathbb R^3$."""
+    W = jnp.asarray(W)
+    return 0.5 * jnp.stack(
+        [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]],
+        axis=-1,
+    )
+
+
+def se2_hat(xi: jax.Array) -> jax.Array:
+    r"""$\xi = (\omega, v_1, v_2) \mapsto \begin{pmatrix} 0 & -\omega & v_1 \\ \omega & 0 & v_2 \\ 0 & 0 & 0 \end{pmatrix} \in \mathfrak{se}(2)$."""
+    xi = jnp.asarray(xi)
+    z = jnp.zeros_like(xi[..., 0])
+    return jnp.stack(
+        [
+            jnp.stack([z, -xi[..., 0], xi[..., 1]], axis=-1),
+            jnp.stack([xi[..., 0], z, xi[..., 2]], axis=-1),
+            jnp.stack([z, z, z], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def _eye_like(A: jax.Array) -> jax.Array:
+    return jnp.broadcast_to(jnp.eye(A.shape[-1], dtype=A.dtype), A.shape)
+
+
+def cayley_exp(X: jax.Array) -> jax.Array:
+    r"""Cayley transform $\overline{\exp}(X) = (I - X/2)^{-1}(I + X/2)$ (Example 30).
+
+    The two factors commute, so this equals the paper's $(I + X/2)(I - X/2)^{-1}$.
+    It maps quadratic Lie algebras ($\mathfrak{so}(n)$, $\mathfrak{se}(n)$ in homogeneous
+    form) into their groups and is second-order accurate: $\overline{\exp}(X) = \exp(X)
+    + O(X^3)$.
+    """
+    eye = _eye_like(X)
+    return jnp.linalg.solve(eye - 0.5 * X, eye + 0.5 * X)
+
+
+def cayley_log(A: jax.Array) -> jax.Array:
+    r"""Inverse Cayley transform $\overline{\log}(A) = 2(A + I)^{-1}(A - I)$ (Example 30).
+
+    Defined wherever $A + I$ is invertible, so it is a local diffeomorphism on all of
+    $GL(n)$ near $I$, not only on the group.
+    """
+    eye = _eye_like(A)
+    return 2.0 * jnp.linalg.solve(A + eye, A - eye)
+
+
+def expm(X: jax.Array) -> jax.Array:
+    """Matrix exponential (`jax.scipy.linalg.expm`, Padé with scaling and squaring)."""
+    return jax.scipy.linalg.expm(X)
+
+
+def _sqrtm_denman_beavers(A: jax.Array, iterations: int) -> jax.Array:
+    Y, Z = A, _eye_like(A)
+    for _ in range(iterations):
+        Y, Z = 0.5 * (Y + jnp.linalg.inv(Z)), 0.5 * (Z + jnp.linalg.inv(Y))
+    return Y
+
+
+def logm(A: jax.Array, *, square_roots: int = 2, sqrt_iterations: int = 8, terms: int = 15) -> jax.Array:
+    r"""Principal matrix logarithm near the identity, on all of $GL(n)$.
+
+    Inverse scaling and squaring: take `square_roots` square roots (Denman–Beavers
+    iteration), then sum the Gregory series
+    $\log A = 2\,\mathrm{artanh}\,Z = 2\sum_k Z^{2k+1}/(2k+1)$ with $Z = (A+I)^{-1}(A-I)$.
+    With the defaults the result is exact to round-off for matrices whose eigenvalues have
+    arguments below about 2 rad (per step: rotation angles $|\Delta t\,\omega| < 2$), which is
+    where a derivative map is used. Unlike a Rodrigues formula it is a local diffeomorphism
+    of $GL(n)$, which the full (ξ, P, Q) Newton solve in ambient coordinates needs.
+    """
+    for _ in range(square_roots):
+        A = _sqrtm_denman_beavers(A, sqrt_iterations)
+    eye = _eye_like(A)
+    Z = jnp.linalg.solve(A + eye, A - eye)
+    Z2 = Z @ Z
+    term = Z
+    total = Z
+    for k in range(1, terms):
+        term = term @ Z2
+        total = total + term / (2 * k + 1)
+    return (2.0 ** (square_roots + 1)) * total
+
+
+def so3_exp(w: jax.Array) -> jax.Array:
+    r"""Rodrigues' formula $\exp(\hat w) = I + \frac{\sin\theta}{\theta}\hat w + \frac{1-\cos\theta}{\theta^2}\hat w^2$.
+
+    Uses Taylor expansions near $\theta = 0$ so values and derivatives are exact there.
+    """
+    w = jnp.asarray(w)
+    th2 = jnp.sum(w * w, axis=-1)
+    small = th2 < 1e-8
+    th2_safe = jnp.where(small, 1.0, th2)
+    th = jnp.sqrt(th2_safe)
+    a = jnp.where(small, 1.0 - th2 / 6.0 + th2**2 / 120.0, jnp.sin(th) / th)
+    b = jnp.where(small, 0.5 - th2 / 24.0 + th2**2 / 720.0, (1.0 - jnp.cos(th)) / th2_safe)
+    W = hat(w)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=W.dtype), W.shape)
+    return eye + a[..., None, None] * W + b[..., None, None] * (W @ W)
+
+
+def so3_log(R: jax.Array) -> jax.Array:
+    r"""Inverse of `so3_exp` on $SO(3)$ for rotation angles below $\pi$: returns $w \in \mathbb R^3$.
+
+    Only valid on the group (it reads the skew part of $R$); use `logm` off the group.
+    """
+    R = jnp.asarray(R)
+    c = jnp.clip(0.5 * (jnp.trace(R, axis1=-2, axis2=-1) - 1.0), -1.0, 1.0)
+    th = jnp.arccos(c)
+    small = th < 1e-4
+    th_safe = jnp.where(small, 1.0, th)
+    f = jnp.where(small, 1.0 + th**2 / 6.0 + 7.0 * th**4 / 360.0, th_safe / jnp.sin(th_safe))
+    return f[..., None] * vee(R)
