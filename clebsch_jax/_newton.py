@@ -106,10 +106,18 @@ def newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations
         return ravel_pytree(F(unravel(x)))[0]
 
     def solve(f, x0):
-        return _newton_loop(f, x0, rtol, atol, max_iterations)
+        z, stats = _newton_loop(f, x0, rtol, atol, max_iterations)
+        # custom_root's JVP gives integer aux outputs integer (not float0) tangents, which
+        # JAX then rejects; carry the statistics as floats through it and cast back below.
+        return z, jax.tree_util.tree_map(lambda a: a.astype(x0.dtype), stats)
 
     def tangent_solve(g, y):
         return jnp.linalg.solve(jax.jacfwd(g)(y), y)
 
     flat, stats = jax.lax.custom_root(F_flat, flat0, solve, tangent_solve, has_aux=True)
+    stats = NewtonStats(
+        iterations=stats.iterations.astype(jnp.int32),
+        residual_norm=stats.residual_norm,
+        status=stats.status.astype(jnp.int32),
+    )
     return unravel(flat), stats

@@ -1,0 +1,189 @@
+"""The engine: Lemma 20 from the whole discrete action, Remarks 21-22, transforms, maps."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax import diagnostics as dg
+
+INERTIA = np.array([2.0, 1.0, 2.0 / 3.0])
+
+
+@pytest.mark.parametrize("scheme", cj.SCHEMES)
+def test_trajectory_is_stationary_for_the_whole_discrete_action(scheme):
+    """Lemma 20 checked without the step assembly: the gradient of Σₙ L_d(ξⁿ, Pⁿ, Qⁿ, Qⁿ⁺¹)
+    with respect to every ξⁿ, every Pⁿ and every interior Qⁿ vanishes on the trajectory."""
+    system = cj.models.rigid_body(INERTIA)
+    dt = 0.1
+    sol = cj.integrate(system, jnp.eye(3), jnp.array([0.4, -1.0, 0.7]), dt=dt, n_steps=40, scheme=scheme)
+    g_xi, g_P, g_Q = jax.grad(lambda x, P, Q: cj.discrete_action(system, scheme, dt, x, P, Q), argnums=(0, 1, 2))(
+        sol.xi_step, sol.P, sol.Q
+    )
+    assert float(jnp.max(jnp.abs(g_xi))) < 1e-13
+    assert float(jnp.max(jnp.abs(g_P))) < 1e-13
+    assert float(jnp.max(jnp.abs(g_Q[1:-1]))) < 1e-13
+    # and the end momenta are the discrete Legendre transforms ∓∂S/∂Q at the ends
+    np.testing.assert_allclose(np.asarray(g_Q[-1]), np.asarray(sol.p[-1]), atol=1e-13)
+    np.testing.assert_allclose(np.asarray(-g_Q[0]), np.asarray(sol.p[0]), atol=1e-13)
+
+
+def _oscillator(omega2=1.0):
+    """A particle in a potential: V = ℝ, M = ℝ, L_ξQ = ξ, l(ξ, Q) = ξ²/2 - ω²Q²/2 (Def. 14)."""
+    return cj.ClebschSystem(
+        lagrangian=lambda xi, Q: 0.5 * jnp.sum(xi**2) - 0.5 * omega2 * jnp.sum(Q**2),
+        velocity_map=lambda xi, Q: xi,
+        derivative_map=cj.forward_difference,
+    )
+
+
+def test_remarks_21_22_are_symplectic_euler_A_and_B():
+    """Forward difference + Definition 19 = symplectic Euler-A; the Remark 22 adjoint = Euler-B.
+    With H = p²/2 + q²/2 they are explicit, so compare with the textbook updates exactly."""
+    dt, n = 0.1, 50
+    q0, p0 = np.array([1.0]), np.array([0.3])
+    system = _oscillator()
+    A = cj.integrate(system, q0, p0, dt=dt, n_steps=n, scheme="left")
+    B = cj.integrate(system, q0, p0, dt=dt, n_steps=n, scheme="right")
+    qa, pa, qb, pb = [q0.copy()], [p0.copy()], [q0.copy()], [p0.copy()]
+    for _ in range(n):
+        p_new = pa[-1] - dt * qa[-1]          # Euler-A: p⁺ = p - Δt V'(q), q⁺ = q + Δt p⁺
+        qa.append(qa[-1] + dt * p_new); pa.append(p_new)
+        q_new = qb[-1] + dt * pb[-1]          # Euler-B: q⁺ = q + Δt p, p⁺ = p - Δt V'(q⁺)
+        qb.append(q_new); pb.append(pb[-1] - dt * q_new)
+    np.testing.assert_allclose(np.asarray(A.Q), np.array(qa), atol=1e-13)
+    np.testing.assert_allclose(np.asarray(A.p), np.array(pa), atol=1e-13)
+    np.testing.assert_allclose(np.asarray(B.Q), np.array(qb), atol=1e-13)
+    np.testing.assert_allclose(np.asarray(B.p), np.array(pb), atol=1e-13)
+
+
+@pytest.mark.parametrize("scheme", cj.SCHEMES)
+def test_first_order_schemes_converge_at_order_one(scheme):
+    """Exact solution of the oscillator: q = cos t·q0 + sin t·p0."""
+    system = _oscillator()
+    T, dts = 2.0, np.array([0.1, 0.05, 0.025, 0.0125])
+    n = int(round(T / dts[-1]))
+    run = jax.jit(lambda dt: cj.integrate(system, jnp.array([1.0]), jnp.array([0.3]), dt=dt, n_steps=n, scheme=scheme))
+    errs = []
+    for dt in dts:
+        sol = run(dt)
+        k = int(round(T / dt))
+        errs.append(abs(float(sol.Q[k, 0]) - (np.cos(T) + 0.3 * np.sin(T))))
+    assert sol.order == 1
+    assert abs(dg.fit_order(dts, errs) - sol.order) < 0.15
+
+
+def test_energy_of_symplectic_euler_is_bounded():
+    """Backward error analysis: no drift over 10⁴ steps (envelope ratio, last vs first tenth)."""
+    system = _oscillator()
+    sol = cj.integrate(system, jnp.array([1.0]), jnp.array([0.0]), dt=0.05, n_steps=10_000)
+    E = np.asarray(dg.energy(system, sol))
+    err = E - E[0]
+    assert np.max(np.abs(err)) < 0.05 * E[0]
+    assert dg.envelope_ratio(err) < 1.2
+
+
+def test_diamond_is_minus_the_pairing_with_the_velocity_map():
+    """Definition 4: <P⋄Q, ξ> = -<P, L_ξ Q> for random P, Q, ξ (SO(3) right multiplication)."""
+    system = cj.models.rigid_body(INERTIA)
+    rng = np.random.default_rng(0)
+    P, Q, xi = rng.normal(size=(3, 3)), rng.normal(size=(3, 3)), rng.normal(size=3)
+    lhs = float(jnp.dot(cj.diamond(system, P, Q, xi), xi))
+    rhs = -float(jnp.sum(P * (Q @ cj.lie.hat(xi))))
+    assert abs(lhs - rhs) < 1e-13
+    np.testing.assert_allclose(cj.momentum_map(system, P, Q, xi), -cj.diamond(system, P, Q, xi))
+
+
+def test_matrix_maps_are_inverse_pairs():
+    rng = np.random.default_rng(1)
+    for scale in (0.1, 0.5, 1.5):
+        X = scale * rng.normal(size=(3, 3)) / np.sqrt(3)
+        np.testing.assert_allclose(cj.lie.cayley_log(cj.lie.cayley_exp(X)), X, atol=1e-13)
+        np.testing.assert_allclose(cj.lie.logm(cj.lie.expm(X)), X, atol=1e-12)
+        w = rng.normal(size=3)
+        w = 2.0 * scale * w / np.linalg.norm(w)  # rotation angle 2·scale < π: so3_log's domain
+        np.testing.assert_allclose(cj.lie.so3_exp(w), cj.lie.expm(cj.lie.hat(w)), atol=1e-13)
+        np.testing.assert_allclose(cj.lie.so3_log(cj.lie.so3_exp(w)), w, atol=1e-12)
+    # Cayley is second-order accurate for exp
+    X = 1e-2 * rng.normal(size=(3, 3))
+    assert np.max(np.abs(cj.lie.cayley_exp(X) - cj.lie.expm(X))) < 1e-6 * 1.0
+
+
+def test_vmap_over_parameters_and_initial_data_matches_single_runs():
+    """A member's trajectory is the same whether run alone or inside a vmapped batch."""
+    inertias = jnp.array([[2.0, 1.0, 2 / 3], [0.5, 0.6, 1.0], [1.0, 2.0, 3.0]])
+    xi0s = jnp.array([[0.3, 0.1, 1.0], [1.0, -0.2, 0.1], [0.0, 1.0, 0.5]])
+    run = lambda I, x: cj.integrate(cj.models.rigid_body(I), jnp.eye(3), x, dt=0.1, n_steps=30)
+    batch = jax.vmap(run)(inertias, xi0s)
+    assert batch.Q.shape == (3, 31, 3, 3) and batch.P.shape == (3, 30, 3, 3) and batch.xi.shape == (3, 31, 3)
+    for i in range(3):
+        single = run(inertias[i], xi0s[i])
+        np.testing.assert_allclose(np.asarray(batch.Q[i]), np.asarray(single.Q), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(np.asarray(batch.xi[i]), np.asarray(single.xi), rtol=0, atol=1e-14)
+
+
+def test_jit_and_closures():
+    """A user closure over a traced parameter works under vmap; integrate works inside jit."""
+    def with_closure(I):
+        system = cj.ClebschSystem(
+            lagrangian=lambda x: 0.5 * jnp.sum(I * x * x),
+            velocity_map=lambda x, Q: Q @ cj.lie.hat(x),
+            derivative_map=cj.cayley,
+        )
+        return cj.integrate(system, jnp.eye(3), jnp.array([0.2, 1.0, 0.3]), dt=0.1, n_steps=20).Q[-1]
+
+    I = jnp.array([[2.0, 1.0, 2 / 3], [1.0, 2.0, 3.0]])
+    a = jax.vmap(with_closure)(I)
+    b = jax.jit(jax.vmap(lambda I: cj.integrate(cj.models.rigid_body(I), jnp.eye(3), jnp.array([0.2, 1.0, 0.3]),
+                                                dt=0.1, n_steps=20).Q[-1]))(I)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-14)
+
+
+def test_gradients_through_the_march_match_finite_differences():
+    """Reverse and forward mode through the Newton solves (implicit differentiation)."""
+    def final_angle(I1, x0):
+        sol = cj.integrate(cj.models.rigid_body(jnp.stack([I1, 1.0, 2 / 3])), jnp.eye(3), x0, dt=0.1, n_steps=20)
+        return sol.Q[-1, 0, 1] + sol.xi[-1, 2]
+
+    I1, x0 = 2.0, jnp.array([0.2, 1.0, 0.3])
+    gI, gx = jax.grad(final_angle, argnums=(0, 1))(I1, x0)
+    h = 1e-6
+    fd_I = (final_angle(I1 + h, x0) - final_angle(I1 - h, x0)) / (2 * h)
+    fd_x = np.array([(final_angle(I1, x0 + h * e) - final_angle(I1, x0 - h * e)) / (2 * h) for e in jnp.eye(3)])
+    # central differences with h = 1e-6 are accurate to ~1e-9 here
+    assert abs(float(gI) - float(fd_I)) < 1e-7
+    np.testing.assert_allclose(np.asarray(gx), fd_x, atol=1e-7)
+    jI = jax.jacfwd(final_angle)(I1, x0)
+    assert abs(float(jI) - float(gI)) < 1e-10
+
+
+def test_failure_is_reported_with_step_and_member_and_never_as_silent_nan():
+    system = cj.models.rigid_body(INERTIA)
+    x_ok, x_bad = jnp.array([0.01, 0.0, 0.01]), jnp.array([5.0, 9.0, 3.0])
+    with pytest.raises(cj.IntegrationError, match=r"step \d+ of 30"):
+        cj.integrate(system, jnp.eye(3), x_bad, dt=2.0, n_steps=30)
+    sols = jax.vmap(lambda x: cj.integrate(system, jnp.eye(3), x, dt=2.0, n_steps=30, throw=False))(
+        jnp.stack([x_ok, x_bad])
+    )
+    assert int(sols.result[0]) == cj.Status.SUCCESS and int(sols.result[1]) != cj.Status.SUCCESS
+    k = int(sols.failed_step[1])
+    assert not bool(sols.valid[1, k + 1]) and bool(sols.valid[1, k])
+    # after the failure: flagged invalid, later steps marked skipped, no finite-looking values
+    assert np.all(np.asarray(sols.stats.status[1, k + 1:]) == cj.Status.SKIPPED)
+    assert np.all(np.isnan(np.asarray(sols.Q[1, k + 1:])))
+    assert np.all(np.isfinite(np.asarray(sols.Q[1, : k + 1])))
+    with pytest.raises(cj.IntegrationError, match=r"batch member 1, step"):
+        sols.raise_if_failed()
+    # with throw=True under vmap the host check names the member too
+    with pytest.raises(Exception, match=r"batch member 1, step"):
+        jax.vmap(lambda x: cj.integrate(system, jnp.eye(3), x, dt=2.0, n_steps=30))(jnp.stack([x_ok, x_bad]))
+
+
+def test_nan_initial_data_under_jit_is_reported_not_returned():
+    """Under jit the values are unknown when validating, so a NaN initial state reaches the
+    march; the first step then fails and the run raises instead of returning NaNs."""
+    system = cj.models.rigid_body(INERTIA)
+    run = jax.jit(lambda x: cj.integrate(system, jnp.eye(3), x, dt=0.1, n_steps=5).Q)
+    with pytest.raises(Exception, match=r"step 0 of 5"):
+        jax.block_until_ready(run(jnp.array([jnp.nan, 0.0, 1.0])))
