@@ -177,6 +177,8 @@ def _march(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, rtol, atol, max_newt
     if not P0_given:
         P0 = initial_multiplier(system, Q0, xi0)
     else:
+        # Seeds the first step's guess only; node 0's nodal velocity is solved (and its
+        # status checked and reported) with all the other nodes after the march.
         xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol,
                                 max_iterations=max_newton_iterations)
     z_first = StepUnknowns(xi0, P0, Q0 + dt * system.velocity_map(xi0, Q0))

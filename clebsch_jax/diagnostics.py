@@ -73,16 +73,24 @@ def noether_momentum(sol: Solution, generators: Callable[[jax.Array], jax.Array]
 
 def orthogonality_error(Q: jax.Array) -> jax.Array:
     r"""$\max |Q^TQ - I|$ per matrix (for $SO(n)$ configurations); maps over leading axes."""
-    eye = jnp.eye(Q.shape[-1], dtype=Q.dtype)
+    eye = jnp.broadcast_to(jnp.eye(Q.shape[-1], dtype=Q.dtype), Q.shape)
     return jnp.max(jnp.abs(jnp.swapaxes(Q, -1, -2) @ Q - eye), axis=(-2, -1))
 
 
-def relative_drift(values: jax.Array, axis: int = 0) -> jax.Array:
-    r"""$\max_n \|v^n - v^0\|_\infty / \|v^0\|_\infty$ along `axis` (the time axis)."""
+def relative_drift(values: jax.Array, axis: int = 0, *, feature_ndim: int = 0) -> jax.Array:
+    r"""$\max_n \|v^n - v^0\|_\infty / \|v^0\|_\infty$ along the time `axis`.
+
+    The trailing `feature_ndim` axes are one quantity (e.g. 1 for a momentum vector) and are
+    reduced with the max-norm; any other axes are batch axes and are kept, so a batch gets
+    one drift per member.
+    """
     v = jnp.moveaxis(jnp.asarray(values), axis, 0)
-    v0 = v[0]
-    scale = jnp.maximum(jnp.max(jnp.abs(v0)), jnp.finfo(v.dtype).tiny)
-    return jnp.max(jnp.abs(v - v0)) / scale
+    feat = tuple(range(v.ndim - feature_ndim, v.ndim))
+    v0 = v[:1]
+    scale = jnp.max(jnp.abs(v0), axis=(0,) + feat)
+    scale = jnp.maximum(scale, jnp.finfo(v.dtype).tiny)
+    dev = jnp.max(jnp.abs(v - v0), axis=(0,) + feat)
+    return dev / scale
 
 
 def envelope_ratio(error, fraction: float = 0.1) -> float:

@@ -187,3 +187,10 @@ def test_nan_initial_data_under_jit_is_reported_not_returned():
     run = jax.jit(lambda x: cj.integrate(system, jnp.eye(3), x, dt=0.1, n_steps=5).Q)
     with pytest.raises(Exception, match=r"step 0 of 5"):
         jax.block_until_ready(run(jnp.array([jnp.nan, 0.0, 1.0])))
+
+
+def test_drift_diagnostics_are_per_member_and_rank_strict():
+    v = jnp.array([[[1.0, 2.0], [1.0, 2.1]], [[3.0, 1.0], [3.3, 1.0]]])  # (batch, time, feature)
+    np.testing.assert_allclose(dg.relative_drift(v, axis=1, feature_ndim=1), [0.05, 0.1])
+    with jax.numpy_rank_promotion("raise"):
+        assert float(jnp.max(dg.orthogonality_error(jnp.stack([jnp.eye(3)] * 4)))) == 0.0
