@@ -22,15 +22,21 @@ from ._derivative_maps import (  # noqa: E402
     cayley as cayley,
     exponential as exponential,
     forward_difference as forward_difference,
+    so3_exponential as so3_exponential,
 )
 from ._discrete_action import (  # noqa: E402
     SCHEMES as SCHEMES,
     discrete_action as discrete_action,
     discrete_lagrangian as discrete_lagrangian,
 )
-from ._integrate import (  # noqa: E402
+from ._closure import (  # noqa: E402
+    ClosureResult as ClosureResult,
+    check_closure as check_closure,
+    euler_poincare_field as euler_poincare_field,
+)
+from ._integrate import integrate as integrate  # noqa: E402
+from ._march_full import (  # noqa: E402
     initial_multiplier as initial_multiplier,
-    integrate as integrate,
     nodal_velocity as nodal_velocity,
 )
 from ._newton import NewtonStats as NewtonStats, Status as Status, newton_solve as newton_solve  # noqa: E402

@@ -33,7 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import diagnostics, lie
-from ._integrate import initial_multiplier, integrate
+from ._integrate import integrate
+from ._march_full import cotangent_from_momentum, initial_multiplier
 from ._solution import IntegrationError
 from .models import rigid_body
 
@@ -172,7 +173,7 @@ def _chunk_function(system, dt: float, n_steps: int, compiler_options=None):
         diag = {
             "m": diagnostics.body_momentum(system, sol),
             "E": diagnostics.energy(system, sol),
-            "J": diagnostics.noether_momentum(sol, _spatial_generators),
+            "J": diagnostics.noether_momentum(sol, _spatial_generators, system),
             "orth": diagnostics.orthogonality_error(sol.Q),
         }
         return sol, diag
@@ -210,7 +211,10 @@ def _march(system, m0: np.ndarray, dt: float, n_steps: int, compiler_options=Non
         pieces.append({k: np.asarray(v)[:, keep] for k, v in diag.items()}
                       | {"t": np.asarray(sol.ts)[0, keep]})
         iters.append(np.asarray(sol.stats.iterations))
-        Q, P, xi = sol.Q[:, -1], sol.p[:, -1], sol.xi[:, -1]
+        # restart from the last node: the reduced march's state is the body momentum, so the
+        # minimum-norm multiplier with that momentum map continues it exactly
+        Q, xi = sol.Q[:, -1], sol.xi[:, -1]
+        P = jax.vmap(lambda q, mu: cotangent_from_momentum(system, q, mu))(Q, sol.momentum[:, -1])
         t0 = float(np.asarray(sol.ts)[0, -1])
 
     out = {k: np.concatenate([p[k] for p in pieces], axis=1 if k != "t" else 0) for k in pieces[0]}

@@ -14,7 +14,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from . import lie
+from . import _linalg, lie
 
 __all__ = [
     "DerivativeMap",
@@ -23,6 +23,7 @@ __all__ = [
     "forward_difference",
     "cayley",
     "exponential",
+    "so3_exponential",
 ]
 
 
@@ -72,7 +73,7 @@ class MatrixGroupDifference(DerivativeMap):
     symmetric: bool = True
 
     def __call__(self, Q_next, Q, dt):
-        return Q @ self.log(jnp.linalg.solve(Q, Q_next)) / dt
+        return Q @ self.log(_linalg.solve(Q, Q_next)) / dt
 
 
 forward_difference = VectorSpaceDifference()
@@ -83,3 +84,11 @@ cayley = MatrixGroupDifference(log=lie.cayley_log, exp=lie.cayley_exp, name="cay
 
 exponential = MatrixGroupDifference(log=lie.logm, exp=lie.expm, name="exponential")
 """Definition 25 with the exact matrix logarithm/exponential (Definitions 23-24)."""
+
+so3_exponential = MatrixGroupDifference(
+    log=lie.logm, exp=lambda X: lie.so3_exp(lie.vee(X)), name="so3 exponential"
+)
+"""Definition 25 with the exact exponential on SO(3): Rodrigues' formula for exp (used by the
+reduced march to reconstruct Q), the matrix logarithm for log (the full march solves in ambient
+GL(3) coordinates, where log must be a local diffeomorphism, which a Rodrigues inverse is not).
+Its X must lie in so(3)."""

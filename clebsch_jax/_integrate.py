@@ -11,12 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._discrete_action import SCHEMES
-from ._newton import NewtonStats, Status, newton_solve
-from ._residual import StepUnknowns, legendre_residual, outgoing_momentum, step_residual
+from ._march_full import march_full
+from ._march_reduced import march_reduced
+from ._reduction import find_reduction
 from ._solution import Solution, check_traced
 from ._system import ClebschSystem
 
-__all__ = ["integrate", "initial_multiplier", "nodal_velocity"]
+__all__ = ["integrate"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -143,98 +144,8 @@ def _nominal_order(system: ClebschSystem) -> int:
     return 2 if symmetric and not system.has_potential else 1
 
 
-# --------------------------------------------------------------------------------------------
-# The parts of the march.
-
-
-def initial_multiplier(system: ClebschSystem, Q0: jax.Array, xi0: jax.Array) -> jax.Array:
-    r"""The minimum-norm $P^0$ with $\delta l/\delta\xi(\xi^0, Q^0) = -P^0 \diamond Q^0$ (Lemma 7).
-
-    With $A = \partial_\xi \mathcal L_\xi Q^0$ (a matrix from $V$ to $T_{Q^0}M$, by forward-mode
-    autodiff) the condition is $A^T P^0 = \delta l/\delta \xi$; among its solutions we take the
-    one of least Euclidean norm, $P^0 = (A^T)^+ \,\delta l/\delta\xi$. Components of $P^0$
-    that the velocity map cannot see (e.g. the symmetric part of $Q^T P$ on $SO(3)$) are zero.
-    """
-    g = jax.grad(lambda x: system.l(x, Q0))(xi0).ravel()
-    A = jax.jacfwd(lambda x: system.velocity_map(x.reshape(xi0.shape), Q0).ravel())(xi0.ravel())
-    P0 = jnp.linalg.lstsq(A.T, g)[0]
-    return P0.reshape(Q0.shape)
-
-
-def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax.Array, *,
-                   rtol: float = 1e-12, atol: float = 1e-12, max_iterations: int = 20):
-    r"""Solve Lemma 7's $\delta l/\delta\xi(\xi, Q) = -p \diamond Q$ for $\xi$ by Newton.
-
-    Returns `(xi, NewtonStats)`. Requires $l$ to be regular in $\xi$ (Lemma 8).
-    """
-    return newton_solve(lambda x: legendre_residual(system, Q, p, x), guess,
-                        rtol=rtol, atol=atol, max_iterations=max_iterations)
-
-
-def _march(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, rtol, atol, max_newton_iterations,
-           P0_given):
-    newton = functools.partial(newton_solve, rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
-    if not P0_given:
-        P0 = initial_multiplier(system, Q0, xi0)
-    else:
-        # Seeds the first step's guess only; node 0's nodal velocity is solved (and its
-        # status checked and reported) with all the other nodes after the march.
-        xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol,
-                                max_iterations=max_newton_iterations)
-    z_first = StepUnknowns(xi0, P0, Q0 + dt * system.velocity_map(xi0, Q0))
-    z_before = StepUnknowns(xi0, P0, Q0)
-
-    def step(carry, _):
-        Q, p, z_prev, z_pp, n, alive = carry
-        guess = jax.tree_util.tree_map(
-            lambda first, a, b: jnp.where(n == 0, first, 2.0 * a - b), z_first, z_prev, z_pp
-        )
-        z, stats = newton(lambda z: step_residual(system, scheme, dt, Q, p, z), guess)
-        p1 = outgoing_momentum(system, scheme, dt, Q, z)
-        ok = alive & (stats.status == Status.SUCCESS)
-        status = jnp.where(alive, stats.status, Status.SKIPPED).astype(jnp.int32)
-        z = jax.tree_util.tree_map(lambda a: jnp.where(ok, a, jnp.nan), z)
-        p1 = jnp.where(ok, p1, jnp.nan)
-        out = (z, p1, NewtonStats(stats.iterations, stats.residual_norm, status))
-        return (z.Q1, p1, z, z_prev, n + 1, ok), out
-
-    init = (Q0, P0, z_first, z_before, jnp.asarray(0, jnp.int32), jnp.asarray(True))
-    _, (zs, ps, stats) = jax.lax.scan(step, init, None, length=n_steps)
-
-    Qs = jnp.concatenate([Q0[None], zs.Q1])
-    pn = jnp.concatenate([P0[None], ps])
-    failed = stats.status != Status.SUCCESS
-    valid = jnp.concatenate([jnp.array([True]), jnp.cumsum(failed) == 0])
-
-    # Nodal velocities: the step velocity leaving each node is the initial guess.
-    guesses = jnp.concatenate([xi0[None], zs.xi[1:], zs.xi[-1:]])
-    xin, nodal = jax.vmap(
-        lambda q, p, g: nodal_velocity(system, q, p, g, rtol=rtol, atol=atol,
-                                       max_iterations=max_newton_iterations)
-    )(Qs, pn, jnp.where(valid.reshape((-1,) + (1,) * xi0.ndim), guesses, jnp.nan))
-    nodal_status = jnp.where(valid, nodal.status, Status.SKIPPED).astype(jnp.int32)
-    xin = jnp.where(valid.reshape((-1,) + (1,) * xi0.ndim), xin, jnp.nan)
-    nodal = NewtonStats(nodal.iterations, nodal.residual_norm, nodal_status)
-
-    any_step = jnp.any(failed)
-    first_step = jnp.argmax(failed)
-    nodal_failed = valid & (nodal_status != Status.SUCCESS)
-    any_nodal = jnp.any(nodal_failed)
-    first_node = jnp.argmax(nodal_failed)
-    result = jnp.where(any_step, stats.status[first_step],
-                       jnp.where(any_nodal, Status.LEGENDRE, Status.SUCCESS)).astype(jnp.int32)
-    failed_step = jnp.where(any_step, first_step, jnp.where(any_nodal, first_node, -1)).astype(jnp.int32)
-
-    ts = t0 + dt * jnp.arange(n_steps + 1, dtype=dt.dtype)
-    return Solution(
-        ts=ts, Q=Qs, p=pn, xi=xin, xi_step=zs.xi, P=zs.P, stats=stats, nodal_stats=nodal,
-        result=result, failed_step=failed_step, valid=valid, scheme=scheme, form="full",
-        order=_nominal_order(system), derivative_map=getattr(system.derivative_map, "name", repr(system.derivative_map)),
-        q_ndim=Q0.ndim, xi_ndim=xi0.ndim,
-    )
-
-
-_march_jit = _filter_jit(_march)
+_march_full_jit = _filter_jit(march_full)
+_march_reduced_jit = _filter_jit(march_reduced)
 
 
 def integrate(
@@ -247,17 +158,26 @@ def integrate(
     P0=None,
     t0=0.0,
     scheme: str = "left",
-    rtol: float = 1e-12,
-    atol: float = 1e-12,
+    reduce="auto",
+    need_P: bool = False,
+    reconstruct: bool = True,
+    rtol: float = 0.0,
+    atol: float = 0.0,
     max_newton_iterations: int = 20,
     throw: bool = True,
 ) -> Solution:
     r"""March the discrete Clebsch equations (Lemma 20) of `system` from $(Q^0, \xi^0)$.
 
-    Each step solves, by Newton's method with a forward-mode Jacobian, the stationarity
-    conditions of the discrete action (`clebsch_jax.discrete_action`) for
-    $(\xi^n, P^n, Q^{n+1})$; the conditions are obtained with `jax.grad`, nothing
-    model-specific is written by hand. Steps run in `jax.lax.scan`.
+    **Full march** (`form="full"`): each step solves, by Newton's method with a forward-mode
+    Jacobian, the stationarity conditions of the discrete action (`clebsch_jax.discrete_action`)
+    for $(\xi^n, P^n, Q^{n+1})$ — obtained with `jax.grad`, nothing model-specific written by
+    hand — as a symplectic map $(Q^n, p^n) \mapsto (Q^{n+1}, p^{n+1})$.
+
+    **Reduced march** (`form="reduced"`, Theorem 27 / Corollary 29): when the velocity map is
+    right multiplication on a matrix group, closed (Theorem 12), and the derivative map is of
+    Definition 25's form, Q and P are eliminated and each step solves only for $\xi^n$ (dim V
+    unknowns) from the body momentum $\mu^n$; see `clebsch_jax._reduction`. Same trajectory,
+    far fewer unknowns. Steps run in `jax.lax.scan` in both forms.
 
     **Arguments:**
 
@@ -271,7 +191,17 @@ def integrate(
     - `P0`: optional initial multiplier (the canonical momentum at $Q^0$), shape of `Q0`.
     - `t0`: initial time (only used for `Solution.ts`).
     - `scheme`: `"left"` (Definition 19) or `"right"` (the adjoint principle of Remark 22).
-    - `rtol`, `atol`, `max_newton_iterations`: Newton stopping rule, see `newton_solve`.
+    - `reduce`: `"auto"` (default) uses the reduced march when it applies and `need_P` is
+      False; `True` forces it (a `ValueError` says why when it does not apply); `False`
+      forces the full march. `Solution.form` says which ran.
+    - `need_P`: the caller needs the multipliers $P^n$. With `reduce="auto"` this selects the
+      full march; with `reduce=True` the reduced march reconstructs the minimum-norm $P^n$.
+    - `reconstruct`: reduced march only: reconstruct $Q^n$ (default). With False and an l
+      that does not depend on Q, `Solution.Q` is None and Q is never computed.
+    - `rtol`, `atol`, `max_newton_iterations`: Newton stopping rule, see `newton_solve`. The
+      default 0, 0 iterates to round-off, which exact conservation of momenta needs; a
+      positive tolerance bounds the estimated error per step instead (cheaper, but errors add
+      up over long runs).
     - `throw`: if True (default) a failed step raises `IntegrationError` once, at the end,
       naming the step (and batch member under `jax.vmap`), the reason and what to try. Under
       `jit`/`vmap` the error is raised from a host callback. If False, failures are only
@@ -280,21 +210,36 @@ def integrate(
 
     **Returns:** a `Solution`.
 
-    Transformations: works under `jax.jit` (`n_steps`, `scheme` and the tolerances are
-    static) and `jax.vmap` over `Q0`, `xi0`, `P0`, `dt` and array parameters inside the
+    Transformations: works under `jax.jit` (`n_steps`, `scheme`, `reduce` and the tolerances
+    are static) and `jax.vmap` over `Q0`, `xi0`, `P0`, `dt` and array parameters inside the
     system. Derivatives (forward and reverse mode) flow through the Newton solves by implicit
     differentiation (`jax.lax.custom_root`).
     """
     Q0, xi0, P0, dt = _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_iterations)
+    if reduce not in ("auto", True, False):
+        raise ValueError(f"reduce: expected 'auto', True or False, got {reduce!r}.")
     t0 = jnp.asarray(t0, dtype=dt.dtype)
     P0_given = P0 is not None
-    sol = _march_jit(system, Q0, xi0, P0 if P0_given else jnp.zeros_like(Q0), dt, t0,
-                     n_steps=n_steps, scheme=scheme, rtol=float(rtol), atol=float(atol),
-                     max_newton_iterations=int(max_newton_iterations), P0_given=P0_given)
+    common = dict(n_steps=n_steps, scheme=scheme, rtol=float(rtol), atol=float(atol),
+                  max_newton_iterations=int(max_newton_iterations), P0_given=P0_given,
+                  order=_nominal_order(system))
+    P0 = P0 if P0_given else jnp.zeros_like(Q0)
+    red = None
+    if reduce is not False:
+        red, reason = find_reduction(system, Q0, xi0)
+        if reduce is True and red is None:
+            raise ValueError(f"reduce: the reduced march does not apply to this system: {reason}.")
+        if reduce == "auto" and need_P:
+            red = None
+    if red is None:
+        sol = _march_full_jit(system, Q0, xi0, P0, dt, t0, **common)
+    else:
+        sol = _march_reduced_jit(system, red, Q0, xi0, P0, dt, t0, **common,
+                                 carry_Q=bool(reconstruct or system.has_potential or need_P),
+                                 need_P=bool(need_P))
     if throw:
         if _is_traced(sol.result):
-            result = check_traced(sol)
-            sol = dataclasses.replace(sol, result=result)
+            sol = dataclasses.replace(sol, result=check_traced(sol))
         else:
             sol.raise_if_failed()
     return sol

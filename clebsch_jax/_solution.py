@@ -33,6 +33,13 @@ class Solution:
       $\phi_{\Delta t}(Q^{n+1}, Q^n) = \mathcal L_{\xi^n} Q^n$ (Lemma 20). For symmetric
       derivative maps it approximates $\xi(t_n + \Delta t/2)$.
     - `P` (N, *Q.shape): the multipliers $P^n$ of Lemma 20, one per step.
+    - `momentum` (N+1, *xi.shape): the momentum map $\mu^n = -p^n \diamond Q^n$ at every node
+      (Theorem 12; the body momentum for a matrix group), which equals $\delta l/\delta\xi$.
+
+    The reduced march (`form="reduced"`, issue of Theorem 12 / Corollary 29) carries $\mu^n$
+    instead of $(Q^n, p^n)$: there `p` is None, `Q` is None unless it was reconstructed, and
+    `P` is None unless it was asked for (then it is the minimum-norm multiplier of each step,
+    which differs from the full march's $P^n$ only in components the velocity map cannot see).
     - `stats`: `NewtonStats` of the step solves, each (N,): `iterations`,
       `residual_norm` (max-norm of the final Lemma 20 residual), `status` (`Status` codes).
     - `nodal_stats`: `NewtonStats` of the nodal-velocity solves, each (N+1,).
@@ -40,16 +47,17 @@ class Solution:
       step (or node, for a nodal failure), -1 if none.
     - `valid` (N+1,): False at nodes after a failure. Their values are NaN on purpose, never
       plausible-looking numbers.
-    - Static facts: `scheme`, `form` ("full" here), `order` (nominal order of the method),
+    - Static facts: `scheme`, `form` ("full" or "reduced"), `order` (nominal order of the method),
       `derivative_map` (its name), `q_ndim` and `xi_ndim` (ranks of one Q and one ξ).
     """
 
     ts: jax.Array
-    Q: jax.Array
-    p: jax.Array
+    Q: jax.Array | None
+    p: jax.Array | None
     xi: jax.Array
     xi_step: jax.Array
-    P: jax.Array
+    P: jax.Array | None
+    momentum: jax.Array
     stats: NewtonStats
     nodal_stats: NewtonStats
     result: jax.Array
@@ -65,7 +73,7 @@ class Solution:
     @property
     def batch_ndim(self) -> int:
         """Number of leading batch axes (0 for a single trajectory)."""
-        return self.Q.ndim - 1 - self.q_ndim
+        return self.xi.ndim - 1 - self.xi_ndim
 
     @property
     def succeeded(self) -> jax.Array:
@@ -101,7 +109,8 @@ class Solution:
 jax.tree_util.register_dataclass(
     Solution,
     data_fields=[
-        "ts", "Q", "p", "xi", "xi_step", "P", "stats", "nodal_stats", "result", "failed_step", "valid",
+        "ts", "Q", "p", "xi", "xi_step", "P", "momentum", "stats", "nodal_stats", "result", "failed_step",
+        "valid",
     ],
     meta_fields=["scheme", "form", "order", "derivative_map", "q_ndim", "xi_ndim"],
 )

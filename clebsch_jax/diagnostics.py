@@ -12,8 +12,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._march_full import cotangent_from_momentum
 from ._solution import Solution
-from ._system import ClebschSystem, momentum_map
+from ._system import ClebschSystem
 
 __all__ = [
     "energy",
@@ -43,6 +44,8 @@ def energy(system: ClebschSystem, sol: Solution) -> jax.Array:
         lval, g = jax.value_and_grad(lambda y: system.l(y, q))(x)
         return jnp.sum(g * x) - lval
 
+    if sol.Q is None:  # reduced march without reconstruction: l does not depend on Q
+        return _over_nodes(lambda x: one(None, x), sol, sol.xi)
     return _over_nodes(one, sol, sol.Q, sol.xi)
 
 
@@ -52,10 +55,12 @@ def body_momentum(system: ClebschSystem, sol: Solution) -> jax.Array:
     For right multiplication on a matrix group this is the body momentum, whose Casimirs
     (e.g. $|J|^2$ on $SO(3)$) the integrator conserves. Shape: batch + (N+1,) + ξ's shape.
     """
-    return _over_nodes(lambda q, p, x: momentum_map(system, p, q, x), sol, sol.Q, sol.p, sol.xi)
+    del system  # carried by the march in both forms (`Solution.momentum`)
+    return sol.momentum
 
 
-def noether_momentum(sol: Solution, generators: Callable[[jax.Array], jax.Array]) -> jax.Array:
+def noether_momentum(sol: Solution, generators: Callable[[jax.Array], jax.Array],
+                     system: ClebschSystem | None = None) -> jax.Array:
     r"""Noether momenta $\langle p^n, Y_k(Q^n)\rangle$ of the discrete flow.
 
     `generators(Q)` returns shape (K, *Q.shape): K infinitesimal generators of a symmetry of
@@ -68,6 +73,16 @@ def noether_momentum(sol: Solution, generators: Callable[[jax.Array], jax.Array]
         Y = generators(q)
         return jnp.sum(Y * p[None], axis=tuple(range(1, Y.ndim)))
 
+    if sol.Q is None:
+        raise ValueError("sol: Noether momenta need the configurations; integrate with reconstruct=True.")
+    if sol.p is None:
+        if system is None:
+            raise ValueError("system: needed to rebuild cotangent momenta from a reduced march.")
+        # Reduced march: rebuild the part of pⁿ the velocity map sees, the minimum-norm p
+        # with -p⋄Q = μ. Exact for generators tangent to the orbits of the velocity map
+        # (e.g. the left action on a group acted on by right multiplication).
+        p = _over_nodes(lambda q, mu: cotangent_from_momentum(system, q, mu), sol, sol.Q, sol.momentum)
+        return _over_nodes(one, sol, sol.Q, p)
     return _over_nodes(one, sol, sol.Q, sol.p)
 
 
@@ -109,3 +124,4 @@ def fit_order(dts, errors) -> float:
     """Slope of the least-squares fit of log(error) against log(dt): the measured order."""
     slope, _ = np.polyfit(np.log(np.asarray(dts, float)), np.log(np.asarray(errors, float)), 1)
     return float(slope)
+

@@ -8,6 +8,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from . import _linalg
+
 __all__ = [
     "hat",
     "vee",
@@ -71,7 +73,7 @@ def cayley_exp(X: jax.Array) -> jax.Array:
     + O(X^3)$.
     """
     eye = _eye_like(X)
-    return jnp.linalg.solve(eye - 0.5 * X, eye + 0.5 * X)
+    return _linalg.solve(eye - 0.5 * X, eye + 0.5 * X)
 
 
 def cayley_log(A: jax.Array) -> jax.Array:
@@ -81,7 +83,7 @@ def cayley_log(A: jax.Array) -> jax.Array:
     $GL(n)$ near $I$, not only on the group.
     """
     eye = _eye_like(A)
-    return 2.0 * jnp.linalg.solve(A + eye, A - eye)
+    return 2.0 * _linalg.solve(A + eye, A - eye)
 
 
 def expm(X: jax.Array) -> jax.Array:
@@ -90,10 +92,11 @@ def expm(X: jax.Array) -> jax.Array:
 
 
 def _sqrtm_denman_beavers(A: jax.Array, iterations: int) -> jax.Array:
-    Y, Z = A, _eye_like(A)
-    for _ in range(iterations):
-        Y, Z = 0.5 * (Y + jnp.linalg.inv(Z)), 0.5 * (Z + jnp.linalg.inv(Y))
-    return Y
+    def body(_, YZ):
+        Y, Z = YZ
+        return 0.5 * (Y + _linalg.inv(Z)), 0.5 * (Z + _linalg.inv(Y))
+
+    return jax.lax.fori_loop(0, iterations, body, (A, _eye_like(A)))[0]
 
 
 def logm(A: jax.Array, *, square_roots: int = 2, sqrt_iterations: int = 8, terms: int = 15) -> jax.Array:
@@ -107,16 +110,17 @@ def logm(A: jax.Array, *, square_roots: int = 2, sqrt_iterations: int = 8, terms
     where a derivative map is used. Unlike a Rodrigues formula it is a local diffeomorphism
     of $GL(n)$, which the full (ξ, P, Q) Newton solve in ambient coordinates needs.
     """
-    for _ in range(square_roots):
-        A = _sqrtm_denman_beavers(A, sqrt_iterations)
+    A = jax.lax.fori_loop(0, square_roots, lambda _, B: _sqrtm_denman_beavers(B, sqrt_iterations), A)
     eye = _eye_like(A)
-    Z = jnp.linalg.solve(A + eye, A - eye)
+    Z = _linalg.solve(A + eye, A - eye)
     Z2 = Z @ Z
-    term = Z
-    total = Z
-    for k in range(1, terms):
+
+    def body(k, acc):
+        term, total = acc
         term = term @ Z2
-        total = total + term / (2 * k + 1)
+        return term, total + term / (2 * k + 1)
+
+    _, total = jax.lax.fori_loop(1, terms, body, (Z, Z))
     return (2.0 ** (square_roots + 1)) * total
 
 

@@ -20,7 +20,8 @@ def no_compilation(monkeypatch):
     def boom(*args, **kwargs):
         raise AssertionError("the march was compiled for invalid input")
 
-    monkeypatch.setattr(_integrate, "_march_jit", boom)
+    monkeypatch.setattr(_integrate, "_march_full_jit", boom)
+    monkeypatch.setattr(_integrate, "_march_reduced_jit", boom)
 
 
 @pytest.mark.parametrize(

@@ -17,7 +17,8 @@ def test_trajectory_is_stationary_for_the_whole_discrete_action(scheme):
     with respect to every ξⁿ, every Pⁿ and every interior Qⁿ vanishes on the trajectory."""
     system = cj.models.rigid_body(INERTIA)
     dt = 0.1
-    sol = cj.integrate(system, jnp.eye(3), jnp.array([0.4, -1.0, 0.7]), dt=dt, n_steps=40, scheme=scheme)
+    sol = cj.integrate(system, jnp.eye(3), jnp.array([0.4, -1.0, 0.7]), dt=dt, n_steps=40, scheme=scheme,
+                       reduce=False)
     g_xi, g_P, g_Q = jax.grad(lambda x, P, Q: cj.discrete_action(system, scheme, dt, x, P, Q), argnums=(0, 1, 2))(
         sol.xi_step, sol.P, sol.Q
     )
@@ -110,13 +111,16 @@ def test_matrix_maps_are_inverse_pairs():
     assert np.max(np.abs(cj.lie.cayley_exp(X) - cj.lie.expm(X))) < 1e-6 * 1.0
 
 
-def test_vmap_over_parameters_and_initial_data_matches_single_runs():
+@pytest.mark.parametrize("reduce", [False, True])
+def test_vmap_over_parameters_and_initial_data_matches_single_runs(reduce):
     """A member's trajectory is the same whether run alone or inside a vmapped batch."""
     inertias = jnp.array([[2.0, 1.0, 2 / 3], [0.5, 0.6, 1.0], [1.0, 2.0, 3.0]])
     xi0s = jnp.array([[0.3, 0.1, 1.0], [1.0, -0.2, 0.1], [0.0, 1.0, 0.5]])
-    run = lambda I, x: cj.integrate(cj.models.rigid_body(I), jnp.eye(3), x, dt=0.1, n_steps=30)
+    run = lambda I, x: cj.integrate(cj.models.rigid_body(I), jnp.eye(3), x, dt=0.1, n_steps=30, reduce=reduce)
     batch = jax.vmap(run)(inertias, xi0s)
-    assert batch.Q.shape == (3, 31, 3, 3) and batch.P.shape == (3, 30, 3, 3) and batch.xi.shape == (3, 31, 3)
+    assert batch.Q.shape == (3, 31, 3, 3) and batch.xi.shape == (3, 31, 3)
+    if not reduce:
+        assert batch.P.shape == (3, 30, 3, 3) and batch.p.shape == (3, 31, 3, 3)
     for i in range(3):
         single = run(inertias[i], xi0s[i])
         np.testing.assert_allclose(np.asarray(batch.Q[i]), np.asarray(single.Q), rtol=0, atol=1e-14)
@@ -158,26 +162,47 @@ def test_gradients_through_the_march_match_finite_differences():
     assert abs(float(jI) - float(gI)) < 1e-10
 
 
-def test_failure_is_reported_with_step_and_member_and_never_as_silent_nan():
-    system = cj.models.rigid_body(INERTIA)
-    x_ok, x_bad = jnp.array([0.01, 0.0, 0.01]), jnp.array([5.0, 9.0, 3.0])
-    with pytest.raises(cj.IntegrationError, match=r"step \d+ of 30"):
-        cj.integrate(system, jnp.eye(3), x_bad, dt=2.0, n_steps=30)
-    sols = jax.vmap(lambda x: cj.integrate(system, jnp.eye(3), x, dt=2.0, n_steps=30, throw=False))(
-        jnp.stack([x_ok, x_bad])
+def _breaks_above(c):
+    """A rigid body whose Lagrangian has a NaN gradient once ξ₁ exceeds c: ε·√(c − ξ₁) barely
+    changes the dynamics below c and injects a NaN into the Newton residual above it."""
+    I = jnp.asarray(INERTIA)
+    return cj.ClebschSystem(
+        lagrangian=lambda x: 0.5 * jnp.sum(I * x * x) + 1e-3 * jnp.sqrt(c - x[0]),
+        velocity_map=lambda x, Q: Q @ cj.lie.hat(x),
+        derivative_map=cj.cayley,
     )
+
+
+@pytest.mark.parametrize("reduce", [False, True])
+def test_failure_is_reported_with_step_and_member_and_never_as_silent_nan(reduce):
+    """ξ₁ of the second member reaches 0.46 and first exceeds 0.4 after some steps; the first
+    member stays near 0.05. Both marches must report the step and the member."""
+    system = _breaks_above(0.4)
+    x_ok, x_bad = jnp.array([0.05, 0.0, 0.05]), jnp.array([0.3, 1.0, 0.2])
+    run = lambda x, throw: cj.integrate(system, jnp.eye(3), x, dt=0.1, n_steps=60, reduce=reduce, throw=throw)
+    with pytest.raises(cj.IntegrationError, match=r"step \d+ of 60"):
+        run(x_bad, True)
+    sols = jax.vmap(lambda x: run(x, False))(jnp.stack([x_ok, x_bad]))
+    assert sols.form == ("reduced" if reduce else "full")
     assert int(sols.result[0]) == cj.Status.SUCCESS and int(sols.result[1]) != cj.Status.SUCCESS
     k = int(sols.failed_step[1])
+    assert k > 0  # it fails mid-run, where ξ₁ first crosses 0.4
+    assert float(sols.xi[1, k - 1, 0]) < 0.4 and np.all(np.isfinite(np.asarray(sols.xi[1, :k])))
+    # node k itself is reached (Q, momentum valid); its nodal velocity lies past the threshold,
+    # where l is undefined: that is recorded, not hidden
+    assert bool(jnp.isfinite(sols.xi[1, k, 0])) or int(sols.nodal_stats.status[1, k]) == cj.Status.NONFINITE
     assert not bool(sols.valid[1, k + 1]) and bool(sols.valid[1, k])
     # after the failure: flagged invalid, later steps marked skipped, no finite-looking values
     assert np.all(np.asarray(sols.stats.status[1, k + 1:]) == cj.Status.SKIPPED)
     assert np.all(np.isnan(np.asarray(sols.Q[1, k + 1:])))
+    assert np.all(np.isnan(np.asarray(sols.xi[1, k + 1:])))
     assert np.all(np.isfinite(np.asarray(sols.Q[1, : k + 1])))
+    assert np.all(np.isfinite(np.asarray(sols.Q[0])))
     with pytest.raises(cj.IntegrationError, match=r"batch member 1, step"):
         sols.raise_if_failed()
     # with throw=True under vmap the host check names the member too
     with pytest.raises(Exception, match=r"batch member 1, step"):
-        jax.vmap(lambda x: cj.integrate(system, jnp.eye(3), x, dt=2.0, n_steps=30))(jnp.stack([x_ok, x_bad]))
+        jax.vmap(lambda x: run(x, True))(jnp.stack([x_ok, x_bad]))
 
 
 def test_nan_initial_data_under_jit_is_reported_not_returned():

@@ -23,7 +23,8 @@ def test_full_march_reproduces_cay_recursion():
     """Issue 2, check 1: Example 30's compact reduced equation, 2000 steps at Δt = 0.1."""
     dt, n = 0.1, 2000
     m0 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
-    sol = cj.integrate(cj.models.rigid_body(TEST_INERTIA), jnp.eye(3), m0 / TEST_INERTIA, dt=dt, n_steps=n)
+    sol = cj.integrate(cj.models.rigid_body(TEST_INERTIA), jnp.eye(3), m0 / TEST_INERTIA, dt=dt, n_steps=n,
+                       reduce=False)
     X = np.asarray(sol.xi_step)
     # The compact matrix form holds along the computed step velocities ...
     assert cay_compact_residual(TEST_INERTIA, X, dt) <= 1e-12
@@ -45,7 +46,7 @@ def test_order_two_against_tight_reference(dmap):
     n = int(round(T / dts[-1]))
     m0 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
     Q0 = np.asarray(cj.lie.so3_exp(jnp.array([0.3, -0.2, 0.5])))
-    run = jax.jit(lambda dt: cj.integrate(system, Q0, m0 / TEST_INERTIA, dt=dt, n_steps=n))
+    run = jax.jit(lambda dt: cj.integrate(system, Q0, m0 / TEST_INERTIA, dt=dt, n_steps=n, reduce=False))
     Qref, wref = rigid_body_reference(TEST_INERTIA, Q0, m0 / TEST_INERTIA, np.array([0.0, T]))
     errors_Q, errors_w = [], []
     for dt in dts:
@@ -62,12 +63,13 @@ def test_order_two_against_tight_reference(dmap):
 
 @pytest.fixture(scope="module")
 def figure1_run():
-    """The paper's Figure 1 scene: inertia (0.5, 0.6, 1), Δt = 0.1, 2·10⁴ steps (> 100 periods)."""
+    """The paper's Figure 1 scene: inertia (0.5, 0.6, 1), Δt = 0.1, 2·10⁴ steps (> 100 periods),
+    with the full (ξ, P, Q) march (the reduced one is checked against it in test_reduction)."""
     dt, n = 0.1, 20_000
     m0 = np.array([0.6, 0.1, 0.79])
     m0 = m0 / np.linalg.norm(m0)
     system = cj.models.rigid_body(FIG1_INERTIA)
-    sol = cj.integrate(system, jnp.eye(3), m0 / FIG1_INERTIA, dt=dt, n_steps=n)
+    sol = cj.integrate(system, jnp.eye(3), m0 / FIG1_INERTIA, dt=dt, n_steps=n, reduce=False)
     return system, sol
 
 
@@ -123,9 +125,9 @@ def test_xi0_is_reproduced_and_P0_is_minimum_norm():
     A = np.stack([(Q0 @ np.asarray(cj.lie.hat(e))).ravel() for e in np.eye(3)], axis=1)
     np.testing.assert_allclose(A.T @ P0.ravel(), TEST_INERTIA * xi0, atol=1e-13)
     np.testing.assert_allclose(P0.ravel(), np.linalg.pinv(A.T) @ (TEST_INERTIA * xi0), atol=1e-13)
-    sol = cj.integrate(system, Q0, xi0, dt=0.1, n_steps=3)
+    sol = cj.integrate(system, Q0, xi0, dt=0.1, n_steps=3, reduce=False)
     np.testing.assert_allclose(np.asarray(sol.xi[0]), xi0, atol=1e-13)
     np.testing.assert_allclose(np.asarray(sol.p[0]), P0, atol=1e-13)
     # P0 given directly gives the same run
-    sol2 = cj.integrate(system, Q0, np.zeros(3), P0=P0, dt=0.1, n_steps=3)
+    sol2 = cj.integrate(system, Q0, np.zeros(3), P0=P0, dt=0.1, n_steps=3, reduce=False)
     np.testing.assert_allclose(np.asarray(sol2.Q), np.asarray(sol.Q), atol=1e-13)

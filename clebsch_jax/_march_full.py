@@ -1,0 +1,81 @@
+r"""The full march: every step solves Lemma 20 for $(\xi^n, P^n, Q^{n+1})$ (dim V + 2 dim M
+unknowns) and carries the symplectic state $(Q^n, p^n)$."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from ._newton import newton_solve
+from ._residual import StepUnknowns, outgoing_momentum, step_residual
+from ._scan import assemble, extrapolate, gate, nodal_residual
+from ._system import ClebschSystem, momentum_map
+
+__all__ = ["initial_multiplier", "cotangent_from_momentum", "nodal_velocity", "march_full"]
+
+
+def initial_multiplier(system: ClebschSystem, Q0: jax.Array, xi0: jax.Array) -> jax.Array:
+    r"""The minimum-norm $P^0$ with $\delta l/\delta\xi(\xi^0, Q^0) = -P^0 \diamond Q^0$ (Lemma 7).
+
+    With $A = \partial_\xi \mathcal L_\xi Q^0$ (a matrix from $V$ to $T_{Q^0}M$, by forward-mode
+    autodiff) the condition is $A^T P^0 = \delta l/\delta \xi$; among its solutions we take the
+    one of least Euclidean norm, $P^0 = (A^T)^+ \,\delta l/\delta\xi$. Components of $P^0$
+    that the velocity map cannot see (e.g. the symmetric part of $Q^T P$ on $SO(3)$) are zero.
+    """
+    return cotangent_from_momentum(system, Q0, jax.grad(lambda x: system.l(x, Q0))(xi0))
+
+
+def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) -> jax.Array:
+    r"""The minimum-norm $p \in T^*_QM$ with momentum map $-p\diamond Q = \mu$.
+
+    Solves $A^T p = \mu$, $A = \partial_\xi \mathcal L_\xi Q$, by least squares (`mu` has ξ's
+    shape). Used for the initial multiplier and to rebuild momenta from a reduced march.
+    """
+    A = jax.jacfwd(lambda x: system.velocity_map(x.reshape(mu.shape), Q).ravel())(jnp.zeros(mu.size, Q.dtype))
+    return jnp.linalg.lstsq(A.T, mu.ravel())[0].reshape(Q.shape)
+
+
+def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax.Array, *,
+                   rtol: float = 0.0, atol: float = 0.0, max_iterations: int = 20):
+    r"""Solve Lemma 7's $\delta l/\delta\xi(\xi, Q) = -p \diamond Q$ for $\xi$ by Newton.
+
+    Returns `(xi, NewtonStats)`. Requires $l$ to be regular in $\xi$ (Lemma 8).
+    """
+    mu = momentum_map(system, p, Q, guess)
+    return newton_solve(lambda x: nodal_residual(system, Q, mu, x), guess,
+                        rtol=rtol, atol=atol, max_iterations=max_iterations)
+
+
+def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, rtol, atol, max_newton_iterations,
+               P0_given, order):
+    newton = functools.partial(newton_solve, rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
+    if not P0_given:
+        P0 = initial_multiplier(system, Q0, xi0)
+    else:
+        # Seeds the first step's guess only; node 0's nodal velocity is solved (and its
+        # status checked and reported) with all the other nodes after the march.
+        xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol,
+                                max_iterations=max_newton_iterations)
+    z_first = StepUnknowns(xi0, P0, Q0 + dt * system.velocity_map(xi0, Q0))
+    z_before = StepUnknowns(xi0, P0, Q0)
+
+    def step(carry, _):
+        Q, p, z_prev, z_pp, n, alive = carry
+        guess = extrapolate(n, z_first, z_prev, z_pp)
+        z, stats = newton(lambda z: step_residual(system, scheme, dt, Q, p, z), guess)
+        p1 = outgoing_momentum(system, scheme, dt, Q, z)
+        ok, stats, (z, p1) = gate(alive, stats, (z, p1))
+        return (z.Q1, p1, z, z_prev, n + 1, ok), (z, p1, stats)
+
+    init = (Q0, P0, z_first, z_before, jnp.asarray(0, jnp.int32), jnp.asarray(True))
+    _, (zs, ps, stats) = jax.lax.scan(step, init, None, length=n_steps)
+
+    Qs = jnp.concatenate([Q0[None], zs.Q1])
+    pn = jnp.concatenate([P0[None], ps])
+    mus = jax.vmap(lambda q, p: momentum_map(system, p, q, xi0))(Qs, pn)
+    return assemble(system=system, dt=dt, t0=t0, Q0=Q0, xi0=xi0, stats=stats, xi_steps=zs.xi,
+                    Qs=Qs, ps=pn, Ps=zs.P, mus=mus, rtol=rtol, atol=atol,
+                    max_iterations=max_newton_iterations, form="full", scheme=scheme, order=order,
+                    nodal_Q=Qs)
