@@ -43,6 +43,7 @@ from ._newton import NewtonStats as NewtonStats, Status as Status, newton_solve 
 from ._residual import (  # noqa: E402
     StepUnknowns as StepUnknowns,
     legendre_residual as legendre_residual,
+    nodal_residual as nodal_residual,
     outgoing_momentum as outgoing_momentum,
     step_residual as step_residual,
 )

@@ -13,7 +13,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["det", "inv", "solve", "solve_checked", "factor", "solve_factored", "lu_factor", "lu_solve"]
+__all__ = ["inv", "solve", "factor", "solve_factored", "lu_factor", "lu_solve"]
 
 CLOSED_FORM_MAX = 3
 
@@ -31,13 +31,6 @@ def _adjugate_and_det(A: jax.Array):
     r0, r1, r2 = jnp.cross(c1, c2), jnp.cross(c2, c0), jnp.cross(c0, c1)
     adj = jnp.stack([r0, r1, r2], axis=-2)
     return adj, jnp.sum(c0 * r0, axis=-1)
-
-
-def det(A: jax.Array) -> jax.Array:
-    """Determinant (closed form for n ≤ 3)."""
-    if A.shape[-1] <= CLOSED_FORM_MAX:
-        return _adjugate_and_det(A)[1]
-    return jnp.linalg.det(A)
 
 
 def inv(A: jax.Array) -> jax.Array:
@@ -64,15 +57,6 @@ def solve(A: jax.Array, B: jax.Array) -> jax.Array:
         X = apply(adj, B)
         return X + apply(adj, B - matvec(A, X))
     return jnp.linalg.solve(A, B)
-
-
-def solve_checked(A: jax.Array, b: jax.Array):
-    """Solve A x = b for a vector b and flag (near-)singular A: returns (x, singular).
-
-    Singular means a pivot (LU) or the determinant (closed form, against Hadamard's bound, the
-    product of the row norms) is below n·ε relative to the matrix's scale."""
-    fac, singular = factor(A)
-    return solve_factored(fac, b), singular
 
 
 def factor(A: jax.Array):

@@ -9,8 +9,8 @@ import jax
 import jax.numpy as jnp
 
 from ._newton import newton_solve
-from ._residual import StepUnknowns, outgoing_momentum, step_residual
-from ._scan import assemble, extrapolate, gate, nodal_residual
+from ._residual import StepUnknowns, nodal_residual, outgoing_momentum, step_residual
+from ._scan import assemble, extrapolate, gate
 from ._system import ClebschSystem, momentum_map
 
 __all__ = ["initial_multiplier", "cotangent_from_momentum", "nodal_velocity", "march_full"]

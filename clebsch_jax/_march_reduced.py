@@ -13,7 +13,8 @@ import jax.numpy as jnp
 from ._march_full import initial_multiplier
 from ._newton import newton_solve
 from ._reduction import MatrixGroupReduction, outgoing_body_momentum, reduced_residual
-from ._scan import assemble, extrapolate, gate, nodal_residual
+from ._residual import nodal_residual
+from ._scan import assemble, extrapolate, gate
 from ._system import ClebschSystem, momentum_map
 
 __all__ = ["march_reduced"]

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from ._discrete_action import discrete_lagrangian
 from ._system import ClebschSystem, diamond
 
-__all__ = ["StepUnknowns", "step_residual", "outgoing_momentum", "legendre_residual"]
+__all__ = ["StepUnknowns", "step_residual", "outgoing_momentum", "nodal_residual", "legendre_residual"]
 
 
 class StepUnknowns(NamedTuple):
@@ -58,10 +58,14 @@ def outgoing_momentum(
     return jax.grad(lambda q1: discrete_lagrangian(system, scheme, dt, z.xi, z.P, Q0, q1))(z.Q1)
 
 
-def legendre_residual(system: ClebschSystem, Q: jax.Array, p: jax.Array, xi: jax.Array) -> jax.Array:
-    r"""Lemma 7's first equation at a node: $\delta l/\delta \xi(\xi, Q) + p \diamond Q$.
+def nodal_residual(system: ClebschSystem, Q: jax.Array, mu: jax.Array, xi: jax.Array) -> jax.Array:
+    r"""Lemma 7's first equation at a node, in momentum form: $\delta l/\delta\xi(\xi, Q) - \mu$,
+    with $\mu = -p \diamond Q$ the momentum map. Its root is the nodal velocity when $l$ is regular
+    in $\xi$ (Lemma 8's operator $G$ exists)."""
+    return jax.grad(lambda x: system.l(x, Q))(xi) - mu
 
-    Its root is the nodal velocity belonging to the state $(Q, p)$ when $l$ is regular
-    (Lemma 8's operator $G$ exists).
-    """
-    return jax.grad(lambda x: system.l(x, Q))(xi) + diamond(system, p, Q, xi)
+
+def legendre_residual(system: ClebschSystem, Q: jax.Array, p: jax.Array, xi: jax.Array) -> jax.Array:
+    r"""Lemma 7's first equation at a node: $\delta l/\delta \xi(\xi, Q) + p \diamond Q$
+    (`nodal_residual` with $\mu = -p\diamond Q$)."""
+    return nodal_residual(system, Q, -diamond(system, p, Q, xi), xi)

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from ._newton import NewtonStats, Status, newton_solve
+from ._residual import nodal_residual
 from ._solution import Solution
 from ._system import ClebschSystem
 
@@ -27,11 +28,6 @@ def gate(alive, stats: NewtonStats, values):
     status = jnp.where(alive, stats.status, Status.SKIPPED).astype(jnp.int32)
     values = jax.tree_util.tree_map(lambda a: jnp.where(ok, a, jnp.nan), values)
     return ok, stats._replace(status=status), values
-
-
-def nodal_residual(system: ClebschSystem, Q, mu, xi):
-    r"""Lemma 7 at a node, in momentum form: $\delta l/\delta\xi(\xi, Q) - \mu$ with $\mu = -p\diamond Q$."""
-    return jax.grad(lambda x: system.l(x, Q))(xi) - mu
 
 
 def nodal_velocities(system, Qs, mus, guesses, valid, *, rtol, atol, max_iterations):

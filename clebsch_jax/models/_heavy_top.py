@@ -7,9 +7,9 @@ import jax
 import jax.numpy as jnp
 from jax.tree_util import Partial
 
-from .. import lie
 from .._derivative_maps import DerivativeMap, cayley
 from .._system import ClebschSystem
+from ._rigid_body import _right_multiplication
 
 __all__ = ["heavy_top"]
 
@@ -17,10 +17,6 @@ __all__ = ["heavy_top"]
 def _lagrangian(inertia, mgl, chi, xi, Q):
     # kinetic energy minus the height of the centre of mass, e₃·(Qχ) = (Qᵀe₃)·χ = Γ·χ
     return 0.5 * jnp.sum(inertia * xi * xi) - mgl * jnp.dot(Q[2], chi)
-
-
-def _right_multiplication(xi, Q):
-    return Q @ lie.hat(xi)
 
 
 def heavy_top(inertia, mass_gravity_length, center_of_mass=(0.0, 0.0, 1.0),

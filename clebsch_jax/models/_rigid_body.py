@@ -10,7 +10,7 @@ from .. import lie
 from .._derivative_maps import DerivativeMap, cayley
 from .._system import ClebschSystem
 
-__all__ = ["rigid_body", "rigid_body_energy", "euler_rhs"]
+__all__ = ["rigid_body"]
 
 
 def _kinetic_energy(inertia: jax.Array, xi: jax.Array) -> jax.Array:
@@ -43,15 +43,3 @@ def rigid_body(inertia, derivative_map: DerivativeMap = cayley) -> ClebschSystem
         derivative_map=derivative_map,
     )
 
-
-def rigid_body_energy(inertia: jax.Array, xi: jax.Array) -> jax.Array:
-    """Kinetic energy ½ Ω·𝕀Ω (broadcasts over leading axes of `xi`)."""
-    return 0.5 * jnp.sum(jnp.asarray(inertia) * xi * xi, axis=-1)
-
-
-def euler_rhs(inertia: jax.Array, Q: jax.Array, omega: jax.Array):
-    r"""Right-hand side of Euler's equations with reconstruction, for reference solvers:
-    $\mathbb I\dot\Omega = (\mathbb I\Omega)\times\Omega$, $\dot Q = Q\hat\Omega$."""
-    inertia = jnp.asarray(inertia)
-    m = inertia * omega
-    return Q @ lie.hat(omega), jnp.cross(m, omega) / inertia
