@@ -225,12 +225,10 @@ def integrate(
                   order=_nominal_order(system))
     P0 = P0 if P0_given else jnp.zeros_like(Q0)
     red = None
-    if reduce is not False:
+    if reduce is True or (reduce == "auto" and not need_P):  # "auto" with need_P: full march
         red, reason = find_reduction(system, Q0, xi0)
         if reduce is True and red is None:
             raise ValueError(f"reduce: the reduced march does not apply to this system: {reason}.")
-        if reduce == "auto" and need_P:
-            red = None
     if red is None:
         sol = _march_full_jit(system, Q0, xi0, P0, dt, t0, **common)
     else:

@@ -141,10 +141,6 @@ def reduced_lagrangian(system, red, scheme, dt, F, Qa):
     return dt * system.l(xi, Qa)
 
 
-def _anchor(scheme, Q0, Q1):
-    return Q0 if scheme == "left" else Q1
-
-
 def reduced_residual(system, red, scheme, dt, mu, Q0, xi):
     r"""Residual of one reduced step: $\mu^n + \nabla_\eta \ell_d((I - X(\eta))F,\ Q^a(\eta))|_0$.
 
