@@ -4,6 +4,10 @@ A derivative map approximates $\dot Q$ at $Q^n$ from two successive points. Each
 its facts as data: `symmetric` (the map is self-adjoint, $-\phi_{\Delta t}(Q^n, Q^{n+1})$
 equals the same map anchored at $Q^{n+1}$; this is what makes Example 30's integrator
 second order) and, for matrix groups, the pair $(\overline{\log}, \overline{\exp})$.
+
+The built-in maps also know the midpoint of a step, `at_midpoint(Q_next, Q, dt)` →
+$(\bar Q, \bar\phi)$: a point halfway between $Q^n$ and $Q^{n+1}$ and the approximation of
+$\dot Q$ there, which the midpoint principle (`scheme="midpoint"`) anchors the step at.
 """
 
 from __future__ import annotations
@@ -40,6 +44,10 @@ class DerivativeMap:
     def __call__(self, Q_next: jax.Array, Q: jax.Array, dt: jax.Array) -> jax.Array:
         raise NotImplementedError
 
+    # Subclasses that support `scheme="midpoint"` define
+    # `at_midpoint(Q_next, Q, dt) -> (Q_mid, phi_mid)`, symmetric under swapping the two
+    # points and negating dt: Q_mid unchanged, phi_mid unchanged.
+
 
 @dataclasses.dataclass(frozen=True)
 class VectorSpaceDifference(DerivativeMap):
@@ -54,6 +62,10 @@ class VectorSpaceDifference(DerivativeMap):
 
     def __call__(self, Q_next, Q, dt):
         return (Q_next - Q) / dt
+
+    def at_midpoint(self, Q_next, Q, dt):
+        r"""The arithmetic midpoint and the difference quotient, $\dot Q$ there to O(Δt²)."""
+        return 0.5 * (Q + Q_next), (Q_next - Q) / dt
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +86,15 @@ class MatrixGroupDifference(DerivativeMap):
 
     def __call__(self, Q_next, Q, dt):
         return Q @ self.log(_linalg.solve(Q, Q_next)) / dt
+
+    def at_midpoint(self, Q_next, Q, dt):
+        r"""$\bar Q = Q^n G^{1/2}$ with $G = (Q^n)^{-1}Q^{n+1}$ (the point halfway along the
+        one-parameter subgroup from $Q^n$ to $Q^{n+1}$, principal square root) and
+        $\bar\phi = \bar Q\,\overline{\log}(G)/\Delta t$: the same body velocity as
+        `__call__`, transported to $\bar Q$."""
+        G = _linalg.solve(Q, Q_next)
+        Q_mid = Q @ lie.sqrtm(G)
+        return Q_mid, Q_mid @ self.log(G) / dt
 
 
 forward_difference = VectorSpaceDifference()

@@ -8,7 +8,15 @@ anchored at $Q^a$:
 
 - `scheme="left"` (Definition 19): $Q^a = Q^n$, $\phi^a = \phi_{\Delta t}(Q^{n+1}, Q^n)$;
 - `scheme="right"` (Remark 22, the adjoint): $Q^a = Q^{n+1}$,
-  $\phi^a = -\phi_{\Delta t}(Q^n, Q^{n+1})$, the same derivative map read backwards.
+  $\phi^a = -\phi_{\Delta t}(Q^n, Q^{n+1})$, the same derivative map read backwards;
+- `scheme="midpoint"`: $Q^a = \bar Q$, a midpoint of $Q^n$ and $Q^{n+1}$, and $\phi^a$ the
+  derivative map's approximation of $\dot Q$ there (`at_midpoint` of the derivative map). Both
+  $l$ and $\mathcal L_\xi Q$ are evaluated at the midpoint: a symmetric, second-order principle
+  also when $l$ has a potential. It is the one-step scheme for Lagrangians that are
+  degenerate in $\xi$ (linear in the velocity, like point vortices): the left and right
+  principles are then inconsistent two-step schemes with parasitic modes (Rowley & Marsden
+  2002), while the midpoint principle is the implicit midpoint rule when the velocity map is a
+  translation and $\delta l/\delta\xi$ is affine in $Q$.
 
 The factor $\Delta t$ (absent in the paper, where it is a constant factor that does not change
 the equations) makes the discrete momenta $p^n$ approximate the continuous multiplier $P(t_n)$.
@@ -25,7 +33,7 @@ from ._system import ClebschSystem
 
 __all__ = ["SCHEMES", "discrete_lagrangian", "discrete_action"]
 
-SCHEMES = ("left", "right")
+SCHEMES = ("left", "right", "midpoint")
 
 
 def discrete_lagrangian(
@@ -44,6 +52,8 @@ def discrete_lagrangian(
     elif scheme == "right":
         Qa = Q1
         phi = -system.derivative_map(Q0, Q1, dt)
+    elif scheme == "midpoint":
+        Qa, phi = system.derivative_map.at_midpoint(Q1, Q0, dt)
     else:
         raise ValueError(f"scheme: expected one of {SCHEMES}, got {scheme!r}.")
     constraint = phi - system.velocity_map(xi, Qa)

@@ -101,8 +101,22 @@ def _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_i
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if not isinstance(tol, numbers.Real) or not (tol >= 0) or not np.isfinite(tol):
             raise ValueError(f"{name}: expected a finite float >= 0, got {tol!r}.")
+    if scheme is None:
+        scheme = "midpoint" if system.degenerate else "left"
     if scheme not in SCHEMES:
         raise ValueError(f"scheme: expected one of {SCHEMES}, got {scheme!r}.")
+    if scheme == "midpoint" and not callable(getattr(system.derivative_map, "at_midpoint", None)):
+        raise ValueError(
+            "scheme: 'midpoint' needs a derivative map that knows the midpoint of a step "
+            "(an `at_midpoint(Q_next, Q, dt)` method, as clebsch_jax.forward_difference, cayley and "
+            f"exponential have); {system.derivative_map!r} has none."
+        )
+    if system.degenerate and scheme != "midpoint":
+        raise ValueError(
+            f"scheme: {scheme!r} is inconsistent for a degenerate Lagrangian (system built with "
+            "degenerate=True): the left/right principles become two-step schemes with parasitic "
+            "modes. Use scheme='midpoint'."
+        )
 
     Q0 = _as_float_array(Q0, "Q0")
     xi0 = _as_float_array(xi0, "xi0")
@@ -134,12 +148,15 @@ def _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_i
         raise ValueError(
             f"derivative_map: must return an array of Q's shape {Q0.shape}, returned {der.shape}."
         )
-    return Q0, xi0, P0, dt
+    return Q0, xi0, P0, dt, scheme
 
 
-def _nominal_order(system: ClebschSystem) -> int:
-    """Order of the one-step principles: 2 when the derivative map is symmetric (Example 30)
-    and l has no potential (l(ξ, Qⁿ) at one end of the step is a first-order quadrature)."""
+def _nominal_order(system: ClebschSystem, scheme: str) -> int:
+    """Order of the one-step principles: 2 for the midpoint principle; 2 for left/right when the
+    derivative map is symmetric (Example 30) and l has no potential (l(ξ, Qⁿ) at one end of the
+    step is a first-order quadrature); else 1."""
+    if scheme == "midpoint":
+        return 2
     symmetric = bool(getattr(system.derivative_map, "symmetric", False))
     return 2 if symmetric and not system.has_potential else 1
 
@@ -157,7 +174,7 @@ def integrate(
     n_steps: int,
     P0=None,
     t0=0.0,
-    scheme: str = "left",
+    scheme: str | None = None,
     reduce="auto",
     need_P: bool = False,
     reconstruct: bool = True,
@@ -190,7 +207,11 @@ def integrate(
     - `dt`: time step (> 0). `n_steps`: number of steps (a Python int >= 1).
     - `P0`: optional initial multiplier (the canonical momentum at $Q^0$), shape of `Q0`.
     - `t0`: initial time (only used for `Solution.ts`).
-    - `scheme`: `"left"` (Definition 19) or `"right"` (the adjoint principle of Remark 22).
+    - `scheme`: `"left"` (Definition 19; the default), `"right"` (the adjoint principle of Remark 22) or
+      `"midpoint"` (l and the velocity map evaluated at the midpoint of each step: symmetric
+      and second order also with a potential; the only scheme for degenerate Lagrangians; full
+      march only; the default for systems built with `degenerate=True`). See
+      `clebsch_jax.discrete_lagrangian`.
     - `reduce`: `"auto"` (default) uses the reduced march when it applies and `need_P` is
       False; `True` forces it (a `ValueError` says why when it does not apply); `False`
       forces the full march. `Solution.form` says which ran.
@@ -215,18 +236,21 @@ def integrate(
     system. Derivatives (forward and reverse mode) flow through the Newton solves by implicit
     differentiation (`jax.lax.custom_root`).
     """
-    Q0, xi0, P0, dt = _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_iterations)
+    Q0, xi0, P0, dt, scheme = _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_iterations)
     if reduce not in ("auto", True, False):
         raise ValueError(f"reduce: expected 'auto', True or False, got {reduce!r}.")
     t0 = jnp.asarray(t0, dtype=dt.dtype)
     P0_given = P0 is not None
     common = dict(n_steps=n_steps, scheme=scheme, rtol=float(rtol), atol=float(atol),
                   max_newton_iterations=int(max_newton_iterations), P0_given=P0_given,
-                  order=_nominal_order(system))
+                  order=_nominal_order(system, scheme))
     P0 = P0 if P0_given else jnp.zeros_like(Q0)
     red = None
     if reduce is True or (reduce == "auto" and not need_P):  # "auto" with need_P: full march
-        red, reason = find_reduction(system, Q0, xi0)
+        if scheme == "midpoint":
+            red, reason = None, "the reduced march implements the left and right principles only"
+        else:
+            red, reason = find_reduction(system, Q0, xi0)
         if reduce is True and red is None:
             raise ValueError(f"reduce: the reduced march does not apply to this system: {reason}.")
     if red is None:

@@ -53,7 +53,7 @@ def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, rtol, atol, max_
     newton = functools.partial(newton_solve, rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
     if not P0_given:
         P0 = initial_multiplier(system, Q0, xi0)
-    else:
+    elif not system.degenerate:
         # Seeds the first step's guess only; node 0's nodal velocity is solved (and its
         # status checked and reported) with all the other nodes after the march.
         xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol,

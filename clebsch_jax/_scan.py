@@ -55,8 +55,15 @@ def assemble(*, system, dt, t0, Q0, xi0, stats, xi_steps, Qs, ps, Ps, mus, rtol,
     n_steps = xi_steps.shape[0]
     failed = stats.status != Status.SUCCESS
     valid = jnp.concatenate([jnp.array([True]), jnp.cumsum(failed) == 0])
-    xin, nodal = nodal_velocities(system, nodal_Q, mus, step_guesses(xi0, xi_steps), valid,
-                                  rtol=rtol, atol=atol, max_iterations=max_iterations)
+    if system.degenerate:  # Lemma 7 does not determine nodal velocities: none are solved for
+        zero = jnp.zeros(n_steps + 1, jnp.int32)
+        xin = None
+        nodal = NewtonStats(iterations=zero, residual_norm=jnp.zeros(n_steps + 1, dt.dtype),
+                            status=jnp.where(valid, Status.SUCCESS, Status.SKIPPED).astype(jnp.int32),
+                            jacobians=zero)
+    else:
+        xin, nodal = nodal_velocities(system, nodal_Q, mus, step_guesses(xi0, xi_steps), valid,
+                                      rtol=rtol, atol=atol, max_iterations=max_iterations)
     any_step, first_step = jnp.any(failed), jnp.argmax(failed)
     nodal_failed = valid & (nodal.status != Status.SUCCESS)
     any_nodal, first_node = jnp.any(nodal_failed), jnp.argmax(nodal_failed)

@@ -29,9 +29,11 @@ class Solution:
       transform; `p[0]` is the initial multiplier $P^0$).
     - `xi` (N+1, *xi.shape): nodal velocities, the root of Lemma 7's
       $\delta l/\delta\xi(\xi, Q^n) = -p^n \diamond Q^n$ (so `xi[0]` is the given `xi0`).
+      None for a degenerate system (`ClebschSystem(..., degenerate=True)`), where that relation
+      does not determine ξ.
     - `xi_step` (N, *xi.shape): the velocity $\xi^n$ of step n, with
       $\phi_{\Delta t}(Q^{n+1}, Q^n) = \mathcal L_{\xi^n} Q^n$ (Lemma 20). For symmetric
-      derivative maps it approximates $\xi(t_n + \Delta t/2)$.
+      derivative maps and the midpoint scheme it approximates $\xi(t_n + \Delta t/2)$.
     - `P` (N, *Q.shape): the multipliers $P^n$ of Lemma 20, one per step.
     - `momentum` (N+1, *xi.shape): the momentum map $\mu^n = -p^n \diamond Q^n$ at every node
       (Theorem 12; the body momentum for a matrix group), which equals $\delta l/\delta\xi$.
@@ -42,7 +44,8 @@ class Solution:
     which differs from the full march's $P^n$ only in components the velocity map cannot see).
     - `stats`: `NewtonStats` of the step solves, each (N,): `iterations`,
       `residual_norm` (max-norm of the final Lemma 20 residual), `status` (`Status` codes).
-    - `nodal_stats`: `NewtonStats` of the nodal-velocity solves, each (N+1,).
+    - `nodal_stats`: `NewtonStats` of the nodal-velocity solves, each (N+1,) (zero iterations
+      for a degenerate system, where none are made).
     - `result`: overall `Status` code (0 = success). `failed_step`: index of the first failing
       step (or node, for a nodal failure), -1 if none.
     - `valid` (N+1,): False at nodes after a failure. Their values are NaN on purpose, never
@@ -54,7 +57,7 @@ class Solution:
     ts: jax.Array
     Q: jax.Array | None
     p: jax.Array | None
-    xi: jax.Array
+    xi: jax.Array | None
     xi_step: jax.Array
     P: jax.Array | None
     momentum: jax.Array
@@ -73,7 +76,7 @@ class Solution:
     @property
     def batch_ndim(self) -> int:
         """Number of leading batch axes (0 for a single trajectory)."""
-        return self.xi.ndim - 1 - self.xi_ndim
+        return self.momentum.ndim - 1 - self.xi_ndim
 
     @property
     def succeeded(self) -> jax.Array:
@@ -124,7 +127,8 @@ def failure_message(code, step, n_steps, t, iterations, residual, member=None) -
         return (
             f"clebsch_jax.integrate: {where}node {step} (t = {t:.6g}): {what} "
             f"(residual {residual:.3e} after {iterations} iterations). The step solves succeeded; "
-            "the Lagrangian may be degenerate in xi. Use throw=False to inspect the solution."
+            "the Lagrangian may be degenerate in xi (if so, build the system with degenerate=True, which "
+            "uses the midpoint principle). Use throw=False to inspect the solution."
         )
     return (
         f"clebsch_jax.integrate: {where}step {step} of {n_steps} (t = {t:.6g}): {what} "

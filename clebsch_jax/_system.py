@@ -59,6 +59,13 @@ class ClebschSystem:
       $\phi_{\Delta t}(Q^{n+1}, Q^n)$ of $\dot Q$ at $Q^n$ (Definitions 18, 25). See
       `clebsch_jax.forward_difference`, `clebsch_jax.cayley`, `clebsch_jax.exponential`.
 
+    - `degenerate` (default False): set True when $l$ is degenerate in $\xi$ — Lemma 8's
+      Legendre map $\xi \mapsto \delta l/\delta\xi$ is not invertible, as for Lagrangians
+      linear in the velocity (point vortices). Velocities at the nodes are then not determined
+      by $(Q^n, p^n)$ (Lemma 7), so `Solution.xi` is None (the step velocities `xi_step` are
+      the velocities), and only the one-step midpoint principle (`scheme="midpoint"`) is
+      accepted: the left/right principles give inconsistent two-step schemes here.
+
     `xi` and `Q` are arrays of any shape. The system is a pytree: array leaves inside the
     three callables (for instance model parameters held by a `jax.tree_util.Partial`) are
     traced, so `jax.vmap(lambda I: integrate(rigid_body(I), ...))` sweeps parameters
@@ -69,8 +76,10 @@ class ClebschSystem:
     velocity_map: Callable
     derivative_map: Callable
     has_potential: bool
+    degenerate: bool
 
-    def __init__(self, *, lagrangian: Callable, velocity_map: Callable, derivative_map: Callable):
+    def __init__(self, *, lagrangian: Callable, velocity_map: Callable, derivative_map: Callable,
+                 degenerate: bool = False):
         for name, fn in (
             ("lagrangian", lagrangian),
             ("velocity_map", velocity_map),
@@ -88,6 +97,9 @@ class ClebschSystem:
         self.velocity_map = velocity_map
         self.derivative_map = derivative_map
         self.has_potential = arity == 2
+        if not isinstance(degenerate, bool):
+            raise TypeError(f"degenerate: expected True or False, got {degenerate!r}.")
+        self.degenerate = degenerate
 
     def l(self, xi: jax.Array, Q: jax.Array) -> jax.Array:
         """The reduced Lagrangian l(ξ, Q), whichever form the user wrote."""
@@ -95,20 +107,21 @@ class ClebschSystem:
 
     def __repr__(self) -> str:
         form = "l(xi, Q)" if self.has_potential else "l(xi)"
+        extra = ", degenerate=True" if self.degenerate else ""
         return (
             f"ClebschSystem(lagrangian={form}, velocity_map={self.velocity_map!r}, "
-            f"derivative_map={self.derivative_map!r})"
+            f"derivative_map={self.derivative_map!r}{extra})"
         )
 
 
 def _flatten(sys: ClebschSystem):
-    return (sys.lagrangian, sys.velocity_map, sys.derivative_map), sys.has_potential
+    return (sys.lagrangian, sys.velocity_map, sys.derivative_map), (sys.has_potential, sys.degenerate)
 
 
-def _unflatten(has_potential: bool, children: Any) -> ClebschSystem:
+def _unflatten(aux: tuple, children: Any) -> ClebschSystem:
     obj = object.__new__(ClebschSystem)
     obj.lagrangian, obj.velocity_map, obj.derivative_map = children
-    obj.has_potential = has_potential
+    obj.has_potential, obj.degenerate = aux
     return obj
 
 

@@ -39,11 +39,18 @@ def energy(system: ClebschSystem, sol: Solution) -> jax.Array:
 
     On solutions it equals the Hamiltonian of Lemma 8, $H = \langle P, \mathcal L_\xi Q\rangle
     - l$. Shape: batch axes + (N+1,).
+
+    For a degenerate system (`sol.xi is None`) it is evaluated at $\xi = 0$, i.e.
+    $E = -l(0, Q)$: exact when $l$ is affine in $\xi$ (Lagrangians linear in the velocity,
+    such as point vortices, where $E$ is the Hamiltonian $H(Q)$), and meaningless otherwise.
     """
     def one(q, x):
         lval, g = jax.value_and_grad(lambda y: system.l(y, q))(x)
         return jnp.sum(g * x) - lval
 
+    if sol.xi is None:  # degenerate: E does not depend on xi when l is affine in it
+        zeros = jnp.zeros(sol.momentum.shape, sol.momentum.dtype)
+        return _over_nodes(one, sol, sol.Q, zeros)
     if sol.Q is None:  # reduced march without reconstruction: l does not depend on Q
         return _over_nodes(lambda x: one(None, x), sol, sol.xi)
     return _over_nodes(one, sol, sol.Q, sol.xi)

@@ -18,6 +18,7 @@ __all__ = [
     "cayley_log",
     "expm",
     "logm",
+    "sqrtm",
     "so3_exp",
     "so3_log",
 ]
@@ -89,6 +90,15 @@ def cayley_log(A: jax.Array) -> jax.Array:
 def expm(X: jax.Array) -> jax.Array:
     """Matrix exponential (`jax.scipy.linalg.expm`, Padé with scaling and squaring)."""
     return jax.scipy.linalg.expm(X)
+
+
+def sqrtm(A: jax.Array, *, iterations: int = 8) -> jax.Array:
+    r"""Principal matrix square root near the identity (Denman–Beavers iteration).
+
+    `iterations` fixed steps (quadratic convergence): exact to round-off with the default for
+    matrices within about a rotation of 2 rad of the identity, where the midpoint of a step
+    $Q^n ((Q^n)^{-1} Q^{n+1})^{1/2}$ is taken."""
+    return _sqrtm_denman_beavers(A, iterations)
 
 
 def _sqrtm_denman_beavers(A: jax.Array, iterations: int) -> jax.Array:
