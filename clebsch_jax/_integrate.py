@@ -181,6 +181,7 @@ def integrate(
     rtol: float = 0.0,
     atol: float = 0.0,
     max_newton_iterations: int = 20,
+    jacobian: str = "dense",
     throw: bool = True,
 ) -> Solution:
     r"""March the discrete Clebsch equations (Lemma 20) of `system` from $(Q^0, \xi^0)$.
@@ -223,6 +224,12 @@ def integrate(
       default 0, 0 iterates to round-off, which exact conservation of momenta needs; a
       positive tolerance bounds the estimated error per step instead (cheaper, but errors add
       up over long runs).
+    - `jacobian`: the full march's Newton matrix. `"dense"` (default): the exact Jacobian by
+      forward mode, for systems of modest size. `"blocks"`: for N interacting particles — `Q0`
+      and `xi0` (and so every unknown) have a leading axis of length N — chord iterations
+      with the lumped block-diagonal Jacobian (`clebsch_jax._block_newton`): b Jacobian-vector
+      products per matrix instead of N·b and no (N·b)³ factorisation, converged to the same
+      round-off; needed for N in the hundreds and more (point vortices, landmarks).
     - `throw`: if True (default) a failed step raises `IntegrationError` once, at the end,
       naming the step (and batch member under `jax.vmap`), the reason and what to try. Under
       `jit`/`vmap` the error is raised from a host callback. If False, failures are only
@@ -239,6 +246,13 @@ def integrate(
     Q0, xi0, P0, dt, scheme = _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_iterations)
     if reduce not in ("auto", True, False):
         raise ValueError(f"reduce: expected 'auto', True or False, got {reduce!r}.")
+    if jacobian not in ("dense", "blocks"):
+        raise ValueError(f"jacobian: expected 'dense' or 'blocks', got {jacobian!r}.")
+    if jacobian == "blocks" and (Q0.ndim < 1 or xi0.ndim < 1 or Q0.shape[0] != xi0.shape[0]):
+        raise ValueError(
+            "jacobian: 'blocks' needs a leading particle axis shared by Q0 and xi0, got Q0 of shape "
+            f"{Q0.shape} and xi0 of shape {xi0.shape}."
+        )
     t0 = jnp.asarray(t0, dtype=dt.dtype)
     P0_given = P0 is not None
     common = dict(n_steps=n_steps, scheme=scheme, rtol=float(rtol), atol=float(atol),
@@ -254,7 +268,7 @@ def integrate(
         if reduce is True and red is None:
             raise ValueError(f"reduce: the reduced march does not apply to this system: {reason}.")
     if red is None:
-        sol = _march_full_jit(system, Q0, xi0, P0, dt, t0, **common)
+        sol = _march_full_jit(system, Q0, xi0, P0, dt, t0, **common, jacobian=jacobian)
     else:
         sol = _march_reduced_jit(system, red, Q0, xi0, P0, dt, t0, **common,
                                  carry_Q=bool(reconstruct or system.has_potential or need_P),

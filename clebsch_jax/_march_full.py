@@ -8,6 +8,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from ._block_newton import block_newton_solve
 from ._newton import newton_solve
 from ._residual import StepUnknowns, nodal_residual, outgoing_momentum, step_residual
 from ._scan import assemble, extrapolate, gate
@@ -31,10 +32,21 @@ def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) 
     r"""The minimum-norm $p \in T^*_QM$ with momentum map $-p\diamond Q = \mu$.
 
     Solves $A^T p = \mu$, $A = \partial_\xi \mathcal L_\xi Q$, by least squares (`mu` has ξ's
-    shape). Used for the initial multiplier and to rebuild momenta from a reduced march.
+    shape). Used for the initial multiplier and to rebuild momenta from a reduced march. For
+    large V (more than `_DENSE_MAX` components, e.g. many particles) $A$ is never formed: the
+    minimum-norm solution $p = A y$, $A^TA\,y = \mu$, is found by conjugate gradients with
+    products by $A$ and $A^T$ (one iteration when the velocity map is a translation).
     """
-    A = jax.jacfwd(lambda x: system.velocity_map(x.reshape(mu.shape), Q).ravel())(jnp.zeros(mu.size, Q.dtype))
-    return jnp.linalg.lstsq(A.T, mu.ravel())[0].reshape(Q.shape)
+    lin = lambda x: system.velocity_map(x.reshape(mu.shape), Q)
+    if mu.size <= _DENSE_MAX:
+        A = jax.jacfwd(lambda x: lin(x).ravel())(jnp.zeros(mu.size, Q.dtype))
+        return jnp.linalg.lstsq(A.T, mu.ravel())[0].reshape(Q.shape)
+    _, vjp = jax.vjp(lin, jnp.zeros_like(mu))
+    y, _ = jax.scipy.sparse.linalg.cg(lambda v: vjp(lin(v))[0], mu, tol=1e-15, atol=0.0, maxiter=200)
+    return lin(y)
+
+
+_DENSE_MAX = 256
 
 
 def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax.Array, *,
@@ -48,16 +60,20 @@ def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax
                         rtol=rtol, atol=atol, max_iterations=max_iterations)
 
 
+SOLVERS = {"dense": newton_solve, "blocks": block_newton_solve}
+
+
 def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, rtol, atol, max_newton_iterations,
-               P0_given, order):
-    newton = functools.partial(newton_solve, rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
+               P0_given, order, jacobian="dense"):
+    solver = SOLVERS[jacobian]
+    newton = functools.partial(solver, rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
     if not P0_given:
         P0 = initial_multiplier(system, Q0, xi0)
     elif not system.degenerate:
         # Seeds the first step's guess only; node 0's nodal velocity is solved (and its
         # status checked and reported) with all the other nodes after the march.
-        xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol,
-                                max_iterations=max_newton_iterations)
+        mu0 = momentum_map(system, P0, Q0, xi0)
+        xi0, _ = newton(lambda x: nodal_residual(system, Q0, mu0, x), xi0)
     z_first = StepUnknowns(xi0, P0, Q0 + dt * system.velocity_map(xi0, Q0))
     z_before = StepUnknowns(xi0, P0, Q0)
 
@@ -78,4 +94,4 @@ def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, rtol, atol, max_
     return assemble(system=system, dt=dt, t0=t0, Q0=Q0, xi0=xi0, stats=stats, xi_steps=zs.xi,
                     Qs=Qs, ps=pn, Ps=zs.P, mus=mus, rtol=rtol, atol=atol,
                     max_iterations=max_newton_iterations, form="full", scheme=scheme, order=order,
-                    nodal_Q=Qs)
+                    nodal_Q=Qs, solver=solver)

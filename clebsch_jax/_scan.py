@@ -30,10 +30,10 @@ def gate(alive, stats: NewtonStats, values):
     return ok, stats._replace(status=status), values
 
 
-def nodal_velocities(system, Qs, mus, guesses, valid, *, rtol, atol, max_iterations):
+def nodal_velocities(system, Qs, mus, guesses, valid, *, rtol, atol, max_iterations, solver=newton_solve):
     """Solve Lemma 7's relation for ξ at every node (vmapped Newton), gated by `valid`."""
     expand = lambda v, a: v.reshape(v.shape + (1,) * (a.ndim - 1))
-    solve = functools.partial(newton_solve, rtol=rtol, atol=atol, max_iterations=max_iterations)
+    solve = functools.partial(solver, rtol=rtol, atol=atol, max_iterations=max_iterations)
     xin, st = jax.vmap(lambda q, mu, g: solve(lambda x: nodal_residual(system, q, mu, x), g))(
         Qs, mus, jnp.where(expand(valid, guesses), guesses, jnp.nan)
     )
@@ -47,11 +47,12 @@ def step_guesses(xi0, xi_steps):
 
 
 def assemble(*, system, dt, t0, Q0, xi0, stats, xi_steps, Qs, ps, Ps, mus, rtol, atol,
-             max_iterations, form, scheme, order, nodal_Q):
+             max_iterations, form, scheme, order, nodal_Q, solver=newton_solve):
     """Valid mask, nodal velocities, overall result and the `Solution`.
 
     `nodal_Q` are the configurations the Lagrangian is evaluated at for the nodal solve (the
-    trajectory, or the identity broadcast when a reduced march does not carry Q)."""
+    trajectory, or the identity broadcast when a reduced march does not carry Q); `solver` is
+    the Newton solver for it (`newton_solve` or `block_newton_solve`)."""
     n_steps = xi_steps.shape[0]
     failed = stats.status != Status.SUCCESS
     valid = jnp.concatenate([jnp.array([True]), jnp.cumsum(failed) == 0])
@@ -63,7 +64,7 @@ def assemble(*, system, dt, t0, Q0, xi0, stats, xi_steps, Qs, ps, Ps, mus, rtol,
                             jacobians=zero)
     else:
         xin, nodal = nodal_velocities(system, nodal_Q, mus, step_guesses(xi0, xi_steps), valid,
-                                      rtol=rtol, atol=atol, max_iterations=max_iterations)
+                                      rtol=rtol, atol=atol, max_iterations=max_iterations, solver=solver)
     any_step, first_step = jnp.any(failed), jnp.argmax(failed)
     nodal_failed = valid & (nodal.status != Status.SUCCESS)
     any_nodal, first_node = jnp.any(nodal_failed), jnp.argmax(nodal_failed)

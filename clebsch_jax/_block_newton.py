@@ -1,0 +1,155 @@
+r"""A Newton-type solver for many interacting particles: block-diagonal chord iterations.
+
+For systems of N particles — every unknown has a leading axis of length N, as the positions
+(N, 2) of point vortices — a dense Newton Jacobian costs (N·b)² entries and N·b residual
+linearisations per step (b unknowns per particle), and its factorisation (N·b)³: impossible at
+N = 1000. Here the chord matrix is the block-diagonal *lumped* Jacobian
+
+$$ M_a = \sum_b \frac{\partial F_a}{\partial z_b} \quad (a b\times b\text{ block per particle}), $$
+
+which b Jacobian-vector products give for all particles at once (the tangent $e_k$ on component
+k of every particle). The updates $z \leftarrow z - M^{-1}F(z)$ drive the *full* residual to
+round-off, so the converged step is the same as with exact Newton; only the contraction rate
+depends on how well $M$ approximates the Jacobian. Interactions enter the Jacobian through the
+Hessian of the potential, times Δt; for a potential invariant under a common translation of the
+particles (point vortices, gravitation, EPDiff kernels) the lumped sum even cancels the
+diagonal Hessian blocks, leaving the interaction-free part. Each iteration costs one residual
+evaluation, like a fixed-point iteration, but with the fast, stiff single-particle part solved
+exactly. When the updates stop contracting the matrix is refreshed; a step that still does not
+converge is reported (`MAX_ITERATIONS`), never accepted.
+
+Derivatives through the solve use the implicit function theorem (`jax.lax.custom_root`), with
+the tangent systems solved by `TANGENT_SWEEPS` sweeps of the same block-preconditioned iteration.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+
+from . import _linalg
+from ._newton import NewtonStats, Status, _converged, _tolerance
+
+__all__ = ["block_newton_solve"]
+
+MAX_CHORD_ITERATIONS = 40
+"""Chord updates per block matrix. The lumped matrix is an approximation wherever it is formed,
+so refreshing it while the updates still contract buys little: it is refreshed only when they
+stop contracting (or after this many updates)."""
+
+
+TANGENT_SWEEPS = 30
+"""Sweeps of the preconditioned tangent iteration: with the contraction ≲ 0.3 of a resolved step
+(measured ≈ 0.1 on random vortex sets) 30 sweeps reach round-off."""
+
+
+def _blocks(tree, n):
+    """Leaves (n, ...) → one (n, b) array: the unknowns of particle a in row a."""
+    return jnp.concatenate([leaf.reshape(n, -1) for leaf in jax.tree_util.tree_leaves(tree)], axis=1)
+
+
+def _unblocks(Z, template):
+    leaves, treedef = jax.tree_util.tree_flatten(template)
+    out, start = [], 0
+    for leaf in leaves:
+        width = leaf.size // leaf.shape[0]
+        out.append(Z[:, start:start + width].reshape(leaf.shape))
+        start += width
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def lumped_blocks(lin: Callable, Z: jax.Array) -> jax.Array:
+    """(N, b, b) blocks M_a[i, k] = Σ_b ∂F_{a,i}/∂Z_{b,k}, from b products of the linear map `lin`."""
+    b = Z.shape[1]
+    tangents = jnp.broadcast_to(jnp.eye(b, dtype=Z.dtype)[:, None, :], (b,) + Z.shape)
+    cols = jax.vmap(lin)(tangents)  # (k, N, i)
+    return jnp.transpose(cols, (1, 2, 0))
+
+
+def _factor_blocks(M):
+    fac, singular = jax.vmap(_linalg.factor)(M)
+    return fac, jnp.any(singular)
+
+
+def _solve_blocks(fac, R):
+    return jax.vmap(_linalg.solve_factored)(fac, R)
+
+
+def _chord(F, Z0, fac, rtol, atol):
+    def cond(state):
+        k, _, _, stop, _, _ = state
+        return (~stop) & (k < MAX_CHORD_ITERATIONS)
+
+    def body(state):
+        k, Z, eta_prev, _, _, _ = state
+        R = F(Z)
+        dZ = _solve_blocks(fac, R)
+        Z_new = Z - dZ
+        eta = jnp.max(jnp.abs(dZ))
+        nonfinite = ~(jnp.all(jnp.isfinite(Z_new)) & jnp.all(jnp.isfinite(R)))
+        converged = ~nonfinite & _converged(eta, eta_prev, k, _tolerance(Z_new, rtol, atol), Z_new)
+        stop = converged | nonfinite | ((k > 0) & (eta >= eta_prev))
+        return k + 1, jnp.where(nonfinite, Z, Z_new), eta, stop, converged, nonfinite
+
+    false = jnp.asarray(False)
+    init = (jnp.asarray(0, jnp.int32), Z0, jnp.asarray(jnp.inf, Z0.dtype), false, false, false)
+    k, Z, _, _, converged, nonfinite = jax.lax.while_loop(cond, body, init)
+    return Z, k, converged, nonfinite
+
+
+def _loop(F, Z0, rtol, atol, max_iterations):
+    def cond(state):
+        j, _, _, done, _ = state
+        return (~done) & (j < max_iterations)
+
+    def body(state):
+        j, Z, _, _, updates = state
+        _, lin = jax.linearize(F, Z)
+        fac, singular = _factor_blocks(lumped_blocks(lin, Z))
+        Z1, k, converged, nonfinite = _chord(F, Z, fac, rtol, atol)
+        status = jnp.where(singular, Status.SINGULAR,
+                           jnp.where(nonfinite, Status.NONFINITE, Status.SUCCESS)).astype(jnp.int32)
+        done = converged | singular | nonfinite
+        return j + 1, jnp.where(singular, Z, Z1), status, done, updates + jnp.where(singular, 0, k)
+
+    init = (jnp.asarray(0, jnp.int32), Z0, jnp.asarray(Status.SUCCESS, jnp.int32), jnp.asarray(False),
+            jnp.asarray(0, jnp.int32))
+    j, Z, status, done, updates = jax.lax.while_loop(cond, body, init)
+    status = jnp.where(done, status, Status.MAX_ITERATIONS)
+    res = jnp.max(jnp.abs(F(Z)))
+    status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(res), Status.NONFINITE, status)
+    return Z, NewtonStats(iterations=updates, residual_norm=res, status=status.astype(jnp.int32), jacobians=j)
+
+
+def block_newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations: int):
+    r"""Solve $F(z) = 0$ for a pytree $z$ whose leaves share a leading particle axis, by chord
+    iterations with the lumped block-diagonal Jacobian (module docstring). Same contract as
+    `newton_solve`: returns `(z, NewtonStats)`, stops at round-off by default, and
+    `max_iterations` caps the number of block matrices formed."""
+    n = jax.tree_util.tree_leaves(guess)[0].shape[0]
+    Z0 = _blocks(guess, n)
+
+    def Fb(Z):
+        return _blocks(F(_unblocks(Z, guess)), n)
+
+    def solve(f, Z):
+        Z, stats = _loop(f, Z, rtol, atol, max_iterations)
+        # integer aux outputs of custom_root get integer tangents, which JAX rejects (see
+        # newton_solve): carry them as floats
+        return Z, jax.tree_util.tree_map(lambda a: a.astype(Z.dtype), stats)
+
+    def tangent_solve(g, y):
+        # The linear tangent system g(x) = y (g the Jacobian at the root) by the same
+        # preconditioned iteration as the forward solve, x ← x + M⁻¹(y − g(x)), which contracts
+        # where the forward chord iterations did. A fixed number of sweeps: JAX transposes this
+        # map for reverse mode, which a data-dependent while loop would not allow.
+        fac, _ = _factor_blocks(lumped_blocks(g, y))
+        body = lambda _, x: x + _solve_blocks(fac, y - g(x))
+        return jax.lax.fori_loop(0, TANGENT_SWEEPS, body, _solve_blocks(fac, y))
+
+    Z, stats = jax.lax.custom_root(Fb, Z0, solve, tangent_solve, has_aux=True)
+    stats = NewtonStats(iterations=stats.iterations.astype(jnp.int32), residual_norm=stats.residual_norm,
+                        status=stats.status.astype(jnp.int32), jacobians=stats.jacobians.astype(jnp.int32))
+    return _unblocks(Z, guess), stats
