@@ -4,6 +4,21 @@ Parameters are array leaves (held by `jax.tree_util.Partial`), so a parameter sw
 `jax.vmap` over the constructor's arguments.
 """
 
+from ._epdiff import peakons as peakons
+from ._epdiff import ordered_difference as ordered_difference
+from ._epdiff import OrderedDifference as OrderedDifference
+from ._epdiff import peakon_kernel_matrix as peakon_kernel_matrix
+from ._epdiff import peakon_hamiltonian as peakon_hamiltonian
+from ._epdiff import peakon_velocity as peakon_velocity
+from ._epdiff import peakon_momenta as peakon_momenta
+from ._epdiff import peakon_field as peakon_field
+from ._epdiff import landmarks as landmarks
+from ._epdiff import landmark_kernel_matrix as landmark_kernel_matrix
+from ._epdiff import landmark_hamiltonian as landmark_hamiltonian
+from ._epdiff import landmark_velocity as landmark_velocity
+from ._epdiff import landmark_momenta as landmark_momenta
+from ._epdiff import landmark_field as landmark_field
+from ._epdiff import landmark_angular_momentum as landmark_angular_momentum
 from ._heavy_top import heavy_top as heavy_top
 from ._point_vortices import point_vortices as point_vortices
 from ._point_vortices import vortex_angular_impulse as vortex_angular_impulse
@@ -20,4 +35,19 @@ __all__ = [
     "vortex_velocity",
     "vortex_linear_impulse",
     "vortex_angular_impulse",
+    "peakons",
+    "ordered_difference",
+    "OrderedDifference",
+    "peakon_kernel_matrix",
+    "peakon_hamiltonian",
+    "peakon_velocity",
+    "peakon_momenta",
+    "peakon_field",
+    "landmarks",
+    "landmark_kernel_matrix",
+    "landmark_hamiltonian",
+    "landmark_velocity",
+    "landmark_momenta",
+    "landmark_field",
+    "landmark_angular_momentum",
 ]
