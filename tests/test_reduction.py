@@ -143,7 +143,7 @@ def test_reduced_and_full_marches_agree_on_the_rigid_body():
     np.testing.assert_allclose(np.asarray(bare.xi), np.asarray(red.xi), atol=1e-13)
 
 
-@pytest.mark.parametrize("scheme", cj.SCHEMES)
+@pytest.mark.parametrize("scheme", ["left", "right"])  # the schemes the reduced march implements
 def test_reduced_and_full_agree_on_a_user_written_group(scheme):
     """The SE(2) body written in test_user_system, with the exact-logarithm derivative map."""
     system = se2_system(cj.exponential)
