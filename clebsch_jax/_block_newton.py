@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _linalg
-from ._newton import NewtonStats, Status, _converged, _tolerance
+from ._newton import _newton_loop, implicit_root
 
 __all__ = ["block_newton_solve"]
 
@@ -77,50 +77,10 @@ def _solve_blocks(fac, R):
     return jax.vmap(_linalg.solve_factored)(fac, R)
 
 
-def _chord(F, Z0, fac, rtol, atol):
-    def cond(state):
-        k, _, _, stop, _, _ = state
-        return (~stop) & (k < MAX_CHORD_ITERATIONS)
-
-    def body(state):
-        k, Z, eta_prev, _, _, _ = state
-        R = F(Z)
-        dZ = _solve_blocks(fac, R)
-        Z_new = Z - dZ
-        eta = jnp.max(jnp.abs(dZ))
-        nonfinite = ~(jnp.all(jnp.isfinite(Z_new)) & jnp.all(jnp.isfinite(R)))
-        converged = ~nonfinite & _converged(eta, eta_prev, k, _tolerance(Z_new, rtol, atol), Z_new)
-        stop = converged | nonfinite | ((k > 0) & (eta >= eta_prev))
-        return k + 1, jnp.where(nonfinite, Z, Z_new), eta, stop, converged, nonfinite
-
-    false = jnp.asarray(False)
-    init = (jnp.asarray(0, jnp.int32), Z0, jnp.asarray(jnp.inf, Z0.dtype), false, false, false)
-    k, Z, _, _, converged, nonfinite = jax.lax.while_loop(cond, body, init)
-    return Z, k, converged, nonfinite
-
-
-def _loop(F, Z0, rtol, atol, max_iterations):
-    def cond(state):
-        j, _, _, done, _ = state
-        return (~done) & (j < max_iterations)
-
-    def body(state):
-        j, Z, _, _, updates = state
-        _, lin = jax.linearize(F, Z)
-        fac, singular = _factor_blocks(lumped_blocks(lin, Z))
-        Z1, k, converged, nonfinite = _chord(F, Z, fac, rtol, atol)
-        status = jnp.where(singular, Status.SINGULAR,
-                           jnp.where(nonfinite, Status.NONFINITE, Status.SUCCESS)).astype(jnp.int32)
-        done = converged | singular | nonfinite
-        return j + 1, jnp.where(singular, Z, Z1), status, done, updates + jnp.where(singular, 0, k)
-
-    init = (jnp.asarray(0, jnp.int32), Z0, jnp.asarray(Status.SUCCESS, jnp.int32), jnp.asarray(False),
-            jnp.asarray(0, jnp.int32))
-    j, Z, status, done, updates = jax.lax.while_loop(cond, body, init)
-    status = jnp.where(done, status, Status.MAX_ITERATIONS)
-    res = jnp.max(jnp.abs(F(Z)))
-    status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(res), Status.NONFINITE, status)
-    return Z, NewtonStats(iterations=updates, residual_norm=res, status=status.astype(jnp.int32), jacobians=j)
+def _factor_lumped(F, Z):
+    """The lumped block matrix at Z, factored per particle: `(factor, singular)`."""
+    _, lin = jax.linearize(F, Z)
+    return _factor_blocks(lumped_blocks(lin, Z))
 
 
 def block_newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations: int):
@@ -134,11 +94,9 @@ def block_newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iter
     def Fb(Z):
         return _blocks(F(_unblocks(Z, guess)), n)
 
-    def solve(f, Z):
-        Z, stats = _loop(f, Z, rtol, atol, max_iterations)
-        # integer aux outputs of custom_root get integer tangents, which JAX rejects (see
-        # newton_solve): carry them as floats
-        return Z, jax.tree_util.tree_map(lambda a: a.astype(Z.dtype), stats)
+    def loop(f, Z):
+        return _newton_loop(f, Z, rtol, atol, max_iterations, factorize=_factor_lumped, solve=_solve_blocks,
+                            max_updates=MAX_CHORD_ITERATIONS)
 
     def tangent_solve(g, y):
         # The linear tangent system g(x) = y (g the Jacobian at the root) by the same
@@ -149,7 +107,5 @@ def block_newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iter
         body = lambda _, x: x + _solve_blocks(fac, y - g(x))
         return jax.lax.fori_loop(0, TANGENT_SWEEPS, body, _solve_blocks(fac, y))
 
-    Z, stats = jax.lax.custom_root(Fb, Z0, solve, tangent_solve, has_aux=True)
-    stats = NewtonStats(iterations=stats.iterations.astype(jnp.int32), residual_norm=stats.residual_norm,
-                        status=stats.status.astype(jnp.int32), jacobians=stats.jacobians.astype(jnp.int32))
+    Z, stats = implicit_root(Fb, Z0, loop, tangent_solve)
     return _unblocks(Z, guess), stats

@@ -28,6 +28,10 @@ def initial_multiplier(system: ClebschSystem, Q0: jax.Array, xi0: jax.Array) -> 
     return cotangent_from_momentum(system, Q0, jax.grad(lambda x: system.l(x, Q0))(xi0))
 
 
+_DENSE_MAX = 256
+"""Above this many components of V the minimum-norm cotangent is found matrix-free."""
+
+
 def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) -> jax.Array:
     r"""The minimum-norm $p \in T^*_QM$ with momentum map $-p\diamond Q = \mu$.
 
@@ -46,18 +50,17 @@ def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) 
     return lin(y)
 
 
-_DENSE_MAX = 256
-
 
 def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax.Array, *,
-                   rtol: float = 0.0, atol: float = 0.0, max_iterations: int = 20):
-    r"""Solve Lemma 7's $\delta l/\delta\xi(\xi, Q) = -p \diamond Q$ for $\xi$ by Newton.
+                   rtol: float = 0.0, atol: float = 0.0, max_iterations: int = 20, solver=newton_solve):
+    r"""Solve Lemma 7's $\delta l/\delta\xi(\xi, Q) = -p \diamond Q$ for $\xi$ by Newton
+    (`solver`: `newton_solve`, or `block_newton_solve` for many particles).
 
     Returns `(xi, NewtonStats)`. Requires $l$ to be regular in $\xi$ (Lemma 8).
     """
     mu = momentum_map(system, p, Q, guess)
-    return newton_solve(lambda x: nodal_residual(system, Q, mu, x), guess,
-                        rtol=rtol, atol=atol, max_iterations=max_iterations)
+    return solver(lambda x: nodal_residual(system, Q, mu, x), guess,
+                  rtol=rtol, atol=atol, max_iterations=max_iterations)
 
 
 SOLVERS = {"dense": newton_solve, "blocks": block_newton_solve}
@@ -72,8 +75,8 @@ def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, rtol, atol, max_
     elif not system.degenerate:
         # Seeds the first step's guess only; node 0's nodal velocity is solved (and its
         # status checked and reported) with all the other nodes after the march.
-        mu0 = momentum_map(system, P0, Q0, xi0)
-        xi0, _ = newton(lambda x: nodal_residual(system, Q0, mu0, x), xi0)
+        xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol,
+                                max_iterations=max_newton_iterations, solver=solver)
     z_first = StepUnknowns(xi0, P0, Q0 + dt * system.velocity_map(xi0, Q0))
     z_before = StepUnknowns(xi0, P0, Q0)
 

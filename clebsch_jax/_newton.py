@@ -88,19 +88,25 @@ def _converged(eta, eta_prev, k, tol, z):
     return roundoff | estimate | (eta <= 0.01 * tol) | stagnant
 
 
-def _chord(F, z0, fac, rtol, atol):
-    """Updates with one factored Jacobian until `_converged`, until they stop contracting
-    (θ ≥ 1: time for a fresh Jacobian), an iterate is non-finite, or MAX_CHORD_ITERATIONS.
+def _dense_factor(F: Callable, z: jax.Array):
+    """The exact Jacobian at z, factored: `(factor, singular)`."""
+    _, J = jacobian(F, z)
+    return _linalg.factor(J)
+
+
+def _chord(F, z0, fac, rtol, atol, solve=_linalg.solve_factored, max_updates=MAX_CHORD_ITERATIONS):
+    """Updates with one factored matrix until `_converged`, until they stop contracting
+    (θ ≥ 1: time for a fresh matrix), an iterate is non-finite, or `max_updates`.
     Returns (z, updates, converged, nonfinite)."""
 
     def cond(state):
         k, _, _, stop, _, _ = state
-        return (~stop) & (k < MAX_CHORD_ITERATIONS)
+        return (~stop) & (k < max_updates)
 
     def body(state):
         k, z, eta_prev, _, _, _ = state
         Fz = F(z)
-        dz = _linalg.solve_factored(fac, Fz)
+        dz = solve(fac, Fz)
         z_new = z - dz
         eta = jnp.max(jnp.abs(dz))
         nonfinite = ~(jnp.all(jnp.isfinite(z_new)) & jnp.all(jnp.isfinite(Fz)))
@@ -114,14 +120,18 @@ def _chord(F, z0, fac, rtol, atol):
     return z, k, converged, nonfinite
 
 
-def _newton_loop(F: Callable, z0: jax.Array, rtol, atol, max_iterations: int):
+def _newton_loop(F: Callable, z0: jax.Array, rtol, atol, max_iterations: int, *, factorize=_dense_factor,
+                 solve=_linalg.solve_factored, max_updates=MAX_CHORD_ITERATIONS):
     """Newton's method with the Jacobian refreshed only when chord updates stop contracting.
 
     Outer loop: form and factor the Jacobian (at most `max_iterations` times); inner loop:
     chord updates with it. With a good guess — a time march with extrapolated guesses — one
     Jacobian per solve suffices; a hard step gets fresh Jacobians, i.e. full Newton. The
     Jacobian appears once in the program, and under `vmap` the outer loop runs only as often
-    as the slowest member needs."""
+    as the slowest member needs.
+
+    `factorize(F, z) -> (factor, singular)` and `solve(factor, r)` choose the matrix: the exact
+    dense Jacobian by default; `clebsch_jax._block_newton` passes its block-diagonal one."""
 
     def cond(state):
         j, _, _, done, _ = state
@@ -129,9 +139,8 @@ def _newton_loop(F: Callable, z0: jax.Array, rtol, atol, max_iterations: int):
 
     def body(state):
         j, z, _, _, updates = state
-        _, J = jacobian(F, z)
-        fac, singular = _linalg.factor(J)
-        z1, k, converged, nonfinite = _chord(F, z, fac, rtol, atol)
+        fac, singular = factorize(F, z)
+        z1, k, converged, nonfinite = _chord(F, z, fac, rtol, atol, solve, max_updates)
         status = jnp.where(singular, Status.SINGULAR,
                            jnp.where(nonfinite, Status.NONFINITE, Status.SUCCESS)).astype(jnp.int32)
         done = converged | singular | nonfinite
@@ -168,20 +177,28 @@ def newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations
     def F_flat(x):
         return ravel_pytree(F(unravel(x)))[0]
 
-    def solve(f, x0):
-        z, stats = _newton_loop(f, x0, rtol, atol, max_iterations)
-        # custom_root's JVP gives integer aux outputs integer (not float0) tangents, which
-        # JAX then rejects; carry the statistics as floats through it and cast back below.
-        return z, jax.tree_util.tree_map(lambda a: a.astype(x0.dtype), stats)
-
     def tangent_solve(g, y):
         return _linalg.solve(jax.jacfwd(g)(y), y)
 
-    flat, stats = jax.lax.custom_root(F_flat, flat0, solve, tangent_solve, has_aux=True)
-    stats = NewtonStats(
+    flat, stats = implicit_root(F_flat, flat0, lambda f, x0: _newton_loop(f, x0, rtol, atol, max_iterations),
+                                tangent_solve)
+    return unravel(flat), stats
+
+
+def implicit_root(F: Callable, x0: jax.Array, loop: Callable, tangent_solve: Callable):
+    """`jax.lax.custom_root` around `loop(F, x0) -> (x, NewtonStats)`: derivatives of the root by
+    the implicit function theorem, with `tangent_solve` for the tangent systems."""
+
+    def solve(f, x):
+        x, stats = loop(f, x)
+        # custom_root's JVP gives integer aux outputs integer (not float0) tangents, which
+        # JAX then rejects; carry the statistics as floats through it and cast back below.
+        return x, jax.tree_util.tree_map(lambda a: a.astype(x.dtype), stats)
+
+    x, stats = jax.lax.custom_root(F, x0, solve, tangent_solve, has_aux=True)
+    return x, NewtonStats(
         iterations=stats.iterations.astype(jnp.int32),
         residual_norm=stats.residual_norm,
         status=stats.status.astype(jnp.int32),
         jacobians=stats.jacobians.astype(jnp.int32),
     )
-    return unravel(flat), stats

@@ -10,11 +10,7 @@ from scipy.integrate import solve_ivp
 import clebsch_jax as cj
 from clebsch_jax import diagnostics as dg
 
-from .test_reduction import heavy_top_rhs
-
-
-def _vertical(Q):
-    return jnp.stack([cj.lie.hat(jnp.array([0.0, 0.0, 1.0])) @ Q])
+from .test_reduction import _vertical, heavy_top_rhs
 
 
 def test_heavy_top_midpoint_is_second_order_and_conservative():
