@@ -13,9 +13,40 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["inv", "solve", "factor", "solve_factored", "lu_factor", "lu_solve"]
+__all__ = ["inv", "solve", "factor", "inverse", "solve_factored", "lu_factor", "lu_solve", "matmul", "matvec"]
 
 CLOSED_FORM_MAX = 3
+
+UNROLL_MAX = 4
+"""`matmul` and `matvec` write contractions over at most this many terms as multiply-adds."""
+
+
+def matmul(A: jax.Array, B: jax.Array) -> jax.Array:
+    """A @ B for matrices (broadcasting leading axes).
+
+    For an inner dimension ≤ `UNROLL_MAX` the product is a sum of outer products of columns
+    and rows: elementwise multiply-adds, which XLA fuses with the surrounding elementwise code.
+    XLA on CPU emits every small matrix product as its own unfused dot, whose fixed cost
+    dominates a 3×3 computation. (Chains of such products fused into one kernel recompute
+    their operands, so this pays for short chains, not for long ones.)"""
+    k = A.shape[-1]
+    if k > UNROLL_MAX:
+        return A @ B
+    out = A[..., :, 0:1] * B[..., 0:1, :]
+    for i in range(1, k):
+        out = out + A[..., :, i:i + 1] * B[..., i:i + 1, :]
+    return out
+
+
+def matvec(A: jax.Array, v: jax.Array) -> jax.Array:
+    """A v (broadcasting leading axes), unrolled like `matmul` for small sizes."""
+    k = A.shape[-1]
+    if k > UNROLL_MAX:
+        return jnp.einsum("...ij,...j->...i", A, v)
+    out = A[..., :, 0] * v[..., None, 0]
+    for i in range(1, k):
+        out = out + A[..., :, i] * v[..., None, i]
+    return out
 
 
 def _adjugate_and_det(A: jax.Array):
@@ -41,8 +72,11 @@ def inv(A: jax.Array) -> jax.Array:
     return jnp.linalg.inv(A)
 
 
-def solve(A: jax.Array, B: jax.Array) -> jax.Array:
+def solve(A: jax.Array, B: jax.Array, *, unroll: bool = False) -> jax.Array:
     """Solve A X = B for a matrix or a vector B (closed form for n ≤ 3, LU otherwise).
+
+    `unroll`: write the closed form's products with `matmul`/`matvec` (fusible multiply-adds)
+    instead of dot operations; same formula, rounding may differ in the last bit.
 
     The closed form is followed by one step of iterative refinement, X += A⁻¹(B − AX): the
     rounding of the computed determinant otherwise scales every solution by the same 1 + O(ε),
@@ -51,11 +85,13 @@ def solve(A: jax.Array, B: jax.Array) -> jax.Array:
     if A.shape[-1] <= CLOSED_FORM_MAX:
         adj, d = _adjugate_and_det(A)
         vec = B.ndim == A.ndim - 1
-        apply = (lambda M, v: jnp.einsum("...ij,...j->...i", M, v) / d[..., None]) if vec else \
-            (lambda M, v: (M @ v) / d[..., None, None])
-        matvec = (lambda M, v: jnp.einsum("...ij,...j->...i", M, v)) if vec else (lambda M, v: M @ v)
-        X = apply(adj, B)
-        return X + apply(adj, B - matvec(A, X))
+        if unroll:
+            product = matvec if vec else matmul
+        else:
+            product = (lambda M, v: jnp.einsum("...ij,...j->...i", M, v)) if vec else (lambda M, v: M @ v)
+        scale = d[..., None] if vec else d[..., None, None]
+        X = product(adj, B) / scale
+        return X + product(adj, B - product(A, X)) / scale
     return jnp.linalg.solve(A, B)
 
 
@@ -70,6 +106,16 @@ def factor(A: jax.Array):
     lu, perm = lu_factor(A)
     pivots = jnp.abs(jnp.diagonal(lu, axis1=-2, axis2=-1))
     return (lu, perm), jnp.min(pivots, axis=-1) <= n * eps * jnp.max(pivots, axis=-1)
+
+
+def inverse(A: jax.Array):
+    """Explicit inverse (closed form for n ≤ 3, LU otherwise) and the singularity flag of
+    `factor`. Returns (inverse, singular)."""
+    fac, singular = factor(A)
+    if isinstance(fac, tuple):
+        eye = jnp.eye(A.shape[-1], dtype=A.dtype)
+        return jax.vmap(lambda e: lu_solve(fac, e), out_axes=-1)(eye), singular
+    return fac, singular
 
 
 def solve_factored(fac, b: jax.Array) -> jax.Array:

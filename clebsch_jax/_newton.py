@@ -7,10 +7,16 @@ march): the method supplies only the residual and the initial guess. Under `jax.
 The solve is wrapped in `jax.lax.custom_root`, so derivatives of the solution with respect to
 anything the residual closes over (initial data, model parameters) come from the implicit
 function theorem, never from differentiating the iterations.
+
+`newton_solve_reusing` is the variant for a march of similar solves: it carries the inverse
+Jacobian from one solve to the next. Systems of at most `SMALL_SYSTEM` unknowns run a leaner
+loop (`_chord_lean`) with the same decisions: for them XLA's fixed cost per operation, not the
+arithmetic, is the price of an update.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Callable, NamedTuple
 
 import jax
@@ -19,7 +25,7 @@ from jax.flatten_util import ravel_pytree
 
 from . import _linalg
 
-__all__ = ["NewtonStats", "Status", "newton_solve"]
+__all__ = ["NewtonStats", "Status", "newton_solve", "newton_solve_reusing"]
 
 
 class Status:
@@ -57,18 +63,40 @@ MAX_CHORD_ITERATIONS = 8
 """Chord (simplified Newton) updates per Jacobian before the Jacobian is refreshed."""
 
 
-def jacobian(F: Callable, z: jax.Array):
-    """F(z) and its Jacobian by forward mode: one linearisation, its JVP batched over columns."""
+def jacobian(F: Callable, z: jax.Array, unroll: bool = False):
+    """F(z) and its Jacobian by forward mode: one linearisation, its JVP batched over columns
+    (`unroll`: one JVP per column, which XLA compiles to cheaper code for a few columns under
+    an outer `vmap`)."""
     Fz, lin = jax.linearize(F, z)
-    J = jax.vmap(lin, out_axes=-1)(jnp.eye(z.shape[0], dtype=z.dtype))
-    return Fz, J
+    eye = jnp.eye(z.shape[0], dtype=z.dtype)
+    if unroll:
+        return Fz, jnp.stack([lin(e) for e in eye], axis=-1)
+    return Fz, jax.vmap(lin, out_axes=-1)(eye)
 
 
-def _tolerance(z, rtol, atol):
-    return atol + rtol * jnp.max(jnp.abs(z))
+SMALL_SYSTEM = 4
+"""Systems of at most this many unknowns use the leaner loop of `_newton_loop_reusing`."""
+
+MAX_ABS_UNROLL = 8
+"""`max_abs` of vectors up to this length is written as elementwise maxima."""
 
 
-def _converged(eta, eta_prev, k, tol, z):
+def max_abs(v: jax.Array) -> jax.Array:
+    """max|v| over the last axis (NaN where v has one), as elementwise maxima when it is short:
+    XLA on CPU runs a reduction as an operation of its own (slow under `vmap`), elementwise code
+    fuses with its neighbours."""
+    if v.ndim == 0:
+        return jnp.abs(v)
+    if v.shape[-1] > MAX_ABS_UNROLL:
+        return jnp.max(jnp.abs(v), axis=-1)
+    return functools.reduce(jnp.maximum, [jnp.abs(v[..., i]) for i in range(v.shape[-1])])
+
+
+def _tolerance(z, rtol, atol, zmax=None):
+    return atol + rtol * (jnp.max(jnp.abs(z)) if zmax is None else zmax)
+
+
+def _converged(eta, eta_prev, k, tol, z, zmax=None):
     """Whether the iterate after an update of size η is final.
 
     - the update is at round-off size, η ≤ 8ε·max(1, |z|): nothing left to gain;
@@ -78,9 +106,11 @@ def _converged(eta, eta_prev, k, tol, z):
     - stagnation at the noise floor of an ill-conditioned system: the update stopped
       shrinking (θ ≥ 1/2) while already tiny (η ≤ 10⁴ε·max(1, |z|)); continuing would only
       report a false failure.
+
+    `zmax`, if given, is max|z| (already computed by the caller).
     """
     eps = jnp.finfo(z.dtype).eps
-    scale = jnp.maximum(1.0, jnp.max(jnp.abs(z)))
+    scale = jnp.maximum(1.0, jnp.max(jnp.abs(z)) if zmax is None else zmax)
     theta = jnp.where(k == 0, jnp.inf, eta / eta_prev)
     roundoff = eta <= 8.0 * eps * scale
     estimate = (theta < 1.0) & (theta * eta <= (1.0 - theta) * tol)
@@ -131,7 +161,15 @@ def _newton_loop(F: Callable, z0: jax.Array, rtol, atol, max_iterations: int, *,
     as the slowest member needs.
 
     `factorize(F, z) -> (factor, singular)` and `solve(factor, r)` choose the matrix: the exact
-    dense Jacobian by default; `clebsch_jax._block_newton` passes its block-diagonal one."""
+    dense Jacobian by default; `clebsch_jax._block_newton` passes its block-diagonal one. Dense
+    systems of at most `SMALL_SYSTEM` unknowns take the same decisions in the leaner loop of
+    `_newton_loop_reusing` (without a carried Jacobian)."""
+    if factorize is _dense_factor and z0.shape[0] <= SMALL_SYSTEM:
+        z, (updates, status, j), _ = _newton_loop_reusing(F, z0, None, False, rtol, atol, max_iterations)
+        res_norm = max_abs(F(z))
+        status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(res_norm), Status.NONFINITE, status)
+        return z, NewtonStats(iterations=updates, residual_norm=res_norm, status=status.astype(jnp.int32),
+                              jacobians=j)
 
     def cond(state):
         j, _, _, done, _ = state
@@ -154,6 +192,133 @@ def _newton_loop(F: Callable, z0: jax.Array, rtol, atol, max_iterations: int, *,
     status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(res_norm), Status.NONFINITE, status)
     return z, NewtonStats(iterations=updates, residual_norm=res_norm, status=status.astype(jnp.int32),
                           jacobians=j)
+
+
+_RUNNING, _CONVERGED, _NONFINITE, _STOPPED = 0, 1, 2, 3
+
+
+def _chord_lean(F, z0, H, rtol, atol, *, F0=None, max_contraction=1.0, active=True):
+    """`_chord` with an explicit inverse Jacobian H, written for small systems: its decisions
+    are those of `_chord` (with θ ≥ `max_contraction` ending it), but each update computes
+    max|Δz| and max|z| once each, by `max_abs` (a NaN or inf in F or z shows in them), and the
+    loop carries one outcome code instead of three flags. Under `vmap` on CPU the fixed cost of
+    every operation of the loop body is paid per update, and here the bookkeeping is most of
+    the body. `F0`, if given, is F(z0) (known from forming the Jacobian): the first update
+    uses it instead of evaluating F again. `active=False` makes no update. Returns (z,
+    updates, converged, nonfinite)."""
+
+    def update(state, Fz):
+        k, z, eta_prev, _ = state
+        dz = _linalg.matvec(H, Fz)
+        z_new = z - dz
+        eta, zmax = max_abs(jnp.stack([dz, z_new]))  # one fused computation for both
+        nonfinite = ~(jnp.isfinite(eta) & jnp.isfinite(zmax))
+        converged = _converged(eta, eta_prev, k, _tolerance(z_new, rtol, atol, zmax), z_new, zmax)
+        stopped = ((k > 0) & (eta >= max_contraction * eta_prev)) | (k + 1 >= MAX_CHORD_ITERATIONS)
+        code = jnp.where(nonfinite, _NONFINITE,
+                         jnp.where(converged, _CONVERGED, jnp.where(stopped, _STOPPED, _RUNNING)))
+        return k + 1, jnp.where(nonfinite, z, z_new), eta, code.astype(jnp.int32)
+
+    code0 = jnp.where(active, _RUNNING, _STOPPED).astype(jnp.int32)
+    state = (jnp.asarray(0, jnp.int32), z0, jnp.asarray(jnp.inf, z0.dtype), code0)
+    if F0 is not None:
+        state = update(state, F0)
+    k, z, _, code = jax.lax.while_loop(lambda st: st[3] == _RUNNING, lambda st: update(st, F(st[1])), state)
+    return z, k, code == _CONVERGED, code == _NONFINITE
+
+
+REUSE_MAX_CONTRACTION = 0.1
+"""`newton_solve_reusing`: a carried Jacobian is replaced by a fresh one as soon as its chord
+updates contract by less than this factor per update (θ = |Δz_k|/|Δz_k-1| above it)."""
+
+
+def _newton_loop_reusing(F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max_contraction=1.0):
+    """`_newton_loop` that first tries an inverse Jacobian `H0` carried from an earlier solve.
+
+    First chord updates with `H0` (if `reuse`; `reuse=False`, a Python bool, leaves them out
+    of the program) while they contract by at least `max_contraction` per update; then, if not
+    converged, the loop of `_newton_loop`: fresh Jacobians (inverted explicitly, to be carried
+    on) with chord updates, each fresh Jacobian's first update using the residual that forming
+    it gave. Returns (z, (updates, status, jacobians), H), H the inverse Jacobian to carry to
+    the next solve."""
+    if reuse is False:
+        z1, k0, converged0, nonfinite0 = z0, jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(False)
+        H0 = jnp.eye(z0.shape[0], dtype=z0.dtype)
+    else:
+        z1, k0, converged0, nonfinite0 = _chord_lean(F, z0, H0, rtol, atol, max_contraction=max_contraction,
+                                                     active=reuse)
+
+    def cond(state):
+        j, _, _, _, done, _ = state
+        return (~done) & (j < max_iterations)
+
+    def body(state):
+        j, z, H_old, _, _, updates = state
+        Fz, J = jacobian(F, z, unroll=z.shape[0] <= _linalg.UNROLL_MAX)
+        H, singular = _linalg.inverse(J)
+        z1, k, converged, nonfinite = _chord_lean(F, z, H, rtol, atol, F0=Fz)
+        status = jnp.where(singular, Status.SINGULAR,
+                           jnp.where(nonfinite, Status.NONFINITE, Status.SUCCESS)).astype(jnp.int32)
+        done = converged | singular | nonfinite
+        return (j + 1, jnp.where(singular, z, z1), jnp.where(singular, H_old, H), status, done,
+                updates + jnp.where(singular, 0, k))
+
+    status0 = jnp.where(nonfinite0, Status.NONFINITE, Status.SUCCESS).astype(jnp.int32)
+    init = (jnp.asarray(0, jnp.int32), z1, H0, status0, converged0 | nonfinite0, k0)
+    j, z, H, status, done, updates = jax.lax.while_loop(cond, body, init)
+    status = jnp.where(done, status, Status.MAX_ITERATIONS)
+    return z, (updates, status, j), H
+
+
+def newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: float, max_iterations: int,
+                         finish: Callable | None = None, max_contraction: float | None = None):
+    r"""`newton_solve` for a sequence of similar solves (a time march), reusing the Jacobian.
+
+    `H` is the inverse Jacobian returned by the previous solve (any array of the right shape,
+    e.g. the identity, when `reuse` is False). With `reuse` the solve starts with chord updates
+    $z \leftarrow z - H F(z)$ and forms a fresh Jacobian (forward mode, as `newton_solve`) only
+    when they contract by less than `max_contraction` (default `REUSE_MAX_CONTRACTION`) per
+    update or do not converge within `MAX_CHORD_ITERATIONS`; then it continues exactly as
+    `newton_solve`, and the fresh inverse is returned for the next solve. Along a smooth march
+    the Jacobian changes little from step to step, so most solves form none: for the reduced
+    rigid body at Δt = 0.05 one Jacobian serves a thousand steps. The stopping rule, the
+    statuses and `max_iterations` (the cap on fresh Jacobians per solve) are those of
+    `newton_solve`: with `rtol = atol = 0` it iterates to round-off.
+
+    `finish(z) -> (F(z), extra)`, if given, evaluates the residual at the solution together
+    with whatever else the caller needs there (sharing their work); it runs outside the
+    implicitly differentiated solve, so `extra` is differentiable as usual. Without it F(z)
+    is evaluated once more and `extra` is None. `stats.residual_norm` is max|F(z)| either way.
+
+    **Returns:** `(z, NewtonStats, H, extra)`; `stats.jacobians` counts the fresh Jacobians
+    (0 when the carried one sufficed). `H` carries no derivatives.
+    """
+    if max_contraction is None:
+        max_contraction = REUSE_MAX_CONTRACTION
+    flat0, unravel = ravel_pytree(guess)
+    dtype = flat0.dtype
+
+    def F_flat(x):
+        return ravel_pytree(F(unravel(x)))[0]
+
+    def solve(f, x0):
+        z, (updates, status, j), H_new = _newton_loop_reusing(f, x0, H, reuse, rtol, atol, max_iterations,
+                                                               max_contraction)
+        # custom_root's JVP gives integer aux outputs integer (not float0) tangents, which JAX
+        # then rejects: carry the statistics as floats (aux outputs get zero tangents).
+        return z, (jnp.stack([updates, status, j]).astype(dtype), H_new)
+
+    def tangent_solve(g, y):
+        return _linalg.solve(jax.jacfwd(g)(y), y)
+
+    flat, (counts, H_new) = jax.lax.custom_root(F_flat, flat0, solve, tangent_solve, has_aux=True)
+    updates, status, j = (c.astype(jnp.int32) for c in counts)
+    z = unravel(flat)
+    residual, extra = (F(z), None) if finish is None else finish(z)
+    res_norm = max_abs(ravel_pytree(residual)[0])
+    status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(res_norm), Status.NONFINITE, status)
+    stats = NewtonStats(iterations=updates, residual_norm=res_norm, status=status.astype(jnp.int32), jacobians=j)
+    return z, stats, H_new, extra
 
 
 def newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations: int):

@@ -20,6 +20,11 @@ dim V equations for $\xi^n$ — Corollary 29's discrete Euler–Poincaré equati
 recursion for the rigid body), obtained by `jax.grad`. When l depends on Q (Definition 14) the
 anchor $Q^a$ moves with the variation too, which is how the advected quantity of Theorem 16
 enters; Q is then carried (and updated explicitly) but is not an unknown.
+
+`reduced_residual` and `outgoing_body_momentum` state these two gradients as written above. The
+march evaluates them with `reduced_step`: both from one gradient of $\ell_d$, and for the Cayley
+map in closed form (its logarithm has an explicit derivative), which leaves a few 3×3 products
+per residual instead of two matrix solves and a reverse pass through them.
 """
 
 from __future__ import annotations
@@ -30,12 +35,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _linalg
+from . import _linalg, lie
 from ._closure import check_closure
 from ._derivative_maps import MatrixGroupDifference
 from ._system import ClebschSystem
 
-__all__ = ["MatrixGroupReduction", "find_reduction", "reduced_residual", "outgoing_body_momentum"]
+__all__ = ["MatrixGroupReduction", "find_reduction", "reduced_residual", "outgoing_body_momentum",
+           "reduced_step"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,10 +55,18 @@ class MatrixGroupReduction:
     xi_shape: tuple
 
     def X(self, xi):
-        return jnp.tensordot(jnp.ravel(xi), jnp.asarray(self.basis), axes=1)
+        return _constant_map(self.basis.reshape(self.basis.shape[0], -1).T, xi, self.basis.shape[1:])
 
     def X_inv(self, Y):
-        return (jnp.asarray(self.pinv) @ jnp.ravel(Y)).reshape(self.xi_shape)
+        return _constant_map(self.pinv, Y, self.xi_shape)
+
+    def X_inv_adjoint(self, g):
+        r"""The n×n matrix $P$ with $\langle P, M\rangle = g \cdot X^{-1}(M)$ for every M."""
+        return _constant_map(self.pinv.T, g, self.basis.shape[1:])
+
+    def X_adjoint(self, M):
+        r"""$X^T$: the vector $(\langle X(e_k), M\rangle)_k$ (Frobenius pairing), of ξ's shape."""
+        return _constant_map(self.basis.reshape(self.basis.shape[0], -1), M, self.xi_shape)
 
     def __hash__(self):
         return hash((self.basis.tobytes(), self.xi_shape))
@@ -60,6 +74,30 @@ class MatrixGroupReduction:
     def __eq__(self, other):
         return (isinstance(other, MatrixGroupReduction) and self.xi_shape == other.xi_shape
                 and np.array_equal(self.basis, other.basis))
+
+
+def _constant_map(C: np.ndarray, x, shape):
+    """C @ ravel(x) reshaped to `shape`, for a constant (NumPy) matrix C.
+
+    The maps X, X⁻¹ and their adjoints are such constants, and sparse (so(3): two nonzeros per
+    row). Written as the sums over C's nonzero entries, they are a few scalar multiply-adds
+    that XLA fuses with their neighbours, instead of an unfused matrix-vector product (entries
+    below 1e-14·max|C|, the round-off of a pseudo-inverse, count as zero). (Written instead as
+    Σⱼ xⱼ·C[:, j], dense, XLA fuses the result into every product that uses it and recomputes
+    it there: measured slower under `vmap`.)"""
+    v = jnp.ravel(x)
+    cut = 1e-14 * np.max(np.abs(C))
+    rows = []
+    for row in C:
+        acc = None
+        for j, c in enumerate(row):
+            if abs(c) <= cut:
+                continue
+            c = float(c)
+            t = v[j] if c == 1.0 else (-v[j] if c == -1.0 else c * v[j])
+            acc = t if acc is None else acc + t
+        rows.append(jnp.zeros((), v.dtype) if acc is None else acc)
+    return jnp.stack(rows).reshape(shape)
 
 
 def _concrete(x) -> bool:
@@ -168,3 +206,87 @@ def outgoing_body_momentum(system, red, scheme, dt, Q0, xi):
         return reduced_lagrangian(system, red, scheme, dt, F + F @ Xe, Qa)
 
     return jax.grad(perturbed)(jnp.zeros_like(xi)), Q1
+
+
+def _is_cayley(derivative_map) -> bool:
+    return (getattr(derivative_map, "exp", None) is lie.cayley_exp
+            and getattr(derivative_map, "log", None) is lie.cayley_log)
+
+
+def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
+    r"""`reduced_residual` and `outgoing_body_momentum` of one step, sharing their work.
+
+    Both are derivatives of $\ell_d(F, Q^a)$ at $F = \overline{\exp}(\Delta t X(\xi))$ along
+    group directions: with $G_F = \partial\ell_d/\partial F$ and $G_Q = \partial\ell_d/\partial Q^a$
+    (ambient gradients) and $X^T M = (\langle X(e_k), M\rangle)_k$,
+
+    $$ r = \mu^n - X^T(G_F F^T) + [\text{left}]\; X^T((Q^n)^T G_Q), \qquad
+       \mu^{n+1} = X^T(F^T G_F) + [\text{right}]\; X^T((Q^{n+1})^T G_Q) , $$
+
+    the chain rule applied to the variations $F \to (I - X(\eta))F$, $Q^a \to Q^n(I + X(\eta))$
+    (left) of the residual and $F \to F(I + X(\eta))$, $Q^a \to Q^{n+1}(I + X(\eta))$ (right)
+    of the outgoing momentum: one evaluation of $\overline{\exp}$, $\overline{\log}$ and one
+    reverse pass serve both. For the Cayley map the derivative of $\overline{\log}$ is
+    explicit (`_cayley_step`). Returns `(r, mu1, Q1)`; `mu1` is None unless `outgoing`, and
+    `Q1` may be None when `outgoing` is False."""
+    if _is_cayley(system.derivative_map):
+        return _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing)
+    F = system.derivative_map.exp(dt * red.X(xi))
+    Q1 = Q0 @ F
+    Qa = Q0 if scheme == "left" else Q1
+    if system.has_potential:
+        G_F, G_Q = jax.grad(lambda f, q: reduced_lagrangian(system, red, scheme, dt, f, q), argnums=(0, 1))(F, Qa)
+    else:
+        G_F, G_Q = jax.grad(lambda f: reduced_lagrangian(system, red, scheme, dt, f, Qa))(F), None
+    r = mu - red.X_adjoint(G_F @ F.T)
+    if G_Q is not None and scheme == "left":
+        r = r + red.X_adjoint(Q0.T @ G_Q)
+    if not outgoing:
+        return r, None, Q1
+    mu1 = red.X_adjoint(F.T @ G_F)
+    if G_Q is not None and scheme == "right":
+        mu1 = mu1 + red.X_adjoint(Q1.T @ G_Q)
+    return r, mu1, Q1
+
+
+def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
+    r"""`reduced_step` for the Cayley pair $\overline{\exp}(Y) = (I - Y/2)^{-1}(I + Y/2)$,
+    $\overline{\log}(A) = 2(A + I)^{-1}(A - I)$ (Example 30), in closed form.
+
+    With $L = \overline{\log}(A)$ the derivative of the Cayley logarithm is
+    $d\overline{\log}_A[V] = (I - L/2)\,V\,(I - L/2)$ (from $(A + I)^{-1} = (I - L/2)/2$), and at
+    $F = \overline{\exp}(Y)$, $L = Y$ and $F(I - Y/2) = (I - Y/2)F = I + Y/2$. So with
+    $Y = \Delta t X(\xi)$, $F_\mp = I \mp Y/2$ and $P$ the matrix with
+    $\langle P, M\rangle = \nabla_\xi l \cdot X^{-1}(M)$:
+
+    $$ \partial_\eta\, \ell_d((I - X(\eta))F)\big|_0 = -X^T(F_-^T P F_+^T), \qquad
+       \partial_\eta\, \ell_d(F(I + X(\eta)))\big|_0 = X^T(F_+^T P F_-^T) , $$
+
+    the discrete Euler–Poincaré equation of the CAY method for any matrix group, with no
+    matrix solve and no logarithm (ξ(F) = ξ: the Cayley pair is an exact inverse pair, and
+    $\overline{\log}(F^{-1}) = -\overline{\log}(F)$ makes both schemes use it). F itself is
+    formed only for $Q^{n+1}$ (`outgoing`) or a potential evaluated at $Q^{n+1}$ (right scheme).
+    The potential terms are those of `reduced_step`, with $G_Q = \Delta t\,\partial l/\partial Q$."""
+    n = red.basis.shape[-1]
+    Y = dt * red.X(xi)
+    eye = jnp.eye(n, dtype=Y.dtype)
+    Fm, Fp = eye - 0.5 * Y, eye + 0.5 * Y
+    mm = _linalg.matmul
+    need_F = outgoing or (system.has_potential and scheme == "right")
+    # F = lie.cayley_exp(Y), with its products written out for XLA to fuse
+    Q1 = mm(Q0, _linalg.solve(Fm, Fp, unroll=True)) if need_F else None
+    Qa = Q0 if scheme == "left" else Q1
+    if system.has_potential:
+        g, g_Q = jax.grad(system.l, argnums=(0, 1))(xi, Qa)
+    else:
+        g, g_Q = jax.grad(lambda x: system.l(x, Q0))(xi), None
+    P = red.X_inv_adjoint(g)
+    r = mu - red.X_adjoint(mm(mm(Fm.T, P), Fp.T))
+    if g_Q is not None and scheme == "left":
+        r = r + dt * red.X_adjoint(mm(Q0.T, g_Q))
+    if not outgoing:
+        return r, None, Q1
+    mu1 = red.X_adjoint(mm(mm(Fp.T, P), Fm.T))
+    if g_Q is not None and scheme == "right":
+        mu1 = mu1 + dt * red.X_adjoint(mm(Q1.T, g_Q))
+    return r, mu1, Q1
