@@ -34,7 +34,12 @@ from ._closure import (  # noqa: E402
     check_closure as check_closure,
     euler_poincare_field as euler_poincare_field,
 )
-from ._integrate import integrate as integrate  # noqa: E402
+from ._composition import (  # noqa: E402
+    COMPOSITIONS as COMPOSITIONS,
+    Composition as Composition,
+    StepPlan as StepPlan,
+)
+from ._integrate import integrate as integrate, step_plan as step_plan  # noqa: E402
 from ._march_full import (  # noqa: E402
     initial_multiplier as initial_multiplier,
     nodal_velocity as nodal_velocity,
@@ -48,6 +53,7 @@ from ._residual import (  # noqa: E402
     step_residual as step_residual,
 )
 from ._solution import IntegrationError as IntegrationError, Solution as Solution  # noqa: E402
+from ._sweep import SweepProgress as SweepProgress, SweepResult as SweepResult, sweep as sweep  # noqa: E402
 from ._system import ClebschSystem as ClebschSystem, diamond as diamond, momentum_map as momentum_map  # noqa: E402
 
 __version__ = "0.1.0"

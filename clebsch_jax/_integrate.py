@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._composition import plan_steps
 from ._discrete_action import SCHEMES
 from ._march_full import march_full
 from ._march_reduced import march_reduced
@@ -88,6 +89,12 @@ def _shape_of(fn_name: str, fn, args, describe: str):
     return out
 
 
+def _default_scheme(system, scheme):
+    if scheme is None:
+        return "midpoint" if system.degenerate else "left"
+    return scheme
+
+
 def _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_iterations):
     if not isinstance(system, ClebschSystem):
         raise TypeError(f"system: expected a clebsch_jax.ClebschSystem, got {type(system).__name__}.")
@@ -101,8 +108,7 @@ def _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_i
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if not isinstance(tol, numbers.Real) or not (tol >= 0) or not np.isfinite(tol):
             raise ValueError(f"{name}: expected a finite float >= 0, got {tol!r}.")
-    if scheme is None:
-        scheme = "midpoint" if system.degenerate else "left"
+    scheme = _default_scheme(system, scheme)
     if scheme not in SCHEMES:
         raise ValueError(f"scheme: expected one of {SCHEMES}, got {scheme!r}.")
     if scheme == "midpoint" and not callable(getattr(system.derivative_map, "at_midpoint", None)):
@@ -151,14 +157,21 @@ def _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_i
     return Q0, xi0, P0, dt, scheme
 
 
-def _nominal_order(system: ClebschSystem, scheme: str) -> int:
-    """Order of the one-step principles: 2 for the midpoint principle; 2 for left/right when the
-    derivative map is symmetric (Example 30) and l has no potential (l(ξ, Qⁿ) at one end of the
-    step is a first-order quadrature); else 1."""
+def _base_facts(system: ClebschSystem, scheme: str):
+    """(order, symmetric) of the one-step principle: the midpoint principle is symmetric, of
+    order 2; left/right are when the derivative map is symmetric (Example 30) and l has no
+    potential (l(ξ, Qⁿ) at one end of the step is a first-order quadrature); else order 1."""
     if scheme == "midpoint":
-        return 2
-    symmetric = bool(getattr(system.derivative_map, "symmetric", False))
-    return 2 if symmetric and not system.has_potential else 1
+        return 2, True
+    symmetric = bool(getattr(system.derivative_map, "symmetric", False)) and not system.has_potential
+    return (2 if symmetric else 1), symmetric
+
+
+def step_plan(system: ClebschSystem, scheme: str | None = None, order=None, composition=None):
+    """The `StepPlan` `integrate` runs for these arguments: its sub-steps and its facts
+    (`order`, `symmetric`, `symplectic`, `name`, `solves_per_step`)."""
+    scheme = _default_scheme(system, scheme)
+    return plan_steps(scheme, *_base_facts(system, scheme), order, composition)
 
 
 _march_full_jit = _filter_jit(march_full)
@@ -182,6 +195,8 @@ def integrate(
     atol: float = 0.0,
     max_newton_iterations: int = 20,
     jacobian: str = "dense",
+    order: int | None = None,
+    composition=None,
     throw: bool = True,
 ) -> Solution:
     r"""March the discrete Clebsch equations (Lemma 20) of `system` from $(Q^0, \xi^0)$.
@@ -230,6 +245,17 @@ def integrate(
       with the lumped block-diagonal Jacobian (`clebsch_jax._block_newton`): b Jacobian-vector
       products per matrix instead of N·b and no (N·b)³ factorisation, converged to the same
       round-off; needed for N in the hundreds and more (point vortices, landmarks).
+    - `order`: None (default) runs the principle as it is (order 1, or 2 when it is symmetric:
+      midpoint, or left/right with a symmetric derivative map and no potential). 2, 4, 6 or 8
+      makes each step a symmetric composition of sub-steps (`clebsch_jax._composition`): the
+      symmetric second-order step — the principle itself if symmetric, else the left principle
+      composed with its adjoint, the right principle, over half steps — at orders 4, 6, 8
+      composed with Suzuki's p4s5, Kahan & Li's p6s9 and p8s17 coefficients. Each sub-step is a
+      discrete Clebsch step, so the composition is symplectic and conserves the same momentum
+      maps; a step costs `step_plan(...).solves_per_step` Newton solves (5, 9, 17, doubled for
+      a first-order principle). `Solution.order` and `Solution.method` record what ran.
+    - `composition`: a `Composition` (or the name of one in `clebsch_jax.COMPOSITIONS`, e.g.
+      "Suzuki-Umeno p8s15") instead of the default coefficients of its order.
     - `throw`: if True (default) a failed step raises `IntegrationError` once, at the end,
       naming the step (and batch member under `jax.vmap`), the reason and what to try. Under
       `jit`/`vmap` the error is raised from a host callback. If False, failures are only
@@ -238,8 +264,8 @@ def integrate(
 
     **Returns:** a `Solution`.
 
-    Transformations: works under `jax.jit` (`n_steps`, `scheme`, `reduce` and the tolerances
-    are static) and `jax.vmap` over `Q0`, `xi0`, `P0`, `dt` and array parameters inside the
+    Transformations: works under `jax.jit` (`n_steps`, `scheme`, `reduce`, `order`,
+    `composition` and the tolerances are static) and `jax.vmap` over `Q0`, `xi0`, `P0`, `dt` and array parameters inside the
     system. Derivatives (forward and reverse mode) flow through the Newton solves by implicit
     differentiation (`jax.lax.custom_root`).
     """
@@ -253,11 +279,11 @@ def integrate(
             "jacobian: 'blocks' needs a leading particle axis shared by Q0 and xi0, got Q0 of shape "
             f"{Q0.shape} and xi0 of shape {xi0.shape}."
         )
+    plan = step_plan(system, scheme, order, composition)
     t0 = jnp.asarray(t0, dtype=dt.dtype)
     P0_given = P0 is not None
-    common = dict(n_steps=n_steps, scheme=scheme, rtol=float(rtol), atol=float(atol),
-                  max_newton_iterations=int(max_newton_iterations), P0_given=P0_given,
-                  order=_nominal_order(system, scheme))
+    common = dict(n_steps=n_steps, scheme=scheme, plan=plan, rtol=float(rtol), atol=float(atol),
+                  max_newton_iterations=int(max_newton_iterations), P0_given=P0_given)
     P0 = P0 if P0_given else jnp.zeros_like(Q0)
     red = None
     if reduce is True or (reduce == "auto" and not need_P):  # "auto" with need_P: full march

@@ -7,11 +7,12 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
 
 from ._block_newton import block_newton_solve
 from ._newton import newton_solve
 from ._residual import StepUnknowns, nodal_residual, outgoing_momentum, step_residual
-from ._scan import assemble, extrapolate, gate
+from ._scan import PREDICTOR_ORDER, assemble, march, predict, push, slots
 from ._system import ClebschSystem, momentum_map
 
 __all__ = ["initial_multiplier", "cotangent_from_momentum", "nodal_velocity", "march_full"]
@@ -66,8 +67,8 @@ def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax
 SOLVERS = {"dense": newton_solve, "blocks": block_newton_solve}
 
 
-def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, rtol, atol, max_newton_iterations,
-               P0_given, order, jacobian="dense"):
+def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, plan, rtol, atol, max_newton_iterations,
+               P0_given, jacobian="dense"):
     solver = SOLVERS[jacobian]
     newton = functools.partial(solver, rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
     if not P0_given:
@@ -77,24 +78,27 @@ def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, rtol, atol, max_
         # status checked and reported) with all the other nodes after the march.
         xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol,
                                 max_iterations=max_newton_iterations, solver=solver)
-    z_first = StepUnknowns(xi0, P0, Q0 + dt * system.velocity_map(xi0, Q0))
-    z_before = StepUnknowns(xi0, P0, Q0)
+    _, unravel = ravel_pytree(StepUnknowns(xi0, P0, Q0))
 
-    def step(carry, _):
-        Q, p, z_prev, z_pp, n, alive = carry
-        guess = extrapolate(n, z_first, z_prev, z_pp)
-        z, stats = newton(lambda z: step_residual(system, scheme, dt, Q, p, z), guess)
-        p1 = outgoing_momentum(system, scheme, dt, Q, z)
-        ok, stats, (z, p1) = gate(alive, stats, (z, p1))
-        return (z.Q1, p1, z, z_prev, n + 1, ok), (z, p1, stats)
+    def substep(state, history, h, scheme, n, alive):
+        Q, p, xi_last = state
+        # The guess is (ξ, P, Q¹) = (ξ_last, p, Q) + the predicted increment: at step 0 the
+        # explicit (0, 0, h L_ξ Q), later the extrapolation of this sub-step's past increments.
+        base = ravel_pytree(StepUnknowns(xi_last, p, Q))[0]
+        first = ravel_pytree(StepUnknowns(jnp.zeros_like(xi_last), jnp.zeros_like(p),
+                                          h * system.velocity_map(xi_last, Q)))[0]
+        z, stats = newton(lambda z: step_residual(system, scheme, h, Q, p, z),
+                          unravel(base + predict(n, first, history)))
+        p1 = outgoing_momentum(system, scheme, h, Q, z)
+        return (z.Q1, p1, z.xi), push(history, ravel_pytree(z)[0] - base), (z.xi, z.P), stats
 
-    init = (Q0, P0, z_first, z_before, jnp.asarray(0, jnp.int32), jnp.asarray(True))
-    _, (zs, ps, stats) = jax.lax.scan(step, init, None, length=n_steps)
+    history = jnp.zeros((PREDICTOR_ORDER + 1, 2 * Q0.size + xi0.size), Q0.dtype)  # not used at step 0
+    (Qs, ps, _), (xis, Ps), stats = march(substep, (Q0, P0, xi0), slots(plan, history), plan, dt, n_steps)
 
-    Qs = jnp.concatenate([Q0[None], zs.Q1])
+    Qs = jnp.concatenate([Q0[None], Qs])
     pn = jnp.concatenate([P0[None], ps])
     mus = jax.vmap(lambda q, p: momentum_map(system, p, q, xi0))(Qs, pn)
-    return assemble(system=system, dt=dt, t0=t0, Q0=Q0, xi0=xi0, stats=stats, xi_steps=zs.xi,
-                    Qs=Qs, ps=pn, Ps=zs.P, mus=mus, rtol=rtol, atol=atol,
-                    max_iterations=max_newton_iterations, form="full", scheme=scheme, order=order,
+    return assemble(system=system, dt=dt, t0=t0, Q0=Q0, xi0=xi0, stats=stats, xi_steps=xis,
+                    Qs=Qs, ps=pn, Ps=Ps, mus=mus, rtol=rtol, atol=atol,
+                    max_iterations=max_newton_iterations, form="full", scheme=scheme, plan=plan,
                     nodal_Q=Qs, solver=solver)

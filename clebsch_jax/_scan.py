@@ -4,21 +4,128 @@ velocities and the assembly of the `Solution`."""
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ._newton import NewtonStats, Status, newton_solve
+from ._newton import NewtonStats, Status, max_abs, newton_solve
 from ._residual import nodal_residual
 from ._solution import Solution
 from ._system import ClebschSystem
 
-__all__ = ["extrapolate", "gate", "nodal_velocities", "assemble"]
+__all__ = ["predict", "push", "march", "slots", "combine_stats", "gate", "nodal_velocities", "assemble"]
 
 
-def extrapolate(n, first, prev, before):
-    """Initial guess of step n: `first` at n = 0, then linear extrapolation 2·prev − before."""
-    return jax.tree_util.tree_map(lambda f, a, b: jnp.where(n == 0, f, 2.0 * a - b), first, prev, before)
+PREDICTOR_ORDER = 5
+"""Highest degree of the polynomial through the last solutions that predicts the next one
+(`predict`)."""
+
+
+def predict(n, first, history):
+    """Initial guess of step n's unknowns: `first` at n = 0, then the polynomial extrapolation
+    of the solutions of the last steps, `history` (newest first, leading axis p + 1), in
+    Newton's backward-difference form zⁿ ≈ Σⱼ ∇ʲzⁿ⁻¹, j = 0 … p.
+
+    The degree p is at most min(n − 1, PREDICTOR_ORDER) (the differences the steps made so far
+    support) and, beyond 1, a difference is used only while the differences decrease by at
+    least half each (max-norm): over a smooth, well-resolved trajectory the predictor is then
+    of high order (error O(Δtᵖ⁺¹): 4e-9 against 5e-4 for a linear predictor on the
+    benchmark's rigid body at Δt = 0.05, which saves Newton updates), while an under-resolved
+    or rough one (where high-degree extrapolation amplifies) falls back to low degree."""
+    p = history.shape[0] - 1
+    H = history.reshape(p + 1, -1)
+    # rows of D: the backward differences ∇ʲzⁿ⁻¹ = Σᵢ (-1)ⁱ C(j, i) zⁿ⁻¹⁻ⁱ, j = 0 … p, and their
+    # sizes, each computed in one piece (elementwise, which XLA fuses into one operation)
+    C = np.array([[(-1) ** i * math.comb(j, i) for i in range(p + 1)] for j in range(p + 1)], dtype=float)
+    D = functools.reduce(jnp.add, [jnp.asarray(C[:, i:i + 1], H.dtype) * H[i] for i in range(p + 1)])
+    size = max_abs(D)
+    total, keep = D[0], jnp.asarray(True)
+    for j in range(1, p + 1):
+        if j >= 2:
+            keep = keep & (size[j] <= 0.5 * size[j - 1])
+        keep = keep & (n > j)
+        total = total + jnp.where(keep, D[j], 0.0)
+    return jnp.where(n == 0, first, total.reshape(first.shape))
+
+
+def push(history, z):
+    """`history` with z in front and the oldest entry dropped."""
+    return jnp.concatenate([z[None], history[:-1]])
+
+
+def _first_failure(status):
+    """The first status that is not SUCCESS along the last axis (SUCCESS if none)."""
+    failed = status != Status.SUCCESS
+    return jnp.where(jnp.any(failed, axis=-1),
+                     jnp.take_along_axis(status, jnp.argmax(failed, axis=-1)[..., None], axis=-1)[..., 0],
+                     Status.SUCCESS).astype(jnp.int32)
+
+
+def combine_stats(stats: NewtonStats) -> NewtonStats:
+    """One `NewtonStats` for a step made of several solves (stacked along the last axis): the
+    updates and Jacobians add up, the residual is the worst, the status the first failure."""
+    return NewtonStats(iterations=jnp.sum(stats.iterations, axis=-1).astype(jnp.int32),
+                       residual_norm=jnp.max(stats.residual_norm, axis=-1),
+                       status=_first_failure(stats.status),
+                       jacobians=jnp.sum(stats.jacobians, axis=-1).astype(jnp.int32))
+
+
+def march(substep, state0, memory0, plan, dt, n_steps):
+    r"""The time loop shared by every march: `n_steps` steps of `plan` (a `StepPlan`) in
+    `jax.lax.scan`, each step the composition of the plan's sub-steps.
+
+    `substep(state, memory, h, scheme, n, alive) -> (state, memory, out, stats)` makes one
+    Newton-solved sub-step of size h with the principle `scheme` (static). `memory` is the
+    sub-step's own slot — e.g. the history of its solutions in earlier steps, for `predict`,
+    and a carried inverse Jacobian — so each stage of a composition extrapolates from the
+    same stage of the previous steps (same h, smooth in n). `memory0` holds every slot, with
+    leading axes (stages, members of the base step) (see `slots`; none for a plan of one solve).
+
+    A step whose sub-step fails makes the member's state NaN from then on (`gate`); its
+    statistics combine those of its sub-steps (`combine_stats`). Returns the per-step
+    `(state after the step, out of the step's first sub-step, stats)`, stacked over steps.
+    """
+    gammas = jnp.asarray(plan.gammas, dtype=dt.dtype)
+    take = lambda tree, i: jax.tree_util.tree_map(lambda a: a[i], tree)
+    stack = lambda trees: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *trees)
+
+    def stage(n, alive):
+        def body(state, xs):
+            gamma, memory = xs
+            memories, outs, stats = [], [], []
+            for j, (scheme, fraction) in enumerate(plan.substeps):
+                state, mem, out, st = substep(state, take(memory, j), gamma * fraction * dt, scheme, n, alive)
+                memories.append(mem), outs.append(out), stats.append(st)
+            return state, (stack(memories), outs[0], stack(stats))
+        return body
+
+    def step(carry, _):
+        state, memory, n, alive = carry
+        if plan.solves_per_step == 1:  # a single solve per step: no slot axes, nothing to combine
+            (scheme, fraction), = plan.substeps
+            c = plan.gammas[0] * fraction
+            state, memory, out, stats = substep(state, memory, dt if c == 1.0 else c * dt, scheme, n, alive)
+        else:
+            state, (memory, outs, stats) = jax.lax.scan(stage(n, alive), state, (gammas, memory))
+            out = take(outs, 0)
+            stats = combine_stats(jax.tree_util.tree_map(lambda a: a.reshape(-1), stats))
+        ok, stats, (state, out) = gate(alive, stats, (state, out))
+        return (state, memory, n + 1, ok), (state, out, stats)
+
+    init = (state0, memory0, jnp.asarray(0, jnp.int32), jnp.asarray(True))
+    _, ys = jax.lax.scan(step, init, None, length=n_steps)
+    return ys
+
+
+def slots(plan, tree):
+    """`tree` broadcast to every sub-step slot of `plan`: leading axes (stages, members); `tree`
+    itself when a step is a single solve."""
+    if plan.solves_per_step == 1:
+        return tree
+    shape = (len(plan.gammas), len(plan.substeps))
+    return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, shape + a.shape), tree)
 
 
 def gate(alive, stats: NewtonStats, values):
@@ -47,7 +154,7 @@ def step_guesses(xi0, xi_steps):
 
 
 def assemble(*, system, dt, t0, Q0, xi0, stats, xi_steps, Qs, ps, Ps, mus, rtol, atol,
-             max_iterations, form, scheme, order, nodal_Q, solver=newton_solve):
+             max_iterations, form, scheme, plan, nodal_Q, solver=newton_solve):
     """Valid mask, nodal velocities, overall result and the `Solution`.
 
     `nodal_Q` are the configurations the Lagrangian is evaluated at for the nodal solve (the
@@ -74,7 +181,7 @@ def assemble(*, system, dt, t0, Q0, xi0, stats, xi_steps, Qs, ps, Ps, mus, rtol,
     return Solution(
         ts=t0 + dt * jnp.arange(n_steps + 1, dtype=dt.dtype), Q=Qs, p=ps, xi=xin, xi_step=xi_steps,
         P=Ps, momentum=mus, stats=stats, nodal_stats=nodal, result=result, failed_step=failed_step,
-        valid=valid, scheme=scheme, form=form, order=order,
+        valid=valid, scheme=scheme, form=form, order=plan.order, method=plan.name,
         derivative_map=getattr(system.derivative_map, "name", repr(system.derivative_map)),
         q_ndim=Q0.ndim, xi_ndim=xi0.ndim,
     )

@@ -51,7 +51,12 @@ class Solution:
     - `valid` (N+1,): False at nodes after a failure. Their values are NaN on purpose, never
       plausible-looking numbers.
     - Static facts: `scheme`, `form` ("full" or "reduced"), `order` (nominal order of the method),
+      `method` (what a step is made of, e.g. "Kahan-Li p8s17 of left principle"),
       `derivative_map` (its name), `q_ndim` and `xi_ndim` (ranks of one Q and one ξ).
+
+    With a composition (`integrate(..., order=k)`) the nodes are those of the whole steps;
+    `xi_step` and `P` are those of each step's first sub-step, and `stats` combine the
+    sub-steps' solves (updates and Jacobians summed, the worst residual, the first failure).
     """
 
     ts: jax.Array
@@ -69,6 +74,7 @@ class Solution:
     scheme: str = "left"
     form: str = "full"
     order: int = 1
+    method: str = ""
     derivative_map: str = ""
     q_ndim: int = 0
     xi_ndim: int = 0
@@ -115,7 +121,7 @@ jax.tree_util.register_dataclass(
         "ts", "Q", "p", "xi", "xi_step", "P", "momentum", "stats", "nodal_stats", "result", "failed_step",
         "valid",
     ],
-    meta_fields=["scheme", "form", "order", "derivative_map", "q_ndim", "xi_ndim"],
+    meta_fields=["scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim"],
 )
 
 
