@@ -23,12 +23,13 @@ What is timed, in one process and one run, on the same initial conditions, `dt` 
   \times\omega$ with $\dot Q = Q\hat\omega$, vectorised over the batch by broadcasting (a Python
   loop over steps, none over bodies). Like `integrate` it stores the whole trajectory.
 
-Method (as diffrax `benchmarks/against_scan.py`): one warm-up call compiles; every call ends
-in `jax.block_until_ready`; a timing sample is `number` back-to-back calls with `number`
-chosen so a sample lasts at least `--min-sample` seconds; the reported time is the median
-of `--repeats` samples, wall time by `time.perf_counter`. The samples of the four methods of a
-case are taken in turn (round robin), so a change of machine load hits all of them alike.
-Compile time = first call minus the median compiled call. Accuracy at that `dt` is reported
+Method (the harness shared by the benchmarks, `_timing.py`; as diffrax
+`benchmarks/against_scan.py`): one warm-up call compiles; every call ends in
+`jax.block_until_ready`; a timing sample is `number` back-to-back calls with `number` chosen so
+a sample lasts at least `--min-sample` seconds; the reported time is the median of `--repeats`
+samples, wall time by `time.perf_counter`. The samples of the four methods of a case are taken
+in turn (round robin), so a change of machine load hits all of them alike. Compile time =
+first call minus the median compiled call. Accuracy at that `dt` is reported
 for context only.
 
 Outputs (in `--out`, default `benchmarks/results` next to this file):
@@ -39,24 +40,13 @@ asserts a wall time.
 
 from __future__ import annotations
 
-import argparse
-import datetime
-import faulthandler
-import json
-import math
-import os
-import platform
-import statistics
-import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+import _timing as harness
 import clebsch_jax as cj
 from clebsch_jax import diagnostics
 
@@ -136,85 +126,6 @@ def rk4_march(inertia: np.ndarray, Q0: np.ndarray, omega0: np.ndarray, dt: float
 
 
 # --------------------------------------------------------------------------------------------
-# Timing.
-
-
-class _Watchdog:
-    """Exit with a message if a phase overruns: a wedged XLA CPU run would otherwise hang
-    forever (README, "Known problem"). `seconds <= 0` disables it."""
-
-    def __init__(self, seconds: float, what: str):
-        self.seconds, self.what = seconds, what
-        self._timer = None
-
-    def _fire(self):
-        print(f"\nrigid_body_step_cost: '{self.what}' did not finish within {self.seconds:.0f} s; "
-              "the JAX run is probably wedged (README, 'Known problem'). Stacks follow.",
-              file=sys.stderr, flush=True)
-        faulthandler.dump_traceback(all_threads=True)
-        os._exit(3)
-
-    def __enter__(self):
-        if self.seconds > 0:
-            self._timer = threading.Timer(self.seconds, self._fire)
-            self._timer.daemon = True
-            self._timer.start()
-            # backstop that needs no GIL, in case the timer thread cannot run
-            faulthandler.dump_traceback_later(self.seconds + 30, exit=True)
-        return self
-
-    def __exit__(self, *exc):
-        if self._timer is not None:
-            self._timer.cancel()
-            faulthandler.cancel_dump_traceback_later()
-        return False
-
-
-def _sample(call, number: int) -> float:
-    tic = time.perf_counter()
-    for _ in range(number):
-        call()
-    return (time.perf_counter() - tic) / number
-
-
-def time_interleaved(calls: dict, *, repeats: int, min_sample_s: float, guard) -> tuple[dict, dict]:
-    """Median wall time of each `calls[name]()` (each must block until its result is ready).
-
-    Each call is first warmed up on its own: the first call is timed alone (it compiles, for
-    JAX), then one more call fixes `number`, the calls per sample, so that a sample lasts at
-    least `min_sample_s`. Then `repeats` rounds each take one sample of every call, in turn
-    (the starting call rotates from round to round), so load changes during the run hit all
-    of them alike. The result per call is the median over samples of (sample time / number).
-    `guard(name)` is a context manager around every phase (the watchdog).
-    """
-    names = list(calls)
-    outs, first, number = {}, {}, {}
-    for name in names:
-        with guard(name):
-            tic = time.perf_counter()
-            outs[name] = calls[name]()
-            first[name] = time.perf_counter() - tic
-            one = _sample(calls[name], 1)
-        number[name] = max(1, math.ceil(min_sample_s / max(one, 1e-9)))
-    samples = {name: [] for name in names}
-    for r in range(repeats):
-        k = r % len(names)
-        for name in names[k:] + names[:k]:
-            with guard(name):
-                samples[name].append(_sample(calls[name], number[name]))
-    timings = {
-        name: {
-            "first_call_s": first[name],
-            "per_call_s": statistics.median(samples[name]),
-            "samples_s": samples[name],
-            "calls_per_sample": number[name],
-        }
-        for name in names
-    }
-    return timings, outs
-
-
-# --------------------------------------------------------------------------------------------
 # One case: the three variants of ours and RK4 on the same initial conditions.
 
 
@@ -246,8 +157,10 @@ def _per_step(timing: dict, batch: int, n_steps: int) -> dict:
     }
 
 
-def _ours_call(system, batch, n_steps, Q0, omega0, kwargs, compiler_options):
-    """A blocking call of one variant of our march on the case's initial conditions."""
+def ours_call(system, batch, n_steps, Q0, omega0, kwargs, compiler_options=None):
+    """A blocking call of one variant of our march on the initial conditions (Q0, omega0):
+    for `batch` None one plain `integrate` call on the first body, else
+    `jax.jit(jax.vmap(integrate))` over all of them."""
     if batch is None:  # one trajectory, the plain public call (validation and failure check included)
         Q0_j, xi0_j = jnp.asarray(Q0[0]), jnp.asarray(omega0[0])
 
@@ -297,19 +210,17 @@ def _variant_report(system, sol, timing: dict, B: int, n_steps: int, sol_full) -
     }
 
 
-def run_case(label: str, batch: int | None, n_steps: int, *, repeats: int, min_sample_s: float,
-             timeout_s: float, compiler_options: dict | None) -> dict:
+def run_case(label: str, batch: int | None, n_steps: int, run: harness.Run) -> dict:
     system = cj.models.rigid_body(jnp.asarray(INERTIA))
     inertia = np.asarray(INERTIA)
     B = 1 if batch is None else batch
     Q0, omega0 = initial_conditions(B)
     name = f"{label} B={B} n_steps={n_steps}"
 
-    calls = {v: _ours_call(system, batch, n_steps, Q0, omega0, kwargs, compiler_options)
+    calls = {v: ours_call(system, batch, n_steps, Q0, omega0, kwargs, run.compiler_options)
              for v, kwargs, _, _ in VARIANTS}
     calls[RK4] = lambda: rk4_march(inertia, Q0, omega0, DT, n_steps)
-    timings, outs = time_interleaved(calls, repeats=repeats, min_sample_s=min_sample_s,
-                                     guard=lambda method: _Watchdog(timeout_s, f"{method}, {name}"))
+    timings, outs = run.time(calls, what=name)
 
     for v, kwargs, form, has_Q in VARIANTS:
         sol = outs[v].raise_if_failed()
@@ -329,7 +240,7 @@ def run_case(label: str, batch: int | None, n_steps: int, *, repeats: int, min_s
                  "jax.jit(jax.vmap(lambda Q0, xi0: integrate(system, Q0, xi0, dt=dt, n_steps=n, throw=False, **variant)))"),
     }
     # accuracy at this dt and Newton statistics, for context (outside the timings)
-    with _Watchdog(timeout_s, f"diagnostics, {name}"):
+    with run.guard(f"diagnostics, {name}"):
         for v in VARIANT_NAMES:
             row[v] = _variant_report(system, outs[v], timings[v], B, n_steps, outs["full"])
     omegas, Qs = outs[RK4]
@@ -351,85 +262,38 @@ def run_case(label: str, batch: int | None, n_steps: int, *, repeats: int, min_s
 
 
 # --------------------------------------------------------------------------------------------
-# Machine info, printing, plotting.
-
-
-def _git_revision() -> dict:
-    """Commit of the checkout that `clebsch_jax` was imported from (None outside a checkout)."""
-    root = Path(cj.__file__).resolve().parent.parent
-    if not (root / ".git").exists():
-        return {"git_commit": None, "git_dirty": None}
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
-                                text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10).stdout.strip() != ""
-    except (OSError, subprocess.SubprocessError):
-        return {"git_commit": None, "git_dirty": None}
-    return {"git_commit": commit or None, "git_dirty": dirty if commit else None}
-
-
-def machine_info() -> dict:
-    import jaxlib
-
-    affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-    xla_flags = os.environ.get("XLA_FLAGS")
-    return {
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "python": platform.python_version(),
-        "cpu_count": os.cpu_count(),
-        "cpus_usable": affinity,
-        # other processes compete for the cores; > 0 before the run means a loaded machine
-        "load_average_1min_at_start": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
-        "jax": jax.__version__,
-        "jaxlib": jaxlib.__version__,
-        "numpy": np.__version__,
-        "clebsch_jax": cj.__version__,
-        "jax_backend": jax.default_backend(),
-        "jax_devices": [str(d) for d in jax.devices()],
-        "jax_enable_x64": bool(jax.config.jax_enable_x64),
-        "xla_flags": None if xla_flags is None else ("<set>" if "/" in xla_flags else xla_flags),
-        "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        **_git_revision(),
-    }
+# Printing and plotting.
 
 
 _SHORT = {"full": "full", "reduced": "reduced", "reduced_no_Q": "reduced_no_Q", RK4: "NumPy RK4"}
 
 
-def _fmt(x, spec: str, width: int) -> str:
-    return f"{'n/a':>{width}}" if x is None else f"{x:>{width}{spec}}"
-
-
 def print_report(summary: dict) -> None:
     cfg, rows = summary["config"], summary["results"]
-    print(f"\nRigid body, inertia {cfg['inertia_label']}, dt = {cfg['dt']}; median of {cfg['repeats']} "
-          f"samples, each >= {cfg['min_sample_s']} s, the four methods sampled in turn.")
-    print("Variants of integrate: full = reduce=False (21 unknowns per step); reduced = reduce=True "
-          "(3 unknowns, Q reconstructed);\n  reduced_no_Q = reduce=True, reconstruct=False (Q not computed). "
-          "'single' = one plain integrate(...) call;\n  'vmap' = jax.jit(jax.vmap(integrate)) over B bodies.")
+    fmt = harness.fmt
+    harness.print_header(
+        summary, f"Rigid body, inertia {cfg['inertia_label']}, dt = {cfg['dt']}",
+        "Variants of integrate: full = reduce=False (21 unknowns per step); reduced = reduce=True "
+        "(3 unknowns, Q reconstructed);\n  reduced_no_Q = reduce=True, reconstruct=False (Q not computed). "
+        "'single' = one plain integrate(...) call;\n  'vmap' = jax.jit(jax.vmap(integrate)) over B bodies.")
 
     print("\nWall time per body-step [s] (body-steps per second):")
-    head = f"{'case':<7}{'B':>5}{'steps':>7} |" + "".join(f"{_SHORT[m]:>21}" for m in METHODS)
-    print(head)
-    print("-" * len(head))
-    for r in rows:
-        cells = "".join(f"{r[m]['seconds_per_body_step']:>10.3e} ({r[m]['body_steps_per_second']:8.2e})"
-                        for m in METHODS)
-        print(f"{r['case']:<7}{r['batch']:>5}{r['n_steps']:>7} |{cells}")
+    harness.print_table(
+        f"{'case':<7}{'B':>5}{'steps':>7} |" + "".join(f"{_SHORT[m]:>21}" for m in METHODS),
+        (f"{r['case']:<7}{r['batch']:>5}{r['n_steps']:>7} |"
+         + "".join(f"{r[m]['seconds_per_body_step']:>10.3e} ({r[m]['body_steps_per_second']:8.2e})" for m in METHODS)
+         for r in rows))
 
     print("\nRatios of time per body-step (full/reduced = how many times cheaper the reduced step is; "
           "X/RK4 > 1: X is slower than RK4):")
     cols = ("full/reduced", "full/reduced_no_Q", "full/RK4", "reduced/RK4", "reduced_no_Q/RK4")
-    head = f"{'case':<7}{'B':>5} |" + "".join(f"{c:>18}" for c in cols)
-    print(head)
-    print("-" * len(head))
-    for r in rows:
-        q = r["ratios"]
-        vals = (f"{q['full_over_reduced']:.3g}x", f"{q['full_over_reduced_no_Q']:.3g}x",
+
+    def ratio_cells(q):
+        return (f"{q['full_over_reduced']:.3g}x", f"{q['full_over_reduced_no_Q']:.3g}x",
                 *(f"{q[f'{v}_over_rk4_per_body_step']:.3g}" for v in VARIANT_NAMES))
-        print(f"{r['case']:<7}{r['batch']:>5} |" + "".join(f"{x:>18}" for x in vals))
+    harness.print_table(
+        f"{'case':<7}{'B':>5} |" + "".join(f"{c:>18}" for c in cols),
+        (f"{r['case']:<7}{r['batch']:>5} |" + "".join(f"{x:>18}" for x in ratio_cells(r["ratios"])) for r in rows))
     target = summary["target_full_over_reduced"]
     met = [r for r in rows if r["ratios"]["full_over_reduced"] >= target]
     ratios = [r["ratios"]["full_over_reduced"] for r in rows]
@@ -437,26 +301,23 @@ def print_report(summary: dict) -> None:
           f"{len(met)} of {len(rows)} cases (full/reduced from {min(ratios):.3g}x to {max(ratios):.3g}x).")
 
     print("\nCompile time [s] (first call minus a compiled call: tracing + XLA compilation):")
-    head = f"{'case':<7}{'B':>5}{'steps':>7} |" + "".join(f"{v:>14}" for v in VARIANT_NAMES)
-    print(head)
-    print("-" * len(head))
-    for r in rows:
-        print(f"{r['case']:<7}{r['batch']:>5}{r['n_steps']:>7} |"
-              + "".join(f"{r[v]['compile_s']:>14.1f}" for v in VARIANT_NAMES))
+    harness.print_table(
+        f"{'case':<7}{'B':>5}{'steps':>7} |" + "".join(f"{v:>14}" for v in VARIANT_NAMES),
+        (f"{r['case']:<7}{r['batch']:>5}{r['n_steps']:>7} |" + "".join(f"{r[v]['compile_s']:>14.1f}" for v in VARIANT_NAMES)
+         for r in rows))
 
     print("\nAccuracy at this dt, for context (max over the run and the batch); "
           "max|xi - xi_full|: nodal velocities against the full march:")
-    head = (f"{'case':<7}{'B':>5}{'T':>6} | {'rel dE: full':>12}{'reduced':>10}{'red_no_Q':>10}{'RK4':>10} | "
-            f"{'|QtQ-I|: full':>13}{'reduced':>10}{'red_no_Q':>10}{'RK4':>10} | "
-            f"{'|dxi|: reduced':>14}{'red_no_Q':>10}")
-    print(head)
-    print("-" * len(head))
-    for r in rows:
-        e = "".join(_fmt(r[m]["max_rel_energy_error"], ".2e", w) for m, w in zip(METHODS, (12, 10, 10, 10)))
-        o = "".join(_fmt(r[m]["max_orthogonality_error"], ".2e", w) for m, w in zip(METHODS, (13, 10, 10, 10)))
-        x = "".join(_fmt(r[v]["max_abs_xi_diff_vs_full"], ".2e", w)
-                    for v, w in (("reduced", 14), ("reduced_no_Q", 10)))
-        print(f"{r['case']:<7}{r['batch']:>5}{r['t_final']:>6.3g} | {e} | {o} | {x}")
+
+    def accuracy_cells(r):
+        e = "".join(fmt(r[m]["max_rel_energy_error"], ".2e", w, "n/a") for m, w in zip(METHODS, (12, 10, 10, 10)))
+        o = "".join(fmt(r[m]["max_orthogonality_error"], ".2e", w, "n/a") for m, w in zip(METHODS, (13, 10, 10, 10)))
+        x = "".join(fmt(r[v]["max_abs_xi_diff_vs_full"], ".2e", w, "n/a") for v, w in (("reduced", 14), ("reduced_no_Q", 10)))
+        return f"{r['case']:<7}{r['batch']:>5}{r['t_final']:>6.3g} | {e} | {o} | {x}"
+    harness.print_table(
+        f"{'case':<7}{'B':>5}{'T':>6} | {'rel dE: full':>12}{'reduced':>10}{'red_no_Q':>10}{'RK4':>10} | "
+        f"{'|QtQ-I|: full':>13}{'reduced':>10}{'red_no_Q':>10}{'RK4':>10} | {'|dxi|: reduced':>14}{'red_no_Q':>10}",
+        map(accuracy_cells, rows))
 
     print("\nNewton updates per step solve (mean, max; under vmap also the mean of the slowest member), "
           "Jacobians formed per step, nodal-velocity updates per node:")
@@ -483,18 +344,11 @@ _STYLE = {  # method -> (marker, line style, colour, legend label for the batche
 
 
 def plot(summary: dict, path: Path) -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
-
     rows = summary["results"]
-    vmap_rows = [r for r in rows if r["case"] == "vmap"]
-    single = [r for r in rows if r["case"] == "single"]
-    fig = Figure(figsize=(11, 4.6), layout="constrained")
-    FigureCanvasAgg(fig)
-    ax, ax_r = fig.subplots(1, 2, gridspec_kw={"width_ratios": [3, 2]})
-    hollow = Line2D([], [], color="0.3", marker="o", mfc="none", ms=10, ls="none",
-                    label="hollow: one plain integrate call\n(RK4: same single trajectory)")
+    by_case = harness.rows_by(rows)
+    vmap_rows, single = by_case.get("vmap", []), by_case.get("single", [])
+    fig, (ax, ax_r) = harness.figure((3, 2))
+    hollow = harness.hollow_marker("hollow: one plain integrate call\n(RK4: same single trajectory)")
 
     B = [r["batch"] for r in vmap_rows]
     for m in METHODS:
@@ -508,12 +362,7 @@ def plot(summary: dict, path: Path) -> None:
     ax.set_ylabel("wall time per body-step [s]")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(handles=ax.get_legend_handles_labels()[0] + [hollow], fontsize=8)
-    mach, cfg = summary["machine"], summary["config"]
-    load = mach.get("load_average_1min_at_start")
-    ax.set_title(f"Rigid body, dt = {cfg['dt']}, median of {cfg['repeats']}"
-                 f"{' (--quick: not a measurement)' if cfg['quick'] else ''}\n"
-                 f"{mach['cpu_count']} CPUs, load {'?' if load is None else f'{load:.2f}'} at start, "
-                 f"jax {mach['jax']}, numpy {mach['numpy']}", fontsize=9)
+    ax.set_title(harness.plot_title(summary, f"Rigid body, dt = {summary['config']['dt']}"), fontsize=9)
 
     target = summary["target_full_over_reduced"]
     for v in ("reduced", "reduced_no_Q"):
@@ -538,99 +387,28 @@ def plot(summary: dict, path: Path) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def _parse(argv):
-    parser = argparse.ArgumentParser(
-        prog="rigid_body_step_cost.py",
-        description="Per-step cost of the full and reduced rigid-body marches against a NumPy RK4 "
-                    "(see module docstring).",
-    )
-    parser.add_argument("--quick", action="store_true",
-                        help="small sizes and few repeats, XLA optimisation off (a smoke test, not a measurement)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results",
-                        help="output directory (default: benchmarks/results)")
-    parser.add_argument("--repeats", type=int, default=None, help="timing samples per measurement (default 5; 2 with --quick)")
-    parser.add_argument("--min-sample", type=float, default=None, dest="min_sample",
-                        help="minimum seconds per timing sample (default 0.2; 0.01 with --quick)")
-    parser.add_argument("--timeout", type=float, default=600.0,
-                        help="exit with a message if one measurement takes longer (seconds, 0: never)")
-    args = parser.parse_args(argv)
-    if args.repeats is not None and args.repeats < 1:
-        parser.error("--repeats must be >= 1")
-    return args
-
-
 def main(argv=None) -> dict:
-    """Run the benchmark, print the report, write the JSON and the PNG; returns the summary."""
-    args = _parse(argv)
-    repeats = args.repeats or (2 if args.quick else 5)
-    min_sample_s = args.min_sample if args.min_sample is not None else (0.01 if args.quick else 0.2)
-    cases = QUICK_CASES if args.quick else DEFAULT_CASES
-    # --quick only checks that everything runs: skip most XLA optimisation to compile faster.
-    # The plain single call compiles inside `integrate`, which takes no compiler options, so
-    # --quick sets JAX's global flag for the duration of the run (and restores it). Programs
-    # compiled meanwhile stay in JAX's in-memory cache: correct, just less optimised.
-    compiler_options = {"xla_backend_optimization_level": 0} if args.quick else None
-    flag = "jax_disable_most_optimizations"
-    flag_before = bool(jax.config.values.get(flag, False))
-
-    t_begin = time.perf_counter()
-    machine = machine_info()  # before the run: date and load average at the start
-    results = []
-    try:
-        if args.quick:
-            jax.config.update(flag, True)
-        for label, batch, n_steps in cases:
-            print(f"running {label} B={batch or 1} n_steps={n_steps}: {', '.join(METHODS)} ...", end=" ",
-                  flush=True)
-            tic = time.perf_counter()
-            results.append(run_case(label, batch, n_steps, repeats=repeats, min_sample_s=min_sample_s,
-                                    timeout_s=args.timeout, compiler_options=compiler_options))
-            print(f"{time.perf_counter() - tic:.0f} s", flush=True)
-    finally:
-        jax.config.update(flag, flag_before)
-
-    summary = {
-        "benchmark": RESULTS_NAME,
-        "config": {
-            "quick": bool(args.quick),
+    """Runs the cases, prints the report, writes the JSON and the PNG; returns the summary."""
+    with harness.Run(RESULTS_NAME, argv, description="Per-step cost of the full and reduced rigid-body marches "
+                     "against a NumPy RK4 (see module docstring).") as run:
+        results = run.measure(DEFAULT_CASES, QUICK_CASES,
+                              lambda label, batch, n: f"{label} B={batch or 1} n_steps={n}: {', '.join(METHODS)}",
+                              lambda *case: run_case(*case, run))
+    summary = run.summary(
+        config={
             "inertia": list(INERTIA),
             "inertia_label": "(2, 1, 2/3)",
             "dt": DT,
-            "repeats": repeats,
-            "min_sample_s": min_sample_s,
             "seed": SEED,
             "initial_conditions": "random unit body momenta m, xi0 = m / I, Q0 = identity",
-            "statistic": "median over samples of (sample wall time / calls per sample); "
-                         "the methods of a case are sampled in turn",
-            "compiler_options": compiler_options,
-            "jax_disable_most_optimizations": bool(args.quick or flag_before),
             "variants": {v: kwargs for v, kwargs, _, _ in VARIANTS},
             "methods": list(METHODS),
-            "cases": [{"case": c, "batch": b or 1, "n_steps": n} for c, b, n in cases],
+            "cases": [{"case": c, "batch": b or 1, "n_steps": n} for c, b, n in run.cases],
         },
-        "target_full_over_reduced": TARGET_FULL_OVER_REDUCED,
-        "machine": machine,
-        "results": results,
-    }
-    print_report(summary)
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    json_path, png_path = out / f"{RESULTS_NAME}.json", out / f"{RESULTS_NAME}.png"
-    plot(summary, png_path)
-    summary["total_runtime_s"] = time.perf_counter() - t_begin
-    with open(json_path, "w") as fh:
-        json.dump(summary, fh, indent=2)
-    print(f"\ntotal {summary['total_runtime_s']:.0f} s; wrote {json_path.name} and {png_path.name} "
-          f"in {_display(out)}")
-    return summary
-
-
-def _display(path: Path) -> str:
-    try:
-        return str(path.resolve().relative_to(Path.cwd().resolve()))
-    except ValueError:
-        return str(path)
+        results=results,
+        target_full_over_reduced=TARGET_FULL_OVER_REDUCED,
+    )
+    return run.finish(summary, print_report, plot)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,503 @@
+r"""Throughput of the built-in models (issue 6): body-steps and vortex-steps per second against
+NumPy RK4s of the same equations, and the first-call compile time of every model.
+
+Run from the repository root:
+
+    python benchmarks/throughput.py            # default run, ~12 min at load 4-6.5 (~8 min of CPU time)
+    python benchmarks/throughput.py --quick    # smoke test, tiny sizes (not a measurement)
+
+Three parts, timed with the harness the benchmarks share (`_timing.py`: a first call compiles,
+every call ends in `jax.block_until_ready`, the median of `--repeats` samples, the methods of a
+case sampled in turn, load average recorded):
+
+1. **Rigid body, reduced march** (`rigid_body((2, 1, 2/3))`, Cayley, `reduce=True`: Theorem 27
+   / Corollary 29, Q reconstructed, dt = 0.05; the bodies and the RK4 of
+   `rigid_body_step_cost.py`). Body-steps per second = B * n_steps / (time of one call) for
+   batch sizes B = 1, 10^3, 10^4, 10^5, 10^6 (random unit body momenta, Q0 = I), with
+
+   - **vmap**: `jax.jit(jax.vmap(lambda Q0, xi0: integrate(..., throw=False)))` over all B bodies;
+   - **chunked** (B > chunk only): `jax.jit(lambda Q0, xi0: jax.lax.map(member, (Q0, xi0),
+     batch_size=chunk))`, i.e. a sequential map over chunks of `chunk` bodies, each chunk a
+     vmap: the working set of one chunk stays in cache, and each chunk's Newton loops stop with
+     the chunk's slowest member instead of the whole batch's;
+   - **NumPy RK4** of Euler's equations with reconstruction, broadcast over the bodies.
+
+   Every call keeps the whole trajectory (for B = 10^6 and 10 steps ~2 GB per method; the
+   run peaks at ~10 GB resident).
+2. **Point vortices** (`point_vortices(G)`, midpoint principle = implicit midpoint rule, solved
+   to round-off, `jacobian="blocks"`; the systems and the RK4 of `vortex_step_cost.py`).
+   Vortex-steps per second = N * B * n_steps / (time of one call) for one system of N = 4, 100,
+   1000 vortices (a plain `integrate` call) and batches of B systems (`jax.jit(jax.vmap(...))`):
+   4 x 1000 and 100 x 10; against the NumPy RK4 of the Biot-Savart velocities over all pairs.
+3. **Compile time** of each built-in model: rigid body (reduced), heavy top, point vortices,
+   peakons, landmarks. Each in a fresh child process (a user's first call), after one tiny
+   `jax.jit` that initialises the backend and XLA (reported apart as `process_first_jit_s`):
+   compile time = the first `integrate` call minus a second identical call.
+
+The issue's targets (reported, never asserted): the reduced rigid body at >= 10^7 body-steps
+per second and >= 3x the NumPy RK4 rate, flat from B = 10^3 to 10^6 (here: every rate within
+`FLAT_FRACTION` of the best rate over that range); one variational vortex step at N = 1000
+costing <= 3x one RK4 step; compile <= 2 s per model.
+
+Outputs (in `--out`, default `benchmarks/results`): `throughput.json` and `throughput.png`
+(body-steps per second against batch size; vortex-steps per second; compile times).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import _timing as harness
+import clebsch_jax as cj
+import rigid_body_step_cost as rigid
+import vortex_step_cost as vortex
+from clebsch_jax import models
+
+RESULTS_NAME = "throughput"
+RK4 = "numpy_rk4"
+
+# Rigid body: (batch size, n_steps). The same n_steps for every B >= 10^3, so that the rates
+# are comparable (a call's fixed cost, the first Jacobian and the predictor's start-up are
+# shared by the same number of steps); B = 1 runs longer to last more than a few ms.
+RIGID_DEFAULT = ((1, 1000), (1_000, 10), (10_000, 10), (100_000, 10), (1_000_000, 10))
+RIGID_QUICK = ((8, 5),)
+CHUNK, CHUNK_QUICK = 1000, 4  # bodies per chunk of the chunked variant
+# calls of >= this many body-steps take several seconds each (B = 10^6): fewer samples
+LONG_CALL_BODY_STEPS, LONG_CALL_REPEATS = 5_000_000, 3
+
+# Vortices: (label, N, batch size or None for one plain call, n_steps).
+VORTEX_DEFAULT = (
+    ("single", 4, None, 1000),
+    ("single", 100, None, 20),
+    ("single", 1000, None, 4),
+    ("vmap", 4, 1000, 20),
+    ("vmap", 100, 10, 5),
+)
+VORTEX_QUICK = (("single", 4, None, 10), ("vmap", 4, 3, 4))
+
+MODELS = ("rigid_body", "heavy_top", "point_vortices", "peakons", "landmarks")
+MODELS_QUICK = ("point_vortices", "peakons")
+COMPILE_N_STEPS = 100
+
+TARGETS = {
+    "rigid_body_steps_per_second": 1e7,
+    "rigid_body_over_rk4_rate": 3.0,
+    "flat_from_batch": 1000,  # the flat range: every batch size from this one up
+    "flat_fraction": 0.8,  # "flat": every rate >= this fraction of the best rate over the range
+    "vortex_N": 1000,
+    "vortex_ours_over_rk4_time_per_step": 3.0,
+    "compile_s": 2.0,
+}
+
+
+# --------------------------------------------------------------------------------------------
+# Part 1: the reduced rigid-body march.
+
+
+def _rates(timing: dict, n_steps: int, units: int, unit: str) -> dict:
+    """Time per step and throughput of one method: `units` bodies or vortices per step."""
+    per_step = timing["per_call_s"] / n_steps
+    return {
+        "seconds_per_step": per_step,  # one step of the whole batch
+        f"seconds_per_{unit}_step": per_step / units,
+        f"{unit}_steps_per_second": units / per_step,
+        "cpu_over_wall": timing["cpu_per_call_s"] / timing["per_call_s"],
+        **timing,
+    }
+
+
+def chunked_call(system, chunk: int, n_steps: int, Q0, omega0, compiler_options=None):
+    """A blocking call of the reduced march over all bodies, `chunk` bodies at a time."""
+    Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
+
+    def member(args):
+        return cj.integrate(system, *args, dt=rigid.DT, n_steps=n_steps, reduce=True, throw=False)
+
+    march = jax.jit(lambda q, x: jax.lax.map(member, (q, x), batch_size=chunk), compiler_options=compiler_options)
+
+    def call():
+        return jax.block_until_ready(march(Q0_j, xi0_j))
+    return call
+
+
+def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
+    system = models.rigid_body(jnp.asarray(rigid.INERTIA))
+    inertia = np.asarray(rigid.INERTIA)
+    Q0, omega0 = rigid.initial_conditions(batch)
+    name = f"rigid body B={batch} n_steps={n_steps}"
+    calls = {"vmap": rigid.ours_call(system, batch, n_steps, Q0, omega0, {"reduce": True}, run.compiler_options)}
+    if batch > chunk:
+        calls["chunked"] = chunked_call(system, chunk, n_steps, Q0, omega0, run.compiler_options)
+    calls[RK4] = lambda: rigid.rk4_march(inertia, Q0, omega0, rigid.DT, n_steps)
+    long_calls = batch * n_steps >= LONG_CALL_BODY_STEPS
+    timings, outs = run.time(calls, what=name, repeats=min(run.repeats, LONG_CALL_REPEATS) if long_calls else None)
+
+    row = {"part": "rigid_body", "case": "vmap", "batch": batch, "n_steps": n_steps,
+           "chunk": chunk if "chunked" in calls else None, "methods": list(calls)}
+    with run.guard(f"diagnostics, {name}"):
+        omegas, _ = outs[RK4]
+        for m in calls:
+            row[m] = _rates(timings[m], n_steps, batch, "body")
+        for m in ("vmap", "chunked"):
+            if m not in calls:
+                continue
+            sol = outs[m].raise_if_failed()
+            if sol.form != "reduced":
+                raise RuntimeError(f"{name}: {m} ran the {sol.form!r} march, not the reduced one.")
+            row[m]["compile_s"] = timings[m]["first_call_s"] - timings[m]["second_call_s"]
+            # the same equations: final velocities against RK4's (O(dt^2) apart)
+            row[m]["max_abs_final_xi_diff_vs_rk4"] = float(np.max(np.abs(np.asarray(sol.xi)[:, -1] - omegas[-1])))
+        iters = np.asarray(outs["vmap"].stats.iterations, dtype=float)  # (B, n_steps)
+        row["newton_updates_per_step"] = {
+            "mean": float(iters.mean()),
+            # a batched while_loop runs until its slowest member has converged
+            "slowest_of_batch_mean": float(iters.max(axis=0).mean()),
+        }
+        if "chunked" in calls:
+            row["newton_updates_per_step"]["slowest_of_chunk_mean"] = float(
+                iters[: batch // chunk * chunk].reshape(batch // chunk, chunk, n_steps).max(axis=1).mean())
+            row["max_abs_xi_diff_chunked_vs_vmap"] = float(
+                np.max(np.abs(np.asarray(outs["chunked"].xi) - np.asarray(outs["vmap"].xi))))
+    rate = {m: row[m]["body_steps_per_second"] for m in calls}
+    row["ratios"] = {f"{m}_over_rk4_rate": rate[m] / rate[RK4] for m in calls if m != RK4}
+    if "chunked" in calls:
+        row["ratios"]["chunked_over_vmap_rate"] = rate["chunked"] / rate["vmap"]
+    row["best"] = max((m for m in calls if m != RK4), key=rate.get)
+    return row
+
+
+# --------------------------------------------------------------------------------------------
+# Part 2: point vortices.
+
+
+def vortex_case(label: str, N: int, batch: int | None, n_steps: int, run: harness.Run) -> dict:
+    B = 1 if batch is None else batch
+    gamma, Q0 = vortex.initial_conditions(N, B)
+    name = f"vortices {label} N={N} B={B} n_steps={n_steps}"
+    calls = {"ours": vortex.ours_call(N, batch, n_steps, gamma, Q0, "blocks", run.compiler_options),
+             RK4: lambda: vortex.rk4_march(gamma, Q0, vortex.DT, n_steps)}
+    timings, outs = run.time(calls, what=name)
+    row = {"part": "vortices", "case": label, "N": N, "batch": B, "n_steps": n_steps, "jacobian": "blocks",
+           "ours": _rates(timings["ours"], n_steps, N * B, "vortex"), RK4: _rates(timings[RK4], n_steps, N * B, "vortex")}
+    with run.guard(f"diagnostics, {name}"):
+        sol = outs["ours"].raise_if_failed()
+        Q = np.asarray(sol.Q).reshape(B, n_steps + 1, N, 2)
+        row["ours"]["compile_s"] = timings["ours"]["first_call_s"] - timings["ours"]["second_call_s"]
+        iters = np.asarray(sol.stats.iterations, dtype=float).reshape(B, n_steps)
+        row["newton_updates_per_step"] = {
+            "mean": float(iters.mean()),
+            # a batched while_loop runs until its slowest member has converged
+            "slowest_of_batch_mean": float(iters.max(axis=0).mean()),
+        }
+        # the same equations: final positions against RK4's (O(dt^2) apart)
+        row["ours"]["max_abs_final_position_diff_vs_rk4"] = float(np.max(np.abs(Q[:, -1] - outs[RK4][-1])))
+    row["ratios"] = {
+        "ours_over_rk4_time_per_step": row["ours"]["seconds_per_step"] / row[RK4]["seconds_per_step"],
+        "ours_over_rk4_rate": row["ours"]["vortex_steps_per_second"] / row[RK4]["vortex_steps_per_second"],
+    }
+    return row
+
+
+# --------------------------------------------------------------------------------------------
+# Part 3: first-call compile time of each model, in child processes.
+
+
+def compile_problem(model: str):
+    """(system, Q0, xi0, dt, keywords of `integrate`) of a small, smooth run of `model`."""
+    if model == "rigid_body":
+        return models.rigid_body(jnp.asarray(rigid.INERTIA)), jnp.eye(3), jnp.array([0.6, -0.3, 0.9]), 0.05, {}
+    if model == "heavy_top":
+        system = models.heavy_top(jnp.array([1.0, 1.2, 0.5]), 1.7, (0.0, 0.6, 0.8))
+        return system, cj.lie.so3_exp(jnp.array([0.3, 0.2, -0.1])), jnp.array([0.5, -0.4, 3.0]), 0.01, {}
+    if model == "point_vortices":  # two leapfrogging pairs (README)
+        G, Q0 = jnp.array([1.0, -1.0, 1.0, -1.0]), jnp.array([[0, 1.0], [0, -1.0], [0, 0.5], [0, -0.5]])
+        return models.point_vortices(G), Q0, models.vortex_velocity(G, Q0), 0.02, {}
+    if model == "peakons":  # a fast peakon overtaking a slow one
+        q0, p0 = jnp.array([-3.0, 0.0]), jnp.array([2.0, 1.0])
+        return models.peakons(1.0), q0, models.peakon_velocity(q0, p0, 1.0), 0.01, {"scheme": "midpoint"}
+    if model == "landmarks":
+        Q0 = jnp.array([[0.0, 0.0], [1.0, 0.2], [0.3, 1.1]])
+        P0 = jnp.array([[0.5, 0.1], [-0.2, 0.4], [0.1, -0.3]])
+        return models.landmarks(1.0), Q0, models.landmark_velocity(Q0, P0, 1.0), 0.05, {"scheme": "midpoint"}
+    raise ValueError(f"unknown model {model!r}; one of {MODELS}")
+
+
+def _compile_events() -> list:
+    """JAX's own durations of tracing, lowering and XLA compilation (`jax.monitoring`), as
+    (event, seconds, program name) from now on."""
+    events = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, secs, **kw: events.append((event.rsplit("/", 1)[-1], secs, kw.get("fun_name"))))
+    return events
+
+
+def _where_compile_time_goes(events: list) -> dict:
+    """Sums of JAX's compile-time events of one call; XLA compilations by program: the largest
+    one (the march) and the many small ones (JAX compiles every eager operation outside a
+    `jax.jit` as a program of its own)."""
+    out = {}
+    for event, secs, _ in events:
+        entry = out.setdefault(event.removesuffix("_duration"), {"s": 0.0, "count": 0})
+        entry["s"] += secs
+        entry["count"] += 1
+    xla = sorted(((secs, name) for event, secs, name in events if event == "backend_compile_duration"), reverse=True)
+    if xla:
+        out["largest_backend_compile"] = {"s": xla[0][0], "program": xla[0][1]}
+    return out
+
+
+def first_call_cost(model_names) -> list:
+    """In this (fresh) process: for each model, the first and a second identical `integrate`
+    call; compile time = first - second, with JAX's account of where it went."""
+    events = _compile_events()
+    tic = time.perf_counter()
+    jax.block_until_ready(jax.jit(jnp.sin)(jnp.arange(3.0)))  # backend and XLA start-up, not a model's
+    first_jit = time.perf_counter() - tic
+    rows = []
+    for model in model_names:
+        system, Q0, xi0, dt, kwargs = compile_problem(model)
+
+        def call():
+            return jax.block_until_ready(cj.integrate(system, Q0, xi0, dt=dt, n_steps=COMPILE_N_STEPS, **kwargs))
+        load = harness.load_average()
+        events.clear()
+        tic = time.perf_counter()
+        sol = call()
+        first = time.perf_counter() - tic
+        first_call_events = list(events)
+        tic = time.perf_counter()
+        call()
+        second = time.perf_counter() - tic
+        rows.append({"part": "compile", "case": model, "form": sol.form, "scheme": sol.scheme,
+                     "n_steps": COMPILE_N_STEPS, "dt": dt, "keywords": kwargs, "first_call_s": first,
+                     "second_call_s": second, "compile_s": first - second, "process_first_jit_s": first_jit,
+                     "first_call_jax_events": _where_compile_time_goes(first_call_events),
+                     "load_average_1min_at_start": load})
+    return rows
+
+
+def compile_case(model_names: tuple, run: harness.Run) -> list:
+    """`first_call_cost(model_names)` in a child process (this script with `--compile-model`)."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--compile-model", ",".join(model_names)]
+    if run.quick:
+        cmd.append("--quick")
+    with run.guard(f"compile time of {', '.join(model_names)}"):
+        done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f"the compile-time child for {model_names} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+# --------------------------------------------------------------------------------------------
+# Targets.
+
+
+def _verdicts(rigid_rows: list, vortex_rows: list, compile_rows: list) -> dict:
+    t = TARGETS
+    # the batches the rate targets speak of: B >= 10^3 (with --quick: every B > 1)
+    batched = [r for r in rigid_rows if r["batch"] >= t["flat_from_batch"]] or [r for r in rigid_rows if r["batch"] > 1]
+    best = {r["batch"]: r[r["best"]]["body_steps_per_second"] for r in batched}
+    over_rk4 = {r["batch"]: r["ratios"][f"{r['best']}_over_rk4_rate"] for r in batched}
+
+    def flatness(rates: dict):
+        return None if len(rates) < 2 else min(rates.values()) / max(rates.values())
+    flat = {m: flatness({r["batch"]: r[m]["body_steps_per_second"] for r in batched if m in r})
+            for m in ("vmap", "chunked")}
+    flat["best"] = flatness(best)
+    at_N = [r for r in vortex_rows if r["case"] == "single" and r["N"] == t["vortex_N"]]
+    vortex_ratio = at_N[0]["ratios"]["ours_over_rk4_time_per_step"] if at_N else None
+    compile_s = {r["case"]: r["compile_s"] for r in compile_rows}
+    return {
+        "rigid_body_rate": {"min_body_steps_per_second": t["rigid_body_steps_per_second"], "best_per_batch": best,
+                            "met": bool(best) and all(v >= t["rigid_body_steps_per_second"] for v in best.values())},
+        "rigid_body_over_rk4": {"min_rate_ratio": t["rigid_body_over_rk4_rate"], "best_per_batch": over_rk4,
+                                "met": bool(over_rk4) and all(v >= t["rigid_body_over_rk4_rate"] for v in over_rk4.values())},
+        "rigid_body_flat": {"batches": sorted(best), "min_fraction_of_best": t["flat_fraction"],
+                            "min_over_max_rate": flat,
+                            "met": None if flat["best"] is None else bool(flat["best"] >= t["flat_fraction"])},
+        "vortex_step_cost": {"N": t["vortex_N"], "max_ours_over_rk4_time_per_step": t["vortex_ours_over_rk4_time_per_step"],
+                             "ours_over_rk4_time_per_step": vortex_ratio,
+                             "met": None if vortex_ratio is None else bool(vortex_ratio <= t["vortex_ours_over_rk4_time_per_step"])},
+        "compile": {"max_s": t["compile_s"], "per_model": compile_s,
+                    "met": bool(compile_s) and all(v <= t["compile_s"] for v in compile_s.values())},
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Printing and plotting.
+
+
+def _verdict(v: dict) -> str:
+    return {True: "met", False: "NOT met", None: "not measured"}[v["met"]]
+
+
+def _jax_events(e: dict) -> str:
+    def s(k):
+        return e.get(k, {}).get("s", 0.0)
+    xla = f"{s('backend_compile'):.2f} ({e.get('backend_compile', {}).get('count', 0)})"
+    return f"{s('jaxpr_trace'):>6.2f}{s('jaxpr_to_mlir_module'):>6.2f}{xla:>16}{s('largest_backend_compile'):>8.2f}"
+
+
+def print_report(summary: dict) -> None:
+    parts = harness.rows_by(summary["results"], "part")
+    fmt, v = harness.fmt, summary["targets"]
+    harness.print_header(
+        summary, "Throughput",
+        f"Rigid body (2, 1, 2/3), reduced march (Cayley), dt = {rigid.DT}: vmap = jit(vmap(integrate)) over B "
+        f"bodies, chunked = jit(lax.map(..., batch_size={summary['config']['chunk']}));\n  point vortices, "
+        f"dt = {vortex.DT}, jacobian='blocks': single = one plain integrate call, vmap = jit(vmap) over B systems; "
+        "NumPy RK4s of the same equations.")
+
+    print("\nRigid body: body-steps per second (rate ratios; Newton updates per step of the slowest member of the "
+          "batch / of a chunk):")
+    harness.print_table(
+        f"{'B':>8}{'steps':>6} |{'vmap':>10}{'chunked':>10}{'NumPy RK4':>11} |{'vmap/RK4':>9}{'chunk/RK4':>10}"
+        f"{'chunk/vmap':>11} {'best':<8}|{'upd/batch':>10}{'upd/chunk':>10}",
+        (f"{r['batch']:>8}{r['n_steps']:>6} |{r['vmap']['body_steps_per_second']:>10.3g}"
+         f"{fmt(r.get('chunked', {}).get('body_steps_per_second'), '.3g', 10)}"
+         f"{r[RK4]['body_steps_per_second']:>11.3g} |{r['ratios']['vmap_over_rk4_rate']:>9.3g}"
+         f"{fmt(r['ratios'].get('chunked_over_rk4_rate'), '.3g', 10)}"
+         f"{fmt(r['ratios'].get('chunked_over_vmap_rate'), '.3g', 11)} {r['best']:<8}|"
+         f"{r['newton_updates_per_step']['slowest_of_batch_mean']:>10.2f}"
+         f"{fmt(r['newton_updates_per_step'].get('slowest_of_chunk_mean'), '.2f', 10)}"
+         for r in parts.get("rigid_body", [])))
+    rate, over, flat = v["rigid_body_rate"], v["rigid_body_over_rk4"], v["rigid_body_flat"]
+    print(f"Target >= {rate['min_body_steps_per_second']:.3g} body-steps/s for B in {flat['batches']}: "
+          f"{_verdict(rate)} (best per B: {', '.join(f'{x:.3g}' for x in rate['best_per_batch'].values())}).")
+    print(f"Target >= {over['min_rate_ratio']:g}x the NumPy RK4 rate: {_verdict(over)} "
+          f"(best per B: {', '.join(f'{x:.3g}x' for x in over['best_per_batch'].values())}).")
+    print(f"Target flat over B in {flat['batches']} (min rate >= {flat['min_fraction_of_best']:g} x max rate): "
+          f"{_verdict(flat)} (min/max: " + ", ".join(
+              f"{m} {fmt(x, '.2f', 1, 'n/a')}" for m, x in flat["min_over_max_rate"].items()) + ").")
+
+    print("\nPoint vortices: vortex-steps per second (seconds per step of the whole batch); Newton updates per "
+          "step (mean; slowest member of the batch):")
+    harness.print_table(
+        f"{'case':<7}{'N':>5}{'B':>6}{'steps':>6} |{'ours':>22}{'NumPy RK4':>22} |{'ours/RK4 time per step':>23}"
+        f" |{'upd mean':>9}{'slowest':>8}",
+        (f"{r['case']:<7}{r['N']:>5}{r['batch']:>6}{r['n_steps']:>6} |"
+         + "".join(f"{r[m]['vortex_steps_per_second']:>10.3g} ({r[m]['seconds_per_step']:8.2e})" for m in ("ours", RK4))
+         + f" |{r['ratios']['ours_over_rk4_time_per_step']:>23.3g} |{r['newton_updates_per_step']['mean']:>9.2f}"
+         f"{r['newton_updates_per_step']['slowest_of_batch_mean']:>8.2f}"
+         for r in parts.get("vortices", [])))
+    vx = v["vortex_step_cost"]
+    print(f"Target one step <= {vx['max_ours_over_rk4_time_per_step']:g}x one RK4 step at N = {vx['N']}: {_verdict(vx)}"
+          + ("" if vx["ours_over_rk4_time_per_step"] is None else f" ({vx['ours_over_rk4_time_per_step']:.3g}x)") + ".")
+
+    print(f"\nCompile time of each model's first integrate call ({COMPILE_N_STEPS} steps), in a fresh process: "
+          "first call - second call [s]:")
+    harness.print_table(
+        f"{'model':<16}{'form':<9}{'scheme':<10}{'first':>8}{'second':>8}{'compile':>9}{'load':>6} | "
+        f"{'trace':>6}{'lower':>6}{'XLA (programs)':>16}{'largest':>8}",
+        (f"{r['case']:<16}{r['form']:<9}{r['scheme']:<10}{r['first_call_s']:>8.2f}{r['second_call_s']:>8.3f}"
+         f"{r['compile_s']:>9.2f}{r['load_average_1min_at_start']:>6.2f} | {_jax_events(r['first_call_jax_events'])}"
+         for r in parts.get("compile", [])))
+    print("  (JAX's own durations during the first call [s]: tracing to jaxprs, lowering to MLIR, XLA compilation "
+          "summed over all programs\n  compiled, with their number, and the largest program; every eager "
+          "operation outside a jit is a program of its own.)")
+    c = v["compile"]
+    print(f"Target <= {c['max_s']:g} s per model: {_verdict(c)}.")
+
+
+def plot(summary: dict, path: Path) -> None:
+    parts = harness.rows_by(summary["results"], "part")
+    fig, (ax, ax_v, ax_c) = harness.figure((3, 2, 1.4), size=(14, 4.8))
+    rows = parts.get("rigid_body", [])
+    styles = {"vmap": ("o", "C2", "ours, jit(vmap)"), "chunked": ("D", "C0", "ours, lax.map over chunks of vmap"),
+              RK4: ("s", "C1", "NumPy RK4 (broadcast)")}
+    for m, (marker, color, label) in styles.items():
+        pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in rows if m in r]
+        if pts:
+            ax.loglog(*zip(*pts), marker=marker, color=color, label=label)
+    t = summary["targets"]["rigid_body_rate"]["min_body_steps_per_second"]
+    ax.axhline(t, color="k", ls=":", lw=1.0, label=f"issue target {t:.0e}/s")
+    ax.set_xlabel("batch size B (bodies)")
+    ax.set_ylabel("body-steps per second")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(harness.plot_title(summary, "Rigid body, reduced march, dt = 0.05"), fontsize=9)
+
+    for r in parts.get("vortices", []):
+        for m, (marker, color) in (("ours", ("o", "C0")), (RK4, ("s", "C1"))):
+            ax_v.loglog([r["N"] * r["batch"]], [r[m]["vortex_steps_per_second"]], marker=marker, color=color,
+                        mfc=color if r["case"] == "single" else "none", ms=8, ls="none")
+        ax_v.annotate(f"{r['N']}x{r['batch']}", (r["N"] * r["batch"], r["ours"]["vortex_steps_per_second"]),
+                      textcoords="offset points", xytext=(5, 4), fontsize=7)
+    ax_v.plot([], [], "o", color="C0", label="ours, jacobian='blocks'")
+    ax_v.plot([], [], "s", color="C1", label="NumPy RK4")
+    ax_v.legend(handles=ax_v.get_legend_handles_labels()[0] + [harness.hollow_marker("hollow: jit(vmap) batch")],
+                fontsize=8)
+    ax_v.set_xlabel("vortices per step, N x B")
+    ax_v.set_ylabel("vortex-steps per second")
+    ax_v.grid(True, which="both", alpha=0.3)
+    ax_v.set_title("Point vortices (labels N x B)", fontsize=9)
+
+    rows = parts.get("compile", [])
+    ax_c.barh([r["case"] for r in rows], [r["compile_s"] for r in rows], color="C0")
+    ax_c.axvline(TARGETS["compile_s"], color="k", ls=":", lw=1.0, label=f"target {TARGETS['compile_s']:g} s")
+    ax_c.invert_yaxis()
+    ax_c.set_xlabel("first call - second call [s]")
+    ax_c.legend(fontsize=8)
+    ax_c.set_title("compile time per model", fontsize=9)
+    fig.savefig(path, dpi=120)
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def _add_arguments(parser: argparse.ArgumentParser) -> None:
+    # the child process of part 3: measure these models (comma-separated) and print JSON
+    parser.add_argument("--compile-model", default=None, help=argparse.SUPPRESS)
+
+
+def main(argv=None) -> dict | None:
+    """Runs the three parts, prints the report, writes the JSON and the PNG; returns the summary."""
+    run = harness.Run(RESULTS_NAME, argv, description="Throughput of the built-in models against NumPy RK4s, "
+                      "and their compile times (see module docstring).", add_arguments=_add_arguments)
+    if run.args.compile_model:  # a child of part 3
+        with harness.quick_mode(run.quick):
+            print(json.dumps(first_call_cost(run.args.compile_model.split(","))))
+        return None
+    chunk = CHUNK_QUICK if run.quick else CHUNK
+    # a fresh process for each model; --quick: one child for two models (a smoke test)
+    compile_groups = ((MODELS_QUICK,),) if run.quick else tuple(((m,),) for m in MODELS)
+    with run:
+        rigid_rows = run.measure(RIGID_DEFAULT, RIGID_QUICK, lambda B, n: f"rigid body B={B} n_steps={n}",
+                                 lambda B, n: rigid_case(B, n, chunk, run))
+        vortex_rows = run.measure(VORTEX_DEFAULT, VORTEX_QUICK,
+                                  lambda label, N, B, n: f"vortices {label} N={N} B={B or 1} n_steps={n}",
+                                  lambda *case: vortex_case(*case, run))
+        compile_rows = run.measure(compile_groups, compile_groups,
+                                   lambda names: f"compile time of {', '.join(names)} (child process)",
+                                   lambda names: compile_case(names, run))
+    compile_rows = [r for rows in compile_rows for r in rows]
+    summary = run.summary(
+        config={
+            "chunk": chunk,
+            "rigid_body": {"inertia": list(rigid.INERTIA), "dt": rigid.DT, "march": "reduce=True (Cayley)",
+                           "cases": [{"batch": b, "n_steps": n} for b, n in (RIGID_QUICK if run.quick else RIGID_DEFAULT)],
+                           "long_call": {"min_body_steps": LONG_CALL_BODY_STEPS, "repeats": LONG_CALL_REPEATS}},
+            "vortices": {"dt": vortex.DT, "jacobian": "blocks",
+                         "cases": [{"case": c, "N": N, "batch": b or 1, "n_steps": n}
+                                   for c, N, b, n in (VORTEX_QUICK if run.quick else VORTEX_DEFAULT)]},
+            "compile": {"models": list(MODELS_QUICK if run.quick else MODELS), "n_steps": COMPILE_N_STEPS,
+                        "child_processes": [list(g[0]) for g in compile_groups]},
+            "seed": rigid.SEED,
+        },
+        results=rigid_rows + vortex_rows + compile_rows,
+        targets=_verdicts(rigid_rows, vortex_rows, compile_rows),
+    )
+    return run.finish(summary, print_report, plot)
+
+
+if __name__ == "__main__":
+    main()
