@@ -43,19 +43,25 @@ def cay_recursion(inertia, omega_first, dt, n):
         wp = out[-1]
         mp = inertia * wp
         rhs = mp - 0.5 * h * np.cross(wp, mp) + 0.25 * h * h * np.dot(wp, mp) * wp
-        w = wp.copy()
-        for _ in range(50):
-            m = inertia * w
-            F = m + 0.5 * h * np.cross(w, m) + 0.25 * h * h * np.dot(w, m) * w - rhs
-            # d/dw of w×(Iw) = -hat(Iw) + hat(w) I ; d/dw of (w·Iw) w = w (2Iw)^T + (w·Iw) Id
-            J = (np.diag(inertia) + 0.5 * h * (-hat(m) + hat(w) @ np.diag(inertia))
-                 + 0.25 * h * h * (np.outer(w, 2 * m) + np.dot(w, m) * np.eye(3)))
-            dw = np.linalg.solve(J, F)
-            w = w - dw
-            if np.max(np.abs(dw)) < 1e-16 * max(1.0, np.max(np.abs(w))):
-                break
-        out.append(w)
+        out.append(cay_velocity(inertia, h, rhs, wp))
     return np.array(out)
+
+
+def cay_velocity(inertia, h, rhs, w):
+    """Newton's method (NumPy) for the CAY step velocity w: (Iw) + h/2 w×(Iw) + h²/4 (w·Iw) w = rhs,
+    from the guess w."""
+    w = np.array(w, dtype=float)
+    for _ in range(50):
+        m = inertia * w
+        F = m + 0.5 * h * np.cross(w, m) + 0.25 * h * h * np.dot(w, m) * w - rhs
+        # d/dw of w×(Iw) = -hat(Iw) + hat(w) I ; d/dw of (w·Iw) w = w (2Iw)^T + (w·Iw) Id
+        J = (np.diag(inertia) + 0.5 * h * (-hat(m) + hat(w) @ np.diag(inertia))
+             + 0.25 * h * h * (np.outer(w, 2 * m) + np.dot(w, m) * np.eye(3)))
+        dw = np.linalg.solve(J, F)
+        w = w - dw
+        if np.max(np.abs(dw)) < 1e-16 * max(1.0, np.max(np.abs(w))):
+            break
+    return w
 
 
 def cay_compact_residual(inertia, Xs, dt):

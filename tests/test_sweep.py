@@ -1,0 +1,252 @@
+r"""Sweeps (`clebsch_jax.sweep`): chunked reductions equal those of a stored trajectory, the
+rigid body's Casimir over a grid of inertias, failures reported per member with their global
+step, devices splitting the members with identical results, bad input rejected before compiling.
+
+Compile time dominates, so the rigid-body tests share one compiled chunk program: every
+rigid-body sweep uses `RB` (the same invariants, 20-step chunks, batches of 4, every 10th node
+saved); only array values change between them. The peakon test compiles one more program, and
+the device test runs in a subprocess (two more: one per device).
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax import Status
+from clebsch_jax.models import peakon_hamiltonian, peakon_velocity, peakons, rigid_body
+from .helpers import cay_velocity, hat
+from .test_epdiff import COLLISION, OVERTAKE, peakon_antipeakon_exact, two_peakons_exact
+
+
+def casimir(system, sol):
+    """|μ|² at every node: the Casimir of the rigid body's Lie–Poisson bracket."""
+    return jnp.sum(sol.momentum**2, axis=-1)
+
+
+RB = dict(dt=0.05, n_steps=60, chunk_steps=20, batch_size=4, save_every=10, invariants={"casimir": casimir})
+INERTIAS = np.array([[2.0, 1.0, 2.0 / 3.0], [1.0, 1.5, 0.5], [3.0, 2.0, 1.0], [1.2, 1.1, 0.7]])
+OMEGAS = np.array([[1.3, 0.8, -0.4], [0.2, 1.0, 0.3], [-0.5, 0.1, 0.9], [0.3, -0.7, 0.3]])
+
+
+def eyes(n):
+    return np.broadcast_to(np.eye(3), (n, 3, 3))
+
+
+def cay_march(inertia, omega0, dt, n):
+    r"""Example 30's reduced CAY method as a NumPy recursion on the body momentum, independent
+    of the engine (it reproduces `integrate` to 4e-15 over these runs). Step n solves
+    $\mu^n = m + \tfrac h2\,\omega\times m + \tfrac{h^2}4(\omega\cdot m)\,\omega$, $m = \mathbb I\omega$, by
+    Newton's method, then $\mu^{n+1} = m - \tfrac h2\,\omega\times m + \tfrac{h^2}4(\omega\cdot m)\,\omega$
+    and $Q^{n+1} = Q^n\,\mathrm{cay}(h\hat\omega)$. Returns the nodal (μ, ξ = μ/𝕀, Q)."""
+    inertia, h = np.asarray(inertia, float), dt
+    w = np.asarray(omega0, float).copy()
+    mu, Q = inertia * w, np.eye(3)
+    mus, Qs = [mu], [Q]
+    for _ in range(n):
+        w = cay_velocity(inertia, h, mu, w)
+        m = inertia * w
+        mu = m - 0.5 * h * np.cross(w, m) + 0.25 * h * h * np.dot(w, m) * w
+        Y = h * hat(w)
+        Q = Q @ np.linalg.solve(np.eye(3) - Y / 2, np.eye(3) + Y / 2)
+        mus.append(mu)
+        Qs.append(Q)
+    mus = np.array(mus)
+    return mus, mus / inertia, np.array(Qs)
+
+
+def test_chunked_diagnostics_equal_those_of_the_stored_trajectory():
+    """Three 20-step chunks, reduced on the fly, against the whole stored trajectory."""
+    res = cj.sweep(rigid_body, INERTIAS, eyes(4), OMEGAS, **RB)
+    assert res.form == "reduced" and res.n_devices == 1 and res.order == 2
+    assert np.all(res.status == Status.SUCCESS) and np.all(res.failed_step == -1)
+    n = RB["n_steps"]
+    ref = [cay_march(inertia, omega, RB["dt"], n) for inertia, omega in zip(INERTIAS, OMEGAS)]
+    mu, xi, Q = (np.array(r) for r in zip(*ref))
+    # Each chunk restarts Newton's guesses and, in the reduced march, hands μ over through the
+    # minimum-norm cotangent: the same trajectory up to round-off (measured 5e-15), not bit for bit.
+    tol = 1e-12
+    E = 0.5 * np.sum(mu * xi, axis=-1)  # ½ ξ·𝕀ξ
+    np.testing.assert_allclose(res.initial["energy"], E[:, 0], rtol=1e-14)
+    np.testing.assert_allclose(res.energy_error, np.max(np.abs(E - E[:, :1]), axis=1), rtol=0, atol=tol)
+    np.testing.assert_array_equal(res.drift["energy"], res.energy_error)
+    C = np.sum(mu**2, axis=-1)
+    np.testing.assert_allclose(res.initial["casimir"], C[:, 0], rtol=1e-14)
+    np.testing.assert_allclose(res.drift["casimir"], np.max(np.abs(C - C[:, :1]), axis=1), rtol=0, atol=tol)
+    # every 10th node, including the last, and the final state
+    assert list(res.saved["step"]) == [0, 10, 20, 30, 40, 50, 60]
+    for key, r in (("Q", Q), ("xi", xi), ("momentum", mu)):
+        np.testing.assert_allclose(res.saved[key], r[:, ::10], rtol=0, atol=tol)
+    np.testing.assert_allclose(res.saved["t"], np.broadcast_to(np.arange(7) * 0.5, (4, 7)), rtol=1e-14)
+    np.testing.assert_allclose(res.final_t, n * RB["dt"], rtol=1e-14)
+    np.testing.assert_allclose(res.final_Q, Q[:, -1], rtol=0, atol=tol)
+    np.testing.assert_allclose(res.final_xi, xi[:, -1], rtol=0, atol=tol)
+    np.testing.assert_allclose(res.final_momentum, mu[:, -1], rtol=0, atol=tol)
+    # final_p is a canonical momentum at final_Q whose momentum map is the final body momentum,
+    # so (final_Q, final_p) continues the run.
+    mom = jax.vmap(lambda p, q, x: cj.momentum_map(rigid_body(np.ones(3)), p, q, x))(
+        res.final_p, res.final_Q, res.final_xi)
+    np.testing.assert_allclose(np.asarray(mom), res.final_momentum, rtol=0, atol=1e-14)
+    assert np.all(res.newton_iterations >= n) and np.all(res.max_residual < 1e-14)
+
+
+def test_rigid_body_grid_conserves_the_casimir_for_every_member_and_reports_failures():
+    """3 inertias × 4 initial momenta (one of them NaN): the Casimir |Π|² is conserved to
+    round-off by every member that runs; the NaN members are reported with their indices."""
+    rng = np.random.default_rng(3)
+    inertias = rng.uniform(0.5, 3.0, size=(3, 3))
+    omegas = OMEGAS.copy()
+    omegas[2, 1] = np.nan
+    res = cj.sweep(rigid_body, inertias, eyes(4), omegas, grid=True, **RB)
+    assert len(res) == 12
+    np.testing.assert_array_equal(res.param_index, np.repeat(np.arange(3), 4))
+    np.testing.assert_array_equal(res.ic_index, np.tile(np.arange(4), 3))
+    bad = res.ic_index == 2
+    np.testing.assert_array_equal(res.failed_members, np.flatnonzero(bad))  # members 2, 6, 10
+    assert np.all(res.status[bad] == Status.NONFINITE) and np.all(res.failed_step[bad] == 0)
+    assert np.all(np.isnan(res.final_momentum[bad])) and np.all(np.isnan(res.final_Q[bad]))
+    ok = ~bad
+    assert np.all(res.status[ok] == Status.SUCCESS) and np.all(res.failed_step[ok] == -1)
+    # the grid pairs parameter row i with initial condition j: |I_i ω_j|², computed here
+    C0 = np.sum((inertias[res.param_index] * omegas[res.ic_index]) ** 2, axis=1)
+    np.testing.assert_allclose(res.initial["casimir"][ok], C0[ok], rtol=1e-14)
+    # 60 steps of round-off: relative 1e-13 leaves a factor ~10 over the measured 1e-14
+    assert np.all(res.drift["casimir"][ok] <= 1e-13 * C0[ok]), res.drift["casimir"][ok] / C0[ok]
+    assert np.all(cj.diagnostics.orthogonality_error(res.final_Q[ok]) < 1e-13)
+    # the table
+    table = res.to_dict(state=True)
+    assert {len(v) for v in table.values()} == {12}
+    assert "drift_casimir" in table and "final_Q[2,2]" in table and "final_xi[0]" in table
+    assert "3 failed" in res.summary()
+    with pytest.raises(cj.IntegrationError, match="member 2 at step 0"):
+        res.raise_if_failed()
+
+
+def total_momentum(system, sol):
+    """Σ_a p_a: the Noether momentum of translations (the momentum map of the peakons)."""
+    return jnp.sum(sol.momentum, axis=-1)
+
+
+def test_a_member_failing_mid_run_is_reported_at_its_global_step_full_march():
+    """Peakons (full march, midpoint scheme, 20-step chunks): a symmetric peakon–antipeakon
+    pair collides at t* = 3, where the step fails (a later chunk: the failing step is counted
+    from the start of the run); an overtaking pair runs through, second-order accurate; a NaN
+    member fails at step 0. References: the exact solutions of `tests.test_epdiff`."""
+    dt, n = 0.05, 80
+    qc, pc = peakon_antipeakon_exact(0.0, **COLLISION)
+    qo, po = two_peakons_exact(0.0, **OVERTAKE)
+    q0s, p0s = np.array([qc, qo, [np.nan, 1.0]]), np.array([pc, po, [1.0, 1.0]])
+    xi0s = np.asarray(jax.vmap(peakon_velocity)(q0s, p0s))
+    res = cj.sweep(peakons, np.ones(3), q0s, xi0s, dt=dt, n_steps=n, chunk_steps=20, scheme="midpoint",
+                   invariants={"total_momentum": total_momentum})
+    assert res.form == "full" and res.order == 2
+    np.testing.assert_array_equal(res.failed_members, [0, 2])
+    # the collision: as for one integrate call (tests/test_epdiff.py), within 3 steps before t*
+    t_star = COLLISION["t_star"]
+    assert res.status[0] in (Status.NONFINITE, Status.MAX_ITERATIONS)
+    assert t_star - 3 * dt <= res.failed_step[0] * dt < t_star, res.failed_step[0]
+    assert res.failed_step[0] >= 40  # in the third chunk
+    assert np.all(np.isnan(res.final_Q[0])) and np.isfinite(res.energy_error[0])
+    assert res.drift["total_momentum"][0] < 1e-13  # up to the failure, Σp = 0 is kept
+    # the NaN member
+    assert res.status[2] == Status.NONFINITE and res.failed_step[2] == 0 and np.isnan(res.energy_error[2])
+    # the overtaking pair through four chunk hand-overs of (Q, p): Σp to round-off, the energy
+    # bounded, and the exact solution at t = 4 to the method's O(Δt²) (1e-4 here, measured)
+    assert res.status[1] == Status.SUCCESS and res.failed_step[1] == -1
+    assert res.drift["total_momentum"][1] < 1e-13
+    q_ex, p_ex = two_peakons_exact(n * dt, **OVERTAKE)
+    err = max(np.max(np.abs(res.final_Q[1] - q_ex)), np.max(np.abs(res.final_p[1] - p_ex)))
+    assert err < 1e-3, err
+    H = float(peakon_hamiltonian(res.final_Q[1], res.final_p[1]))
+    # H of the final state (its own formula) is within the sweep's energy error (measured 8e-6)
+    assert abs(H - res.initial["energy"][1]) <= res.energy_error[1] + 1e-14 and res.energy_error[1] < 1e-4
+
+
+def test_progress_is_reported_after_every_chunk(capsys):
+    seen = []
+    res = cj.sweep(rigid_body, INERTIAS[:2], eyes(2), OMEGAS[:2], progress=seen.append, **RB)
+    assert [(p.step, p.members_done) for p in seen] == [(20, 0), (40, 0), (60, 2)]
+    assert all(p.n_batches == 1 and p.n_members == 2 for p in seen)
+    assert [p.elapsed for p in seen] == sorted(p.elapsed for p in seen)
+    cj.sweep(rigid_body, INERTIAS[:2], eyes(2), OMEGAS[:2], progress=True, **RB)
+    err = capsys.readouterr().err
+    assert "step 20/60" in err and "2/2 members done" in err
+    assert np.all(res.succeeded)
+
+
+def test_bad_input_is_rejected_before_compiling(monkeypatch):
+    import clebsch_jax._sweep as sw
+
+    def compiled(*args, **kwargs):
+        raise AssertionError("compiled a chunk for bad input")
+
+    monkeypatch.setattr(sw, "_run_chunk", compiled)
+    monkeypatch.setattr(sw, "_initial_multipliers", compiled)
+    good = dict(make_system=rigid_body, params=INERTIAS, Q0=eyes(4), xi0=OMEGAS, dt=0.05, n_steps=10)
+    cases = [
+        (dict(chunk_steps=0), "chunk_steps"),
+        (dict(chunk_steps=2.5), "chunk_steps"),
+        (dict(batch_size=-3), "batch_size"),
+        (dict(n_steps=0), "n_steps"),
+        (dict(save_every=0), "save_every"),
+        (dict(chunk_steps=5, save_every=4), "chunk_steps: must be a multiple of save_every"),
+        (dict(params=INERTIAS[:3]), "params: 3 parameter rows for 4 initial conditions"),
+        (dict(xi0=OMEGAS[:3]), "xi0: 3 initial velocities for 4 configurations"),
+        (dict(params={"a": INERTIAS, "b": INERTIAS[:2]}), "params: every leaf needs the same leading"),
+        (dict(Q0=np.zeros((4, 3))), "Q0"),  # members with Q of shape (3,): the velocity map says why
+        (dict(xi0=OMEGAS[:, :2]), "xi0"),
+        (dict(dt=np.array([0.1, 0.1])), "dt: expected a scalar or one step per member"),
+        (dict(dt=-0.1), "dt: every step must be finite and positive"),
+        (dict(P0=np.zeros((4, 3))), "P0: expected Q0's shape"),
+        (dict(grid=True, make_system=rigid_body(INERTIAS[0]), params=None), "grid"),
+        (dict(make_system=rigid_body(INERTIAS[0])), "params: must be None"),
+        (dict(t0=1.0), "t0: set by sweep itself"),
+        (dict(devices=0), "devices"),
+        (dict(invariants={"scalar": lambda s, sol: jnp.sum(sol.momentum)}), "invariants: 'scalar'"),
+        (dict(scheme="sideways"), "scheme"),
+    ]
+    for change, message in cases:
+        with pytest.raises((ValueError, TypeError), match=message):
+            cj.sweep(**{**good, **change})
+
+
+SHARDED = r"""
+import os
+os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+import jax, numpy as np
+import clebsch_jax as cj
+assert len(jax.devices()) == 2, jax.devices()
+from tests.test_sweep import RB, INERTIAS, OMEGAS, eyes
+rng = np.random.default_rng(7)
+inertias = np.concatenate([INERTIAS, rng.uniform(0.5, 3.0, size=(3, 3))])
+omegas = np.concatenate([OMEGAS, rng.normal(size=(3, 3))])
+omegas[5, 0] = np.nan
+args = (cj.models.rigid_body, inertias, eyes(7), omegas)
+one = cj.sweep(*args, **RB)
+two = cj.sweep(*args, devices=2, **RB)  # batch 0 on device 0, batch 1 on device 1
+assert (one.n_devices, two.n_devices) == (1, 2), (one.n_devices, two.n_devices)
+la, lb = jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(two)
+assert len(la) == len(lb) == 21
+for a, b in zip(la, lb):
+    assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), (a, b)
+assert list(one.failed_members) == [5] and np.any(one.drift["casimir"][:5] > 0)
+print("identical", len(la))
+"""
+
+
+def test_devices_split_the_members_and_the_results_are_identical():
+    """Two CPU devices (XLA_FLAGS must be set before jax is imported: a subprocess). The 7
+    members run in two batches of 4 (the last padded), one per device: every field of the
+    table, the NaN member included, is bitwise equal to the one-device sweep."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(SHARDED)], capture_output=True, text=True,
+                         cwd=root, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "identical 21" in out.stdout
