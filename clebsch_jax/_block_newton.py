@@ -30,9 +30,9 @@ import jax
 import jax.numpy as jnp
 
 from . import _linalg
-from ._newton import _newton_loop, implicit_root
+from ._newton import _newton_loop, implicit_root, newton_solve_reusing
 
-__all__ = ["block_newton_solve"]
+__all__ = ["block_newton_solve", "block_newton_solve_reusing", "identity_blocks"]
 
 MAX_CHORD_ITERATIONS = 40
 """Chord updates per block matrix. The lumped matrix is an approximation wherever it is formed,
@@ -98,14 +98,55 @@ def block_newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iter
         return _newton_loop(f, Z, rtol, atol, max_iterations, factorize=_factor_lumped, solve=_solve_blocks,
                             max_updates=MAX_CHORD_ITERATIONS)
 
-    def tangent_solve(g, y):
-        # The linear tangent system g(x) = y (g the Jacobian at the root) by the same
-        # preconditioned iteration as the forward solve, x ← x + M⁻¹(y − g(x)), which contracts
-        # where the forward chord iterations did. A fixed number of sweeps: JAX transposes this
-        # map for reverse mode, which a data-dependent while loop would not allow.
-        fac, _ = _factor_blocks(lumped_blocks(g, y))
-        body = lambda _, x: x + _solve_blocks(fac, y - g(x))
-        return jax.lax.fori_loop(0, TANGENT_SWEEPS, body, _solve_blocks(fac, y))
-
-    Z, stats = implicit_root(Fb, Z0, loop, tangent_solve)
+    Z, stats = implicit_root(Fb, Z0, loop, _block_tangent_solve)
     return _unblocks(Z, guess), stats
+
+
+def _block_tangent_solve(g, y):
+    """The linear tangent system g(x) = y (g the Jacobian at the root) by the same
+    preconditioned iteration as the forward solve, x ← x + M⁻¹(y − g(x)), which contracts where
+    the forward chord iterations did. A fixed number of sweeps: JAX transposes this map for
+    reverse mode, which a data-dependent while loop would not allow."""
+    fac, _ = _factor_blocks(lumped_blocks(g, y))
+    body = lambda _, x: x + _solve_blocks(fac, y - g(x))
+    return jax.lax.fori_loop(0, TANGENT_SWEEPS, body, _solve_blocks(fac, y))
+
+
+def identity_blocks(guess):
+    """An (N, b, b) stack of identities: the placeholder inverse blocks for the first solve."""
+    n = jax.tree_util.tree_leaves(guess)[0].shape[0]
+    b = _blocks(guess, n).shape[1]
+    dtype = jax.tree_util.tree_leaves(guess)[0].dtype
+    return jnp.broadcast_to(jnp.eye(b, dtype=dtype), (n, b, b))
+
+
+def block_newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: float, max_iterations: int):
+    r"""`block_newton_solve` for a march of similar solves: the inverse lumped blocks `H`
+    (N, b, b) of the previous solve are carried (`newton_solve_reusing`'s contract with the
+    block matrix). Forming the lumped matrix costs b linearised residuals — more than the
+    chord updates of a well-predicted step — while the matrix changes by O(Δt) from step to
+    step; it is refreshed only when the carried one stops contracting.
+    **Returns:** `(z, NewtonStats, H)`."""
+    n = jax.tree_util.tree_leaves(guess)[0].shape[0]
+    Z0 = _blocks(guess, n)
+    shape = Z0.shape
+
+    def Fb(Z):
+        return _blocks(F(_unblocks(Z, guess)), n)
+
+    def invert(f, z):  # f, z flat (particle-major)
+        Fz, lin = jax.linearize(f, z)
+        M = lumped_blocks(lambda t: lin(t.reshape(-1)).reshape(shape), z.reshape(shape))
+        inv, singular = jax.vmap(_linalg.inverse)(M)
+        return Fz, inv, jnp.any(singular)
+
+    def apply(Hb, r):
+        return jnp.einsum("nij,nj->ni", Hb, r.reshape(shape)).reshape(-1)
+
+    def tangent_solve(g, y):
+        return _block_tangent_solve(lambda x: g(x.reshape(-1)).reshape(shape), y.reshape(shape)).reshape(-1)
+
+    Z, stats, H, _ = newton_solve_reusing(Fb, Z0, H, reuse, rtol=rtol, atol=atol, max_iterations=max_iterations,
+                                          max_contraction=1.0, invert=invert, apply=apply,
+                                          tangent_solve=tangent_solve, max_updates=MAX_CHORD_ITERATIONS)
+    return _unblocks(Z, guess), stats, H

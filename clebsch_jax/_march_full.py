@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from ._block_newton import block_newton_solve
+from ._block_newton import block_newton_solve, block_newton_solve_reusing, identity_blocks
 from ._newton import newton_solve
 from ._residual import StepUnknowns, nodal_residual, outgoing_momentum, step_residual
 from ._scan import PREDICTOR_ORDER, assemble, march, predict, push, slots
@@ -80,20 +80,30 @@ def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, plan, rtol, atol
                                 max_iterations=max_newton_iterations, solver=solver)
     _, unravel = ravel_pytree(StepUnknowns(xi0, P0, Q0))
 
-    def substep(state, history, h, scheme, n, alive):
+    reuse_blocks = jacobian == "blocks"
+
+    def substep(state, memory, h, scheme, n, alive):
         Q, p, xi_last = state
+        history, H = memory if reuse_blocks else (memory, None)
         # The guess is (ξ, P, Q¹) = (ξ_last, p, Q) + the predicted increment: at step 0 the
         # explicit (0, 0, h L_ξ Q), later the extrapolation of this sub-step's past increments.
         base = ravel_pytree(StepUnknowns(xi_last, p, Q))[0]
         first = ravel_pytree(StepUnknowns(jnp.zeros_like(xi_last), jnp.zeros_like(p),
                                           h * system.velocity_map(xi_last, Q)))[0]
-        z, stats = newton(lambda z: step_residual(system, scheme, h, Q, p, z),
-                          unravel(base + predict(n, first, history)))
+        residual = lambda z: step_residual(system, scheme, h, Q, p, z)
+        guess = unravel(base + predict(n, first, history))
+        if reuse_blocks:  # the inverse lumped blocks of this slot's last solve are carried on
+            z, stats, H = block_newton_solve_reusing(residual, guess, H, (n > 0) | ~alive, rtol=rtol, atol=atol,
+                                                     max_iterations=max_newton_iterations)
+        else:
+            z, stats = newton(residual, guess)
         p1 = outgoing_momentum(system, scheme, h, Q, z)
-        return (z.Q1, p1, z.xi), push(history, ravel_pytree(z)[0] - base), (z.xi, z.P), stats
+        history = push(history, ravel_pytree(z)[0] - base)
+        return (z.Q1, p1, z.xi), ((history, H) if reuse_blocks else history), (z.xi, z.P), stats
 
     history = jnp.zeros((PREDICTOR_ORDER + 1, 2 * Q0.size + xi0.size), Q0.dtype)  # not used at step 0
-    (Qs, ps, _), (xis, Ps), stats = march(substep, (Q0, P0, xi0), slots(plan, history), plan, dt, n_steps)
+    memory = (history, identity_blocks(StepUnknowns(xi0, P0, Q0))) if reuse_blocks else history
+    (Qs, ps, _), (xis, Ps), stats = march(substep, (Q0, P0, xi0), slots(plan, memory), plan, dt, n_steps)
 
     Qs = jnp.concatenate([Q0[None], Qs])
     pn = jnp.concatenate([P0[None], ps])

@@ -197,7 +197,8 @@ def _newton_loop(F: Callable, z0: jax.Array, rtol, atol, max_iterations: int, *,
 _RUNNING, _CONVERGED, _NONFINITE, _STOPPED = 0, 1, 2, 3
 
 
-def _chord_lean(F, z0, H, rtol, atol, *, F0=None, max_contraction=1.0, active=True):
+def _chord_lean(F, z0, H, rtol, atol, *, F0=None, max_contraction=1.0, active=True, apply=_linalg.matvec,
+                max_updates=MAX_CHORD_ITERATIONS):
     """`_chord` with an explicit inverse Jacobian H, written for small systems: its decisions
     are those of `_chord` (with θ ≥ `max_contraction` ending it), but each update computes
     max|Δz| and max|z| once each, by `max_abs` (a NaN or inf in F or z shows in them), and the
@@ -205,16 +206,16 @@ def _chord_lean(F, z0, H, rtol, atol, *, F0=None, max_contraction=1.0, active=Tr
     every operation of the loop body is paid per update, and here the bookkeeping is most of
     the body. `F0`, if given, is F(z0) (known from forming the Jacobian): the first update
     uses it instead of evaluating F again. `active=False` makes no update. Returns (z,
-    updates, converged, nonfinite)."""
+    updates, converged, nonfinite). `apply(H, r)` applies the inverse (default: a dense matrix)."""
 
     def update(state, Fz):
         k, z, eta_prev, _ = state
-        dz = _linalg.matvec(H, Fz)
+        dz = apply(H, Fz)
         z_new = z - dz
         eta, zmax = max_abs(jnp.stack([dz, z_new]))  # one fused computation for both
         nonfinite = ~(jnp.isfinite(eta) & jnp.isfinite(zmax))
         converged = _converged(eta, eta_prev, k, _tolerance(z_new, rtol, atol, zmax), z_new, zmax)
-        stopped = ((k > 0) & (eta >= max_contraction * eta_prev)) | (k + 1 >= MAX_CHORD_ITERATIONS)
+        stopped = ((k > 0) & (eta >= max_contraction * eta_prev)) | (k + 1 >= max_updates)
         code = jnp.where(nonfinite, _NONFINITE,
                          jnp.where(converged, _CONVERGED, jnp.where(stopped, _STOPPED, _RUNNING)))
         return k + 1, jnp.where(nonfinite, z, z_new), eta, code.astype(jnp.int32)
@@ -232,7 +233,15 @@ REUSE_MAX_CONTRACTION = 0.1
 updates contract by less than this factor per update (θ = |Δz_k|/|Δz_k-1| above it)."""
 
 
-def _newton_loop_reusing(F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max_contraction=1.0):
+def _dense_inverse(F: Callable, z: jax.Array):
+    """F(z), the explicit inverse of the exact Jacobian at z and whether it is singular."""
+    Fz, J = jacobian(F, z, unroll=z.shape[0] <= _linalg.UNROLL_MAX)
+    H, singular = _linalg.inverse(J)
+    return Fz, H, singular
+
+
+def _newton_loop_reusing(F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max_contraction=1.0, *,
+                         invert=_dense_inverse, apply=_linalg.matvec, max_updates=MAX_CHORD_ITERATIONS):
     """`_newton_loop` that first tries an inverse Jacobian `H0` carried from an earlier solve.
 
     First chord updates with `H0` (if `reuse`; `reuse=False`, a Python bool, leaves them out
@@ -240,13 +249,16 @@ def _newton_loop_reusing(F: Callable, z0, H0, reuse, rtol, atol, max_iterations:
     converged, the loop of `_newton_loop`: fresh Jacobians (inverted explicitly, to be carried
     on) with chord updates, each fresh Jacobian's first update using the residual that forming
     it gave. Returns (z, (updates, status, jacobians), H), H the inverse Jacobian to carry to
-    the next solve."""
+    the next solve. `invert(F, z) -> (F(z), H, singular)` forms the inverse to carry and
+    `apply(H, r)` applies it: an exact dense Jacobian by default (`_block_newton` passes its
+    block-diagonal one)."""
     if reuse is False:
         z1, k0, converged0, nonfinite0 = z0, jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(False)
-        H0 = jnp.eye(z0.shape[0], dtype=z0.dtype)
+        if H0 is None:  # a placeholder of the dense inverse's shape for the loop's carry
+            H0 = jnp.eye(z0.shape[0], dtype=z0.dtype)
     else:
         z1, k0, converged0, nonfinite0 = _chord_lean(F, z0, H0, rtol, atol, max_contraction=max_contraction,
-                                                     active=reuse)
+                                                     active=reuse, apply=apply, max_updates=max_updates)
 
     def cond(state):
         j, _, _, _, done, _ = state
@@ -254,9 +266,8 @@ def _newton_loop_reusing(F: Callable, z0, H0, reuse, rtol, atol, max_iterations:
 
     def body(state):
         j, z, H_old, _, _, updates = state
-        Fz, J = jacobian(F, z, unroll=z.shape[0] <= _linalg.UNROLL_MAX)
-        H, singular = _linalg.inverse(J)
-        z1, k, converged, nonfinite = _chord_lean(F, z, H, rtol, atol, F0=Fz)
+        Fz, H, singular = invert(F, z)
+        z1, k, converged, nonfinite = _chord_lean(F, z, H, rtol, atol, F0=Fz, apply=apply, max_updates=max_updates)
         status = jnp.where(singular, Status.SINGULAR,
                            jnp.where(nonfinite, Status.NONFINITE, Status.SUCCESS)).astype(jnp.int32)
         done = converged | singular | nonfinite
@@ -271,7 +282,9 @@ def _newton_loop_reusing(F: Callable, z0, H0, reuse, rtol, atol, max_iterations:
 
 
 def newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: float, max_iterations: int,
-                         finish: Callable | None = None, max_contraction: float | None = None):
+                         finish: Callable | None = None, max_contraction: float | None = None,
+                         invert=_dense_inverse, apply=_linalg.matvec, tangent_solve: Callable | None = None,
+                         max_updates: int = MAX_CHORD_ITERATIONS):
     r"""`newton_solve` for a sequence of similar solves (a time march), reusing the Jacobian.
 
     `H` is the inverse Jacobian returned by the previous solve (any array of the right shape,
@@ -290,6 +303,9 @@ def newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: flo
     implicitly differentiated solve, so `extra` is differentiable as usual. Without it F(z)
     is evaluated once more and `extra` is None. `stats.residual_norm` is max|F(z)| either way.
 
+    `invert`, `apply`, `tangent_solve` and `max_updates` replace the dense Jacobian by another
+    carried matrix (see `_newton_loop_reusing`; `_block_newton.block_newton_solve_reusing`).
+
     **Returns:** `(z, NewtonStats, H, extra)`; `stats.jacobians` counts the fresh Jacobians
     (0 when the carried one sufficed). `H` carries no derivatives.
     """
@@ -303,13 +319,15 @@ def newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: flo
 
     def solve(f, x0):
         z, (updates, status, j), H_new = _newton_loop_reusing(f, x0, H, reuse, rtol, atol, max_iterations,
-                                                               max_contraction)
+                                                               max_contraction, invert=invert, apply=apply,
+                                                               max_updates=max_updates)
         # custom_root's JVP gives integer aux outputs integer (not float0) tangents, which JAX
         # then rejects: carry the statistics as floats (aux outputs get zero tangents).
         return z, (jnp.stack([updates, status, j]).astype(dtype), H_new)
 
-    def tangent_solve(g, y):
-        return _linalg.solve(jax.jacfwd(g)(y), y)
+    if tangent_solve is None:
+        def tangent_solve(g, y):
+            return _linalg.solve(jax.jacfwd(g)(y), y)
 
     flat, (counts, H_new) = jax.lax.custom_root(F_flat, flat0, solve, tangent_solve, has_aux=True)
     updates, status, j = (c.astype(jnp.int32) for c in counts)

@@ -149,8 +149,13 @@ def nodal_velocities(system, Qs, mus, guesses, valid, *, rtol, atol, max_iterati
 
 
 def step_guesses(xi0, xi_steps):
-    """Seeds for the nodal solves: the velocity of the step leaving each node (last: arriving)."""
-    return jnp.concatenate([xi0[None], xi_steps[1:], xi_steps[-1:]])
+    """Seeds for the nodal solves: the velocity of the step leaving each node (last: arriving).
+    Where the leaving step failed (its velocity is NaN) the node itself is still valid: it is
+    seeded with the arriving step's velocity (ξ⁰ at node 0)."""
+    leaving = jnp.concatenate([xi0[None], xi_steps[1:], xi_steps[-1:]])
+    arriving = jnp.concatenate([xi0[None], xi_steps])
+    finite = jnp.isfinite(leaving).reshape(leaving.shape[0], -1).all(axis=1)
+    return jnp.where(finite.reshape((-1,) + (1,) * (leaving.ndim - 1)), leaving, arriving)
 
 
 def assemble(*, system, dt, t0, Q0, xi0, stats, xi_steps, Qs, ps, Ps, mus, rtol, atol,

@@ -329,6 +329,8 @@ def test_symmetric_collision_is_a_clear_failure_at_t_star(dt, derivative_map):
     Q, P = np.asarray(sol.Q), np.asarray(sol.momentum)
     assert np.all(np.isnan(Q[step + 1:])) and np.all(np.isnan(P[step + 1:]))
     assert np.all(np.isfinite(Q[: step + 1])) and np.all(np.isfinite(P[: step + 1]))
+    # every valid node has its nodal velocity, also the one the failed step leaves from
+    assert np.all(np.isfinite(np.asarray(sol.xi)[: step + 1]))
     # The last valid node carries the blow-up: p within 20% of c coth(c(t* - t)) ≥ 20.
     _, p_ex = peakon_antipeakon_exact(step * dt, **COLLISION)
     assert P[step, 0] > 20 and abs(P[step, 0] / p_ex[0] - 1) < 0.2
