@@ -1,8 +1,10 @@
-"""Smoke test of `benchmarks/rigid_body_step_cost.py --quick`: it runs and writes sane output.
+"""Smoke test of the benchmark scripts in `--quick` mode: each runs and writes sane output.
 
-No timing thresholds (tests never assert wall time; the benchmark reports it). ~37 s on an
-idle 2-core machine, almost all of it compiling the six marches (three variants, two cases)
-with XLA optimisation off.
+No timing thresholds (tests never assert wall time; the benchmarks report it). Each script
+runs in its own process: `--quick` turns XLA optimisation off globally for its run, and the
+programs it compiles must not stay in this test session's cache. Measured on 2 cores at load
+4-5 (other users): 42-71 s (rigid_body_step_cost), 33-44 s (vortex_step_cost), 42-58 s
+(throughput), 2-3 min together, almost all of it compiling.
 """
 
 import json
@@ -11,54 +13,54 @@ import subprocess
 import sys
 from pathlib import Path
 
-BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "rigid_body_step_cost.py"
+import pytest
 
-VARIANTS = {  # variant -> (expected Solution.form, Q computed)
-    "full": ("full", True),
-    "reduced": ("reduced", True),
-    "reduced_no_Q": ("reduced", False),
-}
-METHODS = (*VARIANTS, "numpy_rk4")
-RATIOS = ("full_over_rk4_per_body_step", "reduced_over_rk4_per_body_step",
-          "reduced_no_Q_over_rk4_per_body_step", "full_over_reduced", "full_over_reduced_no_Q")
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+RK4 = "numpy_rk4"
 
 
 def _positive_finite(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0
 
 
-def test_rigid_body_step_cost_quick(tmp_path):
-    # In its own process: --quick turns XLA optimisation off globally for its run, and the
-    # programs it compiles must not stay in this test session's cache.
-    subprocess.run([sys.executable, str(BENCHMARK), "--quick", "--out", str(tmp_path), "--timeout", "0"],
-                   check=True, capture_output=True, text=True)
+def _check_timed(entry: dict, keys: tuple, where) -> None:
+    """A method's timing entry: the given rates and times and every sample positive and finite."""
+    for key in ("per_call_s", "first_call_s", "second_call_s", "cpu_per_call_s", *keys):
+        assert _positive_finite(entry[key]), (where, key, entry[key])
+    assert entry["calls_per_sample"] >= 1, where
+    assert entry["samples_s"] and all(_positive_finite(s) for s in entry["samples_s"]), where
 
-    assert (tmp_path / "rigid_body_step_cost.png").stat().st_size > 0
-    summary = json.loads((tmp_path / "rigid_body_step_cost.json").read_text())
-    assert {"benchmark", "config", "machine", "results", "target_full_over_reduced"} <= summary.keys()
-    assert summary["config"]["quick"] is True
+
+# --------------------------------------------------------------------------------------------
+# What each script's JSON must hold besides the common part.
+
+RIGID_VARIANTS = {  # variant -> (expected Solution.form, Q computed)
+    "full": ("full", True),
+    "reduced": ("reduced", True),
+    "reduced_no_Q": ("reduced", False),
+}
+RIGID_RATIOS = ("full_over_rk4_per_body_step", "reduced_over_rk4_per_body_step",
+                "reduced_no_Q_over_rk4_per_body_step", "full_over_reduced", "full_over_reduced_no_Q")
+
+
+def check_rigid_body_step_cost(summary: dict) -> None:
+    assert summary["target_full_over_reduced"] == 10.0
     assert summary["config"]["variants"] == {
         "full": {"reduce": False},
         "reduced": {"reduce": True, "reconstruct": True},
         "reduced_no_Q": {"reduce": True, "reconstruct": False},
     }
-    for key in ("platform", "cpu_count", "jax", "numpy", "date_utc"):
-        assert summary["machine"][key], key
-    assert "git_commit" in summary["machine"]
-
-    cases = {r["case"] for r in summary["results"]}
-    assert cases == {"single", "vmap"}
+    assert {r["case"] for r in summary["results"]} == {"single", "vmap"}
     for row in summary["results"]:
         assert row["batch"] >= 1 and row["n_steps"] >= 1
-        for method in METHODS:
+        for method in (*RIGID_VARIANTS, RK4):
             entry = row[method]
-            for key in ("seconds_per_step", "seconds_per_body_step", "body_steps_per_second", "per_call_s"):
-                assert _positive_finite(entry[key]), (row["case"], method, key, entry[key])
-            assert all(_positive_finite(s) for s in entry["samples_s"])
+            _check_timed(entry, ("seconds_per_step", "seconds_per_body_step", "body_steps_per_second"),
+                         (row["case"], method))
             # accuracy at dt = 0.05 over a short run: small, finite (loose bounds, not a test
             # of either method)
             assert 0 <= entry["max_rel_energy_error"] < 1e-2, (row["case"], method)
-        for variant, (form, has_Q) in VARIANTS.items():
+        for variant, (form, has_Q) in RIGID_VARIANTS.items():
             entry = row[variant]
             assert entry["form"] == form, (row["case"], variant)
             assert entry["Q_computed"] is has_Q, (row["case"], variant)
@@ -74,9 +76,145 @@ def test_rigid_body_step_cost_quick(tmp_path):
                 assert entry["max_abs_xi_diff_vs_full"] is None
             else:
                 assert 0 <= entry["max_abs_xi_diff_vs_full"] < 1e-6, (row["case"], variant)
-        assert 0 <= row["numpy_rk4"]["max_orthogonality_error"] < 1e-4
-        assert set(row["ratios"]) == set(RATIOS)
-        for key in RATIOS:
-            assert _positive_finite(row["ratios"][key]), (row["case"], key, row["ratios"][key])
+        assert 0 <= row[RK4]["max_orthogonality_error"] < 1e-4
+        assert set(row["ratios"]) == set(RIGID_RATIOS)
+        assert all(_positive_finite(row["ratios"][key]) for key in RIGID_RATIOS), row["ratios"]
         assert math.isclose(row["ratios"]["full_over_reduced"],
                             row["full"]["seconds_per_body_step"] / row["reduced"]["seconds_per_body_step"])
+
+
+def check_vortex_step_cost(summary: dict) -> None:
+    assert summary["config"]["dt"] == 0.01
+    assert summary["target"]["N"] == 1000 and summary["target"]["max_ours_over_rk4"] == 3.0
+    rows = summary["results"]
+    assert {r["case"] for r in rows} == {"single", "vmap"}
+    assert any("dense" in r["variants"] for r in rows)
+    for row in rows:
+        assert row["N"] >= 2 and row["batch"] >= 1 and row["n_steps"] >= 1
+        for method in (*row["variants"], RK4):
+            entry = row[method]
+            _check_timed(entry, ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
+                         (row["case"], method))
+            # both conserve the linear impulse (ours to round-off; RK4 too, it is linear in the
+            # velocities); loose bounds, not a test of either method
+            assert 0 <= entry["max_linear_impulse_drift"] < 1e-9, (row["case"], method)
+            assert 0 <= entry["max_rel_hamiltonian_error"] < 1e-3, (row["case"], method)
+        for variant in row["variants"]:
+            entry = row[variant]
+            assert entry["form"] == "full" and entry["scheme"] == "midpoint", (row["case"], variant)
+            assert math.isfinite(entry["compile_s"])
+            assert entry["newton_iterations_per_step_mean"] >= 1
+            # dense: a Jacobian every step; blocks: formed at step 0, then carried (refreshed when needed)
+            minimum = 1.0 if variant == "dense" else 1.0 / row["n_steps"]
+            assert entry["newton_jacobians_per_step_mean"] >= minimum - 1e-12, (row["case"], variant)
+            assert entry["max_residual_norm"] < 1e-10
+            # midpoint (order 2) against RK4 (order 4) over a few steps of dt = 0.01: close
+            assert 0 <= entry["max_abs_final_position_diff_vs_rk4"] < 1e-4, (row["case"], variant)
+            assert _positive_finite(row["ratios"][f"{variant}_over_rk4"])
+            assert math.isclose(row["ratios"][f"{variant}_over_rk4"],
+                                entry["seconds_per_step"] / row[RK4]["seconds_per_step"])
+        if "dense" in row["variants"] and "blocks" in row["variants"]:
+            assert row["dense"]["max_abs_Q_diff_vs_blocks"] < 1e-10  # the same root
+        expected_ratios = {f"{v}_over_rk4" for v in row["variants"]}
+        if row["n_steps_short"]:  # calls of fewer steps: a call's fixed cost and the marginal step cost
+            assert 1 <= row["n_steps_short"] < row["n_steps"]
+            expected_ratios |= {f"{v}_marginal_over_rk4" for v in row["variants"]}
+            for variant in row["variants"]:
+                entry = row[variant]
+                assert _positive_finite(entry["short_call"]["per_call_s"])
+                # a difference of two timings: finite, not necessarily positive in a smoke run
+                assert math.isfinite(entry["marginal_seconds_per_step"])
+                assert math.isfinite(entry["fixed_cost_per_call_s"])
+        assert set(row["ratios"]) == expected_ratios
+        assert set(row["paired_ratios"]) == expected_ratios
+    assert any(r["n_steps_short"] for r in rows)
+
+
+def check_throughput(summary: dict) -> None:
+    parts = {}
+    for row in summary["results"]:
+        parts.setdefault(row["part"], []).append(row)
+    assert set(parts) == {"rigid_body", "vortices", "compile"}
+    for row in parts["rigid_body"]:
+        assert row["batch"] >= 1 and row["n_steps"] >= 1
+        ours = [m for m in row["methods"] if m != RK4]
+        assert ours[0] == "vmap" and ("chunked" in ours) == (row["batch"] > summary["config"]["chunk"])
+        for method in row["methods"]:
+            _check_timed(row[method], ("seconds_per_step", "seconds_per_body_step", "body_steps_per_second"),
+                         (row["batch"], method))
+        for method in ours:
+            assert math.isfinite(row[method]["compile_s"])
+            # the same equations as the RK4 (order 2 against order 4, a few steps of dt = 0.05)
+            assert 0 <= row[method]["max_abs_final_xi_diff_vs_rk4"] < 1e-2, (row["batch"], method)
+            assert math.isclose(row["ratios"][f"{method}_over_rk4_rate"],
+                                row[method]["body_steps_per_second"] / row[RK4]["body_steps_per_second"])
+        assert row["best"] in ours
+        assert row["newton_updates_per_step"]["slowest_of_batch_mean"] >= row["newton_updates_per_step"]["mean"] >= 1
+        if "chunked" in ours:
+            assert row["max_abs_xi_diff_chunked_vs_vmap"] < 1e-10  # the same march, in chunks
+            assert _positive_finite(row["ratios"]["chunked_over_vmap_rate"])
+    for row in parts["vortices"]:
+        for method in ("ours", RK4):
+            _check_timed(row[method], ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
+                         (row["case"], row["N"], method))
+        assert 0 <= row["ours"]["max_abs_final_position_diff_vs_rk4"] < 1e-4
+        assert row["newton_updates_per_step"]["slowest_of_batch_mean"] >= row["newton_updates_per_step"]["mean"] >= 1
+        assert math.isclose(row["ratios"]["ours_over_rk4_time_per_step"],
+                            row["ours"]["seconds_per_step"] / row[RK4]["seconds_per_step"])
+    assert [r["case"] for r in parts["compile"]] == summary["config"]["compile"]["models"]
+    for row in parts["compile"]:
+        assert row["form"] in ("full", "reduced")
+        assert _positive_finite(row["first_call_s"]) and _positive_finite(row["second_call_s"])
+        assert math.isfinite(row["compile_s"])
+        assert row["first_call_jax_events"]["backend_compile"]["count"] >= 1  # the march was compiled
+    targets = summary["targets"]
+    assert set(targets) == {"rigid_body_rate", "rigid_body_over_rk4", "rigid_body_flat", "vortex_step_cost", "compile"}
+    assert all(t["met"] in (True, False, None) for t in targets.values())
+    assert set(targets["compile"]["per_model"]) == set(summary["config"]["compile"]["models"])
+
+
+def check_work_precision(summary: dict) -> None:
+    scenes = {sc["scene"]: sc for sc in summary["results"]}
+    assert set(scenes) == {"rigid_body", "vortices_4", "vortices_100"}
+    for name, sc in scenes.items():
+        assert _positive_finite(sc["reference"]["wall_s"]) and sc["reference"]["check"]
+        families = {p["family"] for p in sc["points"]}
+        assert families == {"ours", "diffrax", "scipy", "numpy"}, (name, families)
+        for p in sc["points"]:
+            where = (name, p["method"], p["param"])
+            assert p["valid"] and _positive_finite(p["wall_s"]), where
+            for key in ("global_error", "energy_error", "invariant_error"):
+                assert math.isfinite(p[key]) and p[key] >= 0, (where, key)
+            if p["family"] == "ours":
+                assert p["order"] in (2, 4, 6, 8) and p["newton"]["updates_per_substep"] >= 1, where
+                # a composition of discrete Clebsch steps keeps the Casimir / the angular
+                # impulse to round-off (loose bound; tests check it tightly)
+                assert p["invariant_error"] < 1e-10, where
+    comparison = summary["targets"]["rigid_body_T20"]
+    assert all(comparison[k]["met"] in (True, False, None) for k in ("energy", "global"))
+
+
+CHECKS = {
+    "rigid_body_step_cost": check_rigid_body_step_cost,
+    "vortex_step_cost": check_vortex_step_cost,
+    "throughput": check_throughput,
+    "work_precision": check_work_precision,
+}
+
+
+@pytest.mark.parametrize("name", list(CHECKS))
+def test_benchmark_quick(name, tmp_path):
+    subprocess.run([sys.executable, str(BENCHMARKS / f"{name}.py"), "--quick", "--out", str(tmp_path), "--timeout", "0"],
+                   check=True, capture_output=True, text=True)
+
+    assert (tmp_path / f"{name}.png").stat().st_size > 0
+    summary = json.loads((tmp_path / f"{name}.json").read_text())
+    assert {"benchmark", "config", "machine", "results", "total_runtime_s"} <= summary.keys()
+    assert summary["benchmark"] == name
+    assert summary["config"]["quick"] is True and summary["config"]["jax_disable_most_optimizations"] is True
+    for key in ("platform", "cpu_count", "jax", "numpy", "date_utc"):
+        assert summary["machine"][key], key
+    assert "git_commit" in summary["machine"]
+    assert _positive_finite(summary["machine"]["load_average_1min_at_start"] + 1)  # >= 0, recorded
+    assert summary["results"]
+    CHECKS[name](summary)
