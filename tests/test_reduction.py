@@ -143,7 +143,11 @@ def test_reduced_and_full_marches_agree_on_the_rigid_body():
     np.testing.assert_allclose(np.asarray(bare.xi), np.asarray(red.xi), atol=1e-13)
 
 
-@pytest.mark.parametrize("scheme", ["left", "right"])  # the schemes the reduced march implements
+# The left principle only: the right one takes the same code path with the other anchor (both are
+# compared with autodiff in test_closed_form_cayley_step_equals_the_autodiff_step; reduced and full
+# marches of left∘right sub-steps agree on the heavy top in test_composition), and each case costs
+# ~50 s of full-march compilation with the exact logarithm.
+@pytest.mark.parametrize("scheme", ["left"])
 def test_reduced_and_full_agree_on_a_user_written_group(scheme):
     """The SE(2) body written in test_user_system, with the exact-logarithm derivative map."""
     system = se2_system(cj.exponential)
@@ -299,21 +303,20 @@ def test_closed_form_cayley_step_equals_the_autodiff_step(name, scheme):
     red, why = R.find_reduction(system, Q0, jnp.zeros(m))
     assert red is not None, why
     # one random draw per case: every call here runs op by op (the exponential's logm is slow so)
-    for _ in range(1):
-        xi, mu, dt = jnp.asarray(rng.normal(size=m)), jnp.asarray(rng.normal(size=m)), 0.1
-        r, mu1, Q1 = R.reduced_step(system, red, scheme, dt, mu, Q0, xi)
-        mu1_ad, Q1_ad = R.outgoing_body_momentum(system, red, scheme, dt, Q0, xi)
-        np.testing.assert_allclose(r, R.reduced_residual(system, red, scheme, dt, mu, Q0, xi), rtol=0, atol=2e-15)
-        np.testing.assert_allclose(mu1, mu1_ad, rtol=0, atol=2e-15)
-        np.testing.assert_allclose(Q1, Q1_ad, rtol=0, atol=1e-15)
-        # and the generic (non-Cayley) path of reduced_step: the exponential map
-        exp_system = cj.ClebschSystem(lagrangian=system.lagrangian, velocity_map=system.velocity_map,
-                                      derivative_map=cj.exponential)
-        r_e, mu1_e, _ = R.reduced_step(exp_system, red, scheme, dt, mu, Q0, xi)
-        np.testing.assert_allclose(r_e, R.reduced_residual(exp_system, red, scheme, dt, mu, Q0, xi),
-                                   rtol=0, atol=1e-13)
-        np.testing.assert_allclose(mu1_e, R.outgoing_body_momentum(exp_system, red, scheme, dt, Q0, xi)[0],
-                                   rtol=0, atol=1e-13)
+    xi, mu, dt = jnp.asarray(rng.normal(size=m)), jnp.asarray(rng.normal(size=m)), 0.1
+    r, mu1, Q1 = R.reduced_step(system, red, scheme, dt, mu, Q0, xi)
+    mu1_ad, Q1_ad = R.outgoing_body_momentum(system, red, scheme, dt, Q0, xi)
+    np.testing.assert_allclose(r, R.reduced_residual(system, red, scheme, dt, mu, Q0, xi), rtol=0, atol=2e-15)
+    np.testing.assert_allclose(mu1, mu1_ad, rtol=0, atol=2e-15)
+    np.testing.assert_allclose(Q1, Q1_ad, rtol=0, atol=1e-15)
+    # and the generic (non-Cayley) path of reduced_step: the exponential map
+    exp_system = cj.ClebschSystem(lagrangian=system.lagrangian, velocity_map=system.velocity_map,
+                                  derivative_map=cj.exponential)
+    r_e, mu1_e, _ = R.reduced_step(exp_system, red, scheme, dt, mu, Q0, xi)
+    np.testing.assert_allclose(r_e, R.reduced_residual(exp_system, red, scheme, dt, mu, Q0, xi),
+                               rtol=0, atol=1e-13)
+    np.testing.assert_allclose(mu1_e, R.outgoing_body_momentum(exp_system, red, scheme, dt, Q0, xi)[0],
+                               rtol=0, atol=1e-13)
 
 
 def test_predictor_is_exact_on_polynomials_and_falls_back_on_rough_data():
