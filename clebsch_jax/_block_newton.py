@@ -95,10 +95,10 @@ def block_newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iter
         return _blocks(F(_unblocks(Z, guess)), n)
 
     def loop(f, Z):
-        return _newton_loop(f, Z, rtol, atol, max_iterations, factorize=_factor_lumped, solve=_solve_blocks,
-                            max_updates=MAX_CHORD_ITERATIONS)
+        return (*_newton_loop(f, Z, rtol, atol, max_iterations, factorize=_factor_lumped, solve=_solve_blocks,
+                              max_updates=MAX_CHORD_ITERATIONS), None)
 
-    Z, stats = implicit_root(Fb, Z0, loop, _block_tangent_solve)
+    Z, stats, _ = implicit_root(Fb, Z0, loop, _block_tangent_solve)
     return _unblocks(Z, guess), stats
 
 
@@ -114,10 +114,9 @@ def _block_tangent_solve(g, y):
 
 def identity_blocks(guess):
     """An (N, b, b) stack of identities: the placeholder inverse blocks for the first solve."""
-    n = jax.tree_util.tree_leaves(guess)[0].shape[0]
-    b = _blocks(guess, n).shape[1]
-    dtype = jax.tree_util.tree_leaves(guess)[0].dtype
-    return jnp.broadcast_to(jnp.eye(b, dtype=dtype), (n, b, b))
+    leaf = jax.tree_util.tree_leaves(guess)[0]
+    n, b = _blocks(guess, leaf.shape[0]).shape
+    return jnp.broadcast_to(jnp.eye(b, dtype=leaf.dtype), (n, b, b))
 
 
 def block_newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: float, max_iterations: int):

@@ -152,9 +152,7 @@ def plan_steps(scheme: str, base_order: int, base_symmetric: bool, order, compos
         return StepPlan((1.0,), ((scheme, 1.0),), base_order, base_symmetric, True, f"{scheme} principle")
     if base_symmetric:
         base, base_name = ((scheme, 1.0),), f"{scheme} principle"
-    else:
-        if scheme == "midpoint":  # pragma: no cover - the midpoint principle is symmetric
-            raise AssertionError(scheme)
+    else:  # left or right (the midpoint principle is symmetric)
         base, base_name = (("left", 0.5), ("right", 0.5)), "right(h/2) o left(h/2)"
     if order == 2:
         return StepPlan((1.0,), base, 2, True, True, base_name)

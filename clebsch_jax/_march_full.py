@@ -84,7 +84,7 @@ def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, plan, rtol, atol
 
     def substep(state, memory, h, scheme, n, alive):
         Q, p, xi_last = state
-        history, H = memory if reuse_blocks else (memory, None)
+        history, H = memory  # H: the carried inverse blocks (None with the dense Jacobian)
         # The guess is (ξ, P, Q¹) = (ξ_last, p, Q) + the predicted increment: at step 0 the
         # explicit (0, 0, h L_ξ Q), later the extrapolation of this sub-step's past increments.
         base = ravel_pytree(StepUnknowns(xi_last, p, Q))[0]
@@ -99,10 +99,10 @@ def march_full(system, Q0, xi0, P0, dt, t0, *, n_steps, scheme, plan, rtol, atol
             z, stats = newton(residual, guess)
         p1 = outgoing_momentum(system, scheme, h, Q, z)
         history = push(history, ravel_pytree(z)[0] - base)
-        return (z.Q1, p1, z.xi), ((history, H) if reuse_blocks else history), (z.xi, z.P), stats
+        return (z.Q1, p1, z.xi), (history, H), (z.xi, z.P), stats
 
     history = jnp.zeros((PREDICTOR_ORDER + 1, 2 * Q0.size + xi0.size), Q0.dtype)  # not used at step 0
-    memory = (history, identity_blocks(StepUnknowns(xi0, P0, Q0))) if reuse_blocks else history
+    memory = (history, identity_blocks(StepUnknowns(xi0, P0, Q0)) if reuse_blocks else None)
     (Qs, ps, _), (xis, Ps), stats = march(substep, (Q0, P0, xi0), slots(plan, memory), plan, dt, n_steps)
 
     Qs = jnp.concatenate([Q0[None], Qs])

@@ -165,11 +165,8 @@ def _newton_loop(F: Callable, z0: jax.Array, rtol, atol, max_iterations: int, *,
     systems of at most `SMALL_SYSTEM` unknowns take the same decisions in the leaner loop of
     `_newton_loop_reusing` (without a carried Jacobian)."""
     if factorize is _dense_factor and z0.shape[0] <= SMALL_SYSTEM:
-        z, (updates, status, j), _ = _newton_loop_reusing(F, z0, None, False, rtol, atol, max_iterations)
-        res_norm = max_abs(F(z))
-        status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(res_norm), Status.NONFINITE, status)
-        return z, NewtonStats(iterations=updates, residual_norm=res_norm, status=status.astype(jnp.int32),
-                              jacobians=j)
+        z, stats, _ = _newton_loop_reusing(F, z0, None, False, rtol, atol, max_iterations)
+        return z, _with_residual(stats, F(z))
 
     def cond(state):
         j, _, _, done, _ = state
@@ -187,11 +184,17 @@ def _newton_loop(F: Callable, z0: jax.Array, rtol, atol, max_iterations: int, *,
     init = (jnp.asarray(0, jnp.int32), z0, jnp.asarray(Status.SUCCESS, jnp.int32), jnp.asarray(False),
             jnp.asarray(0, jnp.int32))
     j, z, status, done, updates = jax.lax.while_loop(cond, body, init)
-    status = jnp.where(done, status, Status.MAX_ITERATIONS)
-    res_norm = jnp.max(jnp.abs(F(z)))
-    status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(res_norm), Status.NONFINITE, status)
-    return z, NewtonStats(iterations=updates, residual_norm=res_norm, status=status.astype(jnp.int32),
-                          jacobians=j)
+    status = jnp.where(done, status, Status.MAX_ITERATIONS).astype(jnp.int32)
+    stats = NewtonStats(iterations=updates, residual_norm=jnp.asarray(jnp.nan, z.dtype), status=status, jacobians=j)
+    return z, _with_residual(stats, F(z))
+
+
+def _with_residual(stats: NewtonStats, residual) -> NewtonStats:
+    """`stats` with the final residual's max-norm; a SUCCESS whose residual is not finite
+    becomes NONFINITE."""
+    res_norm = max_abs(ravel_pytree(residual)[0])
+    status = jnp.where((stats.status == Status.SUCCESS) & ~jnp.isfinite(res_norm), Status.NONFINITE, stats.status)
+    return stats._replace(residual_norm=res_norm, status=status.astype(jnp.int32))
 
 
 _RUNNING, _CONVERGED, _NONFINITE, _STOPPED = 0, 1, 2, 3
@@ -248,8 +251,8 @@ def _newton_loop_reusing(F: Callable, z0, H0, reuse, rtol, atol, max_iterations:
     of the program) while they contract by at least `max_contraction` per update; then, if not
     converged, the loop of `_newton_loop`: fresh Jacobians (inverted explicitly, to be carried
     on) with chord updates, each fresh Jacobian's first update using the residual that forming
-    it gave. Returns (z, (updates, status, jacobians), H), H the inverse Jacobian to carry to
-    the next solve. `invert(F, z) -> (F(z), H, singular)` forms the inverse to carry and
+    it gave. Returns (z, NewtonStats, H), H the inverse Jacobian to carry to the next solve;
+    the stats' `residual_norm` is left NaN for the caller, who evaluates F at the root anyway. `invert(F, z) -> (F(z), H, singular)` forms the inverse to carry and
     `apply(H, r)` applies it: an exact dense Jacobian by default (`_block_newton` passes its
     block-diagonal one)."""
     if reuse is False:
@@ -277,8 +280,9 @@ def _newton_loop_reusing(F: Callable, z0, H0, reuse, rtol, atol, max_iterations:
     status0 = jnp.where(nonfinite0, Status.NONFINITE, Status.SUCCESS).astype(jnp.int32)
     init = (jnp.asarray(0, jnp.int32), z1, H0, status0, converged0 | nonfinite0, k0)
     j, z, H, status, done, updates = jax.lax.while_loop(cond, body, init)
-    status = jnp.where(done, status, Status.MAX_ITERATIONS)
-    return z, (updates, status, j), H
+    status = jnp.where(done, status, Status.MAX_ITERATIONS).astype(jnp.int32)
+    return z, NewtonStats(iterations=updates, residual_norm=jnp.asarray(jnp.nan, z.dtype), status=status,
+                          jacobians=j), H
 
 
 def newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: float, max_iterations: int,
@@ -312,31 +316,18 @@ def newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: flo
     if max_contraction is None:
         max_contraction = REUSE_MAX_CONTRACTION
     flat0, unravel = ravel_pytree(guess)
-    dtype = flat0.dtype
 
     def F_flat(x):
         return ravel_pytree(F(unravel(x)))[0]
 
-    def solve(f, x0):
-        z, (updates, status, j), H_new = _newton_loop_reusing(f, x0, H, reuse, rtol, atol, max_iterations,
-                                                               max_contraction, invert=invert, apply=apply,
-                                                               max_updates=max_updates)
-        # custom_root's JVP gives integer aux outputs integer (not float0) tangents, which JAX
-        # then rejects: carry the statistics as floats (aux outputs get zero tangents).
-        return z, (jnp.stack([updates, status, j]).astype(dtype), H_new)
+    def loop(f, x0):
+        return _newton_loop_reusing(f, x0, H, reuse, rtol, atol, max_iterations, max_contraction, invert=invert,
+                                    apply=apply, max_updates=max_updates)
 
-    if tangent_solve is None:
-        def tangent_solve(g, y):
-            return _linalg.solve(jax.jacfwd(g)(y), y)
-
-    flat, (counts, H_new) = jax.lax.custom_root(F_flat, flat0, solve, tangent_solve, has_aux=True)
-    updates, status, j = (c.astype(jnp.int32) for c in counts)
+    flat, stats, H_new = implicit_root(F_flat, flat0, loop, tangent_solve or _dense_tangent_solve)
     z = unravel(flat)
     residual, extra = (F(z), None) if finish is None else finish(z)
-    res_norm = max_abs(ravel_pytree(residual)[0])
-    status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(res_norm), Status.NONFINITE, status)
-    stats = NewtonStats(iterations=updates, residual_norm=res_norm, status=status.astype(jnp.int32), jacobians=j)
-    return z, stats, H_new, extra
+    return z, _with_residual(stats, residual), H_new, extra
 
 
 def newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations: int):
@@ -360,28 +351,34 @@ def newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations
     def F_flat(x):
         return ravel_pytree(F(unravel(x)))[0]
 
-    def tangent_solve(g, y):
-        return _linalg.solve(jax.jacfwd(g)(y), y)
+    def loop(f, x0):
+        return (*_newton_loop(f, x0, rtol, atol, max_iterations), None)
 
-    flat, stats = implicit_root(F_flat, flat0, lambda f, x0: _newton_loop(f, x0, rtol, atol, max_iterations),
-                                tangent_solve)
+    flat, stats, _ = implicit_root(F_flat, flat0, loop, _dense_tangent_solve)
     return unravel(flat), stats
 
 
+def _dense_tangent_solve(g, y):
+    """The tangent system of `custom_root` with the dense Jacobian of g."""
+    return _linalg.solve(jax.jacfwd(g)(y), y)
+
+
 def implicit_root(F: Callable, x0: jax.Array, loop: Callable, tangent_solve: Callable):
-    """`jax.lax.custom_root` around `loop(F, x0) -> (x, NewtonStats)`: derivatives of the root by
-    the implicit function theorem, with `tangent_solve` for the tangent systems."""
+    """`jax.lax.custom_root` around `loop(F, x0) -> (x, NewtonStats, extra)`: derivatives of the
+    root by the implicit function theorem, with `tangent_solve` for the tangent systems. `extra`
+    (e.g. a carried inverse Jacobian; None if unused) passes through without derivatives.
+    Returns `(x, NewtonStats, extra)`."""
 
     def solve(f, x):
-        x, stats = loop(f, x)
+        x, stats, extra = loop(f, x)
         # custom_root's JVP gives integer aux outputs integer (not float0) tangents, which
         # JAX then rejects; carry the statistics as floats through it and cast back below.
-        return x, jax.tree_util.tree_map(lambda a: a.astype(x.dtype), stats)
+        return x, (jax.tree_util.tree_map(lambda a: a.astype(x.dtype), stats), extra)
 
-    x, stats = jax.lax.custom_root(F, x0, solve, tangent_solve, has_aux=True)
+    x, (stats, extra) = jax.lax.custom_root(F, x0, solve, tangent_solve, has_aux=True)
     return x, NewtonStats(
         iterations=stats.iterations.astype(jnp.int32),
         residual_norm=stats.residual_norm,
         status=stats.status.astype(jnp.int32),
         jacobians=stats.jacobians.astype(jnp.int32),
-    )
+    ), extra

@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import diagnostics as _diagnostics
-from ._integrate import integrate
+from ._integrate import _is_array, integrate
 from ._march_full import cotangent_from_momentum, initial_multiplier
 from ._newton import Status
 from ._solution import IntegrationError
@@ -256,7 +256,7 @@ def _split_system(system: ClebschSystem):
     """A shared system as (treedef, static leaves) and its array leaves: plain functions in a
     system are leaves too, and jit only takes arrays."""
     leaves, treedef = jax.tree_util.tree_flatten(system)
-    is_array = [isinstance(x, (jax.Array, np.ndarray, np.generic)) for x in leaves]
+    is_array = [_is_array(x) for x in leaves]
     static = tuple(None if a else x for x, a in zip(leaves, is_array))
     return (treedef, static), [x for x, a in zip(leaves, is_array) if a]
 
@@ -270,8 +270,7 @@ def _deviation(values, ref):
 def _member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset):
     system = _system_of(cfg, params, shared)
     sol = _integrate(cfg, system, carry.Q, carry.xi, carry.P, carry.t, dt, cfg.n)
-    # Nodes whose state is known: before any failure, with the nodal velocity recovered (the
-    # node a failed step starts from is valid but its velocity, seeded from that step, is NaN).
+    # Nodes whose state is known: before any failure, with the nodal velocity recovered.
     known = sol.valid & (sol.nodal_stats.status == Status.SUCCESS)
     initial, drift = {}, {}
     for name, fn in cfg.invariants:
