@@ -69,7 +69,7 @@ class ClosureResult:
 
 def _basis(xi_shape, dtype):
     m = int(np.prod(xi_shape)) if xi_shape else 1
-    return jnp.eye(m, dtype=dtype).reshape((m,) + tuple(xi_shape))
+    return np.eye(m, dtype=dtype).reshape((m,) + tuple(xi_shape))
 
 
 def sample_points(system: ClebschSystem, Q: jax.Array, xi: jax.Array, n_points: int, spread: float,
@@ -81,9 +81,7 @@ def sample_points(system: ClebschSystem, Q: jax.Array, xi: jax.Array, n_points: 
     rng = np.random.default_rng(seed)
     etas = rng.normal(size=(n_points,) + tuple(np.shape(xi)))
     etas = etas / np.linalg.norm(etas.reshape(n_points, -1), axis=1).reshape((-1,) + (1,) * np.ndim(xi))
-    Q = jnp.asarray(Q)
-    pts = _flow(system.velocity_map, Q, jnp.asarray(etas, dtype=Q.dtype), jnp.asarray(spread, dtype=Q.dtype))
-    return jnp.concatenate([Q[None], pts])
+    return _flow(system.velocity_map, Q, etas.astype(jnp.result_type(Q)), spread)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -100,7 +98,7 @@ def _flow(velocity_map, Q, etas, spread):
 
         return jax.lax.fori_loop(0, substeps, rk4, Q)
 
-    return jax.vmap(one)(etas)
+    return jnp.concatenate([Q[None], jax.vmap(one)(etas)])
 
 
 @functools.partial(jax.jit, static_argnums=0)

@@ -147,11 +147,11 @@ def _inspect(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | Non
     n = shape[0]
     xi_shape = tuple(np.shape(xi0))
     m = int(np.prod(xi_shape)) if xi_shape else 1
-    eye = jnp.eye(n)
-    E = jnp.eye(m).reshape((m,) + xi_shape)
+    E = np.eye(m).reshape((m,) + xi_shape)
     G = np.eye(n) + 0.3 * np.random.default_rng(7).normal(size=(n, n))
-    basis = jnp.stack([system.velocity_map(e, eye) for e in E])
-    moved = jnp.stack([system.velocity_map(e, jnp.asarray(G)) for e in E])
+    # one compiled program for all evaluations (op-by-op evaluation compiles every operation)
+    basis, moved = jax.jit(lambda E, Q: jax.vmap(lambda q: jax.vmap(lambda e: system.velocity_map(e, q))(E))(Q))(
+        E, np.stack([np.eye(n), G]))
     if not (_concrete(basis) and _concrete(moved)):
         return None, "the velocity map depends on traced values, so it cannot be inspected"
     basis, moved = np.asarray(basis), np.asarray(moved)
