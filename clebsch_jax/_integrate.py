@@ -154,7 +154,24 @@ def _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_i
         raise ValueError(
             f"derivative_map: must return an array of Q's shape {Q0.shape}, returned {der.shape}."
         )
+    _check_configuration(system, Q0)
     return Q0, xi0, P0, dt, scheme
+
+
+def _check_configuration(system, Q0):
+    """The system's own check that Q0 lies on its configuration manifold (`ClebschSystem.check_Q`,
+    e.g. a rotation for SO(3) models): on concrete values only; skipped when Q0 or the check's
+    array leaves are traced (jit/vmap), where values are unknown before compiling."""
+    check = system.check_Q
+    if check is None or _is_traced(Q0) or any(_is_traced(x) for x in jax.tree_util.tree_leaves(check)):
+        return
+    problem = check(np.asarray(Q0))
+    if problem is None:
+        return
+    if not isinstance(problem, str):
+        raise TypeError(f"check_Q: must return None or a string saying what is wrong, returned "
+                        f"{type(problem).__name__}.")
+    raise ValueError(f"Q0: {problem}")
 
 
 def _base_facts(system: ClebschSystem, scheme: str):
@@ -280,7 +297,10 @@ def integrate(
             f"{Q0.shape} and xi0 of shape {xi0.shape}."
         )
     plan = step_plan(system, scheme, order, composition)
-    t0 = jnp.asarray(t0, dtype=dt.dtype)
+    t0 = _as_float_array(t0, "t0")
+    if t0.shape != ():
+        raise ValueError(f"t0: expected a scalar, got an array of shape {t0.shape}.")
+    t0 = t0.astype(dt.dtype)
     P0_given = P0 is not None
     common = dict(n_steps=n_steps, scheme=scheme, plan=plan, rtol=float(rtol), atol=float(atol),
                   max_newton_iterations=int(max_newton_iterations), P0_given=P0_given)

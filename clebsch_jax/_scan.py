@@ -145,7 +145,8 @@ def nodal_velocities(system, Qs, mus, guesses, valid, *, rtol, atol, max_iterati
         Qs, mus, jnp.where(expand(valid, guesses), guesses, jnp.nan)
     )
     status = jnp.where(valid, st.status, Status.SKIPPED).astype(jnp.int32)
-    return jnp.where(expand(valid, xin), xin, jnp.nan), st._replace(status=status)
+    ok = valid & (st.status == Status.SUCCESS)  # a failed nodal solve leaves no plausible-looking ξ
+    return jnp.where(expand(ok, xin), xin, jnp.nan), st._replace(status=status)
 
 
 def step_guesses(xi0, xi_steps):

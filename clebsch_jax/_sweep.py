@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import diagnostics as _diagnostics
-from ._integrate import _is_array, integrate
+from ._integrate import _check_configuration, _is_array, integrate
 from ._march_full import cotangent_from_momentum, initial_multiplier
 from ._newton import Status
 from ._solution import IntegrationError
@@ -582,6 +582,14 @@ def sweep(
                 f"Q0[j] of shape {q_row.shape}, xi0[j] of shape {x_row.shape}"
         kind = ValueError if isinstance(err, ValueError) else TypeError
         raise kind(f"sweep: one member ({where}) is rejected: {err}") from err
+    # the system's own check of its configurations (e.g. rotations for SO(3) models) on every
+    # concrete Q0[j]: the probe above traces Q0, which skips it
+    system0 = _system_of(cfg, p_row, shared)
+    for j in range(n_ic):
+        try:
+            _check_configuration(system0, Q0[j])
+        except ValueError as err:
+            raise ValueError(f"Q0[{j}]: {str(err).removeprefix('Q0: ')}") from None
     for name, v in inv_shape.items():
         if v.ndim < 1 or v.shape[0] != 2:
             raise ValueError(f"invariants: {name!r} must return one value per node (leading axis n+1 = 2 "

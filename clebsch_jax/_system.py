@@ -65,6 +65,14 @@ class ClebschSystem:
       by $(Q^n, p^n)$ (Lemma 7), so `Solution.xi` is None (the step velocities `xi_step` are
       the velocities), and only the one-step midpoint principle (`scheme="midpoint"`) is
       accepted: the left/right principles give inconsistent two-step schemes here.
+    - `check_Q` (default None): a check that a configuration lies on $M$, when $M$ is a
+      submanifold of the array space (e.g. $SO(3)$ in the 3×3 matrices): `check_Q(Q)` gets a
+      NumPy array of `Q0`'s shape and returns None if it is acceptable, else a sentence saying
+      what is wrong (`clebsch_jax.integrate` raises `ValueError("Q0: " + sentence)`). It runs
+      on concrete `Q0` only, before compiling: it is skipped when `Q0` is traced (under
+      `jax.jit`/`jax.vmap` over `Q0`) or when `check_Q` holds traced array leaves. The models
+      `rigid_body` and `heavy_top` set it to a rotation check ($Q^TQ = I$ to $\sqrt\varepsilon$,
+      $\det Q = +1$).
 
     `xi` and `Q` are arrays of any shape. The system is a pytree: array leaves inside the
     three callables (for instance model parameters held by a `jax.tree_util.Partial`) are
@@ -77,9 +85,10 @@ class ClebschSystem:
     derivative_map: Callable
     has_potential: bool
     degenerate: bool
+    check_Q: Callable | None
 
     def __init__(self, *, lagrangian: Callable, velocity_map: Callable, derivative_map: Callable,
-                 degenerate: bool = False):
+                 degenerate: bool = False, check_Q: Callable | None = None):
         for name, fn in (
             ("lagrangian", lagrangian),
             ("velocity_map", velocity_map),
@@ -100,6 +109,9 @@ class ClebschSystem:
         if not isinstance(degenerate, bool):
             raise TypeError(f"degenerate: expected True or False, got {degenerate!r}.")
         self.degenerate = degenerate
+        if check_Q is not None and not callable(check_Q):
+            raise TypeError(f"check_Q: expected None or a callable Q -> None | str, got {type(check_Q).__name__}.")
+        self.check_Q = check_Q
 
     def l(self, xi: jax.Array, Q: jax.Array) -> jax.Array:
         """The reduced Lagrangian l(ξ, Q), whichever form the user wrote."""
@@ -108,6 +120,7 @@ class ClebschSystem:
     def __repr__(self) -> str:
         form = "l(xi, Q)" if self.has_potential else "l(xi)"
         extra = ", degenerate=True" if self.degenerate else ""
+        extra += f", check_Q={self.check_Q!r}" if self.check_Q is not None else ""
         return (
             f"ClebschSystem(lagrangian={form}, velocity_map={self.velocity_map!r}, "
             f"derivative_map={self.derivative_map!r}{extra})"
@@ -115,12 +128,15 @@ class ClebschSystem:
 
 
 def _flatten(sys: ClebschSystem):
-    return (sys.lagrangian, sys.velocity_map, sys.derivative_map), (sys.has_potential, sys.degenerate)
+    # check_Q is a child like the three maps: a plain function is a static leaf, array leaves
+    # of a `Partial` are traced; None is an empty subtree.
+    children = (sys.lagrangian, sys.velocity_map, sys.derivative_map, sys.check_Q)
+    return children, (sys.has_potential, sys.degenerate)
 
 
 def _unflatten(aux: tuple, children: Any) -> ClebschSystem:
     obj = object.__new__(ClebschSystem)
-    obj.lagrangian, obj.velocity_map, obj.derivative_map = children
+    obj.lagrangian, obj.velocity_map, obj.derivative_map, obj.check_Q = children
     obj.has_potential, obj.degenerate = aux
     return obj
 

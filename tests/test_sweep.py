@@ -210,6 +210,8 @@ def test_bad_input_is_rejected_before_compiling(monkeypatch):
         (dict(devices=0), "devices"),
         (dict(invariants={"scalar": lambda s, sol: jnp.sum(sol.momentum)}), "invariants: 'scalar'"),
         (dict(scheme="sideways"), "scheme"),
+        (dict(Q0=np.concatenate([eyes(3), np.diag([1.0, 1.0, -1.0])[None]])), r"Q0\[3\]: det Q = -1"),
+        (dict(params=-INERTIAS), "inertia"),  # the constructor's own check, on the concrete first row
     ]
     for change, message in cases:
         with pytest.raises((ValueError, TypeError), match=message):

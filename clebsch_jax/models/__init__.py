@@ -25,10 +25,14 @@ from ._point_vortices import vortex_angular_impulse as vortex_angular_impulse
 from ._point_vortices import vortex_hamiltonian as vortex_hamiltonian
 from ._point_vortices import vortex_linear_impulse as vortex_linear_impulse
 from ._point_vortices import vortex_velocity as vortex_velocity
+from ._rigid_body import ROTATION_TOLERANCE as ROTATION_TOLERANCE
+from ._rigid_body import check_rotation as check_rotation
 from ._rigid_body import rigid_body as rigid_body
 
 __all__ = [
     "rigid_body",
+    "check_rotation",
+    "ROTATION_TOLERANCE",
     "heavy_top",
     "point_vortices",
     "vortex_hamiltonian",

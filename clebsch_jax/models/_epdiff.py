@@ -162,11 +162,13 @@ def _translation(xi, Q):
 
 
 def _width(width) -> jax.Array:
+    """The kernel width α as a float scalar, checked finite and positive when concrete (skipped
+    when traced: under `jax.jit`/`jax.vmap` over it, in `cj.sweep`)."""
     w = jnp.asarray(width, dtype=jnp.result_type(float))
     if w.shape != ():
         raise ValueError(f"width: expected a scalar kernel width, got shape {w.shape} (vmap over a batch of widths).")
-    if not isinstance(w, jax.core.Tracer) and not bool(w > 0):
-        raise ValueError(f"width: must be positive, got {float(w)}.")
+    if not isinstance(w, jax.core.Tracer) and not (bool(w > 0) and bool(jnp.isfinite(w))):
+        raise ValueError(f"width: must be finite and positive, got {float(w)}.")
     return w
 
 
@@ -218,8 +220,9 @@ ordered_difference = OrderedDifference()
 def peakons(width=1.0, derivative_map: DerivativeMap = ordered_difference) -> ClebschSystem:
     r"""Camassa–Holm peakons as a Clebsch system (see the module docstring).
 
-    - `width`: the kernel width α of $K(x) = e^{-|x|/\alpha}$ (a scalar array leaf: `vmap`
-      over it to sweep);
+    - `width`: the kernel width α > 0 of $K(x) = e^{-|x|/\alpha}$ (a scalar array leaf: `vmap`
+      over it to sweep; a concrete width is checked, a `ValueError` naming `width`, while
+      under `jax.jit`/`jax.vmap` the check is skipped);
     - Q: positions, shape (N,); ξ = u(Q): the velocities at the peaks, shape (N,);
     - $l(\xi, Q) = \tfrac12\xi\cdot K(Q)^{-1}\xi$, $\mathcal L_\xi Q = \xi$;
     - `derivative_map`: a vector-space map; the default `ordered_difference` is the forward
@@ -237,7 +240,8 @@ def peakons(width=1.0, derivative_map: DerivativeMap = ordered_difference) -> Cl
 def landmarks(width=1.0, derivative_map: DerivativeMap = forward_difference) -> ClebschSystem:
     r"""Landmarks with the Gaussian kernel $K(x) = e^{-|x|^2/(2\alpha^2)}$ (see the module docstring).
 
-    - `width`: α (a scalar array leaf: `vmap` over it to sweep);
+    - `width`: α > 0 (a scalar array leaf: `vmap` over it to sweep; checked when concrete,
+      as for `peakons`);
     - Q: positions, shape (N, d); ξ = u(Q): velocities, shape (N, d);
     - $l(\xi, Q) = \tfrac12\sum_{i}\xi_{:,i}\cdot K(Q)^{-1}\xi_{:,i}$, $\mathcal L_\xi Q = \xi$.
 

@@ -3,13 +3,13 @@
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.tree_util import Partial
 
 from .._derivative_maps import DerivativeMap, cayley
 from .._system import ClebschSystem
-from ._rigid_body import _right_multiplication
+from ._rigid_body import _is_traced, _right_multiplication, check_rotation, principal_moments
 
 __all__ = ["heavy_top"]
 
@@ -28,30 +28,40 @@ def heavy_top(inertia, mass_gravity_length, center_of_mass=(0.0, 0.0, 1.0),
 
     **Arguments:**
 
-    - `inertia` (3,): principal moments about the fixed point (body frame).
+    - `inertia` (3,): principal moments about the fixed point (body frame), finite and positive.
     - `mass_gravity_length`: $mg\ell$, mass × gravity × distance from the fixed point to the
-      centre of mass.
+      centre of mass (a finite scalar; 0 is the free body, a negative value flips $\chi$).
     - `center_of_mass` (3,): direction $\chi$ of the centre of mass in the body frame
-      (normalised here; $\ell$ is in `mass_gravity_length`). Gravity points along $-e_3$.
+      (finite, nonzero; normalised here; $\ell$ is in `mass_gravity_length`). Gravity points
+      along $-e_3$.
     - `derivative_map`: `cayley` (default) or `exponential`.
 
     The reduced equations (Theorem 16) are $\dot\Pi = \Pi\times\Omega + mg\ell\,\Gamma\times\chi$,
     $\dot\Gamma = \Gamma\times\Omega$ with $\Gamma = Q^Te_3$ the advected vertical. Every array
     argument is a traced leaf: `vmap` over them to sweep.
+
+    Bad values raise `ValueError` naming the argument; value checks run when the arguments are
+    concrete (under `jax.jit`/`jax.vmap` over them they are skipped). In `integrate`, a concrete
+    `Q0` must be a rotation (`check_rotation`).
     """
     dtype = jnp.result_type(float)
-    inertia = jnp.asarray(inertia, dtype=dtype)
-    if inertia.shape != (3,):
-        raise ValueError(f"inertia: expected the three principal moments, shape (3,), got {inertia.shape}.")
+    inertia = principal_moments(inertia)
     chi = jnp.asarray(center_of_mass, dtype=dtype)
     if chi.shape != (3,):
         raise ValueError(f"center_of_mass: expected a 3-vector, got shape {chi.shape}.")
-    if not isinstance(chi, jax.core.Tracer) and float(jnp.linalg.norm(chi)) == 0.0:
-        raise ValueError("center_of_mass: must be a nonzero direction.")
+    if not _is_traced(chi):
+        values = np.asarray(chi)
+        if not np.all(np.isfinite(values)) or not np.any(values != 0):
+            raise ValueError(f"center_of_mass: must be a finite, nonzero direction, got {values.tolist()}.")
     chi = chi / jnp.linalg.norm(chi)
     mgl = jnp.asarray(mass_gravity_length, dtype=dtype)
+    if mgl.shape != ():
+        raise ValueError(f"mass_gravity_length: expected a scalar, got shape {mgl.shape} (vmap over a batch).")
+    if not _is_traced(mgl) and not np.isfinite(float(mgl)):
+        raise ValueError(f"mass_gravity_length: must be finite, got {float(mgl)}.")
     return ClebschSystem(
         lagrangian=Partial(_lagrangian, inertia, mgl, chi),
         velocity_map=_right_multiplication,
         derivative_map=derivative_map,
+        check_Q=check_rotation,
     )

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.tree_util import Partial
 
 from .._derivative_maps import DerivativeMap, forward_difference
@@ -57,17 +58,31 @@ def _translation(xi: jax.Array, Q: jax.Array) -> jax.Array:
     return xi
 
 
-def _circulations(circulations) -> jax.Array:
+def _circulations(circulations, *, nonzero: bool = False) -> jax.Array:
+    """`circulations` as a float array (N,), checked when concrete: finite, and with `nonzero`
+    no zero entry (a vortex of zero circulation drops out of l: its velocity is not determined
+    and the step's Newton matrix is singular). Negative circulations are meaningful (opposite
+    spin). The value checks are skipped when traced (under `jax.jit`/`jax.vmap`, in `cj.sweep`)."""
     gamma = jnp.asarray(circulations, dtype=jnp.result_type(float))
     if gamma.ndim != 1 or gamma.shape[0] < 1:
         raise ValueError(f"circulations: expected a 1-D array of N >= 1 circulations, got shape {gamma.shape}.")
+    if not isinstance(gamma, jax.core.Tracer):
+        values = np.asarray(gamma)
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"circulations: must be finite, got {values.tolist()}.")
+        if nonzero and np.any(values == 0):
+            raise ValueError(f"circulations: must be nonzero: vortex {int(np.argmax(values == 0))} has zero "
+                             "circulation, which leaves its motion undetermined by the Lagrangian (a passive "
+                             "tracer is not a point vortex); negative circulations are fine.")
     return gamma
 
 
 def point_vortices(circulations, derivative_map: DerivativeMap = forward_difference) -> ClebschSystem:
     r"""N planar point vortices as a degenerate Clebsch system (see the module docstring).
 
-    - `circulations`: shape (N,), nonzero (an array leaf: `vmap` over it to sweep);
+    - `circulations`: shape (N,), finite and nonzero, of either sign (an array leaf: `vmap`
+      over it to sweep; a concrete value is checked, a `ValueError` naming `circulations`,
+      while under `jax.jit`/`jax.vmap` the check is skipped);
     - Q: positions, shape (N, 2); ξ: velocities, shape (N, 2);
     - `derivative_map`: a vector-space map with a midpoint (default
       `clebsch_jax.forward_difference`).
@@ -78,7 +93,7 @@ def point_vortices(circulations, derivative_map: DerivativeMap = forward_differe
     H (`vortex_hamiltonian`) bounded. `Solution.xi` is None (the Legendre map is degenerate);
     `Solution.xi_step` are the velocities at the step midpoints.
     """
-    gamma = _circulations(circulations)
+    gamma = _circulations(circulations, nonzero=True)
     return ClebschSystem(
         lagrangian=Partial(_lagrangian, gamma),
         velocity_map=_translation,

@@ -4,13 +4,56 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.tree_util import Partial
 
 from .. import lie
 from .._derivative_maps import DerivativeMap, cayley
 from .._system import ClebschSystem
 
-__all__ = ["rigid_body"]
+__all__ = ["rigid_body", "check_rotation", "ROTATION_TOLERANCE"]
+
+
+ROTATION_TOLERANCE = float(np.sqrt(np.finfo(np.float64).eps))
+r"""How far from orthogonal a configuration of an $SO(n)$ model may be: $\max|Q^TQ - I| \le
+\sqrt\varepsilon \approx 1.5\cdot10^{-8}$. The marches keep $Q^TQ - I$ at its initial size to
+round-off, so a larger defect is not a rotation that lost a few digits but a mistake (float32
+data, degrees for radians, a transposed or scaled matrix)."""
+
+
+def check_rotation(Q) -> str | None:
+    r"""None if `Q` is a rotation matrix ($Q^TQ = I$ to `ROTATION_TOLERANCE` and $\det Q = +1$),
+    else a sentence saying what is wrong: the `check_Q` of the $SO(n)$ models
+    (`ClebschSystem(..., check_Q=...)`). `Q` is a concrete array (NumPy)."""
+    Q = np.asarray(Q, dtype=np.float64)
+    if Q.ndim != 2 or Q.shape[0] != Q.shape[1]:
+        return f"expected a square rotation matrix, got shape {Q.shape}."
+    defect = float(np.max(np.abs(Q.T @ Q - np.eye(Q.shape[0]))))
+    if not defect <= ROTATION_TOLERANCE:
+        return (f"not a rotation matrix: max|Q^T Q - I| = {defect:.2e} > {ROTATION_TOLERANCE:.1e}. "
+                "Pass an orthogonal matrix (e.g. orthogonalise it with a QR or polar decomposition).")
+    det = float(np.linalg.det(Q))
+    if det < 0:
+        return (f"det Q = {det:.6g}: an orthogonal matrix that is a reflection, not a rotation "
+                "(SO(n) needs det Q = +1; flip the sign of one column).")
+    return None
+
+
+def _is_traced(x) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def principal_moments(inertia, name: str = "inertia") -> jax.Array:
+    """`inertia` as a float array of shape (3,), checked: finite and positive when concrete
+    (skipped when traced, e.g. under `jax.vmap`/`jax.jit` or in `cj.sweep`)."""
+    inertia = jnp.asarray(inertia, dtype=jnp.result_type(float))
+    if inertia.shape != (3,):
+        raise ValueError(f"{name}: expected the three principal moments, shape (3,), got {inertia.shape}.")
+    if not _is_traced(inertia):
+        values = np.asarray(inertia)
+        if not np.all(np.isfinite(values)) or not np.all(values > 0):
+            raise ValueError(f"{name}: the principal moments must be finite and positive, got {values.tolist()}.")
+    return inertia
 
 
 def _kinetic_energy(inertia: jax.Array, xi: jax.Array) -> jax.Array:
@@ -26,20 +69,21 @@ def rigid_body(inertia, derivative_map: DerivativeMap = cayley) -> ClebschSystem
 
     - $\xi = \Omega \in \mathbb R^3$, the body angular velocity;
     - $l(\Omega) = \tfrac12 \Omega \cdot \mathbb I \Omega$ with principal moments `inertia`
-      (shape (3,), an array leaf: `vmap` over it to sweep);
+      (shape (3,), finite and positive; an array leaf: `vmap` over it to sweep);
     - $Q \in SO(3)$ a 3×3 rotation, velocity map $\mathcal L_\Omega Q = Q\hat\Omega$;
     - derivative map: `clebsch_jax.cayley` (Example 30, the CAY integrator) by default, or
       `clebsch_jax.exponential`.
 
     Its momentum map $-P \diamond Q$ (`clebsch_jax.momentum_map`, by autodiff) is the body
     angular momentum, equal to $\mathbb I\Omega$ on solutions (Lemma 7).
+
+    Bad values raise `ValueError` naming the argument: `inertia` not finite and positive
+    (checked here when concrete; under `jax.jit`/`jax.vmap` over it the check is skipped), and,
+    in `integrate`, a `Q0` that is not a rotation (`check_rotation`, on a concrete `Q0`).
     """
-    inertia = jnp.asarray(inertia, dtype=jnp.result_type(float))
-    if inertia.shape != (3,):
-        raise ValueError(f"inertia: expected the three principal moments, shape (3,), got {inertia.shape}.")
     return ClebschSystem(
-        lagrangian=Partial(_kinetic_energy, inertia),
+        lagrangian=Partial(_kinetic_energy, principal_moments(inertia)),
         velocity_map=_right_multiplication,
         derivative_map=derivative_map,
+        check_Q=check_rotation,
     )
-
