@@ -57,3 +57,12 @@ from ._sweep import SweepProgress as SweepProgress, SweepResult as SweepResult, 
 from ._system import ClebschSystem as ClebschSystem, diamond as diamond, momentum_map as momentum_map  # noqa: E402
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # `clebsch_jax.control` imports optax (~1 s): loaded on first use, not with the package
+    if name == "control":
+        import importlib
+
+        return importlib.import_module(".control", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -74,6 +74,8 @@ def _as_float_array(x, name: str) -> jax.Array:
         raise TypeError(f"{name}: expected a real floating-point array, got dtype {arr.dtype}.")
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         arr = arr.astype(jnp.result_type(float))
+    if getattr(arr, "weak_type", False):  # a Python float: one compiled program with np.float64 input
+        arr = jnp.asarray(arr, dtype=arr.dtype)
     if not _is_traced(x) and not _is_traced(arr) and not np.all(np.isfinite(np.asarray(arr))):
         raise ValueError(f"{name}: contains non-finite values (NaN or inf).")
     return arr

@@ -194,15 +194,33 @@ def check_work_precision(summary: dict) -> None:
     assert all(comparison[k]["met"] in (True, False, None) for k in ("energy", "global"))
 
 
+def check_soak(summary: dict) -> None:
+    cases = {r["case"]: r for r in summary["results"]}
+    assert set(cases) == {"rigid_body", "rigid_body_order4", "vortices_4"}
+    for name, r in cases.items():
+        assert r["status"] == 0 and r["n_steps"] == summary["config"]["n_steps"]
+        assert _positive_finite(r["wall_s"]) and _positive_finite(r["seconds_per_step"])
+        assert r["form"] == ("full" if name == "vortices_4" else "reduced")
+        for k, q in r["quantities"].items():
+            assert math.isfinite(q["max_error"]) and q["max_error"] >= 0, (name, k)
+            if q["kind"] == "momentum" and k != "orthogonality":
+                # loose: 10^4 steps of round-off, a few units of sqrt(n) eps expected
+                assert q["max_ratio_to_sqrt_n_eps_scale"] < 100, (name, k)
+        assert abs(r["memory"]["max_growth_after_first_chunk_mb"]) < 50
+        assert r["running_max"]["step"][-1] == r["n_steps"] and r["chunks"]["step"]
+
+
 CHECKS = {
     "rigid_body_step_cost": check_rigid_body_step_cost,
     "vortex_step_cost": check_vortex_step_cost,
     "throughput": check_throughput,
     "work_precision": check_work_precision,
+    "soak": check_soak,
 }
+SLOW = {"soak"}  # the 10^4-step quick soak compiles three marches: run with the slow checks
 
 
-@pytest.mark.parametrize("name", list(CHECKS))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in CHECKS])
 def test_benchmark_quick(name, tmp_path):
     subprocess.run([sys.executable, str(BENCHMARKS / f"{name}.py"), "--quick", "--out", str(tmp_path), "--timeout", "0"],
                    check=True, capture_output=True, text=True)
