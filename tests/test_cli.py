@@ -1,15 +1,32 @@
-"""The `clebsch-jax` command line and the Figure 1 demo (`clebsch-jax demo --quick`).
+"""The `clebsch-jax` command line: `demo` (Figure 1 and every scene), `run SCENE`, `bench`.
 
-Fast: one quick demo run in-process (~10 s, mostly compilation) and one subprocess.
+Compilation dominates: every scene program is compiled once, by the `demo --quick` fixture
+(each scene with its `quick_steps` and `quick_batch`, XLA optimisation off), and the `run`
+tests reuse it — same scene, steps per call, batch and compiler options; `dt` is traced, so
+the failing run (huge dt) and the chunked run (`--chunk` = the quick steps) compile nothing
+new. Numbers in the JSON are checked against the `Solution` of that program (`_scenes.solve`)
+with `clebsch_jax.diagnostics`, and against exact solutions where there are some.
 """
 
+import contextlib
+import io
 import json
 import subprocess
 import sys
+import textwrap
 
+import jax
+import numpy as np
 import pytest
 
+import clebsch_jax as cj
+from clebsch_jax import _cli, _scenes
 from clebsch_jax._cli import main
+from clebsch_jax._scenes import SCENES
+
+from .test_epdiff import two_peakons_exact  # an independent closed form, checked against DOP853 there
+
+PNG = b"\x89PNG\r\n\x1a\n"
 
 
 def _one_line_error(err: str) -> str:
@@ -19,13 +36,41 @@ def _one_line_error(err: str) -> str:
     return lines[0]
 
 
+def _main_captured(argv):
+    """`main(argv)` with stdout and stderr captured (for module-scoped fixtures)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    return code, out.getvalue(), err.getvalue()
+
+
+def _png_ok(path) -> bool:
+    data = path.read_bytes()
+    return data.startswith(PNG) and len(data) > 10_000
+
+
+# --------------------------------------------------------------------------------------------
+# Help and bad command lines (cheap: nothing is compiled).
+
+
 def test_help_at_every_level(capsys):
     assert main(["--help"]) == 0
     out = capsys.readouterr().out
-    assert "demo" in out
+    for command in ("demo", "run", "bench"):
+        assert command in out
     assert main(["demo", "--help"]) == 0
     out = capsys.readouterr().out
-    for option in ("--out", "--steps", "--quick"):
+    for option in ("--out", "--steps", "--quick", "--only"):
+        assert option in out
+    assert main(["run", "--help"]) == 0
+    out = capsys.readouterr().out
+    for option in ("--dt", "--steps", "--order", "--batch", "--seed", "--out", "--chunk", "--progress", "--quiet"):
+        assert option in out
+    for name, scene in SCENES.items():
+        assert name in out and scene.description in out
+    assert main(["bench", "--help"]) == 0
+    out = capsys.readouterr().out
+    for option in ("--quick", "--list", "--out", "NAME"):
         assert option in out
     assert main(["--version"]) == 0
 
@@ -38,8 +83,26 @@ def test_help_at_every_level(capsys):
         ["demo", "--steps=2.5"],
         ["demo", "--steps", "lots"],
         ["demo", "--bogus"],
+        ["demo", "--only", "teapot"],
         ["frobnicate"],
         [],
+        ["run"],
+        ["run", "teapot"],
+        ["run", "peakons", "--dt", "0"],
+        ["run", "peakons", "--dt", "-0.1"],
+        ["run", "peakons", "--dt", "fast"],
+        ["run", "peakons", "--dt", "nan"],
+        ["run", "peakons", "--dt", "inf"],
+        ["run", "peakons", "--order", "3"],
+        ["run", "peakons", "--order", "4.0"],
+        ["run", "peakons", "--batch", "0"],
+        ["run", "peakons", "--batch", "two"],
+        ["run", "peakons", "--batch", str(_cli.MAX_BATCH + 1)],
+        ["run", "peakons", "--steps", "0"],
+        ["run", "peakons", "--seed", "-1"],
+        ["run", "peakons", "--chunk", "0"],
+        ["run", "peakons", "--bogus"],
+        ["bench", "--bogus"],
     ],
 )
 def test_bad_command_lines_exit_2_with_one_line(argv, capsys):
@@ -50,16 +113,26 @@ def test_bad_command_lines_exit_2_with_one_line(argv, capsys):
     assert captured.out == ""
 
 
-def test_out_must_not_be_a_file(tmp_path, capsys):
+def test_unknown_scene_lists_the_known_ones(capsys):
+    assert main(["run", "double-pendulum"]) == 2
+    line = _one_line_error(capsys.readouterr().err)
+    assert "double-pendulum" in line
+    assert all(name in line for name in SCENES)
+    assert main(["run", "rigid_body", "--help"]) == 0  # underscores are accepted for dashes
+
+
+@pytest.mark.parametrize("command", [["demo", "--quick"], ["run", "peakons"]])
+def test_out_must_not_be_a_file(command, tmp_path, capsys):
     target = tmp_path / "taken"
     target.write_text("not a folder")
-    assert main(["demo", "--quick", "--out", str(target)]) == 2
+    assert main(command + ["--out", str(target)]) == 2
     assert "not a folder" in _one_line_error(capsys.readouterr().err)
 
 
-def test_missing_matplotlib_is_one_line(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("command", [["demo", "--quick"], ["run", "peakons"]])
+def test_missing_matplotlib_is_one_line(command, tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # makes `import matplotlib` fail
-    assert main(["demo", "--quick", "--out", str(tmp_path / "demo")]) == 1
+    assert main(command + ["--out", str(tmp_path / "out")]) == 1
     assert 'pip install "clebsch-jax[plot]"' in _one_line_error(capsys.readouterr().err)
 
 
@@ -73,17 +146,112 @@ def test_python_dash_m_bad_steps():
     assert proc.stdout == ""
 
 
-def test_quick_demo(tmp_path, capsys):
-    out = tmp_path / "demo"
-    assert main(["demo", "--quick", "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
+def test_help_does_not_import_matplotlib():
+    script = textwrap.dedent("""
+        import sys
+        from clebsch_jax._cli import main
+        codes = [main(argv) for argv in (["--help"], ["demo", "--help"], ["run", "--help"], ["bench", "--help"])]
+        print(codes, "matplotlib" in sys.modules)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "[0, 0, 0, 0] False"
+
+
+def test_progress_bar_one_line_on_a_terminal_and_tenths_in_a_log():
+    stream = io.StringIO()
+    bar = _cli._ProgressBar("scene", stream=stream, tty=False)
+    for done in range(0, 1001, 10):  # 0: before the first (compiling) call
+        bar(done, 1000, done / 100)
+    bar.close()
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 11 and "\r" not in stream.getvalue()
+    assert lines[0].endswith("compiling...")
+    assert lines[-1].startswith("scene [" + "#" * 28 + "] 100% 1,000/1,000 steps")
+    assert "s left" in lines[len(lines) // 2]  # an estimate once the first (compiling) call is past
+    stream = io.StringIO()
+    bar = _cli._ProgressBar("scene", stream=stream, tty=True)
+    bar(500, 1000, 1.0)
+    bar(1000, 1000, 2.0)
+    bar.close()
+    text = stream.getvalue()
+    assert text.count("\n") == 1 and text.endswith("\n") and text.count("\r") == 2
+
+
+# --------------------------------------------------------------------------------------------
+# bench: the scripts are found next to the package; a fake folder stands in for running them
+# (the real scripts' quick runs are tests/test_benchmarks_smoke.py).
+
+
+def test_bench_list_names_every_script(capsys):
+    assert main(["bench", "--list"]) == 0
+    out = capsys.readouterr().out
+    folder = _cli._benchmarks_dir()
+    expected = sorted(p.stem for p in folder.glob("*.py") if not p.name.startswith("_"))
+    assert {"rigid_body_step_cost", "vortex_step_cost", "throughput", "work_precision"} <= set(expected)
+    lines = {line.split()[0]: line for line in out.strip().splitlines()}
+    assert list(lines) == expected
+    for name in ("rigid_body_step_cost", "vortex_step_cost", "throughput", "work_precision"):
+        assert len(lines[name].split()) > 3, name  # with the first line of its docstring
+
+
+def test_bench_unknown_name_exit_2_lists_names(capsys):
+    assert main(["bench", "rigid_body_step_cost", "warp_drive"]) == 2
+    captured = capsys.readouterr()
+    line = _one_line_error(captured.err)
+    assert "warp_drive" in line and "rigid_body_step_cost" in line and "work_precision" in line
+    assert captured.out == ""
+
+
+def test_bench_without_the_folder_is_one_line_exit_1(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(_cli, "_benchmarks_dir", lambda: tmp_path / "benchmarks")
+    assert main(["bench", "--list"]) == 1
+    assert "clone" in _one_line_error(capsys.readouterr().err)
+
+
+def test_bench_runs_scripts_with_this_python_passing_quick_and_out(tmp_path, capsys, monkeypatch):
+    folder = tmp_path / "benchmarks"
+    folder.mkdir()
+    record = tmp_path / "calls.txt"
+    for name, code in (("alpha", 0), ("beta", 3)):
+        (folder / f"{name}.py").write_text(
+            f'"""{name} benchmark."""\nimport json, os, sys\nopen({str(record)!r}, "a").write(\n'
+            f'    json.dumps([sys.executable, os.path.basename(__file__)] + sys.argv[1:]) + "\\n")\n'
+            f"sys.exit({code})\n")
+    (folder / "_helper.py").write_text("raise SystemExit('not a benchmark')\n")
+    monkeypatch.setattr(_cli, "_benchmarks_dir", lambda: folder)
+    out_dir = tmp_path / "results"
+    assert main(["bench", "alpha", "--quick", "--out", str(out_dir)]) == 0
+    called = json.loads(record.read_text().splitlines()[-1])
+    assert called == [sys.executable, "alpha.py", "--quick", "--out", str(out_dir)]
+    capsys.readouterr()
+    assert main(["bench", "--out", str(out_dir)]) == 1  # all (not _helper), beta fails
+    calls = [json.loads(line)[1] for line in record.read_text().splitlines()[1:]]
+    assert calls == ["alpha.py", "beta.py"]
+    captured = capsys.readouterr()
+    assert "beta" in _one_line_error(captured.err) and "FAILED (exit code 3)" in captured.out
+
+
+# --------------------------------------------------------------------------------------------
+# demo --quick: the Figure 1 scene, then every scene (compiles every program the run tests use).
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    code, printed, err = _main_captured(["demo", "--quick", "--out", str(out)])
+    return code, printed, err, out
+
+
+def test_quick_demo(demo):
+    code, printed, err, out = demo
+    assert code == 0, err
     for row in ("energy error", "Casimir", "spatial momentum drift", "orthogonality error",
                 "Newton iterations/step", "steps/s", "compile + first call", str(out)):
         assert row in printed
 
     for name in ("figure1_orbits.png", "figure1_invariants.png"):
-        data = (out / name).read_bytes()
-        assert data.startswith(b"\x89PNG\r\n\x1a\n") and len(data) > 10_000
+        assert _png_ok(out / name)
     summary = json.loads((out / "summary.json").read_text())
 
     errors = summary["errors"]
@@ -99,3 +267,187 @@ def test_quick_demo(tmp_path, capsys):
     assert measured
     for orbit in measured:
         assert orbit["period_measured"] == pytest.approx(orbit["period_exact"], rel=0.03)
+
+
+def test_quick_demo_runs_every_scene_into_a_subfolder(demo):
+    code, printed, err, out = demo
+    assert code == 0, err
+    table = printed[printed.index("Built-in scenes"):].splitlines()
+    assert table[1].split()[:2] == ["scene", "method"]
+    rows = {line.split()[0]: line for line in table[2:]}
+    assert list(rows) == ["figure-1", *SCENES]
+    for name, scene in SCENES.items():
+        summary = json.loads((out / name / "summary.json").read_text())
+        assert summary["scene"]["name"] == name and summary["failures"]["count"] == 0
+        assert summary["run"]["n_steps"] == scene.quick_steps and summary["scene"]["members"] == scene.quick_batch
+        assert _png_ok(out / name / f"{name}.png")
+        assert f"{summary['errors']['energy_rel_max']:.2e}" in rows[name]
+
+
+def test_demo_only_one_scene(demo, tmp_path, capsys):
+    out = tmp_path / "only"
+    assert main(["demo", "--only", "peakons", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "Figure 1" not in printed and not (out / "summary.json").exists()
+    rows = printed[printed.index("Built-in scenes"):].splitlines()[2:]
+    assert [r.split()[0] for r in rows] == ["peakons"]
+    assert sorted(p.name for p in out.iterdir()) == ["peakons"]
+    assert _png_ok(out / "peakons" / "peakons.png")
+    summary = json.loads((out / "peakons" / "summary.json").read_text())
+    assert summary["run"]["n_steps"] == SCENES["peakons"].quick_steps  # the demo's short run
+
+
+# --------------------------------------------------------------------------------------------
+# run SCENE: the JSON against the Solution, the mathematics of each scene.
+
+
+def _solution(name, *, dt=None):
+    scene = SCENES[name]
+    setup = scene.setup(scene.quick_batch, np.random.default_rng(0))
+    out = _scenes.solve(scene, setup, dt=scene.dt if dt is None else dt, n_steps=scene.quick_steps)
+    return scene, setup, out["sol"]
+
+
+def _energy(scene, sol):
+    """`cj.diagnostics.energy` at every node of every member (jitted: one small compile instead
+    of an op-by-op run of its autodiff)."""
+    system = scene.system()
+    return np.asarray(jax.jit(lambda s: cj.diagnostics.energy(system, s))(sol))
+
+
+def _independent_invariants(name, setup, sol):
+    """Each scene's conserved quantities from the Solution, written here from their formulas:
+    {name: (values (B, N+1, k), scale (B,))}."""
+    mu, Q = np.asarray(sol.momentum), None if sol.Q is None else np.asarray(sol.Q)
+    if name == "rigid-body":
+        c = np.sum(mu**2, -1)[..., None]
+        return {"casimir": (c, c[:, 0, 0])}
+    if name == "heavy-top":
+        gamma = Q[..., 2, :]  # Γ = Qᵀe₃
+        return {"gamma_norm": (np.abs(np.linalg.norm(gamma, axis=-1) - 1)[..., None], None)}
+    if name == "vortices":
+        G = np.asarray(_scenes.VORTEX_CIRCULATIONS)
+        lin = np.einsum("a,bnai->bni", G, Q)
+        ang = np.einsum("a,bna->bn", G, np.sum(Q**2, -1))[..., None]
+        return {"linear_impulse": (lin, np.sum(np.abs(G) * np.linalg.norm(Q[:, 0], axis=-1), -1)),
+                "angular_impulse": (ang, np.sum(np.abs(G) * np.sum(Q[:, 0] ** 2, -1), -1))}
+    if name == "peakons":
+        return {"total_momentum": (mu.sum(-1)[..., None], np.abs(mu[:, 0]).sum(-1))}
+    if name == "landmarks":
+        ang = np.sum(Q[..., 0] * mu[..., 1] - Q[..., 1] * mu[..., 0], -1)[..., None]
+        return {"linear_momentum": (mu.sum(-2), np.linalg.norm(mu[:, 0], axis=-1).sum(-1)),
+                "angular_momentum": (ang, np.sum(np.linalg.norm(Q[:, 0], axis=-1)
+                                                 * np.linalg.norm(mu[:, 0], axis=-1), -1))}
+    raise AssertionError(name)
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_run_scene_writes_files_and_its_json_matches_the_solution(name, demo, tmp_path, capsys):
+    scene = SCENES[name]
+    out = tmp_path / name
+    assert main(["run", name, "--steps", str(scene.quick_steps), "--batch", str(scene.quick_batch),
+                 "--out", str(out), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == ""  # --quiet: no bar, no status line
+    for row in ("method", "steps", "wall time", "energy error (max rel.)", "Newton iterations/step", "failures",
+                *(inv.label for inv in scene.invariants)):
+        assert row in captured.out, row
+    assert _png_ok(out / f"{name}.png")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["files"] == [f"{name}.png", "summary.json"]
+
+    _, setup, sol = _solution(name)
+    B, n = scene.quick_batch, scene.quick_steps
+    run = summary["run"]
+    assert run["method"] == sol.method and run["form"] == sol.form and run["order"] == sol.order == 2
+    assert run["n_steps"] == n and run["dt"] == scene.dt and run["chunks"] == 1
+    assert summary["scene"]["members"] == B and summary["failures"]["count"] == 0
+    assert summary["per_member"]["status"] == [0] * B and np.all(np.asarray(sol.result) == 0)
+
+    # The energy error is what cj.diagnostics.energy gives on the Solution (inside and outside
+    # jit the energies may differ in the last bit: ~1e-16 of E, ~1e-12 of an error of 1e-4).
+    E = _energy(scene, sol)
+    assert E.shape == (B, n + 1)
+    rel = np.max(np.abs(E - E[:, :1]) / np.abs(E[:, :1]), axis=1)
+    np.testing.assert_allclose(summary["invariants"]["energy"]["per_member"], rel, rtol=1e-9)
+    assert summary["errors"]["energy_rel_max"] == pytest.approx(rel.max(), rel=1e-9)
+    # bounded at O(dt^2) at the scenes' steps (measured 5e-7 to 1.1e-4), never at round-off
+    assert 1e-9 < summary["errors"]["energy_rel_max"] < 1e-3
+
+    iters = np.asarray(sol.stats.iterations)
+    assert summary["newton_iterations"]["mean"] == pytest.approx(iters.mean(), rel=1e-12)
+    assert summary["newton_iterations"]["max"] == iters.max()
+
+    # Discrete Noether / Casimirs: conserved to round-off (measured <= 2.4e-14 over 600 steps).
+    for inv in scene.invariants:
+        assert summary["errors"][f"{inv.name}_max"] < 1e-13, inv.name
+    for key, (values, scale) in _independent_invariants(name, setup, sol).items():
+        err = np.max(np.abs(values - values[:, :1]), axis=(1, 2))
+        err = err if scale is None else err / scale
+        assert np.max(err) < 1e-13, key
+
+    if name == "peakons":  # every member is an exact two-peakon solution
+        m = summary["scene"]["initial"]
+        ts = np.asarray(sol.ts)[0]
+        err = []
+        for b in range(B):
+            q_ex, p_ex = two_peakons_exact(ts, m["c1"][b], m["c2"][b], m["t0"][b], m["X0"][b])
+            err.append(np.max(np.abs(np.asarray(sol.Q[b]) - q_ex)))
+            np.testing.assert_allclose(np.asarray(sol.momentum[b, 0]), p_ex[0], rtol=1e-13)  # P0 given
+        np.testing.assert_allclose(summary["reference"]["per_member"], err, rtol=1e-9)
+        assert summary["errors"]["reference_max"] < 1e-4  # second order at dt = 0.02 over t = 6
+
+    # The run repeats the demo's run of this scene (same data, same compiled program).
+    _, _, _, demo_out = demo
+    demo_summary = json.loads((demo_out / name / "summary.json").read_text())
+    assert demo_summary["errors"] == summary["errors"]
+
+
+def test_failing_member_is_reported_with_its_step_and_exit_1(demo, tmp_path, capsys):
+    """dt = 50 on the rigid body: Newton's method fails for some member; the others run on."""
+    scene = SCENES["rigid-body"]
+    out = tmp_path / "fail"
+    code = main(["run", "rigid-body", "--dt", "50", "--steps", str(scene.quick_steps),
+                 "--batch", str(scene.quick_batch), "--out", str(out), "--quiet"])
+    captured = capsys.readouterr()
+    _, _, sol = _solution("rigid-body", dt=50.0)
+    result, failed_step = np.asarray(sol.result), np.asarray(sol.failed_step)
+    failing = np.flatnonzero(result != 0)
+    assert 1 <= len(failing) < scene.quick_batch  # the test needs a failing and a surviving member
+    assert code == 1
+    line = _one_line_error(captured.err)
+    first = int(failing[0])
+    assert f"member {first} at step {failed_step[first]}" in line and "--dt" in line
+    assert f"{len(failing)} of {scene.quick_batch} members failed" in captured.out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["per_member"]["failed_step"] == [int(s) if r else -1 for r, s in zip(result, failed_step)]
+    assert [f["member"] for f in summary["failures"]["members"]] == failing.tolist()
+    assert _png_ok(out / "rigid-body.png")  # partial trajectories are still drawn
+    # the nodes before the failure still conserve the Casimir, the survivors all the way
+    assert summary["errors"]["casimir_max"] < 1e-13
+    assert all(x is not None for x in summary["invariants"]["casimir"]["per_member"])
+
+
+def test_chunked_run_continues_the_march_with_a_progress_bar(demo, tmp_path, capsys):
+    """Three calls of the demo's compiled 400-step program (the last one cut at 1000 steps),
+    each continued from the last node's (Q, p). A wrong hand-over would break the spatial
+    angular momentum, a function of (Q, p), at the chunk boundaries."""
+    scene = SCENES["rigid-body"]
+    out = tmp_path / "chunks"
+    assert main(["run", "rigid-body", "--steps", "1000", "--chunk", str(scene.quick_steps),
+                 "--batch", str(scene.quick_batch), "--out", str(out), "--progress"]) == 0
+    captured = capsys.readouterr()
+    bar = captured.err.strip().splitlines()
+    assert bar[-1].startswith("rigid-body [" + "#" * 28 + "] 100% 1,000/1,000 steps")
+    assert len(bar) == 4  # compiling, then one line per chunk (stderr is not a terminal here)
+    assert bar[0].endswith("0/1,000 steps, 0.0 s, compiling...")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["run"]["chunks"] == 3 and summary["run"]["steps_per_chunk"] == scene.quick_steps
+    assert summary["run"]["t_final"] == pytest.approx(1000 * scene.dt)
+    assert summary["errors"]["spatial_momentum_max"] < 1e-13
+    assert summary["errors"]["casimir_max"] < 1e-13
+    # The energy error stays bounded (no jump at a boundary): within 1.5x of the first 400 steps'.
+    _, _, sol = _solution("rigid-body")
+    E = _energy(scene, sol)
+    first = np.max(np.abs(E - E[:, :1]) / np.abs(E[:, :1]))
+    assert first <= summary["errors"]["energy_rel_max"] < 1.5 * first
