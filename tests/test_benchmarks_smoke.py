@@ -217,10 +217,10 @@ CHECKS = {
     "work_precision": check_work_precision,
     "soak": check_soak,
 }
-SLOW = {"soak"}  # the 10^4-step quick soak compiles three marches: run with the slow checks
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in CHECKS])
+@pytest.mark.slow  # ~140 s for the five scripts: run with -m slow, and in CI
+@pytest.mark.parametrize("name", list(CHECKS))
 def test_benchmark_quick(name, tmp_path):
     subprocess.run([sys.executable, str(BENCHMARKS / f"{name}.py"), "--quick", "--out", str(tmp_path), "--timeout", "0"],
                    check=True, capture_output=True, text=True)

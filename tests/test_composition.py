@@ -133,6 +133,7 @@ def test_conservation_survives_composition_rigid_body():
     assert dg.envelope_ratio(E - E[0]) < 1.5
 
 
+@pytest.mark.slow  # ~30 s; the rigid-body conservation test covers compositions by default
 def test_conservation_survives_composition_vortices_and_heavy_top(vortex_scene):
     """Order 4 on the vortices: linear and angular impulses to round-off, H bounded. Order 4
     of left/right on the heavy top (full march): the Noether momentum about the vertical to

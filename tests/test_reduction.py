@@ -147,6 +147,7 @@ def test_reduced_and_full_marches_agree_on_the_rigid_body():
 # compared with autodiff in test_closed_form_cayley_step_equals_the_autodiff_step; reduced and full
 # marches of left∘right sub-steps agree on the heavy top in test_composition), and each case costs
 # ~50 s of full-march compilation with the exact logarithm.
+@pytest.mark.slow  # ~50 s of compiling; the rigid body and heavy top check the same agreement by default
 @pytest.mark.parametrize("scheme", ["left"])
 def test_reduced_and_full_agree_on_a_user_written_group(scheme):
     """The SE(2) body written in test_user_system, with the exact-logarithm derivative map."""
@@ -158,6 +159,7 @@ def test_reduced_and_full_agree_on_a_user_written_group(scheme):
     assert float(jnp.max(jnp.abs(full.Q - red.Q))) < 1e-10
 
 
+@pytest.mark.slow  # ~45 s of compiling the exact-logarithm march
 def test_rodrigues_exponential_agrees_with_the_matrix_exponential():
     """SO(3)'s Rodrigues-based map gives the same reduced and full trajectories as `exponential`."""
     x0 = np.array([0.3, 1.0, 0.2])

@@ -33,7 +33,8 @@ def test_full_march_reproduces_cay_recursion():
     assert np.max(np.abs(ref - X)) <= 1e-10
 
 
-@pytest.mark.parametrize("dmap", [cj.cayley, cj.exponential], ids=["cayley", "exponential"])
+@pytest.mark.parametrize("dmap", [cj.cayley, pytest.param(cj.exponential, marks=pytest.mark.slow)],  # exp: ~20 s
+                         ids=["cayley", "exponential"])
 def test_order_two_against_tight_reference(dmap):
     """Issue 2, check 2: measured order from a log-log fit against SciPy DOP853 at rtol 1e-13.
 
