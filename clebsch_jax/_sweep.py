@@ -585,7 +585,7 @@ def sweep(
     # the system's own check of its configurations (e.g. rotations for SO(3) models) on every
     # concrete Q0[j]: the probe above traces Q0, which skips it
     system0 = _system_of(cfg, p_row, shared)
-    for j in range(n_ic):
+    for j in range(n_ic if system0.check_Q is not None else 0):
         try:
             _check_configuration(system0, Q0[j])
         except ValueError as err:

@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._integrate import _filter_jit, integrate
+from ._integrate import _as_float_array, _filter_jit, integrate
 from ._newton import Status
 from ._system import ClebschSystem
 
@@ -158,17 +158,12 @@ class FitResult:
 
 
 def _float_array(x, name: str) -> jax.Array:
-    if isinstance(x, (str, bytes)) or x is None:
-        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.")
-    try:
-        arr = jnp.asarray(x)
-    except TypeError as err:
-        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.") from err
-    if not (jnp.issubdtype(arr.dtype, jnp.floating) or jnp.issubdtype(arr.dtype, jnp.integer)):
-        raise TypeError(f"{name}: expected a real array, got dtype {arr.dtype}.")
-    arr = arr.astype(jnp.result_type(float))
-    if not isinstance(arr, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(arr))):
-        raise ValueError(f"{name}: contains non-finite values (NaN or inf).")
+    """`integrate`'s own conversion and checks (type, real dtype, finite when concrete), and
+    no booleans: a mask is not data to fit or shoot from."""
+    arr = _as_float_array(x, name)
+    dtype = x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype
+    if dtype == bool:
+        raise TypeError(f"{name}: expected a real array, got dtype {dtype}.")
     return arr
 
 
