@@ -129,12 +129,21 @@ def slots(plan, tree):
 
 
 def gate(alive, stats: NewtonStats, values):
-    """After a failed step a member's values become NaN and later steps are marked SKIPPED:
-    never plausible-looking numbers. Returns (ok, stats with statuses, gated values)."""
+    """After a failed step a member's values become NaN and later steps are marked SKIPPED,
+    with no Newton updates or Jacobians counted (the loop only ran over NaNs beside the live
+    members) and a NaN residual: never plausible-looking numbers. Returns (ok, stats with
+    statuses, gated values)."""
     ok = alive & (stats.status == Status.SUCCESS)
-    status = jnp.where(alive, stats.status, Status.SKIPPED).astype(jnp.int32)
     values = jax.tree_util.tree_map(lambda a: jnp.where(ok, a, jnp.nan), values)
-    return ok, stats._replace(status=status), values
+    return ok, _skip(stats, alive), values
+
+
+def _skip(stats: NewtonStats, attempted) -> NewtonStats:
+    """`stats` with the solves that were not `attempted` marked SKIPPED, counting nothing."""
+    return NewtonStats(iterations=jnp.where(attempted, stats.iterations, 0).astype(stats.iterations.dtype),
+                       residual_norm=jnp.where(attempted, stats.residual_norm, jnp.nan),
+                       status=jnp.where(attempted, stats.status, Status.SKIPPED).astype(jnp.int32),
+                       jacobians=jnp.where(attempted, stats.jacobians, 0).astype(stats.jacobians.dtype))
 
 
 def nodal_velocities(system, Qs, mus, guesses, valid, *, rtol, atol, max_iterations, solver=newton_solve):
@@ -144,9 +153,8 @@ def nodal_velocities(system, Qs, mus, guesses, valid, *, rtol, atol, max_iterati
     xin, st = jax.vmap(lambda q, mu, g: solve(lambda x: nodal_residual(system, q, mu, x), g))(
         Qs, mus, jnp.where(expand(valid, guesses), guesses, jnp.nan)
     )
-    status = jnp.where(valid, st.status, Status.SKIPPED).astype(jnp.int32)
     ok = valid & (st.status == Status.SUCCESS)  # a failed nodal solve leaves no plausible-looking ξ
-    return jnp.where(expand(ok, xin), xin, jnp.nan), st._replace(status=status)
+    return jnp.where(expand(ok, xin), xin, jnp.nan), _skip(st, valid)
 
 
 def step_guesses(xi0, xi_steps):
@@ -172,7 +180,7 @@ def assemble(*, system, dt, t0, Q0, xi0, stats, xi_steps, Qs, ps, Ps, mus, rtol,
     if system.degenerate:  # Lemma 7 does not determine nodal velocities: none are solved for
         zero = jnp.zeros(n_steps + 1, jnp.int32)
         xin = None
-        nodal = NewtonStats(iterations=zero, residual_norm=jnp.zeros(n_steps + 1, dt.dtype),
+        nodal = NewtonStats(iterations=zero, residual_norm=jnp.where(valid, 0.0, jnp.nan).astype(dt.dtype),
                             status=jnp.where(valid, Status.SUCCESS, Status.SKIPPED).astype(jnp.int32),
                             jacobians=zero)
     else:

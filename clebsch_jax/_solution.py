@@ -43,9 +43,11 @@ class Solution:
     `P` is None unless it was asked for (then it is the minimum-norm multiplier of each step,
     which differs from the full march's $P^n$ only in components the velocity map cannot see).
     - `stats`: `NewtonStats` of the step solves, each (N,): `iterations`,
-      `residual_norm` (max-norm of the final Lemma 20 residual), `status` (`Status` codes).
+      `residual_norm` (max-norm of the final Lemma 20 residual), `status` (`Status` codes),
+      `jacobians`. Steps after a failure are `Status.SKIPPED` with 0 iterations, 0 Jacobians
+      and a NaN residual.
     - `nodal_stats`: `NewtonStats` of the nodal-velocity solves, each (N+1,) (zero iterations
-      for a degenerate system, where none are made).
+      for a degenerate system, where none are made; skipped nodes as above).
     - `result`: overall `Status` code (0 = success). `failed_step`: index of the first failing
       step (or node, for a nodal failure), -1 if none.
     - `valid` (N+1,): False at nodes after a failure. Their values are NaN on purpose, never

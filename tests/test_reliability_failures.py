@@ -157,6 +157,12 @@ def test_an_injected_failure_is_reported_at_its_step_and_member(march, kind):
     np.testing.assert_array_equal(bad.stats.status[:k], Status.SUCCESS)
     assert bad.stats.status[k] == kind
     np.testing.assert_array_equal(bad.stats.status[k + 1:], Status.SKIPPED)
+    # skipped steps and nodes count no work and report no residual
+    for stats in (bad.stats, bad.nodal_stats):
+        skipped = np.asarray(stats.status) == Status.SKIPPED
+        assert np.all(np.asarray(stats.iterations)[skipped] == 0) and np.all(np.asarray(stats.jacobians)[skipped] == 0)
+        assert np.all(np.isnan(np.asarray(stats.residual_norm)[skipped]))
+    assert np.all(np.asarray(bad.stats.iterations)[:k] > 0)
 
     # valid exactly up to node k, the node the failed step leaves from
     np.testing.assert_array_equal(bad.valid, np.arange(N_STEPS + 1) <= k)
