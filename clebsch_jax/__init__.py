@@ -34,6 +34,7 @@ from ._closure import (  # noqa: E402
     check_closure as check_closure,
     euler_poincare_field as euler_poincare_field,
 )
+from ._compilation_cache import enable_compilation_cache as enable_compilation_cache  # noqa: E402
 from ._composition import (  # noqa: E402
     COMPOSITIONS as COMPOSITIONS,
     Composition as Composition,

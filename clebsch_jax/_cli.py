@@ -339,6 +339,27 @@ def _figure1_row(summary: dict) -> tuple:
 # run
 
 
+def _use_compilation_cache(args, prog: str) -> None:
+    """The persistent compilation cache (`enable_compilation_cache`), unless `--no-cache` or the
+    environment variable CLEBSCH_JAX_NO_CACHE is set; a cache that cannot be used is reported
+    on stderr and the run goes on without it."""
+    if args.no_cache or os.environ.get("CLEBSCH_JAX_NO_CACHE"):
+        return
+    from ._compilation_cache import enable_compilation_cache
+
+    try:
+        enable_compilation_cache()
+    except (OSError, ValueError) as exc:
+        print(f"{prog}: compiling without the cache: {exc}", file=sys.stderr)
+
+
+def _add_cache_flag(p) -> None:
+    p.add_argument("--no-cache", action="store_true",
+                   help="do not keep compiled programs on disk (by default they are kept in "
+                        "$CLEBSCH_JAX_CACHE_DIR or ~/.cache/clebsch-jax/xla, so a second run "
+                        "skips most of the compilation; CLEBSCH_JAX_NO_CACHE=1 does the same)")
+
+
 def _run_run(args) -> int:
     from ._scenes import SCENES, chunk_steps_for
 
@@ -348,6 +369,7 @@ def _run_run(args) -> int:
     code = _check_out_dir(out_dir, prog) or _require_matplotlib(prog) or _make_out_dir(out_dir, prog)
     if code:
         return code
+    _use_compilation_cache(args, prog)
     steps = scene.steps if args.steps is None else args.steps
     chunk = args.chunk or chunk_steps_for(args.batch, steps)
     show = not args.quiet and -(-steps // chunk) > 1 and (
@@ -419,6 +441,7 @@ def _add_run(subparsers) -> None:
                    help="draw the progress bar even when stderr is not a terminal")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar or status line (the summary table is still printed)")
+    _add_cache_flag(p)
     p.set_defaults(handler=_run_run)
 
 
@@ -494,6 +517,7 @@ def _run_demo(args) -> int:
     code = _check_out_dir(out_dir, prog)
     if code:
         return code
+    _use_compilation_cache(args, prog)
     only = args.only
     rows = []
     if only in (None, FIGURE1):
@@ -561,6 +585,7 @@ def _add_demo(subparsers) -> None:
                         "plus compilation)")
     p.add_argument("--only", metavar="NAME", default=None, type=_demo_name,
                    help=f"run only one scene: {FIGURE1} (the Figure 1 scene) or one of {', '.join(SCENES)}")
+    _add_cache_flag(p)
     p.set_defaults(handler=_run_demo)
 
 
