@@ -366,3 +366,21 @@ def test_random_valid_vector_space_input_is_accepted_and_runs(data, shape):
     p, q = np.asarray(sol.p), np.asarray(sol.Q)
     H = 0.5 * np.sum((p**2 + q**2).reshape(4, -1), axis=1) - 0.5 * h * np.sum((p * q).reshape(4, -1), axis=1)
     np.testing.assert_allclose(H, H[0], rtol=1e-13, atol=1e-13)
+
+
+def test_the_vectorised_rotation_check_agrees_with_the_single_one():
+    """`check_rotations` (used by `sweep` for a whole stack) names the first row that
+    `check_rotation` rejects, with the same sentence; a stack of rotations passes."""
+    from clebsch_jax.models._rigid_body import check_rotation, check_rotations
+
+    rng = np.random.default_rng(3)
+    good = np.stack([_random_rotation(rng.uniform(-1, 1, 9)) for _ in range(50)])
+    assert check_rotations(good) is None and check_rotation.batched is check_rotations
+    for j, bad in ((7, 1.001 * good[7]), (0, good[0] @ np.diag([1.0, -1.0, 1.0])), (49, np.full((3, 3), np.nan))):
+        stack = good.copy()
+        stack[j] = bad
+        if j + 1 < len(stack):
+            stack[j + 1] = 2.0 * np.eye(3)  # a later, different fault: the first one is named
+        found = check_rotations(stack)
+        assert found is not None and found[0] == j, (j, found)
+        assert found[1] == check_rotation(stack[j])

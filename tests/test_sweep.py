@@ -211,6 +211,8 @@ def test_bad_input_is_rejected_before_compiling(monkeypatch):
         (dict(invariants={"scalar": lambda s, sol: jnp.sum(sol.momentum)}), "invariants: 'scalar'"),
         (dict(scheme="sideways"), "scheme"),
         (dict(Q0=np.concatenate([eyes(3), np.diag([1.0, 1.0, -1.0])[None]])), r"Q0\[3\]: det Q = -1"),
+        (dict(Q0=np.concatenate([eyes(2), 1.01 * eyes(1), np.diag([1.0, 1.0, -1.0])[None]])),
+         r"Q0\[2\]: not a rotation matrix"),  # the first bad row is named
         (dict(params=-INERTIAS), "inertia"),  # the constructor's own check, on the concrete first row
     ]
     for change, message in cases:
@@ -252,3 +254,22 @@ def test_devices_split_the_members_and_the_results_are_identical():
                          cwd=root, env=env, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "identical 21" in out.stdout
+
+
+def test_a_check_without_a_batched_form_runs_on_every_row():
+    """A user's `check_Q` is called once per concrete Q0[j] (the SO(n) models' check is
+    vectorised instead: `check_rotation.batched`), and its sentence names the row."""
+    seen = []
+
+    def check(Q):
+        seen.append(np.asarray(Q).copy())
+        return "too far out" if np.asarray(Q)[0, 0] > 1.5 else None
+
+    system = rigid_body(INERTIAS[0])
+    system = cj.ClebschSystem(lagrangian=system.lagrangian, velocity_map=system.velocity_map,
+                              derivative_map=system.derivative_map, check_Q=check)
+    Q0 = eyes(3).copy()
+    Q0[1, 0, 0] = 2.0
+    with pytest.raises(ValueError, match=r"^Q0\[1\]: too far out"):
+        cj.sweep(system, None, Q0, OMEGAS[:3], dt=0.05, n_steps=4)
+    assert len(seen) == 2 and np.array_equal(seen[1], Q0[1])

@@ -24,19 +24,38 @@ data, degrees for radians, a transposed or scaled matrix)."""
 def check_rotation(Q) -> str | None:
     r"""None if `Q` is a rotation matrix ($Q^TQ = I$ to `ROTATION_TOLERANCE` and $\det Q = +1$),
     else a sentence saying what is wrong: the `check_Q` of the $SO(n)$ models
-    (`ClebschSystem(..., check_Q=...)`). `Q` is a concrete array (NumPy)."""
+    (`ClebschSystem(..., check_Q=...)`). `Q` is a concrete array (NumPy).
+
+    `check_rotation.batched` (`check_rotations`) checks a whole stack at once, for `cj.sweep`."""
     Q = np.asarray(Q, dtype=np.float64)
     if Q.ndim != 2 or Q.shape[0] != Q.shape[1]:
         return f"expected a square rotation matrix, got shape {Q.shape}."
-    defect = float(np.max(np.abs(Q.T @ Q - np.eye(Q.shape[0]))))
-    if not defect <= ROTATION_TOLERANCE:
-        return (f"not a rotation matrix: max|Q^T Q - I| = {defect:.2e} > {ROTATION_TOLERANCE:.1e}. "
-                "Pass an orthogonal matrix (e.g. orthogonalise it with a QR or polar decomposition).")
-    det = float(np.linalg.det(Q))
-    if det < 0:
-        return (f"det Q = {det:.6g}: an orthogonal matrix that is a reflection, not a rotation "
-                "(SO(n) needs det Q = +1; flip the sign of one column).")
-    return None
+    found = check_rotations(Q[None])
+    return None if found is None else found[1]
+
+
+def check_rotations(Qs) -> tuple[int, str] | None:
+    """`check_rotation` of every matrix of a stack `Qs` (B, n, n), vectorised: None if all are
+    rotations, else (index, sentence) of the first that is not."""
+    Qs = np.asarray(Qs, dtype=np.float64)
+    if Qs.ndim != 3 or Qs.shape[1] != Qs.shape[2]:
+        return 0, f"expected a stack of square rotation matrices, got shape {Qs.shape}."
+    defect = np.max(np.abs(np.swapaxes(Qs, 1, 2) @ Qs - np.eye(Qs.shape[1])), axis=(1, 2))
+    not_orthogonal = ~(defect <= ROTATION_TOLERANCE)  # NaN counts as not orthogonal
+    with np.errstate(invalid="ignore"):
+        det = np.linalg.det(Qs)
+    bad = not_orthogonal | (det < 0)
+    if not np.any(bad):
+        return None
+    j = int(np.argmax(bad))
+    if not_orthogonal[j]:
+        return j, (f"not a rotation matrix: max|Q^T Q - I| = {defect[j]:.2e} > {ROTATION_TOLERANCE:.1e}. "
+                   "Pass an orthogonal matrix (e.g. orthogonalise it with a QR or polar decomposition).")
+    return j, (f"det Q = {det[j]:.6g}: an orthogonal matrix that is a reflection, not a rotation "
+               "(SO(n) needs det Q = +1; flip the sign of one column).")
+
+
+check_rotation.batched = check_rotations
 
 
 def _is_traced(x) -> bool:
