@@ -174,7 +174,7 @@ def hand_march(inertia, dt, n_steps, updates=HAND_UPDATES):
     def jac(x):
         M = Iv * x
         eye = jnp.eye(3)[:, :, None]
-        J = eye * Iv[None] * 1.0  # diag(I): J[i,j] = I_j δ_ij
+        J = eye * Iv[None]  # diag(I): J[i,j] = I_j δ_ij
         J = J + 0.5 * h * (mm(hat(x), eye * Iv[None]) - hat(M))
         J = J + 0.25 * h * h * (eye * jnp.sum(x * M, 0) + 2.0 * x[:, None] * M[None, :])
         return J

@@ -62,14 +62,20 @@ class _Parser(argparse.ArgumentParser):
 # Argument types: each rejects a bad value with one line naming what was expected.
 
 
-def _steps(text: str) -> int:
+def _whole_number(text: str, low: int, high: float, not_a_number: str, out_of_range: str) -> int:
+    """`text` as an int in [low, high]; the messages are formatted with `text` and `value`."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number of steps, got {text!r}") from None
-    if not 1 <= value <= MAX_STEPS:
-        raise argparse.ArgumentTypeError(f"expected 1 to {MAX_STEPS:,} steps, got {value}")
+        raise argparse.ArgumentTypeError(not_a_number.format(text=text)) from None
+    if not low <= value <= high:
+        raise argparse.ArgumentTypeError(out_of_range.format(text=text, value=value))
     return value
+
+
+def _steps(text: str) -> int:
+    return _whole_number(text, 1, MAX_STEPS, "expected a whole number of steps, got {text!r}",
+                         f"expected 1 to {MAX_STEPS:,} steps, got {{value}}")
 
 
 def _dt(text: str) -> float:
@@ -93,34 +99,19 @@ def _order(text: str) -> int:
 
 
 def _batch(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number of members, got {text!r}") from None
-    if not 1 <= value <= MAX_BATCH:
-        raise argparse.ArgumentTypeError(f"expected 1 to {MAX_BATCH:,} members, got {value} "
-                                         "(for larger batches use clebsch_jax.sweep)")
-    return value
+    return _whole_number(text, 1, MAX_BATCH, "expected a whole number of members, got {text!r}",
+                         f"expected 1 to {MAX_BATCH:,} members, got {{value}} (for larger batches use "
+                         "clebsch_jax.sweep)")
 
 
 def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
-    return value
+    message = "expected a whole number >= 0, got {text!r}"
+    return _whole_number(text, 0, math.inf, message, message)
 
 
 def _chunk(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if not 1 <= value <= MAX_STEPS:
-        raise argparse.ArgumentTypeError(f"expected a whole number of steps >= 1, got {text!r}")
-    return value
+    message = "expected a whole number of steps >= 1, got {text!r}"
+    return _whole_number(text, 1, MAX_STEPS, message, message)
 
 
 def _scene_names() -> list:

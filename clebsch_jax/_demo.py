@@ -160,11 +160,6 @@ def measured_period(t: np.ndarray, m: np.ndarray) -> float:
     return float(t_cross / len(idx))
 
 
-def _spatial_generators(Q: jax.Array) -> jax.Array:
-    """Generators $\\hat e_k Q$ of the left SO(3) action (spatial rotations), shape (3, 3, 3)."""
-    return jnp.stack([lie.hat(e) @ Q for e in jnp.eye(3, dtype=Q.dtype)])
-
-
 def _chunk_function(system, dt: float, n_steps: int, compiler_options=None):
     """A jitted, vmapped march of `n_steps` steps from (Q0, xi0, P0) at time t0, with diagnostics."""
 
@@ -173,7 +168,7 @@ def _chunk_function(system, dt: float, n_steps: int, compiler_options=None):
         diag = {
             "m": diagnostics.body_momentum(system, sol),
             "E": diagnostics.energy(system, sol),
-            "J": diagnostics.noether_momentum(sol, _spatial_generators, system),
+            "J": diagnostics.noether_momentum(sol, lie.so3_left_generators, system),
             "orth": diagnostics.orthogonality_error(sol.Q),
         }
         return sol, diag

@@ -160,12 +160,20 @@ def _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_i
     return Q0, xi0, P0, dt, scheme
 
 
-def _check_configuration(system, Q0):
-    """The system's own check that Q0 lies on its configuration manifold (`ClebschSystem.check_Q`,
-    e.g. a rotation for SO(3) models): on concrete values only; skipped when Q0 or the check's
-    array leaves are traced (jit/vmap), where values are unknown before compiling."""
+def _runnable_check(system, Q0):
+    """`system.check_Q` when it can run on Q0, else None: values are known only when neither Q0
+    nor the check's array leaves are traced (jit/vmap)."""
     check = system.check_Q
     if check is None or _is_traced(Q0) or any(_is_traced(x) for x in jax.tree_util.tree_leaves(check)):
+        return None
+    return check
+
+
+def _check_configuration(system, Q0):
+    """The system's own check that Q0 lies on its configuration manifold (`ClebschSystem.check_Q`,
+    e.g. a rotation for SO(3) models): on concrete values only (`_runnable_check`)."""
+    check = _runnable_check(system, Q0)
+    if check is None:
         return
     problem = check(np.asarray(Q0))
     if problem is None:

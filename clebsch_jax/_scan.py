@@ -180,9 +180,8 @@ def assemble(*, system, dt, t0, Q0, xi0, stats, xi_steps, Qs, ps, Ps, mus, rtol,
     if system.degenerate:  # Lemma 7 does not determine nodal velocities: none are solved for
         zero = jnp.zeros(n_steps + 1, jnp.int32)
         xin = None
-        nodal = NewtonStats(iterations=zero, residual_norm=jnp.where(valid, 0.0, jnp.nan).astype(dt.dtype),
-                            status=jnp.where(valid, Status.SUCCESS, Status.SKIPPED).astype(jnp.int32),
-                            jacobians=zero)
+        nodal = _skip(NewtonStats(iterations=zero, residual_norm=jnp.zeros(n_steps + 1, dt.dtype),
+                                  status=jnp.full(n_steps + 1, Status.SUCCESS, jnp.int32), jacobians=zero), valid)
     else:
         xin, nodal = nodal_velocities(system, nodal_Q, mus, step_guesses(xi0, xi_steps), valid,
                                       rtol=rtol, atol=atol, max_iterations=max_iterations, solver=solver)

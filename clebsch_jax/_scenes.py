@@ -201,17 +201,12 @@ def _rigid_setup(batch, rng):
     return Setup(Q0=Q0, xi0=xi0, P0=None, members={"Pi0": m.tolist()})
 
 
-def _spatial_generators(Q):
-    """Generators $\\hat e_k Q$ of the left SO(3) action (spatial rotations), shape (3, 3, 3)."""
-    return jnp.stack([lie.hat(e) @ Q for e in jnp.eye(3, dtype=Q.dtype)])
-
-
 def _casimir(system, sol):
     return jnp.sum(sol.momentum**2, axis=-1)
 
 
 def _spatial_momentum(system, sol):
-    return diagnostics.noether_momentum(sol, _spatial_generators, system)
+    return diagnostics.noether_momentum(sol, lie.so3_left_generators, system)
 
 
 def _orthogonality(system, sol):

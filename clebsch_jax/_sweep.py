@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import diagnostics as _diagnostics
-from ._integrate import _check_configuration, _is_array, integrate
+from ._integrate import _check_configuration, _is_array, _runnable_check, integrate
 from ._march_full import cotangent_from_momentum, initial_multiplier
 from ._newton import Status
 from ._solution import IntegrationError
@@ -374,12 +374,11 @@ def _check_configurations(system, Q0, n_ic):
     """The system's `check_Q` of every concrete Q0[j]: at once when the check has a vectorised
     form (`check_Q.batched(stack) -> None | (j, sentence)`, as the SO(n) models' rotation check
     has: 10⁶ rotations in about a second, against ~40 s row by row), else one call per row."""
-    check = system.check_Q
+    check = _runnable_check(system, Q0)
     if check is None:
         return
     batched = getattr(check, "batched", None)
-    if batched is not None and not isinstance(Q0, jax.core.Tracer) and not any(
-            isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(check)):
+    if batched is not None:
         found = batched(np.asarray(Q0))
         if found is not None:
             j, problem = found

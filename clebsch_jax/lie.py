@@ -13,6 +13,7 @@ from . import _linalg
 __all__ = [
     "hat",
     "vee",
+    "so3_left_generators",
     "se2_hat",
     "cayley_exp",
     "cayley_log",
@@ -45,6 +46,14 @@ def vee(W: jax.Array) -> jax.Array:
         [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]],
         axis=-1,
     )
+
+
+def so3_left_generators(Q: jax.Array) -> jax.Array:
+    r"""The generators $\hat e_k Q$, k = 1, 2, 3, of the left $SO(3)$ action (spatial rotations)
+    at Q, shape (3, 3, 3): pass to `diagnostics.noether_momentum` for the spatial angular
+    momentum."""
+    Q = jnp.asarray(Q)
+    return jnp.stack([hat(e) @ Q for e in jnp.eye(3, dtype=Q.dtype)])
 
 
 def se2_hat(xi: jax.Array) -> jax.Array:
