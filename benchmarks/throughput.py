@@ -20,6 +20,9 @@ case sampled in turn, load average recorded):
      batch_size=chunk))`, i.e. a sequential map over chunks of `chunk` bodies, each chunk a
      vmap: the working set of one chunk stays in cache, and each chunk's Newton loops stop with
      the chunk's slowest member instead of the whole batch's;
+   - **batch_last**: `jax.jit(cj.batch(member, chunk=chunk))`, the library's batch-last evaluation
+     of the same per-member program (`clebsch_jax.batch`: components as rows of `chunk`
+     numbers, chunks one after the other; bit-identical to vmap here);
    - **NumPy RK4** of Euler's equations with reconstruction, broadcast over the bodies;
    - **JAX by hand** (`hand_march`): the same discrete equations written by hand for speed
      (batch-last layout, closed-form Jacobian, a fixed 3 chord updates, no checks), jitted: a
@@ -203,6 +206,17 @@ def hand_march(inertia, dt, n_steps, updates=HAND_UPDATES):
     return march
 
 
+def batch_call(system, chunk: int, n_steps: int, Q0, omega0, compiler_options=None):
+    """A blocking call of the reduced march over all bodies by `cj.batch` (batch-last, chunks)."""
+    Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
+
+    def member(q, x):
+        return cj.integrate(system, q, x, dt=rigid.DT, n_steps=n_steps, reduce=True, throw=False)
+
+    march = jax.jit(cj.batch(member, chunk=chunk), compiler_options=compiler_options)
+    return lambda: jax.block_until_ready(march(Q0_j, xi0_j))
+
+
 def hand_call(batch: int, n_steps: int, Q0, omega0):
     march = hand_march(rigid.INERTIA, rigid.DT, n_steps)
     Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
@@ -217,6 +231,8 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
     calls = {"vmap": rigid.ours_call(system, batch, n_steps, Q0, omega0, {"reduce": True}, run.compiler_options)}
     if batch > chunk:
         calls["chunked"] = chunked_call(system, chunk, n_steps, Q0, omega0, run.compiler_options)
+    if batch > 1:
+        calls["batch_last"] = batch_call(system, chunk, n_steps, Q0, omega0, run.compiler_options)
     calls[HAND] = hand_call(batch, n_steps, Q0, omega0)
     calls[RK4] = lambda: rigid.rk4_march(inertia, Q0, omega0, rigid.DT, n_steps)
     long_calls = batch * n_steps >= LONG_CALL_BODY_STEPS
@@ -228,7 +244,7 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
         omegas, _ = outs[RK4]
         for m in calls:
             row[m] = _rates(timings[m], n_steps, batch, "body")
-        for m in ("vmap", "chunked"):
+        for m in ("vmap", "chunked", "batch_last"):
             if m not in calls:
                 continue
             sol = outs[m].raise_if_failed()
@@ -254,6 +270,10 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
     row["ratios"] = {f"{m}_over_rk4_rate": rate[m] / rate[RK4] for m in calls if m != RK4}
     if "chunked" in calls:
         row["ratios"]["chunked_over_vmap_rate"] = rate["chunked"] / rate["vmap"]
+    if "batch_last" in calls:
+        row["ratios"]["batch_last_over_vmap_rate"] = rate["batch_last"] / rate["vmap"]
+        row["max_abs_xi_diff_batch_last_vs_vmap"] = float(
+            np.max(np.abs(np.asarray(outs["batch_last"].xi) - np.asarray(outs["vmap"].xi))))
     row["ratios"]["vmap_over_hand_rate"] = rate["vmap"] / rate[HAND]
     row["best"] = max((m for m in calls if m not in (RK4, HAND)), key=rate.get)
     return row
@@ -420,7 +440,7 @@ def _verdicts(rigid_rows: list, vortex_rows: list, compile_rows: list) -> dict:
     def flatness(rates: dict):
         return None if len(rates) < 2 else min(rates.values()) / max(rates.values())
     flat = {m: flatness({r["batch"]: r[m]["body_steps_per_second"] for r in batched if m in r})
-            for m in ("vmap", "chunked")}
+            for m in ("vmap", "chunked", "batch_last")}
     flat["best"] = flatness(best)
     at_N = [r for r in vortex_rows if r["case"] == "single" and r["N"] == t["vortex_N"]]
     vortex_ratio = at_N[0]["ratios"]["ours_over_rk4_time_per_step"] if at_N else None
@@ -465,20 +485,24 @@ def print_report(summary: dict) -> None:
     harness.print_header(
         summary, "Throughput",
         f"Rigid body (2, 1, 2/3), reduced march (Cayley), dt = {rigid.DT}: vmap = jit(vmap(integrate)) over B "
-        f"bodies, chunked = jit(lax.map(..., batch_size={summary['config']['chunk']}));\n  point vortices, "
+        f"bodies, chunked = jit(lax.map(..., batch_size={summary['config']['chunk']})), batch_last = jit(cj.batch(..., "
+        f"chunk={summary['config']['chunk']}));\n  point vortices, "
         f"dt = {vortex.DT}, jacobian='blocks': single = one plain integrate call, vmap = jit(vmap) over B systems; "
         "NumPy RK4s of the same equations.")
 
     print("\nRigid body: body-steps per second (rate ratios; Newton updates per step of the slowest member of the "
           "batch / of a chunk):")
     harness.print_table(
-        f"{'B':>8}{'steps':>6} |{'vmap':>10}{'chunked':>10}{'NumPy RK4':>11}{'JAX hand':>10} |{'vmap/RK4':>9}"
-        f"{'chunk/RK4':>10}{'chunk/vmap':>11}{'vmap/hand':>10} {'best':<8}|{'upd/batch':>10}{'upd/chunk':>10}",
+        f"{'B':>8}{'steps':>6} |{'vmap':>10}{'chunked':>10}{'batch':>10}{'NumPy RK4':>11}{'JAX hand':>10} |"
+        f"{'vmap/RK4':>9}{'chunk/RK4':>10}{'batch/RK4':>10}{'chunk/vmap':>11}{'vmap/hand':>10} {'best':<8}|"
+        f"{'upd/batch':>10}{'upd/chunk':>10}",
         (f"{r['batch']:>8}{r['n_steps']:>6} |{r['vmap']['body_steps_per_second']:>10.3g}"
          f"{fmt(r.get('chunked', {}).get('body_steps_per_second'), '.3g', 10)}"
+         f"{fmt(r.get('batch_last', {}).get('body_steps_per_second'), '.3g', 10)}"
          f"{r[RK4]['body_steps_per_second']:>11.3g}{fmt(r.get(HAND, {}).get('body_steps_per_second'), '.3g', 10)} |"
          f"{r['ratios']['vmap_over_rk4_rate']:>9.3g}"
          f"{fmt(r['ratios'].get('chunked_over_rk4_rate'), '.3g', 10)}"
+         f"{fmt(r['ratios'].get('batch_last_over_rk4_rate'), '.3g', 10)}"
          f"{fmt(r['ratios'].get('chunked_over_vmap_rate'), '.3g', 11)}"
          f"{fmt(r['ratios'].get('vmap_over_hand_rate'), '.3g', 10)} {r['best']:<8}|"
          f"{r['newton_updates_per_step']['slowest_of_batch_mean']:>10.2f}"
@@ -537,6 +561,7 @@ def plot(summary: dict, path: Path) -> None:
     fig, (ax, ax_v, ax_c) = harness.figure((3, 2, 1.4), size=(14, 4.8))
     rows = parts.get("rigid_body", [])
     styles = {"vmap": ("o", "C2", "ours, jit(vmap)"), "chunked": ("D", "C0", "ours, lax.map over chunks of vmap"),
+              "batch_last": ("*", "C3", "ours, jit(cj.batch): batch-last, in chunks"),
               RK4: ("s", "C1", "NumPy RK4 (broadcast)"),
               HAND: ("^", "C7", "reference: the same step in JAX by hand")}
     for m, (marker, color, label) in styles.items():

@@ -29,6 +29,7 @@ from ._discrete_action import (  # noqa: E402
     discrete_action as discrete_action,
     discrete_lagrangian as discrete_lagrangian,
 )
+from ._batch_last import batch as batch  # noqa: E402
 from ._closure import (  # noqa: E402
     ClosureResult as ClosureResult,
     check_closure as check_closure,

@@ -139,6 +139,7 @@ def check_throughput(summary: dict) -> None:
         assert row["batch"] >= 1 and row["n_steps"] >= 1
         ours = [m for m in row["methods"] if m not in (RK4, "jax_by_hand")]
         assert ours[0] == "vmap" and ("chunked" in ours) == (row["batch"] > summary["config"]["chunk"])
+        assert ("batch_last" in ours) == (row["batch"] > 1)
         # the hand-written reference computes our momenta (3 chord updates from a linear predictor)
         assert "jax_by_hand" in row["methods"] and row["jax_by_hand"]["max_abs_momentum_diff_vs_vmap"] < 1e-12
         assert math.isclose(row["ratios"]["vmap_over_hand_rate"],
@@ -157,6 +158,9 @@ def check_throughput(summary: dict) -> None:
         if "chunked" in ours:
             assert row["max_abs_xi_diff_chunked_vs_vmap"] < 1e-10  # the same march, in chunks
             assert _positive_finite(row["ratios"]["chunked_over_vmap_rate"])
+        if "batch_last" in ours:
+            assert row["max_abs_xi_diff_batch_last_vs_vmap"] < 1e-12  # the same program, batch-last (bitwise here)
+            assert _positive_finite(row["ratios"]["batch_last_over_vmap_rate"])
     for row in parts["vortices"]:
         for method in ("ours", RK4):
             _check_timed(row[method], ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
