@@ -283,12 +283,31 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
 # Part 2: point vortices.
 
 
+VORTEX_CHUNK = 64
+"""Systems per chunk of `cj.batch` for the vortex batches: their members need very different
+numbers of Newton updates, and a chunk's loops run until its slowest member stops."""
+
+
+def vortex_batch_call(N, n_steps, gamma, Q0, chunk, compiler_options=None):
+    """A blocking call of our march over all systems by `cj.batch` (batch-last, in chunks)."""
+    G, Q = jnp.asarray(gamma), jnp.asarray(Q0)
+
+    def member(g, q):
+        return cj.integrate(models.point_vortices(g), q, models.vortex_velocity(g, q), dt=vortex.DT,
+                            n_steps=n_steps, jacobian="blocks", throw=False)
+
+    march = jax.jit(cj.batch(member, chunk=chunk), compiler_options=compiler_options)
+    return lambda: jax.block_until_ready(march(G, Q))
+
+
 def vortex_case(label: str, N: int, batch: int | None, n_steps: int, run: harness.Run) -> dict:
     B = 1 if batch is None else batch
     gamma, Q0 = vortex.initial_conditions(N, B)
     name = f"vortices {label} N={N} B={B} n_steps={n_steps}"
     calls = {"ours": vortex.ours_call(N, batch, n_steps, gamma, Q0, "blocks", run.compiler_options),
              RK4: lambda: vortex.rk4_march(gamma, Q0, vortex.DT, n_steps)}
+    if batch is not None:
+        calls["batch_last"] = vortex_batch_call(N, n_steps, gamma, Q0, min(VORTEX_CHUNK, B), run.compiler_options)
     timings, outs = run.time(calls, what=name)
     row = {"part": "vortices", "case": label, "N": N, "batch": B, "n_steps": n_steps, "jacobian": "blocks",
            "ours": _rates(timings["ours"], n_steps, N * B, "vortex"), RK4: _rates(timings[RK4], n_steps, N * B, "vortex")}
@@ -304,10 +323,18 @@ def vortex_case(label: str, N: int, batch: int | None, n_steps: int, run: harnes
         }
         # the same equations: final positions against RK4's (O(dt^2) apart)
         row["ours"]["max_abs_final_position_diff_vs_rk4"] = float(np.max(np.abs(Q[:, -1] - outs[RK4][-1])))
+        if "batch_last" in calls:
+            row["batch_last"] = _rates(timings["batch_last"], n_steps, N * B, "vortex")
+            row["batch_last"]["chunk"] = min(VORTEX_CHUNK, B)
+            row["batch_last"]["max_abs_position_diff_vs_vmap"] = float(np.nanmax(np.abs(
+                np.asarray(outs["batch_last"].raise_if_failed().Q).reshape(Q.shape) - Q)))
     row["ratios"] = {
         "ours_over_rk4_time_per_step": row["ours"]["seconds_per_step"] / row[RK4]["seconds_per_step"],
         "ours_over_rk4_rate": row["ours"]["vortex_steps_per_second"] / row[RK4]["vortex_steps_per_second"],
     }
+    if "batch_last" in calls:
+        row["ratios"]["batch_last_over_rk4_time_per_step"] = (row["batch_last"]["seconds_per_step"]
+                                                              / row[RK4]["seconds_per_step"])
     return row
 
 
@@ -527,10 +554,12 @@ def print_report(summary: dict) -> None:
           "step (mean; slowest member of the batch):")
     harness.print_table(
         f"{'case':<7}{'N':>5}{'B':>6}{'steps':>6} |{'ours':>22}{'NumPy RK4':>22} |{'ours/RK4 time per step':>23}"
+        f"{'batch/RK4':>12}"
         f" |{'upd mean':>9}{'slowest':>8}",
         (f"{r['case']:<7}{r['N']:>5}{r['batch']:>6}{r['n_steps']:>6} |"
          + "".join(f"{r[m]['vortex_steps_per_second']:>10.3g} ({r[m]['seconds_per_step']:8.2e})" for m in ("ours", RK4))
-         + f" |{r['ratios']['ours_over_rk4_time_per_step']:>23.3g} |{r['newton_updates_per_step']['mean']:>9.2f}"
+         + f" |{r['ratios']['ours_over_rk4_time_per_step']:>23.3g}"
+         f"{fmt(r['ratios'].get('batch_last_over_rk4_time_per_step'), '.3g', 12)} |{r['newton_updates_per_step']['mean']:>9.2f}"
          f"{r['newton_updates_per_step']['slowest_of_batch_mean']:>8.2f}"
          for r in parts.get("vortices", [])))
     vx = v["vortex_step_cost"]
@@ -577,12 +606,14 @@ def plot(summary: dict, path: Path) -> None:
     ax.set_title(harness.plot_title(summary, "Rigid body, reduced march, dt = 0.05"), fontsize=9)
 
     for r in parts.get("vortices", []):
-        for m, (marker, color) in (("ours", ("o", "C0")), (RK4, ("s", "C1"))):
-            ax_v.loglog([r["N"] * r["batch"]], [r[m]["vortex_steps_per_second"]], marker=marker, color=color,
-                        mfc=color if r["case"] == "single" else "none", ms=8, ls="none")
+        for m, (marker, color) in (("ours", ("o", "C0")), (RK4, ("s", "C1")), ("batch_last", ("*", "C3"))):
+            if m in r:
+                ax_v.loglog([r["N"] * r["batch"]], [r[m]["vortex_steps_per_second"]], marker=marker, color=color,
+                            mfc=color if r["case"] == "single" else "none", ms=8, ls="none")
         ax_v.annotate(f"{r['N']}x{r['batch']}", (r["N"] * r["batch"], r["ours"]["vortex_steps_per_second"]),
                       textcoords="offset points", xytext=(5, 4), fontsize=7)
     ax_v.plot([], [], "o", color="C0", label="ours, jacobian='blocks'")
+    ax_v.plot([], [], "*", color="C3", mfc="none", label=f"ours, cj.batch (chunk {VORTEX_CHUNK})")
     ax_v.plot([], [], "s", color="C1", label="NumPy RK4")
     ax_v.legend(handles=ax_v.get_legend_handles_labels()[0] + [harness.hollow_marker("hollow: jit(vmap) batch")],
                 fontsize=8)

@@ -67,7 +67,13 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
       arguments or as a tuple with one entry per positional argument (which applies to every
       array in that argument).
     - `chunk`: members per chunk (default `DEFAULT_CHUNK`), or None for one chunk. Chunks run
-      one after the other; the last is padded with copies of the last member.
+      one after the other; the last is padded with copies of the last member. A loop in
+      `fun` (Newton's) runs, in each chunk, until the chunk's slowest member stops: members
+      that need very different numbers of iterations (clusters of point vortices: 3.7
+      updates per step on average, 23 for the slowest of 1000) run faster in small chunks
+      — measured 12× one NumPy RK4 step under `jax.vmap`, 5.5× with chunks of 1024, 2.4×
+      with 64 — while uniform ones (rigid bodies) prefer large chunks (1.6 M body-steps/s in
+      one chunk of 1000 against 0.8-1.0 M/s in chunks of 64).
 
     **Returns:** a function with `jax.vmap(fun, in_axes)`'s signature and outputs (every output
     batched along axis 0).

@@ -166,6 +166,10 @@ def check_throughput(summary: dict) -> None:
             _check_timed(row[method], ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
                          (row["case"], row["N"], method))
         assert 0 <= row["ours"]["max_abs_final_position_diff_vs_rk4"] < 1e-4
+        if row["case"] == "vmap":  # cj.batch runs the same program: positions to round-off
+            _check_timed(row["batch_last"], ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
+                         (row["case"], row["N"], "batch_last"))
+            assert row["batch_last"]["max_abs_position_diff_vs_vmap"] < 1e-12
         assert row["newton_updates_per_step"]["slowest_of_batch_mean"] >= row["newton_updates_per_step"]["mean"] >= 1
         assert math.isclose(row["ratios"]["ours_over_rk4_time_per_step"],
                             row["ours"]["seconds_per_step"] / row[RK4]["seconds_per_step"])
