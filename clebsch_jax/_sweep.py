@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import diagnostics as _diagnostics
+from ._batch_last import batch
 from ._integrate import _check_configuration, _is_array, _runnable_check, integrate
 from ._march_full import cotangent_from_momentum, initial_multiplier
 from ._newton import Status
@@ -235,7 +236,8 @@ class _Config:
     options: tuple  # sorted ((key, value), ...) passed to integrate
     n: int  # steps in this chunk
     save_every: int | None
-    shared_def: tuple | None = None  # (treedef, leaves with None for arrays) of a shared system
+    shared_def: tuple | None = None
+    member_chunk: int | None = None  # members per cj.batch chunk inside a batch (None: one)  # (treedef, leaves with None for arrays) of a shared system
 
 
 def _integrate(cfg: _Config, system, Q, xi, P, t, dt, n):
@@ -307,7 +309,8 @@ def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     def one(p, c, d, s, f, o):
         return _member_chunk(cfg, p, s, c, d, f, o)
 
-    return jax.vmap(one, in_axes=(0, 0, 0, None, None, None))(params, carry, dt, shared, first, offset)
+    return batch(one, in_axes=(0, 0, 0, None, None, None), chunk=cfg.member_chunk)(params, carry, dt, shared,
+                                                                                 first, offset)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -413,6 +416,7 @@ def sweep(
     chunk_steps: int | None = None,
     batch_size: int | None = None,
     save_every: int | None = None,
+    member_chunk: int | None = None,
     devices=None,
     progress=False,
     **options,
@@ -470,6 +474,10 @@ def sweep(
       last batch is padded with copies of the last member.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
       k when the run has more than one chunk.
+    - `member_chunk`: a batch runs through `clebsch_jax.batch` (batch-last, the batch's members
+      in chunks of `member_chunk` one after the other; default None: one chunk). A chunk's
+      Newton loops run until its slowest member stops, so members whose iteration counts
+      differ widely (clusters of point vortices) run faster in small chunks (e.g. 64).
     - `devices`: None (default: JAX's default device); True or "all" (every `jax.devices()`),
       an int n (the first n) or a list of devices: the member axis is split across them batch by
       batch — batch b runs on device b mod n, the batches of a group run side by side
@@ -489,7 +497,7 @@ def sweep(
 
     **Returns:** a `SweepResult`.
 
-    What is vmapped: `params` rows (so the system's array leaves — inertias, circulations,
+    What is batched (by `clebsch_jax.batch`, `jax.vmap`'s meaning): `params` rows (so the system's array leaves — inertias, circulations,
     widths — are traced), `Q0`, `xi0`, `P0` and `dt`. What is static: `make_system` itself, the
     Python callables inside the system, `invariants`, `options`, `n_steps`, `chunk_steps`,
     `save_every`: changing them recompiles, changing array values does not.
@@ -503,6 +511,7 @@ def sweep(
             raise ValueError(f"{key}: set by sweep itself (it hands the state from chunk to chunk); "
                              "pass P0 and dt to sweep, not as integrate options.")
     save_every = _positive_int(save_every, "save_every", allow_none=True)
+    member_chunk = _positive_int(member_chunk, "member_chunk", allow_none=True)
     chunk_steps = _positive_int(chunk_steps, "chunk_steps", allow_none=True)
     if chunk_steps is None:
         chunk_steps = _DEFAULT_CHUNK
@@ -582,7 +591,7 @@ def sweep(
 
     # --- one member's shapes, by tracing integrate (its own checks name Q0, xi0, ...): no compile
     opts = tuple(sorted(options.items()))
-    cfg = _Config(builder, tuple(invariants.items()), opts, chunk_steps, save_every, shared_def)
+    cfg = _Config(builder, tuple(invariants.items()), opts, chunk_steps, save_every, shared_def, member_chunk)
     try:
         hash(cfg)
     except TypeError as err:
