@@ -157,10 +157,10 @@ def _per_step(timing: dict, batch: int, n_steps: int) -> dict:
     }
 
 
-def ours_call(system, batch, n_steps, Q0, omega0, kwargs, compiler_options=None):
+def ours_call(system, batch, n_steps, Q0, omega0, kwargs, compiler_options=None, batching=jax.vmap):
     """A blocking call of one variant of our march on the initial conditions (Q0, omega0):
     for `batch` None one plain `integrate` call on the first body, else
-    `jax.jit(jax.vmap(integrate))` over all of them."""
+    `jax.jit(batching(integrate))` over all of them (`jax.vmap`, or e.g. `cj.batch`)."""
     if batch is None:  # one trajectory, the plain public call (validation and failure check included)
         Q0_j, xi0_j = jnp.asarray(Q0[0]), jnp.asarray(omega0[0])
 
@@ -170,7 +170,7 @@ def ours_call(system, batch, n_steps, Q0, omega0, kwargs, compiler_options=None)
 
     Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
     march = jax.jit(
-        jax.vmap(lambda q, x: cj.integrate(system, q, x, dt=DT, n_steps=n_steps, throw=False, **kwargs)),
+        batching(lambda q, x: cj.integrate(system, q, x, dt=DT, n_steps=n_steps, throw=False, **kwargs)),
         compiler_options=compiler_options,
     )
 

@@ -56,6 +56,7 @@ Outputs (in `--out`, default `benchmarks/results`): `throughput.json` and `throu
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import subprocess
 import sys
@@ -206,17 +207,6 @@ def hand_march(inertia, dt, n_steps, updates=HAND_UPDATES):
     return march
 
 
-def batch_call(system, chunk: int, n_steps: int, Q0, omega0, compiler_options=None):
-    """A blocking call of the reduced march over all bodies by `cj.batch` (batch-last, chunks)."""
-    Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
-
-    def member(q, x):
-        return cj.integrate(system, q, x, dt=rigid.DT, n_steps=n_steps, reduce=True, throw=False)
-
-    march = jax.jit(cj.batch(member, chunk=chunk), compiler_options=compiler_options)
-    return lambda: jax.block_until_ready(march(Q0_j, xi0_j))
-
-
 def hand_call(batch: int, n_steps: int, Q0, omega0):
     march = hand_march(rigid.INERTIA, rigid.DT, n_steps)
     Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
@@ -232,7 +222,8 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
     if batch > chunk:
         calls["chunked"] = chunked_call(system, chunk, n_steps, Q0, omega0, run.compiler_options)
     if batch > 1:
-        calls["batch_last"] = batch_call(system, chunk, n_steps, Q0, omega0, run.compiler_options)
+        calls["batch_last"] = rigid.ours_call(system, batch, n_steps, Q0, omega0, {"reduce": True},
+                                              run.compiler_options, functools.partial(cj.batch, chunk=chunk))
     calls[HAND] = hand_call(batch, n_steps, Q0, omega0)
     calls[RK4] = lambda: rigid.rk4_march(inertia, Q0, omega0, rigid.DT, n_steps)
     long_calls = batch * n_steps >= LONG_CALL_BODY_STEPS
@@ -288,18 +279,6 @@ VORTEX_CHUNK = 64
 numbers of Newton updates, and a chunk's loops run until its slowest member stops."""
 
 
-def vortex_batch_call(N, n_steps, gamma, Q0, chunk, compiler_options=None):
-    """A blocking call of our march over all systems by `cj.batch` (batch-last, in chunks)."""
-    G, Q = jnp.asarray(gamma), jnp.asarray(Q0)
-
-    def member(g, q):
-        return cj.integrate(models.point_vortices(g), q, models.vortex_velocity(g, q), dt=vortex.DT,
-                            n_steps=n_steps, jacobian="blocks", throw=False)
-
-    march = jax.jit(cj.batch(member, chunk=chunk), compiler_options=compiler_options)
-    return lambda: jax.block_until_ready(march(G, Q))
-
-
 def vortex_case(label: str, N: int, batch: int | None, n_steps: int, run: harness.Run) -> dict:
     B = 1 if batch is None else batch
     gamma, Q0 = vortex.initial_conditions(N, B)
@@ -307,7 +286,8 @@ def vortex_case(label: str, N: int, batch: int | None, n_steps: int, run: harnes
     calls = {"ours": vortex.ours_call(N, batch, n_steps, gamma, Q0, "blocks", run.compiler_options),
              RK4: lambda: vortex.rk4_march(gamma, Q0, vortex.DT, n_steps)}
     if batch is not None:
-        calls["batch_last"] = vortex_batch_call(N, n_steps, gamma, Q0, min(VORTEX_CHUNK, B), run.compiler_options)
+        calls["batch_last"] = vortex.ours_call(N, batch, n_steps, gamma, Q0, "blocks", run.compiler_options,
+                                               functools.partial(cj.batch, chunk=min(VORTEX_CHUNK, B)))
     timings, outs = run.time(calls, what=name)
     row = {"part": "vortices", "case": label, "N": N, "batch": B, "n_steps": n_steps, "jacobian": "blocks",
            "ours": _rates(timings["ours"], n_steps, N * B, "vortex"), RK4: _rates(timings[RK4], n_steps, N * B, "vortex")}

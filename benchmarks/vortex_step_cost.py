@@ -145,10 +145,10 @@ def rk4_march(gamma: np.ndarray, Q0: np.ndarray, dt: float, n_steps: int) -> np.
 # One case.
 
 
-def ours_call(N, batch, n_steps, gamma, Q0, jacobian, compiler_options=None):
+def ours_call(N, batch, n_steps, gamma, Q0, jacobian, compiler_options=None, batching=jax.vmap):
     """A blocking call of our march on the initial conditions (gamma, Q0) of shapes (B, N) and
     (B, N, 2): for `batch` None one plain `integrate` call on the first system, else
-    `jax.jit(jax.vmap(integrate))` over all of them."""
+    `jax.jit(batching(integrate))` over all of them (`jax.vmap`, or e.g. `cj.batch`)."""
     if batch is None:  # one system: the plain public call (validation and failure check included)
         G, Q = jnp.asarray(gamma[0]), jnp.asarray(Q0[0])
         system, xi0 = models.point_vortices(G), models.vortex_velocity(G, Q)
@@ -160,7 +160,7 @@ def ours_call(N, batch, n_steps, gamma, Q0, jacobian, compiler_options=None):
 
     G, Q = jnp.asarray(gamma), jnp.asarray(Q0)
     march = jax.jit(
-        jax.vmap(lambda g, q: cj.integrate(models.point_vortices(g), q, models.vortex_velocity(g, q), dt=DT,
+        batching(lambda g, q: cj.integrate(models.point_vortices(g), q, models.vortex_velocity(g, q), dt=DT,
                                            n_steps=n_steps, jacobian=jacobian, throw=False)),
         compiler_options=compiler_options,
     )

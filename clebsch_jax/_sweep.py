@@ -236,8 +236,8 @@ class _Config:
     options: tuple  # sorted ((key, value), ...) passed to integrate
     n: int  # steps in this chunk
     save_every: int | None
-    shared_def: tuple | None = None
-    member_chunk: int | None = None  # members per cj.batch chunk inside a batch (None: one)  # (treedef, leaves with None for arrays) of a shared system
+    shared_def: tuple | None = None  # (treedef, leaves with None for arrays) of a shared system
+    member_chunk: int | None = None  # members per cj.batch chunk inside a batch (None: one)
 
 
 def _integrate(cfg: _Config, system, Q, xi, P, t, dt, n):
@@ -497,8 +497,9 @@ def sweep(
 
     **Returns:** a `SweepResult`.
 
-    What is batched (by `clebsch_jax.batch`, `jax.vmap`'s meaning): `params` rows (so the system's array leaves — inertias, circulations,
-    widths — are traced), `Q0`, `xi0`, `P0` and `dt`. What is static: `make_system` itself, the
+    What is batched (by `clebsch_jax.batch`, with `jax.vmap`'s meaning): `params` rows (so the
+    system's array leaves — inertias, circulations, widths — are traced), `Q0`, `xi0`, `P0` and
+    `dt`. What is static: `make_system` itself, the
     Python callables inside the system, `invariants`, `options`, `n_steps`, `chunk_steps`,
     `save_every`: changing them recompiles, changing array values does not.
     """
