@@ -8,6 +8,7 @@ the tests assert equality to the bit where XLA compiles both layouts to the same
 (reductions, contractions).
 """
 
+import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -111,7 +112,8 @@ def test_each_member_independent_of_batch_and_chunk(B, chunk, seed):
 
 def test_reduced_rigid_body_march_is_bit_identical_to_vmap():
     """The library's reduced march (Cayley, order 4): every field of the Solution, every
-    statistic, to the bit; 13 bodies in chunks of 5 (the last one padded)."""
+    statistic, to the bit, but the residual norms (to round-off); 13 bodies in chunks of 5
+    (the last one padded)."""
     system = models.rigid_body(jnp.array([2.0, 1.0, 2.0 / 3.0]))
     omegas = jnp.asarray(RNG.normal(size=(13, 3)))
     Q0 = jnp.asarray(np.stack([np.asarray(cj.lie.so3_exp(jnp.asarray(v))) for v in RNG.normal(size=(13, 3))]))
@@ -122,7 +124,17 @@ def test_reduced_rigid_body_march_is_bit_identical_to_vmap():
     ref = jax.jit(jax.vmap(run))(Q0, omegas)
     out = jax.jit(cj.batch(run, chunk=5))(Q0, omegas)
     assert out.form == ref.form == "reduced"
-    assert_trees_close(out, ref)
+    # The residual left at each root is a difference of nearly equal numbers, ~1e-16: XLA may
+    # fuse (and contract into FMAs) the residual's multiply-adds differently in the two layouts,
+    # so its last bits may differ (seen: 3 of 390 values, by 1.2e-16). Everything else is
+    # bitwise equal.
+    scale = float(np.max(np.abs(np.asarray(ref.momentum))))
+    for field in ("stats", "nodal_stats"):
+        np.testing.assert_allclose(getattr(out, field).residual_norm, getattr(ref, field).residual_norm,
+                                   rtol=0, atol=4 * EPS * scale)
+    strip = lambda sol: dataclasses.replace(sol, stats=sol.stats._replace(residual_norm=None),
+                                            nodal_stats=sol.nodal_stats._replace(residual_norm=None))
+    assert_trees_close(strip(out), strip(ref))
     # and the physics holds: Casimir at round-off
     C = np.sum(np.asarray(out.momentum) ** 2, axis=-1)
     assert np.max(np.abs(C - C[:, :1])) < 50 * EPS * np.max(C)

@@ -323,6 +323,52 @@ def test_closed_form_cayley_step_equals_the_autodiff_step(name, scheme):
                                rtol=0, atol=1e-13)
 
 
+@pytest.mark.parametrize("name", ["rigid body", "SE(3) with potential", "SO(4)"])
+def test_cayley_polynomial_is_the_matrix_form(name, monkeypatch):
+    """The Cayley step evaluates Xᵀ(F₋ᵀPF₊ᵀ) as a polynomial in (ξ, ∇l) whose coefficients come
+    from the basis (`CayleyPolynomial`); with it switched off, the same step forms the 3×3 (4×4)
+    matrix products. Same residual, outgoing momentum and Q¹ to round-off, both schemes."""
+    from clebsch_jax import _reduction as R
+
+    rng = np.random.default_rng(11)
+    system, Q0, m = {
+        "rigid body": (cj.models.rigid_body(INERTIA), cj.lie.so3_exp(jnp.array([0.3, 0.2, -0.1])), 3),
+        "SE(3) with potential": (_heavy_se3(), jnp.asarray(cj.lie.cayley_exp(_se3_hat(jnp.arange(6.0) / 7))), 6),
+        "SO(4)": (_system(lambda x, Q: Q @ _so_n_hat(4)(x)), cj.lie.cayley_exp(_so_n_hat(4)(jnp.arange(6.0) / 9)), 6),
+    }[name]
+    red, why = R.find_reduction(system, Q0, jnp.zeros(m))
+    assert red is not None, why
+    poly = R.cayley_polynomial(red)
+    assert poly is not None
+    n_terms = [sum(len(t) for t in part) for part in poly.terms]
+    if name == "rigid body":  # so(3): μ = M + Δt ξ×M/2 + Δt² ξ(ξ·M)/4, M = 𝕀ξ (Example 30)
+        assert n_terms == [3, 6, 9]
+    xi, mu, dt = jnp.asarray(rng.normal(size=m)), jnp.asarray(rng.normal(size=m)), 0.3
+    for scheme in ("left", "right"):
+        step = jax.jit(lambda x, u: R.reduced_step(system, red, scheme, dt, u, Q0, x))
+        r, mu1, Q1 = step(xi, mu)
+        monkeypatch.setattr(R, "cayley_polynomial", lambda red: None)
+        r_m, mu1_m, Q1_m = jax.jit(lambda x, u: R.reduced_step(system, red, scheme, dt, u, Q0, x))(xi, mu)
+        monkeypatch.undo()
+        scale = 1.0 + float(jnp.max(jnp.abs(mu1)))
+        np.testing.assert_allclose(r, r_m, rtol=0, atol=8 * np.finfo(float).eps * scale)
+        np.testing.assert_allclose(mu1, mu1_m, rtol=0, atol=8 * np.finfo(float).eps * scale)
+        np.testing.assert_array_equal(Q1, Q1_m)  # formed the same way in both
+
+
+def test_cayley_polynomial_gives_way_to_the_matrix_form_for_large_algebras(monkeypatch):
+    from clebsch_jax import _reduction as R
+
+    system = cj.models.rigid_body(INERTIA)
+    red, _ = R.find_reduction(system, jnp.eye(3), jnp.zeros(3))
+    R.cayley_polynomial.cache_clear()
+    monkeypatch.setattr(R, "POLYNOMIAL_MAX_TERMS", 17)  # so(3) has 18 terms
+    try:
+        assert R.cayley_polynomial(red) is None
+    finally:
+        R.cayley_polynomial.cache_clear()
+
+
 def test_predictor_is_exact_on_polynomials_and_falls_back_on_rough_data():
     from clebsch_jax._march_reduced import PREDICTOR_ORDER, predict
 
