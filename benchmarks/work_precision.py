@@ -22,7 +22,9 @@ Run from the repository root:
 **Methods**:
 
 - **ours**: `clebsch_jax.integrate(..., order=k)`, k = 2, 4, 6, 8, over a range of dt. Rigid
-  body: the reduced march (Cayley, `reconstruct=False`) under `jax.vmap` over the bodies;
+  body: the reduced march (Cayley, `reconstruct=False`) batched over the bodies by
+  `clebsch_jax.batch` (jax.vmap's meaning, bodies along the last axis inside: ~1.5× faster
+  than `jax.vmap` here);
   vortices: the midpoint principle (= implicit midpoint rule) and its compositions, one system,
   `jacobian="dense"` for N = 4 and `"blocks"` for N = 100. Every Newton solve to round-off (the
   default `rtol = atol = 0`). A run of n steps is made of `n / chunk` calls of `integrate` of
@@ -209,7 +211,7 @@ class RigidBody:
 
     def ours_program(self, order: int, compiler_options=None):
         """jit(m0 (B, 3), dt, n_chunks) -> (Pi(T), max energy error, max Casimir error, Newton
-        counters, all valid): n_chunks * chunk steps of the reduced march, vmapped over bodies."""
+        counters, all valid): n_chunks * chunk steps of the reduced march, batched over bodies."""
         inertia, chunk = jnp.asarray(self.inertia), self.cfg["chunk"]
         system = models.rigid_body(inertia)
 
@@ -218,7 +220,7 @@ class RigidBody:
 
         def march(m0, dt, n_chunks):
             E0, C0 = energy(m0), jnp.sum(m0**2, -1)
-            run_chunk = jax.vmap(lambda mu: cj.integrate(system, jnp.eye(3), mu / inertia, dt=dt, n_steps=chunk,
+            run_chunk = cj.batch(lambda mu: cj.integrate(system, jnp.eye(3), mu / inertia, dt=dt, n_steps=chunk,
                                                          order=order, reconstruct=False, throw=False))
 
             def body(_, carry):
