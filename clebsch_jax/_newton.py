@@ -298,7 +298,9 @@ def newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: flo
     update or do not converge within `MAX_CHORD_ITERATIONS`; then it continues exactly as
     `newton_solve`, and the fresh inverse is returned for the next solve. Along a smooth march
     the Jacobian changes little from step to step, so most solves form none: for the reduced
-    rigid body at Δt = 0.05 one Jacobian serves a thousand steps. The stopping rule, the
+    rigid body at Δt = 0.05 one Jacobian serves a thousand steps (the reduced Cayley march
+    nevertheless passes `reuse=False`, forming one per solve: see
+    `_march_reduced._fresh_jacobians`). The stopping rule, the
     statuses and `max_iterations` (the cap on fresh Jacobians per solve) are those of
     `newton_solve`: with `rtol = atol = 0` it iterates to round-off.
 
