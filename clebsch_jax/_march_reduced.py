@@ -13,8 +13,9 @@ updates. Hence (measured in `benchmarks/README.md`):
   `PREDICTOR_ORDER` (`_scan.predict`), of the increments this sub-step made in earlier steps;
 - for the Cayley map (`_fresh_jacobians`) every solve forms the exact Jacobian at that guess,
   from the cheap closed-form residual: Newton converges quadratically from the good guess, so
-  one update reaches round-off and a second confirms it (2.0-3.4 updates per sub-step for the
-  slowest member of a batch, against 5.3-7.6 with a carried Jacobian);
+  one update reaches round-off and a second confirms it (work-precision run: 2.0-4.4 updates
+  per sub-step on average, 2.1-5.2 for the slowest member of a batch, against 3.9-7.8 and
+  5.3-9.1 with a carried Jacobian);
 - for other maps, whose residual goes through autodiff of exp̄ and loḡ and makes a Jacobian
   expensive, the inverse Jacobian is carried from step to step (`newton_solve_reusing`): formed
   at step 0 and again only when its chord updates stop contracting well (3-4 updates per step

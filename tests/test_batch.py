@@ -9,6 +9,7 @@ the tests assert equality to the bit where XLA compiles both layouts to the same
 """
 
 import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np

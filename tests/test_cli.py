@@ -260,7 +260,9 @@ def test_quick_demo(demo):
     assert errors["casimir_rel_max"] < 1e-11
     assert errors["orthogonality_max"] < 1e-11
     assert summary["scene"]["inertia"] == [0.5, 0.6, 1.0] and summary["scene"]["dt"] == 0.1
-    assert 3 <= summary["newton_iterations"]["mean"] <= summary["newton_iterations"]["max"] <= 20
+    # a solve to round-off makes one update to converge and one to confirm (a fresh Jacobian at
+    # every step of the Cayley march: 2.1 on average here), fewer only from an exact guess
+    assert 1.5 <= summary["newton_iterations"]["mean"] <= summary["newton_iterations"]["max"] <= 20
     assert summary["timing"]["steps_per_s"] > 0
     # The discrete period agrees with the exact (elliptic-integral) one to O(dt^2).
     measured = [o for o in summary["orbits"] if o["period_measured"] is not None]
@@ -404,13 +406,15 @@ def test_run_scene_writes_files_and_its_json_matches_the_solution(name, demo, tm
 
 
 def test_failing_member_is_reported_with_its_step_and_exit_1(demo, tmp_path, capsys):
-    """dt = 50 on the rigid body: Newton's method fails for some member; the others run on."""
+    """dt = 100 on the rigid body: Newton's method fails for some member; the others run on.
+    (Newton from a fresh Jacobian at every step solves all four members even at dt = 50 or
+    2000; at dt = 100 member 1 reaches the iteration cap at step 1, the others converge.)"""
     scene = SCENES["rigid-body"]
     out = tmp_path / "fail"
-    code = main(["run", "rigid-body", "--dt", "50", "--steps", str(scene.quick_steps),
+    code = main(["run", "rigid-body", "--dt", "100", "--steps", str(scene.quick_steps),
                  "--batch", str(scene.quick_batch), "--out", str(out), "--quiet"])
     captured = capsys.readouterr()
-    _, _, sol = _solution("rigid-body", dt=50.0)
+    _, _, sol = _solution("rigid-body", dt=100.0)
     result, failed_step = np.asarray(sol.result), np.asarray(sol.failed_step)
     failing = np.flatnonzero(result != 0)
     assert 1 <= len(failing) < scene.quick_batch  # the test needs a failing and a surviving member
