@@ -90,17 +90,18 @@ def _constant_map(C: np.ndarray, x, shape):
     it there: measured slower under `vmap`.)"""
     v = jnp.ravel(x)
     cut = 1e-14 * np.max(np.abs(C))
-    rows = []
-    for row in C:
-        acc = None
-        for j, c in enumerate(row):
-            if abs(c) <= cut:
-                continue
-            c = float(c)
-            t = v[j] if c == 1.0 else (-v[j] if c == -1.0 else c * v[j])
-            acc = t if acc is None else acc + t
-        rows.append(jnp.zeros((), v.dtype) if acc is None else acc)
+    rows = [_weighted_sum(((float(c), v[j]) for j, c in enumerate(row) if abs(c) > cut), v.dtype) for row in C]
     return jnp.stack(rows).reshape(shape)
+
+
+def _weighted_sum(terms, dtype):
+    """Σ c·t over the (Python float c, array t) pairs `terms`, left to right; a coefficient ±1
+    multiplies nothing; 0 (of `dtype`) for no terms."""
+    acc = None
+    for c, t in terms:
+        t = t if c == 1.0 else (-t if c == -1.0 else c * t)
+        acc = t if acc is None else acc + t
+    return jnp.zeros((), dtype) if acc is None else acc
 
 
 def _concrete(x) -> bool:
@@ -284,7 +285,7 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
     n = red.basis.shape[-1]
     Y = dt * red.X(xi)
     eye = jnp.eye(n, dtype=Y.dtype)
-    Fm, Fp = eye - 0.5 * Y, eye + 0.5 * Y
+    Fm = eye - 0.5 * Y
     mm = _linalg.matmul
     need_F = outgoing or (system.has_potential and scheme == "right")
     # F = lie.cayley_exp(Y), with its products written out for XLA to fuse
@@ -301,7 +302,7 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
         r = mu - even - odd
     else:
         P = red.X_inv_adjoint(g)
-        r = mu - red.X_adjoint(mm(mm(Fm.T, P), Fp.T))
+        r = mu - red.X_adjoint(mm(mm(Fm.T, P), (eye + 0.5 * Y).T))
     if g_Q is not None and scheme == "left":
         r = r + dt * red.X_adjoint(mm(Q0.T, g_Q))
     if not outgoing:
@@ -362,12 +363,7 @@ class CayleyPolynomial:
             return x2[ix[:2]] * gg[ix[2]]
 
         def part(d, k):
-            acc = None
-            for c, ix in self.terms[d][k]:
-                f = factor(ix)
-                t = f if c == 1.0 else (-f if c == -1.0 else c * f)
-                acc = t if acc is None else acc + t
-            return jnp.zeros((), dtype) if acc is None else acc
+            return _weighted_sum(((c, factor(ix)) for c, ix in self.terms[d][k]), dtype)
 
         m = len(self.terms[0])
         even = jnp.stack([part(0, k) + (dt * dt) * part(2, k) for k in range(m)]).reshape(xi.shape)
@@ -388,24 +384,26 @@ def cayley_polynomial(red: MatrixGroupReduction) -> CayleyPolynomial | None:
     basis = red.basis
     m, n = basis.shape[0], basis.shape[1]
     P = red.pinv.reshape(m, n, n)  # P[l] = X^{-T} e_l
-    XT = lambda M: np.einsum("kab,...ab->...k", basis, M)
+    XT = lambda M: np.einsum("kab,...ab->...k", basis, M)  # output index k last
     Xt = np.swapaxes(basis, 1, 2)  # X(e_i)^T
-    A0 = XT(P).T  # [k, l]
+    A0 = XT(P)  # [l, k]
     # [i, l, k]: ½ Xᵀ(P_l X_iᵀ − X_iᵀ P_l)
     A1 = 0.5 * XT(np.einsum("lab,ibc->ilac", P, Xt) - np.einsum("iab,lbc->ilac", Xt, P))
-    # [i, j, l, k]: −¼ Xᵀ(X_iᵀ P_l X_jᵀ), symmetrised over (i, j)
+    # [i, j, l, k]: −¼ Xᵀ(X_iᵀ P_l X_jᵀ), summed over both orders of (i, j) for i < j (the
+    # products ξᵢξⱼ are formed for i ≤ j only); i = j once
     A2 = -0.25 * XT(np.einsum("iab,lbc,jcd->ijlad", Xt, P, Xt))
     A2 = A2 + np.swapaxes(A2, 0, 1)
+    A2[np.arange(m), np.arange(m)] *= 0.5
     cut = 1e-14 * max(np.max(np.abs(A0)), np.max(np.abs(A1)), np.max(np.abs(A2)), 1e-300)
-    keep = lambda c: abs(c) > cut
-    deg0 = tuple(tuple((float(A0[k, l]), (l,)) for l in range(m) if keep(A0[k, l])) for k in range(m))
-    deg1 = tuple(tuple((float(A1[i, l, k]), (i, l)) for i in range(m) for l in range(m) if keep(A1[i, l, k]))
-                 for k in range(m))
-    # i < j carries both orders (the symmetrised sum); i = j once (the sum doubled it)
-    deg2 = tuple(tuple((float(A2[i, j, l, k] if i < j else 0.5 * A2[i, i, l, k]), (i, j, l))
-                       for i in range(m) for j in range(i, m) for l in range(m)
-                       if keep(A2[i, j, l, k] if i < j else 0.5 * A2[i, i, l, k]))
-                 for k in range(m))
-    if sum(len(t) for part in (deg0, deg1, deg2) for t in part) > POLYNOMIAL_MAX_TERMS:
+
+    def nonzero(A, factors):  # per output k: (coefficient, factor indices) where it is not zero
+        return tuple(tuple((float(A[ix + (k,)]), ix) for ix in factors if abs(A[ix + (k,)]) > cut)
+                     for k in range(m))
+
+    pairs = [(i, j) for i in range(m) for j in range(i, m)]
+    terms = (nonzero(A0, [(l,) for l in range(m)]),
+             nonzero(A1, [(i, l) for i in range(m) for l in range(m)]),
+             nonzero(A2, [ij + (l,) for ij in pairs for l in range(m)]))
+    if sum(len(t) for part in terms for t in part) > POLYNOMIAL_MAX_TERMS:
         return None
-    return CayleyPolynomial(terms=(deg0, deg1, deg2))
+    return CayleyPolynomial(terms=terms)

@@ -286,14 +286,10 @@ def _heavy_se3():
                             velocity_map=lambda x, Q: Q @ _se3_hat(x), derivative_map=cj.cayley)
 
 
-@pytest.mark.parametrize("name", ["rigid body", "heavy top", "SE(2)", "SE(3) with potential", "SO(4)"])
-@pytest.mark.parametrize("scheme", ["left", "right"])
-def test_closed_form_cayley_step_equals_the_autodiff_step(name, scheme):
-    """`reduced_step` uses the Cayley map's explicit derivative; `reduced_residual` and
-    `outgoing_body_momentum` differentiate exp̄/loḡ by autodiff. Same numbers."""
+def _reduced_case(name):
+    """(system, Q0, dim V, reduction) of one of the matrix groups the Cayley step is checked on."""
     from clebsch_jax import _reduction as R
 
-    rng = np.random.default_rng(5)
     system, Q0, m = {
         "rigid body": (cj.models.rigid_body(INERTIA), cj.lie.so3_exp(jnp.array([0.3, 0.2, -0.1])), 3),
         "heavy top": (cj.models.heavy_top(np.array([1.0, 1.2, 0.5]), 1.7, (0.0, 0.6, 0.8)),
@@ -304,6 +300,18 @@ def test_closed_form_cayley_step_equals_the_autodiff_step(name, scheme):
     }[name]
     red, why = R.find_reduction(system, Q0, jnp.zeros(m))
     assert red is not None, why
+    return system, Q0, m, red
+
+
+@pytest.mark.parametrize("name", ["rigid body", "heavy top", "SE(2)", "SE(3) with potential", "SO(4)"])
+@pytest.mark.parametrize("scheme", ["left", "right"])
+def test_closed_form_cayley_step_equals_the_autodiff_step(name, scheme):
+    """`reduced_step` uses the Cayley map's explicit derivative; `reduced_residual` and
+    `outgoing_body_momentum` differentiate exp̄/loḡ by autodiff. Same numbers."""
+    from clebsch_jax import _reduction as R
+
+    rng = np.random.default_rng(5)
+    system, Q0, m, red = _reduced_case(name)
     # one random draw per case: every call here runs op by op (the exponential's logm is slow so)
     xi, mu, dt = jnp.asarray(rng.normal(size=m)), jnp.asarray(rng.normal(size=m)), 0.1
     r, mu1, Q1 = R.reduced_step(system, red, scheme, dt, mu, Q0, xi)
@@ -331,13 +339,7 @@ def test_cayley_polynomial_is_the_matrix_form(name, monkeypatch):
     from clebsch_jax import _reduction as R
 
     rng = np.random.default_rng(11)
-    system, Q0, m = {
-        "rigid body": (cj.models.rigid_body(INERTIA), cj.lie.so3_exp(jnp.array([0.3, 0.2, -0.1])), 3),
-        "SE(3) with potential": (_heavy_se3(), jnp.asarray(cj.lie.cayley_exp(_se3_hat(jnp.arange(6.0) / 7))), 6),
-        "SO(4)": (_system(lambda x, Q: Q @ _so_n_hat(4)(x)), cj.lie.cayley_exp(_so_n_hat(4)(jnp.arange(6.0) / 9)), 6),
-    }[name]
-    red, why = R.find_reduction(system, Q0, jnp.zeros(m))
-    assert red is not None, why
+    system, Q0, m, red = _reduced_case(name)
     poly = R.cayley_polynomial(red)
     assert poly is not None
     n_terms = [sum(len(t) for t in part) for part in poly.terms]
