@@ -133,7 +133,21 @@ class StepPlan:
 def plan_steps(scheme: str, base_order: int, base_symmetric: bool, order, composition) -> StepPlan:
     """The `StepPlan` for `integrate`'s `scheme`, `order` (None, 2, 4, 6, 8) and `composition`
     (None, a `Composition` or the name of one in `COMPOSITIONS`). `base_order` and
-    `base_symmetric` describe the principle `scheme` with the system's derivative map."""
+    `base_symmetric` describe the principle `scheme` with the system's derivative map.
+
+    `scheme="gauss"` is not composed: `order` (None: 2) picks the Gauss–Legendre tableau of
+    order/2 stages (`clebsch_jax._collocation`), one solve per step."""
+    if scheme == "gauss":
+        if composition is not None:
+            raise ValueError("composition: scheme='gauss' reaches its order with stages, not by composition; "
+                             "pass order=2, 4, 6 or 8 and no composition.")
+        if order is None:
+            order = 2
+        if order not in (2, 4, 6, 8):
+            raise ValueError(f"order: expected None, 2, 4, 6 or 8, got {order!r}.")
+        stages = order // 2
+        return StepPlan((1.0,), (("gauss", 1.0),), order, True, True,
+                        f"Gauss-Legendre {stages}-stage PRK")
     if composition is not None:
         if isinstance(composition, str):
             if composition not in COMPOSITIONS:

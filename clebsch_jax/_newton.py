@@ -25,7 +25,7 @@ from jax.flatten_util import ravel_pytree
 
 from . import _linalg
 
-__all__ = ["NewtonStats", "Status", "newton_solve", "newton_solve_reusing"]
+__all__ = ["NewtonStats", "Status", "newton_solve", "newton_solve_reusing", "fixed_point_solve"]
 
 
 class Status:
@@ -37,6 +37,7 @@ class Status:
     SINGULAR = 3
     SKIPPED = 4  # not attempted: an earlier step of this batch member failed
     LEGENDRE = 5  # the nodal velocity could not be recovered from (Q, p)
+    DIVERGED = 6  # a fixed-point iteration (Gauss-Legendre step) stopped contracting
 
     MESSAGES = {
         SUCCESS: "converged",
@@ -46,6 +47,7 @@ class Status:
         SKIPPED: "not attempted because an earlier step failed",
         LEGENDRE: "the nodal velocity could not be recovered from (Q, p) by Lemma 7's "
         "relation dl/dxi(xi, Q) = -p<>Q",
+        DIVERGED: "the fixed-point iteration of a Gauss-Legendre step stopped contracting (dt too large for it)",
     }
 
 
@@ -384,3 +386,63 @@ def implicit_root(F: Callable, x0: jax.Array, loop: Callable, tangent_solve: Cal
         status=stats.status.astype(jnp.int32),
         jacobians=stats.jacobians.astype(jnp.int32),
     ), extra
+
+
+SWEEPS_PER_TEST = 2
+"""Sweeps of `fixed_point_solve` between two convergence tests. Two: the updates of a Gauss
+sweep alternate in size (measured: ×1.3 then ×0.08, ...), so pairs of sweeps contract
+steadily; and a test per pair costs less (rigid-body batch, 200 bodies, order 8, Δt = 0.25:
+1.6 s against 2.5 s per 4000 steps for a test per sweep, 1.7-1.9 s for 3 or 4 sweeps; the
+sweeps per step rose from 12.0 to 12.6)."""
+
+
+def fixed_point_solve(G: Callable, guess, *, rtol: float, atol: float, max_iterations: int):
+    r"""Solve $z = G(z)$ for a pytree z by the iteration $z \leftarrow G(z)$ (sweeps), for a
+    contraction G with a good guess (a Gauss–Legendre step, `clebsch_jax._collocation`).
+
+    Tests convergence after every `SWEEPS_PER_TEST` sweeps, on the size η of the last update,
+    by `_converged` with the previous test's η (with `rtol = atol = 0`: at round-off). Fails
+    with `Status.NONFINITE` on a non-finite iterate, `Status.DIVERGED` when, from the third
+    test on, η grew since the last test while not at round-off (the map is not contracting:
+    Δt too large), and `Status.MAX_ITERATIONS` after `max_iterations` sweeps.
+    `stats.iterations` counts sweeps, `stats.jacobians` is 0, `stats.residual_norm` is η
+    (max|G(z) − z| at the iterate before the last: the residual the loop already has, not one
+    more evaluation). Derivatives by the implicit function theorem on $F(z) = z - G(z)$ with a
+    dense tangent solve.
+    **Returns:** `(z, NewtonStats)`."""
+    flat0, unravel = ravel_pytree(guess)
+
+    def F_flat(x):
+        return x - ravel_pytree(G(unravel(x)))[0]
+
+    def loop(f, x0):
+        g = lambda x: x - f(x)  # G itself, from the residual custom_root passes in
+
+        def cond(state):
+            return (~state[3]) & (state[0] < max_iterations)
+
+        def body(state):
+            k, z, previous, _, _ = state
+            z_mid = z
+            for _ in range(SWEEPS_PER_TEST - 1):
+                z_mid = g(z_mid)
+            z_new = g(z_mid)
+            eta = jnp.max(jnp.abs(z_new - z_mid))
+            nonfinite = ~jnp.all(jnp.isfinite(z_new))
+            converged = ~nonfinite & _converged(eta, previous, k, _tolerance(z_new, rtol, atol), z_new)
+            scale = jnp.maximum(1.0, jnp.max(jnp.abs(z_new)))
+            diverged = (k >= 2 * SWEEPS_PER_TEST) & (eta > previous) & (eta > 1e4 * jnp.finfo(z.dtype).eps * scale)
+            status = jnp.where(nonfinite, Status.NONFINITE,
+                               jnp.where(diverged & ~converged, Status.DIVERGED, Status.SUCCESS)).astype(jnp.int32)
+            done = converged | nonfinite | diverged
+            return k + SWEEPS_PER_TEST, jnp.where(nonfinite, z, z_new), eta, done, status
+
+        init = (jnp.asarray(0, jnp.int32), x0, jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(False),
+                jnp.asarray(Status.SUCCESS, jnp.int32))
+        k, z, eta, done, status = jax.lax.while_loop(cond, body, init)
+        status = jnp.where(done, status, Status.MAX_ITERATIONS).astype(jnp.int32)
+        return z, NewtonStats(iterations=k, residual_norm=eta, status=status,
+                              jacobians=jnp.asarray(0, jnp.int32)), None
+
+    flat, stats, _ = implicit_root(F_flat, flat0, loop, _dense_tangent_solve)
+    return unravel(flat), stats

@@ -138,9 +138,10 @@ def failure_message(code, step, n_steps, t, iterations, residual, member=None) -
             "the Lagrangian may be degenerate in xi (if so, build the system with degenerate=True, which "
             "uses the midpoint principle). Use throw=False to inspect the solution."
         )
+    unit = "fixed-point sweeps" if code == Status.DIVERGED else "Newton iterations"
     return (
         f"clebsch_jax.integrate: {where}step {step} of {n_steps} (t = {t:.6g}): {what} "
-        f"(residual {residual:.3e} after {iterations} Newton iterations). Later states are "
+        f"(residual {residual:.3e} after {iterations} {unit}). Later states are "
         "marked invalid (NaN). Try a smaller dt, a larger max_newton_iterations, or "
         "throw=False to inspect the partial solution."
     )

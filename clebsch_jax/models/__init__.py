@@ -28,9 +28,13 @@ from ._point_vortices import vortex_velocity as vortex_velocity
 from ._rigid_body import ROTATION_TOLERANCE as ROTATION_TOLERANCE
 from ._rigid_body import check_rotation as check_rotation
 from ._rigid_body import rigid_body as rigid_body
+from ._rigid_body import rigid_body_vector as rigid_body_vector
+from ._rigid_body import rigid_body_vector_start as rigid_body_vector_start
 
 __all__ = [
     "rigid_body",
+    "rigid_body_vector",
+    "rigid_body_vector_start",
     "check_rotation",
     "ROTATION_TOLERANCE",
     "heavy_top",

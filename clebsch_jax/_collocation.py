@@ -1,0 +1,215 @@
+r"""The Gauss–Legendre discretisation of the Clebsch principle (the paper's outlook: higher order
+through partitioned Runge–Kutta discretisations).
+
+The Clebsch action $\int l(\xi, Q) + \langle P, \dot Q - \mathcal L_\xi Q\rangle\,dt$ is the
+phase-space action $\int \langle P, \dot Q\rangle - H\,dt$ of the *Clebsch Hamiltonian*
+
+$$ H(\xi, Q, P) = \langle P, \mathcal L_\xi Q\rangle - l(\xi, Q), $$
+
+extremised over $\xi$ pointwise in time. Discretising it with the quadrature and the
+collocation polynomial of the s-stage Gauss–Legendre method (the variational partitioned
+Runge–Kutta construction: Marsden & West, Acta Numerica 2001, §2.6.5; Hairer, Lubich & Wanner,
+*Geometric Numerical Integration*, §VI.6.3) gives, for the stage values $(\xi_i, Q_i, P_i)$ of
+a step of size h from $(Q^n, P^n)$,
+
+$$ Q_i = Q^n + h\sum_j a_{ij}\,\partial_P H_j, \qquad P_i = P^n - h\sum_j a_{ij}\,\partial_Q H_j,
+   \qquad \partial_\xi H(\xi_i, Q_i, P_i) = 0, $$
+
+and $Q^{n+1} = Q^n + h\sum_i b_i\,\partial_P H_i$, $P^{n+1} = P^n - h\sum_i b_i\,\partial_Q H_i$:
+the Gauss method on both parts (for Gauss the adjoint coefficients $b_j - b_j a_{ji}/b_i$ of the
+P part are $a_{ij}$ again). The third equation is the Clebsch relation
+$\delta l/\delta\xi = \partial_\xi\langle P, \mathcal L_\xi Q\rangle$ at each stage. Every
+derivative is `jax.grad` of H: nothing model-specific is written by hand.
+
+Facts: order 2s, symmetric, symplectic in $(Q, P)$; it keeps every quadratic invariant of the
+Clebsch equations exactly — in particular the momentum map of every linear symmetry (Noether)
+and, for a velocity map linear in Q, the invariants of the linear flow ($Q^TQ$ on $SO(n)$,
+$|Q|^2$, $|P|^2$, $Q\cdot P$ on $\mathbb R^3$). It is G-equivariant for linear actions, so on
+a Clebsch representation of $\mathfrak{so}(3)^*$ it descends to a Lie–Poisson map of the body
+momentum that keeps the Casimir $|\Pi|^2$ to round-off (McLachlan, Modin & Verdier, *Collective
+symplectic integrators*, Nonlinearity 27 (2014) 1525). The derivative map of the system is not
+used: the collocation polynomial supplies $\dot Q$. One stage is the implicit midpoint rule
+(the midpoint principle with `forward_difference`).
+
+**Round-off.** The symplecticity condition $b_ia_{ij} + b_ja_{ji} = b_ib_j$ does not hold
+exactly for rounded coefficients, and its residue (~1e-17) makes quadratic invariants drift
+linearly (measured: |Q|² by 8e-17 per step at Δt = 0.25 on the rigid body). As proposed by
+Antoñana, Makazaga & Murua (SIAM J. Sci. Comput. 39 (2017) A2411) the stages are written with
+$\mu_{ij} = a_{ij}/b_j$ and the increments $\Delta Q_j = h b_j \dot Q_j$,
+$Q_i = Q^n + \sum_j\mu_{ij}\Delta Q_j$: the condition becomes $\mu_{ij} + \mu_{ji} = 1$, which
+the stored μ satisfy exactly in floating point ($\mu_{ii} = 1/2$; of each pair the entry below
+1/2 is stored as 1 minus the other, exact by Sterbenz's lemma). The drift then becomes a
+random walk (|Q|² within 5e-15 after 4000 steps).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _linalg
+from ._system import ClebschSystem
+
+__all__ = ["GaussLegendre", "gauss_legendre", "GaussUnknowns", "clebsch_hamiltonian", "stage_values",
+           "stage_hessians", "gauss_sweep", "gauss_update", "extrapolate", "GAUSS_ORDERS"]
+
+GAUSS_ORDERS = (2, 4, 6, 8)
+"""Orders `integrate(..., scheme="gauss", order=k)` accepts (k/2 stages)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GaussLegendre:
+    """The s-stage Gauss–Legendre tableau in the form the march uses, with its facts.
+
+    - `c` (s,): nodes in (0, 1); `b` (s,): weights; `a` (s, s): the Butcher matrix;
+    - `mu` (s, s): $a_{ij}/b_j$ with $\\mu_{ij} + \\mu_{ji} = 1$ exactly (module docstring);
+    - `extrapolation` (s, s): the values at $1 + c_i$ of the Lagrange polynomials through the
+      nodes $c_j$ — the next step's stage guesses from this step's stages (error O(hˢ)).
+    All NumPy float64 constants (static)."""
+
+    stages: int
+    c: np.ndarray
+    b: np.ndarray
+    a: np.ndarray
+    mu: np.ndarray
+    extrapolation: np.ndarray
+
+    @property
+    def order(self) -> int:
+        return 2 * self.stages
+
+    @property
+    def name(self) -> str:
+        return f"Gauss-Legendre {self.stages}-stage PRK"
+
+    symmetric = True
+    symplectic = True
+
+    def __hash__(self):
+        return hash(self.stages)
+
+    def __eq__(self, other):
+        return isinstance(other, GaussLegendre) and other.stages == self.stages
+
+
+@functools.lru_cache(maxsize=None)
+def gauss_legendre(stages: int) -> GaussLegendre:
+    """The `GaussLegendre` tableau with `stages` stages (order 2·stages)."""
+    if not isinstance(stages, int) or stages < 1:
+        raise ValueError(f"stages: expected an int >= 1, got {stages!r}.")
+    x, w = np.polynomial.legendre.leggauss(stages)
+    c, b = (x + 1.0) / 2.0, w / 2.0
+    s = stages
+    a = np.empty((s, s))
+    E = np.empty((s, s))
+    for j in range(s):
+        # the Lagrange basis polynomial of node j, its integral from 0 (collocation: a_ij)
+        lj = np.poly1d([1.0])
+        for k in range(s):
+            if k != j:
+                lj = lj * np.poly1d([1.0, -c[k]]) / (c[j] - c[k])
+        integral = lj.integ()
+        a[:, j] = integral(c) - integral(0.0)
+        E[:, j] = lj(1.0 + c)
+    mu = a / b[None, :]
+    for i in range(s):
+        mu[i, i] = 0.5
+        for j in range(i + 1, s):  # keep the entry >= 1/2; the other is 1 minus it, exactly
+            if mu[i, j] >= 0.5:
+                mu[j, i] = 1.0 - mu[i, j]
+            else:
+                mu[i, j] = 1.0 - mu[j, i]
+    return GaussLegendre(stages=s, c=c, b=b, a=a, mu=mu, extrapolation=E)
+
+
+class GaussUnknowns(NamedTuple):
+    """The unknowns of a Gauss–Legendre step, stacked over stages (leading axis s): the stage
+    velocities ξᵢ and the increments ΔQᵢ = h bᵢ ∂H/∂P, ΔPᵢ = −h bᵢ ∂H/∂Q."""
+
+    xi: jax.Array
+    dQ: jax.Array
+    dP: jax.Array
+
+
+def clebsch_hamiltonian(system: ClebschSystem, xi, Q, P) -> jax.Array:
+    r"""$H(\xi, Q, P) = \langle P, \mathcal L_\xi Q\rangle - l(\xi, Q)$ (module docstring)."""
+    return jnp.sum(P * system.velocity_map(xi, Q)) - system.l(xi, Q)
+
+
+def _combine(mu_row, d):
+    """Σⱼ μᵢⱼ dⱼ for one row of constant (NumPy) coefficients: multiply-adds XLA fuses."""
+    out = None
+    for m, dj in zip(mu_row, d):
+        term = float(m) * dj
+        out = term if out is None else out + term
+    return out
+
+
+def stage_values(tab: GaussLegendre, Q, P, z: GaussUnknowns):
+    """The stage configurations and multipliers $Q_i, P_i$ (leading axis s)."""
+    Qi = jnp.stack([Q + _combine(row, z.dQ) for row in tab.mu])
+    Pi = jnp.stack([P + _combine(row, z.dP) for row in tab.mu])
+    return Qi, Pi
+
+
+def stage_hessians(system: ClebschSystem, tab: GaussLegendre, Q, P, z: GaussUnknowns):
+    """The inverse Hessians of l in ξ at the stage values of `z` (s, dim V, dim V): the matrix
+    of the Newton updates of the Clebsch relations in `gauss_sweep`, formed once per step at the
+    guess (the Hessian moves little within a step; for l quadratic in ξ it is constant)."""
+    Qi, _ = stage_values(tab, Q, P, z)
+
+    def one(xi, q):
+        hess = jax.hessian(lambda x: system.l(x.reshape(xi.shape), q))(xi.ravel())
+        return _linalg.inverse(hess)[0]
+
+    return jax.vmap(one)(z.xi, Qi)
+
+
+def gauss_sweep(system: ClebschSystem, tab: GaussLegendre, h, Q, P, z: GaussUnknowns,
+                inverse_hessians=None) -> GaussUnknowns:
+    r"""One sweep of the iteration whose fixed point is the Gauss–Legendre step.
+
+    From the stage values of `z`: one Newton update of each stage's Clebsch relation
+    $\partial_\xi H(\xi_i, Q_i, P_i) = 0$ in $\xi_i$, with the inverse Hessians of l in ξ
+    `inverse_hessians` (`stage_hessians`; formed here at `z` if None) — exact in one update
+    for l quadratic in ξ — then the increments $\Delta Q_i, \Delta P_i$ at the updated
+    $\xi_i$. A contraction for small enough h (measured on the rigid body, 4 stages: the
+    update shrinks by ~10 per sweep at Δt = 0.25). Its fixed points are the solutions of the
+    stage equations whatever the matrices, as long as they are invertible."""
+    Qi, Pi = stage_values(tab, Q, P, z)
+    if inverse_hessians is None:
+        inverse_hessians = stage_hessians(system, tab, Q, P, z)
+
+    def one(xi, q, p, hinv):
+        r = jax.grad(clebsch_hamiltonian, argnums=1)(system, xi, q, p)  # ∂ξ⟨p, L_ξ q⟩ − δl/δξ
+        xi = xi + _linalg.matvec(hinv, r.ravel()).reshape(xi.shape)
+        dH_dQ, dH_dP = jax.grad(clebsch_hamiltonian, argnums=(2, 3))(system, xi, q, p)
+        return xi, dH_dP, -dH_dQ
+
+    xi, Qdot, Pdot = jax.vmap(one)(z.xi, Qi, Pi, inverse_hessians)
+    w = jnp.asarray(tab.b, dtype=Qdot.dtype).reshape((-1,) + (1,) * (Qdot.ndim - 1)) * h
+    return GaussUnknowns(xi=xi, dQ=w * Qdot, dP=w * Pdot)
+
+
+def gauss_update(Q, P, z: GaussUnknowns):
+    """The step's end point $(Q^{n+1}, P^{n+1}) = (Q^n + \\sum_i \\Delta Q_i, P^n + \\sum_i \\Delta P_i)$."""
+    return Q + jnp.sum(z.dQ, axis=0), P + jnp.sum(z.dP, axis=0)
+
+
+def extrapolate(tab: GaussLegendre, z: GaussUnknowns) -> GaussUnknowns:
+    """The guess for the next step's stages: the collocation polynomials of ξ and of the stage
+    derivatives through this step's stages, continued to the next step's nodes (error O(hˢ);
+    through the stages of the last two steps the guess was worse, 3.7e-3 against 1.3e-4 at
+    Δt = 0.25 on the rigid body: stage values are only accurate to O(hˢ⁺¹), and extrapolating
+    them further amplifies that). The increments carry the weights h·bⱼ, divided out and put
+    back."""
+    E = tab.extrapolation
+    scale = E * (tab.b[:, None] / tab.b[None, :])
+    return GaussUnknowns(xi=jnp.stack([_combine(row, z.xi) for row in E]),
+                         dQ=jnp.stack([_combine(row, z.dQ) for row in scale]),
+                         dP=jnp.stack([_combine(row, z.dP) for row in scale]))

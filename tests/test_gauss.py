@@ -1,0 +1,202 @@
+"""The Gauss–Legendre discretisation of the Clebsch principle (`scheme="gauss"`): its tableau,
+its order against an independent solve, the structure it keeps, and how it fails."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax import diagnostics as dg
+from clebsch_jax._collocation import gauss_legendre
+
+from .helpers import rigid_body_reference
+
+TEST_INERTIA = np.array([2.0, 1.0, 2.0 / 3.0])
+PI0 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
+
+
+@pytest.mark.parametrize("stages", [1, 2, 3, 4])
+def test_tableau_order_conditions_and_exact_symplecticity(stages):
+    """B(2s) and C(s) to round-off; μᵢⱼ + μⱼᵢ = 1 exactly in floating point (no drift of
+    quadratic invariants); the extrapolation keeps constants."""
+    tab = gauss_legendre(stages)
+    b, c, a = tab.b, tab.c, tab.a
+    for k in range(1, 2 * stages + 1):
+        assert abs(np.sum(b * c ** (k - 1)) - 1.0 / k) < 1e-15
+    for k in range(1, stages + 1):
+        assert np.max(np.abs(a @ c ** (k - 1) - c**k / k)) < 1e-15
+    assert np.array_equal(tab.mu + tab.mu.T, np.ones((stages, stages)))
+    assert np.max(np.abs(tab.mu * b[None, :] - a)) < 1e-15
+    assert np.max(np.abs(tab.extrapolation.sum(axis=1) - 1.0)) < 1e-13
+
+
+def test_plan_facts_and_refusals_before_compiling():
+    system = cj.models.rigid_body_vector(TEST_INERTIA)
+    plan = cj.step_plan(system, scheme="gauss", order=8)
+    assert (plan.order, plan.symmetric, plan.symplectic, plan.solves_per_step) == (8, True, True, 1)
+    assert cj.step_plan(system, scheme="gauss").order == 2
+    Q0, P0 = cj.models.rigid_body_vector_start(PI0)
+    bad = [
+        (dict(order=3), r"^order: expected None, 2, 4, 6 or 8"),
+        (dict(order=8, composition="Kahan-Li p8s17"), r"^composition: scheme='gauss'"),
+        (dict(order=4, reduce=True), r"^reduce: the reduced march implements"),
+        (dict(order=4, jacobian="blocks"), r"^jacobian: scheme='gauss'"),
+    ]
+    for kwargs, match in bad:
+        with pytest.raises(ValueError, match=match):
+            cj.integrate(system, Q0, PI0 / TEST_INERTIA, P0=P0, dt=0.1, n_steps=2, scheme="gauss", **kwargs)
+    gamma = np.array([1.0, -1.0])
+    with pytest.raises(ValueError, match=r"^scheme: 'gauss' solves each stage's Clebsch relation"):
+        cj.integrate(cj.models.point_vortices(gamma), np.eye(2), np.zeros((2, 2)), dt=0.1, n_steps=2,
+                     scheme="gauss")
+
+
+# Δt ranges in each order's asymptotic regime, above the reference's 1e-12 floor and below the
+# fixed-point iteration's limit (order 8 diverges at Δt = 1 here); T/Δt an integer (measured).
+GAUSS_DTS = {2: [0.2, 0.1, 0.05], 4: [0.4, 0.2, 0.1], 6: [0.5, 0.4, 0.25, 0.2], 8: [0.8, 0.5, 0.4, 0.32]}
+
+
+@pytest.mark.parametrize("order", [2, 4, 6, 8])
+def test_rigid_body_orders_against_dop853(order):
+    """Gauss–Legendre with order/2 stages on the rigid body on SO(3): Q(T) against SciPy DOP853
+    at rtol 1e-13; log-log fit within 0.15 of the order."""
+    system = cj.models.rigid_body(TEST_INERTIA)
+    T, dts = 8.0, np.array(GAUSS_DTS[order])
+    Q0 = np.asarray(cj.lie.so3_exp(jnp.array([0.3, -0.2, 0.5])))
+    Qref, _ = rigid_body_reference(TEST_INERTIA, Q0, PI0 / TEST_INERTIA, np.array([0.0, T]))
+    run = jax.jit(lambda dt: cj.integrate(system, Q0, PI0 / TEST_INERTIA, dt=dt, n_steps=int(round(T / dts[-1])),
+                                          scheme="gauss", order=order))  # one program, read at t = T
+    errs = []
+    for dt in dts:
+        sol = run(dt)
+        errs.append(np.max(np.abs(np.asarray(sol.Q[int(round(T / dt))]) - Qref[-1])))
+    assert sol.form == "full" and sol.order == order and sol.scheme == "gauss"
+    assert abs(dg.fit_order(dts, errs) - order) < 0.15, errs
+
+
+def test_one_stage_is_the_midpoint_principle():
+    """One Gauss stage is the implicit midpoint rule: the same (Q, p) as the midpoint principle
+    with the forward difference (the full march, Newton), to round-off."""
+    system = cj.models.rigid_body_vector(TEST_INERTIA)
+    Q0, P0 = cj.models.rigid_body_vector_start(PI0)
+    kw = dict(P0=P0, dt=0.1, n_steps=200)
+    gauss = cj.integrate(system, Q0, PI0 / TEST_INERTIA, scheme="gauss", order=2, **kw)
+    mid = cj.integrate(system, Q0, PI0 / TEST_INERTIA, scheme="midpoint", **kw)
+    assert np.max(np.abs(np.asarray(gauss.Q) - np.asarray(mid.Q))) < 1e-13
+    assert np.max(np.abs(np.asarray(gauss.p) - np.asarray(mid.p))) < 1e-13
+
+
+def test_descends_to_the_same_map_of_the_body_momentum():
+    """The Gauss step commutes with the linear symmetries of the Clebsch variables, so the body
+    momentum's map does not depend on which (Q, P) carries it: on SO(3) (3×3 matrices) and on
+    R³ from two different starting pairs, the same Π at every node."""
+    n, dt = 400, 0.25
+    so3 = cj.integrate(cj.models.rigid_body(TEST_INERTIA), np.eye(3), PI0 / TEST_INERTIA, dt=dt, n_steps=n,
+                       scheme="gauss", order=8)
+    vec = cj.models.rigid_body_vector(TEST_INERTIA)
+    Q0, P0 = cj.models.rigid_body_vector_start(PI0)
+    a = cj.integrate(vec, Q0, PI0 / TEST_INERTIA, P0=P0, dt=dt, n_steps=n, scheme="gauss", order=8)
+    # another pair for the same Π0: (Q, P) -> (aQ + bP, cQ + dP) with ad - bc = 1 keeps P × Q
+    Q1, P1 = np.asarray(2.0 * Q0 + P0), np.asarray(-0.5 * Q0 + 0.25 * P0)
+    assert np.max(np.abs(np.cross(P1, Q1) - PI0)) < 1e-15
+    b = cj.integrate(vec, Q1, PI0 / TEST_INERTIA, P0=P1, dt=dt, n_steps=n, scheme="gauss", order=8)
+    # each march ends its solves at round-off, not at the same digits: agreement to ~1e-13
+    assert np.max(np.abs(np.asarray(a.momentum) - np.asarray(so3.momentum))) < 1e-12
+    assert np.max(np.abs(np.asarray(a.momentum) - np.asarray(b.momentum))) < 1e-12
+    assert np.max(np.abs(np.asarray(so3.momentum[-1]) - np.asarray(a.momentum[-1]))) > 0.0  # two computations
+
+
+def test_invariants_rigid_body():
+    """Order 8, 4000 steps of Δt = 0.25 on R³: |Q|², |P|², Q·P and the Casimir |Π|² to round-off
+    (a random walk, thanks to the exact μᵢⱼ + μⱼᵢ = 1), the energy bounded without drift; on
+    SO(3), QᵀQ = I to round-off."""
+    vec = cj.models.rigid_body_vector(TEST_INERTIA)
+    Q0, P0 = cj.models.rigid_body_vector_start(PI0)
+    sol = cj.integrate(vec, Q0, PI0 / TEST_INERTIA, P0=P0, dt=0.25, n_steps=4000, scheme="gauss", order=8)
+    Q, P, mu = np.asarray(sol.Q), np.asarray(sol.p), np.asarray(sol.momentum)
+    for inv in (np.sum(Q * Q, -1), np.sum(P * P, -1), np.sum(Q * P, -1), np.sum(mu * mu, -1)):
+        assert np.max(np.abs(inv - inv[0])) < 2e-14  # measured ≤ 5e-15 (a drift would be ~1e-12 here)
+    E = 0.5 * np.sum(mu**2 / TEST_INERTIA, -1)
+    assert np.max(np.abs(E - E[0])) < 1e-10 * E[0]  # measured 2e-11 relative
+    assert dg.envelope_ratio(E - E[0]) < 1.5
+    assert np.all(np.asarray(sol.stats.jacobians) == 0)
+
+    so3 = cj.integrate(cj.models.rigid_body(TEST_INERTIA), np.eye(3), PI0 / TEST_INERTIA, dt=0.25, n_steps=400,
+                       scheme="gauss", order=8)
+    Qs = np.asarray(so3.Q)
+    assert np.max(np.abs(np.einsum("nji,njk->nik", Qs, Qs) - np.eye(3))) < 1e-14
+
+
+def test_heavy_top_noether_momentum_and_order():
+    """With a potential (the heavy top, l(ξ, Q)): the momentum about the vertical, a linear
+    symmetry's momentum map, to round-off; order 4 against the Euler–Poisson equations."""
+    from scipy.integrate import solve_ivp
+
+    from .test_reduction import _vertical, heavy_top_rhs
+
+    I, mgl, chi = np.array([1.0, 1.0, 0.4]), 1.5, np.array([0.0, 0.0, 1.0])
+    top = cj.models.heavy_top(I, mgl, chi)
+    Q0, w0 = np.asarray(cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))), np.array([0.3, -0.2, 6.0])
+    sol = cj.integrate(top, Q0, w0, dt=0.02, n_steps=500, scheme="gauss", order=4)
+    Jz = np.asarray(dg.noether_momentum(sol, _vertical))[:, 0]
+    assert np.max(np.abs(Jz - Jz[0])) < 1e-12 * np.max(np.abs(sol.momentum[0]))
+    T, dts = 1.0, np.array([0.1, 0.05, 0.025])
+    y = solve_ivp(heavy_top_rhs(I, mgl, chi), (0, T), np.concatenate([Q0.ravel(), w0]), method="DOP853",
+                  rtol=1e-13, atol=1e-13).y[:9, -1]
+    run = jax.jit(lambda dt: cj.integrate(top, Q0, w0, dt=dt, n_steps=int(round(T / dts[-1])), scheme="gauss",
+                                          order=4))
+    errs = [np.max(np.abs(np.asarray(run(dt).Q[int(round(T / dt))]).ravel() - y)) for dt in dts]
+    assert abs(dg.fit_order(dts, errs) - 4) < 0.15, errs
+
+
+def test_symplectic_and_differentiable():
+    """The one-step map (Q, P) -> (Q¹, P¹), differentiated through the fixed-point solve by
+    forward mode (implicit function theorem), is symplectic: JᵀΩJ = Ω; reverse mode agrees."""
+    system = cj.models.rigid_body_vector(TEST_INERTIA)
+    Q0, P0 = cj.models.rigid_body_vector_start(PI0)
+
+    def step(y):
+        sol = cj.integrate(system, y[:3], PI0 / TEST_INERTIA, P0=y[3:], dt=0.3, n_steps=1, scheme="gauss", order=8)
+        return jnp.concatenate([sol.Q[-1], sol.p[-1]])
+
+    y0 = jnp.concatenate([Q0, P0])
+    J = np.asarray(jax.jacfwd(step)(y0))
+    Omega = np.block([[np.zeros((3, 3)), np.eye(3)], [-np.eye(3), np.zeros((3, 3))]])
+    assert np.max(np.abs(J.T @ Omega @ J - Omega)) < 1e-12
+    Jr = np.asarray(jax.jacrev(step)(y0))
+    assert np.max(np.abs(J - Jr)) < 1e-12
+
+
+def test_batch_vmap_and_failure_report():
+    """cj.batch equals vmap; a step too large for the fixed-point iteration fails with the
+    DIVERGED status, named with its step and batch member, never as a silent NaN trajectory."""
+    system = cj.models.rigid_body_vector(TEST_INERTIA)
+    rng = np.random.default_rng(0)
+    Pis = rng.normal(size=(3, 3))
+    Q0s, P0s = jax.vmap(cj.models.rigid_body_vector_start)(jnp.asarray(Pis))
+
+    def run(Q, P, Pi, dt):
+        return cj.integrate(system, Q, Pi / TEST_INERTIA, P0=P, dt=dt, n_steps=50, scheme="gauss", order=8,
+                            throw=False)
+
+    dts = jnp.array([0.2, 0.2, 0.2])
+    a = jax.jit(jax.vmap(run))(Q0s, P0s, jnp.asarray(Pis), dts)
+    b = jax.jit(cj.batch(run))(Q0s, P0s, jnp.asarray(Pis), dts)
+    assert np.all(np.asarray(a.valid)) and np.all(np.asarray(b.valid))
+    assert np.max(np.abs(np.asarray(a.momentum) - np.asarray(b.momentum))) < 1e-14
+
+    dts = jnp.array([0.2, 3.0, 0.2])  # member 1: far beyond the iteration's limit
+    sol = jax.jit(jax.vmap(run))(Q0s, P0s, jnp.asarray(Pis), dts)
+    assert list(np.asarray(sol.result)) == [cj.Status.SUCCESS, cj.Status.DIVERGED, cj.Status.SUCCESS]
+    assert int(sol.failed_step[1]) == 0 and np.all(np.isnan(np.asarray(sol.Q[1, 1:])))
+    def run_throw(Q, P, Pi, dt):
+        return cj.integrate(system, Q, Pi / TEST_INERTIA, P0=P, dt=dt, n_steps=50, scheme="gauss", order=8)
+
+    with pytest.raises(cj.IntegrationError, match=r"batch member 1, step 0 of 50 .*stopped contracting.*sweeps"):
+        sol.raise_if_failed()
+    # raised from a host callback under jit/vmap: JAX re-raises it wrapped in its runtime error
+    with pytest.raises(Exception, match=r"batch member 1, step 0 of 50 .*stopped contracting"):
+        jax.block_until_ready(jax.jit(jax.vmap(run_throw))(Q0s, P0s, jnp.asarray(Pis), dts))
