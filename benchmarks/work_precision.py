@@ -1,11 +1,12 @@
 r"""Work-precision diagram (issue 5): error against wall time for our compositions of orders 2-8
-and for diffrax (Tsit5, Dopri8), SciPy (DOP853) and a NumPy RK4, on the same scenes.
+and Gauss-Legendre methods of orders 4 and 8, and for diffrax (Tsit5, Dopri8), SciPy (DOP853)
+and a NumPy RK4, on the same scenes.
 
 Run from the repository root:
 
-    python benchmarks/work_precision.py            # default run, ~7.5 min on 2 cores at load 4-5
-    python benchmarks/work_precision.py --long     # the rigid-body batch at T = 1e4 only (~12 min at
-                                                   # load 1-4), written as work_precision_long.{json,png}
+    python benchmarks/work_precision.py            # default run, ~5.3 min on 2 cores at load 1-2
+    python benchmarks/work_precision.py --long     # the rigid-body batch at T = 1e4 only (~9 min at
+                                                   # load 1-2), written as work_precision_long.{json,png}
     python benchmarks/work_precision.py --quick    # smoke test, tiny sizes (not a measurement)
 
 **Scenes** (one process, one run, the same initial conditions for every method):
@@ -25,6 +26,10 @@ Run from the repository root:
   body: the reduced march (Cayley, `reconstruct=False`) batched over the bodies by
   `clebsch_jax.batch` (jax.vmap's meaning, bodies along the last axis inside: ~1.5× faster
   than `jax.vmap` here);
+  rigid body also `scheme="gauss"` (orders 4 and 8: the Gauss-Legendre PRK discretisation of
+  the Clebsch principle) on the body in Clebsch variables on R³ (`models.rigid_body_vector`, each
+  body's (Q, P) from `rigid_body_vector_start(Π0)`), batched the same way; its "Newton updates"
+  are fixed-point sweeps, its Jacobians 0;
   vortices: the midpoint principle (= implicit midpoint rule) and its compositions, one system,
   `jacobian="dense"` for N = 4 and `"blocks"` for N = 100. Every Newton solve to round-off (the
   default `rtol = atol = 0`). A run of n steps is made of `n / chunk` calls of `integrate` of
@@ -78,10 +83,12 @@ Run from the repository root:
 best order's max energy error at least 100x smaller than the best diffrax solver's, and our best
 global error no worse than Dopri8's. Each method's points are reduced to their Pareto front
 (time up, error down) and interpolated linearly in log-log; at each of 25 log-spaced times over
-our time range, ours = the best of our orders there, diffrax = the best of Tsit5/Dopri8 there. At
-times beyond diffrax's slowest point, diffrax is held at its most accurate point (flagged
-`held`: diffrax gets less time than ours, which favours ours); times before its fastest point are
-skipped. Met if the target holds at every compared time.
+our time range, ours = the best of our methods (compositions and Gauss-Legendre) there, diffrax =
+the best of Tsit5/Dopri8 there. A method past its slowest point is held at its most accurate
+point, for both sides (flagged `held` / `ours_held`: a method that reaches an error in less time
+reaches it in the time compared too); for diffrax this also means it was not given the time to go
+further, which favours ours. Times before diffrax's fastest point are skipped. Met if the target
+holds at every compared time.
 
 Outputs (in `--out`, default `benchmarks/results`): `work_precision.json` (all points, config,
 reference, target comparison, machine and load) and `work_precision.png` (error against wall
@@ -124,6 +131,7 @@ DEFAULT = {
     "rigid_body": {
         "batch": 200, "T": 1e3, "n_samples": 100, "chunk": 500,
         "ours": {2: (0.2, 0.1, 0.05), 4: (0.4, 0.2, 0.1), 6: (0.5, 0.25), 8: (0.5, 0.25, 0.125)},
+        "gauss": {4: (0.2, 0.1), 8: (0.5, 0.25, 0.125, 0.0625)},
         "tsit5": (1e-6, 1e-8, 1e-10, 1e-12), "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
         "dop853": (1e-7, 1e-9, 1e-11), "rk4": (0.1, 0.05, 0.025),
     },
@@ -144,6 +152,7 @@ LONG = {
     "rigid_body": {
         "batch": 200, "T": 1e4, "n_samples": 1000, "chunk": 500,
         "ours": {2: (0.1,), 4: (0.4, 0.2), 6: (0.5,), 8: (0.5, 0.25)},
+        "gauss": {8: (0.5, 0.25, 0.125, 0.0625)},
         "tsit5": (1e-8, 1e-10, 1e-12), "dopri8": (1e-8, 1e-10, 1e-12, 1e-13),
         "dop853": (1e-8, 1e-11), "rk4": (0.05,),
     },
@@ -151,7 +160,7 @@ LONG = {
 QUICK = {
     "rigid_body": {
         "batch": 4, "T": 20.0, "n_samples": 10, "chunk": 50,
-        "ours": {2: (0.1,), 8: (0.4,)}, "tsit5": (1e-8,), "dopri8": (1e-8, 1e-13),
+        "ours": {2: (0.1,), 8: (0.4,)}, "gauss": {8: (0.4,)}, "tsit5": (1e-8,), "dopri8": (1e-8, 1e-13),
         "dop853": (1e-9,), "rk4": (0.1,),
     },
     "vortices_4": {
@@ -209,49 +218,73 @@ class RigidBody:
         d = np.linalg.norm(np.asarray(y) - ref, axis=-1)
         return {"global_error": float(np.max(d)), "global_error_median": float(np.median(d))}
 
-    def ours_program(self, order: int, compiler_options=None):
+    def ours_program(self, order: int, compiler_options=None, scheme=None):
         """jit(m0 (B, 3), dt, n_chunks) -> (Pi(T), max energy error, max Casimir error, Newton
-        counters, all valid): n_chunks * chunk steps of the reduced march, batched over bodies."""
+        counters, all valid): n_chunks * chunk steps, batched over bodies. Compositions: the
+        reduced march (Cayley, Q not reconstructed), restarting each chunk from the last μ.
+        `scheme="gauss"`: the Gauss-Legendre PRK on the rigid body in Clebsch variables on R³
+        (`models.rigid_body_vector`), each body's (Q, P) from `rigid_body_vector_start(Π0)` and
+        carried from chunk to chunk (a restart costs only the first step's cruder guess); its
+        "Newton updates" are fixed-point sweeps."""
         inertia, chunk = jnp.asarray(self.inertia), self.cfg["chunk"]
-        system = models.rigid_body(inertia)
+        if scheme == "gauss":
+            system = models.rigid_body_vector(inertia)
+            start = jax.vmap(models.rigid_body_vector_start)  # carried state: (Q, P)
+
+            def one(state, mu, dt):
+                return cj.integrate(system, state[0], mu / inertia, P0=state[1], dt=dt, n_steps=chunk,
+                                    scheme="gauss", order=order, throw=False)
+
+            def carried(sol):
+                return sol.Q[:, -1], sol.p[:, -1]
+
+            facts = {"system": "rigid_body_vector(inertia)", "form": "full (Q, P on R^3)", "reconstruct": True,
+                     "jacobian": "none (fixed-point sweeps)"}
+        else:
+            system = models.rigid_body(inertia)
+            start = lambda m0: ()  # noqa: E731 -- nothing carried but μ
+
+            def one(state, mu, dt):
+                return cj.integrate(system, jnp.eye(3), mu / inertia, dt=dt, n_steps=chunk, order=order,
+                                    reconstruct=False, throw=False)
+
+            carried = lambda sol: ()  # noqa: E731
+            facts = {"system": "rigid_body(inertia)", "form": "reduced", "reconstruct": False, "jacobian": "dense"}
 
         def energy(mu):
             return 0.5 * jnp.sum(mu**2 / inertia, -1)
 
         def march(m0, dt, n_chunks):
             E0, C0 = energy(m0), jnp.sum(m0**2, -1)
-            run_chunk = cj.batch(lambda mu: cj.integrate(system, jnp.eye(3), mu / inertia, dt=dt, n_steps=chunk,
-                                                         order=order, reconstruct=False, throw=False))
+            run_chunk = cj.batch(lambda state, mu: one(state, mu, dt))
 
             def body(_, carry):
-                mu, e_max, c_max, upd, upd_slowest, jac, ok = carry
-                sol = run_chunk(mu)
+                state, mu, e_max, c_max, upd, upd_slowest, jac, ok = carry
+                sol = run_chunk(state, mu)
                 M = sol.momentum  # (B, chunk + 1, 3), every node
                 e = jnp.max(jnp.abs(energy(M) - E0[:, None]), axis=1) / E0
                 c = jnp.max(jnp.abs(jnp.sum(M**2, -1) - C0[:, None]), axis=1) / C0
                 it = sol.stats.iterations.astype(float)  # (B, chunk)
-                return (M[:, -1], jnp.maximum(e_max, e), jnp.maximum(c_max, c), upd + jnp.sum(it),
+                return (carried(sol), M[:, -1], jnp.maximum(e_max, e), jnp.maximum(c_max, c), upd + jnp.sum(it),
                         upd_slowest + jnp.sum(jnp.max(it, axis=0)), jac + jnp.sum(sol.stats.jacobians.astype(float)),
                         ok & jnp.all(sol.valid))
 
             zero = jnp.zeros(m0.shape[0])
-            init = (m0, zero, zero, 0.0, 0.0, 0.0, jnp.array(True))
+            init = (start(m0), m0, zero, zero, 0.0, 0.0, 0.0, jnp.array(True))
             return jax.lax.fori_loop(0, n_chunks, body, init)
 
         prog = jax.jit(march, compiler_options=compiler_options)
         y0 = jnp.asarray(self.y0)
 
         def call(dt, n_chunks):
-            out = jax.block_until_ready(prog(y0, dt, n_chunks))
-            mu, e, c, upd, upd_slowest, jac, ok = out
+            _, mu, e, c, upd, upd_slowest, jac, ok = jax.block_until_ready(prog(y0, dt, n_chunks))
             B = self.y0.shape[0]
             return {"y_T": np.asarray(mu), "energy_error": float(jnp.max(e)), "casimir_error": float(jnp.max(c)),
                     "updates_per_step": float(upd) / (B * n_chunks * chunk),
                     "updates_per_step_slowest_body": float(upd_slowest) / (n_chunks * chunk),
                     "jacobians_per_step": float(jac) / (B * n_chunks * chunk), "valid": bool(ok)}
 
-        return call, {"system": "rigid_body(inertia)", "form": "reduced", "reconstruct": False,
-                      "jacobian": "dense", "plan": cj.step_plan(system, order=order)}
+        return call, {**facts, "plan": cj.step_plan(system, scheme=scheme, order=order)}
 
 
 class Vortices:
@@ -304,7 +337,7 @@ class Vortices:
     def global_error(self, y, ref) -> dict:
         return {"global_error": float(np.max(np.linalg.norm(np.asarray(y) - ref, axis=-1)))}
 
-    def ours_program(self, order: int, compiler_options=None):
+    def ours_program(self, order: int, compiler_options=None, scheme=None):
         """jit(Q0, dt, n_chunks) -> (Q(T), max |dH|/|H0|, max |dI|, max |dP|, Newton counters,
         all valid): n_chunks * chunk steps, restarting each chunk from the last (Q, p)."""
         G, chunk, jacobian = jnp.asarray(self.gamma), self.cfg["chunk"], self.jacobian
@@ -489,16 +522,20 @@ def run_scene(scene, run: harness.Run) -> dict:
             timing, res = time_point(run, lambda d=dt: numpy_rk4(scene, d), f"{scene.name} rk4 {dt:g}", budget)
             points.append(_peer_point(scene, NUMPY, "rk4", "dt", dt, timing, res, y_ref))
 
-    for order, dts in cfg["ours"].items():
-        with run.case(f"{scene.name}: ours order {order}, dt {list(dts)}"):
-            call, facts = scene.ours_program(order, run.compiler_options)
-            compile_s = warm_up(run, lambda: call(dts[0], 1), f"{scene.name} order {order}")
+    ours = [(None, order, dts) for order, dts in cfg["ours"].items()]
+    ours += [("gauss", order, dts) for order, dts in cfg.get("gauss", {}).items()]
+    for scheme, order, dts in ours:
+        what = f"{'Gauss-Legendre' if scheme else 'composition'} order {order}"
+        with run.case(f"{scene.name}: ours {what}, dt {list(dts)}"):
+            call, facts = scene.ours_program(order, run.compiler_options, scheme=scheme)
+            compile_s = warm_up(run, lambda: call(dts[0], 1), f"{scene.name} {what}")
             plan = facts.pop("plan")
             for dt in dts:
                 n_chunks = _steps(T, dt * cfg["chunk"])
                 timing, res = time_point(run, lambda d=dt, n=n_chunks: call(d, n),
-                                         f"{scene.name} order {order} dt {dt:g}", budget)
-                points.append(_ours_point(scene, order, dt, n_chunks, timing, res, y_ref, plan, facts, compile_s))
+                                         f"{scene.name} {what} dt {dt:g}", budget)
+                points.append(_ours_point(scene, order, dt, n_chunks, timing, res, y_ref, plan, facts, compile_s,
+                                          method=f"{scheme or 'order'}{order}"))
 
     # The reference's own error: its distance to the tightest Dopri8 and DOP853 points.
     check = {}
@@ -526,12 +563,12 @@ def _peer_point(scene, family, method, param_name, param, timing, res, y_ref, co
     return point
 
 
-def _ours_point(scene, order, dt, n_chunks, timing, res, y_ref, plan, facts, compile_s) -> dict:
+def _ours_point(scene, order, dt, n_chunks, timing, res, y_ref, plan, facts, compile_s, method) -> dict:
     n_steps = n_chunks * scene.cfg["chunk"]
     solves = plan.solves_per_step
     members = scene.y0.shape[0] if scene.name == "rigid_body" else 1
     point = {
-        "family": OURS, "method": f"order{order}", "order": plan.order, "composition": plan.name,
+        "family": OURS, "method": method, "order": plan.order, "composition": plan.name,
         "solves_per_step": solves, "param_name": "dt", "param": dt, "steps": n_steps, "chunks": n_chunks,
         "valid": res["valid"], "wall_s": timing["wall_s"], "load_1min": timing["load_1min"], "timing": timing,
         "warm_up_s": compile_s,  # first call of the program: compile + one chunk
@@ -604,10 +641,11 @@ def equal_time_comparison(points, measure, peers, ratio_target, floor=None) -> d
     grid = np.geomspace(min(times), max(times), N_COMPARE) if len(set(times)) > 1 else np.array(times[:1])
     rows = []
     for t in grid:
-        o, p = _family_best(ours_fronts, t, hold=False), _family_best(peer_fronts, t, hold=True)
+        o, p = _family_best(ours_fronts, t, hold=True), _family_best(peer_fronts, t, hold=True)
         if o is None or p is None:
             continue
-        row = {"time_s": float(t), "ours": o[0], "ours_method": o[1], "peer": p[0], "peer_method": p[1],
+        row = {"time_s": float(t), "ours": o[0], "ours_method": o[1], "ours_held": o[2], "peer": p[0],
+               "peer_method": p[1],
                "peer_held": p[2], "ratio": p[0] / o[0], "met": bool(p[0] / o[0] >= ratio_target)}
         if floor is not None:
             row["below_reference_floor"] = bool(max(o[0], p[0]) < 3 * floor)
@@ -722,7 +760,8 @@ def print_report(summary: dict) -> None:
             print(f"  {what}: {'MET' if c['met'] else 'NOT MET' if c['met'] is False else 'n/a'} "
                   f"({c['verdict']})")
             for r in c["compared"][:: max(1, len(c["compared"]) // 6)]:
-                print(f"    t = {r['time_s']:8.3g} s: ours {r['ours']:.2e} ({r['ours_method']}), "
+                print(f"    t = {r['time_s']:8.3g} s: ours {r['ours']:.2e} ({r['ours_method']}"
+                      f"{', held' if r.get('ours_held') else ''}), "
                       f"{r['peer_method']} {r['peer']:.2e}{' (held at its tightest point)' if r['peer_held'] else ''}"
                       f", ratio {r['ratio']:.3g}"
                       + (" [below reference floor]" if r.get("below_reference_floor") else ""))
@@ -740,6 +779,8 @@ _STYLE = {  # method -> (marker, colour, label)
     "order4": ("o", "#4292c6", "ours, order 4"),
     "order6": ("o", "#2171b5", "ours, order 6"),
     "order8": ("o", "#08306b", "ours, order 8"),
+    "gauss4": ("*", "#74c476", "ours, Gauss-Legendre order 4"),
+    "gauss8": ("*", "#006d2c", "ours, Gauss-Legendre order 8"),
     "tsit5": ("^", "C1", "diffrax Tsit5"),
     "dopri8": ("v", "C3", "diffrax Dopri8"),
     "dop853": ("s", "C2", "SciPy DOP853"),
@@ -823,7 +864,7 @@ def main(argv=None) -> dict:
             "point_budget_s": args.point_budget,
             "timing": "first call of a compiled program is a sample; more while their total < point_budget_s "
                       "(at most `repeats`); median. Points timed one after another, load recorded per point.",
-            "scenes": {s: {k: ({str(o): list(d) for o, d in v.items()} if k == "ours" else v)
+            "scenes": {s: {k: ({str(o): list(d) for o, d in v.items()} if k in ("ours", "gauss") else v)
                            for k, v in config[s].items()} for s in names},
             "inertia": list(INERTIA), "Pi0": list(PI0), "seed": SEED, "reference_rtol": REFERENCE_RTOL,
             "atol": "rtol * scale (rigid body 1; vortices max |Q0|)", "max_steps": MAX_STEPS,

@@ -270,7 +270,7 @@ def integrate(
       fixed-point solve of its stages (`stats.iterations` counts sweeps, at most 5 ×
       `max_newton_iterations`; a step too large for the iteration fails with
       `Status.DIVERGED`). For l regular in ξ (not `degenerate=True`). On the rigid-body batch
-      of `benchmarks/work_precision.py` its order 8 is ~100× more accurate than the order-8
+      of `benchmarks/work_precision.py` its order 8 is 120–135× more accurate than the order-8
       composition at the same Δt, and faster.
     - `reduce`: `"auto"` (default) uses the reduced march when it applies and `need_P` is
       False; `True` forces it (a `ValueError` says why when it does not apply); `False`

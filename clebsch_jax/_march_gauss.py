@@ -10,7 +10,7 @@ per stage and forms no Jacobian. Measured on the rigid body in Clebsch variables
 (`models.rigid_body_vector`), 4 stages, 200 bodies through `cj.batch`, scratch runs: 18-19
 sweeps per step on average at Δt = 0.5, 12.6 at 0.25, 9.3 at 0.125; 2.0 µs per body-step at
 Δt = 0.25, where a step of the order-8 composition of Cayley steps costs ~9 µs (17 solves of
-~0.53 µs) and is ~100× less accurate (`benchmarks/work_precision.py`).
+~0.53 µs) and is 120–135× less accurate (`benchmarks/work_precision.py`).
 """
 
 from __future__ import annotations
