@@ -24,6 +24,8 @@ import dataclasses
 
 import numpy as np
 
+from ._collocation import GAUSS_ORDERS
+
 __all__ = [
     "Composition", "StepPlan", "COMPOSITIONS", "DEFAULT_COMPOSITIONS", "plan_steps",
     "SUZUKI_4", "TRIPLE_JUMP_4", "YOSHIDA_6", "KAHAN_LI_6", "SUZUKI_UMENO_8", "KAHAN_LI_8",
@@ -143,7 +145,7 @@ def plan_steps(scheme: str, base_order: int, base_symmetric: bool, order, compos
                              "pass order=2, 4, 6 or 8 and no composition.")
         if order is None:
             order = 2
-        if order not in (2, 4, 6, 8):
+        if order not in GAUSS_ORDERS:
             raise ValueError(f"order: expected None, 2, 4, 6 or 8, got {order!r}.")
         stages = order // 2
         return StepPlan((1.0,), (("gauss", 1.0),), order, True, True,

@@ -26,11 +26,12 @@ from ._newton import fixed_point_solve
 from ._scan import assemble, march
 from ._system import ClebschSystem, momentum_map
 
-__all__ = ["march_gauss", "SWEEPS_PER_ITERATION"]
+__all__ = ["march_gauss", "SWEEPS_PER_NEWTON_ITERATION"]
 
-SWEEPS_PER_ITERATION = 5
-"""The cap on sweeps per step is `SWEEPS_PER_ITERATION × max_newton_iterations` (100 by
-default): a sweep gains about one digit where a Newton update gains many."""
+SWEEPS_PER_NEWTON_ITERATION = 5
+"""`max_newton_iterations` read for sweeps: a step may take `SWEEPS_PER_NEWTON_ITERATION ×
+max_newton_iterations` sweeps (100 by default), a sweep gaining about one digit where a Newton
+update gains many."""
 
 
 def march_gauss(system: ClebschSystem, Q0, xi0, P0, dt, t0, *, n_steps, scheme, plan, rtol, atol,
@@ -41,14 +42,14 @@ def march_gauss(system: ClebschSystem, Q0, xi0, P0, dt, t0, *, n_steps, scheme, 
     else:  # seeds the first step only; node 0 is solved and checked with the others afterwards
         xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
     solve = functools.partial(fixed_point_solve, rtol=rtol, atol=atol,
-                              max_iterations=SWEEPS_PER_ITERATION * max_newton_iterations)
+                              max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations)
     s = tab.stages
 
     def substep(state, memory, h, scheme, n, alive):
         Q, P, z_last = state
         guess = extrapolate(tab, z_last)
-        lhs = stage_hessians(system, tab, Q, P, guess)
-        z, stats = solve(lambda z: gauss_sweep(system, tab, h, Q, P, z, lhs), guess)
+        hinv = stage_hessians(system, tab, Q, P, guess)
+        z, stats = solve(lambda z: gauss_sweep(system, tab, h, Q, P, z, hinv), guess)
         Q1, P1 = gauss_update(Q, P, z)
         xi_mean = jnp.tensordot(jnp.asarray(tab.b, z.xi.dtype), z.xi, axes=1)
         return (Q1, P1, z), memory, xi_mean, stats

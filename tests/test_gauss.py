@@ -59,7 +59,8 @@ def test_plan_facts_and_refusals_before_compiling():
 GAUSS_DTS = {2: [0.2, 0.1, 0.05], 4: [0.4, 0.2, 0.1], 6: [0.5, 0.4, 0.25, 0.2], 8: [0.8, 0.5, 0.4, 0.32]}
 
 
-@pytest.mark.parametrize("order", [2, 4, 6, 8])
+@pytest.mark.parametrize("order", [pytest.param(2, marks=pytest.mark.slow), 4,
+                                   pytest.param(6, marks=pytest.mark.slow), 8])  # 2, 6: ~5 s each, in CI's slow run
 def test_rigid_body_orders_against_dop853(order):
     """Gauss–Legendre with order/2 stages on the rigid body on SO(3): Q(T) against SciPy DOP853
     at rtol 1e-13; log-log fit within 0.15 of the order."""
@@ -152,6 +153,7 @@ def test_heavy_top_noether_momentum_and_order():
     assert abs(dg.fit_order(dts, errs) - 4) < 0.15, errs
 
 
+@pytest.mark.slow  # ~11 s (compiles forward and reverse derivatives through the solve); in CI's slow run
 def test_symplectic_and_differentiable():
     """The one-step map (Q, P) -> (Q¹, P¹), differentiated through the fixed-point solve by
     forward mode (implicit function theorem), is symplectic: JᵀΩJ = Ω; reverse mode agrees."""
@@ -179,24 +181,25 @@ def test_batch_vmap_and_failure_report():
     Q0s, P0s = jax.vmap(cj.models.rigid_body_vector_start)(jnp.asarray(Pis))
 
     def run(Q, P, Pi, dt):
-        return cj.integrate(system, Q, Pi / TEST_INERTIA, P0=P, dt=dt, n_steps=50, scheme="gauss", order=8,
+        return cj.integrate(system, Q, Pi / TEST_INERTIA, P0=P, dt=dt, n_steps=20, scheme="gauss", order=8,
                             throw=False)
 
+    vmapped = jax.jit(jax.vmap(run))  # one program for the healthy and the failing batch
     dts = jnp.array([0.2, 0.2, 0.2])
-    a = jax.jit(jax.vmap(run))(Q0s, P0s, jnp.asarray(Pis), dts)
+    a = vmapped(Q0s, P0s, jnp.asarray(Pis), dts)
     b = jax.jit(cj.batch(run))(Q0s, P0s, jnp.asarray(Pis), dts)
     assert np.all(np.asarray(a.valid)) and np.all(np.asarray(b.valid))
     assert np.max(np.abs(np.asarray(a.momentum) - np.asarray(b.momentum))) < 1e-14
 
     dts = jnp.array([0.2, 3.0, 0.2])  # member 1: far beyond the iteration's limit
-    sol = jax.jit(jax.vmap(run))(Q0s, P0s, jnp.asarray(Pis), dts)
+    sol = vmapped(Q0s, P0s, jnp.asarray(Pis), dts)
     assert list(np.asarray(sol.result)) == [cj.Status.SUCCESS, cj.Status.DIVERGED, cj.Status.SUCCESS]
     assert int(sol.failed_step[1]) == 0 and np.all(np.isnan(np.asarray(sol.Q[1, 1:])))
     def run_throw(Q, P, Pi, dt):
-        return cj.integrate(system, Q, Pi / TEST_INERTIA, P0=P, dt=dt, n_steps=50, scheme="gauss", order=8)
+        return cj.integrate(system, Q, Pi / TEST_INERTIA, P0=P, dt=dt, n_steps=20, scheme="gauss", order=8)
 
-    with pytest.raises(cj.IntegrationError, match=r"batch member 1, step 0 of 50 .*stopped contracting.*sweeps"):
+    with pytest.raises(cj.IntegrationError, match=r"batch member 1, step 0 of 20 .*stopped contracting.*sweeps"):
         sol.raise_if_failed()
     # raised from a host callback under jit/vmap: JAX re-raises it wrapped in its runtime error
-    with pytest.raises(Exception, match=r"batch member 1, step 0 of 50 .*stopped contracting"):
+    with pytest.raises(Exception, match=r"batch member 1, step 0 of 20 .*stopped contracting"):
         jax.block_until_ready(jax.jit(jax.vmap(run_throw))(Q0s, P0s, jnp.asarray(Pis), dts))
