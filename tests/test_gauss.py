@@ -48,6 +48,10 @@ def test_plan_facts_and_refusals_before_compiling():
     for kwargs, match in bad:
         with pytest.raises(ValueError, match=match):
             cj.integrate(system, Q0, PI0 / TEST_INERTIA, P0=P0, dt=0.1, n_steps=2, scheme="gauss", **kwargs)
+    with pytest.raises(ValueError, match=r"^Pi0: the zero momentum has no Clebsch pair"):
+        cj.models.rigid_body_vector_start(np.zeros(3))
+    with pytest.raises(ValueError, match=r"^Pi0: expected a body momentum of shape \(3,\)"):
+        cj.models.rigid_body_vector_start(np.ones(4))
     gamma = np.array([1.0, -1.0])
     with pytest.raises(ValueError, match=r"^scheme: 'gauss' solves each stage's Clebsch relation"):
         cj.integrate(cj.models.point_vortices(gamma), np.eye(2), np.zeros((2, 2)), dt=0.1, n_steps=2,
