@@ -6,6 +6,9 @@ integrators are judged by conservation to round-off, which float32 cannot show.
 The data path, one module each:
 system (`ClebschSystem`) → discrete action (`discrete_action`) → residual (Lemma 20, by
 `jax.grad`) → Newton (`newton_solve`) → scan (`integrate`) → `Solution` → `diagnostics`.
+`scheme="gauss"` takes the parallel path: the Gauss–Legendre discretisation of the same action
+(`_collocation`: its stage equations by `jax.grad` of the Clebsch Hamiltonian) → fixed-point
+sweeps (`_newton.fixed_point_solve`) → the same scan and `Solution`.
 """
 
 import jax as _jax

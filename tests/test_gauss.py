@@ -94,6 +94,7 @@ def test_one_stage_is_the_midpoint_principle():
     assert np.max(np.abs(np.asarray(gauss.p) - np.asarray(mid.p))) < 1e-13
 
 
+@pytest.mark.slow  # ~8 s (three marches); in CI's slow run. The default run keeps the 1-stage identity.
 def test_descends_to_the_same_map_of_the_body_momentum():
     """The Gauss step commutes with the linear symmetries of the Clebsch variables, so the body
     momentum's map does not depend on which (Q, P) carries it: on SO(3) (3×3 matrices) and on
@@ -135,6 +136,7 @@ def test_invariants_rigid_body():
     assert np.max(np.abs(np.einsum("nji,njk->nik", Qs, Qs) - np.eye(3))) < 1e-14
 
 
+@pytest.mark.slow  # ~8 s; in CI's slow run
 def test_heavy_top_noether_momentum_and_order():
     """With a potential (the heavy top, l(ξ, Q)): the momentum about the vertical, a linear
     symmetry's momentum map, to round-off; order 4 against the Euler–Poisson equations."""
