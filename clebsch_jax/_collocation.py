@@ -141,13 +141,9 @@ def clebsch_hamiltonian(system: ClebschSystem, xi, Q, P) -> jax.Array:
     return jnp.sum(P * system.velocity_map(xi, Q)) - system.l(xi, Q)
 
 
-def _combine(mu_row, d):
-    """Σⱼ μᵢⱼ dⱼ for one row of constant (NumPy) coefficients: multiply-adds XLA fuses."""
-    out = None
-    for m, dj in zip(mu_row, d):
-        term = float(m) * dj
-        out = term if out is None else out + term
-    return out
+def _combine(row, d):
+    """Σⱼ rowⱼ dⱼ for one row of constant (NumPy) coefficients and d stacked over stages."""
+    return _linalg.weighted_sum(((float(c), dj) for c, dj in zip(row, d)), d.dtype)
 
 
 def stage_values(tab: GaussLegendre, Q, P, z: GaussUnknowns):

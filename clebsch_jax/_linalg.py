@@ -13,7 +13,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["inv", "solve", "factor", "inverse", "solve_factored", "lu_factor", "lu_solve", "matmul", "matvec"]
+__all__ = ["inv", "solve", "factor", "inverse", "solve_factored", "lu_factor", "lu_solve", "matmul", "matvec",
+           "weighted_sum"]
 
 CLOSED_FORM_MAX = 3
 
@@ -36,6 +37,18 @@ def matmul(A: jax.Array, B: jax.Array) -> jax.Array:
     for i in range(1, k):
         out = out + A[..., :, i:i + 1] * B[..., i:i + 1, :]
     return out
+
+
+def weighted_sum(terms, dtype):
+    """Σ c·t over the (Python float c, array t) pairs `terms`, left to right; a coefficient ±1
+    multiplies nothing; 0 (of `dtype`) for no terms. Sums with constant coefficients (sparse
+    maps, polynomial terms, Runge–Kutta stage combinations) written as multiply-adds that XLA
+    fuses with their neighbours."""
+    acc = None
+    for c, t in terms:
+        t = t if c == 1.0 else (-t if c == -1.0 else c * t)
+        acc = t if acc is None else acc + t
+    return jnp.zeros((), dtype) if acc is None else acc
 
 
 def matvec(A: jax.Array, v: jax.Array) -> jax.Array:

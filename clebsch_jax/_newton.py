@@ -429,8 +429,9 @@ def fixed_point_solve(G: Callable, guess, *, rtol: float, atol: float, max_itera
             z_new = g(z_mid)
             eta = jnp.max(jnp.abs(z_new - z_mid))
             nonfinite = ~jnp.all(jnp.isfinite(z_new))
-            converged = ~nonfinite & _converged(eta, previous, k, _tolerance(z_new, rtol, atol), z_new)
-            scale = jnp.maximum(1.0, jnp.max(jnp.abs(z_new)))
+            zmax = jnp.max(jnp.abs(z_new))  # once, for the three tests below
+            converged = ~nonfinite & _converged(eta, previous, k, _tolerance(z_new, rtol, atol, zmax), z_new, zmax)
+            scale = jnp.maximum(1.0, zmax)
             diverged = (k >= 2 * SWEEPS_PER_TEST) & (eta > previous) & (eta > 1e4 * jnp.finfo(z.dtype).eps * scale)
             status = jnp.where(nonfinite, Status.NONFINITE,
                                jnp.where(diverged & ~converged, Status.DIVERGED, Status.SUCCESS)).astype(jnp.int32)

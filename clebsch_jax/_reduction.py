@@ -90,18 +90,9 @@ def _constant_map(C: np.ndarray, x, shape):
     it there: measured slower under `vmap`.)"""
     v = jnp.ravel(x)
     cut = 1e-14 * np.max(np.abs(C))
-    rows = [_weighted_sum(((float(c), v[j]) for j, c in enumerate(row) if abs(c) > cut), v.dtype) for row in C]
+    rows = [_linalg.weighted_sum(((float(c), v[j]) for j, c in enumerate(row) if abs(c) > cut), v.dtype)
+            for row in C]
     return jnp.stack(rows).reshape(shape)
-
-
-def _weighted_sum(terms, dtype):
-    """Σ c·t over the (Python float c, array t) pairs `terms`, left to right; a coefficient ±1
-    multiplies nothing; 0 (of `dtype`) for no terms."""
-    acc = None
-    for c, t in terms:
-        t = t if c == 1.0 else (-t if c == -1.0 else c * t)
-        acc = t if acc is None else acc + t
-    return jnp.zeros((), dtype) if acc is None else acc
 
 
 def _concrete(x) -> bool:
@@ -363,7 +354,7 @@ class CayleyPolynomial:
             return x2[ix[:2]] * gg[ix[2]]
 
         def part(d, k):
-            return _weighted_sum(((c, factor(ix)) for c, ix in self.terms[d][k]), dtype)
+            return _linalg.weighted_sum(((c, factor(ix)) for c, ix in self.terms[d][k]), dtype)
 
         m = len(self.terms[0])
         even = jnp.stack([part(0, k) + (dt * dt) * part(2, k) for k in range(m)]).reshape(xi.shape)
