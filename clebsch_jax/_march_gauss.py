@@ -8,9 +8,10 @@ step's collocation polynomials continued over one step; the inverse Hessians of 
 sweeps use are formed once per step, at that guess. A sweep evaluates the model's gradients once
 per stage and forms no Jacobian. Measured on the rigid body in Clebsch variables
 (`models.rigid_body_vector`), 4 stages, 200 bodies through `cj.batch`, scratch runs: 18-19
-sweeps per step on average at Δt = 0.5, 12.6 at 0.25, 9.3 at 0.125; 2.0 µs per body-step at
-Δt = 0.25, where a step of the order-8 composition of Cayley steps costs ~9 µs (17 solves of
-~0.53 µs) and is 120–135× less accurate (`benchmarks/work_precision.py`).
+sweeps per step on average at Δt = 0.5, 12.6 at 0.25, 9.3 at 0.125; 1.7 µs per body-step at
+Δt = 0.25 (2.2 µs before the first `UNTESTED_SWEEPS` sweeps went untested and a test became a
+single reduction), where a step of the order-8 composition of Cayley steps costs ~9 µs (17
+solves of ~0.53 µs) and is 120–135× less accurate (`benchmarks/work_precision.py`).
 """
 
 from __future__ import annotations
@@ -26,7 +27,12 @@ from ._newton import fixed_point_solve
 from ._scan import assemble, march
 from ._system import ClebschSystem, momentum_map
 
-__all__ = ["march_gauss", "SWEEPS_PER_NEWTON_ITERATION"]
+__all__ = ["march_gauss", "SWEEPS_PER_NEWTON_ITERATION", "UNTESTED_SWEEPS"]
+
+UNTESTED_SWEEPS = 4
+"""Sweeps of a step before its first convergence test. A test costs about as much as a sweep,
+and every step measured needs more than 4 sweeps from its extrapolated guess (200 rigid bodies:
+order 8 takes 8-14 sweeps at Δt = 0.0625-0.25, order 4 takes 6 at Δt = 0.01)."""
 
 SWEEPS_PER_NEWTON_ITERATION = 5
 """`max_newton_iterations` read for sweeps: a step may take `SWEEPS_PER_NEWTON_ITERATION ×
@@ -41,7 +47,7 @@ def march_gauss(system: ClebschSystem, Q0, xi0, P0, dt, t0, *, n_steps, scheme, 
         P0 = initial_multiplier(system, Q0, xi0)
     else:  # seeds the first step only; node 0 is solved and checked with the others afterwards
         xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
-    solve = functools.partial(fixed_point_solve, rtol=rtol, atol=atol,
+    solve = functools.partial(fixed_point_solve, rtol=rtol, atol=atol, untested=UNTESTED_SWEEPS,
                               max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations)
     s = tab.stages
 
@@ -49,7 +55,9 @@ def march_gauss(system: ClebschSystem, Q0, xi0, P0, dt, t0, *, n_steps, scheme, 
         Q, P, z_last = state
         guess = extrapolate(tab, z_last)
         hinv = stage_hessians(system, tab, Q, P, guess)
-        z, stats = solve(lambda z: gauss_sweep(system, tab, h, Q, P, z, hinv), guess)
+        # sizes are judged against the state the increments are added to, and ξ
+        size = jnp.max(jnp.abs(jnp.concatenate([Q.ravel(), P.ravel(), guess.xi.ravel()])))
+        z, stats = solve(lambda z: gauss_sweep(system, tab, h, Q, P, z, hinv), guess, size=size)
         Q1, P1 = gauss_update(Q, P, z)
         xi_mean = jnp.tensordot(jnp.asarray(tab.b, z.xi.dtype), z.xi, axes=1)
         return (Q1, P1, z), memory, xi_mean, stats
