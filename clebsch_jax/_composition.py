@@ -133,7 +133,7 @@ class StepPlan:
 
 
 def plan_steps(scheme: str, base_order: int, base_symmetric: bool, order, composition) -> StepPlan:
-    """The `StepPlan` for `integrate`'s `scheme`, `order` (None, 2, 4, 6, 8) and `composition`
+    """The `StepPlan` for `integrate`'s `scheme`, `order` (None, 2, 4, 6, 8; Gauss up to 16) and `composition`
     (None, a `Composition` or the name of one in `COMPOSITIONS`). `base_order` and
     `base_symmetric` describe the principle `scheme` with the system's derivative map.
 
@@ -142,11 +142,12 @@ def plan_steps(scheme: str, base_order: int, base_symmetric: bool, order, compos
     if scheme == "gauss":
         if composition is not None:
             raise ValueError("composition: scheme='gauss' reaches its order with stages, not by composition; "
-                             "pass order=2, 4, 6 or 8 and no composition.")
+                             f"pass order={', '.join(map(str, GAUSS_ORDERS))} and no composition.")
         if order is None:
             order = 2
         if order not in GAUSS_ORDERS:
-            raise ValueError(f"order: expected None, 2, 4, 6 or 8, got {order!r}.")
+            raise ValueError(f"order: scheme='gauss' expects None or an even order from 2 to {GAUSS_ORDERS[-1]}, "
+                             f"got {order!r}.")
         stages = order // 2
         return StepPlan((1.0,), (("gauss", 1.0),), order, True, True,
                         f"Gauss-Legendre {stages}-stage PRK")

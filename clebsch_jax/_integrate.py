@@ -264,7 +264,7 @@ def integrate(
       march only; the default for systems built with `degenerate=True`). See
       `clebsch_jax.discrete_lagrangian`. Or `"gauss"`: the Gauss–Legendre partitioned
       Runge–Kutta discretisation of the Clebsch principle (`clebsch_jax._collocation`), with
-      order/2 stages (`order` None: 2), which marches $(Q, P)$ (`Solution.form` "full", `p` and
+      order/2 stages (`order` None: 2; any even order up to 16), which marches $(Q, P)$ (`Solution.form` "full", `p` and
       `P` the nodal momenta) and does not use the derivative map (the collocation polynomial
       gives $\dot Q$): symmetric, symplectic, exact for quadratic invariants; each step is one
       fixed-point solve of its stages (`stats.iterations` counts sweeps, at most 5 ×
