@@ -26,7 +26,7 @@ Run from the repository root:
   body: the reduced march (Cayley, `reconstruct=False`) batched over the bodies by
   `clebsch_jax.batch` (jax.vmap's meaning, bodies along the last axis inside: ~1.5× faster
   than `jax.vmap` here);
-  rigid body also `scheme="gauss"` (orders 4 and 8: the Gauss-Legendre PRK discretisation of
+  rigid body also `scheme="gauss"` (orders 4, 8, 12 and 16: the Gauss-Legendre PRK discretisation of
   the Clebsch principle) on the body in Clebsch variables on R³ (`models.rigid_body_vector`, each
   body's (Q, P) from `rigid_body_vector_start(Π0)`), batched the same way; its "Newton updates"
   are fixed-point sweeps, its Jacobians 0;
@@ -131,7 +131,7 @@ DEFAULT = {
     "rigid_body": {
         "batch": 200, "T": 1e3, "n_samples": 100, "chunk": 500,
         "ours": {2: (0.2, 0.1, 0.05), 4: (0.4, 0.2, 0.1), 6: (0.5, 0.25), 8: (0.5, 0.25, 0.125)},
-        "gauss": {4: (0.2, 0.1), 8: (0.5, 0.25, 0.125, 0.0625)},
+        "gauss": {4: (0.2, 0.1), 8: (0.5, 0.25, 0.125, 0.0625), 12: (1.0, 0.5), 16: (1.0,)},
         "tsit5": (1e-6, 1e-8, 1e-10, 1e-12), "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
         "dop853": (1e-7, 1e-9, 1e-11), "rk4": (0.1, 0.05, 0.025),
     },
@@ -152,7 +152,7 @@ LONG = {
     "rigid_body": {
         "batch": 200, "T": 1e4, "n_samples": 1000, "chunk": 500,
         "ours": {2: (0.1,), 4: (0.4, 0.2), 6: (0.5,), 8: (0.5, 0.25)},
-        "gauss": {8: (0.5, 0.25, 0.125, 0.0625)},
+        "gauss": {8: (0.5, 0.25, 0.125, 0.0625), 12: (1.0, 0.5), 16: (1.0,)},
         "tsit5": (1e-8, 1e-10, 1e-12), "dopri8": (1e-8, 1e-10, 1e-12, 1e-13),
         "dop853": (1e-8, 1e-11), "rk4": (0.05,),
     },
@@ -781,6 +781,8 @@ _STYLE = {  # method -> (marker, colour, label)
     "order8": ("o", "#08306b", "ours, order 8"),
     "gauss4": ("*", "#74c476", "ours, Gauss-Legendre order 4"),
     "gauss8": ("*", "#006d2c", "ours, Gauss-Legendre order 8"),
+    "gauss12": ("P", "#e7298a", "ours, Gauss-Legendre order 12"),
+    "gauss16": ("X", "#7a0177", "ours, Gauss-Legendre order 16"),
     "tsit5": ("^", "C1", "diffrax Tsit5"),
     "dopri8": ("v", "C3", "diffrax Dopri8"),
     "dop853": ("s", "C2", "SciPy DOP853"),
