@@ -133,9 +133,10 @@ class StepPlan:
 
 
 def plan_steps(scheme: str, base_order: int, base_symmetric: bool, order, composition) -> StepPlan:
-    """The `StepPlan` for `integrate`'s `scheme`, `order` (None, 2, 4, 6, 8; Gauss up to 16) and `composition`
-    (None, a `Composition` or the name of one in `COMPOSITIONS`). `base_order` and
-    `base_symmetric` describe the principle `scheme` with the system's derivative map.
+    """The `StepPlan` for `integrate`'s `scheme`, `order` (None, 2, 4, 6, 8; Gauss: even orders
+    up to 16) and `composition` (None, a `Composition` or the name of one in `COMPOSITIONS`).
+    `base_order` and `base_symmetric` describe the principle `scheme` with the system's
+    derivative map.
 
     `scheme="gauss"` is not composed: `order` (None: 2) picks the Gauss–Legendre tableau of
     order/2 stages (`clebsch_jax._collocation`), one solve per step."""

@@ -264,14 +264,15 @@ def integrate(
       march only; the default for systems built with `degenerate=True`). See
       `clebsch_jax.discrete_lagrangian`. Or `"gauss"`: the Gauss–Legendre partitioned
       Runge–Kutta discretisation of the Clebsch principle (`clebsch_jax._collocation`), with
-      order/2 stages (`order` None: 2; any even order up to 16), which marches $(Q, P)$ (`Solution.form` "full", `p` and
-      `P` the nodal momenta) and does not use the derivative map (the collocation polynomial
-      gives $\dot Q$): symmetric, symplectic, exact for quadratic invariants; each step is one
-      fixed-point solve of its stages (`stats.iterations` counts sweeps, at most 5 ×
-      `max_newton_iterations`; a step too large for the iteration fails with
-      `Status.DIVERGED`). For l regular in ξ (not `degenerate=True`). On the rigid-body batch
-      of `benchmarks/work_precision.py` its order 8 is 120–135× more accurate than the order-8
-      composition at the same Δt, and faster.
+      order/2 stages (`order` None: 2; any even order up to 16), which marches $(Q, P)$
+      (`Solution.form` "full", `p` and `P` the nodal momenta) and does not use the derivative
+      map (the collocation polynomial gives $\dot Q$): symmetric, symplectic, exact for
+      quadratic invariants; each step is one fixed-point solve of its stages
+      (`stats.iterations` counts sweeps, at most 5 × `max_newton_iterations`; a step too large
+      for the iteration fails with `Status.DIVERGED`). For l regular in ξ (not
+      `degenerate=True`). On the rigid-body batch of `benchmarks/work_precision.py` its order 8
+      is 120–135× more accurate than the order-8 composition at the same Δt, and faster; orders
+      12 and 16 take steps of 0.5-1 there.
     - `reduce`: `"auto"` (default) uses the reduced march when it applies and `need_P` is
       False; `True` forces it (a `ValueError` says why when it does not apply); `False`
       forces the full march. `Solution.form` says which ran.

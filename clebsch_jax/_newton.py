@@ -412,10 +412,11 @@ def fixed_point_solve(G: Callable, guess, *, rtol: float, atol: float, max_itera
     last test while not at round-off (the map is not contracting: Δt too large), or when the
     iterate became non-finite although `size` is finite (the untested sweeps can overflow
     before a test sees η grow); with `Status.NONFINITE` when it became non-finite from a
-    non-finite start; and with `Status.MAX_ITERATIONS` after `max_iterations` sweeps. `stats.iterations` counts sweeps, `stats.jacobians` is 0, `stats.residual_norm` is
-    η (max|G(z) − z| at the iterate before the last: the residual the loop already has, not
-    one more evaluation). Derivatives by the implicit function theorem on $F(z) = z - G(z)$
-    with a dense tangent solve.
+    non-finite start; and with `Status.MAX_ITERATIONS` after `max_iterations` sweeps.
+    `stats.iterations` counts sweeps, `stats.jacobians` is 0, `stats.residual_norm` is η
+    (max|G(z) − z| at the iterate before the last: the residual the loop already has, not one
+    more evaluation). Derivatives by the implicit function theorem on $F(z) = z - G(z)$ with a
+    dense tangent solve.
 
     A test costs about as much as a sweep on the CPU (a reduction over the unknowns and the
     bookkeeping of a batched loop), so there is one reduction per test and none for the size.
