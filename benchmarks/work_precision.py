@@ -1,11 +1,11 @@
 r"""Work-precision diagram (issue 5): error against wall time for our compositions of orders 2-8
-and Gauss-Legendre methods of orders 4 and 8, and for diffrax (Tsit5, Dopri8), SciPy (DOP853)
+and Gauss-Legendre methods of orders 4, 8, 12 and 16, and for diffrax (Tsit5, Dopri8), SciPy (DOP853)
 and a NumPy RK4, on the same scenes.
 
 Run from the repository root:
 
-    python benchmarks/work_precision.py            # default run, ~5.3 min on 2 cores at load 1-2
-    python benchmarks/work_precision.py --long     # the rigid-body batch at T = 1e4 only (~9 min at
+    python benchmarks/work_precision.py            # default run, ~6 min on 2 cores at load 0.4-1.6
+    python benchmarks/work_precision.py --long     # the rigid-body batch at T = 1e4 only (~10 min at
                                                    # load 1-2), written as work_precision_long.{json,png}
     python benchmarks/work_precision.py --quick    # smoke test, tiny sizes (not a measurement)
 

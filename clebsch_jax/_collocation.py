@@ -61,8 +61,8 @@ __all__ = ["GaussLegendre", "gauss_legendre", "GaussUnknowns", "clebsch_hamilton
 GAUSS_ORDERS = (2, 4, 6, 8, 10, 12, 14, 16)
 """Orders `integrate(..., scheme="gauss", order=k)` accepts (k/2 stages). Above 8 they are for
 large steps on smooth problems: on the rigid-body batch order 16 at Δt = 1 is more accurate than
-order 8 at Δt = 0.125, in 0.6× its time (`benchmarks/work_precision.py`); the tableau keeps its order conditions to
-round-off up to 8 stages (tested)."""
+order 8 at Δt = 0.125, in 0.6× its time (`benchmarks/work_precision.py`); the tableau keeps its
+order conditions to round-off up to 8 stages (tested)."""
 
 
 @dataclasses.dataclass(frozen=True)
