@@ -1,5 +1,5 @@
 r"""Work-precision diagram (issue 5): error against wall time for our compositions of orders 2-8
-and Gauss-Legendre methods of orders 4, 8, 12 and 16, and for diffrax (Tsit5, Dopri8), SciPy (DOP853)
+and Gauss-Legendre methods of orders 4-16, and for diffrax (Tsit5, Dopri8), SciPy (DOP853)
 and a NumPy RK4, on the same scenes.
 
 Run from the repository root:
@@ -31,7 +31,9 @@ Run from the repository root:
   body's (Q, P) from `rigid_body_vector_start(Π0)`), batched the same way; its "Newton updates"
   are fixed-point sweeps, its Jacobians 0;
   vortices: the midpoint principle (= implicit midpoint rule) and its compositions, one system,
-  `jacobian="dense"` for N = 4 and `"blocks"` for N = 100. Every Newton solve to round-off (the
+  `jacobian="dense"` for N = 4 and `"blocks"` for N = 100; and `scheme="gauss"` (orders 8, 12,
+  16) on the same system (degenerate: each sweep corrects ξ with the inverse constraint
+  matrix, whole for N = 4, lumped per vortex for N = 100). Every solve to round-off (the
   default `rtol = atol = 0`). A run of n steps is made of `n / chunk` calls of `integrate` of
   `chunk` steps each, inside one jitted `lax.fori_loop` (rigid body: restart from
   $\xi = \mu/\mathbb I$ at the last node; vortices: from the last $(Q, p)$, passing `P0`); the
@@ -138,12 +140,14 @@ DEFAULT = {
     "vortices_4": {
         "T": 50.0, "n_samples": 100, "chunk": 50,
         "ours": {2: (0.02, 0.01, 0.005), 4: (0.1, 0.05, 0.025), 6: (0.1, 0.05), 8: (0.2, 0.1, 0.05)},
+        "gauss": {8: (0.25, 0.125, 0.0625), 12: (0.5, 0.25), 16: (0.5,)},
         "tsit5": (1e-6, 1e-8, 1e-10, 1e-12), "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
         "dop853": (1e-7, 1e-9, 1e-11, 1e-13), "rk4": (0.05, 0.02, 0.01, 0.005),
     },
     "vortices_100": {
         "N": 100, "T": 10.0, "n_samples": 100, "chunk": 10,
         "ours": {2: (0.1, 0.05), 4: (0.2, 0.1), 6: (0.25, 0.125), 8: (0.5, 0.25)},
+        "gauss": {8: (0.25, 0.125), 12: (0.5, 0.25), 16: (0.5,)},
         "tsit5": (1e-6, 1e-8, 1e-10, 1e-12), "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
         "dop853": (1e-7, 1e-9, 1e-11, 1e-13), "rk4": (0.1, 0.05, 0.025),
     },
@@ -165,7 +169,8 @@ QUICK = {
     },
     "vortices_4": {
         "T": 2.0, "n_samples": 10, "chunk": 10,
-        "ours": {2: (0.02,)}, "tsit5": (), "dopri8": (1e-8, 1e-13), "dop853": (1e-9,), "rk4": (0.02,),
+        "ours": {2: (0.02,)}, "gauss": {8: (0.2,)}, "tsit5": (), "dopri8": (1e-8, 1e-13), "dop853": (1e-9,),
+        "rk4": (0.02,),
     },
     "vortices_100": {
         "N": 100, "T": 0.2, "n_samples": 2, "chunk": 2,
@@ -339,7 +344,9 @@ class Vortices:
 
     def ours_program(self, order: int, compiler_options=None, scheme=None):
         """jit(Q0, dt, n_chunks) -> (Q(T), max |dH|/|H0|, max |dI|, max |dP|, Newton counters,
-        all valid): n_chunks * chunk steps, restarting each chunk from the last (Q, p)."""
+        all valid): n_chunks * chunk steps, restarting each chunk from the last (Q, p). `scheme`
+        None: the midpoint principle and its compositions; "gauss": Gauss-Legendre (its
+        "Newton updates" are fixed-point sweeps, its Jacobians 0)."""
         G, chunk, jacobian = jnp.asarray(self.gamma), self.cfg["chunk"], self.jacobian
         system = models.point_vortices(G)
 
@@ -351,8 +358,8 @@ class Vortices:
 
             def body(_, carry):
                 Q, p, xi, h_max, lin_max, ang_max, upd, jac, ok = carry
-                sol = cj.integrate(system, Q, xi, P0=p, dt=dt, n_steps=chunk, order=order, jacobian=jacobian,
-                                   throw=False)
+                sol = cj.integrate(system, Q, xi, P0=p, dt=dt, n_steps=chunk, scheme=scheme, order=order,
+                                   jacobian=jacobian, throw=False)
                 Qs = sol.Q  # (chunk + 1, N, 2), every node
                 h = jnp.max(jnp.abs(models.vortex_hamiltonian(G, Qs) - H0)) / jnp.abs(H0)
                 lin = jnp.max(jnp.abs(models.vortex_linear_impulse(G, Qs) - lin0))
@@ -375,8 +382,9 @@ class Vortices:
                     "updates_per_step_slowest_body": float(upd) / n, "jacobians_per_step": float(jac) / n,
                     "valid": bool(ok)}
 
-        return call, {"system": "point_vortices(G)", "form": "full", "jacobian": jacobian,
-                      "plan": cj.step_plan(system, order=order)}
+        return call, {"system": "point_vortices(G)", "form": "full",
+                      "jacobian": jacobian + (" (constraint matrix; fixed-point sweeps)" if scheme == "gauss" else ""),
+                      "plan": cj.step_plan(system, scheme=scheme, order=order)}
 
 
 # --------------------------------------------------------------------------------------------

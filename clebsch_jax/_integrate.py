@@ -114,23 +114,17 @@ def _validate(system, Q0, xi0, P0, dt, n_steps, scheme, rtol, atol, max_newton_i
     scheme = _default_scheme(system, scheme)
     if scheme not in SCHEMES + ("gauss",):
         raise ValueError(f"scheme: expected one of {SCHEMES + ('gauss',)}, got {scheme!r}.")
-    if scheme == "gauss" and system.degenerate:
-        raise ValueError(
-            "scheme: 'gauss' solves each stage's Clebsch relation for xi with the Hessian of l in xi, "
-            "which a degenerate Lagrangian (system built with degenerate=True) does not have. Use "
-            "scheme='midpoint' (with order=4, 6 or 8 for compositions)."
-        )
     if scheme == "midpoint" and not callable(getattr(system.derivative_map, "at_midpoint", None)):
         raise ValueError(
             "scheme: 'midpoint' needs a derivative map that knows the midpoint of a step "
             "(an `at_midpoint(Q_next, Q, dt)` method, as clebsch_jax.forward_difference, cayley and "
             f"exponential have); {system.derivative_map!r} has none."
         )
-    if system.degenerate and scheme != "midpoint":
+    if system.degenerate and scheme not in ("midpoint", "gauss"):
         raise ValueError(
             f"scheme: {scheme!r} is inconsistent for a degenerate Lagrangian (system built with "
             "degenerate=True): the left/right principles become two-step schemes with parasitic "
-            "modes. Use scheme='midpoint'."
+            "modes. Use scheme='midpoint' or 'gauss'."
         )
 
     Q0 = _as_float_array(Q0, "Q0")
@@ -269,10 +263,13 @@ def integrate(
       map (the collocation polynomial gives $\dot Q$): symmetric, symplectic, exact for
       quadratic invariants; each step is one fixed-point solve of its stages
       (`stats.iterations` counts sweeps, at most 5 × `max_newton_iterations`; a step too large
-      for the iteration fails with `Status.DIVERGED`). For l regular in ξ (not
-      `degenerate=True`). On the rigid-body batch of `benchmarks/work_precision.py` its order 8
-      is 120–135× more accurate than the order-8 composition at the same Δt, and faster; orders
-      12 and 16 take steps of 0.5-1 there.
+      for the iteration fails with `Status.DIVERGED`). On the rigid-body batch of
+      `benchmarks/work_precision.py` its order 8 is 120–135× more accurate than the order-8
+      composition at the same Δt, and faster; orders 12 and 16 take steps of 0.5-1 there. For
+      a degenerate l (`degenerate=True`) it must be affine in ξ, as for point vortices: the
+      stage Clebsch relations are then constraints that ξ enforces, and a sweep corrects ξ
+      with the inverse of the constraints' bracket matrix (`jacobian`); order 2 is the
+      midpoint principle again.
     - `reduce`: `"auto"` (default) uses the reduced march when it applies and `need_P` is
       False; `True` forces it (a `ValueError` says why when it does not apply); `False`
       forces the full march. `Solution.form` says which ran.
@@ -289,7 +286,9 @@ def integrate(
       and `xi0` (and so every unknown) have a leading axis of length N — chord iterations
       with the lumped block-diagonal Jacobian (`clebsch_jax._block_newton`): b Jacobian-vector
       products per matrix instead of N·b and no (N·b)³ factorisation, converged to the same
-      round-off; needed for N in the hundreds and more (point vortices, landmarks).
+      round-off; needed for N in the hundreds and more (point vortices, landmarks). With
+      `scheme="gauss"` and a degenerate l: the constraint bracket matrix of each step whole
+      (`"dense"`) or lumped into per-particle blocks (`"blocks"`, exact for point vortices).
     - `order`: None (default) runs the principle as it is (order 1, or 2 when it is symmetric:
       midpoint, or left/right with a symmetric derivative map and no potential). 2, 4, 6 or 8
       makes each step a symmetric composition of sub-steps (`clebsch_jax._composition`): the
@@ -338,9 +337,10 @@ def integrate(
         if reduce is True:
             raise ValueError("reduce: the reduced march implements the left and right principles only; "
                              "scheme='gauss' marches (Q, P).")
-        if jacobian != "dense":
-            raise ValueError("jacobian: scheme='gauss' solves its steps by fixed-point sweeps, without a Newton "
-                             f"matrix; leave jacobian at 'dense', got {jacobian!r}.")
+        if jacobian != "dense" and not system.degenerate:
+            raise ValueError("jacobian: scheme='gauss' solves the steps of a regular Lagrangian by fixed-point "
+                             "sweeps, without a Newton matrix; 'blocks' lumps the constraint matrix of a degenerate "
+                             f"one. Leave jacobian at 'dense', got {jacobian!r}.")
     elif reduce is True or (reduce == "auto" and not need_P):  # "auto" with need_P: full march
         if scheme == "midpoint":
             red, reason = None, "the reduced march implements the left and right principles only"
@@ -349,7 +349,7 @@ def integrate(
         if reduce is True and red is None:
             raise ValueError(f"reduce: the reduced march does not apply to this system: {reason}.")
     if scheme == "gauss":
-        sol = _march_gauss_jit(system, Q0, xi0, P0, dt, t0, **common)
+        sol = _march_gauss_jit(system, Q0, xi0, P0, dt, t0, **common, jacobian=jacobian)
     elif red is None:
         sol = _march_full_jit(system, Q0, xi0, P0, dt, t0, **common, jacobian=jacobian)
     else:

@@ -5,7 +5,8 @@ canonical pair $(Q^n, P^n)$ in `jax.lax.scan`.
 Each step finds its stage velocities and increments by the fixed-point iteration of
 `gauss_sweep` (`fixed_point_solve`), to round-off by default, from the guess of the previous
 step's collocation polynomials continued over one step; the inverse Hessians of l in ξ that the
-sweeps use are formed once per step, at that guess. A sweep evaluates the model's gradients once
+sweeps use are formed once per step, at that guess (for a degenerate l: the inverse of the
+constraint bracket matrix, `degenerate_sweep`). A sweep evaluates the model's gradients once
 per stage and forms no Jacobian. Measured on the rigid body in Clebsch variables
 (`models.rigid_body_vector`), 4 stages, 200 bodies through `cj.batch`, scratch runs: 18-19
 sweeps per step on average at Δt = 0.5, 12.6 at 0.25, 9.3 at 0.125; 1.7 µs per body-step at
@@ -21,7 +22,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from ._collocation import GaussUnknowns, extrapolate, gauss_legendre, gauss_sweep, gauss_update, stage_hessians
+from ._collocation import (GaussUnknowns, constraint_matrix_inverse, degenerate_sweep, extrapolate, gauss_legendre,
+                           gauss_sweep, gauss_update, stage_hessians)
 from ._march_full import initial_multiplier, nodal_velocity
 from ._newton import fixed_point_solve
 from ._scan import assemble, march
@@ -41,23 +43,33 @@ update gains many."""
 
 
 def march_gauss(system: ClebschSystem, Q0, xi0, P0, dt, t0, *, n_steps, scheme, plan, rtol, atol,
-                max_newton_iterations, P0_given):
+                max_newton_iterations, P0_given, jacobian="dense"):
     tab = gauss_legendre(plan.order // 2)
     if not P0_given:
         P0 = initial_multiplier(system, Q0, xi0)
-    else:  # seeds the first step only; node 0 is solved and checked with the others afterwards
+    elif not system.degenerate:  # seeds the first step only; node 0 is solved and checked afterwards
         xi0, _ = nodal_velocity(system, Q0, P0, xi0, rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
     solve = functools.partial(fixed_point_solve, rtol=rtol, atol=atol, untested=UNTESTED_SWEEPS,
                               max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations)
     s = tab.stages
 
+    def matrices(Q, P, z):  # formed once per step, at the guess
+        if system.degenerate:
+            return constraint_matrix_inverse(system, z.xi[0], Q, P, blocks=jacobian == "blocks")[0]
+        return stage_hessians(system, tab, Q, P, z)
+
+    def sweep(h, Q, P, z, matrices):
+        if system.degenerate:
+            return degenerate_sweep(system, tab, h, Q, P, z, matrices)
+        return gauss_sweep(system, tab, h, Q, P, z, matrices)
+
     def substep(state, memory, h, scheme, n, alive):
         Q, P, z_last = state
         guess = extrapolate(tab, z_last)
-        hinv = stage_hessians(system, tab, Q, P, guess)
+        mats = matrices(Q, P, guess)
         # sizes are judged against the state the increments are added to, and ξ
         size = jnp.max(jnp.abs(jnp.concatenate([Q.ravel(), P.ravel(), guess.xi.ravel()])))
-        z, stats = solve(lambda z: gauss_sweep(system, tab, h, Q, P, z, hinv), guess, size=size)
+        z, stats = solve(lambda z: sweep(h, Q, P, z, mats), guess, size=size)
         Q1, P1 = gauss_update(Q, P, z)
         xi_mean = jnp.tensordot(jnp.asarray(tab.b, z.xi.dtype), z.xi, axes=1)
         return (Q1, P1, z), memory, xi_mean, stats
@@ -66,7 +78,8 @@ def march_gauss(system: ClebschSystem, Q0, xi0, P0, dt, t0, *, n_steps, scheme, 
     # increments), stored as the "previous step" whose extrapolation reproduces it: the
     # extrapolation keeps constants (its rows sum to 1).
     zero = jnp.zeros((s,) + Q0.shape, Q0.dtype)
-    z0 = gauss_sweep(system, tab, dt, Q0, P0, GaussUnknowns(jnp.broadcast_to(xi0, (s,) + xi0.shape), zero, zero))
+    still = GaussUnknowns(jnp.broadcast_to(xi0, (s,) + xi0.shape), zero, zero)
+    z0 = sweep(dt, Q0, P0, still, matrices(Q0, P0, still))
     (Qs, Ps, _), xis, stats = march(substep, (Q0, P0, z0), None, plan, dt, n_steps)
     Qs = jnp.concatenate([Q0[None], Qs])
     pn = jnp.concatenate([P0[None], Ps])

@@ -56,10 +56,6 @@ def test_plan_facts_and_refusals_before_compiling():
         cj.models.rigid_body_vector_start(np.zeros(3))
     with pytest.raises(ValueError, match=r"^Pi0: expected a body momentum of shape \(3,\)"):
         cj.models.rigid_body_vector_start(np.ones(4))
-    gamma = np.array([1.0, -1.0])
-    with pytest.raises(ValueError, match=r"^scheme: 'gauss' solves each stage's Clebsch relation"):
-        cj.integrate(cj.models.point_vortices(gamma), np.eye(2), np.zeros((2, 2)), dt=0.1, n_steps=2,
-                     scheme="gauss")
 
 
 # Δt ranges in each order's asymptotic regime, above the reference's floor and below the
