@@ -6,7 +6,7 @@ Subcommands:
   `summary.json` and prints a table of the conserved quantities and timings. Then every
   built-in scene (`clebsch_jax._scenes`) briefly, each into a subfolder, and one combined
   table. `--only NAME` runs one of them.
-- `run SCENE`: one built-in scene with `--dt`, `--steps`, `--order`, `--batch`, `--out`:
+- `run SCENE`: one built-in scene with `--dt`, `--steps`, `--order`, `--scheme`, `--batch`, `--out`:
   a summary table on the terminal, `summary.json` and a PNG in the output folder, a progress
   bar on stderr for long runs.
 - `bench [NAME ...]`: the scripts of the repository's `benchmarks/` folder, each in a
@@ -45,7 +45,14 @@ MAX_BATCH = 10_000
 """Largest accepted `--batch` of `run` (for larger sweeps use `clebsch_jax.sweep`)."""
 
 ORDERS = (2, 4, 6, 8)
-"""Accepted `--order` values (`integrate(..., order=)`)."""
+"""`--order` values of the compositions (`integrate(..., order=)`)."""
+
+GAUSS_ORDERS = (2, 4, 6, 8, 10, 12, 14, 16)
+"""`--order` values with `--scheme gauss` (`clebsch_jax._collocation.GAUSS_ORDERS`, kept here so
+that `--help` imports no JAX; a test checks they agree)."""
+
+SCHEMES = ("left", "right", "midpoint", "gauss")
+"""`--scheme` values (`integrate(..., scheme=)`)."""
 
 LONG_RUN = 100_000
 """Runs of at least this many member-steps show a progress bar even when stderr is not a terminal."""
@@ -93,8 +100,9 @@ def _order(text: str) -> int:
         value = int(text)
     except ValueError:
         value = None
-    if value not in ORDERS:
-        raise argparse.ArgumentTypeError(f"expected one of {', '.join(map(str, ORDERS))}, got {text!r}")
+    if value not in ORDERS + GAUSS_ORDERS:
+        raise argparse.ArgumentTypeError(f"expected one of {', '.join(map(str, ORDERS))} (with --scheme gauss "
+                                          f"an even order up to {GAUSS_ORDERS[-1]}), got {text!r}")
     return value
 
 
@@ -244,12 +252,12 @@ def _failure_text(summary: dict) -> str:
 
 
 def _run_scene_into(scene, out_dir: str, *, dt=None, steps=None, order=None, batch=1, seed=0, chunk=None,
-                    progress=None) -> dict:
+                    progress=None, scheme=None) -> dict:
     """`run_scene`, then write `<scene>.png` and `summary.json` into `out_dir` (which exists)."""
     from ._scenes import run_scene, write_plot, write_summary
 
     summary = run_scene(scene, dt=dt, n_steps=steps, order=order, batch=batch, seed=seed, chunk_steps=chunk,
-                        progress=progress)
+                        progress=progress, scheme=scheme)
     tic = time.perf_counter()
     png = f"{scene.name}.png"
     write_plot(scene, summary, os.path.join(out_dir, png))
@@ -360,6 +368,9 @@ def _run_run(args) -> int:
     code = _check_out_dir(out_dir, prog) or _require_matplotlib(prog) or _make_out_dir(out_dir, prog)
     if code:
         return code
+    if args.order is not None and args.order not in (GAUSS_ORDERS if args.scheme == "gauss" else ORDERS):
+        return _fail(f"--order {args.order} needs --scheme gauss (the compositions have orders "
+                     f"{', '.join(map(str, ORDERS))})", code=2, prog=prog)
     _use_compilation_cache(args, prog)
     steps = scene.steps if args.steps is None else args.steps
     chunk = args.chunk or chunk_steps_for(args.batch, steps)
@@ -371,9 +382,13 @@ def _run_run(args) -> int:
               f"{'s' if args.batch > 1 else ''}); compiling first takes a few seconds...", flush=True)
     try:
         summary = _run_scene_into(scene, out_dir, dt=args.dt, steps=steps, order=args.order, batch=args.batch,
-                                  seed=args.seed, chunk=chunk, progress=bar)
+                                  seed=args.seed, chunk=chunk, progress=bar, scheme=args.scheme)
     except OSError as err:
         return _fail(f"could not write to {out_dir!r}: {err.strerror or err}", prog=prog)
+    except ValueError as err:  # integrate refused the scheme for this scene's system, before compiling
+        if args.scheme is None:
+            raise
+        return _fail(f"--scheme {args.scheme} on {scene.name}: {str(err).splitlines()[0]}", code=2, prog=prog)
     finally:
         if bar is not None:
             bar.close()
@@ -407,7 +422,8 @@ def _add_run(subparsers) -> None:
             f"{LONG_RUN:,} member-steps and more); runs of at most 20,000 member-steps are "
             "compiled with XLA's backend optimisation off (compilation dominates them).",
         ),
-        epilog="example: clebsch-jax run vortices --steps 20000 --order 4 --batch 8",
+        epilog="examples: clebsch-jax run vortices --steps 20000 --order 4 --batch 8\n"
+               "          clebsch-jax run vortices --scheme gauss --order 12 --dt 0.25 --steps 2000",
     )
     p.add_argument("scene", type=_scene, metavar="SCENE", help=f"one of: {', '.join(SCENES)}")
     p.add_argument("--dt", type=_dt, default=None, metavar="DT",
@@ -418,7 +434,13 @@ def _add_run(subparsers) -> None:
                         ", ".join(f"{s.name} {s.steps}" for s in SCENES.values()) + ")")
     p.add_argument("--order", type=_order, default=None, metavar="K",
                    help="order of the method: 2, 4, 6 or 8 (symmetric compositions of discrete "
-                        "Clebsch steps; default 2)")
+                        "Clebsch steps; default 2); with --scheme gauss an even order up to 16 "
+                        "(order/2 Gauss-Legendre stages)")
+    p.add_argument("--scheme", choices=SCHEMES, default=None, metavar="S",
+                   help="discrete principle: left, right, midpoint, or gauss (the Gauss-Legendre "
+                        "discretisation of the Clebsch principle); default the scene's. A scheme the "
+                        "scene's system does not admit (left/right for the degenerate vortices) is "
+                        "refused before compiling")
     p.add_argument("--batch", type=_batch, default=1, metavar="B",
                    help=f"number of members, 1 to {MAX_BATCH:,} (default 1), run under jax.vmap")
     p.add_argument("--seed", type=_seed, default=0, metavar="S",

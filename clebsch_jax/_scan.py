@@ -195,6 +195,8 @@ def assemble(*, system, dt, t0, Q0, xi0, stats, xi_steps, Qs, ps, Ps, mus, rtol,
         ts=t0 + dt * jnp.arange(n_steps + 1, dtype=dt.dtype), Q=Qs, p=ps, xi=xin, xi_step=xi_steps,
         P=Ps, momentum=mus, stats=stats, nodal_stats=nodal, result=result, failed_step=failed_step,
         valid=valid, scheme=scheme, form=form, order=plan.order, method=plan.name,
-        derivative_map=getattr(system.derivative_map, "name", repr(system.derivative_map)),
+        # Gauss–Legendre takes Q̇ from its collocation polynomial, not from the derivative map
+        derivative_map="none (collocation)" if scheme == "gauss" else getattr(system.derivative_map, "name",
+                                                                              repr(system.derivative_map)),
         q_ndim=Q0.ndim, xi_ndim=xi0.ndim,
     )

@@ -578,13 +578,14 @@ def _options_key(options) -> tuple:
 
 
 @functools.lru_cache(maxsize=None)
-def program(name: str, order: int, n_steps: int, compiler_options: tuple = ()):
+def program(name: str, order: int, n_steps: int, compiler_options: tuple = (), scheme: str | None = None):
     r"""The jitted, vmapped march of `n_steps` steps of scene `name` (cached: one per arguments).
 
     `program(...)(Q0, xi0, P0, derive_P0, t0, dt)` with a leading member axis on `Q0`, `xi0`,
     `P0` runs `integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, order=order,
-    throw=False, **scene.options)` for every member, with $P^0$ replaced by
-    `initial_multiplier(system, Q0, xi0)` where `derive_P0` (a traced bool) is True.
+    throw=False, **scene.options)` for every member (`scheme`, if given, in place of the
+    scene's), with $P^0$ replaced by `initial_multiplier(system, Q0, xi0)` where `derive_P0` (a
+    traced bool) is True.
 
     **Returns** a dict: `sol` (the batched `Solution`), `values` {name: (B, N+1, k)} and
     `scales` {name: (B,)} of the energy and the scene's invariants, `trajectory` (B, N+1, …),
@@ -595,6 +596,8 @@ def program(name: str, order: int, n_steps: int, compiler_options: tuple = ()):
     system = scene.system()
     invariants = (ENERGY,) + scene.invariants
     options = dict(scene.options)
+    if scheme is not None:
+        options["scheme"] = scheme
 
     def one(Q0, xi0, P0, derive_P0, t0, dt):
         P0 = jnp.where(derive_P0, initial_multiplier(system, Q0, xi0), P0)
@@ -643,13 +646,13 @@ def _initial_state(setup: Setup):
 
 
 def solve(scene: Scene, setup: Setup, *, dt: float, n_steps: int, order: int | None = None,
-          compiler_options=None) -> dict:
+          compiler_options=None, scheme: str | None = None) -> dict:
     """One call of `program` from `setup`'s initial data, $t_0 = 0$ (no chunks): what `run_scene`
     computes first, as the dict `program` returns (its `"sol"` is the batched `Solution`).
     `compiler_options` default as in `run_scene` (the same compiled program)."""
     batch = setup.Q0.shape[0]
     copts = compiler_options_for(batch, n_steps) if compiler_options is None else dict(compiler_options)
-    run = program(scene.name, scene.order if order is None else int(order), n_steps, _options_key(copts))
+    run = program(scene.name, scene.order if order is None else int(order), n_steps, _options_key(copts), scheme)
     return run(*_initial_state(setup), jnp.asarray(0.0, jnp.float64), jnp.asarray(dt, jnp.float64))
 
 
@@ -671,13 +674,14 @@ class _Binned:
 
 def run_scene(scene: Scene, *, dt: float | None = None, n_steps: int | None = None, order: int | None = None,
               batch: int = 1, seed: int = 0, chunk_steps: int | None = None, compiler_options=None,
-              progress: Callable | None = None) -> dict:
+              progress: Callable | None = None, scheme: str | None = None) -> dict:
     r"""Integrate a scene's batch and reduce it to a summary (no files written).
 
     **Arguments:**
 
     - `scene`: a `Scene` (e.g. `SCENES["rigid-body"]`).
-    - `dt`, `n_steps`, `order`: default the scene's.
+    - `dt`, `n_steps`, `order`: default the scene's; `scheme`: None (the scene's) or a scheme of
+      `integrate` (e.g. "gauss", with an even `order` up to 16).
     - `batch`: members B (member 0 is the canonical one); `seed`: of the other members' draw.
     - `chunk_steps`: steps per compiled call (default `chunk_steps_for(batch, n_steps)`).
     - `compiler_options`: XLA options (default `compiler_options_for(batch, n_steps)`).
@@ -702,7 +706,7 @@ def run_scene(scene: Scene, *, dt: float | None = None, n_steps: int | None = No
 
     setup = scene.setup(batch, np.random.default_rng(seed))
     invariants = (ENERGY,) + scene.invariants
-    run = program(scene.name, order, chunk, _options_key(copts))
+    run = program(scene.name, order, chunk, _options_key(copts), scheme)
     n_plot = min(batch, PLOT_MEMBERS)
     stride = max(1, -(-(n_steps + 1) // PLOT_POINTS))
     errors_binned = {inv.name: _Binned(n_plot, n_steps + 1, stride) for inv in invariants}

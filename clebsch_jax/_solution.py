@@ -54,7 +54,8 @@ class Solution:
       plausible-looking numbers.
     - Static facts: `scheme`, `form` ("full" or "reduced"), `order` (nominal order of the method),
       `method` (what a step is made of, e.g. "Kahan-Li p8s17 of left principle"),
-      `derivative_map` (its name), `q_ndim` and `xi_ndim` (ranks of one Q and one ξ).
+      `derivative_map` (its name; "none (collocation)" for `scheme="gauss"`, which does not use
+      it), `q_ndim` and `xi_ndim` (ranks of one Q and one ξ).
 
     With a composition (`integrate(..., order=k)`) the nodes are those of the whole steps;
     `xi_step` and `P` are those of each step's first sub-step, and `stats` combine the
