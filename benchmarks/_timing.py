@@ -188,6 +188,24 @@ def load_average() -> float | None:
     return os.getloadavg()[0] if hasattr(os, "getloadavg") else None
 
 
+def cpu_model() -> str | None:
+    """The CPU's model name and its widest vector extension (Linux: /proc/cpuinfo; else
+    `platform.processor()`, or None). Hosts of the same kind differ: the same script ran ~2×
+    faster on one 2-core host than on another, and ours/peer time ratios moved by up to ~1.4×."""
+    name, flags = None, set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name") and name is None:
+                    name = line.split(":", 1)[1].strip()
+                elif line.startswith("flags") and not flags:
+                    flags = set(line.split(":", 1)[1].split())
+    except OSError:
+        return platform.processor() or None
+    simd = next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), None)
+    return f"{name}, {simd}" if name and simd else name
+
+
 def machine_info() -> dict:
     import jaxlib
 
@@ -199,6 +217,7 @@ def machine_info() -> dict:
         "machine": platform.machine(),
         "python": platform.python_version(),
         "cpu_count": os.cpu_count(),
+        "cpu_model": cpu_model(),
         "cpus_usable": affinity,
         # other processes compete for the cores; > 0 before the run means a loaded machine
         "load_average_1min_at_start": load_average(),
