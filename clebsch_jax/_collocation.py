@@ -314,7 +314,9 @@ def from_substeps(tab: GaussLegendre, zs: GaussUnknowns) -> GaussUnknowns:
     """The stage guess of a step from the solved unknowns `zs` (leading axis k) of k equal
     substeps that cover it: each node $c_i$ of the step falls in substep m at local time τ,
     where that substep's collocation polynomials give ξ and the slope; the increment is the
-    slope times $h b_i$ (error O((h/k)^{s+1}) against O(hˢ) for a guess from one step)."""
+    slope times $h b_i$. The error is that of interpolating inside a substep, O((h/k)ˢ), where
+    `extrapolate` continues a polynomial past its step (O(hˢ) with the large constants of
+    extrapolation)."""
     k, s = zs.xi.shape[0], tab.stages
     xis, dQs, dPs = [], [], []
     for i in range(s):

@@ -5,10 +5,10 @@ canonical pair $(Q^n, P^n)$ in `jax.lax.scan`.
 Each step finds its stage velocities and increments by the fixed-point iteration of
 `gauss_sweep` (`fixed_point_solve`), to round-off by default, from the guess of the previous
 step's collocation polynomials continued over one step (step 0: of `FIRST_STEP_SUBSTEPS`
-solved substeps); the inverse Hessians of l in ξ that the
-sweeps use are formed once per step, at that guess (for a degenerate l: the inverse of the
-constraint bracket matrix, `degenerate_sweep`). A sweep evaluates the model's gradients once
-per stage and forms no Jacobian. Measured on the rigid body in Clebsch variables
+solved substeps); the inverse Hessians of l in ξ that the sweeps use are formed once per step,
+at that guess (for a degenerate l: the inverse of the constraint bracket matrix,
+`degenerate_sweep`). A sweep evaluates the model's gradients once per stage and forms no
+Jacobian. Measured on the rigid body in Clebsch variables
 (`models.rigid_body_vector`), 4 stages, 200 bodies through `cj.batch`, scratch runs: 18-19
 sweeps per step on average at Δt = 0.5, 12.6 at 0.25, 9.3 at 0.125; 1.7 µs per body-step at
 Δt = 0.25 (2.2 µs before the first `UNTESTED_SWEEPS` sweeps went untested and a test became a

@@ -416,7 +416,7 @@ def fixed_point_solve(G: Callable, guess, *, rtol: float, atol: float, max_itera
 
     Runs `untested` sweeps (a static count), then tests convergence after every
     `SWEEPS_PER_TEST` sweeps, on the size η of the last update, by `_converged` with the
-    previous test's η (with `rtol = atol = 0`: at round-off). Sizes are judged against `size`,
+    previous test's η and the stall rule `STALLED` (with `rtol = atol = 0`: at round-off). Sizes are judged against `size`,
     the magnitude of the values the iterate is part of or added to (default: max|guess|),
     fixed for the solve: its round-off floor is 8ε·max(1, size) and a positive rtol is
     relative to it. Fails with `Status.DIVERGED` when, from the third test on, η grew since the

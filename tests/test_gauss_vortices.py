@@ -72,7 +72,7 @@ def test_point_vortex_orders_against_dop853(order):
 def test_leapfrogging_keeps_impulses_to_roundoff_and_bounds_H():
     """Order 8 at Δt = 0.2 over T = 400 (about 70 leapfrogging cycles): the linear impulse
     (linear) and the angular impulse (quadratic) are kept to round-off, H stays bounded with no
-    drift; the pairs still leapfrog (the inner pair stays inside the outer one's width)."""
+    drift; the pairs keep their widths (|y| ≤ 1) and travel on along x."""
     sol = _run(LEAPFROG_GAMMA, LEAPFROG_Q0, 0.2, 2000, order=8)
     Q = np.asarray(sol.Q)
     lin = np.asarray(models.vortex_linear_impulse(LEAPFROG_GAMMA, Q))
