@@ -241,6 +241,8 @@ CHECKS = {
 @pytest.mark.slow  # ~140 s for the five scripts: run with -m slow, and in CI
 @pytest.mark.parametrize("name", list(CHECKS))
 def test_benchmark_quick(name, tmp_path):
+    if name == "work_precision":  # diffrax is a benchmark peer only: the optional extra [bench]
+        pytest.importorskip("diffrax", reason="work_precision needs diffrax: pip install -e '.[bench]'")
     subprocess.run([sys.executable, str(BENCHMARKS / f"{name}.py"), "--quick", "--out", str(tmp_path), "--timeout", "0"],
                    check=True, capture_output=True, text=True)
 
