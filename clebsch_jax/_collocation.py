@@ -124,14 +124,11 @@ def gauss_legendre(stages: int) -> GaussLegendre:
     c, b = (x + 1.0) / 2.0, w / 2.0
     s = stages
 
-    def basis(j, t):
-        return _lagrange(c, j, t)
-
     # collocation: a_ij = ∫₀^{c_i} ℓ_j, by the s-point Gauss rule on [0, c_i] (exact for the
     # degree s-1 of ℓ_j); through monomial coefficients it lost digits as s grew (C(s) to 5e-13
     # at 8 stages, against 1e-15 this way)
-    a = np.array([[c[i] * np.sum(b * basis(j, c[i] * c)) for j in range(s)] for i in range(s)])
-    E = np.array([[basis(j, 1.0 + c[i]) for j in range(s)] for i in range(s)])
+    a = np.array([[c[i] * np.sum(b * _lagrange(c, j, c[i] * c)) for j in range(s)] for i in range(s)])
+    E = np.array([[_lagrange(c, j, 1.0 + c[i]) for j in range(s)] for i in range(s)])
     mu = a / b[None, :]
     for i in range(s):
         mu[i, i] = 0.5
@@ -155,6 +152,25 @@ class GaussUnknowns(NamedTuple):
 def clebsch_hamiltonian(system: ClebschSystem, xi, Q, P) -> jax.Array:
     r"""$H(\xi, Q, P) = \langle P, \mathcal L_\xi Q\rangle - l(\xi, Q)$ (module docstring)."""
     return jnp.sum(P * system.velocity_map(xi, Q)) - system.l(xi, Q)
+
+
+def _constraint(system: ClebschSystem, xi, Q, P):
+    r"""$\partial_\xi H(\xi, Q, P) = \partial_\xi\langle P, \mathcal L_\xi Q\rangle - \delta l/\delta\xi$:
+    the residual of the Clebsch relation (for a degenerate l, a constraint on (Q, P))."""
+    return jax.grad(clebsch_hamiltonian, argnums=1)(system, xi, Q, P)
+
+
+def _flow(system: ClebschSystem, xi, Q, P):
+    r"""The Hamiltonian vector field of H at fixed ξ: $(\dot Q, \dot P) = (\partial_P H, -\partial_Q H)$."""
+    dH_dQ, dH_dP = jax.grad(clebsch_hamiltonian, argnums=(2, 3))(system, xi, Q, P)
+    return dH_dP, -dH_dQ
+
+
+def _constraint_flow(system: ClebschSystem, xi, d, Q, P):
+    r"""The Hamiltonian vector field of $\langle d, \partial_\xi H(\xi, \cdot)\rangle$ at (Q, P):
+    how a change d of ξ moves (Q, P) (H is affine in ξ for a degenerate l)."""
+    gq, gp = jax.grad(lambda q, p: jnp.sum(d * _constraint(system, xi, q, p)), argnums=(0, 1))(Q, P)
+    return gp, -gq
 
 
 def _combine(row, d):
@@ -198,10 +214,9 @@ def gauss_sweep(system: ClebschSystem, tab: GaussLegendre, h, Q, P, z: GaussUnkn
         inverse_hessians = stage_hessians(system, tab, Q, P, z)
 
     def one(xi, q, p, hinv):
-        r = jax.grad(clebsch_hamiltonian, argnums=1)(system, xi, q, p)  # ∂ξ⟨p, L_ξ q⟩ − δl/δξ
+        r = _constraint(system, xi, q, p)  # ∂ξ⟨p, L_ξ q⟩ − δl/δξ
         xi = xi + _linalg.matvec(hinv, r.ravel()).reshape(xi.shape)
-        dH_dQ, dH_dP = jax.grad(clebsch_hamiltonian, argnums=(2, 3))(system, xi, q, p)
-        return xi, dH_dP, -dH_dQ
+        return (xi,) + _flow(system, xi, q, p)
 
     xi, Qdot, Pdot = jax.vmap(one)(z.xi, Qi, Pi, inverse_hessians)
     w = jnp.asarray(tab.b, dtype=Qdot.dtype).reshape((-1,) + (1,) * (Qdot.ndim - 1)) * h
@@ -224,13 +239,9 @@ def constraint_matrix_inverse(system: ClebschSystem, xi, Q, P, *, blocks: bool =
       not depend on M).
 
     Returns (inverse, singular): (dim V, dim V) or (N, k, k)."""
-    def C(q, p):
-        return jax.grad(clebsch_hamiltonian, argnums=1)(system, xi, q, p)
-
     def bracket(d):  # M d: the derivative of C along the Hamiltonian vector field of ⟨d, C⟩
-        d = d.reshape(xi.shape)
-        gq, gp = jax.grad(lambda q, p: jnp.sum(d * C(q, p)), argnums=(0, 1))(Q, P)
-        return jax.jvp(C, (Q, P), (gp, -gq))[1]
+        tangent = _constraint_flow(system, xi, d.reshape(xi.shape), Q, P)
+        return jax.jvp(lambda q, p: _constraint(system, xi, q, p), (Q, P), tangent)[1]
 
     if not blocks:
         M = jax.jacfwd(lambda d: bracket(d).ravel())(jnp.zeros(xi.size, Q.dtype))
@@ -265,14 +276,10 @@ def degenerate_sweep(system: ClebschSystem, tab: GaussLegendre, h, Q, P, z: Gaus
     Qi, Pi = stage_values(tab, Q, P, z)
     w = jnp.asarray(tab.b, dtype=Q.dtype).reshape((-1,) + (1,) * Q.ndim) * h
 
-    def slopes(xi, q, p):
-        dH_dQ, dH_dP = jax.grad(clebsch_hamiltonian, argnums=(2, 3))(system, xi, q, p)
-        return dH_dP, -dH_dQ
-
-    Qdot, Pdot = jax.vmap(slopes)(z.xi, Qi, Pi)
+    Qdot, Pdot = jax.vmap(lambda xi, q, p: _flow(system, xi, q, p))(z.xi, Qi, Pi)
     trial = GaussUnknowns(xi=z.xi, dQ=w * Qdot, dP=w * Pdot)
     Qt, Pt = stage_values(tab, Q, P, trial)
-    C = jax.vmap(lambda xi, q, p: jax.grad(clebsch_hamiltonian, argnums=1)(system, xi, q, p))(z.xi, Qt, Pt)
+    C = jax.vmap(lambda xi, q, p: _constraint(system, xi, q, p))(z.xi, Qt, Pt)
     a_inv = np.linalg.inv(tab.a)
     mixed = jnp.stack([_combine(row, C) for row in a_inv])
     if constraint_inverse.ndim == 3:  # lumped blocks, one per particle
@@ -282,12 +289,7 @@ def degenerate_sweep(system: ClebschSystem, tab: GaussLegendre, h, Q, P, z: Gaus
         dxi = jax.vmap(lambda c: _linalg.matvec(constraint_inverse, c.ravel()))(mixed)
     dxi = -dxi.reshape(z.xi.shape) / h
 
-    def correction(d, q, p):  # X of the Hamiltonian ⟨d, C⟩ at the stage values
-        gq, gp = jax.grad(lambda q, p: jnp.sum(d * jax.grad(clebsch_hamiltonian, argnums=1)(system, d, q, p)),
-                          argnums=(0, 1))(q, p)
-        return gp, -gq
-
-    cQ, cP = jax.vmap(correction)(dxi, Qi, Pi)
+    cQ, cP = jax.vmap(lambda xi, d, q, p: _constraint_flow(system, xi, d, q, p))(z.xi, dxi, Qi, Pi)
     return GaussUnknowns(xi=z.xi + dxi, dQ=trial.dQ + w * cQ, dP=trial.dP + w * cP)
 
 

@@ -76,12 +76,16 @@ def march_gauss(system: ClebschSystem, Q0, xi0, P0, dt, t0, *, n_steps, scheme, 
         size = jnp.max(jnp.abs(jnp.concatenate([Q.ravel(), P.ravel(), guess.xi.ravel()])))
         return solve(lambda z: sweep(h, Q, P, z, mats), guess, size=size)
 
-    def substep(state, memory, h, scheme, n, alive):
+    def advance(h, state):  # one solved step: the next (Q, P, guess), its unknowns and statistics
         Q, P, guess = state
         z, stats = solve_step(h, Q, P, guess)
         Q1, P1 = gauss_update(Q, P, z)
+        return (Q1, P1, extrapolate(tab, z)), z, stats
+
+    def substep(state, memory, h, scheme, n, alive):
+        state, z, stats = advance(h, state)
         xi_mean = jnp.tensordot(jnp.asarray(tab.b, z.xi.dtype), z.xi, axes=1)
-        return (Q1, P1, extrapolate(tab, z)), memory, xi_mean, stats
+        return state, memory, xi_mean, stats
 
     # Step 0's guess: FIRST_STEP_SUBSTEPS solved substeps, the first from constant slopes (one
     # sweep from zero increments at the initial velocity); if one fails, constant slopes, and
@@ -91,11 +95,9 @@ def march_gauss(system: ClebschSystem, Q0, xi0, P0, dt, t0, *, n_steps, scheme, 
     h_sub, m0 = dt / FIRST_STEP_SUBSTEPS, matrices(Q0, P0, still)
     crude = sweep(h_sub, Q0, P0, still, m0)
 
-    def first_substep(carry, _):
-        Q, P, guess = carry
-        z, st = solve_step(h_sub, Q, P, guess)
-        Q1, P1 = gauss_update(Q, P, z)
-        return (Q1, P1, extrapolate(tab, z)), (z, st.status, st.iterations)
+    def first_substep(state, _):
+        state, z, st = advance(h_sub, state)
+        return state, (z, st.status, st.iterations)
 
     _, (zs, status, sub_sweeps) = jax.lax.scan(first_substep, (Q0, P0, crude), None, length=FIRST_STEP_SUBSTEPS)
     ok = jnp.all(status == Status.SUCCESS)
