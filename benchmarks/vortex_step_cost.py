@@ -13,7 +13,7 @@ What is timed, in one process and one run, on the same initial conditions, `dt` 
   (`rtol = atol = 0`), with
 
   - **blocks** (`jacobian="blocks"`): chord iterations with the lumped block-diagonal
-    Jacobian, one 2×2 block per vortex (`clebsch_jax._block_newton`), for every N;
+    Jacobian, one 2×2 block per vortex (`clebsch_jax.roots.blocks`), for every N;
   - **dense** (`jacobian="dense"`, the default): Newton with the dense (2N)×(2N) Jacobian,
     only for N = 4;
 

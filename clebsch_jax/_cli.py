@@ -344,7 +344,7 @@ def _use_compilation_cache(args, prog: str) -> None:
     on stderr and the run goes on without it."""
     if args.no_cache or os.environ.get("CLEBSCH_JAX_NO_CACHE"):
         return
-    from ._compilation_cache import enable_compilation_cache
+    from .core.compilation_cache import enable_compilation_cache
 
     try:
         enable_compilation_cache()
@@ -506,7 +506,7 @@ FIGURE1 = "figure-1"
 def _demo_figure1(args, out_dir: str, prog: str):
     """Run the Figure 1 scene; returns (exit code or None, summary or None)."""
     from ._demo import MissingPlotDependency, figure1
-    from ._solution import IntegrationError
+    from .march.solution import IntegrationError
 
     print(f"{PROG} demo: integrating the Figure 1 scene"
           f"{' (quick)' if args.quick else ''}; compiling first takes a few seconds...", flush=True)

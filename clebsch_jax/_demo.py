@@ -32,10 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import diagnostics, lie
-from ._integrate import integrate
-from ._march_full import cotangent_from_momentum, initial_multiplier
-from ._solution import IntegrationError
+from . import diagnostics
+from . import lie
+from .march.integrate import integrate
+from .discrete.legendre import cotangent_from_momentum, initial_multiplier
+from .march.solution import IntegrationError
 from .models import rigid_body
 
 __all__ = ["figure1", "MissingPlotDependency"]

@@ -46,11 +46,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import diagnostics, lie
-from ._integrate import integrate
-from ._march_full import cotangent_from_momentum, initial_multiplier
-from ._newton import Status
-from ._system import ClebschSystem
+from . import diagnostics
+from . import lie
+from .march.integrate import integrate
+from .discrete.legendre import cotangent_from_momentum, initial_multiplier
+from .roots.status import Status
+from .core.system import ClebschSystem
 from .models import (
     heavy_top,
     landmark_angular_momentum,

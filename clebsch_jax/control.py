@@ -2,7 +2,7 @@ r"""Optimal control and parameter identification through `integrate` (gradients 
 
 Every step of `integrate` is a Newton solve of Lemma 20; its derivatives with respect to
 anything the residual depends on — the initial data $(Q^0, P^0)$, model parameters — come
-from the implicit function theorem (`jax.lax.custom_root`, `clebsch_jax._newton`): for a step
+from the implicit function theorem (`jax.lax.custom_root`, `clebsch_jax.roots`): for a step
 $F(z; \theta) = 0$, $\partial z/\partial\theta = -(\partial_z F)^{-1}\partial_\theta F$, one
 linear solve with the Jacobian at the root, never a derivative of the iterations. So
 `jax.grad` of any scalar function of a `Solution` is the exact gradient of the discrete
@@ -48,9 +48,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._integrate import _as_float_array, _filter_jit, integrate
-from ._newton import Status
-from ._system import ClebschSystem
+from .core.jit import filter_jit as _filter_jit
+from .core.validation import float_array, positive_scalar
+from .core.validation import nonnegative as _nonnegative
+from .diagnostics import node_energy
+from .march.integrate import integrate
+from .roots.status import Status
+from .core.system import ClebschSystem
 
 __all__ = ["shoot", "fit_parameters", "ShootingResult", "FitResult", "squared_distance", "mean_squared_error"]
 
@@ -73,12 +77,6 @@ def mean_squared_error(predicted: jax.Array, observed: jax.Array) -> jax.Array:
     `fit_parameters`' default loss: for independent Gaussian noise of standard deviation
     $\sigma$ it tends to $\sigma^2$ at the true parameters."""
     return jnp.mean((predicted - observed) ** 2)
-
-
-def _energy(system: ClebschSystem, Q, xi):
-    """E = <dl/dxi, xi> - l(xi, Q) at one node."""
-    lval, g = jax.value_and_grad(lambda x: system.l(x, Q))(xi)
-    return jnp.sum(g * xi) - lval
 
 
 # --------------------------------------------------------------------------------------------
@@ -158,29 +156,15 @@ class FitResult:
 
 
 def _float_array(x, name: str) -> jax.Array:
-    """`integrate`'s own conversion and checks (type, real dtype, finite when concrete), and
-    no booleans: a mask is not data to fit or shoot from."""
-    arr = _as_float_array(x, name)
-    dtype = x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype
-    if dtype == bool:
-        raise TypeError(f"{name}: expected a real array, got dtype {dtype}.")
-    return arr
-
-
-def _nonnegative(x, name: str) -> float:
-    if isinstance(x, bool) or not isinstance(x, numbers.Real) or not np.isfinite(x) or x < 0:
-        raise ValueError(f"{name}: expected a finite number >= 0, got {x!r}.")
-    return float(x)
+    """`integrate`'s own conversion and checks, and no booleans: a mask is not data to fit or
+    shoot from."""
+    return float_array(x, name, allow_bool=False)
 
 
 def _check_common(dt, n_steps, optimizer, n_iterations, tol, gtol, options):
     if isinstance(n_steps, bool) or not isinstance(n_steps, numbers.Integral) or n_steps < 1:
         raise ValueError(f"n_steps: expected a Python int >= 1, got {n_steps!r}.")
-    dt = _float_array(dt, "dt")
-    if dt.shape != ():
-        raise ValueError(f"dt: expected a scalar, got an array of shape {dt.shape}.")
-    if not isinstance(dt, jax.core.Tracer) and not float(dt) > 0:
-        raise ValueError(f"dt: must be positive, got {float(dt)}.")
+    dt = positive_scalar(dt, "dt", allow_bool=False)
     if not (callable(getattr(optimizer, "init", None)) and callable(getattr(optimizer, "update", None))):
         raise TypeError(
             "optimizer: expected an optax GradientTransformation (e.g. optax.adam(1e-2)), "
@@ -211,7 +195,7 @@ def _scalar_output(fn, name: str, *args):
 def _shooting_terms(P0, system, Q0, target, xi0, dt, weight, *, n_steps, loss, regularize, options):
     sol = integrate(system, Q0, xi0, P0=P0, dt=dt, n_steps=n_steps, throw=False, **options)
     data = loss(sol.Q[-1], target)
-    value = data + weight * _energy(system, Q0, sol.xi[0]) if regularize else data
+    value = data + weight * node_energy(system, Q0, sol.xi[0]) if regularize else data
     ok = sol.result == Status.SUCCESS
     nan = jnp.asarray(jnp.nan, value.dtype)
     return jnp.where(ok, value, nan), (jnp.where(ok, data, nan), (sol.Q, sol.momentum), sol.result, sol.failed_step)

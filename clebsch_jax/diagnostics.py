@@ -12,11 +12,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._march_full import cotangent_from_momentum
-from ._solution import Solution
-from ._system import ClebschSystem
+from .discrete.legendre import cotangent_from_momentum
+from .march.solution import Solution
+from .core.system import ClebschSystem
 
 __all__ = [
+    "node_energy",
     "energy",
     "body_momentum",
     "noether_momentum",
@@ -34,6 +35,12 @@ def _over_nodes(fn, sol: Solution, *arrays):
     return fn(*arrays)
 
 
+def node_energy(system: ClebschSystem, Q, xi) -> jax.Array:
+    r"""The energy $E = \langle \delta l/\delta\xi, \xi\rangle - l(\xi, Q)$ at one node."""
+    lval, g = jax.value_and_grad(lambda y: system.l(y, Q))(xi)
+    return jnp.sum(g * xi) - lval
+
+
 def energy(system: ClebschSystem, sol: Solution) -> jax.Array:
     r"""The energy $E = \langle \delta l/\delta\xi, \xi\rangle - l(\xi, Q)$ at every node.
 
@@ -45,8 +52,7 @@ def energy(system: ClebschSystem, sol: Solution) -> jax.Array:
     such as point vortices, where $E$ is the Hamiltonian $H(Q)$), and meaningless otherwise.
     """
     def one(q, x):
-        lval, g = jax.value_and_grad(lambda y: system.l(y, q))(x)
-        return jnp.sum(g * x) - lval
+        return node_energy(system, q, x)
 
     if sol.xi is None:  # degenerate: E does not depend on xi when l is affine in it
         zeros = jnp.zeros(sol.momentum.shape, sol.momentum.dtype)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from . import _linalg
+from .core import linalg as _linalg
 
 __all__ = [
     "hat",

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 import clebsch_jax as cj
 from clebsch_jax import models
-from clebsch_jax._batch_last import _RULES
+from clebsch_jax.batching.batch_last import _RULES
 
 EPS = np.finfo(float).eps
 RNG = np.random.default_rng(6)

@@ -74,7 +74,7 @@ def test_bad_arguments_are_refused_before_touching_jax(tmp_path):
 
 
 def test_default_directory_follows_the_environment(monkeypatch, tmp_path):
-    from clebsch_jax._compilation_cache import default_cache_directory
+    from clebsch_jax.core.compilation_cache import default_cache_directory
 
     monkeypatch.setenv("CLEBSCH_JAX_CACHE_DIR", str(tmp_path / "mine"))
     assert default_cache_directory() == tmp_path / "mine"
@@ -91,7 +91,7 @@ class _Args:
 def test_command_line_switch(monkeypatch, capsys):
     """The command line enables the cache unless --no-cache or CLEBSCH_JAX_NO_CACHE; a cache it
     cannot use is reported and the run goes on."""
-    import clebsch_jax._compilation_cache as cc
+    import clebsch_jax.core.compilation_cache as cc
 
     calls = []
     monkeypatch.setattr(cc, "enable_compilation_cache", lambda: calls.append(1))

@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 
 import clebsch_jax as cj
 from clebsch_jax import diagnostics as dg
-from clebsch_jax._composition import check_coefficients
+from clebsch_jax.steppers.composition import check_coefficients
 
 from .helpers import rigid_body_reference, vortex_reference
 from .test_reduction import _vertical, heavy_top_rhs

@@ -10,7 +10,7 @@ import pytest
 
 import clebsch_jax as cj
 from clebsch_jax import diagnostics as dg
-from clebsch_jax._collocation import gauss_legendre
+from clebsch_jax.discrete.collocation import gauss_legendre
 
 from .helpers import rigid_body_reference
 

@@ -1,5 +1,5 @@
 """`scheme="gauss"` on a degenerate Lagrangian (l affine in ξ): point vortices. The stage
-Clebsch relations are constraints there, enforced by ξ (`clebsch_jax._collocation.degenerate_sweep`);
+Clebsch relations are constraints there, enforced by ξ (`clebsch_jax.discrete.collocation.degenerate_sweep`);
 nothing vortex-specific is written in the engine."""
 
 from __future__ import annotations

@@ -288,7 +288,7 @@ def _heavy_se3():
 
 def _reduced_case(name):
     """(system, Q0, dim V, reduction) of one of the matrix groups the Cayley step is checked on."""
-    from clebsch_jax import _reduction as R
+    from clebsch_jax.discrete import reduction as R
 
     system, Q0, m = {
         "rigid body": (cj.models.rigid_body(INERTIA), cj.lie.so3_exp(jnp.array([0.3, 0.2, -0.1])), 3),
@@ -308,7 +308,7 @@ def _reduced_case(name):
 def test_closed_form_cayley_step_equals_the_autodiff_step(name, scheme):
     """`reduced_step` uses the Cayley map's explicit derivative; `reduced_residual` and
     `outgoing_body_momentum` differentiate exp̄/loḡ by autodiff. Same numbers."""
-    from clebsch_jax import _reduction as R
+    from clebsch_jax.discrete import reduction as R
 
     rng = np.random.default_rng(5)
     system, Q0, m, red = _reduced_case(name)
@@ -336,7 +336,7 @@ def test_cayley_polynomial_is_the_matrix_form(name, monkeypatch):
     """The Cayley step evaluates Xᵀ(F₋ᵀPF₊ᵀ) as a polynomial in (ξ, ∇l) whose coefficients come
     from the basis (`CayleyPolynomial`); with it switched off, the same step forms the 3×3 (4×4)
     matrix products. Same residual, outgoing momentum and Q¹ to round-off, both schemes."""
-    from clebsch_jax import _reduction as R
+    from clebsch_jax.discrete import reduction as R
 
     rng = np.random.default_rng(11)
     system, Q0, m, red = _reduced_case(name)
@@ -359,7 +359,7 @@ def test_cayley_polynomial_is_the_matrix_form(name, monkeypatch):
 
 
 def test_cayley_polynomial_gives_way_to_the_matrix_form_for_large_algebras(monkeypatch):
-    from clebsch_jax import _reduction as R
+    from clebsch_jax.discrete import reduction as R
 
     system = cj.models.rigid_body(INERTIA)
     red, _ = R.find_reduction(system, jnp.eye(3), jnp.zeros(3))
@@ -372,7 +372,7 @@ def test_cayley_polynomial_gives_way_to_the_matrix_form_for_large_algebras(monke
 
 
 def test_predictor_is_exact_on_polynomials_and_falls_back_on_rough_data():
-    from clebsch_jax._march_reduced import PREDICTOR_ORDER, predict
+    from clebsch_jax.steppers.predictor import PREDICTOR_ORDER, predict
 
     t = np.arange(PREDICTOR_ORDER + 1, 0, -1.0) * 0.1  # history newest first, times 0.6 ... 0.1
     poly = lambda s: np.stack([1 + s - 2 * s**2 + 3 * s**3, 0.5 * s**2, np.full_like(s, 2.0)], axis=-1)
@@ -395,7 +395,7 @@ def _cubic_system():
 
 
 def test_reusing_newton_solver_reuses_refreshes_and_reports_failures():
-    from clebsch_jax._newton import newton_solve_reusing
+    from clebsch_jax.roots.newton import newton_solve_reusing
 
     F = _cubic_system()
     b = jnp.array([0.3, -0.2, 0.5])
@@ -436,27 +436,17 @@ def test_reusing_newton_solver_reuses_refreshes_and_reports_failures():
 
 
 @pytest.mark.parametrize("fresh", [True, False])
-def test_reduced_march_newton_counts_and_round_off(fresh, monkeypatch):
+def test_reduced_march_newton_counts_and_round_off(fresh):
     """The cost claims of the fast reduced step, as counts, and each step still solved to
     round-off. Cayley (the default, `fresh`): a fresh Jacobian at every step's guess, from which
     one Newton update reaches round-off and a second confirms it. Carried Jacobian (what other
     derivative maps get; forced here on the Cayley march): the Jacobian of the first step serves
     (almost) every later one and the high-order predictor leaves 3-4 chord updates per step."""
-    from clebsch_jax import _march_reduced
-
     system = cj.models.rigid_body(INERTIA)
     m0 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
-    if fresh:
-        sol = cj.integrate(system, np.eye(3), m0 / INERTIA, dt=0.05, n_steps=1000)
-    else:
-        # integrate's compiled programs are cached by their static arguments, which the patch
-        # does not change: trace anew, and leave no patched program behind for later tests
-        monkeypatch.setattr(_march_reduced, "_fresh_jacobians", lambda system: False)
-        jax.clear_caches()
-        try:
-            sol = cj.integrate(system, np.eye(3), m0 / INERTIA, dt=0.05, n_steps=1000)
-        finally:
-            jax.clear_caches()
+    # the default for the Cayley map, or the carried Jacobian other derivative maps get
+    method = cj.ReducedStep() if fresh else cj.ReducedStep(fresh_jacobian=False)
+    sol = cj.integrate(system, np.eye(3), m0 / INERTIA, dt=0.05, n_steps=1000, method=method)
     assert sol.form == "reduced" and bool(jnp.all(sol.valid))
     if fresh:
         assert np.all(np.asarray(sol.stats.jacobians) == 1)

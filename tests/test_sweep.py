@@ -194,7 +194,7 @@ def test_progress_is_reported_after_every_chunk(capsys):
 
 
 def test_bad_input_is_rejected_before_compiling(monkeypatch):
-    import clebsch_jax._sweep as sw
+    import clebsch_jax.batching.sweep as sw
 
     def compiled(*args, **kwargs):
         raise AssertionError("compiled a chunk for bad input")

@@ -87,8 +87,9 @@ import jax
 import jax.numpy as jnp
 from jax.tree_util import Partial
 
-from .._derivative_maps import DerivativeMap, VectorSpaceDifference, forward_difference
-from .._system import ClebschSystem
+from ..core.derivative_maps import DerivativeMap, VectorSpaceDifference, forward_difference
+from ..core.system import ClebschSystem
+from ..core.validation import is_traced
 
 __all__ = [
     "peakons",
@@ -167,7 +168,7 @@ def _width(width) -> jax.Array:
     w = jnp.asarray(width, dtype=jnp.result_type(float))
     if w.shape != ():
         raise ValueError(f"width: expected a scalar kernel width, got shape {w.shape} (vmap over a batch of widths).")
-    if not isinstance(w, jax.core.Tracer) and not (bool(w > 0) and bool(jnp.isfinite(w))):
+    if not is_traced(w) and not (bool(w > 0) and bool(jnp.isfinite(w))):
         raise ValueError(f"width: must be finite and positive, got {float(w)}.")
     return w
 

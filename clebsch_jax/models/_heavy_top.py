@@ -7,9 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.tree_util import Partial
 
-from .._derivative_maps import DerivativeMap, cayley
-from .._system import ClebschSystem
-from ._rigid_body import _is_traced, _right_multiplication, check_rotation, principal_moments
+from ..core.derivative_maps import DerivativeMap, cayley
+from ..core.system import ClebschSystem
+from ..core.validation import is_traced
+from ._rigid_body import _right_multiplication, check_rotation, principal_moments
 
 __all__ = ["heavy_top"]
 
@@ -49,7 +50,7 @@ def heavy_top(inertia, mass_gravity_length, center_of_mass=(0.0, 0.0, 1.0),
     chi = jnp.asarray(center_of_mass, dtype=dtype)
     if chi.shape != (3,):
         raise ValueError(f"center_of_mass: expected a 3-vector, got shape {chi.shape}.")
-    if not _is_traced(chi):
+    if not is_traced(chi):
         values = np.asarray(chi)
         if not np.all(np.isfinite(values)) or not np.any(values != 0):
             raise ValueError(f"center_of_mass: must be a finite, nonzero direction, got {values.tolist()}.")
@@ -57,7 +58,7 @@ def heavy_top(inertia, mass_gravity_length, center_of_mass=(0.0, 0.0, 1.0),
     mgl = jnp.asarray(mass_gravity_length, dtype=dtype)
     if mgl.shape != ():
         raise ValueError(f"mass_gravity_length: expected a scalar, got shape {mgl.shape} (vmap over a batch).")
-    if not _is_traced(mgl) and not np.isfinite(float(mgl)):
+    if not is_traced(mgl) and not np.isfinite(float(mgl)):
         raise ValueError(f"mass_gravity_length: must be finite, got {float(mgl)}.")
     return ClebschSystem(
         lagrangian=Partial(_lagrangian, inertia, mgl, chi),

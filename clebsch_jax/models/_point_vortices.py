@@ -27,8 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.tree_util import Partial
 
-from .._derivative_maps import DerivativeMap, forward_difference
-from .._system import ClebschSystem
+from ..core.derivative_maps import DerivativeMap, forward_difference
+from ..core.system import ClebschSystem
+from ..core.validation import is_traced
 
 __all__ = [
     "point_vortices",
@@ -70,7 +71,7 @@ def _circulations(circulations, *, nonzero: bool = False) -> jax.Array:
     gamma = jnp.asarray(circulations, dtype=jnp.result_type(float))
     if gamma.ndim != 1 or gamma.shape[0] < 1:
         raise ValueError(f"circulations: expected a 1-D array of N >= 1 circulations, got shape {gamma.shape}.")
-    if not isinstance(gamma, jax.core.Tracer):
+    if not is_traced(gamma):
         values = np.asarray(gamma)
         if not np.all(np.isfinite(values)):
             raise ValueError(f"circulations: must be finite, got {values.tolist()}.")

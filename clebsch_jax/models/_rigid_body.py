@@ -8,8 +8,9 @@ import numpy as np
 from jax.tree_util import Partial
 
 from .. import lie
-from .._derivative_maps import DerivativeMap, cayley, forward_difference
-from .._system import ClebschSystem
+from ..core.derivative_maps import DerivativeMap, cayley, forward_difference
+from ..core.system import ClebschSystem
+from ..core.validation import is_traced
 
 __all__ = ["rigid_body", "rigid_body_vector", "rigid_body_vector_start", "check_rotation", "ROTATION_TOLERANCE"]
 
@@ -58,17 +59,13 @@ def check_rotations(Qs) -> tuple[int, str] | None:
 check_rotation.batched = check_rotations
 
 
-def _is_traced(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
-
-
 def principal_moments(inertia, name: str = "inertia") -> jax.Array:
     """`inertia` as a float array of shape (3,), checked: finite and positive when concrete
     (skipped when traced, e.g. under `jax.vmap`/`jax.jit` or in `cj.sweep`)."""
     inertia = jnp.asarray(inertia, dtype=jnp.result_type(float))
     if inertia.shape != (3,):
         raise ValueError(f"{name}: expected the three principal moments, shape (3,), got {inertia.shape}.")
-    if not _is_traced(inertia):
+    if not is_traced(inertia):
         values = np.asarray(inertia)
         if not np.all(np.isfinite(values)) or not np.all(values > 0):
             raise ValueError(f"{name}: the principal moments must be finite and positive, got {values.tolist()}.")
@@ -151,7 +148,7 @@ def rigid_body_vector_start(Pi0) -> tuple[jax.Array, jax.Array]:
     Pi0 = jnp.asarray(Pi0, dtype=jnp.result_type(float))
     if Pi0.shape != (3,):
         raise ValueError(f"Pi0: expected a body momentum of shape (3,), got {Pi0.shape}.")
-    if not _is_traced(Pi0) and not np.any(np.asarray(Pi0)):
+    if not is_traced(Pi0) and not np.any(np.asarray(Pi0)):
         raise ValueError("Pi0: the zero momentum has no Clebsch pair with a unit Q0; expected a nonzero vector.")
     axis = jax.nn.one_hot(jnp.argmin(jnp.abs(Pi0)), 3, dtype=Pi0.dtype)
     Q0 = jnp.cross(Pi0, axis)

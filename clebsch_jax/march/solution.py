@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._newton import NewtonStats, Status
+from ..roots.newton import NewtonStats, Status
 
 __all__ = ["Solution", "IntegrationError"]
 

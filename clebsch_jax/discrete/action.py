@@ -29,7 +29,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ._system import ClebschSystem
+from ..core.system import ClebschSystem
 
 __all__ = ["SCHEMES", "discrete_lagrangian", "discrete_action"]
 

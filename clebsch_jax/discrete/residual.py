@@ -19,10 +19,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 
-from ._discrete_action import discrete_lagrangian
-from ._system import ClebschSystem, diamond
+from ..discrete.action import discrete_lagrangian
+from ..core.system import ClebschSystem, diamond
 
 __all__ = ["StepUnknowns", "step_residual", "outgoing_momentum", "nodal_residual", "legendre_residual"]
 

@@ -61,8 +61,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _linalg
-from ._system import ClebschSystem
+from ..core import linalg as _linalg
+from ..core.system import ClebschSystem
 
 __all__ = ["GaussLegendre", "gauss_legendre", "GaussUnknowns", "clebsch_hamiltonian", "stage_values",
            "stage_hessians", "gauss_sweep", "constraint_matrix_inverse", "degenerate_sweep", "gauss_update",

@@ -46,13 +46,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import diagnostics as _diagnostics
-from ._batch_last import batch
-from ._integrate import _check_configuration, _is_array, _runnable_check, integrate
-from ._march_full import cotangent_from_momentum, initial_multiplier
-from ._newton import Status
-from ._solution import IntegrationError
-from ._system import ClebschSystem
+from .. import diagnostics as _diagnostics
+from ..core.system import ClebschSystem
+from ..core.validation import check_configuration as _check_configuration
+from ..core.validation import host_float_array as _float_array
+from ..core.validation import is_array as _is_array
+from ..core.validation import positive_int as _positive_int_checked
+from ..core.validation import runnable_check as _runnable_check
+from ..discrete.legendre import cotangent_from_momentum, initial_multiplier
+from ..march.integrate import integrate
+from ..march.solution import IntegrationError
+from ..roots.status import Status
+from .batch_last import batch
 
 __all__ = ["sweep", "SweepResult", "SweepProgress"]
 
@@ -326,25 +331,7 @@ def _initial_multipliers(cfg: _Config, params, Q0, xi0, shared):
 
 
 def _positive_int(x, name, allow_none=False):
-    if x is None and allow_none:
-        return None
-    if isinstance(x, bool) or not isinstance(x, numbers.Integral) or x < 1:
-        raise ValueError(f"{name}: expected an int >= 1, got {x!r}.")
-    return int(x)
-
-
-def _float_array(x, name):
-    if x is None or isinstance(x, (str, bytes)):
-        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.")
-    try:
-        arr = np.asarray(x)
-    except Exception as err:  # e.g. ragged lists
-        raise TypeError(f"{name}: expected an array of numbers ({err}).") from None
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
-        raise TypeError(f"{name}: expected a real array of numbers, got dtype {arr.dtype}.")
-    if np.iscomplexobj(arr):
-        raise TypeError(f"{name}: expected a real array, got dtype {arr.dtype}.")
-    return arr.astype(np.float64) if not np.issubdtype(arr.dtype, np.floating) else arr
+    return _positive_int_checked(x, name, allow_none=allow_none)
 
 
 def _leading(arr, name, what):
@@ -469,7 +456,7 @@ def sweep(
     - `chunk_steps`: steps per `integrate` call (default min(n_steps, 100), a multiple of
       `save_every`). Memory is about `batch_size · chunk_steps` nodes; a chunk size that divides
       `n_steps` compiles one program (otherwise a second one for the last chunk). Chunks of
-      50–100 steps cost no measurable time over one unchunked run (see `clebsch_jax._sweep`).
+      50–100 steps cost no measurable time over one unchunked run (see `clebsch_jax.batching.sweep`).
     - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024)); the
       last batch is padded with copies of the last member.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of

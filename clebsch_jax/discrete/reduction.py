@@ -38,10 +38,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _linalg, lie
-from ._closure import check_closure
-from ._derivative_maps import MatrixGroupDifference
-from ._system import ClebschSystem
+from ..core import linalg as _linalg
+from ..discrete.closure import check_closure
+from ..core.derivative_maps import CayleyDifference, MatrixGroupDifference
+from ..core.system import ClebschSystem
+from ..core.validation import is_traced
 
 __all__ = ["MatrixGroupReduction", "find_reduction", "reduced_residual", "outgoing_body_momentum",
            "reduced_step"]
@@ -96,7 +97,7 @@ def _constant_map(C: np.ndarray, x, shape):
 
 
 def _concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
+    return not is_traced(x)
 
 
 _CACHE: dict = {}
@@ -105,7 +106,7 @@ _CACHE: dict = {}
 def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | None, str]:
     """`_find_reduction`, cached: the verdict depends only on the two maps and the shapes."""
     leaves = jax.tree_util.tree_leaves(system.velocity_map)
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+    if any(is_traced(x) for x in leaves):
         return _find_reduction(system, Q0, xi0)
     key = (system.velocity_map, system.derivative_map, tuple(np.shape(Q0)), tuple(np.shape(xi0)))
     try:
@@ -203,11 +204,6 @@ def outgoing_body_momentum(system, red, scheme, dt, Q0, xi):
     return jax.grad(perturbed)(jnp.zeros_like(xi)), Q1
 
 
-def _is_cayley(derivative_map) -> bool:
-    return (getattr(derivative_map, "exp", None) is lie.cayley_exp
-            and getattr(derivative_map, "log", None) is lie.cayley_log)
-
-
 def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
     r"""`reduced_residual` and `outgoing_body_momentum` of one step, sharing their work.
 
@@ -224,7 +220,7 @@ def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
     reverse pass serve both. For the Cayley map the derivative of $\overline{\log}$ is
     explicit (`_cayley_step`). Returns `(r, mu1, Q1)`; `mu1` is None unless `outgoing`, and
     `Q1` may be None when `outgoing` is False."""
-    if _is_cayley(system.derivative_map):
+    if isinstance(system.derivative_map, CayleyDifference):
         return _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing)
     F = system.derivative_map.exp(dt * red.X(xi))
     Q1 = Q0 @ F

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._system import ClebschSystem, momentum_map
+from ..core.system import ClebschSystem, momentum_map
 
 __all__ = ["ClosureResult", "check_closure", "euler_poincare_field", "sample_points"]
 

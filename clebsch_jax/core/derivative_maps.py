@@ -16,14 +16,15 @@ import dataclasses
 from typing import Callable
 
 import jax
-import jax.numpy as jnp
 
-from . import _linalg, lie
+from . import linalg as _linalg
+from .. import lie
 
 __all__ = [
     "DerivativeMap",
     "VectorSpaceDifference",
     "MatrixGroupDifference",
+    "CayleyDifference",
     "forward_difference",
     "cayley",
     "exponential",
@@ -100,7 +101,19 @@ class MatrixGroupDifference(DerivativeMap):
 forward_difference = VectorSpaceDifference()
 """The vector-space forward difference of Remark 21."""
 
-cayley = MatrixGroupDifference(log=lie.cayley_log, exp=lie.cayley_exp, name="cayley")
+@dataclasses.dataclass(frozen=True)
+class CayleyDifference(MatrixGroupDifference):
+    r"""Definition 25 with the Cayley pair $\overline{\exp}(Y) = (I - Y/2)^{-1}(I + Y/2)$,
+    $\overline{\log}(A) = 2(A + I)^{-1}(A - I)$ (Example 30). A type of its own because its
+    logarithm has an explicit derivative: the reduced march evaluates its step in closed form
+    (`clebsch_jax.discrete.reduction`) and forms a fresh Newton Jacobian at every solve."""
+
+    log: Callable[[jax.Array], jax.Array] = lie.cayley_log
+    exp: Callable[[jax.Array], jax.Array] = lie.cayley_exp
+    name: str = "cayley"
+
+
+cayley = CayleyDifference()
 """Definition 25 with the Cayley transform of Example 30 (the CAY integrator)."""
 
 exponential = MatrixGroupDifference(log=lie.logm, exp=lie.expm, name="exponential")

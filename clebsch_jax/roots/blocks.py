@@ -29,10 +29,10 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from . import _linalg
-from ._newton import _newton_loop, implicit_root, newton_solve_reusing
+from ..core import linalg
+from .newton import Matrix, newton_solve_reusing
 
-__all__ = ["block_newton_solve", "block_newton_solve_reusing", "identity_blocks"]
+__all__ = ["block_newton_solve", "block_newton_solve_reusing", "identity_blocks", "lumped_matrix"]
 
 MAX_CHORD_ITERATIONS = 40
 """Chord updates per block matrix. The lumped matrix is an approximation wherever it is formed,
@@ -41,8 +41,8 @@ stop contracting (or after this many updates)."""
 
 
 TANGENT_SWEEPS = 30
-"""Sweeps of the preconditioned tangent iteration: with the contraction ≲ 0.3 of a resolved step
-(measured ≈ 0.1 on random vortex sets) 30 sweeps reach round-off."""
+"""Sweeps of the preconditioned tangent iteration: with the contraction of a resolved step
+(well below 1/2) 30 sweeps reach round-off."""
 
 
 def _blocks(tree, n):
@@ -68,48 +68,33 @@ def lumped_blocks(lin: Callable, Z: jax.Array) -> jax.Array:
     return jnp.transpose(cols, (1, 2, 0))
 
 
-def _factor_blocks(M):
-    fac, singular = jax.vmap(_linalg.factor)(M)
-    return fac, jnp.any(singular)
-
-
-def _solve_blocks(fac, R):
-    return jax.vmap(_linalg.solve_factored)(fac, R)
-
-
-def _factor_lumped(F, Z):
-    """The lumped block matrix at Z, factored per particle: `(factor, singular)`."""
-    _, lin = jax.linearize(F, Z)
-    return _factor_blocks(lumped_blocks(lin, Z))
-
-
-def block_newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations: int):
-    r"""Solve $F(z) = 0$ for a pytree $z$ whose leaves share a leading particle axis, by chord
-    iterations with the lumped block-diagonal Jacobian (module docstring). Same contract as
-    `newton_solve`: returns `(z, NewtonStats)`, stops at round-off by default, and
-    `max_iterations` caps the number of block matrices formed."""
-    n = jax.tree_util.tree_leaves(guess)[0].shape[0]
-    Z0 = _blocks(guess, n)
-
-    def Fb(Z):
-        return _blocks(F(_unblocks(Z, guess)), n)
-
-    def loop(f, Z):
-        return (*_newton_loop(f, Z, rtol, atol, max_iterations, factorize=_factor_lumped, solve=_solve_blocks,
-                              max_updates=MAX_CHORD_ITERATIONS), None)
-
-    Z, stats, _ = implicit_root(Fb, Z0, loop, _block_tangent_solve)
-    return _unblocks(Z, guess), stats
-
-
 def _block_tangent_solve(g, y):
     """The linear tangent system g(x) = y (g the Jacobian at the root) by the same
     preconditioned iteration as the forward solve, x ← x + M⁻¹(y − g(x)), which contracts where
     the forward chord iterations did. A fixed number of sweeps: JAX transposes this map for
     reverse mode, which a data-dependent while loop would not allow."""
-    fac, _ = _factor_blocks(lumped_blocks(g, y))
-    body = lambda _, x: x + _solve_blocks(fac, y - g(x))
-    return jax.lax.fori_loop(0, TANGENT_SWEEPS, body, _solve_blocks(fac, y))
+    inv, _ = jax.vmap(linalg.inverse)(lumped_blocks(g, y))
+    apply = lambda r: jnp.einsum("nij,nj->ni", inv, r)
+    return jax.lax.fori_loop(0, TANGENT_SWEEPS, lambda _, x: x + apply(y - g(x)), apply(y))
+
+
+def lumped_matrix(shape) -> Matrix:
+    """The Newton `Matrix` of the lumped block-diagonal Jacobian, for flat unknowns that are
+    `shape` = (N, b) particle-major: its inverse blocks, applied particle by particle."""
+
+    def invert(f, z):
+        Fz, lin = jax.linearize(f, z)
+        M = lumped_blocks(lambda t: lin(t.reshape(-1)).reshape(shape), z.reshape(shape))
+        inv, singular = jax.vmap(linalg.inverse)(M)
+        return Fz, inv, jnp.any(singular)
+
+    def apply(Hb, r):
+        return jnp.einsum("nij,nj->ni", Hb, r.reshape(shape)).reshape(-1)
+
+    def tangent_solve(g, y):
+        return _block_tangent_solve(lambda x: g(x.reshape(-1)).reshape(shape), y.reshape(shape)).reshape(-1)
+
+    return Matrix(invert, apply, tangent_solve, MAX_CHORD_ITERATIONS)
 
 
 def identity_blocks(guess):
@@ -120,32 +105,29 @@ def identity_blocks(guess):
 
 
 def block_newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: float, max_iterations: int):
-    r"""`block_newton_solve` for a march of similar solves: the inverse lumped blocks `H`
-    (N, b, b) of the previous solve are carried (`newton_solve_reusing`'s contract with the
-    block matrix). Forming the lumped matrix costs b linearised residuals — more than the
-    chord updates of a well-predicted step — while the matrix changes by O(Δt) from step to
-    step; it is refreshed only when the carried one stops contracting.
+    r"""Solve $F(z) = 0$ for a pytree z whose leaves share a leading particle axis, by chord
+    iterations with the lumped block-diagonal Jacobian (module docstring), carrying its inverse
+    blocks `H` (N, b, b) from the previous solve of a march (`newton_solve_reusing`'s
+    contract). Forming the lumped matrix costs b linearised residuals — more than the chord
+    updates of a well-predicted step — while the matrix changes by O(Δt) from step to step;
+    it is refreshed only when the carried one stops contracting.
     **Returns:** `(z, NewtonStats, H)`."""
     n = jax.tree_util.tree_leaves(guess)[0].shape[0]
     Z0 = _blocks(guess, n)
-    shape = Z0.shape
 
     def Fb(Z):
         return _blocks(F(_unblocks(Z, guess)), n)
 
-    def invert(f, z):  # f, z flat (particle-major)
-        Fz, lin = jax.linearize(f, z)
-        M = lumped_blocks(lambda t: lin(t.reshape(-1)).reshape(shape), z.reshape(shape))
-        inv, singular = jax.vmap(_linalg.inverse)(M)
-        return Fz, inv, jnp.any(singular)
-
-    def apply(Hb, r):
-        return jnp.einsum("nij,nj->ni", Hb, r.reshape(shape)).reshape(-1)
-
-    def tangent_solve(g, y):
-        return _block_tangent_solve(lambda x: g(x.reshape(-1)).reshape(shape), y.reshape(shape)).reshape(-1)
-
     Z, stats, H, _ = newton_solve_reusing(Fb, Z0, H, reuse, rtol=rtol, atol=atol, max_iterations=max_iterations,
-                                          max_contraction=1.0, invert=invert, apply=apply,
-                                          tangent_solve=tangent_solve, max_updates=MAX_CHORD_ITERATIONS)
+                                          max_contraction=1.0, matrix=lumped_matrix(Z0.shape))
     return _unblocks(Z, guess), stats, H
+
+
+def block_newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations: int):
+    r"""Solve $F(z) = 0$ for a pytree $z$ whose leaves share a leading particle axis, by chord
+    iterations with the lumped block-diagonal Jacobian (module docstring). Same contract as
+    `newton_solve`: returns `(z, NewtonStats)`, stops at round-off by default, and
+    `max_iterations` caps the number of block matrices formed."""
+    z, stats, _ = block_newton_solve_reusing(F, guess, None, False, rtol=rtol, atol=atol,
+                                             max_iterations=max_iterations)
+    return z, stats

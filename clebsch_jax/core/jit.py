@@ -1,0 +1,40 @@
+"""`filter_jit`: `jax.jit` with every array leaf of the arguments traced and every other leaf
+(user functions, steppers, options) static, so that user closures can be passed."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+
+from .validation import is_array
+
+__all__ = ["filter_jit"]
+
+
+class _Dynamic:
+    def __repr__(self):
+        return "<dynamic>"
+
+
+_DYNAMIC = _Dynamic()
+
+
+def filter_jit(fun):
+    """`fun` compiled with its array leaves traced and its other leaves static (hashed); one
+    program per distinct static part and array shapes."""
+
+    @functools.partial(jax.jit, static_argnums=(0, 1))
+    def jitted(treedef, static, dynamic):
+        leaves = [d if s is _DYNAMIC else s for s, d in zip(static, dynamic)]
+        args, kwargs = jax.tree_util.tree_unflatten(treedef, leaves)
+        return fun(*args, **kwargs)
+
+    @functools.wraps(fun)
+    def wrapper(*args, **kwargs):
+        leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
+        static = tuple(_DYNAMIC if is_array(x) else x for x in leaves)
+        dynamic = [x if is_array(x) else None for x in leaves]
+        return jitted(treedef, static, dynamic)
+
+    return wrapper

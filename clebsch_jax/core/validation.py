@@ -1,0 +1,127 @@
+"""Checks of user input, one of each, shared by `integrate`, `sweep`, `control` and the
+steppers: a bad argument is refused before compiling, with a message that names it and says
+what was expected. Values are checked only where they are concrete (not traced by `jit` or
+`vmap`); under tracing a bad value shows up as a reported failure instead."""
+
+from __future__ import annotations
+
+import numbers
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["is_traced", "is_array", "float_array", "host_float_array", "positive_int", "nonnegative",
+           "positive_scalar", "output_shape", "check_configuration", "runnable_check"]
+
+
+def is_traced(x) -> bool:
+    """Whether x is a tracer (its value unknown: inside `jit`, `vmap`, `grad`)."""
+    return isinstance(x, jax.core.Tracer)
+
+
+def is_array(x) -> bool:
+    """Whether x is an array (a JAX or NumPy array or scalar), as opposed to static data."""
+    return isinstance(x, (jax.Array, np.ndarray, np.generic))
+
+
+def _real_dtype(dtype, name: str, allow_bool: bool):
+    if dtype == object or not (np.issubdtype(dtype, np.number) or dtype == bool):
+        raise TypeError(f"{name}: expected a real array of numbers, got dtype {dtype}.")
+    if np.issubdtype(dtype, np.complexfloating):
+        raise TypeError(f"{name}: expected a real floating-point array, got dtype {dtype}.")
+    if dtype == bool and not allow_bool:
+        raise TypeError(f"{name}: expected a real array, got dtype {dtype}.")
+
+
+def float_array(x, name: str, *, allow_bool: bool = True) -> jax.Array:
+    """x as a JAX float array: refused (naming `name`) if it is not an array of real numbers
+    or, when concrete, not finite. Integers (and booleans, if `allow_bool`) become floats; a
+    Python float becomes a strongly typed array, so that it and a NumPy float compile to one
+    program."""
+    if isinstance(x, (str, bytes)) or x is None:
+        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.")
+    try:
+        arr = jnp.asarray(x)
+    except TypeError as err:
+        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.") from err
+    _real_dtype(np.dtype(arr.dtype) if not hasattr(x, "dtype") else np.dtype(x.dtype), name, allow_bool)
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        arr = arr.astype(jnp.result_type(float))
+    if getattr(arr, "weak_type", False):
+        arr = jnp.asarray(arr, dtype=arr.dtype)
+    if not is_traced(x) and not is_traced(arr) and not np.all(np.isfinite(np.asarray(arr))):
+        raise ValueError(f"{name}: contains non-finite values (NaN or inf).")
+    return arr
+
+
+def host_float_array(x, name: str) -> np.ndarray:
+    """x as a NumPy float array kept on the host (large sweep inputs, dealt out batch by batch),
+    refused like `float_array` if it is not an array of real numbers."""
+    if x is None or isinstance(x, (str, bytes)):
+        raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.")
+    try:
+        arr = np.asarray(x)
+    except Exception as err:  # e.g. ragged lists
+        raise TypeError(f"{name}: expected an array of numbers ({err}).") from None
+    _real_dtype(arr.dtype, name, allow_bool=True)
+    return arr.astype(np.float64) if not np.issubdtype(arr.dtype, np.floating) else arr
+
+
+def positive_int(x, name: str, *, allow_none: bool = False, minimum: int = 1):
+    """x as a Python int >= `minimum` (None passes when `allow_none`)."""
+    if x is None and allow_none:
+        return None
+    if isinstance(x, bool) or not isinstance(x, numbers.Integral) or x < minimum:
+        raise ValueError(f"{name}: expected an int >= {minimum}, got {x!r}.")
+    return int(x)
+
+
+def nonnegative(x, name: str) -> float:
+    """x as a finite Python float >= 0."""
+    if isinstance(x, bool) or not isinstance(x, numbers.Real) or not np.isfinite(x) or x < 0:
+        raise ValueError(f"{name}: expected a finite number >= 0, got {x!r}.")
+    return float(x)
+
+
+def positive_scalar(x, name: str, *, allow_bool: bool = True) -> jax.Array:
+    """A scalar float array, positive when concrete (a time step)."""
+    arr = float_array(x, name, allow_bool=allow_bool)
+    if arr.shape != ():
+        raise ValueError(f"{name}: expected a scalar, got an array of shape {arr.shape}.")
+    if not is_traced(arr) and not float(np.asarray(arr)) > 0:
+        raise ValueError(f"{name}: must be positive, got {float(arr)}.")
+    return arr
+
+
+def output_shape(fn_name: str, fn, args, describe: str):
+    """The shape and dtype `fn(*args)` returns (args may be `ShapeDtypeStruct`s), or a
+    `ValueError` naming `fn_name` and the call `describe` when it cannot run on them."""
+    try:
+        return jax.eval_shape(fn, *args)
+    except Exception as err:  # the user's function could not even run on these shapes
+        raise ValueError(f"{fn_name}: calling it as {describe} failed: {type(err).__name__}: {err}") from None
+
+
+def runnable_check(system, Q0):
+    """`system.check_Q` when it can run on Q0, else None: values are known only when neither Q0
+    nor the check's array leaves are traced (jit/vmap)."""
+    check = system.check_Q
+    if check is None or is_traced(Q0) or any(is_traced(x) for x in jax.tree_util.tree_leaves(check)):
+        return None
+    return check
+
+
+def check_configuration(system, Q0, name: str = "Q0"):
+    """The system's own check that Q0 lies on its configuration manifold (`ClebschSystem.check_Q`,
+    e.g. a rotation for SO(3) models): on concrete values only (`runnable_check`)."""
+    check = runnable_check(system, Q0)
+    if check is None:
+        return
+    problem = check(np.asarray(Q0))
+    if problem is None:
+        return
+    if not isinstance(problem, str):
+        raise TypeError(f"check_Q: must return None or a string saying what is wrong, returned "
+                        f"{type(problem).__name__}.")
+    raise ValueError(f"{name}: {problem}")

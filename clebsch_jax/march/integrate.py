@@ -1,0 +1,204 @@
+"""`integrate`, the single entry point: validate → choose a stepper → march."""
+
+from __future__ import annotations
+
+import dataclasses
+import numbers
+
+import jax
+
+from ..core.jit import filter_jit
+from ..core.system import ClebschSystem
+from ..core.validation import (check_configuration, float_array, is_traced, nonnegative, output_shape,
+                               positive_int, positive_scalar)
+from ..steppers.base import AbstractStepper
+from ..steppers.choose import check_scheme, choose_method
+from ..steppers.composition import StepPlan, plan_of
+from ..steppers.principles import check_particle_axis
+from .scan import march
+from .solution import Solution, check_traced
+
+__all__ = ["integrate", "step_plan"]
+
+_LEGACY_DEFAULTS = dict(scheme=None, reduce="auto", need_P=False, reconstruct=True, rtol=0.0, atol=0.0,
+                        max_newton_iterations=20, jacobian="dense", order=None, composition=None)
+"""`integrate`'s options that describe the method; with `method=` they belong to the stepper."""
+
+
+def _check_options(system, n_steps, rtol, atol, max_newton_iterations):
+    if not isinstance(system, ClebschSystem):
+        raise TypeError(f"system: expected a clebsch_jax.ClebschSystem, got {type(system).__name__}.")
+    if isinstance(n_steps, bool) or not isinstance(n_steps, numbers.Integral):
+        raise TypeError(f"n_steps: expected a Python int, got {type(n_steps).__name__}.")
+    if n_steps < 1:
+        raise ValueError(f"n_steps: must be at least 1, got {n_steps}.")
+    positive_int(max_newton_iterations, "max_newton_iterations")
+    nonnegative(rtol, "rtol"), nonnegative(atol, "atol")
+
+
+def _check_arrays(system, Q0, xi0, P0, dt, t0):
+    """The arrays as float arrays, and the three maps called on their shapes (`ValueError`
+    naming the map that cannot run on them or returns the wrong shape)."""
+    Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
+    dt = positive_scalar(dt, "dt")
+    if P0 is not None:
+        P0 = float_array(P0, "P0")
+        if P0.shape != Q0.shape:
+            raise ValueError(f"P0: expected Q0's shape {Q0.shape}, got {P0.shape}.")
+    t0 = float_array(t0, "t0")
+    if t0.shape != ():
+        raise ValueError(f"t0: expected a scalar, got an array of shape {t0.shape}.")
+    sx, sq = jax.ShapeDtypeStruct(xi0.shape, xi0.dtype), jax.ShapeDtypeStruct(Q0.shape, Q0.dtype)
+    shapes = f"xi0 of shape {xi0.shape} and Q0 of shape {Q0.shape}"
+    call = ("lagrangian(xi0, Q0)" if system.has_potential else "lagrangian(xi0)") + f" with {shapes}"
+    lag = output_shape("lagrangian", system.l, (sx, sq), call)
+    if lag.shape != ():
+        raise ValueError(f"lagrangian: must return a scalar, returned shape {lag.shape} for {shapes}.")
+    vel = output_shape("velocity_map", system.velocity_map, (sx, sq), f"velocity_map(xi0, Q0) with {shapes}")
+    if vel.shape != Q0.shape:
+        raise ValueError(
+            f"velocity_map: must return an array of Q's shape {Q0.shape}, returned {vel.shape} for {shapes}."
+        )
+    der = output_shape("derivative_map", system.derivative_map, (sq, sq, jax.ShapeDtypeStruct((), dt.dtype)),
+                       f"derivative_map(Q_next, Q, dt) with Q of shape {Q0.shape}")
+    if der.shape != Q0.shape:
+        raise ValueError(f"derivative_map: must return an array of Q's shape {Q0.shape}, returned {der.shape}.")
+    check_configuration(system, Q0)
+    return Q0, xi0, P0, dt, t0.astype(dt.dtype)
+
+
+def step_plan(system: ClebschSystem, scheme: str | None = None, order=None, composition=None) -> StepPlan:
+    """The `StepPlan` `integrate` runs for these arguments (full or reduced alike): its
+    sub-steps and its facts (`order`, `symmetric`, `symplectic`, `name`, `solves_per_step`)."""
+    return plan_of(choose_method(system, None, None, scheme=scheme, order=order, composition=composition), system)
+
+
+_march_jit = filter_jit(march)
+
+
+def integrate(
+    system: ClebschSystem,
+    Q0,
+    xi0,
+    *,
+    dt,
+    n_steps: int,
+    P0=None,
+    t0=0.0,
+    method: AbstractStepper | None = None,
+    scheme: str | None = None,
+    reduce="auto",
+    need_P: bool = False,
+    reconstruct: bool = True,
+    rtol: float = 0.0,
+    atol: float = 0.0,
+    max_newton_iterations: int = 20,
+    jacobian: str = "dense",
+    order: int | None = None,
+    composition=None,
+    throw: bool = True,
+) -> Solution:
+    r"""March the discrete Clebsch equations (Lemma 20) of `system` from $(Q^0, \xi^0)$.
+
+    The method is a stepper (`clebsch_jax.steppers`): pass one as `method=`, or let the
+    options below choose it (`clebsch_jax.steppers.choose`: the rules are written there once).
+
+    - **Full step** (`FullStep`, `form="full"`): each step solves, by Newton's method with a
+      forward-mode Jacobian, the stationarity conditions of the discrete action
+      (`clebsch_jax.discrete_action`) for $(\xi^n, P^n, Q^{n+1})$ — obtained with `jax.grad`,
+      nothing model-specific written by hand — as a symplectic map
+      $(Q^n, p^n) \mapsto (Q^{n+1}, p^{n+1})$.
+    - **Reduced step** (`ReducedStep`, `form="reduced"`, Theorem 27 / Corollary 29): when the
+      velocity map is right multiplication on a matrix group, closed (Theorem 12), and the
+      derivative map is of Definition 25's form, Q and P are eliminated and each step solves
+      only for $\xi^n$ (dim V unknowns) from the body momentum $\mu^n$. Same trajectory, far
+      fewer unknowns.
+    - **Gauss–Legendre** (`GaussLegendre`): the s-stage partitioned Runge–Kutta discretisation
+      of the Clebsch principle, order 2s up to 16, solved by fixed-point sweeps.
+    - **Compositions** (`SymmetricPair`, `Composed`) of the first two.
+
+    **Arguments:**
+
+    - `system`: a `ClebschSystem`.
+    - `Q0`: initial configuration $Q^0$, any shape the system's maps accept.
+    - `xi0`: initial velocity $\xi^0$. Unless `P0` is given, the initial multiplier is the
+      minimum-norm solution of $\delta l/\delta\xi(\xi^0, Q^0) = -P^0 \diamond Q^0$
+      (`initial_multiplier`). With `P0`, `xi0` only fixes the shape of $V$ and seeds the
+      nodal-velocity solve.
+    - `dt`: time step (> 0). `n_steps`: number of steps (a Python int >= 1).
+    - `P0`: optional initial multiplier (the canonical momentum at $Q^0$), shape of `Q0`.
+    - `t0`: initial time (only used for `Solution.ts`).
+    - `method`: a stepper, e.g. `clebsch_jax.Composed(clebsch_jax.SymmetricPair(
+      clebsch_jax.FullStep()), clebsch_jax.KAHAN_LI_8)`. With it the options below, which
+      describe a method, must stay at their defaults (they are the stepper's fields).
+    - `scheme`: `"left"` (Definition 19; the default), `"right"` (the adjoint principle of
+      Remark 22), `"midpoint"` (l and the velocity map evaluated at the midpoint of each step:
+      symmetric and second order also with a potential; full march only; the default for
+      systems built with `degenerate=True`), or `"gauss"` (Gauss–Legendre of `order`, default
+      2; each step is one fixed-point solve of its stages, `stats.iterations` counts sweeps, at
+      most 5 × `max_newton_iterations`; a step too large for the iteration fails with
+      `Status.DIVERGED`. For a degenerate l it must be affine in ξ, as for point vortices).
+    - `reduce`: `"auto"` (default) uses the reduced step when it applies and `need_P` is
+      False; `True` forces it (a `ValueError` says why when it does not apply); `False`
+      forces the full step. `Solution.form` says which ran.
+    - `need_P`: the caller needs the multipliers $P^n$. With `reduce="auto"` this selects the
+      full step; with `reduce=True` the reduced step reconstructs the minimum-norm $P^n$.
+    - `reconstruct`: reduced step only: reconstruct $Q^n$ (default). With False and an l that
+      does not depend on Q, `Solution.Q` is None and Q is never computed.
+    - `rtol`, `atol`, `max_newton_iterations`: the root finder's stopping rule (`Newton`). The
+      default 0, 0 iterates to round-off, which exact conservation of momenta needs.
+    - `jacobian`: `"dense"` (default): `Newton` with the exact Jacobian. `"blocks"`: for N
+      interacting particles — `Q0` and `xi0` have a leading axis of length N — `BlockNewton`,
+      chord iterations with the lumped block-diagonal Jacobian, converged to the same
+      round-off. With `scheme="gauss"` and a degenerate l: the constraint bracket matrix whole
+      or lumped per particle (exact for point vortices).
+    - `order`: None (default) runs the principle as it is (order 1, or 2 when it is symmetric:
+      midpoint, or left/right with a symmetric derivative map and no potential). 2, 4, 6 or 8
+      makes each step a symmetric composition of sub-steps (`SymmetricPair`, `Composed`). With
+      `scheme="gauss"`: any even order up to 16.
+    - `composition`: a `Composition` (or the name of one in `clebsch_jax.COMPOSITIONS`)
+      instead of the default coefficients of its order.
+    - `throw`: if True (default) a failed step raises `IntegrationError` once, at the end,
+      naming the step (and batch member under `jax.vmap`), the reason and what to try. Under
+      `jit`/`vmap` the error is raised from a host callback. If False, failures are only
+      recorded in the `Solution` (`result`, `failed_step`, per-step `stats.status`, `valid`);
+      call `Solution.raise_if_failed()` later.
+
+    **Returns:** a `Solution`, with the method's facts (`form`, `scheme`, `order`, `method`).
+
+    Transformations: works under `jax.jit` (`n_steps`, `method` and the options are static)
+    and `jax.vmap` over `Q0`, `xi0`, `P0`, `dt` and array parameters inside the system.
+    Derivatives (forward and reverse mode) flow through the root finders by implicit
+    differentiation (`jax.lax.custom_root`).
+    """
+    _check_options(system, n_steps, rtol, atol, max_newton_iterations)
+    if method is None:
+        check_scheme(system, scheme)
+    else:
+        _check_method(method, locals())
+    Q0, xi0, P0, dt, t0 = _check_arrays(system, Q0, xi0, P0, dt, t0)
+    if method is None:
+        if jacobian == "blocks":
+            check_particle_axis(Q0, xi0)
+        method = choose_method(system, Q0, xi0, scheme=scheme, reduce=reduce, need_P=need_P, reconstruct=reconstruct,
+                               rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian,
+                               order=order, composition=composition)
+    stepper = method.prepare(system, Q0, xi0)
+    sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps)
+    if throw:
+        if is_traced(sol.result):
+            sol = dataclasses.replace(sol, result=check_traced(sol))
+        else:
+            sol.raise_if_failed()
+    return sol
+
+
+def _check_method(method, options):
+    if not isinstance(method, AbstractStepper):
+        raise TypeError("method: expected a stepper (e.g. clebsch_jax.FullStep(), ReducedStep(), "
+                        f"GaussLegendre(order=8)), got {type(method).__name__}.")
+    for name, default in _LEGACY_DEFAULTS.items():
+        value = options[name]
+        if value is not default and value != default:
+            raise ValueError(f"{name}: with method= the method's options are the stepper's own; pass "
+                             f"{name}={value!r} to the stepper instead (or leave method unset).")

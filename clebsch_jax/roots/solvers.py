@@ -1,0 +1,117 @@
+r"""The root finders a stepper can use, as small frozen objects (hashable, so static under
+`jax.jit`): each holds its stopping rule and solves through the one Newton loop of
+`clebsch_jax.roots.newton` or the fixed-point loop of `clebsch_jax.roots.fixed_point`.
+
+With `rtol = atol = 0` (the default) every solve iterates to round-off: a variational
+integrator conserves momenta only as well as each step is solved."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar
+
+import jax.numpy as jnp
+
+from ..core.validation import nonnegative, positive_int
+from .blocks import block_newton_solve, block_newton_solve_reusing, identity_blocks
+from .fixed_point import fixed_point_solve
+from .newton import newton_solve, newton_solve_reusing
+
+__all__ = ["Newton", "BlockNewton", "FixedPoint"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Newton:
+    r"""Newton's method with the exact (forward-mode) Jacobian, kept while chord updates
+    contract (`clebsch_jax.newton_solve`).
+
+    **Arguments:**
+
+    - `rtol`, `atol`: stop when the estimated error $\theta\|\Delta z\|/(1-\theta)$ is below
+      $\text{atol} + \text{rtol}\,\|z\|_\infty$; 0, 0 (default) iterates to round-off.
+    - `max_iterations`: the most Jacobians formed per solve (default 20).
+    """
+
+    rtol: float = 0.0
+    atol: float = 0.0
+    max_iterations: int = 20
+
+    carries_matrix: ClassVar[bool] = False
+    """Whether a full march carries this finder's matrix from step to step (`solve_reusing`)
+    rather than forming a fresh one per solve: a dense Jacobian is formed fresh at the good
+    guess of each step."""
+
+    def __post_init__(self):
+        object.__setattr__(self, "rtol", nonnegative(self.rtol, "rtol"))
+        object.__setattr__(self, "atol", nonnegative(self.atol, "atol"))
+        object.__setattr__(self, "max_iterations", positive_int(self.max_iterations, "max_iterations"))
+
+    @property
+    def _options(self):
+        return dict(rtol=self.rtol, atol=self.atol, max_iterations=self.max_iterations)
+
+    def solve(self, F, guess):
+        """Solve F(z) = 0 from `guess`. **Returns:** `(z, NewtonStats)`."""
+        return newton_solve(F, guess, **self._options)
+
+    def solve_reusing(self, F, guess, H, reuse, finish=None):
+        """Solve F(z) = 0 first with the carried inverse Jacobian `H` (if `reuse`).
+        **Returns:** `(z, NewtonStats, H, extra)` (see `newton_solve_reusing`)."""
+        return newton_solve_reusing(F, guess, H, reuse, finish=finish, **self._options)
+
+    def initial_matrix(self, guess):
+        """A placeholder carried matrix for the first solve of a march."""
+        return jnp.eye(guess.size, dtype=guess.dtype)
+
+
+@dataclasses.dataclass(frozen=True)
+class BlockNewton(Newton):
+    r"""Chord iterations with the lumped block-diagonal Jacobian, one block per particle, for N
+    interacting particles (`clebsch_jax.roots.blocks`): every unknown has a leading axis of
+    length N. b Jacobian-vector products per matrix instead of N·b, no (N·b)³ factorisation;
+    the full residual is still driven to round-off. A march carries the inverse blocks from
+    step to step and refreshes them only when they stop contracting. Same arguments as
+    `Newton` (`max_iterations` caps the block matrices per solve)."""
+
+    carries_matrix: ClassVar[bool] = True  # forming the lumped matrix costs more than a step's updates
+
+    def solve(self, F, guess):
+        return block_newton_solve(F, guess, **self._options)
+
+    def solve_reusing(self, F, guess, H, reuse, finish=None):
+        z, stats, H = block_newton_solve_reusing(F, guess, H, reuse, **self._options)
+        return z, stats, H, None
+
+    def initial_matrix(self, guess):
+        return identity_blocks(guess)
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedPoint:
+    r"""Fixed-point sweeps $z \leftarrow G(z)$ for a contraction with a good guess
+    (`clebsch_jax.roots.fixed_point.fixed_point_solve`), to round-off by default.
+
+    **Arguments:**
+
+    - `rtol`, `atol`: as for `Newton`, judged on the size of the last update.
+    - `max_iterations`: the most sweeps per solve (default 100; a sweep gains about one digit
+      where a Newton update gains many).
+    - `untested`: sweeps before the first convergence test (default 4: a test costs about as
+      much as a sweep, and a well-predicted step needs more than that).
+    """
+
+    rtol: float = 0.0
+    atol: float = 0.0
+    max_iterations: int = 100
+    untested: int = 4
+
+    def __post_init__(self):
+        object.__setattr__(self, "rtol", nonnegative(self.rtol, "rtol"))
+        object.__setattr__(self, "atol", nonnegative(self.atol, "atol"))
+        object.__setattr__(self, "max_iterations", positive_int(self.max_iterations, "max_iterations"))
+        object.__setattr__(self, "untested", positive_int(self.untested, "untested", minimum=0))
+
+    def solve(self, G, guess, size=None):
+        """Solve z = G(z) from `guess`, sizes judged against `size`. **Returns:** `(z, NewtonStats)`."""
+        return fixed_point_solve(G, guess, rtol=self.rtol, atol=self.atol, max_iterations=self.max_iterations,
+                                 size=size, untested=self.untested)

@@ -1,0 +1,85 @@
+"""Failure as a value: the status codes and statistics every root finder returns, and how the
+statistics of several solves (a composed step) or of solves not attempted combine."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["Status", "NewtonStats", "combine_stats", "stack_stats", "skip_stats"]
+
+
+class Status:
+    """Per-step status codes carried through the march (failure is a value)."""
+
+    SUCCESS = 0
+    MAX_ITERATIONS = 1
+    NONFINITE = 2
+    SINGULAR = 3
+    SKIPPED = 4  # not attempted: an earlier step of this batch member failed
+    LEGENDRE = 5  # the nodal velocity could not be recovered from (Q, p)
+    DIVERGED = 6  # a fixed-point iteration (Gauss-Legendre step) stopped contracting
+
+    MESSAGES = {
+        SUCCESS: "converged",
+        MAX_ITERATIONS: "Newton's method reached the maximum number of iterations",
+        NONFINITE: "the residual or the Newton iterate became non-finite (NaN/inf)",
+        SINGULAR: "the Newton Jacobian is singular",
+        SKIPPED: "not attempted because an earlier step failed",
+        LEGENDRE: "the nodal velocity could not be recovered from (Q, p) by Lemma 7's "
+        "relation dl/dxi(xi, Q) = -p<>Q",
+        DIVERGED: "the fixed-point iteration of a Gauss-Legendre step stopped contracting or overflowed "
+        "(dt too large for it, or the model is not finite at the stage values)",
+    }
+
+
+class NewtonStats(NamedTuple):
+    """Statistics of one solve: updates made (`iterations`), final residual max-norm, status,
+    and the number of Jacobians formed (`jacobians`)."""
+
+    iterations: jax.Array
+    residual_norm: jax.Array
+    status: jax.Array
+    jacobians: jax.Array
+
+    @staticmethod
+    def combine(solves) -> "NewtonStats":
+        """The statistics of a step made of several solves (a sequence of `NewtonStats`, or one
+        stacked along leading axes): updates and Jacobians add up, the residual is the worst,
+        the status the first failure."""
+        return combine_stats(stack_stats(solves))
+
+
+def _first_failure(status):
+    """The first status that is not SUCCESS along the last axis (SUCCESS if none)."""
+    failed = status != Status.SUCCESS
+    return jnp.where(jnp.any(failed, axis=-1),
+                     jnp.take_along_axis(status, jnp.argmax(failed, axis=-1)[..., None], axis=-1)[..., 0],
+                     Status.SUCCESS).astype(jnp.int32)
+
+
+def combine_stats(stats: NewtonStats) -> NewtonStats:
+    """One `NewtonStats` for a step made of several solves (stacked along the last axis): the
+    updates and Jacobians add up, the residual is the worst, the status the first failure."""
+    return NewtonStats(iterations=jnp.sum(stats.iterations, axis=-1).astype(jnp.int32),
+                       residual_norm=jnp.max(stats.residual_norm, axis=-1),
+                       status=_first_failure(stats.status),
+                       jacobians=jnp.sum(stats.jacobians, axis=-1).astype(jnp.int32))
+
+
+def stack_stats(stats) -> NewtonStats:
+    """`NewtonStats` of several solves (a sequence, or stacked along leading axes) as one
+    `NewtonStats` with the solves along the last axis, in order, for `combine_stats`."""
+    if isinstance(stats, NewtonStats):
+        return jax.tree_util.tree_map(lambda a: a.reshape(-1), stats)
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *stats)
+
+
+def skip_stats(stats: NewtonStats, attempted) -> NewtonStats:
+    """`stats` with the solves that were not `attempted` marked SKIPPED, counting nothing."""
+    return NewtonStats(iterations=jnp.where(attempted, stats.iterations, 0).astype(stats.iterations.dtype),
+                       residual_norm=jnp.where(attempted, stats.residual_norm, jnp.nan),
+                       status=jnp.where(attempted, stats.status, Status.SKIPPED).astype(jnp.int32),
+                       jacobians=jnp.where(attempted, stats.jacobians, 0).astype(stats.jacobians.dtype))

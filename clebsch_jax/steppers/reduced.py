@@ -1,0 +1,142 @@
+r"""The reduced step (Theorem 27, Corollary 29): dim V unknowns per step instead of
+dim V + 2 dim M. The state is the body momentum $\mu^n = -p^n\diamond Q^n$; Q is carried only
+when l depends on it (Definition 14) or the caller asks for it, and updated explicitly,
+$Q^{n+1} = Q^n\,\overline{\exp}(\Delta t X(\xi^n))$.
+
+Each step is small (a few hundred flops for the rigid body), so its cost is the number of
+operations XLA runs (each with a fixed cost on the CPU) and the number of Newton updates:
+
+- the residual and the outgoing momentum come from one evaluation (`reduced_step`), in closed
+  form for the Cayley map;
+- the guess is the last velocity plus a polynomial extrapolation of the increments this
+  sub-step made in earlier steps (`predictor`);
+- for the Cayley map every solve forms the exact Jacobian at that guess, from the cheap
+  closed-form residual: Newton converges quadratically from the good guess, so one update
+  reaches round-off and a second confirms it, and a batch pays its slowest member's updates;
+- for other maps, whose residual goes through autodiff of exp̄ and loḡ and makes a Jacobian
+  expensive, the inverse Jacobian is carried from step to step: formed at step 0 and again
+  only when its chord updates stop contracting well.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from ..core.derivative_maps import CayleyDifference
+from ..core.system import momentum_map
+from ..discrete.legendre import initial_multiplier
+from ..discrete.reduction import MatrixGroupReduction, find_reduction, reduced_step
+from ..roots.solvers import Newton
+from .base import Nodes, Principle
+from .full import seed_velocity
+from .predictor import empty_history, predict, push
+from .principles import PrincipleStep
+
+__all__ = ["ReducedStep"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ReducedStep(PrincipleStep):
+    r"""One step of the reduced discrete Euler–Poincaré equation (Theorem 27, Corollary 29),
+    for a velocity map that is right multiplication on a matrix group, closed (Theorem 12),
+    with a derivative map of Definition 25's form: P and Q are eliminated and each step solves
+    dim V equations for $\xi^n$ from the body momentum. Same trajectory as `FullStep` with the
+    same principle.
+
+    **Arguments:**
+
+    - `principle`: `Principle.LEFT` (default) or `RIGHT`.
+    - `root_finder`: a `Newton()`.
+    - `reconstruct`: carry and return $Q^n$ (default True). With False and an l without
+      potential, `Solution.Q` is None and Q is never computed.
+    - `need_P`: also return the minimum-norm multiplier $P^n$ of each step.
+    - `fresh_jacobian`: form a fresh Jacobian at every solve (True) or carry the inverse
+      Jacobian from step to step (False); None (default) chooses fresh for the Cayley map,
+      whose residual is in closed form, carried otherwise.
+
+    `prepare` finds the matrix-group structure (`find_reduction`) or says why it does not
+    apply.
+    """
+
+    reconstruct: bool = True
+    need_P: bool = False
+    fresh_jacobian: bool | None = None
+    reduction: MatrixGroupReduction | None = None
+
+    form = "reduced"
+
+    def __post_init__(self):
+        super().__post_init__()
+        if type(self.root_finder) is not Newton:
+            raise TypeError(f"root_finder: the reduced step solves dim V equations with clebsch_jax.Newton(), got "
+                            f"{self.root_finder!r}.")
+
+    def prepare(self, system, Q0, xi0) -> "ReducedStep":
+        if self.principle == Principle.MIDPOINT:
+            raise ValueError("reduce: the reduced march does not apply to this system: the reduced march "
+                             "implements the left and right principles only.")
+        red, reason = find_reduction(system, Q0, xi0)
+        if red is None:
+            raise ValueError(f"reduce: the reduced march does not apply to this system: {reason}.")
+        return dataclasses.replace(self, reduction=red)
+
+    def _carry_Q(self, system) -> bool:
+        return bool(self.reconstruct or system.has_potential or self.need_P)
+
+    def _fresh(self, system) -> bool:
+        if self.fresh_jacobian is None:
+            return isinstance(system.derivative_map, CayleyDifference)
+        return bool(self.fresh_jacobian)
+
+    def init(self, system, Q0, xi0, P0, dt):
+        if P0 is not None:
+            mu0 = momentum_map(system, P0, Q0, xi0)
+            xi0 = seed_velocity(system, self.root_finder, Q0, P0, xi0)
+        else:
+            mu0 = jax.grad(lambda x: system.l(x, Q0))(xi0)
+        # Without a potential the reduced Lagrangian is left-invariant: evaluate at the identity.
+        Qc0 = Q0 if self._carry_Q(system) else jnp.eye(Q0.shape[0], dtype=Q0.dtype)
+        return (mu0, Qc0, xi0), 0
+
+    def init_memory(self, system, state):
+        _, _, xi = state
+        return empty_history(xi.shape, xi.dtype), jnp.eye(xi.size, dtype=xi.dtype)
+
+    def step(self, system, state, memory, h, n, alive):
+        mu, Q, xi_last = state
+        history, H = memory
+        red, principle = self.reduction, self.principle
+
+        def residual(x):
+            return reduced_step(system, red, principle, h, mu, Q, x, outgoing=False)[0]
+
+        def finish(x):  # the residual at the solution and the outgoing μⁿ⁺¹, Qⁿ⁺¹, sharing work
+            r, mu1, Q1 = reduced_step(system, red, principle, h, mu, Q, x)
+            return r, (mu1, Q1)
+
+        # A fresh Jacobian at the guess, or the inverse Jacobian of this slot's last solve
+        # (refreshed when it stops contracting, formed at step 0); a member that has failed
+        # iterates on NaNs without forming any.
+        guess = xi_last + predict(n, jnp.zeros_like(xi_last), history)
+        reuse = False if self._fresh(system) else (n > 0) | ~alive
+        xi, stats, H, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish)
+        carry_Q = self._carry_Q(system)
+        return (mu1, Q1 if carry_Q else Q, xi), (push(history, xi - xi_last), H), (xi, Q1), stats
+
+    def nodes(self, system, state0, states, outs) -> Nodes:
+        mu0, Qc0, xi0 = state0
+        (mus, Qs_after, _), (xis, Q_first) = states, outs
+        n_steps = xis.shape[0]
+        mus = jnp.concatenate([mu0[None], mus])
+        if self._carry_Q(system):
+            Qs = nodal_Q = jnp.concatenate([Qc0[None], Qs_after])
+        else:
+            Qs, nodal_Q = None, jnp.broadcast_to(Qc0, (n_steps + 1,) + Qc0.shape)
+        Ps = None
+        if self.need_P:  # the multiplier of each step's first sub-step, at that sub-step's anchor
+            anchors = Qs[:-1] if self.principle == Principle.LEFT else Q_first
+            Ps = jax.vmap(lambda q, x: initial_multiplier(system, q, x))(anchors, xis)
+        return Nodes(Q=Qs, p=None, P=Ps, momentum=mus, xi_step=xis, nodal_Q=nodal_Q, xi_seed=xi0)

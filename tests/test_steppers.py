@@ -1,0 +1,117 @@
+"""Methods as data: the stepper objects behind `integrate`, their facts, the rule that picks one,
+and `method=` — the same march whichever way the method is named."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+
+RIGID = cj.models.rigid_body(jnp.array([2.0, 1.0, 2.0 / 3.0]))
+TOP = cj.models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5)
+TOP_Q0 = cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))
+EYE, XI0, OMEGA0 = jnp.eye(3), jnp.array([1.3, 0.8, -0.4]), jnp.array([0.1, 0.2, 5.0])
+
+
+def _same(a, b):
+    for f in ("Q", "p", "xi", "xi_step", "P", "momentum"):
+        x, y = getattr(a, f), getattr(b, f)
+        assert (x is None) == (y is None), f
+        if x is not None:
+            np.testing.assert_array_equal(x, y, err_msg=f)
+    np.testing.assert_array_equal(a.stats.iterations, b.stats.iterations)
+    assert (a.form, a.scheme, a.order, a.method) == (b.form, b.scheme, b.order, b.method)
+
+
+@pytest.mark.parametrize("options, method", [
+    (dict(), cj.ReducedStep()),
+    (dict(reduce=False, order=4), cj.Composed(cj.FullStep(), cj.SUZUKI_4)),
+    (dict(reduce=False, scheme="midpoint"), cj.FullStep(cj.Principle.MIDPOINT)),
+])
+def test_method_objects_run_the_march_the_options_choose(options, method):
+    """`method=` and the equivalent options are one program: bit-identical solutions."""
+    by_options = cj.integrate(RIGID, EYE, XI0, dt=0.1, n_steps=12, **options)
+    by_method = cj.integrate(RIGID, EYE, XI0, dt=0.1, n_steps=12, method=method)
+    _same(by_options, by_method)
+
+
+def test_left_right_pair_is_the_documented_second_order_step():
+    """With a potential the left principle is first order; order=2 is right(h/2) ∘ left(h/2)."""
+    sol = cj.integrate(TOP, TOP_Q0, OMEGA0, dt=0.02, n_steps=10, method=cj.SymmetricPair(cj.ReducedStep()))
+    assert (sol.form, sol.order, sol.method) == ("reduced", 2, "right(h/2) o left(h/2)")
+    _same(sol, cj.integrate(TOP, TOP_Q0, OMEGA0, dt=0.02, n_steps=10, order=2))
+
+
+def test_facts_are_data_that_depend_on_the_system():
+    left, mid = cj.FullStep(), cj.FullStep("midpoint")
+    assert left.facts(RIGID).order == 2 and left.facts(RIGID).symmetric  # Cayley, no potential: Example 30
+    assert left.facts(TOP).order == 1 and not left.facts(TOP).symmetric  # l(ξ, Qⁿ) at one end
+    assert mid.facts(TOP)[2:4] == (2, True)
+    pair = cj.SymmetricPair(cj.FullStep())
+    assert pair.facts(TOP).solves_per_step == 2 and pair.facts(TOP).order == 2
+    k8 = cj.Composed(pair, "Kahan-Li p8s17")
+    assert k8.facts(TOP).order == 8 and k8.facts(TOP).solves_per_step == 34
+    assert cj.GaussLegendre(order=12).facts(TOP)[:4] == ("full", "gauss", 12, True)
+    assert cj.step_plan(TOP, "left", 8).solves_per_step == k8.facts(TOP).solves_per_step
+
+
+def test_steppers_are_hashable_values():
+    """Static under jit: equal steppers are one cache entry."""
+    assert cj.FullStep() == cj.FullStep("left") and hash(cj.FullStep()) == hash(cj.FullStep("left"))
+    assert cj.GaussLegendre(order=4) != cj.GaussLegendre(order=6)
+    assert len({cj.Newton(), cj.Newton(rtol=0.0), cj.BlockNewton()}) == 2
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: cj.FullStep("sideways"), r"^principle: expected one of"),
+    (lambda: cj.FullStep(root_finder=cj.FixedPoint()), r"^root_finder: expected"),
+    (lambda: cj.ReducedStep(root_finder=cj.BlockNewton()), r"^root_finder: the reduced step"),
+    (lambda: cj.GaussLegendre(order=3), r"^order: Gauss-Legendre expects an even order"),
+    (lambda: cj.Composed(cj.FullStep(), "no such coefficients"), r"^composition: unknown name"),
+    (lambda: cj.Composed(cj.GaussLegendre(order=4), cj.SUZUKI_4), r"^base: compose"),
+    (lambda: cj.Newton(rtol=-1.0), r"^rtol: expected a finite number >= 0"),
+    (lambda: cj.FixedPoint(max_iterations=0), r"^max_iterations: expected an int >= 1"),
+])
+def test_bad_steppers_are_refused_when_built(make, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        make()
+
+
+def test_a_method_that_cannot_run_the_system_is_refused_before_compiling():
+    with pytest.raises(ValueError, match=r"^method: a composition needs a symmetric second-order step"):
+        cj.integrate(TOP, TOP_Q0, OMEGA0, dt=0.02, n_steps=3, method=cj.Composed(cj.FullStep(), cj.SUZUKI_4))
+    with pytest.raises(ValueError, match=r"^reduce: the reduced march does not apply.*not a matrix-group map"):
+        lamp = cj.ClebschSystem(lagrangian=lambda x: 0.5 * x @ x, velocity_map=lambda x, Q: x * Q,
+                                derivative_map=cj.forward_difference)
+        cj.integrate(lamp, jnp.ones(2), jnp.ones(2), dt=0.1, n_steps=3, method=cj.ReducedStep())
+    vortices = cj.models.point_vortices(jnp.array([1.0, -1.0]))
+    with pytest.raises(ValueError, match=r"^scheme: 'left' is inconsistent for a degenerate Lagrangian"):
+        cj.integrate(vortices, jnp.eye(2), jnp.zeros((2, 2)), dt=0.1, n_steps=3, method=cj.FullStep())
+
+
+def test_method_options_belong_to_the_stepper():
+    """With `method=`, an option that describes the method is refused instead of silently ignored."""
+    with pytest.raises(ValueError, match=r"^order: with method= the method's options are the stepper's own"):
+        cj.integrate(RIGID, EYE, XI0, dt=0.1, n_steps=3, method=cj.FullStep(), order=4)
+    with pytest.raises(ValueError, match=r"^rtol: with method="):
+        cj.integrate(RIGID, EYE, XI0, dt=0.1, n_steps=3, method=cj.FullStep(), rtol=1e-8)
+    with pytest.raises(TypeError, match=r"^method: expected a stepper"):
+        cj.integrate(RIGID, EYE, XI0, dt=0.1, n_steps=3, method="gauss")
+
+
+def test_a_stepper_runs_under_vmap_and_grad():
+    """A method object is static data: vmapped over initial data and differentiated through."""
+    method = cj.SymmetricPair(cj.ReducedStep())
+
+    def final_energy(omega):
+        sol = cj.integrate(TOP, TOP_Q0, omega, dt=0.02, n_steps=10, method=method)
+        return cj.diagnostics.energy(TOP, sol)[-1]
+
+    omegas = jnp.stack([OMEGA0, OMEGA0 * 1.01])
+    batched = jax.vmap(final_energy)(omegas)
+    np.testing.assert_allclose(batched[0], final_energy(OMEGA0), rtol=1e-14)
+    g = jax.grad(final_energy)(OMEGA0)
+    e = jnp.eye(3)[2] * 1e-6
+    fd = (final_energy(OMEGA0 + e) - final_energy(OMEGA0 - e)) / 2e-6
+    np.testing.assert_allclose(g[2], fd, rtol=1e-6)
