@@ -38,14 +38,17 @@ from ._closure import (  # noqa: E402
     check_closure as check_closure,
     euler_poincare_field as euler_poincare_field,
 )
+from ._collocation import GAUSS_ORDERS as GAUSS_ORDERS  # noqa: E402
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache  # noqa: E402
 from ._composition import (  # noqa: E402
     COMPOSITIONS as COMPOSITIONS,
     Composition as Composition,
     StepPlan as StepPlan,
 )
+from ._continuation import Start as Start, continue_from as continue_from  # noqa: E402
 from ._integrate import integrate as integrate, step_plan as step_plan  # noqa: E402
 from ._march_full import (  # noqa: E402
+    cotangent_from_momentum as cotangent_from_momentum,
     initial_multiplier as initial_multiplier,
     nodal_velocity as nodal_velocity,
 )

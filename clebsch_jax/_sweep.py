@@ -48,8 +48,9 @@ import numpy as np
 
 from . import diagnostics as _diagnostics
 from ._batch_last import batch
+from ._continuation import continue_from
 from ._integrate import _check_configuration, _is_array, _runnable_check, integrate
-from ._march_full import cotangent_from_momentum, initial_multiplier
+from ._march_full import initial_multiplier
 from ._newton import Status
 from ._solution import IntegrationError
 from ._system import ClebschSystem
@@ -289,13 +290,10 @@ def _member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset
     good = sol.stats.status == Status.SUCCESS
     max_residual = jnp.maximum(carry.max_residual, jnp.max(jnp.where(good, sol.stats.residual_norm, 0.0)))
     # The hand-over: the canonical state (Qⁿ, pⁿ) at the chunk's last node.
-    Q1 = carry.Q if sol.Q is None else sol.Q[-1]
-    mu1 = sol.momentum[-1]
-    P1 = sol.p[-1] if sol.p is not None else cotangent_from_momentum(system, Q1, mu1)
-    xi_seed = sol.xi[-1] if sol.xi is not None else sol.xi_step[-1]
-    new = _Carry(Q=Q1, P=P1, xi=xi_seed, t=sol.ts[-1], status=status, failed_step=failed_step,
+    start = continue_from(system, sol, Q=carry.Q)
+    new = _Carry(Q=start.Q0, P=start.P0, xi=start.xi0, t=start.t0, status=status, failed_step=failed_step,
                  iterations=iterations, max_residual=max_residual, initial=initial, drift=drift,
-                 momentum=mu1, final_xi=None if sol.xi is None else sol.xi[-1])
+                 momentum=sol.momentum[-1], final_xi=None if sol.xi is None else sol.xi[-1])
     saved = None
     if cfg.save_every is not None:
         pick = slice(0, cfg.n, cfg.save_every)  # nodes 0, k, … of the chunk; its end is the next chunk's 0
