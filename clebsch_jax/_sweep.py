@@ -14,23 +14,13 @@ bit (see `sweep`'s `devices` for why not one SPMD program).
 
 **Continuation is the same map.** A step of the march is the symplectic map
 $(Q^n, p^n) \mapsto (Q^{n+1}, p^{n+1})$ (Lemma 20), so restarting from the last node's
-$(Q^n, p^n)$ continues the same trajectory. Only round-off differs: each chunk restarts the
-Newton initial guesses (the predictor's history, the carried inverse Jacobian) and, in the
-reduced march (Theorem 27), the state $\mu^n = -p^n\diamond Q^n$ makes the round trip
-$\mu \to p \to \mu$ through the minimum-norm cotangent (`cotangent_from_momentum`, a least-squares
-solve). Newton iterates every step to round-off (the default `rtol = atol = 0`), so a chunked run reproduces the unchunked
-trajectory to a few ulps per chunk (measured: 6e-15 in $\mu$ and $Q$ over 200 rigid-body steps in
-4 chunks with the reduced march, 3e-14 with the full march; the tests bound it by 1e-12), not bit
-for bit.
-
-**What chunking costs** (measured on the reduced rigid body, 1000 members × 1000 steps in one
-batch, 2 CPU cores shared with other jobs at load 3.6–6, so ±10 % noise; minimum over 9–11
-interleaved rounds, process CPU time, against one `jit(vmap(integrate))` run that stores the
-trajectory and then reduces it): chunks of 50–100 steps 0.99–1.09×, 20-step chunks 0.99–1.24×,
-one 1000-step chunk 1.13–1.14× (200–1000-step chunks were consistently slower; the cause is not
-pinned down, a larger working set is the likely one); a progress callback after every chunk adds
-nothing measurable. The restarts do not add Newton updates: 3.50 per step for every chunk size
-from 20 to 1000 (±1 %; 200 members × 1000 steps).
+$(Q^n, p^n)$ (`continue_from`) continues the same trajectory. Only round-off differs: each chunk
+restarts the Newton initial guesses (the predictor's history, the carried inverse Jacobian)
+and, in the reduced march (Theorem 27), the state $\mu^n = -p^n\diamond Q^n$ makes the round
+trip $\mu \to p \to \mu$ through the minimum-norm cotangent (`cotangent_from_momentum`, a
+least-squares solve). Newton iterates every step to round-off (the default `rtol = atol = 0`),
+so a chunked run reproduces the unchunked trajectory to a few ulps per chunk (the tests bound
+it by 1e-12), not bit for bit. What chunking costs is measured in the README (Parameter sweeps).
 """
 
 from __future__ import annotations
