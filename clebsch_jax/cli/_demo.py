@@ -6,14 +6,13 @@ $\Delta t = 0.1$, from a small batch of body angular momenta on the sphere $|m| 
 about the minor axis ($I_1 = 0.5$), about the major axis ($I_3 = 1$), and a pair on each side
 of the separatrix through the middle axis. The batch runs under `jax.vmap`.
 
-The paper integrates over 100 periods: ~18,400 steps for the slowest orbit shown here, about
-25 s on 2 CPU cores with the reduced march (11 s of it compilation). The default run covers
-them, up to `MAX_DEFAULT_STEPS`; the summary reports how many periods each orbit actually covered
-and how many steps 100 periods of the slowest orbit take (pass them as `n_steps`, or
-`clebsch-jax demo --steps N`).
+The paper integrates over 100 periods: ~18,400 steps for the slowest orbit shown here. The
+default run covers them, up to `MAX_DEFAULT_STEPS`; the summary reports how many periods each
+orbit actually covered and how many steps 100 periods of the slowest orbit take (pass them as
+`n_steps`, or `clebsch-jax demo --steps N`).
 
 The march runs in equal chunks of steps, each chunk one call of the same compiled function
-restarted from the last chunk's $(Q, p)$ (`integrate` with `P0`). The first call pays for
+restarted from the last chunk's $(Q, p)$ (`clebsch_jax.continue_from`). The first call pays for
 compilation; the later ones are already compiled and give the steps-per-second figure, so
 the run is not done twice just to time it. Chaining is exact for the discrete flow: the step
 map is a function of $(Q^n, p^n)$ alone.
@@ -32,11 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import diagnostics, lie
-from ._integrate import integrate
-from ._march_full import cotangent_from_momentum, initial_multiplier
-from ._solution import IntegrationError
-from .models import rigid_body
+import clebsch_jax as cj
+from clebsch_jax import diagnostics, lie
+from clebsch_jax.models import rigid_body
 
 __all__ = ["figure1", "MissingPlotDependency"]
 
@@ -161,19 +158,20 @@ def measured_period(t: np.ndarray, m: np.ndarray) -> float:
 
 
 def _chunk_function(system, dt: float, n_steps: int, compiler_options=None):
-    """A jitted, vmapped march of `n_steps` steps from (Q0, xi0, P0) at time t0, with diagnostics."""
+    """A jitted, vmapped march of `n_steps` steps from a batch of `clebsch_jax.Start`s, with
+    diagnostics; returns (Solution, diagnostics, the `Start` at the last node)."""
 
-    def one(Q0, xi0, P0, t0):
-        sol = integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, throw=False)
+    def one(start):
+        sol = cj.integrate(system, **start._asdict(), dt=dt, n_steps=n_steps, throw=False)
         diag = {
             "m": diagnostics.body_momentum(system, sol),
             "E": diagnostics.energy(system, sol),
             "J": diagnostics.noether_momentum(sol, lie.so3_left_generators, system),
             "orth": diagnostics.orthogonality_error(sol.Q),
         }
-        return sol, diag
+        return sol, diag, cj.continue_from(system, sol)
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None)), compiler_options=compiler_options)
+    return jax.jit(jax.vmap(one), compiler_options=compiler_options)
 
 
 def _march(system, m0: np.ndarray, dt: float, n_steps: int, compiler_options=None):
@@ -186,19 +184,19 @@ def _march(system, m0: np.ndarray, dt: float, n_steps: int, compiler_options=Non
 
     xi = jnp.asarray(m0 / np.asarray(INERTIA)[None, :])  # xi0 = m / I (Lemma 7: m = I xi)
     Q = jnp.broadcast_to(jnp.eye(3), (len(m0), 3, 3))
-    t0 = 0.0
 
     t_start = time.perf_counter()
-    P = jax.vmap(lambda q, x: initial_multiplier(system, q, x))(Q, xi)
+    P = jax.vmap(lambda q, x: cj.initial_multiplier(system, q, x))(Q, xi)
+    start = cj.Start(Q0=Q, xi0=xi, P0=P, t0=jnp.zeros(len(m0)))
     pieces, iters, call_times = [], [], []
     for c in range(n_chunks):
         tic = time.perf_counter()
-        sol, diag = jax.block_until_ready(run(Q, xi, P, jnp.asarray(t0)))
+        sol, diag, start = jax.block_until_ready(run(start))
         call_times.append(time.perf_counter() - tic + (tic - t_start if c == 0 else 0.0))
         try:
             sol.raise_if_failed()
-        except IntegrationError as err:  # step numbers in the message count from the chunk start
-            raise IntegrationError(
+        except cj.IntegrationError as err:  # step numbers in the message count from the chunk start
+            raise cj.IntegrationError(
                 f"{err} (The demo runs in chunks of {chunk} steps; this was chunk {c + 1} of "
                 f"{n_chunks}, starting at step {c * chunk}.)"
             ) from None
@@ -206,11 +204,6 @@ def _march(system, m0: np.ndarray, dt: float, n_steps: int, compiler_options=Non
         pieces.append({k: np.asarray(v)[:, keep] for k, v in diag.items()}
                       | {"t": np.asarray(sol.ts)[0, keep]})
         iters.append(np.asarray(sol.stats.iterations))
-        # restart from the last node: the reduced march's state is the body momentum, so the
-        # minimum-norm multiplier with that momentum map continues it exactly
-        Q, xi = sol.Q[:, -1], sol.xi[:, -1]
-        P = jax.vmap(lambda q, mu: cotangent_from_momentum(system, q, mu))(Q, sol.momentum[:, -1])
-        t0 = float(np.asarray(sol.ts)[0, -1])
 
     out = {k: np.concatenate([p[k] for p in pieces], axis=1 if k != "t" else 0) for k in pieces[0]}
     out = {k: (v[: n_steps + 1] if k == "t" else v[:, : n_steps + 1]) for k, v in out.items()}
@@ -403,8 +396,8 @@ def figure1(out_dir, *, quick: bool = False, n_steps: int | None = None) -> dict
 
     - `out_dir`: output folder (str or path-like).
     - `quick`: fewer orbits (4) and steps (`QUICK_STEPS`): a smoke test whose time is mostly
-      compilation, so it is compiled with XLA's backend optimisation off (compiles ~2x
-      faster, runs ~2x slower per step; recorded in the summary's `compiler_options`).
+      compilation, so it is compiled with XLA's backend optimisation off (compiles faster,
+      runs slower per step; recorded in the summary's `compiler_options`).
     - `n_steps`: number of steps (int >= 1). Default: enough for `TARGET_PERIODS` periods of
       the slowest orbit, capped at `MAX_DEFAULT_STEPS` (`QUICK_STEPS` with `quick`).
 

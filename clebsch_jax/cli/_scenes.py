@@ -2,8 +2,8 @@ r"""The scenes of the command line (`clebsch-jax run SCENE`, `clebsch-jax demo`)
 
 A `Scene` is a built-in model with initial data, default step, number of steps and order, the
 invariants to report and a plot: nothing here is special code for the engine, every scene is
-`integrate(system, Q0, xi0, P0=..., dt=..., n_steps=..., order=..., throw=False)` under
-`jax.vmap` over a batch of initial data.
+`cj.integrate(system, Q0, xi0, P0=..., dt=..., n_steps=..., order=..., throw=False)` under
+`jax.vmap` over a batch of initial data, through the public API only.
 
 | scene | model | member 0 | other members (`--batch B`) | conserved (discrete Noether) |
 | --- | --- | --- | --- | --- |
@@ -14,10 +14,10 @@ invariants to report and a plot: nothing here is special code for the engine, ev
 | `landmarks` | `landmarks(0.8)` | three swirling landmarks | jittered copies | $\sum_a p_a$, $\sum_a q_a\times p_a$ |
 
 **The run** (`run_scene`): the march goes in chunks of steps, each one call of the same
-compiled, vmapped program, continued from the last node's canonical state $(Q^n, p^n)$ via
-`integrate(..., P0=)` (the step is the symplectic map $(Q^n, p^n)\mapsto(Q^{n+1}, p^{n+1})$
+compiled, vmapped program, continued from the last node's canonical state $(Q^n, p^n)$
+(`clebsch_jax.continue_from`: the step is the symplectic map $(Q^n, p^n)\mapsto(Q^{n+1}, p^{n+1})$
 of Lemma 20, so the continuation is the same trajectory up to round-off; in the reduced march
-$p^n$ is the minimum-norm cotangent with momentum map $\mu^n$, `cotangent_from_momentum`).
+$p^n$ is the minimum-norm cotangent with momentum map $\mu^n$).
 After every chunk the host keeps, per member, the worst error of every invariant over the
 nodes known so far, and, for the plot, the first `PLOT_MEMBERS` members' trajectories and
 errors on at most `PLOT_POINTS` nodes; so memory is one chunk, whatever the number of steps.
@@ -46,12 +46,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import diagnostics, lie
-from ._integrate import integrate
-from ._march_full import cotangent_from_momentum, initial_multiplier
-from ._newton import Status
-from ._system import ClebschSystem
-from .models import (
+import clebsch_jax as cj
+from clebsch_jax import diagnostics, lie
+from clebsch_jax.models import (
     heavy_top,
     landmark_angular_momentum,
     landmark_velocity,
@@ -87,7 +84,7 @@ QUICK_WORK = 20_000
 """Runs of at most this many member-steps are compiled with XLA's backend optimisation off."""
 
 QUICK_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
-"""Short runs are dominated by compilation: this halves it (and slows the steps ~2x)."""
+"""Short runs are dominated by compilation: this shortens it (and slows the steps)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -155,7 +152,7 @@ class Scene:
     description: str
     details: str
     model: str
-    system: Callable[[], ClebschSystem]
+    system: Callable[[], cj.ClebschSystem]
     setup: Callable[[int, np.random.Generator], Setup]
     dt: float
     steps: int
@@ -589,8 +586,8 @@ def program(name: str, order: int, n_steps: int, compiler_options: tuple = (), s
 
     **Returns** a dict: `sol` (the batched `Solution`), `values` {name: (B, N+1, k)} and
     `scales` {name: (B,)} of the energy and the scene's invariants, `trajectory` (B, N+1, …),
-    `known` (B, N+1) (valid nodes with a recovered nodal velocity), and the canonical state at
-    the last node to continue from: `Q`, `P`, `xi` (B, …).
+    `known` (B, N+1) (valid nodes with a recovered nodal velocity), and `start`, the
+    `clebsch_jax.Start` at the last node to continue from (fields (B, …)).
     """
     scene = SCENES[name]
     system = scene.system()
@@ -600,21 +597,18 @@ def program(name: str, order: int, n_steps: int, compiler_options: tuple = (), s
         options["scheme"] = scheme
 
     def one(Q0, xi0, P0, derive_P0, t0, dt):
-        P0 = jnp.where(derive_P0, initial_multiplier(system, Q0, xi0), P0)
-        sol = integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, order=order, throw=False,
-                        **options)
+        P0 = jnp.where(derive_P0, cj.initial_multiplier(system, Q0, xi0), P0)
+        sol = cj.integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, order=order, throw=False,
+                           **options)
         values, scales = {}, {}
         for inv in invariants:
             v = jnp.asarray(inv.values(system, sol))
             values[inv.name] = v = v.reshape(v.shape[0], -1)
             scales[inv.name] = jnp.ones((), v.dtype) if inv.kind != "drift" else \
                 inv.scale(system, sol) if inv.scale is not None else jnp.max(jnp.abs(v[0]))
-        Q1, mu1 = sol.Q[-1], sol.momentum[-1]
-        P1 = sol.p[-1] if sol.p is not None else cotangent_from_momentum(system, Q1, mu1)
-        xi1 = sol.xi[-1] if sol.xi is not None else sol.xi_step[-1]
-        known = sol.valid & (sol.nodal_stats.status == Status.SUCCESS)
+        known = sol.valid & (sol.nodal_stats.status == cj.Status.SUCCESS)
         return dict(sol=sol, values=values, scales=scales, trajectory=scene.trajectory(system, sol),
-                    known=known, Q=Q1, P=P1, xi=xi1)
+                    known=known, start=cj.continue_from(system, sol))
 
     mapped = jax.vmap(one, in_axes=(0, 0, 0, 0, None, None))
     return jax.jit(mapped, compiler_options=dict(compiler_options) or None)
@@ -768,18 +762,19 @@ def run_scene(scene: Scene, *, dt: float | None = None, n_steps: int | None = No
         # Newton updates per step (summed over a composition's sub-steps), attempted steps only
         st = np.asarray(sol.stats.status)[:, : hi]
         it = np.asarray(sol.stats.iterations)[:, : hi]
-        tried = st != Status.SKIPPED
+        tried = st != cj.Status.SKIPPED
         iter_sum += int(np.sum(it[tried]))
         iter_count += int(np.sum(tried))
         iter_max = max(iter_max, int(np.max(it[tried], initial=0)))
         # first failure of each member, in global steps (a failure past n_steps does not count)
         result = np.asarray(sol.result)
         local = np.asarray(sol.failed_step)
-        last = n_steps - offset + (result == Status.LEGENDRE)  # a node failure may be at node n_steps
-        new = (status == Status.SUCCESS) & (result != Status.SUCCESS) & (local < last)
+        last = n_steps - offset + (result == cj.Status.LEGENDRE)  # a node failure may be at node n_steps
+        new = (status == cj.Status.SUCCESS) & (result != cj.Status.SUCCESS) & (local < last)
         status = np.where(new, result, status)
         failed_step = np.where(new, offset + local, failed_step)
-        Q, P, xi = out["Q"], out["P"], out["xi"]
+        start = out["start"]
+        Q, P, xi = start.Q0, start.P0, start.xi0  # t0 stays offset * dt, computed on the host
         derive_P0 = jnp.zeros((batch,), bool)
         if progress is not None:
             progress(min(offset + chunk, n_steps), n_steps, time.perf_counter() - t_start)
@@ -787,8 +782,8 @@ def run_scene(scene: Scene, *, dt: float | None = None, n_steps: int | None = No
 
     failures = [
         {"member": int(m), "step": int(failed_step[m]), "t": float(failed_step[m] * dt),
-         "status": int(status[m]), "reason": Status.MESSAGES.get(int(status[m]), f"status {int(status[m])}")}
-        for m in np.flatnonzero(status != Status.SUCCESS)
+         "status": int(status[m]), "reason": cj.Status.MESSAGES.get(int(status[m]), f"status {int(status[m])}")}
+        for m in np.flatnonzero(status != cj.Status.SUCCESS)
     ]
 
     def finite_max(a):
