@@ -3,7 +3,7 @@ trajectory kept.
 
 Run from the repository root:
 
-    python benchmarks/soak.py            # default run: 10⁶ steps of each case (a few minutes on 2 cores)
+    python benchmarks/soak.py            # default run: 10⁶ steps of each case
     python benchmarks/soak.py --quick    # smoke test: 10⁴ steps each, XLA optimisation off (not a measurement)
     python benchmarks/soak.py --steps N  # another length (a multiple of --chunk)
 
@@ -18,10 +18,10 @@ What runs (issue 8, "Hard cases and long runs"):
 
 **How it runs without storing the trajectory.** The run is cut into chunks of `chunk_steps`
 steps. One chunk is one jitted function: an `integrate(..., P0=p, t0=t, throw=False)` call
-that continues from the last node's canonical state $(Q^n, p^n)$ — for the reduced march $p^n$
-is rebuilt from the body momentum $\mu^n$ as the minimum-norm cotangent, the hand-over
-`clebsch_jax.sweep` makes — and that reduces its nodes to a few numbers before returning: for
-every monitored quantity $f$ the maximum of $\|f^k - f^0\|_\infty$ over each block of
+that continues from the last node's canonical state $(Q^n, p^n)$ (`clebsch_jax.continue_from`:
+for the reduced march $p^n$ is rebuilt from the body momentum $\mu^n$ as the minimum-norm
+cotangent, the hand-over `clebsch_jax.sweep` makes) and that reduces its nodes to a few
+numbers before returning: for every monitored quantity $f$ the maximum of $\|f^k - f^0\|_\infty$ over each block of
 `chunk_steps / BLOCKS` steps (and the maximum of its round-off scale over the block), the
 Newton statistics and the state to continue from. Only those leave the device: memory does
 not grow with the number of steps (the resident set size is read from `/proc/self/statm`
@@ -64,9 +64,6 @@ import numpy as np
 
 import clebsch_jax as cj
 from clebsch_jax import models
-# The reduced march's hand-over from chunk to chunk: the minimum-norm p with -p⋄Q = μ, as in
-# clebsch_jax.sweep (not public yet).
-from clebsch_jax._march_full import cotangent_from_momentum
 
 RESULTS_NAME = "soak"
 EPS = float(np.finfo(np.float64).eps)
@@ -181,18 +178,19 @@ def max_rss_mb() -> float:
 
 def make_chunk(case: Case, chunk_steps: int, blocks: int = BLOCKS, compiler_options=None):
     """The jitted chunk function of `case`:
-    `chunk(Q, P, xi, t, ref, first) -> (state, ref, block_dev, block_scale, stats)` with
-    `state = (Q, P, xi, t)` at the chunk's last node, `ref` the monitored values at node 0 of
-    the run (taken from this chunk's node 0 when `first`), `block_dev[name]` (blocks,) the
-    maximum of $\\|f^k - f^0\\|_\\infty$ over each block of nodes 1..n of the chunk and
-    `block_scale[name]` (blocks,) the maximum scale there, and `stats` the status (first
-    failure), failed step, Newton updates summed and the worst residual."""
+    `chunk(start, ref, first) -> (start, ref, block_dev, block_scale, stats)` with `start` a
+    `clebsch_jax.Start` (the chunk's initial state; returned: its last node's, to continue
+    from), `ref` the monitored values at node 0 of the run (taken from this chunk's node 0 when
+    `first`), `block_dev[name]` (blocks,) the maximum of $\\|f^k - f^0\\|_\\infty$ over each block
+    of nodes 1..n of the chunk and `block_scale[name]` (blocks,) the maximum scale there, and
+    `stats` the status (first failure), failed step, Newton updates summed and the worst
+    residual."""
     if chunk_steps % blocks:
         raise ValueError(f"chunk_steps: must be a multiple of {blocks}, got {chunk_steps}.")
     system = case.system
 
-    def chunk(Q, P, xi, t, ref, first):
-        sol = cj.integrate(system, Q, xi, P0=P, t0=t, dt=case.dt, n_steps=chunk_steps, throw=False,
+    def chunk(start, ref, first):
+        sol = cj.integrate(system, **start._asdict(), dt=case.dt, n_steps=chunk_steps, throw=False,
                            **case.options)
         mon = case.monitors(system, sol)
         ref = {k: jnp.where(first, v[0], ref[k]) for k, (v, _) in mon.items()}
@@ -201,15 +199,12 @@ def make_chunk(case: Case, chunk_steps: int, blocks: int = BLOCKS, compiler_opti
             d = jnp.abs(v[1:] - ref[k]).reshape(chunk_steps, -1).max(axis=1)
             dev[k] = d.reshape(blocks, -1).max(axis=1)
             scale[k] = s[1:].reshape(blocks, -1).max(axis=1)
-        Q1, mu1 = sol.Q[-1], sol.momentum[-1]
-        P1 = sol.p[-1] if sol.p is not None else cotangent_from_momentum(system, Q1, mu1)
-        xi1 = sol.xi[-1] if sol.xi is not None else sol.xi_step[-1]
         attempted = sol.stats.status != cj.Status.SKIPPED
         good = sol.stats.status == cj.Status.SUCCESS
         stats = {"status": sol.result, "failed_step": sol.failed_step,
                  "iterations": jnp.sum(jnp.where(attempted, sol.stats.iterations, 0)),
                  "max_residual": jnp.max(jnp.where(good, sol.stats.residual_norm, 0.0))}
-        return (Q1, P1, xi1, sol.ts[-1]), ref, dev, scale, stats
+        return cj.continue_from(system, sol), ref, dev, scale, stats
 
     def probe():  # shapes only (traced, not compiled): the method's facts and the monitors' shapes
         sol = cj.integrate(system, case.Q0, case.xi0, dt=case.dt, n_steps=1, throw=False, **case.options)
@@ -272,14 +267,15 @@ def soak(case: Case | str, n_steps: int = DEFAULT_STEPS, chunk_steps: int = DEFA
             **{f"{k}_max": [] for k in names}}
 
     Q, xi = jnp.asarray(case.Q0), jnp.asarray(case.xi0)
-    state = (Q, cj.initial_multiplier(case.system, Q, xi), xi, jnp.zeros(()))  # as integrate starts
+    start = cj.Start(Q0=Q, xi0=xi, P0=cj.initial_multiplier(case.system, Q, xi),  # as integrate starts
+                     t0=jnp.zeros(()))
     ref = {k: jnp.zeros(v.shape, v.dtype) for k, v in ref_shapes.items()}  # replaced at chunk 0
     status, failed_step, iterations, max_residual, initial = 0, -1, 0, 0.0, None
     rss_start = rss_mb()
     tic = time.perf_counter()
     for c in range(n_chunks):
         with guard(f"{case.name}, chunk {c + 1}/{n_chunks}"):
-            state, ref, dev, scale, stats = chunk(*state, ref, jnp.asarray(c == 0))
+            start, ref, dev, scale, stats = chunk(start, ref, jnp.asarray(c == 0))
             dev, scale, stats = jax.device_get((dev, scale, stats))
         wall = time.perf_counter() - tic
         if initial is None:
@@ -297,7 +293,7 @@ def soak(case: Case | str, n_steps: int = DEFAULT_STEPS, chunk_steps: int = DEFA
             running[k][sel], running_scale[k][sel] = cm[idx], cs[idx]
             rows[f"{k}_max"].append(float(np.max(dev[k])))
         rows["step"].append((c + 1) * chunk_steps)
-        rows["t"].append(float(state[3]))
+        rows["t"].append(float(start.t0))
         rows["wall_s"].append(wall)
         rows["rss_mb"].append(rss_mb())
         rows["newton_updates_per_step"].append(int(stats["iterations"]) / chunk_steps)

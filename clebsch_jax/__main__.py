@@ -1,6 +1,6 @@
-"""`python -m clebsch_jax`: the `clebsch-jax` command line (see `clebsch_jax._cli`)."""
+"""`python -m clebsch_jax`: the `clebsch-jax` command line (see `clebsch_jax.cli`)."""
 
-from ._cli import main
+from .cli import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -20,9 +20,8 @@ import numpy as np
 import pytest
 
 import clebsch_jax as cj
-from clebsch_jax import _cli, _scenes
-from clebsch_jax._cli import main
-from clebsch_jax._scenes import SCENES
+from clebsch_jax.cli import _commands, _scenes, main
+from clebsch_jax.cli._scenes import SCENES
 
 from .test_epdiff import two_peakons_exact  # an independent closed form, checked against DOP853 there
 
@@ -100,7 +99,7 @@ def test_help_at_every_level(capsys):
         ["run", "peakons", "--scheme", "trapezoid"],
         ["run", "peakons", "--batch", "0"],
         ["run", "peakons", "--batch", "two"],
-        ["run", "peakons", "--batch", str(_cli.MAX_BATCH + 1)],
+        ["run", "peakons", "--batch", str(_commands.MAX_BATCH + 1)],
         ["run", "peakons", "--steps", "0"],
         ["run", "peakons", "--seed", "-1"],
         ["run", "peakons", "--chunk", "0"],
@@ -152,7 +151,7 @@ def test_python_dash_m_bad_steps():
 def test_help_does_not_import_matplotlib():
     script = textwrap.dedent("""
         import sys
-        from clebsch_jax._cli import main
+        from clebsch_jax.cli import main
         codes = [main(argv) for argv in (["--help"], ["demo", "--help"], ["run", "--help"], ["bench", "--help"])]
         print(codes, "matplotlib" in sys.modules)
     """)
@@ -163,7 +162,7 @@ def test_help_does_not_import_matplotlib():
 
 def test_progress_bar_one_line_on_a_terminal_and_tenths_in_a_log():
     stream = io.StringIO()
-    bar = _cli._ProgressBar("scene", stream=stream, tty=False)
+    bar = _commands._ProgressBar("scene", stream=stream, tty=False)
     for done in range(0, 1001, 10):  # 0: before the first (compiling) call
         bar(done, 1000, done / 100)
     bar.close()
@@ -173,7 +172,7 @@ def test_progress_bar_one_line_on_a_terminal_and_tenths_in_a_log():
     assert lines[-1].startswith("scene [" + "#" * 28 + "] 100% 1,000/1,000 steps")
     assert "s left" in lines[len(lines) // 2]  # an estimate once the first (compiling) call is past
     stream = io.StringIO()
-    bar = _cli._ProgressBar("scene", stream=stream, tty=True)
+    bar = _commands._ProgressBar("scene", stream=stream, tty=True)
     bar(500, 1000, 1.0)
     bar(1000, 1000, 2.0)
     bar.close()
@@ -189,7 +188,7 @@ def test_progress_bar_one_line_on_a_terminal_and_tenths_in_a_log():
 def test_bench_list_names_every_script(capsys):
     assert main(["bench", "--list"]) == 0
     out = capsys.readouterr().out
-    folder = _cli._benchmarks_dir()
+    folder = _commands._benchmarks_dir()
     expected = sorted(p.stem for p in folder.glob("*.py") if not p.name.startswith("_"))
     assert {"rigid_body_step_cost", "vortex_step_cost", "throughput", "work_precision"} <= set(expected)
     lines = {line.split()[0]: line for line in out.strip().splitlines()}
@@ -207,7 +206,7 @@ def test_bench_unknown_name_exit_2_lists_names(capsys):
 
 
 def test_bench_without_the_folder_is_one_line_exit_1(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(_cli, "_benchmarks_dir", lambda: tmp_path / "benchmarks")
+    monkeypatch.setattr(_commands, "_benchmarks_dir", lambda: tmp_path / "benchmarks")
     assert main(["bench", "--list"]) == 1
     assert "clone" in _one_line_error(capsys.readouterr().err)
 
@@ -222,7 +221,7 @@ def test_bench_runs_scripts_with_this_python_passing_quick_and_out(tmp_path, cap
             f'    json.dumps([sys.executable, os.path.basename(__file__)] + sys.argv[1:]) + "\\n")\n'
             f"sys.exit({code})\n")
     (folder / "_helper.py").write_text("raise SystemExit('not a benchmark')\n")
-    monkeypatch.setattr(_cli, "_benchmarks_dir", lambda: folder)
+    monkeypatch.setattr(_commands, "_benchmarks_dir", lambda: folder)
     out_dir = tmp_path / "results"
     assert main(["bench", "alpha", "--quick", "--out", str(out_dir)]) == 0
     called = json.loads(record.read_text().splitlines()[-1])
@@ -460,12 +459,12 @@ def test_chunked_run_continues_the_march_with_a_progress_bar(demo, tmp_path, cap
     assert first <= summary["errors"]["energy_rel_max"] < 1.5 * first
 
 
-def test_scheme_lists_match_the_engine():
-    """The CLI keeps its own copies (so that --help imports no JAX)."""
-    from clebsch_jax._collocation import GAUSS_ORDERS
-    from clebsch_jax._integrate import SCHEMES
-
-    assert _cli.GAUSS_ORDERS == GAUSS_ORDERS and _cli.SCHEMES == SCHEMES + ("gauss",)
+def test_scheme_and_order_lists_are_the_documented_ones():
+    """`--scheme` and `--order` take the engine's public tables (`cj.SCHEMES`, `cj.COMPOSITIONS`,
+    `cj.GAUSS_ORDERS`); the help text and the README name these values."""
+    assert _commands.SCHEMES == cj.SCHEMES + ("gauss",) == ("left", "right", "midpoint", "gauss")
+    assert _commands.ORDERS == (2, 4, 6, 8)
+    assert _commands.GAUSS_ORDERS == cj.GAUSS_ORDERS == tuple(range(2, 17, 2))
 
 
 def test_scheme_a_system_refuses_is_one_line_exit_2(tmp_path, capsys):

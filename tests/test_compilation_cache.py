@@ -13,7 +13,7 @@ import sys
 import pytest
 
 import clebsch_jax as cj
-from clebsch_jax import _cli
+from clebsch_jax.cli import _commands
 
 SCRIPT = r"""
 import json, sys
@@ -91,25 +91,23 @@ class _Args:
 def test_command_line_switch(monkeypatch, capsys):
     """The command line enables the cache unless --no-cache or CLEBSCH_JAX_NO_CACHE; a cache it
     cannot use is reported and the run goes on."""
-    import clebsch_jax.core.compilation_cache as cc
-
     calls = []
-    monkeypatch.setattr(cc, "enable_compilation_cache", lambda: calls.append(1))
+    monkeypatch.setattr(cj, "enable_compilation_cache", lambda: calls.append(1))
     monkeypatch.delenv("CLEBSCH_JAX_NO_CACHE", raising=False)
-    _cli._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
-    _cli._use_compilation_cache(_Args(no_cache=True), "clebsch-jax run")
+    _commands._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
+    _commands._use_compilation_cache(_Args(no_cache=True), "clebsch-jax run")
     monkeypatch.setenv("CLEBSCH_JAX_NO_CACHE", "1")
-    _cli._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
+    _commands._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
     assert calls == [1]
 
     def refuse():
         raise ValueError("enable_compilation_cache: `directory` '/x' is not writable")
 
-    monkeypatch.setattr(cc, "enable_compilation_cache", refuse)
+    monkeypatch.setattr(cj, "enable_compilation_cache", refuse)
     monkeypatch.delenv("CLEBSCH_JAX_NO_CACHE")
-    _cli._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
+    _commands._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
     assert "compiling without the cache" in capsys.readouterr().err
     for command in ("run", "demo"):
-        args = _cli._build_parser().parse_args([command, "rigid-body", "--no-cache"] if command == "run"
+        args = _commands._build_parser().parse_args([command, "rigid-body", "--no-cache"] if command == "run"
                                                else [command, "--no-cache"])
         assert args.no_cache

@@ -14,23 +14,13 @@ bit (see `sweep`'s `devices` for why not one SPMD program).
 
 **Continuation is the same map.** A step of the march is the symplectic map
 $(Q^n, p^n) \mapsto (Q^{n+1}, p^{n+1})$ (Lemma 20), so restarting from the last node's
-$(Q^n, p^n)$ continues the same trajectory. Only round-off differs: each chunk restarts the
-Newton initial guesses (the predictor's history, the carried inverse Jacobian) and, in the
-reduced march (Theorem 27), the state $\mu^n = -p^n\diamond Q^n$ makes the round trip
-$\mu \to p \to \mu$ through the minimum-norm cotangent (`cotangent_from_momentum`, a least-squares
-solve). Newton iterates every step to round-off (the default `rtol = atol = 0`), so a chunked run reproduces the unchunked
-trajectory to a few ulps per chunk (measured: 6e-15 in $\mu$ and $Q$ over 200 rigid-body steps in
-4 chunks with the reduced march, 3e-14 with the full march; the tests bound it by 1e-12), not bit
-for bit.
-
-**What chunking costs** (measured on the reduced rigid body, 1000 members × 1000 steps in one
-batch, 2 CPU cores shared with other jobs at load 3.6–6, so ±10 % noise; minimum over 9–11
-interleaved rounds, process CPU time, against one `jit(vmap(integrate))` run that stores the
-trajectory and then reduces it): chunks of 50–100 steps 0.99–1.09×, 20-step chunks 0.99–1.24×,
-one 1000-step chunk 1.13–1.14× (200–1000-step chunks were consistently slower; the cause is not
-pinned down, a larger working set is the likely one); a progress callback after every chunk adds
-nothing measurable. The restarts do not add Newton updates: 3.50 per step for every chunk size
-from 20 to 1000 (±1 %; 200 members × 1000 steps).
+$(Q^n, p^n)$ (`continue_from`) continues the same trajectory. Only round-off differs: each chunk
+restarts the Newton initial guesses (the predictor's history, the carried inverse Jacobian)
+and, in the reduced march (Theorem 27), the state $\mu^n = -p^n\diamond Q^n$ makes the round
+trip $\mu \to p \to \mu$ through the minimum-norm cotangent (`cotangent_from_momentum`, a
+least-squares solve). Newton iterates every step to round-off (the default `rtol = atol = 0`),
+so a chunked run reproduces the unchunked trajectory to a few ulps per chunk (the tests bound
+it by 1e-12), not bit for bit. What chunking costs is measured in the README (Parameter sweeps).
 """
 
 from __future__ import annotations
@@ -53,7 +43,8 @@ from ..core.validation import host_float_array as _float_array
 from ..core.validation import is_array as _is_array
 from ..core.validation import positive_int as _positive_int_checked
 from ..core.validation import runnable_check as _runnable_check
-from ..discrete.legendre import cotangent_from_momentum, initial_multiplier
+from ..discrete.legendre import initial_multiplier
+from ..march.continuation import continue_from
 from ..march.integrate import integrate
 from ..march.solution import IntegrationError
 from ..roots.status import Status
@@ -294,13 +285,10 @@ def _member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset
     good = sol.stats.status == Status.SUCCESS
     max_residual = jnp.maximum(carry.max_residual, jnp.max(jnp.where(good, sol.stats.residual_norm, 0.0)))
     # The hand-over: the canonical state (Qⁿ, pⁿ) at the chunk's last node.
-    Q1 = carry.Q if sol.Q is None else sol.Q[-1]
-    mu1 = sol.momentum[-1]
-    P1 = sol.p[-1] if sol.p is not None else cotangent_from_momentum(system, Q1, mu1)
-    xi_seed = sol.xi[-1] if sol.xi is not None else sol.xi_step[-1]
-    new = _Carry(Q=Q1, P=P1, xi=xi_seed, t=sol.ts[-1], status=status, failed_step=failed_step,
+    start = continue_from(system, sol, Q=carry.Q)
+    new = _Carry(Q=start.Q0, P=start.P0, xi=start.xi0, t=start.t0, status=status, failed_step=failed_step,
                  iterations=iterations, max_residual=max_residual, initial=initial, drift=drift,
-                 momentum=mu1, final_xi=None if sol.xi is None else sol.xi[-1])
+                 momentum=sol.momentum[-1], final_xi=None if sol.xi is None else sol.xi[-1])
     saved = None
     if cfg.save_every is not None:
         pick = slice(0, cfg.n, cfg.save_every)  # nodes 0, k, … of the chunk; its end is the next chunk's 0

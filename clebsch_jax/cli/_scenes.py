@@ -2,8 +2,8 @@ r"""The scenes of the command line (`clebsch-jax run SCENE`, `clebsch-jax demo`)
 
 A `Scene` is a built-in model with initial data, default step, number of steps and order, the
 invariants to report and a plot: nothing here is special code for the engine, every scene is
-`integrate(system, Q0, xi0, P0=..., dt=..., n_steps=..., order=..., throw=False)` under
-`jax.vmap` over a batch of initial data.
+`cj.integrate(system, Q0, xi0, P0=..., dt=..., n_steps=..., order=..., throw=False)` under
+`jax.vmap` over a batch of initial data, through the public API only.
 
 | scene | model | member 0 | other members (`--batch B`) | conserved (discrete Noether) |
 | --- | --- | --- | --- | --- |
@@ -14,10 +14,10 @@ invariants to report and a plot: nothing here is special code for the engine, ev
 | `landmarks` | `landmarks(0.8)` | three swirling landmarks | jittered copies | $\sum_a p_a$, $\sum_a q_a\times p_a$ |
 
 **The run** (`run_scene`): the march goes in chunks of steps, each one call of the same
-compiled, vmapped program, continued from the last node's canonical state $(Q^n, p^n)$ via
-`integrate(..., P0=)` (the step is the symplectic map $(Q^n, p^n)\mapsto(Q^{n+1}, p^{n+1})$
+compiled, vmapped program, continued from the last node's canonical state $(Q^n, p^n)$
+(`clebsch_jax.continue_from`: the step is the symplectic map $(Q^n, p^n)\mapsto(Q^{n+1}, p^{n+1})$
 of Lemma 20, so the continuation is the same trajectory up to round-off; in the reduced march
-$p^n$ is the minimum-norm cotangent with momentum map $\mu^n$, `cotangent_from_momentum`).
+$p^n$ is the minimum-norm cotangent with momentum map $\mu^n$).
 After every chunk the host keeps, per member, the worst error of every invariant over the
 nodes known so far, and, for the plot, the first `PLOT_MEMBERS` members' trajectories and
 errors on at most `PLOT_POINTS` nodes; so memory is one chunk, whatever the number of steps.
@@ -46,13 +46,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import diagnostics
-from . import lie
-from .march.integrate import integrate
-from .discrete.legendre import cotangent_from_momentum, initial_multiplier
-from .roots.status import Status
-from .core.system import ClebschSystem
-from .models import (
+import clebsch_jax as cj
+from clebsch_jax import diagnostics, lie
+from clebsch_jax.models import (
     heavy_top,
     landmark_angular_momentum,
     landmark_velocity,
@@ -88,7 +84,7 @@ QUICK_WORK = 20_000
 """Runs of at most this many member-steps are compiled with XLA's backend optimisation off."""
 
 QUICK_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
-"""Short runs are dominated by compilation: this halves it (and slows the steps ~2x)."""
+"""Short runs are dominated by compilation: this shortens it (and slows the steps)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -156,7 +152,7 @@ class Scene:
     description: str
     details: str
     model: str
-    system: Callable[[], ClebschSystem]
+    system: Callable[[], cj.ClebschSystem]
     setup: Callable[[int, np.random.Generator], Setup]
     dt: float
     steps: int
@@ -590,8 +586,8 @@ def program(name: str, order: int, n_steps: int, compiler_options: tuple = (), s
 
     **Returns** a dict: `sol` (the batched `Solution`), `values` {name: (B, N+1, k)} and
     `scales` {name: (B,)} of the energy and the scene's invariants, `trajectory` (B, N+1, …),
-    `known` (B, N+1) (valid nodes with a recovered nodal velocity), and the canonical state at
-    the last node to continue from: `Q`, `P`, `xi` (B, …).
+    `known` (B, N+1) (valid nodes with a recovered nodal velocity), and `start`, the
+    `clebsch_jax.Start` at the last node to continue from (fields (B, …)).
     """
     scene = SCENES[name]
     system = scene.system()
@@ -601,21 +597,18 @@ def program(name: str, order: int, n_steps: int, compiler_options: tuple = (), s
         options["scheme"] = scheme
 
     def one(Q0, xi0, P0, derive_P0, t0, dt):
-        P0 = jnp.where(derive_P0, initial_multiplier(system, Q0, xi0), P0)
-        sol = integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, order=order, throw=False,
-                        **options)
+        P0 = jnp.where(derive_P0, cj.initial_multiplier(system, Q0, xi0), P0)
+        sol = cj.integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, order=order, throw=False,
+                           **options)
         values, scales = {}, {}
         for inv in invariants:
             v = jnp.asarray(inv.values(system, sol))
             values[inv.name] = v = v.reshape(v.shape[0], -1)
             scales[inv.name] = jnp.ones((), v.dtype) if inv.kind != "drift" else \
                 inv.scale(system, sol) if inv.scale is not None else jnp.max(jnp.abs(v[0]))
-        Q1, mu1 = sol.Q[-1], sol.momentum[-1]
-        P1 = sol.p[-1] if sol.p is not None else cotangent_from_momentum(system, Q1, mu1)
-        xi1 = sol.xi[-1] if sol.xi is not None else sol.xi_step[-1]
-        known = sol.valid & (sol.nodal_stats.status == Status.SUCCESS)
+        known = sol.valid & (sol.nodal_stats.status == cj.Status.SUCCESS)
         return dict(sol=sol, values=values, scales=scales, trajectory=scene.trajectory(system, sol),
-                    known=known, Q=Q1, P=P1, xi=xi1)
+                    known=known, start=cj.continue_from(system, sol))
 
     mapped = jax.vmap(one, in_axes=(0, 0, 0, 0, None, None))
     return jax.jit(mapped, compiler_options=dict(compiler_options) or None)
@@ -698,145 +691,237 @@ def run_scene(scene: Scene, *, dt: float | None = None, n_steps: int | None = No
     (mean and max updates per step), `failures` (count; member, step, t, status, reason of
     each), `per_member` (status, failed_step: -1 if none), `timing` and `versions`.
     """
+    plan = _plan(scene, dt=dt, n_steps=n_steps, order=order, batch=batch, seed=seed, chunk_steps=chunk_steps,
+                 compiler_options=compiler_options)
+    setup = scene.setup(batch, np.random.default_rng(seed))
+    run = program(scene.name, plan.order, plan.chunk, _options_key(plan.compiler_options), scheme)
+    tally = _Tally(scene, setup, plan)
+    wall, first_s = _march(run, setup, plan, tally, progress)
+    summary = _summary(scene, setup, plan, tally, wall, first_s)
+    summary["_plot"] = _plot_data(setup, plan, tally)
+    return summary
+
+
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """A run's settings, the scene's defaults filled in."""
+
+    dt: float
+    n_steps: int
+    order: int  # as requested (the `Solution` says which order ran)
+    batch: int
+    seed: int
+    chunk: int  # steps per compiled call
+    n_chunks: int
+    compiler_options: dict
+
+
+def _plan(scene: Scene, *, dt, n_steps, order, batch, seed, chunk_steps, compiler_options) -> _Plan:
+    """`run_scene`'s settings: None takes the scene's default, or `chunk_steps_for` and
+    `compiler_options_for`; a chunk is at most the whole run."""
     dt = scene.dt if dt is None else float(dt)
     n_steps = scene.steps if n_steps is None else int(n_steps)
-    order = scene.order if order is None else int(order)
     chunk = chunk_steps_for(batch, n_steps) if chunk_steps is None else min(int(chunk_steps), n_steps)
     copts = compiler_options_for(batch, n_steps) if compiler_options is None else dict(compiler_options)
-    n_chunks = -(-n_steps // chunk)
+    return _Plan(dt=dt, n_steps=n_steps, order=scene.order if order is None else int(order), batch=batch, seed=seed,
+                 chunk=chunk, n_chunks=-(-n_steps // chunk), compiler_options=copts)
 
-    setup = scene.setup(batch, np.random.default_rng(seed))
-    invariants = (ENERGY,) + scene.invariants
-    run = program(scene.name, order, chunk, _options_key(copts), scheme)
-    n_plot = min(batch, PLOT_MEMBERS)
-    stride = max(1, -(-(n_steps + 1) // PLOT_POINTS))
-    errors_binned = {inv.name: _Binned(n_plot, n_steps + 1, stride) for inv in invariants}
-    ref_binned = _Binned(n_plot, n_steps + 1, stride) if scene.reference else None
-    worst = {inv.name: np.full(batch, -np.inf) for inv in invariants}
-    ref_worst = np.full(batch, -np.inf)
-    traj_nodes, traj_pieces = [], []
-    status = np.zeros(batch, np.int64)
-    failed_step = np.full(batch, -1, np.int64)
-    iter_sum, iter_count, iter_max = 0, 0, 0
-    ref0 = scale0 = None
 
+def _march(run, setup: Setup, plan: _Plan, tally: _Tally, progress: Callable | None) -> tuple:
+    """Call the compiled chunk `run` `plan.n_chunks` times, each chunk continued from the
+    `clebsch_jax.Start` at the last node of the one before, and hand every chunk to `tally`.
+
+    **Returns:** (wall time, time of the first chunk, which includes the compilation), seconds.
+    """
     Q, xi, P, derive_P0 = _initial_state(setup)
     t_start = time.perf_counter()
     if progress is not None:
-        progress(0, n_steps, 0.0)
+        progress(0, plan.n_steps, 0.0)
     first_s = None
-    facts = None
-    for c in range(n_chunks):
-        offset = c * chunk
-        t0 = offset * dt
-        out = run(Q, xi, P, derive_P0, jnp.asarray(t0, jnp.float64), jnp.asarray(dt, jnp.float64))
+    for c in range(plan.n_chunks):
+        offset = c * plan.chunk
+        t0 = offset * plan.dt  # on the host, so no round-off accumulates from chunk to chunk
+        out = run(Q, xi, P, derive_P0, jnp.asarray(t0, jnp.float64), jnp.asarray(plan.dt, jnp.float64))
         out = jax.block_until_ready(out)
         if first_s is None:
             first_s = time.perf_counter() - t_start
+        tally.add(out, offset)
+        start = out["start"]
+        Q, P, xi = start.Q0, start.P0, start.xi0
+        derive_P0 = jnp.zeros((plan.batch,), bool)
+        if progress is not None:
+            progress(min(offset + plan.chunk, plan.n_steps), plan.n_steps, time.perf_counter() - t_start)
+    return time.perf_counter() - t_start, first_s
+
+
+class _Tally:
+    """What the host keeps of a run, chunk after chunk, so that memory is one chunk whatever the
+    number of steps: per member the worst error of every invariant and against the reference
+    over the known nodes, the first failure, the Newton updates; for the first `PLOT_MEMBERS`
+    members the errors' envelopes (`_Binned`) and the trajectory at every `stride`-th node; and
+    the facts of the `Solution` (method, form, ...)."""
+
+    def __init__(self, scene: Scene, setup: Setup, plan: _Plan):
+        self.scene, self.setup, self.n_steps, self.chunk = scene, setup, plan.n_steps, plan.chunk
+        self.invariants = (ENERGY,) + scene.invariants
+        batch, n_nodes = plan.batch, plan.n_steps + 1
+        self.n_plot = min(batch, PLOT_MEMBERS)
+        self.stride = max(1, -(-n_nodes // PLOT_POINTS))
+        self.errors_binned = {inv.name: _Binned(self.n_plot, n_nodes, self.stride) for inv in self.invariants}
+        self.ref_binned = _Binned(self.n_plot, n_nodes, self.stride) if scene.reference else None
+        self.worst = {inv.name: np.full(batch, -np.inf) for inv in self.invariants}
+        self.ref_worst = np.full(batch, -np.inf)
+        self.traj_nodes, self.traj_pieces = [], []
+        self.status = np.zeros(batch, np.int64)
+        self.failed_step = np.full(batch, -1, np.int64)
+        self.iter_sum, self.iter_count, self.iter_max = 0, 0, 0
+        self.ref0 = self.scale0 = self.facts = None
+
+    def add(self, out: dict, offset: int) -> None:
+        """Take in one chunk (what `program` returns) whose node 0 is the run's node `offset`."""
         sol = out["sol"]
-        facts = facts or dict(method=sol.method, form=sol.form, scheme=sol.scheme, order=int(sol.order),
+        if self.facts is None:
+            self.facts = dict(method=sol.method, form=sol.form, scheme=sol.scheme, order=int(sol.order),
                               derivative_map=sol.derivative_map)
         # nodes of this chunk kept: 0 only in the first chunk (later it is the previous end), and
         # none past n_steps (the last chunk may run over)
-        lo, hi = (0 if c == 0 else 1), min(chunk, n_steps - offset)
+        lo, hi = (0 if offset == 0 else 1), min(self.chunk, self.n_steps - offset)
+        keep = slice(lo, hi + 1)
         nodes = offset + np.arange(lo, hi + 1)
-        known = np.asarray(out["known"])[:, lo:hi + 1]
-        values = {k: np.asarray(v)[:, lo:hi + 1] for k, v in out["values"].items()}
-        if c == 0:
-            ref0 = {k: v[:, 0] for k, v in values.items()}
-            scale0 = {k: np.asarray(v) for k, v in out["scales"].items()}
-        for inv in invariants:
+        known = np.asarray(out["known"])[:, keep]
+        self._add_invariants(out, nodes, known, keep)
+        traj = np.asarray(out["trajectory"][:None if self.scene.reference is not None else self.n_plot])[:, keep]
+        if self.scene.reference is not None:
+            self._add_reference(np.asarray(sol.ts)[0, keep], traj, nodes, known)
+        self._add_trajectory(traj, nodes, known)
+        self._add_newton(sol, hi)
+        self._add_failures(sol, offset)
+
+    def _add_invariants(self, out: dict, nodes, known, keep: slice) -> None:
+        """Per node the drift of each conserved quantity from node 0 of the run, relative to its
+        scale there (or the value of an error quantity): worst per member, and plot envelopes."""
+        values = {k: np.asarray(v)[:, keep] for k, v in out["values"].items()}
+        if self.ref0 is None:  # the first chunk: its node 0 is the run's
+            self.ref0 = {k: v[:, 0] for k, v in values.items()}
+            self.scale0 = {k: np.asarray(v) for k, v in out["scales"].items()}
+        for inv in self.invariants:
             v = values[inv.name]
             if inv.kind == "drift":
-                err = np.max(np.abs(v - ref0[inv.name][:, None]), axis=-1)
-                err = err / np.maximum(np.abs(scale0[inv.name]), np.finfo(float).tiny)[:, None]
+                err = np.max(np.abs(v - self.ref0[inv.name][:, None]), axis=-1)
+                err = err / np.maximum(np.abs(self.scale0[inv.name]), np.finfo(float).tiny)[:, None]
             else:
                 err = np.max(v, axis=-1)
             err = np.where(known, err, np.nan)
-            worst[inv.name] = np.fmax(worst[inv.name], np.nanmax(np.where(known, err, -np.inf), axis=-1))
-            errors_binned[inv.name].add(nodes, err[:n_plot])
-        ts_chunk = np.asarray(sol.ts)[0, lo:hi + 1]
-        need_all = scene.reference is not None
-        traj = np.asarray(out["trajectory"][:None if need_all else n_plot])[:, lo:hi + 1]
-        if scene.reference is not None:
-            rerr = np.where(known, scene.reference(setup.members, ts_chunk, traj), np.nan)
-            ref_worst = np.fmax(ref_worst, np.max(np.where(known, rerr, -np.inf), axis=-1))
-            ref_binned.add(nodes, rerr[:n_plot])
-        pick = (nodes % stride == 0) | (nodes == n_steps)
-        traj_nodes.append(nodes[pick])
-        mask = known[:n_plot, pick]
-        traj_pieces.append(np.where(mask.reshape(mask.shape + (1,) * (traj.ndim - 2)), traj[:n_plot][:, pick], np.nan))
-        # Newton updates per step (summed over a composition's sub-steps), attempted steps only
-        st = np.asarray(sol.stats.status)[:, : hi]
-        it = np.asarray(sol.stats.iterations)[:, : hi]
-        tried = st != Status.SKIPPED
-        iter_sum += int(np.sum(it[tried]))
-        iter_count += int(np.sum(tried))
-        iter_max = max(iter_max, int(np.max(it[tried], initial=0)))
-        # first failure of each member, in global steps (a failure past n_steps does not count)
+            worst = np.nanmax(np.where(known, err, -np.inf), axis=-1)
+            self.worst[inv.name] = np.fmax(self.worst[inv.name], worst)
+            self.errors_binned[inv.name].add(nodes, err[:self.n_plot])
+
+    def _add_reference(self, ts, traj, nodes, known) -> None:
+        """Every member's error against the scene's exact solution at the known nodes."""
+        rerr = np.where(known, self.scene.reference(self.setup.members, ts, traj), np.nan)
+        self.ref_worst = np.fmax(self.ref_worst, np.max(np.where(known, rerr, -np.inf), axis=-1))
+        self.ref_binned.add(nodes, rerr[:self.n_plot])
+
+    def _add_trajectory(self, traj, nodes, known) -> None:
+        """The plotted members' trajectories at every `stride`-th node and the last (NaN where
+        not known)."""
+        pick = (nodes % self.stride == 0) | (nodes == self.n_steps)
+        self.traj_nodes.append(nodes[pick])
+        mask = known[:self.n_plot, pick]
+        mask = mask.reshape(mask.shape + (1,) * (traj.ndim - 2))
+        self.traj_pieces.append(np.where(mask, traj[:self.n_plot][:, pick], np.nan))
+
+    def _add_newton(self, sol, n: int) -> None:
+        """Newton updates per step (summed over a composition's sub-steps) of the chunk's first
+        `n` steps, attempted steps only."""
+        st = np.asarray(sol.stats.status)[:, :n]
+        it = np.asarray(sol.stats.iterations)[:, :n]
+        tried = st != cj.Status.SKIPPED
+        self.iter_sum += int(np.sum(it[tried]))
+        self.iter_count += int(np.sum(tried))
+        self.iter_max = max(self.iter_max, int(np.max(it[tried], initial=0)))
+
+    def _add_failures(self, sol, offset: int) -> None:
+        """The first failure of each member, in the run's steps (a failure past n_steps does not
+        count)."""
         result = np.asarray(sol.result)
         local = np.asarray(sol.failed_step)
-        last = n_steps - offset + (result == Status.LEGENDRE)  # a node failure may be at node n_steps
-        new = (status == Status.SUCCESS) & (result != Status.SUCCESS) & (local < last)
-        status = np.where(new, result, status)
-        failed_step = np.where(new, offset + local, failed_step)
-        Q, P, xi = out["Q"], out["P"], out["xi"]
-        derive_P0 = jnp.zeros((batch,), bool)
-        if progress is not None:
-            progress(min(offset + chunk, n_steps), n_steps, time.perf_counter() - t_start)
-    wall = time.perf_counter() - t_start
+        last = self.n_steps - offset + (result == cj.Status.LEGENDRE)  # a node failure may be at node n_steps
+        new = (self.status == cj.Status.SUCCESS) & (result != cj.Status.SUCCESS) & (local < last)
+        self.status = np.where(new, result, self.status)
+        self.failed_step = np.where(new, offset + local, self.failed_step)
 
-    failures = [
-        {"member": int(m), "step": int(failed_step[m]), "t": float(failed_step[m] * dt),
-         "status": int(status[m]), "reason": Status.MESSAGES.get(int(status[m]), f"status {int(status[m])}")}
-        for m in np.flatnonzero(status != Status.SUCCESS)
+
+def _finite_max(a) -> float | None:
+    """The largest finite entry of `a`, None if there is none."""
+    a = np.asarray(a, float)
+    a = a[np.isfinite(a)]
+    return float(np.max(a)) if a.size else None
+
+
+def _finite_list(a) -> list:
+    return [None if not np.isfinite(x) else float(x) for x in a]
+
+
+def _failures(tally: _Tally, dt: float) -> list:
+    """One entry per failed member: its index, step, time, status code and the reason."""
+    return [
+        {"member": int(m), "step": int(tally.failed_step[m]), "t": float(tally.failed_step[m] * dt),
+         "status": int(tally.status[m]),
+         "reason": cj.Status.MESSAGES.get(int(tally.status[m]), f"status {int(tally.status[m])}")}
+        for m in np.flatnonzero(tally.status != cj.Status.SUCCESS)
     ]
 
-    def finite_max(a):
-        a = np.asarray(a, float)
-        a = a[np.isfinite(a)]
-        return float(np.max(a)) if a.size else None
 
-    errors = {"energy_rel_max": finite_max(worst["energy"])}
-    errors.update({f"{inv.name}_max": finite_max(worst[inv.name]) for inv in scene.invariants})
+def _summary(scene: Scene, setup: Setup, plan: _Plan, tally: _Tally, wall: float, first_s: float) -> dict:
+    """`run_scene`'s summary (without the plot data) from the tally of its chunks."""
+    facts, worst = tally.facts, tally.worst
+    failures = _failures(tally, plan.dt)
+    errors = {"energy_rel_max": _finite_max(worst["energy"])}
+    errors.update({f"{inv.name}_max": _finite_max(worst[inv.name]) for inv in scene.invariants})
     if scene.reference is not None:
-        errors["reference_max"] = finite_max(ref_worst)
-    compiled_steps = (n_chunks - 1) * chunk
-    summary = {
+        errors["reference_max"] = _finite_max(tally.ref_worst)
+    compiled_steps = (plan.n_chunks - 1) * plan.chunk
+    return {
         "scene": {"name": scene.name, "description": scene.description, "model": scene.model,
-                  "options": dict(scene.options), "members": batch, "seed": seed,
-                  "initial": setup.members if batch <= 64 else None},
-        "run": {"dt": dt, "n_steps": n_steps, "t_final": n_steps * dt, "order": facts["order"],
-                "order_requested": order, "method": facts["method"], "form": facts["form"],
+                  "options": dict(scene.options), "members": plan.batch, "seed": plan.seed,
+                  "initial": setup.members if plan.batch <= 64 else None},
+        "run": {"dt": plan.dt, "n_steps": plan.n_steps, "t_final": plan.n_steps * plan.dt, "order": facts["order"],
+                "order_requested": plan.order, "method": facts["method"], "form": facts["form"],
                 "scheme": facts["scheme"], "derivative_map": facts["derivative_map"],
-                "chunks": n_chunks, "steps_per_chunk": chunk, "compiler_options": copts},
+                "chunks": plan.n_chunks, "steps_per_chunk": plan.chunk, "compiler_options": plan.compiler_options},
         "errors": errors,
         "invariants": {
             inv.name: {"label": inv.label, "kind": inv.kind, "conserved_exactly": inv.roundoff,
-                       "max": finite_max(worst[inv.name]),
-                       "per_member": [None if not np.isfinite(x) else float(x) for x in worst[inv.name]]}
-            for inv in invariants
+                       "max": _finite_max(worst[inv.name]), "per_member": _finite_list(worst[inv.name])}
+            for inv in tally.invariants
         },
         "reference": None if scene.reference is None else {
-            "label": scene.reference_label, "max": finite_max(ref_worst),
-            "per_member": [None if not np.isfinite(x) else float(x) for x in ref_worst]},
-        "newton_iterations": {"mean": iter_sum / iter_count if iter_count else None, "max": iter_max,
+            "label": scene.reference_label, "max": _finite_max(tally.ref_worst),
+            "per_member": _finite_list(tally.ref_worst)},
+        "newton_iterations": {"mean": tally.iter_sum / tally.iter_count if tally.iter_count else None,
+                              "max": tally.iter_max,
                               "per": "step (updates summed over the sub-steps of a composition)"},
         "failures": {"count": len(failures), "members": failures[:100]},
-        "per_member": {"status": status.tolist(), "failed_step": failed_step.tolist()},
+        "per_member": {"status": tally.status.tolist(), "failed_step": tally.failed_step.tolist()},
         "timing": {"wall_s": wall, "first_chunk_s": first_s,
                    "steps_per_s_compiled": (compiled_steps / (wall - first_s)
                                             if compiled_steps and wall > first_s else None)},
         "versions": {"jax": jax.__version__, "numpy": np.__version__},
     }
-    traj_nodes = np.concatenate(traj_nodes)
-    summary["_plot"] = {
-        "setup": setup, "t_traj": traj_nodes * dt, "trajectory": np.concatenate(traj_pieces, axis=1),
-        "t_err": np.minimum(np.arange(errors_binned["energy"].data.shape[1]) * stride + stride - 1, n_steps) * dt,
-        "errors": {inv.name: errors_binned[inv.name].result() for inv in invariants},
-        "reference": None if ref_binned is None else ref_binned.result(),
+
+
+def _plot_data(setup: Setup, plan: _Plan, tally: _Tally) -> dict:
+    """What `write_plot` draws: the plotted members' trajectories and their errors' envelopes,
+    with their times."""
+    stride, n_bins = tally.stride, tally.errors_binned["energy"].data.shape[1]
+    return {
+        "setup": setup, "t_traj": np.concatenate(tally.traj_nodes) * plan.dt,
+        "trajectory": np.concatenate(tally.traj_pieces, axis=1),
+        "t_err": np.minimum(np.arange(n_bins) * stride + stride - 1, plan.n_steps) * plan.dt,
+        "errors": {inv.name: tally.errors_binned[inv.name].result() for inv in tally.invariants},
+        "reference": None if tally.ref_binned is None else tally.ref_binned.result(),
     }
-    return summary
 
 
 def write_summary(summary: dict, out_dir: str, files: list) -> str:

@@ -6,14 +6,13 @@ $\Delta t = 0.1$, from a small batch of body angular momenta on the sphere $|m| 
 about the minor axis ($I_1 = 0.5$), about the major axis ($I_3 = 1$), and a pair on each side
 of the separatrix through the middle axis. The batch runs under `jax.vmap`.
 
-The paper integrates over 100 periods: ~18,400 steps for the slowest orbit shown here, about
-25 s on 2 CPU cores with the reduced march (11 s of it compilation). The default run covers
-them, up to `MAX_DEFAULT_STEPS`; the summary reports how many periods each orbit actually covered
-and how many steps 100 periods of the slowest orbit take (pass them as `n_steps`, or
-`clebsch-jax demo --steps N`).
+The paper integrates over 100 periods: ~18,400 steps for the slowest orbit shown here. The
+default run covers them, up to `MAX_DEFAULT_STEPS`; the summary reports how many periods each
+orbit actually covered and how many steps 100 periods of the slowest orbit take (pass them as
+`n_steps`, or `clebsch-jax demo --steps N`).
 
 The march runs in equal chunks of steps, each chunk one call of the same compiled function
-restarted from the last chunk's $(Q, p)$ (`integrate` with `P0`). The first call pays for
+restarted from the last chunk's $(Q, p)$ (`clebsch_jax.continue_from`). The first call pays for
 compilation; the later ones are already compiled and give the steps-per-second figure, so
 the run is not done twice just to time it. Chaining is exact for the discrete flow: the step
 map is a function of $(Q^n, p^n)$ alone.
@@ -32,12 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import diagnostics
-from . import lie
-from .march.integrate import integrate
-from .discrete.legendre import cotangent_from_momentum, initial_multiplier
-from .march.solution import IntegrationError
-from .models import rigid_body
+import clebsch_jax as cj
+from clebsch_jax import diagnostics, lie
+from clebsch_jax.models import rigid_body
 
 __all__ = ["figure1", "MissingPlotDependency"]
 
@@ -162,19 +158,20 @@ def measured_period(t: np.ndarray, m: np.ndarray) -> float:
 
 
 def _chunk_function(system, dt: float, n_steps: int, compiler_options=None):
-    """A jitted, vmapped march of `n_steps` steps from (Q0, xi0, P0) at time t0, with diagnostics."""
+    """A jitted, vmapped march of `n_steps` steps from a batch of `clebsch_jax.Start`s, with
+    diagnostics; returns (Solution, diagnostics, the `Start` at the last node)."""
 
-    def one(Q0, xi0, P0, t0):
-        sol = integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, throw=False)
+    def one(start):
+        sol = cj.integrate(system, **start._asdict(), dt=dt, n_steps=n_steps, throw=False)
         diag = {
             "m": diagnostics.body_momentum(system, sol),
             "E": diagnostics.energy(system, sol),
             "J": diagnostics.noether_momentum(sol, lie.so3_left_generators, system),
             "orth": diagnostics.orthogonality_error(sol.Q),
         }
-        return sol, diag
+        return sol, diag, cj.continue_from(system, sol)
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None)), compiler_options=compiler_options)
+    return jax.jit(jax.vmap(one), compiler_options=compiler_options)
 
 
 def _march(system, m0: np.ndarray, dt: float, n_steps: int, compiler_options=None):
@@ -187,19 +184,19 @@ def _march(system, m0: np.ndarray, dt: float, n_steps: int, compiler_options=Non
 
     xi = jnp.asarray(m0 / np.asarray(INERTIA)[None, :])  # xi0 = m / I (Lemma 7: m = I xi)
     Q = jnp.broadcast_to(jnp.eye(3), (len(m0), 3, 3))
-    t0 = 0.0
 
     t_start = time.perf_counter()
-    P = jax.vmap(lambda q, x: initial_multiplier(system, q, x))(Q, xi)
+    P = jax.vmap(lambda q, x: cj.initial_multiplier(system, q, x))(Q, xi)
+    start = cj.Start(Q0=Q, xi0=xi, P0=P, t0=jnp.zeros(len(m0)))
     pieces, iters, call_times = [], [], []
     for c in range(n_chunks):
         tic = time.perf_counter()
-        sol, diag = jax.block_until_ready(run(Q, xi, P, jnp.asarray(t0)))
+        sol, diag, start = jax.block_until_ready(run(start))
         call_times.append(time.perf_counter() - tic + (tic - t_start if c == 0 else 0.0))
         try:
             sol.raise_if_failed()
-        except IntegrationError as err:  # step numbers in the message count from the chunk start
-            raise IntegrationError(
+        except cj.IntegrationError as err:  # step numbers in the message count from the chunk start
+            raise cj.IntegrationError(
                 f"{err} (The demo runs in chunks of {chunk} steps; this was chunk {c + 1} of "
                 f"{n_chunks}, starting at step {c * chunk}.)"
             ) from None
@@ -207,11 +204,6 @@ def _march(system, m0: np.ndarray, dt: float, n_steps: int, compiler_options=Non
         pieces.append({k: np.asarray(v)[:, keep] for k, v in diag.items()}
                       | {"t": np.asarray(sol.ts)[0, keep]})
         iters.append(np.asarray(sol.stats.iterations))
-        # restart from the last node: the reduced march's state is the body momentum, so the
-        # minimum-norm multiplier with that momentum map continues it exactly
-        Q, xi = sol.Q[:, -1], sol.xi[:, -1]
-        P = jax.vmap(lambda q, mu: cotangent_from_momentum(system, q, mu))(Q, sol.momentum[:, -1])
-        t0 = float(np.asarray(sol.ts)[0, -1])
 
     out = {k: np.concatenate([p[k] for p in pieces], axis=1 if k != "t" else 0) for k in pieces[0]}
     out = {k: (v[: n_steps + 1] if k == "t" else v[:, : n_steps + 1]) for k, v in out.items()}
@@ -404,8 +396,8 @@ def figure1(out_dir, *, quick: bool = False, n_steps: int | None = None) -> dict
 
     - `out_dir`: output folder (str or path-like).
     - `quick`: fewer orbits (4) and steps (`QUICK_STEPS`): a smoke test whose time is mostly
-      compilation, so it is compiled with XLA's backend optimisation off (compiles ~2x
-      faster, runs ~2x slower per step; recorded in the summary's `compiler_options`).
+      compilation, so it is compiled with XLA's backend optimisation off (compiles faster,
+      runs slower per step; recorded in the summary's `compiler_options`).
     - `n_steps`: number of steps (int >= 1). Default: enough for `TARGET_PERIODS` periods of
       the slowest orbit, capped at `MAX_DEFAULT_STEPS` (`QUICK_STEPS` with `quick`).
 
@@ -417,48 +409,97 @@ def figure1(out_dir, *, quick: bool = False, n_steps: int | None = None) -> dict
     `OSError` if `out_dir` cannot be created or written, and `clebsch_jax.IntegrationError`
     if a step fails.
     """
-    if n_steps is not None:
-        if isinstance(n_steps, bool) or not isinstance(n_steps, numbers.Integral) or n_steps < 1:
-            raise ValueError(f"n_steps: expected an int >= 1, got {n_steps!r}.")
-        n_steps = operator.index(n_steps)
+    n_steps = _checked_steps(n_steps)
     _require_matplotlib()
     t_begin = time.perf_counter()
-    out_dir = os.fspath(out_dir)
-    os.makedirs(out_dir, exist_ok=True)
-    if not os.access(out_dir, os.W_OK):  # fail before the run, not after it
-        raise PermissionError(f"{out_dir!r} is not writable")
+    out_dir = _writable_folder(out_dir)
 
     m0 = initial_momenta(quick)
-    inertia = np.asarray(INERTIA)
-    periods_exact = np.array([exact_period(inertia, m) for m in m0])
-    steps_for_target = int(math.ceil(TARGET_PERIODS * np.max(periods_exact) / DT))
+    periods_exact = np.array([exact_period(np.asarray(INERTIA), m) for m in m0])
     if n_steps is None:
-        n_steps = QUICK_STEPS if quick else min(steps_for_target, MAX_DEFAULT_STEPS)
-
+        n_steps = QUICK_STEPS if quick else min(_steps_for_target(periods_exact), MAX_DEFAULT_STEPS)
     options = _QUICK_COMPILER_OPTIONS if quick else None
     system = rigid_body(jnp.asarray(INERTIA))
     traj, iterations, timing = _march(system, m0, DT, n_steps, options)
-    t, m, E, J, orth = traj["t"], traj["m"], traj["E"], traj["J"], traj["orth"]
+    errors = _errors(traj)
+    t_final = float(traj["t"][-1])
+    periods_meas = np.array([measured_period(traj["t"], mk) for mk in traj["m"]])
+    periods_used = np.where(np.isfinite(periods_meas), periods_meas, periods_exact)
+    covered = t_final / periods_used
 
+    files = ["figure1_orbits.png", "figure1_invariants.png", "summary.json"]
+    tic = time.perf_counter()
+    _draw(out_dir, files, traj, errors, covered, n_steps)
+    timing = timing | {"plot_s": time.perf_counter() - tic}
+    summary = {
+        "scene": _scene_facts(system, timing["form"], len(m0), n_steps, t_final, quick, options),
+        "periods_covered": {"min": float(covered.min()), "max": float(covered.max())},
+        "target_periods": TARGET_PERIODS,
+        # The discrete period is O(dt^2) longer than the exact one: once measured, it sets the
+        # number of steps that really covers the target.
+        "steps_for_target_periods": _steps_for_target(periods_used, slack=1e-9),
+        "orbits": _orbits(m0, traj["E"], periods_exact, periods_meas, covered, errors),
+        "errors": {
+            "energy_rel_max": float(np.max(errors["energy"])),
+            "casimir_rel_max": float(np.max(errors["casimir"])),
+            "spatial_momentum_drift_rel_max": float(np.max(errors["spatial"])),
+            "orthogonality_max": float(np.max(errors["orthogonality"])),
+        },
+        "newton_iterations": {"mean": float(np.mean(iterations)), "max": int(np.max(iterations))},
+        "timing": timing | {"total_s": time.perf_counter() - t_begin},
+        "files": files,
+        "versions": {"jax": jax.__version__, "numpy": np.__version__},
+    }
+    with open(os.path.join(out_dir, files[2]), "w") as fh:
+        json.dump(summary, fh, indent=2)
+        fh.write("\n")
+    return summary
+
+
+def _checked_steps(n_steps):
+    """`n_steps` as an int >= 1, or None; a `ValueError` otherwise."""
+    if n_steps is None:
+        return None
+    if isinstance(n_steps, bool) or not isinstance(n_steps, numbers.Integral) or n_steps < 1:
+        raise ValueError(f"n_steps: expected an int >= 1, got {n_steps!r}.")
+    return operator.index(n_steps)
+
+
+def _writable_folder(out_dir) -> str:
+    """`out_dir` as a str, created if needed; `PermissionError` before the run, not after it,
+    if it cannot be written."""
+    out_dir = os.fspath(out_dir)
+    os.makedirs(out_dir, exist_ok=True)
+    if not os.access(out_dir, os.W_OK):
+        raise PermissionError(f"{out_dir!r} is not writable")
+    return out_dir
+
+
+def _steps_for_target(periods: np.ndarray, slack: float = 0.0) -> int:
+    """Steps of `DT` that cover `TARGET_PERIODS` periods of the slowest orbit."""
+    return int(math.ceil(TARGET_PERIODS * np.max(periods) / DT - slack))
+
+
+def _errors(traj: dict) -> dict:
+    """Per orbit and node: the relative energy and Casimir errors, the relative drift of the
+    spatial angular momentum and the orthogonality error of Q."""
+    m, E, J = traj["m"], traj["E"], traj["J"]
     m2 = np.sum(m * m, axis=-1)
     J_scale = np.max(np.abs(J[:, :1]), axis=-1)
-    errors = {
+    return {
         "energy": np.abs(E - E[:, :1]) / np.abs(E[:, :1]),
         "casimir": np.abs(m2 - m2[:, :1]) / m2[:, :1],
         "spatial": np.max(np.abs(J - J[:, :1]), axis=-1) / J_scale,
-        "orthogonality": orth,
+        "orthogonality": traj["orth"],
     }
-    t_final = float(t[-1])
-    periods_meas = np.array([measured_period(t, mk) for mk in m])
-    periods_used = np.where(np.isfinite(periods_meas), periods_meas, periods_exact)
-    covered = t_final / periods_used
-    # The discrete period is O(dt^2) longer than the exact one: once measured, it sets the
-    # number of steps that really covers the target.
-    steps_for_target = int(math.ceil(TARGET_PERIODS * np.max(periods_used) / DT - 1e-9))
 
+
+def _orbits(m0, E, periods_exact, periods_meas, covered, errors) -> list:
+    """The summary's entry for every orbit: initial momentum, energy, the axis it turns about,
+    exact and measured periods, periods covered and its largest energy error."""
     energy2 = 2.0 * np.asarray(E[:, 0])
     axis_names = (f"minor (I1 = {INERTIA[0]:g})", f"major (I3 = {INERTIA[2]:g})")
-    orbits = [
+    return [
         {
             "m0": [float(x) for x in m0[k]],
             "energy": float(E[k, 0]),
@@ -471,47 +512,31 @@ def figure1(out_dir, *, quick: bool = False, n_steps: int | None = None) -> dict
         for k in range(len(m0))
     ]
 
+
+def _scene_facts(system, march: str, n_orbits: int, n_steps: int, t_final: float, quick: bool, options) -> dict:
+    """The summary's `scene` entry: what was integrated, and how."""
+    return {
+        "paper": ("C. J. Cotter and D. D. Holm, Continuous and discrete Clebsch variational "
+                  "principles: Example 30, Figure 1"),
+        "inertia": list(INERTIA),
+        "dt": DT,
+        "derivative_map": getattr(system.derivative_map, "name", "cayley"),
+        "march": march,
+        "scheme": "left",
+        "n_orbits": n_orbits,
+        "n_steps": n_steps,
+        "t_final": t_final,
+        "quick": bool(quick),
+        "compiler_options": dict(options or {}),
+    }
+
+
+def _draw(out_dir: str, files: list, traj: dict, errors: dict, covered: np.ndarray, n_steps: int) -> None:
+    """The two figures, `files[0]` (orbits) and `files[1]` (invariants), into `out_dir`."""
+    t, m = traj["t"], traj["m"]
     span = f"{covered.min():.3g} to {covered.max():.3g} periods"
-    title = (f"Rigid body, I = {INERTIA}, dt = {DT}, Cayley (Example 30): {len(m0)} orbits, "
-             f"{n_steps} steps (t = {t_final:g}), {span}")
-    colors = _orbit_colors(energy2)
-    tic = time.perf_counter()
-    files = ["figure1_orbits.png", "figure1_invariants.png", "summary.json"]
+    title = (f"Rigid body, I = {INERTIA}, dt = {DT}, Cayley (Example 30): {len(m)} orbits, "
+             f"{n_steps} steps (t = {float(t[-1]):g}), {span}")
+    colors = _orbit_colors(2.0 * np.asarray(traj["E"][:, 0]))
     _plot_orbits(os.path.join(out_dir, files[0]), m, colors, title)
     _plot_invariants(os.path.join(out_dir, files[1]), t, errors, colors, title)
-    plot_s = time.perf_counter() - tic
-
-    summary = {
-        "scene": {
-            "paper": ("C. J. Cotter and D. D. Holm, Continuous and discrete Clebsch variational "
-                      "principles: Example 30, Figure 1"),
-            "inertia": list(INERTIA),
-            "dt": DT,
-            "derivative_map": getattr(system.derivative_map, "name", "cayley"),
-            "march": timing["form"],
-            "scheme": "left",
-            "n_orbits": len(m0),
-            "n_steps": n_steps,
-            "t_final": t_final,
-            "quick": bool(quick),
-            "compiler_options": dict(options or {}),
-        },
-        "periods_covered": {"min": float(covered.min()), "max": float(covered.max())},
-        "target_periods": TARGET_PERIODS,
-        "steps_for_target_periods": steps_for_target,
-        "orbits": orbits,
-        "errors": {
-            "energy_rel_max": float(np.max(errors["energy"])),
-            "casimir_rel_max": float(np.max(errors["casimir"])),
-            "spatial_momentum_drift_rel_max": float(np.max(errors["spatial"])),
-            "orthogonality_max": float(np.max(errors["orthogonality"])),
-        },
-        "newton_iterations": {"mean": float(np.mean(iterations)), "max": int(np.max(iterations))},
-        "timing": timing | {"plot_s": plot_s, "total_s": time.perf_counter() - t_begin},
-        "files": files,
-        "versions": {"jax": jax.__version__, "numpy": np.__version__},
-    }
-    with open(os.path.join(out_dir, files[2]), "w") as fh:
-        json.dump(summary, fh, indent=2)
-        fh.write("\n")
-    return summary

@@ -4,7 +4,7 @@ Subcommands:
 
 - `demo`: the scene of Figure 1 of the paper (rigid body, Example 30); writes two PNGs and
   `summary.json` and prints a table of the conserved quantities and timings. Then every
-  built-in scene (`clebsch_jax._scenes`) briefly, each into a subfolder, and one combined
+  built-in scene (`clebsch_jax.cli._scenes`) briefly, each into a subfolder, and one combined
   table. `--only NAME` runs one of them.
 - `run SCENE`: one built-in scene with `--dt`, `--steps`, `--order`, `--scheme`, `--batch`, `--out`:
   a summary table on the terminal, `summary.json` and a PNG in the output folder, a progress
@@ -34,6 +34,8 @@ import textwrap
 import time
 from pathlib import Path
 
+import clebsch_jax as cj
+
 __all__ = ["main"]
 
 PROG = "clebsch-jax"
@@ -44,14 +46,14 @@ MAX_STEPS = 1_000_000
 MAX_BATCH = 10_000
 """Largest accepted `--batch` of `run` (for larger sweeps use `clebsch_jax.sweep`)."""
 
-ORDERS = (2, 4, 6, 8)
-"""`--order` values of the compositions (`integrate(..., order=)`)."""
+ORDERS = tuple(sorted({c.order for c in cj.COMPOSITIONS.values()} | {2}))
+"""`--order` values without `--scheme gauss`: 2 and the orders of the compositions
+(`integrate(..., order=)`)."""
 
-GAUSS_ORDERS = (2, 4, 6, 8, 10, 12, 14, 16)
-"""`--order` values with `--scheme gauss` (`clebsch_jax._collocation.GAUSS_ORDERS`, kept here so
-that `--help` imports no JAX; a test checks they agree)."""
+GAUSS_ORDERS = cj.GAUSS_ORDERS
+"""`--order` values with `--scheme gauss`."""
 
-SCHEMES = ("left", "right", "midpoint", "gauss")
+SCHEMES = cj.SCHEMES + ("gauss",)
 """`--scheme` values (`integrate(..., scheme=)`)."""
 
 LONG_RUN = 100_000
@@ -344,10 +346,8 @@ def _use_compilation_cache(args, prog: str) -> None:
     on stderr and the run goes on without it."""
     if args.no_cache or os.environ.get("CLEBSCH_JAX_NO_CACHE"):
         return
-    from .core.compilation_cache import enable_compilation_cache
-
     try:
-        enable_compilation_cache()
+        cj.enable_compilation_cache()
     except (OSError, ValueError) as exc:
         print(f"{prog}: compiling without the cache: {exc}", file=sys.stderr)
 
@@ -506,7 +506,6 @@ FIGURE1 = "figure-1"
 def _demo_figure1(args, out_dir: str, prog: str):
     """Run the Figure 1 scene; returns (exit code or None, summary or None)."""
     from ._demo import MissingPlotDependency, figure1
-    from .march.solution import IntegrationError
 
     print(f"{PROG} demo: integrating the Figure 1 scene"
           f"{' (quick)' if args.quick else ''}; compiling first takes a few seconds...", flush=True)
@@ -514,7 +513,7 @@ def _demo_figure1(args, out_dir: str, prog: str):
         summary = figure1(out_dir, quick=args.quick, n_steps=args.steps)
     except MissingPlotDependency as err:
         return _fail(str(err), prog=prog), None
-    except IntegrationError as err:
+    except cj.IntegrationError as err:
         return _fail(str(err), prog=prog), None
     except OSError as err:
         return _fail(f"could not write to {out_dir!r}: {err.strerror or err}", prog=prog), None
@@ -619,7 +618,7 @@ def _demo_name(text: str) -> str:
 def _benchmarks_dir() -> Path:
     """The repository's `benchmarks/` folder, next to the package folder (an editable install
     from a clone); it does not exist in an installed wheel."""
-    return Path(__file__).resolve().parent.parent / "benchmarks"
+    return Path(cj.__file__).resolve().parent.parent / "benchmarks"
 
 
 def _benchmarks(folder: Path) -> dict:
@@ -708,14 +707,12 @@ def _add_bench(subparsers) -> None:
 
 
 def _build_parser() -> argparse.ArgumentParser:
-    from . import __version__
-
     parser = _Parser(
         prog=PROG,
         description="Structure-preserving integrators from Clebsch variational principles, in JAX.",
         epilog="'clebsch-jax COMMAND --help' describes each command.",
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {cj.__version__}")
     subparsers = parser.add_subparsers(title="commands", dest="command", metavar="COMMAND", required=True)
     _add_demo(subparsers)
     _add_run(subparsers)

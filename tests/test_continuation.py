@@ -1,0 +1,113 @@
+r"""`continue_from`: a run continued from the last node's canonical state $(Q^n, p^n)$ is the same
+trajectory as one long run, to round-off, in each march: the reduced rigid body (where $p^n$
+is rebuilt from $\mu^n$ as the minimum-norm cotangent), the full march of the heavy top with
+the midpoint principle, and the degenerate point vortices (no nodal velocity: the last step's
+velocity seeds the next chunk).
+
+Compile time dominates, so each case compiles one program, a run of 2N steps, and calls it
+twice: once from the initial state, once continued from node N of that run (the run cut after N
+steps, `_head`: nodes 0..N of a march do not depend on the steps after them). The continued
+run's first N steps must then be the long run's last N.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax import lie, models
+
+N = 8  # steps per chunk; the long run has 2N
+
+QUICK = {"xla_backend_optimization_level": 0}  # short runs: compilation dominates
+
+
+def _head(sol: cj.Solution, n: int) -> cj.Solution:
+    """The first `n` steps of a single run: its nodes 0..n and steps 0..n-1."""
+    node = lambda a: None if a is None else a[: n + 1]
+    step = lambda a: None if a is None else a[:n]
+    return dataclasses.replace(
+        sol, ts=node(sol.ts), Q=node(sol.Q), p=node(sol.p), xi=node(sol.xi), momentum=node(sol.momentum),
+        valid=node(sol.valid), nodal_stats=jax.tree.map(node, sol.nodal_stats), xi_step=step(sol.xi_step),
+        P=step(sol.P), stats=jax.tree.map(step, sol.stats))
+
+
+def _long_and_continued(system, Q0, xi0, dt, **options):
+    """A run of 2N steps, and the same program's run continued (`continue_from`) from its node N.
+    (The initial multiplier and the hand-over are jitted too: op by op their small linear
+    algebra compiles slower.)"""
+    run = jax.jit(lambda start: cj.integrate(system, **start._asdict(), dt=dt, n_steps=2 * N, **options),
+                  compiler_options=QUICK)
+    initial = jax.jit(lambda Q, xi: cj.Start(Q0=Q, xi0=xi, P0=cj.initial_multiplier(system, Q, xi),
+                                             t0=jnp.zeros((), Q.dtype)), compiler_options=QUICK)
+    hand_over = jax.jit(lambda sol, Q: cj.continue_from(system, _head(sol, N), Q=Q), compiler_options=QUICK)
+    Q0, xi0 = jnp.asarray(Q0, jnp.float64), jnp.asarray(xi0, jnp.float64)
+    long = run(initial(Q0, xi0))
+    continued = run(hand_over(long, Q0))
+    assert run._cache_size() == 1  # the continued run reused the compiled program
+    return long, continued
+
+
+def _assert_continues(long, continued, tol=1e-13):
+    r"""Nodes 0..N and steps 0..N-1 of `continued` are nodes N..2N and steps N..2N-1 of `long`, to
+    `tol` relative to each field's size; a step's velocity is a difference quotient of the nodes
+    ($\phi_{\Delta t}(Q^{n+1}, Q^n) = \mathcal L_{\xi^n}Q^n$), so its round-off is theirs over Δt."""
+    assert long.result == continued.result == cj.Status.SUCCESS
+    np.testing.assert_allclose(continued.ts[: N + 1], long.ts[N:], rtol=0, atol=1e-15)
+    dt = float(long.ts[1] - long.ts[0])
+    for field in ("Q", "p", "xi", "momentum", "xi_step"):
+        whole = getattr(long, field)
+        if whole is None:
+            assert getattr(continued, field) is None, field
+            continue
+        part = getattr(continued, field)[: len(whole) - N]
+        atol = tol * np.max(np.abs(whole)) / (dt if field == "xi_step" else 1.0)
+        np.testing.assert_allclose(part, whole[N:], rtol=0, atol=atol, err_msg=field)
+
+
+@pytest.mark.parametrize("reconstruct", [True, False])
+def test_reduced_rigid_body(reconstruct):
+    """The reduced march carries μⁿ; the hand-over rebuilds pⁿ from it. Without Q
+    (`reconstruct=False`) the caller passes a configuration: the free body's step does not
+    depend on Q."""
+    system = models.rigid_body(jnp.array([2.0, 1.0, 2.0 / 3.0]))
+    m0 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
+    long, continued = _long_and_continued(system, np.eye(3), m0 / np.array([2.0, 1.0, 2.0 / 3.0]), 0.1,
+                                          reconstruct=reconstruct)
+    assert long.form == "reduced" and long.p is None and (long.Q is None) == (not reconstruct)
+    _assert_continues(long, continued)
+
+
+def test_full_march_heavy_top_midpoint():
+    system = models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5)
+    Q0 = lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))
+    long, continued = _long_and_continued(system, Q0, np.array([0.3, -0.2, 6.0]), 0.02, scheme="midpoint")
+    assert long.form == "full" and long.p is not None
+    _assert_continues(long, continued)
+
+
+def test_degenerate_point_vortices():
+    gamma = jnp.array([1.0, -1.0, 1.0, -1.0])
+    Q0 = jnp.array([[0.0, 1.0], [0.0, -1.0], [0.0, 0.5], [0.0, -0.5]])
+    system = models.point_vortices(gamma)
+    long, continued = _long_and_continued(system, Q0, models.vortex_velocity(gamma, Q0), 0.02)
+    assert long.xi is None and long.scheme == "midpoint"
+    _assert_continues(long, continued)
+
+
+def test_refuses_a_batch_and_a_missing_configuration():
+    """Shapes only (nothing is compiled)."""
+    system = models.rigid_body(jnp.array([2.0, 1.0, 2.0 / 3.0]))
+    xi0 = jnp.array([[0.5, 0.1, 0.8], [0.1, 0.2, 0.3]])
+    march = lambda x, **kw: cj.integrate(system, jnp.eye(3), x, dt=0.1, n_steps=2, throw=False, **kw)
+    batched = jax.eval_shape(jax.vmap(march), xi0)
+    with pytest.raises(ValueError, match="jax.vmap"):
+        cj.continue_from(system, batched)
+    start = jax.eval_shape(jax.vmap(lambda s: cj.continue_from(system, s)), batched)
+    assert start.Q0.shape == (2, 3, 3) and start.P0.shape == (2, 3, 3) and start.t0.shape == (2,)
+    no_Q = jax.eval_shape(lambda x: march(x, reconstruct=False), xi0[0])
+    with pytest.raises(ValueError, match="pass the last configuration"):
+        cj.continue_from(system, no_Q)
