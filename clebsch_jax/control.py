@@ -48,9 +48,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .core.jit import filter_jit as _filter_jit
-from .core.validation import float_array, positive_scalar
-from .core.validation import nonnegative as _nonnegative
+from .core.jit import filter_jit
+from .core.validation import float_array, nonnegative, positive_scalar
 from .diagnostics import node_energy
 from .march.integrate import integrate
 from .roots.status import Status
@@ -172,7 +171,7 @@ def _check_common(dt, n_steps, optimizer, n_iterations, tol, gtol, options):
         )
     if isinstance(n_iterations, bool) or not isinstance(n_iterations, numbers.Integral) or n_iterations < 0:
         raise ValueError(f"n_iterations: expected a Python int >= 0, got {n_iterations!r}.")
-    tol, gtol = _nonnegative(tol, "tol"), _nonnegative(gtol, "gtol")
+    tol, gtol = nonnegative(tol, "tol"), nonnegative(gtol, "gtol")
     for name in _RESERVED:
         if name in options:
             raise ValueError(f"{name}: set by this function; it cannot be passed as an integrate option.")
@@ -201,7 +200,7 @@ def _shooting_terms(P0, system, Q0, target, xi0, dt, weight, *, n_steps, loss, r
     return jnp.where(ok, value, nan), (jnp.where(ok, data, nan), (sol.Q, sol.momentum), sol.result, sol.failed_step)
 
 
-@_filter_jit
+@filter_jit
 def _shooting_value_and_grad(P0, system, Q0, target, xi0, dt, weight, n_steps, loss, regularize, options):
     terms = lambda P: _shooting_terms(P, system, Q0, target, xi0, dt, weight, n_steps=n_steps, loss=loss,
                                       regularize=regularize, options=options)
@@ -222,7 +221,7 @@ def _fit_terms(params, make_system, Q0, xi0, observations, dt, *, n_steps, obser
     return jnp.where(ok, value, jnp.nan), (value, predicted, sol.result, sol.failed_step)
 
 
-@_filter_jit
+@filter_jit
 def _fit_value_and_grad(params, make_system, Q0, xi0, observations, dt, n_steps, observe, loss, options):
     terms = lambda p: _fit_terms(p, make_system, Q0, xi0, observations, dt, n_steps=n_steps, observe=observe,
                                  loss=loss, options=options)
@@ -385,7 +384,7 @@ def shoot(
     if not callable(loss):
         raise TypeError(f"loss: expected a function loss(Q_end, target) -> scalar, got {type(loss).__name__}.")
     _scalar_output(loss, "loss", Q0, target)
-    weight = _nonnegative(regularization, "regularization")
+    weight = nonnegative(regularization, "regularization")
     regularize = weight > 0
     if regularize and system.degenerate:
         raise ValueError("regularization: needs the energy of the nodal velocity, which a degenerate system "

@@ -10,7 +10,7 @@ from jax.tree_util import Partial
 from ..core.derivative_maps import DerivativeMap, cayley
 from ..core.system import ClebschSystem
 from ..core.validation import is_traced
-from ._rigid_body import _right_multiplication, check_rotation, principal_moments
+from ._rigid_body import right_multiplication, check_rotation, principal_moments
 
 __all__ = ["heavy_top"]
 
@@ -62,7 +62,7 @@ def heavy_top(inertia, mass_gravity_length, center_of_mass=(0.0, 0.0, 1.0),
         raise ValueError(f"mass_gravity_length: must be finite, got {float(mgl)}.")
     return ClebschSystem(
         lagrangian=Partial(_lagrangian, inertia, mgl, chi),
-        velocity_map=_right_multiplication,
+        velocity_map=right_multiplication,
         derivative_map=derivative_map,
         check_Q=check_rotation,
     )

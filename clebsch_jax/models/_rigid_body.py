@@ -76,7 +76,7 @@ def _kinetic_energy(inertia: jax.Array, xi: jax.Array) -> jax.Array:
     return 0.5 * jnp.sum(inertia * xi * xi)
 
 
-def _right_multiplication(xi: jax.Array, Q: jax.Array) -> jax.Array:
+def right_multiplication(xi: jax.Array, Q: jax.Array) -> jax.Array:
     return Q @ lie.hat(xi)
 
 
@@ -99,7 +99,7 @@ def rigid_body(inertia, derivative_map: DerivativeMap = cayley) -> ClebschSystem
     """
     return ClebschSystem(
         lagrangian=Partial(_kinetic_energy, principal_moments(inertia)),
-        velocity_map=_right_multiplication,
+        velocity_map=right_multiplication,
         derivative_map=derivative_map,
         check_Q=check_rotation,
     )
