@@ -13,7 +13,7 @@ running the same compiled program as an unsharded sweep, so the results are iden
 bit. (One SPMD program over a `Mesh` — `jax.shard_map` or `jit` with a `NamedSharding` —
 would compile once, but XLA optimises the partitioned module differently: e.g. a division by
 a determinant becomes a multiplication by its reciprocal in one program and not in the other,
-so results differ in the last bit, 1e-16 per step, measured.)
+so results differ in the last bits.)
 
 **Continuation is the same map.** A step of the march is the symplectic map
 $(Q^n, p^n) \mapsto (Q^{n+1}, p^{n+1})$ (Lemma 20), so restarting from the last node's
@@ -22,8 +22,11 @@ restarts the Newton initial guesses (the predictor's history, the carried invers
 and, in the reduced march (Theorem 27), the state $\mu^n = -p^n\diamond Q^n$ makes the round
 trip $\mu \to p \to \mu$ through the minimum-norm cotangent (`cotangent_from_momentum`, a
 least-squares solve). Newton iterates every step to round-off (the default `rtol = atol = 0`),
-so a chunked run reproduces the unchunked trajectory to a few ulps per chunk (the tests bound
-it by 1e-12), not bit for bit. What chunking costs is measured in the README (Parameter sweeps).
+so a chunked run reproduces the unchunked trajectory to a few ulps per chunk
+(`tests/test_sweep.py` bounds it by 1e-12), not bit for bit. Chunks of tens of steps or more
+keep the cost of the restarts and of a call small against the steps; the measurements behind
+the default chunk size are in `benchmarks/README.md` ("Measurements behind the engine's
+choices").
 """
 
 from __future__ import annotations
@@ -354,7 +357,8 @@ def _devices(devices) -> list:
 def _check_configurations(system, Q0, n_ic):
     """The system's `check_Q` of every concrete Q0[j]: at once when the check has a vectorised
     form (`check_Q.batched(stack) -> None | (j, sentence)`, as the SO(n) models' rotation check
-    has: 10⁶ rotations in about a second, against ~40 s row by row), else one call per row."""
+    has; called row by row from Python, it took a large part of a million-member sweep's time),
+    else one call per row."""
     check = _runnable_check(system, Q0)
     if check is None:
         return
@@ -747,7 +751,7 @@ def sweep(
     - `chunk_steps`: steps per `integrate` call (default min(n_steps, 100), a multiple of
       `save_every`). Memory is about `batch_size · chunk_steps` nodes; a chunk size that divides
       `n_steps` compiles one program (otherwise a second one for the last chunk). Chunks of
-      50–100 steps cost no measurable time over one unchunked run (see `clebsch_jax.batching.sweep`).
+      tens of steps cost little over one unchunked run (see `clebsch_jax.batching.sweep`).
     - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024)); the
       last batch is padded with copies of the last member.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
