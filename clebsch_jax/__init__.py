@@ -86,7 +86,8 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name):
-    # `clebsch_jax.control` imports optax (~1 s): loaded on first use, not with the package
+    # `clebsch_jax.control` imports optax, which takes a noticeable time: loaded on first use,
+    # not with the package
     if name == "control":
         import importlib
 

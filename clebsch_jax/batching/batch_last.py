@@ -3,9 +3,8 @@ r"""`batch`: `jax.vmap` for many small independent systems on the CPU, with the 
 `jax.vmap` puts the batch axis first: a batch of B rigid bodies holds its velocities as a
 (B, 3) array, and every component a step touches, ξ₁ say, is a strided column of it. On the
 CPU XLA then vectorises across the three components of one body, not across bodies, and a
-step of a few hundred flops runs far below the machine's speed (a scratch measurement on a
-2-core CPU, B = 10³: the same straight-line CAY step ran at 1.6 M body-steps/s vmapped per
-member and 5.2 M/s written with the bodies along the last axis).
+step of a few hundred flops runs far below the machine's speed; the same straight-line step
+written with the bodies along the last axis runs much faster.
 
 `batch(fun)` has `jax.vmap`'s meaning (in_axes 0 or None, out_axes 0) but evaluates `fun`
 differently: it traces `fun` once for one member (`jax.make_jaxpr`) and evaluates that program
@@ -21,8 +20,8 @@ axis moved last around it: slower, never wrong.
 
 The batch is also cut into chunks of `chunk` members, marched to the end one chunk after the
 other (`jax.lax.map`): the arrays of one chunk stay in cache, so the rate falls less as B
-grows (a scratch measurement of the hand-written CAY step: 1.3 M body-steps/s for 10⁴ bodies in
-one piece, 4.5 M/s in chunks of 10³).
+grows. (The measurements behind the layout and the chunks: `benchmarks/README.md`,
+"Measurements behind the engine's choices".)
 
 The result is `jax.vmap`'s up to round-off: the same operations on the same numbers; XLA may
 fuse them differently for another layout. Each member's result does not depend on the other
@@ -70,11 +69,10 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
     - `chunk`: members per chunk (default `DEFAULT_CHUNK`), or None for one chunk. Chunks run
       one after the other; the last is padded with copies of the last member. A loop in
       `fun` (Newton's) runs, in each chunk, until the chunk's slowest member stops: members
-      that need very different numbers of iterations (clusters of point vortices: 3.7
-      updates per step on average, 23 for the slowest of 1000) run faster in small chunks
-      — measured 12× one NumPy RK4 step under `jax.vmap`, 5.5× with chunks of 1024, 2.4×
-      with 64 — while uniform ones (rigid bodies) prefer large chunks (1.6 M body-steps/s in
-      one chunk of 1000 against 0.8-1.0 M/s in chunks of 64).
+      that need very different numbers of iterations (clusters of point vortices, where a
+      few members need many times the mean) run faster in small chunks (e.g. 64), while
+      uniform ones (rigid bodies) prefer large chunks, where each operation's fixed cost is
+      shared by more members (the runs: `benchmarks/README.md`, `throughput.py`).
 
     **Returns:** a function with `jax.vmap(fun, in_axes)`'s signature and outputs (every output
     batched along axis 0).

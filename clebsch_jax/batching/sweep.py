@@ -10,7 +10,10 @@ inside, a Python loop outside), so memory is bounded by one batch × one chunk o
 whatever the number of members and steps. The member axis can be split across devices: whole
 batches are dealt to the devices and run side by side (asynchronous dispatch), each device
 running the same compiled program as an unsharded sweep, so the results are identical to the
-bit (see `sweep`'s `devices` for why not one SPMD program).
+bit. (One SPMD program over a `Mesh` — `jax.shard_map` or `jit` with a `NamedSharding` —
+would compile once, but XLA optimises the partitioned module differently: e.g. a division by
+a determinant becomes a multiplication by its reciprocal in one program and not in the other,
+so results differ in the last bits.)
 
 **Continuation is the same map.** A step of the march is the symplectic map
 $(Q^n, p^n) \mapsto (Q^{n+1}, p^{n+1})$ (Lemma 20), so restarting from the last node's
@@ -19,8 +22,11 @@ restarts the Newton initial guesses (the predictor's history, the carried invers
 and, in the reduced march (Theorem 27), the state $\mu^n = -p^n\diamond Q^n$ makes the round
 trip $\mu \to p \to \mu$ through the minimum-norm cotangent (`cotangent_from_momentum`, a
 least-squares solve). Newton iterates every step to round-off (the default `rtol = atol = 0`),
-so a chunked run reproduces the unchunked trajectory to a few ulps per chunk (the tests bound
-it by 1e-12), not bit for bit. What chunking costs is measured in the README (Parameter sweeps).
+so a chunked run reproduces the unchunked trajectory to a few ulps per chunk
+(`tests/test_sweep.py` bounds it by 1e-12), not bit for bit. Chunks of tens of steps or more
+keep the cost of the restarts and of a call small against the steps; the measurements behind
+the default chunk size are in `benchmarks/README.md` ("Measurements behind the engine's
+choices").
 """
 
 from __future__ import annotations
@@ -351,7 +357,8 @@ def _devices(devices) -> list:
 def _check_configurations(system, Q0, n_ic):
     """The system's `check_Q` of every concrete Q0[j]: at once when the check has a vectorised
     form (`check_Q.batched(stack) -> None | (j, sentence)`, as the SO(n) models' rotation check
-    has: 10⁶ rotations in about a second, against ~40 s row by row), else one call per row."""
+    has; called row by row from Python, it took a large part of a million-member sweep's time),
+    else one call per row."""
     check = _runnable_check(system, Q0)
     if check is None:
         return
@@ -374,26 +381,326 @@ def _member_slices(tree, idx):
 
 
 # --------------------------------------------------------------------------------------------
+# The steps of a sweep: check the options, build the members, probe one member's shapes,
+# allocate the table, then for each group of batches (one per device): start, march, collect.
+
+
+class _Run(NamedTuple):
+    """The checked options of a run."""
+
+    n_steps: int
+    chunk_steps: int
+    save_every: int | None
+    member_chunk: int | None
+    invariants: dict  # {"energy": diagnostics.energy, **the caller's}
+    progress: bool | Callable
+    devices: list  # the devices batches are dealt to ([None]: JAX's default placement)
+
+    @property
+    def chunks(self) -> list:
+        """(first step, number of steps) of each chunk."""
+        return [(st, min(self.chunk_steps, self.n_steps - st)) for st in range(0, self.n_steps, self.chunk_steps)]
+
+
+def _check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, invariants, progress,
+               devices) -> _Run:
+    """The arguments that need no tracing, checked; the default chunk size chosen."""
+    n_steps = _positive_int(n_steps, "n_steps")
+    if not isinstance(grid, bool):
+        raise ValueError(f"grid: expected True or False, got {grid!r}.")
+    for key in options:
+        if key in _RESERVED:
+            raise ValueError(f"{key}: set by sweep itself (it hands the state from chunk to chunk); "
+                             "pass P0 and dt to sweep, not as integrate options.")
+    save_every = _positive_int(save_every, "save_every", allow_none=True)
+    member_chunk = _positive_int(member_chunk, "member_chunk", allow_none=True)
+    chunk_steps = _positive_int(chunk_steps, "chunk_steps", allow_none=True)
+    if chunk_steps is None:
+        chunk_steps = _DEFAULT_CHUNK
+        if save_every is not None:
+            chunk_steps = max(save_every, chunk_steps - chunk_steps % save_every)
+    elif save_every is not None and chunk_steps < n_steps and chunk_steps % save_every:
+        # chunks start at saved nodes (one chunk needs no alignment)
+        raise ValueError(f"chunk_steps: must be a multiple of save_every={save_every}, got {chunk_steps}.")
+    if invariants is None:
+        invariants = {}
+    if not isinstance(invariants, dict) or not all(isinstance(k, str) and callable(f) for k, f in invariants.items()):
+        raise ValueError("invariants: expected a dict {name: f(system, sol)} of callables.")
+    if not (progress is True or progress is False or callable(progress)):
+        raise ValueError(f"progress: expected True, False or a callable, got {progress!r}.")
+    return _Run(n_steps, min(chunk_steps, n_steps), save_every, member_chunk,
+                {"energy": _diagnostics.energy, **invariants}, progress, _devices(devices))
+
+
+class _Members(NamedTuple):
+    """The B members: member m is the system of `params` row `param_index[m]` (or the shared
+    system) started from initial condition `ic_index[m]` with step `dt[m]`."""
+
+    builder: Callable | None  # make_system, when every member builds its system from its params
+    shared_def: tuple | None  # a shared system's (treedef, static leaves) ...
+    shared: list | None  # ... and its array leaves
+    params: object  # a pytree of arrays with a leading axis of parameter rows; None when shared
+    Q0: np.ndarray
+    xi0: np.ndarray
+    P0: np.ndarray | None
+    n_ic: int
+    param_index: np.ndarray
+    ic_index: np.ndarray
+    dt: np.ndarray  # (B,)
+
+    @property
+    def B(self) -> int:
+        return len(self.dt)
+
+
+def _systems(make_system, params):
+    """(builder, shared_def, shared): a function of the parameters, or a system shared by all."""
+    if isinstance(make_system, ClebschSystem):
+        if params is not None:
+            raise ValueError("params: must be None when make_system is a ClebschSystem (shared by all members).")
+        return (None, *_split_system(make_system))
+    if callable(make_system):
+        if params is None:
+            raise ValueError("params: None, but make_system is a function of the parameters; pass a "
+                             "ClebschSystem as make_system to share one system.")
+        return make_system, None, None
+    raise TypeError(f"make_system: expected a function params -> ClebschSystem or a ClebschSystem, "
+                    f"got {type(make_system).__name__}.")
+
+
+def _parameter_rows(params):
+    """`params` as JAX float arrays and its number of rows (every leaf's leading axis)."""
+    if not jax.tree_util.tree_leaves(params):
+        raise ValueError("params: has no array leaves.")
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(_float_array(a, "params")), params)
+    sizes = {np.shape(a)[0] if np.ndim(a) else None for a in jax.tree_util.tree_leaves(params)}
+    if None in sizes or len(sizes) != 1:
+        shapes = [np.shape(a) for a in jax.tree_util.tree_leaves(params)]
+        raise ValueError(f"params: every leaf needs the same leading member axis, got shapes {shapes}.")
+    return params, sizes.pop()
+
+
+def _members(make_system, params, Q0, xi0, P0, dt, grid) -> _Members:
+    """The members, their inputs checked, and which parameter row and initial condition each uses."""
+    builder, shared_def, shared = _systems(make_system, params)
+    Q0 = _float_array(Q0, "Q0")
+    xi0 = _float_array(xi0, "xi0")
+    n_ic = _leading(Q0, "Q0", "one configuration per initial condition")
+    if _leading(xi0, "xi0", "one velocity per initial condition") != n_ic:
+        raise ValueError(f"xi0: {xi0.shape[0]} initial velocities for {n_ic} configurations in Q0 "
+                         f"(shapes {xi0.shape} and {Q0.shape}).")
+    if P0 is not None:
+        P0 = _float_array(P0, "P0")
+        if P0.shape != Q0.shape:
+            raise ValueError(f"P0: expected Q0's shape {Q0.shape}, got {P0.shape}.")
+    params, n_p = _parameter_rows(params) if builder is not None else (params, 1)
+    if grid:
+        if builder is None:
+            raise ValueError("grid: True needs params (a grid of parameters × initial conditions).")
+        B = n_p * n_ic
+    else:
+        if builder is not None and n_p != n_ic:
+            raise ValueError(f"params: {n_p} parameter rows for {n_ic} initial conditions; pass as many, or "
+                             "grid=True for every parameter row with every initial condition.")
+        B = n_ic
+    members = np.arange(B)
+    param_index = members // n_ic if grid else (members if builder is not None else np.zeros(B, int))
+    ic_index = members % n_ic if grid else members
+    dt = _float_array(dt, "dt")
+    if dt.shape not in ((), (B,)):
+        raise ValueError(f"dt: expected a scalar or one step per member, shape ({B},), got {dt.shape}.")
+    if not np.all(np.isfinite(dt)) or not np.all(dt > 0):
+        raise ValueError("dt: every step must be finite and positive.")
+    dt = np.broadcast_to(dt, (B,)).astype(np.float64)
+    return _Members(builder, shared_def, shared, params, Q0, xi0, P0, n_ic, param_index, ic_index, dt)
+
+
+def _chunk_config(run: _Run, members: _Members, options: dict) -> _Config:
+    """The static part of a chunk, which jit hashes: refused here if it is not hashable."""
+    cfg = _Config(members.builder, tuple(run.invariants.items()), tuple(sorted(options.items())), run.chunk_steps,
+                  run.save_every, members.shared_def, run.member_chunk)
+    try:
+        hash(cfg)
+    except TypeError as err:
+        raise ValueError(f"options: integrate options (and the non-array parts of a shared system) must be "
+                         f"hashable ({err}).") from None
+    return cfg
+
+
+class _Shapes(NamedTuple):
+    """One member's shapes and the facts of its march."""
+
+    q: tuple  # Q's shape
+    xi: tuple  # ξ's shape
+    has_Q: bool  # False: the reduced march ran without reconstructing Q
+    has_xi: bool  # False: a degenerate system (no nodal velocity)
+    invariants: dict  # {name: shape and dtype of its values on a 1-step solution, (2, …)}
+    facts: dict  # form, scheme, order, method
+
+
+def _probe(cfg: _Config, members: _Members) -> _Shapes:
+    """One member's shapes, by tracing integrate (its own checks name Q0, xi0, ...): no compile.
+    Then the system's own check of its configurations on every concrete Q0[j]."""
+    p_row = None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
+    j = members.ic_index[0]
+    q_row, x_row = jnp.asarray(members.Q0[j]), jnp.asarray(members.xi0[j])
+
+    def probe(p, s, q, x, d):
+        system = _system_of(cfg, p, s)
+        sol = _integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, 1)
+        return sol, {name: jnp.asarray(fn(system, sol)) for name, fn in cfg.invariants}
+
+    try:
+        sol_shape, inv_shape = jax.eval_shape(probe, p_row, members.shared, q_row, x_row, jnp.asarray(members.dt[0]))
+    except (ValueError, TypeError) as err:
+        where = ("make_system(params[i]), " if members.builder is not None else "") + \
+                f"Q0[j] of shape {q_row.shape}, xi0[j] of shape {x_row.shape}"
+        kind = ValueError if isinstance(err, ValueError) else TypeError
+        raise kind(f"sweep: one member ({where}) is rejected: {err}") from err
+    # e.g. rotations for SO(3) models: the probe above traces Q0, which skips the check
+    _check_configurations(_system_of(cfg, p_row, members.shared), members.Q0, members.n_ic)
+    for name, v in inv_shape.items():
+        if v.ndim < 1 or v.shape[0] != 2:
+            raise ValueError(f"invariants: {name!r} must return one value per node (leading axis n+1 = 2 "
+                             f"for a 1-step solution), returned shape {v.shape}.")
+    facts = dict(form=sol_shape.form, scheme=sol_shape.scheme, order=int(sol_shape.order),
+                 method=str(getattr(sol_shape, "method", "")))
+    return _Shapes(q_row.shape, x_row.shape, sol_shape.Q is not None, sol_shape.xi is not None, inv_shape, facts)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Tables:
+    """The sweep's table on the host, filled in group by group of batches."""
+
+    columns: dict  # SweepResult's per-member fields, from status to final_momentum (None: not produced)
+    initial: dict  # {invariant: (B, …)}
+    drift: dict  # {invariant: (B,)}
+    saved: dict | None  # SweepResult.saved
+
+
+def _allocate_tables(B: int, shapes: _Shapes, run: _Run) -> _Tables:
+    q, x = shapes.q, shapes.xi
+    columns = dict(
+        status=np.zeros(B, np.int32), failed_step=np.full(B, -1, np.int32),
+        newton_iterations=np.zeros(B, np.int64), max_residual=np.zeros(B), final_t=np.zeros(B),
+        final_Q=np.zeros((B,) + q) if shapes.has_Q else None, final_p=np.zeros((B,) + q),
+        final_xi=np.zeros((B,) + x) if shapes.has_xi else None, final_momentum=np.zeros((B,) + x),
+    )
+    initial = {k: np.zeros((B,) + v.shape[1:], v.dtype) for k, v in shapes.invariants.items()}
+    drift = {k: np.zeros(B) for k in shapes.invariants}
+    saved = None
+    if run.save_every is not None:
+        steps = np.arange(0, run.n_steps + 1, run.save_every)
+        S = len(steps)
+        saved = {"step": steps, "t": np.zeros((B, S)), "Q": np.zeros((B, S) + q) if shapes.has_Q else None,
+                 "xi": np.zeros((B, S) + x) if shapes.has_xi else None, "momentum": np.zeros((B, S) + x)}
+    return _Tables(columns, initial, drift, saved)
+
+
+@dataclasses.dataclass
+class _Batch:
+    """One batch on its device: its members' inputs and the carry handed from chunk to chunk."""
+
+    index: int
+    rows: slice  # its members' rows of the table (without the padding)
+    n_real: int  # members that are not padding
+    params: object
+    dt: jax.Array
+    shared: list | None
+    carry: _Carry
+
+
+def _start_batch(cfg: _Config, members: _Members, shapes: _Shapes, b: int, batch_size: int, device) -> _Batch:
+    """Batch b on `device` (None: JAX's default placement); the last batch is padded with copies
+    of the last member."""
+    member = np.minimum(np.arange(b * batch_size, (b + 1) * batch_size), members.B - 1)
+    n_real = min(batch_size, members.B - b * batch_size)
+    ic = members.ic_index[member]
+    put = functools.partial(jax.device_put, device=device) if device is not None else (lambda x: x)
+    params = None if members.builder is None else put(_member_slices(members.params, members.param_index[member]))
+    Q, xi = put(jnp.asarray(members.Q0[ic])), put(jnp.asarray(members.xi0[ic]))
+    shared = None if members.shared is None else put(members.shared)
+    P = _initial_multipliers(cfg, params, Q, xi, shared) if members.P0 is None else put(jnp.asarray(members.P0[ic]))
+    zeros = lambda shape, dtype=jnp.float64: put(jnp.zeros((batch_size,) + shape, dtype))
+    carry = _Carry(
+        Q=Q, P=P, xi=xi, t=zeros(()), status=zeros((), jnp.int32),
+        failed_step=put(jnp.full((batch_size,), -1, jnp.int32)), iterations=zeros((), jnp.int64),
+        max_residual=zeros(()), initial={k: zeros(v.shape[1:], v.dtype) for k, v in shapes.invariants.items()},
+        drift={k: zeros(()) for k in shapes.invariants}, momentum=zeros(shapes.xi),
+        final_xi=zeros(shapes.xi) if shapes.has_xi else None,
+    )
+    rows = slice(b * batch_size, b * batch_size + n_real)
+    return _Batch(b, rows, n_real, params, put(jnp.asarray(members.dt[member])), shared, carry)
+
+
+def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report: Callable):
+    """March a group of batches (one per device, side by side) through every chunk: each batch's
+    carry moves on, the chunk's saved nodes go to `saved`, `report(group, step)` follows a chunk."""
+    for st, n in run.chunks:
+        c = cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
+        outs = []
+        for one in group:  # dispatched asynchronously: the devices march side by side
+            one.carry, chunk_saved = _run_chunk(c, one.params, one.carry, one.dt, one.shared, jnp.asarray(st == 0),
+                                                jnp.asarray(st, jnp.int32))
+            outs.append(chunk_saved)
+        if saved is not None:
+            k0, kn = st // run.save_every, len(range(0, n, run.save_every))
+            for one, chunk_saved in zip(group, outs):
+                for key in ("t", "Q", "xi", "momentum"):
+                    if saved[key] is not None:
+                        saved[key][one.rows, k0:k0 + kn] = np.asarray(chunk_saved[key])[:one.n_real]
+        report(group, st + n)
+
+
+def _reporter(progress, n_batches: int, n_steps: int, B: int, batch_size: int) -> Callable:
+    """`report(group, step)` after each chunk: nothing (progress False), a line on stderr (True),
+    or a `SweepProgress` to the callable. Reporting waits for the chunk to finish."""
+    start_time = time.perf_counter()
+
+    def report(group, step):
+        if progress is False:
+            return
+        jax.block_until_ready([one.carry for one in group])
+        done = group[0].index * batch_size + (sum(one.n_real for one in group) if step == n_steps else 0)
+        info = SweepProgress(group[-1].index, n_batches, step, n_steps, min(done, B), B,
+                             time.perf_counter() - start_time)
+        if progress is True:
+            print(f"\rsweep: batch {info.batch + 1}/{n_batches}, step {step}/{n_steps}, "
+                  f"{info.members_done}/{B} members done, {info.elapsed:.1f} s", end="", file=sys.stderr,
+                  flush=True)
+        else:
+            progress(info)
+
+    return report
+
+
+def _collect(tables: _Tables, one: _Batch, run: _Run):
+    """A finished batch's carry into its rows of the host tables."""
+    host = jax.device_get(one.carry)
+    take = lambda a: np.asarray(a)[:one.n_real]
+    final = {"status": host.status, "failed_step": host.failed_step, "newton_iterations": host.iterations,
+             "max_residual": host.max_residual, "final_t": host.t, "final_Q": host.Q, "final_p": host.P,
+             "final_xi": host.final_xi, "final_momentum": host.momentum}
+    for key, column in tables.columns.items():
+        if column is not None:
+            column[one.rows] = take(final[key])
+    for k in tables.drift:
+        tables.initial[k][one.rows], tables.drift[k][one.rows] = take(host.initial[k]), take(host.drift[k])
+    if tables.saved is not None and run.n_steps % run.save_every == 0:  # the last node closes the saved series
+        last = {"t": host.t, "Q": host.Q, "xi": host.final_xi, "momentum": host.momentum}
+        for key, value in last.items():
+            if tables.saved[key] is not None:
+                tables.saved[key][one.rows, -1] = take(value)
+
+
+# --------------------------------------------------------------------------------------------
 # The entry point.
 
 
 def sweep(
-    make_system,
-    params,
-    Q0,
-    xi0,
-    *,
-    dt,
-    n_steps: int,
-    P0=None,
-    grid: bool = False,
-    invariants: dict | None = None,
-    chunk_steps: int | None = None,
-    batch_size: int | None = None,
-    save_every: int | None = None,
-    member_chunk: int | None = None,
-    devices=None,
-    progress=False,
+    make_system, params, Q0, xi0, *, dt, n_steps: int, P0=None, grid: bool = False,
+    invariants: dict | None = None, chunk_steps: int | None = None, batch_size: int | None = None,
+    save_every: int | None = None, member_chunk: int | None = None, devices=None, progress=False,
     **options,
 ) -> SweepResult:
     r"""Run many members — parameters × initial conditions — through `integrate`; keep a table.
@@ -444,7 +751,7 @@ def sweep(
     - `chunk_steps`: steps per `integrate` call (default min(n_steps, 100), a multiple of
       `save_every`). Memory is about `batch_size · chunk_steps` nodes; a chunk size that divides
       `n_steps` compiles one program (otherwise a second one for the last chunk). Chunks of
-      50–100 steps cost no measurable time over one unchunked run (see `clebsch_jax.batching.sweep`).
+      tens of steps cost little over one unchunked run (see `clebsch_jax.batching.sweep`).
     - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024)); the
       last batch is padded with copies of the last member.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
@@ -458,11 +765,8 @@ def sweep(
       batch — batch b runs on device b mod n, the batches of a group run side by side
       (asynchronous dispatch) with no communication. Each device runs the very program an
       unsharded sweep runs (same shapes), compiled once per device, so the table is identical
-      to the bit. (One SPMD program over a `Mesh` — `jax.shard_map` or `jit` with a
-      `NamedSharding` — compiles once, but XLA optimises the partitioned module differently:
-      e.g. a division by a determinant becomes a multiplication by its reciprocal in one program
-      and not in the other, so results differ in the last bit, 1e-16 per step, measured.) The
-      default `batch_size` gives every device a batch.
+      to the bit (why not one SPMD program: `clebsch_jax.batching.sweep`). The default
+      `batch_size` gives every device a batch.
     - `progress`: False (default); True prints one updating line per chunk to stderr; or a
       callable receiving a `SweepProgress` after every chunk. Progress waits for each chunk to
       finish (otherwise chunks are dispatched asynchronously).
@@ -474,225 +778,35 @@ def sweep(
 
     What is batched (by `clebsch_jax.batch`, with `jax.vmap`'s meaning): `params` rows (so the
     system's array leaves — inertias, circulations, widths — are traced), `Q0`, `xi0`, `P0` and
-    `dt`. What is static: `make_system` itself, the
-    Python callables inside the system, `invariants`, `options`, `n_steps`, `chunk_steps`,
-    `save_every`: changing them recompiles, changing array values does not.
+    `dt`. What is static: `make_system` itself, the Python callables inside the system,
+    `invariants`, `options`, `n_steps`, `chunk_steps`, `save_every`: changing them recompiles,
+    changing array values does not.
     """
-    # --- arguments that need no tracing
-    n_steps = _positive_int(n_steps, "n_steps")
-    if not isinstance(grid, bool):
-        raise ValueError(f"grid: expected True or False, got {grid!r}.")
-    for key in options:
-        if key in _RESERVED:
-            raise ValueError(f"{key}: set by sweep itself (it hands the state from chunk to chunk); "
-                             "pass P0 and dt to sweep, not as integrate options.")
-    save_every = _positive_int(save_every, "save_every", allow_none=True)
-    member_chunk = _positive_int(member_chunk, "member_chunk", allow_none=True)
-    chunk_steps = _positive_int(chunk_steps, "chunk_steps", allow_none=True)
-    if chunk_steps is None:
-        chunk_steps = _DEFAULT_CHUNK
-        if save_every is not None:
-            chunk_steps = max(save_every, chunk_steps - chunk_steps % save_every)
-    elif save_every is not None and chunk_steps < n_steps and chunk_steps % save_every:
-        # chunks start at saved nodes (one chunk needs no alignment)
-        raise ValueError(f"chunk_steps: must be a multiple of save_every={save_every}, got {chunk_steps}.")
-    chunk_steps = min(chunk_steps, n_steps)
-    if invariants is None:
-        invariants = {}
-    if not isinstance(invariants, dict) or not all(isinstance(k, str) and callable(f) for k, f in invariants.items()):
-        raise ValueError("invariants: expected a dict {name: f(system, sol)} of callables.")
-    invariants = {"energy": _diagnostics.energy, **invariants}
-    if not (progress is True or progress is False or callable(progress)):
-        raise ValueError(f"progress: expected True, False or a callable, got {progress!r}.")
-    device_list = _devices(devices)
-    n_dev = len(device_list)
-
-    # --- members
-    if isinstance(make_system, ClebschSystem):
-        if params is not None:
-            raise ValueError("params: must be None when make_system is a ClebschSystem (shared by all members).")
-        shared_def, shared = _split_system(make_system)
-        builder = None
-    elif callable(make_system):
-        if params is None:
-            raise ValueError("params: None, but make_system is a function of the parameters; pass a "
-                             "ClebschSystem as make_system to share one system.")
-        shared_def, shared, builder = None, None, make_system
-    else:
-        raise TypeError(f"make_system: expected a function params -> ClebschSystem or a ClebschSystem, "
-                        f"got {type(make_system).__name__}.")
-    Q0 = _float_array(Q0, "Q0")
-    xi0 = _float_array(xi0, "xi0")
-    n_ic = _leading(Q0, "Q0", "one configuration per initial condition")
-    if _leading(xi0, "xi0", "one velocity per initial condition") != n_ic:
-        raise ValueError(f"xi0: {xi0.shape[0]} initial velocities for {n_ic} configurations in Q0 "
-                         f"(shapes {xi0.shape} and {Q0.shape}).")
-    if P0 is not None:
-        P0 = _float_array(P0, "P0")
-        if P0.shape != Q0.shape:
-            raise ValueError(f"P0: expected Q0's shape {Q0.shape}, got {P0.shape}.")
-    if builder is not None:
-        leaves = jax.tree_util.tree_leaves(params)
-        if not leaves:
-            raise ValueError("params: has no array leaves.")
-        params = jax.tree_util.tree_map(lambda a: jnp.asarray(_float_array(a, "params")), params)
-        sizes = {np.shape(a)[0] if np.ndim(a) else None for a in jax.tree_util.tree_leaves(params)}
-        if None in sizes or len(sizes) != 1:
-            shapes = [np.shape(a) for a in jax.tree_util.tree_leaves(params)]
-            raise ValueError(f"params: every leaf needs the same leading member axis, got shapes {shapes}.")
-        n_p = sizes.pop()
-    else:
-        n_p = 1
-    if grid:
-        if builder is None:
-            raise ValueError("grid: True needs params (a grid of parameters × initial conditions).")
-        B = n_p * n_ic
-    else:
-        if builder is not None and n_p != n_ic:
-            raise ValueError(f"params: {n_p} parameter rows for {n_ic} initial conditions; pass as many, or "
-                             "grid=True for every parameter row with every initial condition.")
-        B = n_ic
-    members = np.arange(B)
-    param_index = members // n_ic if grid else (members if builder is not None else np.zeros(B, int))
-    ic_index = members % n_ic if grid else members
-    dt = _float_array(dt, "dt")
-    if dt.shape not in ((), (B,)):
-        raise ValueError(f"dt: expected a scalar or one step per member, shape ({B},), got {dt.shape}.")
-    if not np.all(np.isfinite(dt)) or not np.all(dt > 0):
-        raise ValueError("dt: every step must be finite and positive.")
-    dt = np.broadcast_to(dt, (B,)).astype(np.float64)
+    run = _check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, invariants, progress, devices)
+    members = _members(make_system, params, Q0, xi0, P0, dt, grid)
+    B, n_dev = members.B, len(run.devices)
     if batch_size is None:
         batch_size = min(-(-B // n_dev), _DEFAULT_BATCH)  # every device gets a batch
     batch_size = _positive_int(batch_size, "batch_size")
+    cfg = _chunk_config(run, members, options)
+    shapes = _probe(cfg, members)
+    tables = _allocate_tables(B, shapes, run)
 
-    # --- one member's shapes, by tracing integrate (its own checks name Q0, xi0, ...): no compile
-    opts = tuple(sorted(options.items()))
-    cfg = _Config(builder, tuple(invariants.items()), opts, chunk_steps, save_every, shared_def, member_chunk)
-    try:
-        hash(cfg)
-    except TypeError as err:
-        raise ValueError(f"options: integrate options (and the non-array parts of a shared system) must be "
-                         f"hashable ({err}).") from None
-    p_row = None if builder is None else _member_slices(params, int(param_index[0]))
-    q_row, x_row = jnp.asarray(Q0[ic_index[0]]), jnp.asarray(xi0[ic_index[0]])
-
-    def probe(p, s, q, x, d):
-        system = _system_of(cfg, p, s)
-        sol = _integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, 1)
-        return sol, {name: jnp.asarray(fn(system, sol)) for name, fn in cfg.invariants}
-
-    try:
-        sol_shape, inv_shape = jax.eval_shape(probe, p_row, shared, q_row, x_row, jnp.asarray(dt[0]))
-    except (ValueError, TypeError) as err:
-        where = ("make_system(params[i]), " if builder is not None else "") + \
-                f"Q0[j] of shape {q_row.shape}, xi0[j] of shape {x_row.shape}"
-        kind = ValueError if isinstance(err, ValueError) else TypeError
-        raise kind(f"sweep: one member ({where}) is rejected: {err}") from err
-    # the system's own check of its configurations (e.g. rotations for SO(3) models) on every
-    # concrete Q0[j]: the probe above traces Q0, which skips it
-    system0 = _system_of(cfg, p_row, shared)
-    _check_configurations(system0, Q0, n_ic)
-    for name, v in inv_shape.items():
-        if v.ndim < 1 or v.shape[0] != 2:
-            raise ValueError(f"invariants: {name!r} must return one value per node (leading axis n+1 = 2 "
-                             f"for a 1-step solution), returned shape {v.shape}.")
-    facts = dict(form=sol_shape.form, scheme=sol_shape.scheme, order=int(sol_shape.order),
-                 method=str(getattr(sol_shape, "method", "")))
-
-    # --- host-side tables
-    q_shape, x_shape = q_row.shape, x_row.shape
-    has_Q, has_xi = sol_shape.Q is not None, sol_shape.xi is not None
-    out = dict(
-        status=np.zeros(B, np.int32), failed_step=np.full(B, -1, np.int32),
-        newton_iterations=np.zeros(B, np.int64), max_residual=np.zeros(B), final_t=np.zeros(B),
-        final_Q=np.zeros((B,) + q_shape) if has_Q else None, final_p=np.zeros((B,) + q_shape),
-        final_xi=np.zeros((B,) + x_shape) if has_xi else None, final_momentum=np.zeros((B,) + x_shape),
-    )
-    initial = {k: np.zeros((B,) + v.shape[1:], v.dtype) for k, v in inv_shape.items()}
-    drift = {k: np.zeros(B) for k in inv_shape}
-    saved = None
-    if save_every is not None:
-        steps = np.arange(0, n_steps + 1, save_every)
-        S = len(steps)
-        saved = {"step": steps, "t": np.zeros((B, S)), "Q": np.zeros((B, S) + q_shape) if has_Q else None,
-                 "xi": np.zeros((B, S) + x_shape) if has_xi else None, "momentum": np.zeros((B, S) + x_shape)}
-
-    # --- the loop: groups of batches (one batch per device) × chunks
-    chunks = [(st, min(chunk_steps, n_steps - st)) for st in range(0, n_steps, chunk_steps)]
+    # groups of batches (one batch per device) × chunks
     n_batches = -(-B // batch_size)
-    start_time = time.perf_counter()
+    report = _reporter(run.progress, n_batches, run.n_steps, B, batch_size)
     used = set()
     for g in range(0, n_batches, n_dev):
-        group = []  # (batch index, device, rows, n_real, params, dt) of the batches running side by side
-        for b, dev in zip(range(g, min(g + n_dev, n_batches)), device_list):
-            rows = np.minimum(np.arange(b * batch_size, (b + 1) * batch_size), B - 1)
-            n_real = min(batch_size, B - b * batch_size)
-            put = functools.partial(jax.device_put, device=dev) if dev is not None else (lambda x: x)
-            bp = None if builder is None else put(_member_slices(params, param_index[rows]))
-            bq, bx = put(jnp.asarray(Q0[ic_index[rows]])), put(jnp.asarray(xi0[ic_index[rows]]))
-            bshared = None if shared is None else put(shared)
-            bP = _initial_multipliers(cfg, bp, bq, bx, bshared) if P0 is None else put(jnp.asarray(P0[ic_index[rows]]))
-            zeros = lambda shape, dtype=jnp.float64: put(jnp.zeros((batch_size,) + shape, dtype))
-            carry = _Carry(
-                Q=bq, P=bP, xi=bx, t=zeros(()), status=zeros((), jnp.int32),
-                failed_step=put(jnp.full((batch_size,), -1, jnp.int32)), iterations=zeros((), jnp.int64),
-                max_residual=zeros(()), initial={k: zeros(v.shape[1:], v.dtype) for k, v in inv_shape.items()},
-                drift={k: zeros(()) for k in inv_shape}, momentum=zeros(x_shape),
-                final_xi=zeros(x_shape) if has_xi else None,
-            )
-            group.append([b, rows, n_real, bp, put(jnp.asarray(dt[rows])), bshared, carry])
-        for st, n in chunks:
-            c = cfg if n == chunk_steps else dataclasses.replace(cfg, n=n)
-            outs = []
-            for item in group:  # dispatched asynchronously: the devices march side by side
-                b, rows, n_real, bp, bdt, bshared, carry = item
-                item[-1], chunk_saved = _run_chunk(c, bp, carry, bdt, bshared, jnp.asarray(st == 0),
-                                                   jnp.asarray(st, jnp.int32))
-                outs.append(chunk_saved)
-            if saved is not None:
-                k0, kn = st // save_every, len(range(0, n, save_every))
-                for (b, _, n_real, *_), chunk_saved in zip(group, outs):
-                    sel = slice(b * batch_size, b * batch_size + n_real)
-                    for key in ("t", "Q", "xi", "momentum"):
-                        if saved[key] is not None:
-                            saved[key][sel, k0:k0 + kn] = np.asarray(chunk_saved[key])[:n_real]
-            if progress is not False:
-                jax.block_until_ready([item[-1] for item in group])
-                done = g * batch_size + (sum(item[2] for item in group) if st + n == n_steps else 0)
-                info = SweepProgress(group[-1][0], n_batches, st + n, n_steps, min(done, B), B,
-                                     time.perf_counter() - start_time)
-                if progress is True:
-                    print(f"\rsweep: batch {info.batch + 1}/{n_batches}, step {st + n}/{n_steps}, "
-                          f"{info.members_done}/{B} members done, {info.elapsed:.1f} s", end="", file=sys.stderr,
-                          flush=True)
-                else:
-                    progress(info)
-        for b, rows, n_real, bp, bdt, bshared, carry in group:
-            used.update(carry.status.devices())
-            host = jax.device_get(carry)
-            sel = slice(b * batch_size, b * batch_size + n_real)
-            take = lambda a: np.asarray(a)[:n_real]
-            out["status"][sel], out["failed_step"][sel] = take(host.status), take(host.failed_step)
-            out["newton_iterations"][sel], out["max_residual"][sel] = take(host.iterations), take(host.max_residual)
-            out["final_t"][sel], out["final_p"][sel] = take(host.t), take(host.P)
-            out["final_momentum"][sel] = take(host.momentum)
-            if has_Q:
-                out["final_Q"][sel] = take(host.Q)
-            if has_xi:
-                out["final_xi"][sel] = take(host.final_xi)
-            for k in inv_shape:
-                initial[k][sel], drift[k][sel] = take(host.initial[k]), take(host.drift[k])
-            if saved is not None and n_steps % save_every == 0:  # the last node closes the saved series
-                saved["t"][sel, -1] = take(host.t)
-                saved["momentum"][sel, -1] = take(host.momentum)
-                if has_Q:
-                    saved["Q"][sel, -1] = take(host.Q)
-                if has_xi:
-                    saved["xi"][sel, -1] = take(host.final_xi)
-    if progress is True:
+        group = [_start_batch(cfg, members, shapes, b, batch_size, dev)
+                 for b, dev in zip(range(g, min(g + n_dev, n_batches)), run.devices)]
+        _run_chunks(cfg, group, run, tables.saved, report)
+        for one in group:
+            used.update(one.carry.status.devices())
+            _collect(tables, one, run)
+    if run.progress is True:
         print(file=sys.stderr, flush=True)
     return SweepResult(
-        param_index=param_index, ic_index=ic_index, energy_error=drift["energy"], drift=drift, initial=initial,
-        saved=saved, n_steps=n_steps, chunk_steps=chunk_steps, batch_size=batch_size, n_devices=len(used),
-        **out, **facts,
+        param_index=members.param_index, ic_index=members.ic_index, energy_error=tables.drift["energy"],
+        drift=tables.drift, initial=tables.initial, saved=tables.saved, n_steps=run.n_steps,
+        chunk_steps=run.chunk_steps, batch_size=batch_size, n_devices=len(used), **tables.columns, **shapes.facts,
     )

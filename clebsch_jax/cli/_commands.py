@@ -579,11 +579,11 @@ def _add_demo(subparsers) -> None:
             "Cayley derivative map: Example 30 / Figure 1 of Cotter & Holm) under jax.vmap, "
             "write figure1_orbits.png, figure1_invariants.png and summary.json into the "
             "output folder, and print the conservation errors and timings. The paper shows "
-            f"{TARGET_PERIODS} periods; by default the run is capped at {MAX_DEFAULT_STEPS} steps "
-            "(about 25 s on 2 CPU cores), and the table says how many periods it covered and "
-            "which --steps covers all of them. Then run every built-in scene ("
-            + ", ".join(SCENES) + ") for a few hundred steps, each into a subfolder, and "
-            "print one combined table (a few seconds each, mostly compilation)."
+            f"{TARGET_PERIODS} periods; by default the run is capped at {MAX_DEFAULT_STEPS} steps, "
+            "and the table says how many periods it covered and which --steps covers all of "
+            "them. Then run every built-in scene (" + ", ".join(SCENES) + ") for a few hundred "
+            "steps, each into a subfolder, and print one combined table (each scene's time is "
+            "mostly compilation)."
         ),
     )
     p.add_argument("--out", metavar="DIR", default="clebsch-jax-demo",

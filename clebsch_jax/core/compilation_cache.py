@@ -1,10 +1,11 @@
 """Compiled programs kept on disk, so that a new Python process does not compile them again.
 
-Most of the first call of `integrate` is XLA compiling the march (the rigid body: ~3 s of a
-~5 s first call on 2 idle cores; ~1.3 s once the compiled program is on disk, see
-`benchmarks/throughput.py`). Notebook kernels restart and the command line starts a new
-process every time, so both pay that again and again. JAX's persistent compilation cache
-removes it; this module only chooses a directory for it and switches it on.
+Most of the first call of `integrate` is XLA compiling the march; once the compiled program
+is on disk, only tracing and lowering remain (the compile times per model, cold and from the
+cache, are measured by `benchmarks/throughput.py`). Notebook kernels restart and the command
+line starts a new process every time, so both pay the compilation again and again. JAX's
+persistent compilation cache removes it; this module only chooses a directory for it and
+switches it on.
 """
 
 from __future__ import annotations
@@ -36,9 +37,9 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None, *,
     After this call every program JAX compiles in this process — `integrate`, `sweep`,
     `control` and the user's own `jax.jit` functions — is written to `directory`, and a later
     process that enables the same directory loads it instead of compiling. Tracing still
-    happens each time (it is part of the ~1.3 s that remain for the rigid body). The cache key
-    is JAX's: the program, the JAX/jaxlib version, the XLA flags and the device, so a stale
-    entry is never used for a changed program.
+    happens each time (most of what remains of a first call). The cache key is JAX's: the
+    program, the JAX/jaxlib version, the XLA flags and the device, so a stale entry is never
+    used for a changed program.
 
     This sets JAX's global options `jax_compilation_cache_dir` and
     `jax_persistent_cache_min_compile_time_secs`, which affect the whole process (JAX has no

@@ -93,8 +93,8 @@ def solve(A: jax.Array, B: jax.Array, *, unroll: bool = False) -> jax.Array:
 
     The closed form is followed by one step of iterative refinement, X += A⁻¹(B − AX): the
     rounding of the computed determinant otherwise scales every solution by the same 1 + O(ε),
-    a bias that a march accumulates (it made Q drift off SO(3) by 1e-16 per step); after
-    refinement the error is second order, as with pivoted LU."""
+    a bias that a march accumulates (Q drifted off SO(3) linearly in the number of steps);
+    after refinement the error is second order, as with pivoted LU."""
     if A.shape[-1] <= CLOSED_FORM_MAX:
         adj, d = _adjugate_and_det(A)
         vec = B.ndim == A.ndim - 1

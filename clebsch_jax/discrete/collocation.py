@@ -41,14 +41,15 @@ the Gauss collocation of the vortex equations, and it keeps the constraint, the 
 angular impulse exactly.
 
 **Round-off.** The symplecticity condition $b_ia_{ij} + b_ja_{ji} = b_ib_j$ does not hold
-exactly for rounded coefficients, and its residue (~1e-17) makes quadratic invariants drift
-linearly (measured: |Q|² by 8e-17 per step at Δt = 0.25 on the rigid body). As proposed by
+exactly for rounded coefficients, and its residue (the coefficients' round-off) makes
+quadratic invariants drift linearly, by the same bias every step. As proposed by
 Antoñana, Makazaga & Murua (SIAM J. Sci. Comput. 39 (2017) A2411) the stages are written with
 $\mu_{ij} = a_{ij}/b_j$ and the increments $\Delta Q_j = h b_j \dot Q_j$,
 $Q_i = Q^n + \sum_j\mu_{ij}\Delta Q_j$: the condition becomes $\mu_{ij} + \mu_{ji} = 1$, which
 the stored μ satisfy exactly in floating point ($\mu_{ii} = 1/2$; of each pair the entry below
 1/2 is stored as 1 minus the other, exact by Sterbenz's lemma). The drift then becomes a
-random walk (|Q|² within 5e-15 after 4000 steps).
+random walk of round-off (`tests/test_gauss.py`, `test_invariants_rigid_body`: |Q|², |P|², Q·P
+and |Π|² over 4000 steps of order 8).
 """
 
 from __future__ import annotations
@@ -70,9 +71,10 @@ __all__ = ["GaussLegendre", "gauss_legendre", "GaussUnknowns", "clebsch_hamilton
 
 GAUSS_ORDERS = (2, 4, 6, 8, 10, 12, 14, 16)
 """Orders `integrate(..., scheme="gauss", order=k)` accepts (k/2 stages). Above 8 they are for
-large steps on smooth problems: on the rigid-body batch order 16 at Δt = 1 is more accurate than
-order 8 at Δt = 0.125, in 0.6× its time (`benchmarks/work_precision.py`); the tableau keeps its
-order conditions to round-off up to 8 stages (tested)."""
+large steps on smooth problems, where a high order at a large step can be both more accurate
+and faster than order 8 at a small one (`benchmarks/work_precision.py`; its runs are in
+`benchmarks/README.md`); the tableau keeps its order conditions to round-off up to 8 stages
+(tested)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,8 +127,8 @@ def gauss_legendre(stages: int) -> GaussLegendre:
     s = stages
 
     # collocation: a_ij = ∫₀^{c_i} ℓ_j, by the s-point Gauss rule on [0, c_i] (exact for the
-    # degree s-1 of ℓ_j); through monomial coefficients it lost digits as s grew (C(s) to 5e-13
-    # at 8 stages, against 1e-15 this way)
+    # degree s-1 of ℓ_j); through monomial coefficients it lost digits as s grew, while this
+    # way C(s) holds to round-off up to 8 stages (tests/test_gauss.py, the order conditions)
     a = np.array([[c[i] * np.sum(b * _lagrange(c, j, c[i] * c)) for j in range(s)] for i in range(s)])
     E = np.array([[_lagrange(c, j, 1.0 + c[i]) for j in range(s)] for i in range(s)])
     mu = a / b[None, :]
@@ -206,9 +208,9 @@ def gauss_sweep(system: ClebschSystem, tab: GaussLegendre, h, Q, P, z: GaussUnkn
     $\partial_\xi H(\xi_i, Q_i, P_i) = 0$ in $\xi_i$, with the inverse Hessians of l in ξ
     `inverse_hessians` (`stage_hessians`; formed here at `z` if None) — exact in one update
     for l quadratic in ξ — then the increments $\Delta Q_i, \Delta P_i$ at the updated
-    $\xi_i$. A contraction for small enough h (measured on the rigid body, 4 stages: the
-    update shrinks by ~10 per sweep at Δt = 0.25). Its fixed points are the solutions of the
-    stage equations whatever the matrices, as long as they are invertible."""
+    $\xi_i$. A contraction for small enough h (at moderate steps a sweep gains about one
+    digit). Its fixed points are the solutions of the stage equations whatever the matrices,
+    as long as they are invertible."""
     Qi, Pi = stage_values(tab, Q, P, z)
     if inverse_hessians is None:
         inverse_hessians = stage_hessians(system, tab, Q, P, z)
@@ -301,10 +303,9 @@ def gauss_update(Q, P, z: GaussUnknowns):
 def extrapolate(tab: GaussLegendre, z: GaussUnknowns) -> GaussUnknowns:
     """The guess for the next step's stages: the collocation polynomials of ξ and of the stage
     derivatives through this step's stages, continued to the next step's nodes (error O(hˢ);
-    through the stages of the last two steps the guess was worse, 3.7e-3 against 1.3e-4 at
-    Δt = 0.25 on the rigid body: stage values are only accurate to O(hˢ⁺¹), and extrapolating
-    them further amplifies that). The increments carry the weights h·bⱼ, divided out and put
-    back."""
+    a guess through the stages of the last two steps is worse: stage values are only accurate
+    to O(hˢ⁺¹), and extrapolating them further amplifies that). The increments carry the
+    weights h·bⱼ, divided out and put back."""
     E = tab.extrapolation
     scale = E * (tab.b[:, None] / tab.b[None, :])
     return GaussUnknowns(xi=jnp.stack([_combine(row, z.xi) for row in E]),

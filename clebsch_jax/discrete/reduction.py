@@ -88,7 +88,8 @@ def _constant_map(C: np.ndarray, x, shape):
     that XLA fuses with their neighbours, instead of an unfused matrix-vector product (entries
     below 1e-14·max|C|, the round-off of a pseudo-inverse, count as zero). (Written instead as
     Σⱼ xⱼ·C[:, j], dense, XLA fuses the result into every product that uses it and recomputes
-    it there: measured slower under `vmap`.)"""
+    it there, which costs more under `vmap` than it saves: `benchmarks/README.md`, "Notes:
+    making the reduced step cheap".)"""
     v = jnp.ravel(x)
     cut = 1e-14 * np.max(np.abs(C))
     rows = [_linalg.weighted_sum(((float(c), v[j]) for j, c in enumerate(row) if abs(c) > cut), v.dtype)
@@ -323,10 +324,11 @@ class CayleyPolynomial:
     (structure constants of the algebra, found once per reduction in NumPy). They are very
     sparse — 18 nonzero coefficients for so(3) where the matrix form makes two 3×3 products,
     the adjoint maps around them and the matrices' layout changes — so the residual is a few
-    dozen scalar multiply-adds, which XLA fuses. Same equations, different rounding. Measured
-    (`benchmarks/README.md`): a plain `integrate` of the rigid body runs 1.75× faster and
-    compiles 15 % faster; under `vmap` or `clebsch_jax.batch` the time is unchanged (there
-    the Newton loop's own operations, not the residual, take the time).
+    dozen scalar multiply-adds, which XLA fuses. Same equations, different rounding. XLA on the
+    CPU runs each small operation with a fixed cost, so fewer operations make a single
+    trajectory faster and quicker to compile; in a batch (`vmap`, `clebsch_jax.batch`) that
+    cost is shared by the members and the Newton loop's own operations, not the residual, take
+    the time (the runs: `benchmarks/README.md`, "Notes: making the reduced step cheap").
 
     `terms[d][k]` lists, for component k of the degree-d part (in ξ), pairs of a coefficient
     and the indices of the ξ and g factors, `(c, (i, ..., l))`: g's index last."""

@@ -58,11 +58,12 @@ values formed at once. $K(Q)$ is symmetric positive definite for distinct partic
 singular when two coincide (its Cholesky factor is then NaN, never plausible numbers).
 
 **Collisions.** A peakon–antipeakon pair ($p_1 > 0 > p_2$, $q_1 < q_2$) collides at a finite
-$t^*$ with momenta growing like $1/(t^*-t)$; the ODE solution ends there. Measured with the
-midpoint scheme: for the symmetric pair the discrete step before $t^*$ has no root and Newton's
-method fails (`MAX_ITERATIONS`), which `integrate` reports; for a non-symmetric pair, however, the
+$t^*$ with momenta growing like $1/(t^*-t)$; the ODE solution ends there. With the midpoint
+scheme, for the symmetric pair the discrete step before $t^*$ has no root and Newton's method
+fails (`MAX_ITERATIONS`), which `integrate` reports; for a non-symmetric pair, however, the
 plain forward difference lets a step find a spurious root on the far side of the collision — the
-peaks pass through each other, the energy jumps a thousandfold, and every step reports success.
+peaks pass through each other, the energy jumps by orders of magnitude, and every step reports
+success.
 `peakons` therefore uses `ordered_difference` by default, the forward difference defined only for
 steps that keep the order of the peaks (NaN otherwise), so the step that would cross fails with
 status `NONFINITE` near $t^*$. Landmarks with a Gaussian kernel do not collide in finite time but

@@ -43,9 +43,10 @@ __all__ = [
 def _hamiltonian(gamma: jax.Array, Q: jax.Array) -> jax.Array:
     """H for one configuration (N, 2); pairwise terms vectorised, no loop over vortices.
 
-    Written with the coordinates apart, (N, N) arrays only: its gradient (the vortex velocities,
-    what every step evaluates) ran 8.5× faster than with the (N, N, 2) differences summed over
-    their last axis (scratch, N = 100, one CPU core: 20 µs against 168 µs)."""
+    Written with the coordinates apart, (N, N) arrays only: XLA on the CPU runs its gradient
+    (the vortex velocities, what every step evaluates) much faster this way than with the
+    (N, N, 2) differences summed over their last axis (the measurement: `benchmarks/README.md`,
+    "Measurements behind the engine's choices")."""
     x, y = Q[:, 0], Q[:, 1]
     dx, dy = x[:, None] - x[None, :], y[:, None] - y[None, :]
     r2 = dx * dx + dy * dy + jnp.eye(Q.shape[0], dtype=Q.dtype)  # the diagonal is log 1 = 0, zero gradient

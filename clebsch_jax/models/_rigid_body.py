@@ -129,9 +129,10 @@ def rigid_body_vector(inertia, derivative_map: DerivativeMap = forward_differenc
     $P_0\times Q_0 = \Pi_0$: a $Q_0$ not perpendicular to $\Pi_0$ cannot represent it.
 
     Use it with `scheme="midpoint"` or `"gauss"`, which treat Q and P alike and so descend to a
-    map of Π that keeps $|\Pi|$ to round-off (3e-15 over 200 midpoint steps of Δt = 0.05). The
-    left and right principles (symplectic Euler here) mix Q and P unevenly, do not descend, and
-    let $|\Pi|^2$ wander: 4e-3 over the same 200 steps (measured).
+    map of Π that keeps $|\Pi|$ to round-off (the midpoint principle is one-stage Gauss here;
+    `tests/test_gauss.py` checks order 8). The left and right principles (symplectic Euler
+    here) mix Q and P unevenly, do not descend, and let $|\Pi|^2$ wander by the method's
+    error, far above round-off.
     """
     return ClebschSystem(
         lagrangian=Partial(_kinetic_energy, principal_moments(inertia)),
