@@ -141,7 +141,9 @@ class Case:
     # takes the first chord update's residual from forming the Jacobian instead of evaluating it
     # again. Same decisions, round-off-level differences in the iterates, so a step that stops at
     # the round-off test may take one update or Jacobian more or fewer. Loosened for these cases only.
-    dense_newton: bool = False
+    # Since `integrate` marches in compiled chunks (each step inside a `lax.cond`), XLA also fuses
+    # the SE(2) exponential map's step differently: the same round-off effect on its counts.
+    counts_at_round_off: bool = False
 
 
 CASES = (
@@ -151,7 +153,7 @@ CASES = (
     # 2. the same body, full march, order-4 composition
     Case("rigid_body_full_order4", lambda: _integrate(
         RIGID, EYE3, XI0, dt=0.1, n_steps=20, t0=0.5, scheme="left", reduce=False, order=4),
-        slow=True, dense_newton=True),
+        slow=True, counts_at_round_off=True),
     # 3. reduced composition without Q; reduced march reconstructing the minimum-norm P
     Case("rigid_body_reduced_order4", lambda: _integrate(
         RIGID, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce=True, reconstruct=False, order=4),
@@ -165,13 +167,13 @@ CASES = (
     #    and left∘right over half steps (reduced)
     Case("heavy_top_midpoint", lambda: _integrate(
         TOP, TOP_Q0, TOP_XI0, dt=0.05, n_steps=40, scheme="midpoint", reduce=False,
-        rtol=1e-10, atol=1e-12, max_newton_iterations=30), slow=True, to_round_off=False, dense_newton=True),
+        rtol=1e-10, atol=1e-12, max_newton_iterations=30), slow=True, to_round_off=False, counts_at_round_off=True),
     Case("heavy_top_reduced_order2", lambda: _integrate(
         TOP, TOP_Q0, TOP_XI0, dt=0.05, n_steps=40, scheme="left", reduce=True, order=2), slow=True),
     # 5. point vortices (degenerate): midpoint with the dense and the block Jacobian; Gauss order 4
     Case("vortices_midpoint_dense", lambda: _integrate(
         VORTICES, VORTEX_Q0, VORTEX_XI0, dt=0.05, n_steps=30, scheme="midpoint", reduce=False,
-        jacobian="dense"), dense_newton=True),
+        jacobian="dense"), counts_at_round_off=True),
     Case("vortices_midpoint_blocks", lambda: _integrate(
         VORTICES, VORTEX_Q0, VORTEX_XI0, dt=0.05, n_steps=30, scheme="midpoint", reduce=False,
         jacobian="blocks"), slow=True),
@@ -185,19 +187,20 @@ CASES = (
     # 7. two overtaking peakons, midpoint, from given momenta
     Case("peakons_midpoint", lambda: _integrate(
         PEAKONS, PEAKON_Q0, PEAKON_XI0, dt=0.1, n_steps=40, P0=PEAKON_P0, scheme="midpoint", reduce=False),
-        slow=True, dense_newton=True),
+        slow=True, counts_at_round_off=True),
     # 8. the README's SE(2) body: default ("auto") reduced march, need_P (full march), exponential
     Case("se2_auto_reduced", lambda: _integrate(
         SE2_CAYLEY, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto"), slow=True),
     Case("se2_auto_need_P_full", lambda: _integrate(
         SE2_CAYLEY, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto", need_P=True),
-        slow=True, dense_newton=True),
+        slow=True, counts_at_round_off=True),
     Case("se2_exponential_auto", lambda: _integrate(
-        SE2_EXPONENTIAL, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto"), slow=True),
+        SE2_EXPONENTIAL, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto"), slow=True,
+        counts_at_round_off=True),
     # 9. rigid body with the forward difference: symplectic Euler, full march, first order
     Case("rigid_body_forward_difference", lambda: _integrate(
         RIGID_FORWARD, EYE3, XI0, dt=0.05, n_steps=40, scheme="left", reduce=False, order=None),
-        dense_newton=True),
+        counts_at_round_off=True),
     # 10. a chunked, batched sweep: 3 inertias × 2 initial velocities, two batches (the last padded)
     Case("sweep_rigid_body", _sweep),
 )
@@ -321,7 +324,7 @@ def test_public_behaviour_is_unchanged(case):
     for key in sorted(old_arrays):
         if key in RESIDUAL_FIELDS and case.to_round_off:
             _check_residual(f"{case.name}/{key}", new_arrays[key], old_arrays[key], scale)
-        elif case.dense_newton and key in ("stats.iterations", "stats.jacobians"):
+        elif case.counts_at_round_off and key in ("stats.iterations", "stats.jacobians"):
             np.testing.assert_allclose(new_arrays[key], old_arrays[key], rtol=0, atol=1, err_msg=key)
         else:
             _check_array(f"{case.name}/{key}", new_arrays[key], old_arrays[key])

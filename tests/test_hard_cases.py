@@ -149,7 +149,9 @@ def test_middle_axis_equilibrium_is_kept_exactly(march):
     assert int(sol.result) == cj.Status.SUCCESS
     mu = np.asarray(sol.momentum)
     assert np.all(mu[:, [0, 2]] == 0.0)
-    assert np.max(np.abs(mu[:, 1] - 1.0)) <= 1e-14
+    # the axis component random-walks at round-off: each step is solved to the last bits, which
+    # depend on how XLA compiles the step (tens of ulps after 2000 steps; 1e-14 was at the edge)
+    assert np.max(np.abs(mu[:, 1] - 1.0)) <= 3e-14
 
 
 @pytest.mark.parametrize("march", list(MARCHES))

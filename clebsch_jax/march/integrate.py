@@ -15,7 +15,7 @@ from ..steppers.base import AbstractStepper
 from ..steppers.choose import check_scheme, choose_method
 from ..steppers.composition import StepPlan, plan_of
 from ..steppers.principles import check_particle_axis
-from .scan import march
+from .scan import march, march_chunked
 from .solution import Solution, check_traced
 
 __all__ = ["integrate", "step_plan"]
@@ -67,10 +67,17 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     return Q0, xi0, P0, dt, t0.astype(dt.dtype)
 
 
-def step_plan(system: ClebschSystem, scheme: str | None = None, order=None, composition=None) -> StepPlan:
-    """The `StepPlan` `integrate` runs for these arguments (full or reduced alike): its
-    sub-steps and its facts (`order`, `symmetric`, `symplectic`, `name`, `solves_per_step`)."""
-    return plan_of(choose_method(system, None, None, scheme=scheme, order=order, composition=composition), system)
+def step_plan(system: ClebschSystem, scheme: str | None = None, order=None, composition=None, *,
+              Q0=None, xi0=None) -> StepPlan:
+    """The `StepPlan` `integrate` runs for these arguments: its sub-steps and its facts
+    (`order`, `symmetric`, `symplectic`, `name`, `solves_per_step`). Given `Q0` and `xi0` it
+    is the plan of `integrate(system, Q0, xi0, ...)`, reduced march included; without them,
+    of the full march (the default can then differ: a system with a potential whose reduced
+    march applies runs the reduced left step paired with its adjoint, not the midpoint
+    principle)."""
+    if Q0 is not None:
+        Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
+    return plan_of(choose_method(system, Q0, xi0, scheme=scheme, order=order, composition=composition), system)
 
 
 _march_jit = filter_jit(march)
@@ -184,7 +191,10 @@ def integrate(
                                rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian,
                                order=order, composition=composition)
     stepper = method.prepare(system, Q0, xi0)
-    sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps)
+    if any(is_traced(x) for x in jax.tree_util.tree_leaves((system, Q0, xi0, P0, dt, t0))):
+        sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps)  # one scan, in the caller's program
+    else:
+        sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps)  # programs reused for any n_steps
     if throw:
         if is_traced(sol.result):
             sol = dataclasses.replace(sol, result=check_traced(sol))

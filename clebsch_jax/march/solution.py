@@ -81,6 +81,7 @@ class Solution:
     derivative_map: str = ""
     q_ndim: int = 0
     xi_ndim: int = 0
+    solves_per_step: int = 1
 
     @property
     def batch_ndim(self) -> int:
@@ -112,7 +113,8 @@ class Solution:
         iters = pick(stats.iterations)[..., step]
         res = pick(stats.residual_norm)[..., step]
         t = pick(self.ts)[..., step]
-        msg = failure_message(code, step, n_steps, float(t), int(iters), float(res), member or None)
+        msg = failure_message(code, step, n_steps, float(t), int(iters), float(res), member or None,
+                              self.scheme, 1 if code == Status.LEGENDRE else self.solves_per_step)
         if len(failed) > 1:
             msg += f" ({len(failed)} batch members failed in all.)"
         raise IntegrationError(msg)
@@ -124,12 +126,13 @@ jax.tree_util.register_dataclass(
         "ts", "Q", "p", "xi", "xi_step", "P", "momentum", "stats", "nodal_stats", "result", "failed_step",
         "valid",
     ],
-    meta_fields=["scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim"],
+    meta_fields=["scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim", "solves_per_step"],
 )
 
 
-def failure_message(code, step, n_steps, t, iterations, residual, member=None) -> str:
-    """A readable failure message: what failed, where, and what to try."""
+def failure_message(code, step, n_steps, t, iterations, residual, member=None, scheme=None, solves=1) -> str:
+    """A readable failure message: what failed, where, and what to try. `iterations` is what
+    the step's solves made in all (`solves` of them; `scheme="gauss"` counts fixed-point sweeps)."""
     where = f"batch member {member if len(member) > 1 else member[0]}, " if member else ""
     what = Status.MESSAGES.get(code, f"status {code}")
     if code == Status.LEGENDRE:
@@ -139,16 +142,22 @@ def failure_message(code, step, n_steps, t, iterations, residual, member=None) -
             "the Lagrangian may be degenerate in xi (if so, build the system with degenerate=True, which "
             "uses the midpoint principle). Use throw=False to inspect the solution."
         )
-    unit = "fixed-point sweeps" if code == Status.DIVERGED else "Newton iterations"
+    if scheme == "gauss":
+        made = f"{iterations} fixed-point sweeps; the cap is 5 x max_newton_iterations sweeps per step"
+    elif solves > 1:
+        made = (f"{iterations} Newton updates in all over the step's {solves} sub-step solves; the cap "
+                "max_newton_iterations applies to each solve")
+    else:
+        made = f"{iterations} Newton updates"
     return (
         f"clebsch_jax.integrate: {where}step {step} of {n_steps} (t = {t:.6g}): {what} "
-        f"(residual {residual:.3e} after {iterations} {unit}). Later states are "
+        f"(residual {residual:.3e} after {made}). Later states are "
         "marked invalid (NaN). Try a smaller dt, a larger max_newton_iterations, or "
         "throw=False to inspect the partial solution."
     )
 
 
-def _host_check(result, failed_step, iterations, residual, t, n_steps, batched):
+def _host_check(result, failed_step, iterations, residual, t, n_steps, batched, scheme=None, solves=1):
     result = np.asarray(result)
     if not np.any(result != Status.SUCCESS):
         return
@@ -160,25 +169,31 @@ def _host_check(result, failed_step, iterations, residual, t, n_steps, batched):
     raise IntegrationError(
         failure_message(
             int(pick(result)), int(pick(failed_step)), int(np.asarray(n_steps).ravel()[0]), float(pick(t)),
-            int(pick(iterations)), float(pick(residual)), member or None,
+            int(pick(iterations)), float(pick(residual)), member or None, scheme,
+            1 if int(pick(result)) == Status.LEGENDRE else solves,
         )
     )
 
 
-@jax.custom_batching.custom_vmap
-def _traced_check(result, failed_step, iterations, residual, t, n_steps):
-    jax.debug.callback(
-        lambda *a: _host_check(*a, batched=False), result, failed_step, iterations, residual, t, n_steps
-    )
-    return result
+def _traced_checker(scheme, solves):
+    """The end-of-run check as a function of traced values, for a method's `scheme` and
+    `solves` per step (what its failure message says)."""
 
+    def host(*args, batched):
+        _host_check(*args, batched=batched, scheme=scheme, solves=solves)
 
-@_traced_check.def_vmap
-def _traced_check_vmap(axis_size, in_batched, result, failed_step, iterations, residual, t, n_steps):
-    args = [result, failed_step, iterations, residual, t, n_steps]
-    args = [a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a)) for a, b in zip(args, in_batched)]
-    jax.debug.callback(lambda *a: _host_check(*a, batched=True), *args)
-    return args[0], True
+    @jax.custom_batching.custom_vmap
+    def check(result, failed_step, iterations, residual, t, n_steps):
+        jax.debug.callback(lambda *a: host(*a, batched=False), result, failed_step, iterations, residual, t, n_steps)
+        return result
+
+    @check.def_vmap
+    def check_vmap(axis_size, in_batched, *args):
+        args = [a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a)) for a, b in zip(args, in_batched)]
+        jax.debug.callback(lambda *a: host(*a, batched=True), *args)
+        return args[0], True
+
+    return check
 
 
 def check_traced(sol: Solution) -> jax.Array:
@@ -193,4 +208,4 @@ def check_traced(sol: Solution) -> jax.Array:
     t = stats_at(sol.ts)
     n_steps = jnp.asarray(sol.ts.shape[-1] - 1)
     args = jax.lax.stop_gradient((sol.result, sol.failed_step, iters, res, t, n_steps))
-    return _traced_check(*args)
+    return _traced_checker(sol.scheme, sol.solves_per_step)(*args)
