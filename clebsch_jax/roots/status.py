@@ -3,7 +3,10 @@ statistics of several solves (a composed step) or of solves not attempted combin
 
 from __future__ import annotations
 
+import enum
 from typing import NamedTuple
+
+import numpy as np
 
 import jax
 import jax.numpy as jnp
@@ -11,8 +14,13 @@ import jax.numpy as jnp
 __all__ = ["Status", "NewtonStats", "combine_stats", "stack_stats", "skip_stats"]
 
 
-class Status:
-    """Per-step status codes carried through the march (failure is a value)."""
+class Status(enum.IntEnum):
+    """Per-step status codes carried through the march (failure is a value).
+
+    An `IntEnum`: a member is the integer stored in the arrays, so `sol.stats.status ==
+    cj.Status.SINGULAR` and `jnp.where(status == cj.Status.SUCCESS, ...)` work, and
+    `cj.Status(int(code))` names a stored code. `Status.MESSAGES[code]` (or `.message`) says
+    what a code means."""
 
     SUCCESS = 0
     MAX_ITERATIONS = 1
@@ -22,17 +30,25 @@ class Status:
     LEGENDRE = 5  # the nodal velocity could not be recovered from (Q, p)
     DIVERGED = 6  # a fixed-point iteration (Gauss-Legendre step) stopped contracting
 
-    MESSAGES = {
-        SUCCESS: "converged",
-        MAX_ITERATIONS: "Newton's method reached the maximum number of iterations",
-        NONFINITE: "the residual or the Newton iterate became non-finite (NaN/inf)",
-        SINGULAR: "the Newton Jacobian is singular",
-        SKIPPED: "not attempted because an earlier step failed",
-        LEGENDRE: "the nodal velocity could not be recovered from (Q, p) by Lemma 7's "
-        "relation dl/dxi(xi, Q) = -p<>Q",
-        DIVERGED: "the fixed-point iteration of a Gauss-Legendre step stopped contracting or overflowed "
-        "(dt too large for it, or the model is not finite at the stage values)",
-    }
+    @property
+    def message(self) -> str:
+        """What the code means, in a sentence."""
+        return _MESSAGES[self]
+
+
+_MESSAGES = {
+    Status.SUCCESS: "converged",
+    Status.MAX_ITERATIONS: "Newton's method reached the maximum number of iterations",
+    Status.NONFINITE: "the residual or the Newton iterate became non-finite (NaN/inf)",
+    Status.SINGULAR: "the Newton Jacobian is singular",
+    Status.SKIPPED: "not attempted because an earlier step failed",
+    Status.LEGENDRE: "the nodal velocity could not be recovered from (Q, p) by Lemma 7's "
+    "relation dl/dxi(xi, Q) = -p<>Q",
+    Status.DIVERGED: "the fixed-point iteration of a Gauss-Legendre step stopped contracting or overflowed "
+    "(dt too large for it, or the model is not finite at the stage values)",
+}
+Status.MESSAGES = _MESSAGES
+"""`Status.MESSAGES`: code → sentence (integer codes look up the same entries)."""
 
 
 class NewtonStats(NamedTuple):
@@ -43,6 +59,32 @@ class NewtonStats(NamedTuple):
     residual_norm: jax.Array
     status: jax.Array
     jacobians: jax.Array
+
+    def summary(self) -> str:
+        """A few lines on these solves (concrete arrays, any batch shape): how many, how many
+        converged and what stopped the others, the Newton updates per solve (mean, max, total),
+        the Jacobians formed and the worst final residual."""
+        if any(isinstance(a, jax.core.Tracer) for a in self):
+            return "NewtonStats(<traced>)"
+        status = np.asarray(self.status).ravel()
+        iterations = np.asarray(self.iterations).ravel()
+        attempted = status != Status.SKIPPED
+        counts = {Status(int(c)): int(n) for c, n in zip(*np.unique(status, return_counts=True))}
+        failed = ", ".join(f"{n} {code.name.lower()}" for code, n in counts.items() if code != Status.SUCCESS)
+        residual = np.asarray(self.residual_norm, dtype=float).ravel()[attempted]
+        worst = float(np.nanmax(residual)) if residual.size and not np.all(np.isnan(residual)) else float("nan")
+        done = iterations[attempted]
+        lines = [f"{status.size} solves: {counts.get(Status.SUCCESS, 0)} converged" + (f", {failed}" if failed else ""),
+                 (f"Newton updates per solve: mean {done.mean():.2f}, max {done.max()}, total {done.sum()}"
+                  if done.size else "Newton updates per solve: none attempted"),
+                 f"Jacobians formed: {int(np.asarray(self.jacobians).sum())}; worst final residual: {worst:.2e}"]
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        if any(isinstance(a, jax.core.Tracer) for a in self) or np.ndim(self.status) == 0:
+            return (f"NewtonStats(iterations={self.iterations!r}, residual_norm={self.residual_norm!r}, "
+                    f"status={self.status!r}, jacobians={self.jacobians!r})")
+        return "NewtonStats(\n  " + self.summary().replace("\n", "\n  ") + "\n)"
 
     @staticmethod
     def combine(solves) -> "NewtonStats":

@@ -3,6 +3,12 @@ system when the caller does not pass `method=`.
 
 The rules, in order:
 
+0. **The default** (no `scheme`, `order` or `composition`) is symmetric and of order 2 for
+   every system (`default_method`): the left principle where it is symmetric already (a
+   symmetric derivative map and no potential: the rigid body's CAY march); else, when the
+   reduced march applies, the reduced left step composed with its adjoint over half steps
+   (`SymmetricPair`: the heavy top keeps its ξ-only unknowns); else the midpoint principle
+   (also for degenerate systems). First-order principles run only when asked for by name.
 1. `scheme` (default: "midpoint" for a degenerate system, else "left") picks the principle, or
    "gauss" the Gauss–Legendre method of `order` (default 2), solved by fixed-point sweeps.
 2. `jacobian` picks the root finder: "dense" `Newton`, "blocks" `BlockNewton` (N particles).
@@ -16,6 +22,8 @@ The rules, in order:
 
 from __future__ import annotations
 
+import dataclasses
+
 from ..discrete.collocation import GAUSS_ORDERS
 from ..discrete.reduction import find_reduction
 from ..roots.solvers import BlockNewton, FixedPoint, Newton
@@ -26,7 +34,7 @@ from .gauss import SWEEPS_PER_NEWTON_ITERATION, GaussLegendre
 from .principles import check_principle, principle_facts
 from .reduced import ReducedStep
 
-__all__ = ["default_scheme", "choose_method", "check_scheme", "COMPOSITION_ORDERS"]
+__all__ = ["default_scheme", "default_method", "choose_method", "check_scheme", "COMPOSITION_ORDERS"]
 
 COMPOSITION_ORDERS = (2, 4, 6, 8)
 """The orders `integrate(..., order=k)` reaches by composing a principle."""
@@ -100,7 +108,7 @@ def choose_method(system, Q0, xi0, *, scheme=None, reduce="auto", need_P=False, 
                   atol=0.0, max_newton_iterations=20, jacobian="dense", order=None, composition=None):
     """The stepper `integrate` runs for these options (the rules of the module docstring).
     `Q0` and `xi0` (arrays or shapes) serve the reduction test; None skips it (full step)."""
-    scheme = check_scheme(system, scheme)
+    scheme_given, scheme = scheme, check_scheme(system, scheme)
     if reduce not in ("auto", True, False):
         raise ValueError(f"reduce: expected 'auto', True or False, got {reduce!r}.")
     if jacobian not in ("dense", "blocks"):
@@ -110,17 +118,33 @@ def choose_method(system, Q0, xi0, *, scheme=None, reduce="auto", need_P=False, 
             raise ValueError("reduce: the reduced march implements the left and right principles only; "
                              "scheme='gauss' marches (Q, P).")
         return _gauss(system, order, composition, rtol, atol, max_newton_iterations, jacobian)
+    by_default = scheme_given is None and order is None and composition is None
     order, composition = _composition(order, composition)
-    finder = (BlockNewton if jacobian == "blocks" else Newton)(rtol=rtol, atol=atol,
-                                                               max_iterations=max_newton_iterations)
+    newton = Newton(rtol=rtol, atol=atol, max_iterations=max_newton_iterations)
+    finder = BlockNewton(rtol=rtol, atol=atol, max_iterations=max_newton_iterations) if jacobian == "blocks" else newton
     principle = Principle(scheme)
     base = FullStep(principle=principle, root_finder=finder)
     if Q0 is not None and (reduce is True or (reduce == "auto" and not need_P)):
-        reduced = ReducedStep(principle=principle, root_finder=Newton(rtol=rtol, atol=atol,
-                                                                      max_iterations=max_newton_iterations),
-                              reconstruct=bool(reconstruct), need_P=bool(need_P))
+        reduced = ReducedStep(principle=principle, root_finder=newton, reconstruct=bool(reconstruct),
+                              need_P=bool(need_P))
         if reduce is True:
             base = reduced.prepare(system, Q0, xi0)  # says why, when it does not apply
         elif principle != Principle.MIDPOINT and find_reduction(system, Q0, xi0)[0] is not None:
             base = reduced
+    if by_default:
+        return default_method(system, base)
     return symmetric_step(system, base, order, composition)
+
+
+def default_method(system, base):
+    """The default method (rule 0) from `base`, the left-principle step (full or reduced) that
+    the options chose: `base` if it is symmetric already; the reduced step paired with its
+    adjoint; else the full step of the midpoint principle (of the left one paired with its
+    adjoint, for a derivative map without a midpoint)."""
+    if principle_facts(system, base.principle)[1]:
+        return base
+    if isinstance(base, ReducedStep):
+        return SymmetricPair(base)
+    if callable(getattr(system.derivative_map, "at_midpoint", None)):
+        return dataclasses.replace(base, principle=Principle.MIDPOINT)
+    return SymmetricPair(base)
