@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from ..core.jit import filter_jit
+from ..core.model_checks import check_model
 from ..core.system import ClebschSystem
 from ..core.validation import (check_configuration, float_array, is_traced, nonnegative, output_shape,
                                positive_int, positive_scalar)
@@ -51,7 +52,8 @@ def _real_output(name: str, out, expected: str):
 
 def _check_arrays(system, Q0, xi0, P0, dt, t0):
     """The arrays as float arrays, and the three maps called on their shapes (`ValueError`
-    naming the map that cannot run on them or returns the wrong shape or dtype)."""
+    naming the map that cannot run on them or returns the wrong shape or dtype); then, on
+    concrete values, the configuration (`check_configuration`) and the model (`check_model`)."""
     Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
     dt = positive_scalar(dt, "dt")
     if P0 is not None:
@@ -80,6 +82,7 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     if der.shape != Q0.shape:
         raise ValueError(f"derivative_map: must return an array of Q's shape {Q0.shape}, returned {der.shape}.")
     check_configuration(system, Q0)
+    check_model(system, Q0, xi0, dt)
     return Q0, xi0, P0, dt, t0.astype(dt.dtype)
 
 
