@@ -176,6 +176,9 @@ def test_the_checks_accept_the_built_in_models():
         (cj.models.rigid_body_vector(INERTIA), vector_Q0, XI0),
         (cj.models.peakons(1.0), peakon_Q0, cj.models.peakon_velocity(peakon_Q0, jnp.array([2.0, 1.0]))),
         (cj.models.landmarks(1.0), jnp.array([[0.0, 0.0], [1.0, 0.5]]), jnp.array([[1.0, 0.0], [0.0, 1.0]])),
+        # regular but ill-conditioned: eight landmarks a fifth of the kernel width apart (K(Q) has a
+        # condition number above 1e10, and the march runs): not taken for a degenerate Lagrangian
+        (cj.models.landmarks(1.0), jnp.stack([0.2 * jnp.arange(8.0), jnp.zeros(8)], axis=-1), jnp.ones((8, 2))),
         (_se2_body(), jnp.eye(3), XI0),
     ]
     for system, Q0, xi0 in cases:

@@ -27,8 +27,17 @@ from .validation import is_traced, runnable_check
 
 __all__ = ["check_model"]
 
-SINGULAR_RTOL = 1e-10
-"""A Hessian is singular when its smallest singular value is at most this times its largest."""
+SINGULAR_RTOL = 1e-14
+"""A Hessian is singular when its smallest singular value is at most this times its largest.
+
+Round-off level on purpose: the Hessian of a degenerate Lagrangian, computed by autodiff, has
+its null singular values at the level of the float64 epsilon, while regular Lagrangians can be
+legitimately ill-conditioned and still march (landmarks close together compared with the
+kernel width: $K(Q)^{-1}$ with a large condition number). A looser threshold would refuse those."""
+
+ZERO_RTOL = 1e-10
+r"""A singular Hessian counts as zero (l linear in ξ) when its largest singular value is at most
+this times $|l|/|\xi|^2 + |\nabla_\xi l|/|\xi|$, the size l's value and gradient at ξ⁰ give it."""
 
 LINEAR_RTOL = 1e-8
 r"""A velocity map is linear when $|\mathcal L_\xi Q - J\xi| \le$ this $\times (|\mathcal L_\xi Q| + |J||\xi|)$
@@ -53,10 +62,10 @@ def check_model(system, Q0, xi0, dt) -> None:
     1. `lagrangian` (skipped for `degenerate=True`): the Hessian $H$ of $\xi \mapsto l(\xi, Q^0)$
        at $\xi^0$ must be nonsingular (smallest singular value above `SINGULAR_RTOL` times the
        largest), or the Legendre map of Lemma 8 is not invertible and the step equations have
-       no unique solution. When $H = 0$ the message says l is linear in ξ (point vortices need
-       `degenerate=True`); when l has a potential, ξ and Q have the same shape and l's Hessian in
-       its *second* argument is nonsingular, it says l looks written as `l(Q, xi)`; otherwise it
-       gives the rank of $H$ and a null direction.
+       no unique solution. When $H = 0$ (to `ZERO_RTOL`) the message says l is linear in ξ
+       (point vortices need `degenerate=True`); when l has a potential, ξ and Q have the same
+       shape and l's Hessian in its *second* argument is nonsingular, it says l looks written
+       as `l(Q, xi)`; otherwise it gives the rank of $H$ and a null direction.
     2. `velocity_map`: with $J$ the Jacobian of $\xi \mapsto \mathcal L_\xi Q^0$ at $\xi^0$,
        $\mathcal L_\xi Q^0 = J\xi$ to `LINEAR_RTOL` at $\xi^0$, at a fixed pseudo-random
        direction $d$ of $\xi^0$'s size (unit size if $\xi^0 = 0$) and at $2\xi^0 + d$: a map
@@ -201,7 +210,7 @@ def _check_legendre_map(system, Q0, xi0, H):
                 "is singular at (xi0, Q0) while its Hessian in its second argument (Q) is not. The engine "
                 "calls lagrangian(xi, Q): write it as l(xi, Q), velocity first. (If l really is degenerate "
                 "in xi, as for point vortices, build the system with ClebschSystem(..., degenerate=True).)")
-    if s[0] <= SINGULAR_RTOL * _hessian_scale(system, Q0, xi0):
+    if s[0] <= ZERO_RTOL * _hessian_scale(system, Q0, xi0):
         raise ValueError(
             "lagrangian: l is linear in xi (or does not depend on it) at (xi0, Q0): its Hessian in xi is "
             "zero, so the Legendre map xi -> dl/dxi (Lemma 8) is not invertible and the step equations "
@@ -211,11 +220,13 @@ def _check_legendre_map(system, Q0, xi0, H):
     rank = int(np.sum(s > SINGULAR_RTOL * s[0]))
     null = np.linalg.svd(H)[2][-1]
     raise ValueError(
-        f"lagrangian: degenerate in xi at (xi0, Q0): its Hessian in xi has rank {rank} of {H.shape[0]}, with "
-        f"null direction {_rounded(null, xi0.shape)}, so the Legendre map xi -> dl/dxi (Lemma 8) is not "
-        "invertible and Newton's Jacobian of every step would be singular. Make l depend quadratically on "
-        "every component of xi (e.g. a positive moment of inertia for each), or, if the degeneracy is the "
-        "model's, build it with ClebschSystem(..., degenerate=True).")
+        f"lagrangian: degenerate in xi at (xi0, Q0): its Hessian in xi has rank {rank} of {H.shape[0]} (smallest "
+        f"singular value {s[-1] / s[0]:.1e} of the largest), with null direction {_rounded(null, xi0.shape)}, so "
+        "the Legendre map xi -> dl/dxi (Lemma 8) is not invertible and Newton's Jacobian of every step would "
+        "be singular. Make l depend quadratically on every component of xi (e.g. a positive moment of "
+        "inertia for each), or, if the degeneracy is the model's, build it with "
+        "ClebschSystem(..., degenerate=True). (If l is regular but this ill-conditioned, e.g. landmarks much "
+        "closer together than the kernel width, the steps cannot be solved in float64 either.)")
 
 
 def _hessian_scale(system, Q0, xi0) -> float:
