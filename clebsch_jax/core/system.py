@@ -70,7 +70,9 @@ class ClebschSystem:
       NumPy array of `Q0`'s shape and returns None if it is acceptable, else a sentence saying
       what is wrong (`clebsch_jax.integrate` raises `ValueError("Q0: " + sentence)`). It runs
       on concrete `Q0` only, before compiling: it is skipped when `Q0` is traced (under
-      `jax.jit`/`jax.vmap` over `Q0`) or when `check_Q` holds traced array leaves. The models
+      `jax.jit`/`jax.vmap` over `Q0`) or when `check_Q` holds traced array leaves. `integrate`
+      also runs it on one step of the derivative map from `Q0` and refuses a derivative map
+      that leaves $M$ (`clebsch_jax.core.model_checks.check_model`). The models
       `rigid_body` and `heavy_top` set it to a rotation check ($Q^TQ = I$ to $\sqrt\varepsilon$,
       $\det Q = +1$). `cj.sweep` calls it on every row of its `Q0`; a check with an attribute
       `batched(stack) -> None | (row, sentence)` is called once on the whole stack instead

@@ -6,8 +6,10 @@ import dataclasses
 import numbers
 
 import jax
+import jax.numpy as jnp
 
 from ..core.jit import filter_jit
+from ..core.model_checks import check_model
 from ..core.system import ClebschSystem
 from ..core.validation import (check_configuration, float_array, is_traced, nonnegative, output_shape,
                                positive_int, positive_scalar)
@@ -36,9 +38,22 @@ def _check_options(system, n_steps, rtol, atol, max_newton_iterations):
     nonnegative(rtol, "rtol"), nonnegative(atol, "atol")
 
 
+def _real_output(name: str, out, expected: str):
+    """Refuse (naming `name`) a map's output `out` (from `output_shape`) that is not one array
+    of real floating-point numbers: a tuple, an integer or a complex result."""
+    if not isinstance(out, jax.ShapeDtypeStruct):
+        got = f"a {type(out).__name__} of {len(out)} values" if isinstance(out, (tuple, list)) else type(out).__name__
+        raise ValueError(f"{name}: must return {expected}, returned {got}.")
+    if not jnp.issubdtype(out.dtype, jnp.floating):
+        hint = ("take the real part or write it in real arithmetic" if jnp.issubdtype(out.dtype, jnp.complexfloating)
+                else "compute it in floating point, e.g. with float constants")
+        raise ValueError(f"{name}: must return {expected}, returned dtype {out.dtype} ({hint}).")
+
+
 def _check_arrays(system, Q0, xi0, P0, dt, t0):
     """The arrays as float arrays, and the three maps called on their shapes (`ValueError`
-    naming the map that cannot run on them or returns the wrong shape)."""
+    naming the map that cannot run on them or returns the wrong shape or dtype); then, on
+    concrete values, the configuration (`check_configuration`) and the model (`check_model`)."""
     Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
     dt = positive_scalar(dt, "dt")
     if P0 is not None:
@@ -52,18 +67,22 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     shapes = f"xi0 of shape {xi0.shape} and Q0 of shape {Q0.shape}"
     call = ("lagrangian(xi0, Q0)" if system.has_potential else "lagrangian(xi0)") + f" with {shapes}"
     lag = output_shape("lagrangian", system.l, (sx, sq), call)
+    _real_output("lagrangian", lag, "a real floating-point scalar")
     if lag.shape != ():
         raise ValueError(f"lagrangian: must return a scalar, returned shape {lag.shape} for {shapes}.")
     vel = output_shape("velocity_map", system.velocity_map, (sx, sq), f"velocity_map(xi0, Q0) with {shapes}")
+    _real_output("velocity_map", vel, "a real floating-point array of Q's shape")
     if vel.shape != Q0.shape:
         raise ValueError(
             f"velocity_map: must return an array of Q's shape {Q0.shape}, returned {vel.shape} for {shapes}."
         )
     der = output_shape("derivative_map", system.derivative_map, (sq, sq, jax.ShapeDtypeStruct((), dt.dtype)),
                        f"derivative_map(Q_next, Q, dt) with Q of shape {Q0.shape}")
+    _real_output("derivative_map", der, "a real floating-point array of Q's shape")
     if der.shape != Q0.shape:
         raise ValueError(f"derivative_map: must return an array of Q's shape {Q0.shape}, returned {der.shape}.")
     check_configuration(system, Q0)
+    check_model(system, Q0, xi0, dt)
     return Q0, xi0, P0, dt, t0.astype(dt.dtype)
 
 

@@ -1,0 +1,290 @@
+r"""Checks of the model a user wrote, before marching: `check_model`.
+
+The shape checks of `integrate` say whether the three maps *run*; these say whether they
+describe a Clebsch system the engine can march. Each looks at the concrete initial point
+$(\xi^0, Q^0)$ by automatic differentiation and refuses a modelling error with a `ValueError`
+naming the culprit, where otherwise it would surface later as a singular Newton Jacobian ("try
+a smaller dt") or, worse, as a wrong answer:
+
+- `lagrangian`: the Legendre map $\xi \mapsto \delta l/\delta\xi$ (Lemma 8) must be invertible
+  at $(\xi^0, Q^0)$ unless the system is built with `degenerate=True`; a Lagrangian written
+  `l(Q, xi)` instead of `l(xi, Q)` is recognised.
+- `velocity_map`: $\xi \mapsto \mathcal L_\xi Q^0$ must be linear (Definition 1).
+- `derivative_map`: when the system checks its configurations (`ClebschSystem.check_Q`), one
+  step of the derivative map from $Q^0$ must stay on the configuration manifold.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .jit import filter_jit
+from .validation import is_traced, runnable_check
+
+__all__ = ["check_model"]
+
+SINGULAR_RTOL = 1e-14
+"""A Hessian is singular when its smallest singular value is at most this times its largest.
+
+Round-off level on purpose: the Hessian of a degenerate Lagrangian, computed by autodiff, has
+its null singular values at the level of the float64 epsilon, while regular Lagrangians can be
+legitimately ill-conditioned and still march (landmarks close together compared with the
+kernel width: $K(Q)^{-1}$ with a large condition number). A looser threshold would refuse those."""
+
+ZERO_RTOL = 1e-10
+r"""A singular Hessian counts as zero (l linear in ξ) when its largest singular value is at most
+this times $|l|/|\xi|^2 + |\nabla_\xi l|/|\xi|$, the size l's value and gradient at ξ⁰ give it."""
+
+LINEAR_RTOL = 1e-8
+r"""A velocity map is linear when $|\mathcal L_\xi Q - J\xi| \le$ this $\times (|\mathcal L_\xi Q| + |J||\xi|)$
+at every probe ξ (round-off of a linear map is far below it, any genuine nonlinearity far above)."""
+
+SOLVE_RTOL = 1e-10
+r"""The probe step's solve counts as converged when its residual is this small relative to $|\mathcal L_\xi Q^0|$."""
+
+SOLVE_ITERATIONS = 8
+"""Newton iterations of the probe step's solve at most (it starts from the forward-difference step)."""
+
+PROBE_SIZE = 0.1
+r"""The probe step h moves Q by about this fraction of $\max(|Q^0|, 1)$: $h|\mathcal L_\xi Q^0| = $ PROBE_SIZE $\cdot \max(|Q^0|, 1)$."""
+
+
+def check_model(system, Q0, xi0, dt) -> None:
+    r"""Refuse modelling errors of `system` at the initial point $(\xi^0, Q^0)$, before marching.
+
+    Each refusal is a `ValueError` whose message starts with the argument at fault and says
+    what is wrong and what to do:
+
+    1. `lagrangian` (skipped for `degenerate=True`): the Hessian $H$ of $\xi \mapsto l(\xi, Q^0)$
+       at $\xi^0$ must be nonsingular (smallest singular value above `SINGULAR_RTOL` times the
+       largest), or the Legendre map of Lemma 8 is not invertible and the step equations have
+       no unique solution. When $H = 0$ (to `ZERO_RTOL`) the message says l is linear in ξ
+       (point vortices need `degenerate=True`); when l has a potential, ξ and Q have the same
+       shape and l's Hessian in its *second* argument is nonsingular, it says l looks written
+       as `l(Q, xi)`; otherwise it gives the rank of $H$ and a null direction.
+    2. `velocity_map`: with $J$ the Jacobian of $\xi \mapsto \mathcal L_\xi Q^0$ at $\xi^0$,
+       $\mathcal L_\xi Q^0 = J\xi$ to `LINEAR_RTOL` at $\xi^0$, at a fixed pseudo-random
+       direction $d$ of $\xi^0$'s size (unit size if $\xi^0 = 0$) and at $2\xi^0 + d$: a map
+       linear in ξ (Definition 1) passes, a nonlinear or affine one does not.
+    3. `derivative_map` (only when `system.check_Q` runs: `runnable_check`): with the probe
+       velocity $\xi = \xi^0$ (or $d$ if $\xi^0 = 0$), solve $\phi_h(Q^1, Q^0) = \mathcal L_\xi Q^0$
+       for $Q^1$ by Newton's method from $Q^0 + h\,\mathcal L_\xi Q^0$, with a step h that moves
+       Q by `PROBE_SIZE` $\cdot\max(|Q^0|, 1)$, and run `check_Q` on $Q^1$. A derivative map
+       that keeps Q on M does so for every step, and a step of that size makes the defect of one
+       that does not (the forward difference on a matrix group) obvious. If the solve does not
+       converge the check says nothing.
+
+    The derivatives are evaluated by one compiled program per system and shapes (`filter_jit`),
+    the decisions made with NumPy on its results. The checks run only when `Q0`, `xi0`, `dt` and
+    every array leaf of `system` are concrete: under `jax.jit` or `jax.vmap` they are skipped
+    (as are the value checks of `clebsch_jax.core.validation`), and also when the user's
+    functions close over traced values.
+
+    **Arguments:** the system and the initial point as `integrate` validated them (`Q0`, `xi0`
+    float arrays of shapes the maps accept, `dt` a positive scalar: only its being concrete
+    matters, the probe step is chosen from $Q^0$ and $\xi^0$).
+    """
+    if any(is_traced(x) for x in (Q0, xi0, dt, *jax.tree_util.tree_leaves(system))):
+        return
+    direction = _direction(xi0)
+    found = _derivatives(system, Q0, xi0, direction)
+    if any(is_traced(x) for x in found.values()):
+        return  # the user's functions close over traced values
+    found = {key: np.asarray(value) for key, value in found.items()}
+    xi = np.asarray(xi0)
+    found["probes"] = np.stack([x.reshape(-1) for x in (xi, direction, 2.0 * xi + direction)])
+    try:
+        if not system.degenerate:
+            _check_legendre_map(system, Q0, xi0, found["hessian"])
+        _check_linear(xi0, found)
+        if runnable_check(system, Q0) is not None:
+            _check_step(system, Q0, xi0, found)
+    except _Traced:
+        return
+
+
+class _Traced(Exception):
+    """A value the checks need depends on a traced value the user's functions close over."""
+
+
+def _host(x) -> np.ndarray:
+    """x as a NumPy array, or `_Traced` when it is a tracer."""
+    if is_traced(x):
+        raise _Traced
+    return np.asarray(x)
+
+
+def _direction(xi0) -> np.ndarray:
+    """A fixed pseudo-random direction of `xi0`'s shape and norm (unit norm if `xi0` = 0)."""
+    xi0 = np.asarray(xi0)
+    norm = float(np.linalg.norm(xi0))
+    return (norm if norm > 0 else 1.0) * _unit_direction(xi0.size).reshape(xi0.shape).astype(xi0.dtype)
+
+
+@functools.lru_cache(maxsize=None)
+def _unit_direction(n: int) -> np.ndarray:
+    r = np.random.default_rng(20240531).standard_normal(n)
+    return r / np.linalg.norm(r) if n else r
+
+
+def _hessian_in(fn, x):
+    """The Hessian of the scalar function `fn` of an array at `x`, flattened to (x.size, x.size)."""
+    return jax.hessian(lambda y: fn(y.reshape(x.shape)))(x.reshape(-1))
+
+
+def _evaluate(system, Q0, xi0, direction):
+    """The derivatives the checks need, in one program: l's Hessian in ξ at ξ⁰, the velocity
+    map's Jacobian in ξ there and its values at the probes ξ⁰, d, 2ξ⁰ + d."""
+    def velocity(x):
+        return system.velocity_map(x.reshape(xi0.shape), Q0).reshape(-1)
+
+    flat, d = xi0.reshape(-1), direction.reshape(-1)
+    return dict(
+        hessian=_hessian_in(lambda x: system.l(x, Q0), xi0),
+        jacobian=jax.jacfwd(velocity)(flat),
+        velocities=jnp.stack([velocity(flat), velocity(d), velocity(2.0 * flat + d)]),
+    )
+
+
+def _probe_step(derivative_map, Q0, V):
+    r"""One step of the derivative map with velocity V (of Q0's shape): solve
+    $\phi_h(Q^1, Q^0) = V$ for $Q^1$ by Newton's method from $Q^0 + hV$, with h such that
+    $h|V| = $ `PROBE_SIZE` $\cdot\max(|Q^0|, 1)$. Returns $Q^1$, h and the final residual's norm."""
+    size = jnp.linalg.norm(V)
+    h = PROBE_SIZE * jnp.maximum(jnp.linalg.norm(Q0), 1.0) / size
+
+    def residual(q):
+        return (derivative_map(q.reshape(Q0.shape), Q0, h) - V).reshape(-1)
+
+    def unconverged(state):
+        i, _, r = state
+        norm = jnp.linalg.norm(r)
+        return (i < SOLVE_ITERATIONS) & (norm > SOLVE_RTOL * size) & jnp.isfinite(norm)
+
+    def newton(state):
+        i, q, r = state
+        q = q - jnp.linalg.solve(jax.jacfwd(residual)(q), r)
+        return i + 1, q, residual(q)
+
+    q = (Q0 + h * V).reshape(-1)
+    _, q, r = jax.lax.while_loop(unconverged, newton, (0, q, residual(q)))
+    return q.reshape(Q0.shape), h, jnp.linalg.norm(r)
+
+
+_derivatives = filter_jit(_evaluate)
+_step = filter_jit(_probe_step)
+"""The two programs of the checks: the step depends on the derivative map only, so every model
+with the same derivative map and shapes (all the SO(3) models with `cayley`) shares it."""
+
+
+def _singular(H: np.ndarray):
+    """(singular?, singular values) of a square matrix H; not singular when H is not finite
+    (a NaN or inf is left for the march to report)."""
+    if H.size == 0 or not np.all(np.isfinite(H)):
+        return False, None
+    s = np.linalg.svd(H, compute_uv=False)
+    return bool(s[-1] <= SINGULAR_RTOL * s[0]), s
+
+
+def _rounded(v: np.ndarray, shape) -> str:
+    """A unit null vector for a message: largest entry positive, three decimals, `shape`."""
+    v = v / np.linalg.norm(v)
+    v = -v if v[np.argmax(np.abs(v))] < 0 else v
+    return np.array2string(np.round(v, 3).reshape(shape) + 0.0, separator=", ")
+
+
+def _check_legendre_map(system, Q0, xi0, H):
+    singular, s = _singular(H)
+    if not singular:
+        return
+    # From here on a refusal follows: the extra derivatives are evaluated eagerly.
+    if system.has_potential and xi0.shape == Q0.shape:
+        in_Q = _host(_hessian_in(lambda q: system.l(xi0, q), Q0))
+        if not _singular(in_Q)[0] and np.all(np.isfinite(in_Q)):
+            raise ValueError(
+                "lagrangian: it looks like it was written l(Q, xi): its Hessian in its first argument (xi) "
+                "is singular at (xi0, Q0) while its Hessian in its second argument (Q) is not. The engine "
+                "calls lagrangian(xi, Q): write it as l(xi, Q), velocity first. (If l really is degenerate "
+                "in xi, as for point vortices, build the system with ClebschSystem(..., degenerate=True).)")
+    if s[0] <= ZERO_RTOL * _hessian_scale(system, Q0, xi0):
+        raise ValueError(
+            "lagrangian: l is linear in xi (or does not depend on it) at (xi0, Q0): its Hessian in xi is "
+            "zero, so the Legendre map xi -> dl/dxi (Lemma 8) is not invertible and the step equations "
+            "have no unique solution. If that is the model (a Lagrangian linear in the velocity, as for "
+            "point vortices), build it with ClebschSystem(..., degenerate=True) and integrate with "
+            "scheme=\"midpoint\" or \"gauss\"; otherwise make l quadratic in xi (a kinetic energy).")
+    rank = int(np.sum(s > SINGULAR_RTOL * s[0]))
+    null = np.linalg.svd(H)[2][-1]
+    raise ValueError(
+        f"lagrangian: degenerate in xi at (xi0, Q0): its Hessian in xi has rank {rank} of {H.shape[0]} (smallest "
+        f"singular value {s[-1] / s[0]:.1e} of the largest), with null direction {_rounded(null, xi0.shape)}, so "
+        "the Legendre map xi -> dl/dxi (Lemma 8) is not invertible and Newton's Jacobian of every step would "
+        "be singular. Make l depend quadratically on every component of xi (e.g. a positive moment of "
+        "inertia for each), or, if the degeneracy is the model's, build it with "
+        "ClebschSystem(..., degenerate=True). (If l is regular but this ill-conditioned, e.g. landmarks much "
+        "closer together than the kernel width, the steps cannot be solved in float64 either.)")
+
+
+def _hessian_scale(system, Q0, xi0) -> float:
+    r"""The size a Hessian of l in ξ would have from l's value and gradient at ξ⁰,
+    $|l|/|\xi|^2 + |\nabla l|/|\xi|$ (0 when ξ⁰ = 0: only an exactly zero Hessian is "zero")."""
+    norm = float(np.linalg.norm(np.asarray(xi0)))
+    if norm == 0:
+        return 0.0
+    value, grad = jax.value_and_grad(lambda x: system.l(x, Q0))(xi0)
+    return float(abs(_host(value))) / norm**2 + float(np.linalg.norm(_host(grad))) / norm
+
+
+def _check_linear(xi0, found):
+    J, values = found["jacobian"], found["velocities"]
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(values))):
+        return  # a non-finite velocity is reported by the march
+    labels = ("xi0", "a random direction d", "2 xi0 + d")
+    defects = []
+    for label, x, value in zip(labels, found["probes"], values):
+        defect = value - J @ x
+        scale = np.linalg.norm(value) + np.linalg.norm(J) * np.linalg.norm(x)
+        size = float(np.linalg.norm(defect))
+        relative = size / scale if scale > 0 else (np.inf if size > 0 else 0.0)
+        defects.append((relative, size, label, defect))
+    relative, size, label, _ = max(defects, key=lambda item: item[0])
+    if not relative > LINEAR_RTOL:
+        return
+    offset = defects[0][3]
+    if all(np.linalg.norm(item[3] - offset) <= 1e-6 * np.linalg.norm(offset) for item in defects):
+        what = (f"it is affine: L(xi, Q0) - J xi is the same nonzero offset (norm {size:.2e}) at every probe "
+                "xi, i.e. L(0, Q0) != 0")
+    else:
+        what = (f"at xi = {label}, L(xi, Q0) differs from J xi, J its Jacobian in xi at xi0, by "
+                f"{relative:.1e} of their size")
+    raise ValueError(
+        f"velocity_map: must be linear in xi (Definition 1), but {what}. L(xi, Q) is the tangent vector by "
+        "which xi moves Q: every term must be linear in xi (e.g. Q @ hat(xi), with no products of xi's "
+        "components and no constant term); put any nonlinear dependence on xi in the Lagrangian.")
+
+
+def _check_step(system, Q0, xi0, found):
+    moving = bool(np.any(np.asarray(xi0)))
+    V = found["velocities"][0 if moving else 1].reshape(Q0.shape)
+    size = float(np.linalg.norm(V))
+    if not (size > 0 and np.isfinite(size)):
+        return
+    Q1, h, residual = (_host(x) for x in _step(system.derivative_map, Q0, V))
+    if not (residual <= SOLVE_RTOL * size and np.all(np.isfinite(Q1))):
+        return  # the solve did not converge: no conclusion
+    problem = system.check_Q(Q1)
+    if not isinstance(problem, str):
+        return
+    dm = system.derivative_map
+    name = getattr(dm, "name", None) or getattr(dm, "__name__", None) or type(dm).__name__
+    xi = "xi0" if moving else "a random direction (xi0 = 0)"
+    raise ValueError(
+        f"derivative_map: one step of {name} from Q0 leaves the configuration manifold: {problem} (The step "
+        f"solved phi(Q1, Q0, h) = L(xi, Q0) for Q1, with h = {float(h):.3g} and xi = {xi}.) A derivative map must "
+        "keep Q on the manifold for every step (Definition 18); on a matrix group with L(xi, Q) = Q X use "
+        "clebsch_jax.cayley or clebsch_jax.exponential (forward_difference is for vector spaces). If no "
+        "derivative map can, the velocity map is not tangent to the manifold.")

@@ -1,0 +1,203 @@
+"""Modelling errors are refused before marching, naming the culprit (`core.model_checks`).
+
+Each test writes one mistake a user can make — a degenerate or linear Lagrangian without
+`degenerate=True`, a velocity map that is not linear in ξ (Definition 1), a Lagrangian written
+`l(Q, xi)`, a Lagrangian that is not a real scalar, a derivative map that leaves the
+configuration manifold — and checks that `integrate` raises a `ValueError` whose message starts
+with the argument at fault and says what is wrong. The march is stubbed (as in
+`test_bad_input.py`), so a refusal that came too late fails the test and nothing here compiles a
+march; the checks' own small programs are shared by the tests with the same maps and shapes.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax.march import integrate as _integrate
+
+XI0 = jnp.array([1.3, 0.8, -0.4])
+E3 = jnp.array([0.0, 0.0, 1.0])
+INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
+
+
+class _Marched(Exception):
+    """Raised by the stubbed march: `integrate` accepted the input."""
+
+
+@pytest.fixture(autouse=True)
+def no_march(monkeypatch):
+    def stub(*args, **kwargs):
+        raise _Marched
+
+    monkeypatch.setattr(_integrate, "_march_jit", stub)
+
+
+def accepted(system, Q0, xi0, **kwargs):
+    """True when `integrate` gets past every check to the (stubbed) march."""
+    with pytest.raises(_Marched):
+        cj.integrate(system, Q0, xi0, dt=0.1, n_steps=2, **kwargs)
+    return True
+
+
+def refused(system, Q0, xi0, match):
+    with pytest.raises(ValueError, match=match) as info:
+        cj.integrate(system, Q0, xi0, dt=0.1, n_steps=2)
+    return str(info.value)
+
+
+def _cross(xi, Q):
+    return jnp.cross(xi, Q)
+
+
+def _on_r3(lagrangian, velocity_map=_cross, **kwargs):
+    return cj.ClebschSystem(lagrangian=lagrangian, velocity_map=velocity_map, derivative_map=cj.forward_difference,
+                            **kwargs)
+
+
+# --------------------------------------------------------------------------------------------
+# lagrangian
+
+
+def test_a_degenerate_lagrangian_is_refused_with_its_rank_and_null_direction():
+    """l = ½|ξ×Q|² does not see the component of ξ along Q: rank 2 of 3, null direction Q0."""
+    system = _on_r3(lambda xi, Q: 0.5 * jnp.sum(jnp.cross(xi, Q) ** 2))
+    message = refused(system, E3, XI0, r"^lagrangian: degenerate in xi at \(xi0, Q0\)")
+    assert "rank 2 of 3" in message and "[0., 0., 1.]" in message and "degenerate=True" in message
+
+
+@pytest.mark.parametrize("lagrangian", [lambda xi: jnp.sum(xi), lambda xi, Q: jnp.dot(xi, Q) - Q[2]],
+                         ids=["l(xi)", "l(xi, Q)"])
+def test_a_lagrangian_linear_in_xi_needs_degenerate_true(lagrangian):
+    message = refused(_on_r3(lagrangian), E3, XI0, r"^lagrangian: l is linear in xi")
+    assert "ClebschSystem(..., degenerate=True)" in message and "midpoint" in message
+    # declared degenerate it is accepted (the midpoint principle is chosen)
+    assert accepted(_on_r3(lagrangian, degenerate=True), E3, XI0)
+
+
+def test_a_lagrangian_written_l_of_Q_xi_is_recognised():
+    """The R³ pendulum l(ξ, q) = ½|ξ|² − g q₃ with the parameter names swapped: the engine
+    calls it as l(xi, Q), so it reads ½|Q|² − g ξ₃, linear in ξ and regular in Q."""
+    def swapped(Q, xi):
+        return 0.5 * jnp.sum(xi**2) - 9.81 * Q[2]
+
+    message = refused(_on_r3(swapped), E3, XI0, r"^lagrangian: it looks like it was written l\(Q, xi\)")
+    assert "write it as l(xi, Q)" in message
+
+    def pendulum(xi, Q):
+        return 0.5 * jnp.sum(xi**2) - 9.81 * Q[2]
+
+    assert accepted(_on_r3(pendulum), E3, XI0)
+
+
+@pytest.mark.parametrize(
+    "lagrangian, returned",
+    [
+        (lambda xi: (0.5 * jnp.sum(xi**2), 0.0), "returned a tuple of 2 values"),
+        (lambda xi: jnp.sum(xi > 0), "returned dtype int"),
+        (lambda xi: 0.5 * jnp.sum(xi**2) + 1j, "returned dtype complex128"),
+    ],
+    ids=["tuple", "int", "complex"],
+)
+def test_a_lagrangian_must_return_a_real_floating_point_scalar(lagrangian, returned):
+    message = refused(_on_r3(lagrangian), E3, XI0, r"^lagrangian: must return a real floating-point scalar, returned")
+    assert returned in message
+
+
+def test_the_maps_must_return_real_floating_point_arrays():
+    good = lambda xi: 0.5 * jnp.sum(xi**2)  # noqa: E731
+    refused(_on_r3(good, lambda xi, Q: jnp.cross(xi, Q) * (1 + 0j)), E3, XI0,
+            r"^velocity_map: must return a real floating-point array of Q's shape, returned dtype complex128")
+    integer = cj.ClebschSystem(lagrangian=good, velocity_map=_cross,
+                               derivative_map=lambda Q1, Q, dt: jnp.round(Q1 - Q).astype(int))
+    refused(integer, E3, XI0, r"^derivative_map: must return a real floating-point array of Q's shape, returned dtype int")
+
+
+# --------------------------------------------------------------------------------------------
+# velocity_map
+
+
+def test_a_velocity_map_not_linear_in_xi_is_refused():
+    """The README's SE(2) body with ξ̂ replaced by (ξ∘ξ)^: quadratic in ξ."""
+    system = cj.ClebschSystem(lagrangian=lambda x: 0.5 * x @ x, velocity_map=lambda x, Q: Q @ cj.lie.se2_hat(x * x),
+                              derivative_map=cj.cayley)
+    message = refused(system, jnp.eye(3), XI0, r"^velocity_map: must be linear in xi \(Definition 1\)")
+    assert "differs from J xi" in message
+
+
+def test_an_affine_velocity_map_is_refused():
+    system = _on_r3(lambda xi: 0.5 * jnp.sum(xi**2), lambda xi, Q: jnp.cross(xi, Q) + jnp.array([0.0, 0.5, 0.0]))
+    message = refused(system, E3, XI0, r"^velocity_map: must be linear in xi \(Definition 1\)")
+    assert "affine" in message and "L(0, Q0) != 0" in message
+
+
+# --------------------------------------------------------------------------------------------
+# derivative_map
+
+
+@pytest.mark.parametrize(
+    "system, xi0",
+    [
+        (cj.models.rigid_body(INERTIA, derivative_map=cj.forward_difference), XI0),
+        (cj.models.rigid_body(INERTIA, derivative_map=cj.forward_difference), jnp.zeros(3)),
+        (cj.models.heavy_top(INERTIA, 1.5, derivative_map=cj.forward_difference), XI0),
+    ],
+    ids=["rigid_body", "rigid_body_at_rest", "heavy_top"],
+)
+def test_the_forward_difference_on_so3_leaves_the_rotations(system, xi0):
+    """One forward-difference step Q0 + h Q0 ξ̂ is not a rotation (QᵀQ = I + h² ξ̂ᵀξ̂), whatever
+    ξ0 (at rest the probe moves along a fixed direction)."""
+    message = refused(system, jnp.eye(3), xi0, r"^derivative_map: one step of forward difference from Q0 leaves "
+                                                 r"the configuration manifold: not a rotation matrix")
+    assert "clebsch_jax.cayley" in message
+
+
+# --------------------------------------------------------------------------------------------
+# silent where they should be
+
+
+def _se2_body():
+    return cj.ClebschSystem(lagrangian=lambda xi: 0.5 * 0.7 * xi[0] ** 2 + 0.5 * 1.3 * (xi[1] ** 2 + xi[2] ** 2),
+                            velocity_map=lambda xi, Q: Q @ cj.lie.se2_hat(xi), derivative_map=cj.cayley)
+
+
+def test_the_checks_accept_the_built_in_models():
+    top_Q0 = cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))
+    circulations = jnp.array([1.0, -1.0, 2.0])
+    vortex_Q0 = jnp.array([[0.0, 1.0], [0.0, -1.0], [1.0, 0.0]])
+    peakon_Q0 = jnp.array([-3.0, 0.0])
+    vector_Q0, _ = cj.models.rigid_body_vector_start(INERTIA * XI0)
+    cases = [
+        (cj.models.rigid_body(INERTIA), top_Q0, XI0),
+        (cj.models.rigid_body(INERTIA), jnp.eye(3), jnp.zeros(3)),
+        (cj.models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5), top_Q0, jnp.array([0.3, -0.2, 6.0])),
+        (cj.models.point_vortices(circulations), vortex_Q0, cj.models.vortex_velocity(circulations, vortex_Q0)),
+        (cj.models.rigid_body_vector(INERTIA), vector_Q0, XI0),
+        (cj.models.peakons(1.0), peakon_Q0, cj.models.peakon_velocity(peakon_Q0, jnp.array([2.0, 1.0]))),
+        (cj.models.landmarks(1.0), jnp.array([[0.0, 0.0], [1.0, 0.5]]), jnp.array([[1.0, 0.0], [0.0, 1.0]])),
+        # regular but ill-conditioned: eight landmarks a fifth of the kernel width apart (K(Q) has a
+        # condition number above 1e10, and the march runs): not taken for a degenerate Lagrangian
+        (cj.models.landmarks(1.0), jnp.stack([0.2 * jnp.arange(8.0), jnp.zeros(8)], axis=-1), jnp.ones((8, 2))),
+        (_se2_body(), jnp.eye(3), XI0),
+    ]
+    for system, Q0, xi0 in cases:
+        assert accepted(system, Q0, xi0)
+
+
+def test_the_checks_are_skipped_under_vmap():
+    """Traced values are unknown: a model the checks would refuse reaches the march under vmap,
+    over the initial data or over a parameter its functions close over (no crash either)."""
+    linear = _on_r3(lambda xi: jnp.sum(xi))
+    with pytest.raises(_Marched):
+        jax.vmap(lambda xi0: cj.integrate(linear, E3, xi0, dt=0.1, n_steps=2))(jnp.ones((2, 3)))
+
+    def member(scale):
+        closure = _on_r3(lambda xi: scale * jnp.sum(xi))  # Q0, xi0 concrete, l closes over a tracer
+        return cj.integrate(closure, E3, XI0, dt=0.1, n_steps=2).Q
+
+    with pytest.raises(_Marched):
+        jax.vmap(member)(jnp.ones(2))
+    forward = cj.models.rigid_body(INERTIA, derivative_map=cj.forward_difference)
+    with pytest.raises(_Marched):
+        jax.vmap(lambda Q0: cj.integrate(forward, Q0, XI0, dt=0.1, n_steps=2).Q)(np.broadcast_to(np.eye(3), (2, 3, 3)))
