@@ -29,7 +29,7 @@ def test_step_plans_carry_their_facts():
     rb = cj.models.rigid_body(TEST_INERTIA)  # Cayley, no potential: the principle is symmetric
     top = cj.models.heavy_top(np.array([1.0, 1.0, 0.4]), 1.5, np.array([0.0, 0.0, 1.0]))
     assert cj.step_plan(rb).order == 2 and cj.step_plan(rb).solves_per_step == 1
-    assert cj.step_plan(top).order == 1 and not cj.step_plan(top).symmetric
+    assert cj.step_plan(top, "left").order == 1 and not cj.step_plan(top, "left").symmetric
     p = cj.step_plan(top, order=2)  # first order: composed with its adjoint over half steps
     assert p.schemes == ("left", "right") and p.symmetric and p.solves_per_step == 2
     assert cj.step_plan(rb, order=8).solves_per_step == 17 and cj.step_plan(top, order=8).solves_per_step == 34

@@ -31,7 +31,8 @@ def no_march(monkeypatch):
     def stub(*args, **kwargs):
         raise _Marched
 
-    monkeypatch.setattr(_integrate, "_march_jit", stub)
+    for march in ("_march_jit", "march_chunked"):  # traced and concrete calls
+        monkeypatch.setattr(_integrate, march, stub)
 
 
 def accepted(system, Q0, xi0, **kwargs):

@@ -97,10 +97,11 @@ def body(params):
 # stay below 0.5 < c over the run (checked: they succeed).
 _XI_PARTICLES = np.array([[0.3, -0.2], [1.0, 0.4], [0.4, 0.7]])
 MARCHES = {
-    "full": (particles, np.zeros(2), _XI_PARTICLES, 1.0, {}),
-    "blocks": (particles, np.zeros(2), _XI_PARTICLES, 1.0, {"jacobian": "blocks"}),
+    "full": (particles, np.zeros(2), _XI_PARTICLES, 1.0, {"scheme": "left"}),
+    "blocks": (particles, np.zeros(2), _XI_PARTICLES, 1.0, {"scheme": "left", "jacobian": "blocks"}),
     "order4": (particles, np.zeros(2), _XI_PARTICLES, 1.0, {"order": 4}),
-    "reduced": (body, np.eye(3), np.array([[0.3, 0.1, 0.2], [0.0, 0.0, 1.0], [-0.2, 0.3, 0.4]]), 1.0, {}),
+    "reduced": (body, np.eye(3), np.array([[0.3, 0.1, 0.2], [0.0, 0.0, 1.0], [-0.2, 0.3, 0.4]]), 1.0,
+                {"scheme": "left"}),
 }
 FORMS = {"full": "full", "blocks": "full", "order4": "full", "reduced": "reduced"}
 
