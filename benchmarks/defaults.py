@@ -543,6 +543,14 @@ def plot(summary: dict, path: Path) -> None:
         e = top[m]
         ax2.loglog([e["seconds_per_step"] * 1e6], [e["final_error_vs_reference"]], marker=marker, ms=9, ls="none",
                    label=f"{m}: {e['method']} (order {e['order']})")
+        ax2.annotate(f"{e['seconds_per_step'] * 1e6:.3g} µs, {e['final_error_vs_reference']:.2g}",
+                     (e["seconds_per_step"] * 1e6, e["final_error_vs_reference"]), textcoords="offset points",
+                     xytext=(8, 6), fontsize=8)
+    ax2.margins(0.25)
+    from matplotlib.ticker import NullFormatter
+
+    for axis in (ax2.xaxis, ax2.yaxis):
+        axis.set_minor_formatter(NullFormatter())  # decade labels only (a narrow range)
     ax2.set_xlabel("wall time per step [µs]")
     ax2.set_ylabel(f"error at T = {top['t_final']:g} ({top['reference']})")
     ax2.grid(True, which="both", alpha=0.3)
@@ -550,9 +558,10 @@ def plot(summary: dict, path: Path) -> None:
     ax2.set_title(f"Heavy top, dt = {top['dt']}, {top['n_steps']} steps: default/left "
                   f"{top['ratios']['default_over_left']:.2f}", fontsize=9)
 
-    for r in orders:
+    for i, r in enumerate(orders):  # markers and dashes tell apart curves that coincide
         hs, errs = np.array(r["hs"]) / r["h0"], np.array(r["errors"])
-        ax3.loglog(hs, errs, marker="o", ms=4, label=f"{r['model']} ({r['slope']:.2f})")
+        ax3.loglog(hs, errs, marker="os^vD<>p"[i % 8], ms=7 - (i % 2) * 3, ls="-" if i % 2 == 0 else "--",
+                   label=f"{r['model']} ({r['slope']:.2f})")
     guide = np.array([1 / 8, 1.0])
     top_err = max(max(r["errors"]) for r in orders)
     ax3.loglog(guide, 2 * top_err * guide**2, "k--", lw=1, label="slope 2")
