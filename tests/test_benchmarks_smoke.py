@@ -4,7 +4,9 @@ No timing thresholds (tests never assert wall time; the benchmarks report it). E
 runs in its own process: `--quick` turns XLA optimisation off globally for its run, and the
 programs it compiles must not stay in this test session's cache. Measured on 2 cores at load
 4-5 (other users): 42-71 s (rigid_body_step_cost), 33-44 s (vortex_step_cost), 42-58 s
-(throughput), 2-3 min together, almost all of it compiling.
+(throughput), 2-3 min together, almost all of it compiling. Besides the JSON, the `defaults`
+check asserts what its part 1 counts: no XLA compilation in a fresh process when `integrate` is
+called again with a new `n_steps`, `dt` or model parameters (a count, not a time).
 """
 
 import json
@@ -229,16 +231,67 @@ def check_soak(summary: dict) -> None:
         assert r["running_max"]["step"][-1] == r["n_steps"] and r["chunks"]["step"]
 
 
+DEFAULT_METHODS = {"rigid_body": "left principle", "heavy_top": "right(h/2) o left(h/2)",
+                   "user_pendulum": "midpoint principle"}
+
+
+def check_defaults(summary: dict) -> None:
+    parts = {}
+    for row in summary["results"]:
+        parts.setdefault(row["part"], []).append(row)
+    assert set(parts) == {"compile_once", "heavy_top_cost", "order"}
+    assert {r["scene"] for r in parts["compile_once"]} == set(DEFAULT_METHODS)
+    assert summary["config"]["part1"]["persistent_cache_in_children"] is False
+    for row in parts["compile_once"]:
+        calls = row["calls"]
+        expected = ["first", "new_n_steps", "new_dt", "new_parameters", "first_again"]
+        if row["scene"] == "user_pendulum":  # no parameters to change
+            expected.remove("new_parameters")
+        assert list(calls) == expected, row["scene"]
+        for name, call in calls.items():
+            assert call["method"] == DEFAULT_METHODS[row["scene"]] and call["order"] == 2, (row["scene"], name)
+            assert all(_positive_finite(w) for w in call["wall_s"]) and _positive_finite(call["over_first"])
+        assert min(calls["first"]["compilations"]) >= 1  # a fresh process compiles the march
+        # the same programs on the same input: the same numbers
+        assert calls["first_again"]["max_abs_final_diff_vs_first"] == 0.0
+        # compile once per system and shapes: a new n_steps, dt or parameter value compiles nothing
+        assert row["max_compilations_calls_2_to_5"] == 0, {n: c["programs_compiled"] for n, c in calls.items()}
+        assert row["max_construct_compilations"] == 0
+    (top,) = parts["heavy_top_cost"]
+    for method, (name, order, form) in {"default": ("right(h/2) o left(h/2)", 2, "reduced"),
+                                        "left": ("left principle", 1, "reduced"),
+                                        "midpoint": ("midpoint principle", 2, "full")}.items():
+        entry = top[method]
+        _check_timed(entry, ("seconds_per_step",), method)
+        assert (entry["method"], entry["order"], entry["form"]) == (name, order, form), method
+        assert 0 < entry["final_error_vs_reference"] < 0.1, method
+    # second order beats first order at the same step (loose: not a test of either method)
+    assert top["default"]["final_error_vs_reference"] < top["left"]["final_error_vs_reference"]
+    assert 0 <= top["reference_check_default_dt_over_8"] < top["default"]["final_error_vs_reference"]
+    assert all(_positive_finite(v) for v in top["ratios"].values())
+    assert math.isclose(top["ratios"]["default_over_left"], top["default"]["per_call_s"] / top["left"]["per_call_s"])
+    for row in parts["order"]:
+        assert row["order"] == 2 and row["plan_symmetric"] and row["method"] == row["plan"], row["model"]
+        assert len(row["errors"]) == 4 and all(_positive_finite(e) for e in row["errors"]), row["model"]
+        assert row["slope"] >= 1.8, (row["model"], row["slope"])
+        assert row["compilations_after_first_step_size"] == 0, row["model"]
+    targets = summary["targets"]
+    assert set(targets) == {"new_n_steps_over_first", "compilations_calls_2_to_5", "heavy_top_default_over_left",
+                            "order"}
+    assert all(t["met"] in (True, False) for t in targets.values())
+
+
 CHECKS = {
     "rigid_body_step_cost": check_rigid_body_step_cost,
     "vortex_step_cost": check_vortex_step_cost,
     "throughput": check_throughput,
     "work_precision": check_work_precision,
     "soak": check_soak,
+    "defaults": check_defaults,
 }
 
 
-@pytest.mark.slow  # ~140 s for the five scripts: run with -m slow, and in CI
+@pytest.mark.slow  # minutes for the six scripts (benchmarks/README.md): run with -m slow, and in CI
 @pytest.mark.parametrize("name", list(CHECKS))
 def test_benchmark_quick(name, tmp_path):
     if name == "work_precision":  # diffrax is a benchmark peer only: the optional extra [bench]
