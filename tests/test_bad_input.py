@@ -209,6 +209,7 @@ def test_a_user_configuration_check_is_data_of_the_system():
         (lambda: cj.models.rigid_body([2.0, 1.0, -0.5]), r"^inertia: the principal moments must be finite and positive"),
         (lambda: cj.models.rigid_body([np.nan, 1.0, 1.0]), r"^inertia: the principal moments must be finite and positive"),
         (lambda: cj.models.rigid_body([np.inf, 1.0, 1.0]), r"^inertia: the principal moments must be finite and positive"),
+        (lambda: cj.models.rigid_body(np.array([2.0, 1.0, 1.0]) + 0.5j), r"^inertia: the principal moments must be real"),
         (lambda: cj.models.heavy_top([1.0, -1.0, 1.0], 1.0), r"^inertia: the principal moments must be finite"),
         (lambda: cj.models.heavy_top([1.0, 1.0, 1.0], np.nan), r"^mass_gravity_length: must be finite"),
         (lambda: cj.models.heavy_top([1.0, 1.0, 1.0], [1.0, 2.0]), r"^mass_gravity_length: expected a scalar"),

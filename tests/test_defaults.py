@@ -8,11 +8,13 @@ Each model runs at four step sizes with the same shapes, so `integrate` compiles
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import clebsch_jax as cj
+from clebsch_jax.march.scan import CHUNK_STEPS
 
 GRAVITY = 9.81
 
@@ -127,3 +129,62 @@ def test_the_user_pendulum_stays_on_the_sphere_and_keeps_its_vertical_angular_mo
     assert np.max(np.abs(np.linalg.norm(Q, axis=1) - 1.0)) < 1e-10
     vertical = np.cross(Q, np.cross(xi, Q))[:, 2]
     assert np.max(np.abs(vertical - vertical[0])) < 1e-11
+
+
+# --------------------------------------------------------------------------------------------
+# Compile once per system and shapes
+
+
+class _Compilations:
+    """Counts the programs JAX lowers and compiles while the block runs (JAX's own monitoring
+    events, emitted for every program not already in its in-memory cache)."""
+
+    EVENTS = ("/jax/core/compile/jaxpr_to_mlir_module_duration", "/jax/core/compile/backend_compile_duration")
+
+    def __init__(self):
+        self.count = 0
+
+    def _listen(self, event, duration, **kwargs):
+        self.count += event in self.EVENTS
+
+    def __enter__(self):
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+        return self
+
+    def __exit__(self, *exc):
+        jax.monitoring.unregister_event_duration_listener(self._listen)
+
+
+def test_a_new_run_length_step_or_parameter_value_compiles_nothing():
+    """After one call, a new `n_steps` (also across the chunk length), a new `dt` and a built-in
+    model built again with new parameter values reuse the compiled programs; so does a second
+    user system call with new `n_steps`."""
+    first = cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05, n_steps=30)
+    calls = {
+        "new n_steps": lambda: cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05, n_steps=45),
+        "beyond one chunk": lambda: cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05,
+                                                 n_steps=CHUNK_STEPS + 3),
+        "new dt": lambda: cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.02, n_steps=30),
+        "new inertia": lambda: cj.integrate(cj.models.rigid_body(jnp.array([1.0, 2.0, 3.0])), jnp.eye(3), XI0,
+                                            dt=0.05, n_steps=30),
+    }
+    for what, call in calls.items():
+        with _Compilations() as compiled:
+            sol = call()
+        assert compiled.count == 0, f"{what}: {compiled.count} programs compiled"
+        assert sol.succeeded
+    again = cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05, n_steps=CHUNK_STEPS + 3)
+    np.testing.assert_array_equal(np.asarray(again.momentum[:31]), np.asarray(first.momentum))
+    cj.integrate(PENDULUM, PENDULUM_Q0, PENDULUM_XI0, dt=0.05, n_steps=20)
+    with _Compilations() as compiled:
+        cj.integrate(PENDULUM, PENDULUM_Q0, PENDULUM_XI0, dt=0.03, n_steps=33)
+    assert compiled.count == 0
+
+
+def test_a_numpy_integer_run_length_is_accepted_plain_and_under_vmap():
+    """`n_steps=np.int64(k)` is the static int k (it used to fail inside `lax.scan` under vmap)."""
+    plain = cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05, n_steps=np.int64(7))
+    assert plain.xi.shape == (8, 3)
+    batched = jax.vmap(lambda xi: cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), xi, dt=0.05,
+                                               n_steps=np.int64(3)).momentum)(jnp.stack([XI0, -XI0]))
+    assert batched.shape == (2, 4, 3) and np.all(np.isfinite(np.asarray(batched)))

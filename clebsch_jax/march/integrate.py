@@ -157,7 +157,11 @@ def integrate(
     - `method`: a stepper, e.g. `clebsch_jax.Composed(clebsch_jax.SymmetricPair(
       clebsch_jax.FullStep()), clebsch_jax.KAHAN_LI_8)`. With it the options below, which
       describe a method, must stay at their defaults (they are the stepper's fields).
-    - `scheme`: `"left"` (Definition 19; the default), `"right"` (the adjoint principle of
+    - `scheme`: None (default): a symmetric second-order method chosen for the system
+      (`clebsch_jax.steppers.choose`, rule 0: the left principle where it is symmetric already,
+      as for the rigid body with Cayley; the reduced left step paired with its adjoint when the
+      system has a potential and reduces, as the heavy top; else the midpoint principle).
+      `"left"` (Definition 19), `"right"` (the adjoint principle of
       Remark 22), `"midpoint"` (l and the velocity map evaluated at the midpoint of each step:
       symmetric and second order also with a potential; full march only; the default for
       systems built with `degenerate=True`), or `"gauss"` (Gauss–Legendre of `order`, default
@@ -178,8 +182,9 @@ def integrate(
       chord iterations with the lumped block-diagonal Jacobian, converged to the same
       round-off. With `scheme="gauss"` and a degenerate l: the constraint bracket matrix whole
       or lumped per particle (exact for point vortices).
-    - `order`: None (default) runs the principle as it is (order 1, or 2 when it is symmetric:
-      midpoint, or left/right with a symmetric derivative map and no potential). 2, 4, 6 or 8
+    - `order`: None (default) runs the default method (order 2), or the named `scheme` as it
+      is (order 1, or 2 when it is symmetric: midpoint, or left/right with a symmetric
+      derivative map and no potential). 2, 4, 6 or 8
       makes each step a symmetric composition of sub-steps (`SymmetricPair`, `Composed`). With
       `scheme="gauss"`: any even order up to 16.
     - `composition`: a `Composition` (or the name of one in `clebsch_jax.COMPOSITIONS`)
@@ -192,12 +197,19 @@ def integrate(
 
     **Returns:** a `Solution`, with the method's facts (`form`, `scheme`, `order`, `method`).
 
+    Compilation: with concrete arguments the march runs as compiled chunks of steps
+    (`clebsch_jax.march.scan.march_chunked`): a later call on the same system and shapes
+    compiles nothing for a new `n_steps`, `dt` or parameter values held as array leaves (the
+    built-in models'). Before compiling, the model is checked at the initial point
+    (`clebsch_jax.core.model_checks`).
+
     Transformations: works under `jax.jit` (`n_steps`, `method` and the options are static)
     and `jax.vmap` over `Q0`, `xi0`, `P0`, `dt` and array parameters inside the system.
     Derivatives (forward and reverse mode) flow through the root finders by implicit
     differentiation (`jax.lax.custom_root`).
     """
     _check_options(system, n_steps, rtol, atol, max_newton_iterations)
+    n_steps = int(n_steps)  # a NumPy integer is accepted and becomes the static Python int
     if method is None:
         check_scheme(system, scheme)
     else:

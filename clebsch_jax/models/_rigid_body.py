@@ -62,6 +62,8 @@ check_rotation.batched = check_rotations
 def principal_moments(inertia, name: str = "inertia") -> jax.Array:
     """`inertia` as a float array of shape (3,), checked: finite and positive when concrete
     (skipped when traced, e.g. under `jax.vmap`/`jax.jit` or in `cj.sweep`)."""
+    if np.iscomplexobj(inertia):
+        raise ValueError(f"{name}: the principal moments must be real, got a complex array.")
     inertia = jnp.asarray(inertia, dtype=jnp.result_type(float))
     if inertia.shape != (3,):
         raise ValueError(f"{name}: expected the three principal moments, shape (3,), got {inertia.shape}.")
