@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.jit import filter_jit
+from ..core.validation import is_traced
 from ..discrete.residual import nodal_residual
 from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper, Nodes
@@ -157,7 +158,7 @@ def march_chunked(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps
     for _ in range(-(-n_steps // chunk_steps)):
         carry, chunk = _chunk_jit(stepper, system, carry, dt, chunk_steps, total)
         chunks.append(chunk)
-    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((chunks, startup))):
+    if any(is_traced(x) for x in jax.tree_util.tree_leaves((chunks, startup))):
         # a user function closed over a traced value (the caller is inside jit/vmap/grad)
         return _assemble(jnp, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0)
     chunks, startup, dt, t0 = jax.tree_util.tree_map(np.asarray, (chunks, startup, dt, t0))

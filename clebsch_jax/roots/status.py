@@ -6,10 +6,11 @@ from __future__ import annotations
 import enum
 from typing import NamedTuple
 
-import numpy as np
-
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from ..core.validation import is_traced
 
 __all__ = ["Status", "NewtonStats", "combine_stats", "stack_stats", "skip_stats"]
 
@@ -64,7 +65,7 @@ class NewtonStats(NamedTuple):
         """A few lines on these solves (concrete arrays, any batch shape): how many, how many
         converged and what stopped the others, the Newton updates per solve (mean, max, total),
         the Jacobians formed and the worst final residual."""
-        if any(isinstance(a, jax.core.Tracer) for a in self):
+        if any(is_traced(a) for a in self):
             return "NewtonStats(<traced>)"
         status = np.asarray(self.status).ravel()
         iterations = np.asarray(self.iterations).ravel()
@@ -81,7 +82,7 @@ class NewtonStats(NamedTuple):
         return "\n".join(lines)
 
     def __repr__(self) -> str:
-        if any(isinstance(a, jax.core.Tracer) for a in self) or np.ndim(self.status) == 0:
+        if any(is_traced(a) for a in self) or np.ndim(self.status) == 0:
             return (f"NewtonStats(iterations={self.iterations!r}, residual_norm={self.residual_norm!r}, "
                     f"status={self.status!r}, jacobians={self.jacobians!r})")
         return "NewtonStats(\n  " + self.summary().replace("\n", "\n  ") + "\n)"
