@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .jit import filter_jit
-from .validation import is_traced, runnable_check
+from .validation import any_traced, is_traced, runnable_check
 
 __all__ = ["check_model"]
 
@@ -88,7 +88,7 @@ def check_model(system, Q0, xi0, dt) -> None:
     float arrays of shapes the maps accept, `dt` a positive scalar: only its being concrete
     matters, the probe step is chosen from $Q^0$ and $\xi^0$).
     """
-    if any(is_traced(x) for x in (Q0, xi0, dt, *jax.tree_util.tree_leaves(system))):
+    if any_traced(Q0, xi0, dt, system):
         return
     direction = _direction(xi0)
     found = _derivatives(system, Q0, xi0, direction)

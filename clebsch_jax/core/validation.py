@@ -11,13 +11,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["is_traced", "is_array", "float_array", "host_float_array", "positive_int", "nonnegative",
+__all__ = ["is_traced", "any_traced", "is_array", "float_array", "host_float_array", "positive_int", "nonnegative",
            "positive_scalar", "output_shape", "check_configuration", "runnable_check"]
 
 
 def is_traced(x) -> bool:
     """Whether x is a tracer (its value unknown: inside `jit`, `vmap`, `grad`)."""
     return isinstance(x, jax.core.Tracer)
+
+
+def any_traced(*trees) -> bool:
+    """Whether any array leaf of the pytrees `trees` is a tracer."""
+    return any(is_traced(x) for x in jax.tree_util.tree_leaves(trees))
 
 
 def is_array(x) -> bool:
@@ -107,7 +112,7 @@ def runnable_check(system, Q0):
     """`system.check_Q` when it can run on Q0, else None: values are known only when neither Q0
     nor the check's array leaves are traced (jit/vmap)."""
     check = system.check_Q
-    if check is None or is_traced(Q0) or any(is_traced(x) for x in jax.tree_util.tree_leaves(check)):
+    if check is None or any_traced(Q0, check):
         return None
     return check
 

@@ -42,7 +42,7 @@ from ..core import linalg as _linalg
 from ..discrete.closure import check_closure
 from ..core.derivative_maps import CayleyDifference, MatrixGroupDifference
 from ..core.system import ClebschSystem
-from ..core.validation import is_traced
+from ..core.validation import any_traced, is_traced
 
 __all__ = ["MatrixGroupReduction", "find_reduction", "reduced_residual", "outgoing_body_momentum",
            "reduced_step"]
@@ -106,8 +106,7 @@ _CACHE: dict = {}
 
 def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | None, str]:
     """`_find_reduction`, cached: the verdict depends only on the two maps and the shapes."""
-    leaves = jax.tree_util.tree_leaves(system.velocity_map)
-    if any(is_traced(x) for x in leaves):
+    if any_traced(system.velocity_map):
         return _find_reduction(system, Q0, xi0)
     key = (system.velocity_map, system.derivative_map, tuple(np.shape(Q0)), tuple(np.shape(xi0)))
     try:

@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import numbers
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..core.jit import filter_jit
 from ..core.model_checks import check_model
 from ..core.system import ClebschSystem
-from ..core.validation import (check_configuration, float_array, is_traced, nonnegative, output_shape,
+from ..core.validation import (any_traced, check_configuration, float_array, is_array, is_traced, nonnegative, output_shape,
                                positive_int, positive_scalar)
 from ..steppers.base import AbstractStepper
 from ..steppers.choose import check_scheme, choose_method
@@ -63,6 +65,15 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     t0 = float_array(t0, "t0")
     if t0.shape != ():
         raise ValueError(f"t0: expected a scalar, got an array of shape {t0.shape}.")
+    _check_maps_once(system, Q0, xi0, dt)
+    check_configuration(system, Q0)
+    check_model(system, Q0, xi0, dt)
+    return Q0, xi0, P0, dt, t0.astype(dt.dtype)
+
+
+def _check_maps(system, Q0, xi0, dt):
+    """The three maps called on the shapes of Q0, xi0 and dt (`ValueError` naming the map
+    that cannot run on them or returns the wrong shape or dtype)."""
     sx, sq = jax.ShapeDtypeStruct(xi0.shape, xi0.dtype), jax.ShapeDtypeStruct(Q0.shape, Q0.dtype)
     shapes = f"xi0 of shape {xi0.shape} and Q0 of shape {Q0.shape}"
     call = ("lagrangian(xi0, Q0)" if system.has_potential else "lagrangian(xi0)") + f" with {shapes}"
@@ -81,9 +92,32 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     _real_output("derivative_map", der, "a real floating-point array of Q's shape")
     if der.shape != Q0.shape:
         raise ValueError(f"derivative_map: must return an array of Q's shape {Q0.shape}, returned {der.shape}.")
-    check_configuration(system, Q0)
-    check_model(system, Q0, xi0, dt)
-    return Q0, xi0, P0, dt, t0.astype(dt.dtype)
+
+
+_MAPS_CHECKED: collections.OrderedDict = collections.OrderedDict()
+_MAPS_CHECKED_SIZE = 256
+
+
+def _check_maps_once(system, Q0, xi0, dt):
+    """`_check_maps`, skipped when it already passed for the same system structure (its
+    functions and static fields) and the same shapes and dtypes: its outcome depends on
+    nothing else, and tracing the three maps is most of a short call's fixed cost."""
+    leaves, treedef = jax.tree_util.tree_flatten(system)
+    # arrays by shape and dtype (weak types included), anything else (functions) as itself
+    avals = tuple((np.shape(x), jnp.result_type(x)) if is_array(x) or is_traced(x) else x
+                  for x in (*leaves, Q0, xi0, dt))
+    try:
+        key = (treedef, avals)
+        hash(key)
+    except TypeError:  # a static field that cannot be hashed: check every time
+        return _check_maps(system, Q0, xi0, dt)
+    if key in _MAPS_CHECKED:
+        _MAPS_CHECKED.move_to_end(key)
+        return
+    _check_maps(system, Q0, xi0, dt)
+    _MAPS_CHECKED[key] = True
+    if len(_MAPS_CHECKED) > _MAPS_CHECKED_SIZE:
+        _MAPS_CHECKED.popitem(last=False)
 
 
 def step_plan(system: ClebschSystem, scheme: str | None = None, order=None, composition=None, *,
@@ -222,7 +256,7 @@ def integrate(
                                rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian,
                                order=order, composition=composition)
     stepper = method.prepare(system, Q0, xi0)
-    if any(is_traced(x) for x in jax.tree_util.tree_leaves((system, Q0, xi0, P0, dt, t0))):
+    if any_traced(system, Q0, xi0, P0, dt, t0):
         sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps)  # one scan, in the caller's program
     else:
         sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps)  # programs reused for any n_steps
