@@ -27,16 +27,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.jit import filter_jit
-from ..core.validation import is_traced
+from ..core.validation import any_traced
 from ..discrete.residual import nodal_residual
 from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper, Nodes
 from .solution import Solution
 
-__all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "nodal_velocities", "CHUNK_STEPS"]
+__all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "nodal_velocities", "CHUNK_STEPS", "NODAL_BLOCK"]
 
 CHUNK_STEPS = 1024
 """Steps per compiled chunk of `march_chunked` (the last chunk runs idle past `n_steps`)."""
+
+
+NODAL_BLOCK = 128
+"""Steps, and nodes per vmapped block of nodal solves, per block of a chunk longer than this:
+blocks holding only steps or nodes past the run's last step (or a failure) are skipped."""
 
 
 class Carry(NamedTuple):
@@ -95,10 +100,22 @@ def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n
         _, out, stats, _ = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), blank)
         return c, (c.state, out, stats, jnp.asarray(False))
 
-    def body(c: Carry):
+    def body(c: Carry, _):
         return jax.lax.cond(c.n < n_total, advance, idle, c)
 
-    last, (states, outs, stats, valid) = jax.lax.scan(lambda c, _: body(c), carry, None, length=length)
+    if length > NODAL_BLOCK and length % NODAL_BLOCK == 0:
+        # blocks of steps, a block wholly past the end skipped: a chunk running idle past the
+        # end of a run costs almost nothing for its idle steps
+        def block(c: Carry, _):
+            run = lambda c: jax.lax.scan(body, c, None, length=NODAL_BLOCK)
+            skip = lambda c: (c, jax.tree_util.tree_map(
+                lambda a: jnp.broadcast_to(a, (NODAL_BLOCK,) + a.shape), idle(c)[1]))  # idle steps
+            return jax.lax.cond(c.n < n_total, run, skip, c)
+
+        last, ys = jax.lax.scan(block, carry, None, length=length // NODAL_BLOCK)
+        states, outs, stats, valid = jax.tree_util.tree_map(lambda a: a.reshape((length,) + a.shape[2:]), ys)
+    else:
+        last, (states, outs, stats, valid) = jax.lax.scan(body, carry, None, length=length)
     nodes = stepper.nodes(system, carry.state, states, outs)
     made = jnp.clip(n_total - carry.n, 0, length)
     xi_last = jnp.where(made > 0, nodes.xi_step[jnp.maximum(made - 1, 0)], carry.xi_last)
@@ -125,14 +142,40 @@ def _finite_rows(a):
     return finite.reshape((-1,) + (1,) * (a.ndim - 1))
 
 
-def nodal_velocities(system, finder, Qs, mus, guesses, valid):
-    """Solve Lemma 7's relation for ξ at every node (vmapped `finder.solve`), gated by `valid`."""
+def nodal_velocities(system, finder, Qs, mus, guesses, valid, block: int = NODAL_BLOCK):
+    """Solve Lemma 7's relation for ξ at every node (vmapped `finder.solve`), gated by `valid`.
+
+    More than `block` nodes are solved in blocks of `block` (a scan whose blocks past the last
+    valid node are skipped by `lax.cond`), so a chunk that runs idle past the end of a run
+    costs nothing for its idle nodes; the arithmetic of each node's solve is the same."""
     expand = lambda v, a: v.reshape(v.shape + (1,) * (a.ndim - 1))
-    xin, st = jax.vmap(lambda q, mu, g: finder.solve(lambda x: nodal_residual(system, q, mu, x), g))(
-        Qs, mus, jnp.where(expand(valid, guesses), guesses, jnp.nan)
-    )
+    seeds = jnp.where(expand(valid, guesses), guesses, jnp.nan)
+    solve = jax.vmap(lambda q, mu, g: finder.solve(lambda x: nodal_residual(system, q, mu, x), g))
+    n = valid.shape[0]
+    if n <= block:
+        xin, st = solve(Qs, mus, seeds)
+    else:
+        xin, st = _blocked(solve, (Qs, mus, seeds), valid, block)
     ok = valid & (st.status == Status.SUCCESS)  # a failed nodal solve leaves no plausible-looking ξ
     return jnp.where(expand(ok, xin), xin, jnp.nan), skip_stats(st, valid)
+
+
+def _blocked(solve, args, valid, block: int):
+    """`solve(*args)` (vmapped over the leading axis of `args`) in blocks of `block` entries,
+    skipping the blocks after the last `valid` entry; their outputs are zeros."""
+    n = valid.shape[0]
+    n_blocks = -(-n // block)
+    pad = lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], n_blocks * block - n, axis=0)])
+    blocks = jax.tree_util.tree_map(lambda a: pad(a).reshape((n_blocks, block) + a.shape[1:]), args)
+    needed = (jnp.max(jnp.where(valid, jnp.arange(n), -1)) + block) // block  # blocks up to the last valid entry
+    blank = jax.eval_shape(solve, *jax.tree_util.tree_map(lambda a: a[0], blocks))
+
+    def one(b, xs):
+        return b + 1, jax.lax.cond(b < needed, lambda: solve(*xs),
+                                   lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), blank))
+
+    _, out = jax.lax.scan(one, jnp.asarray(0, needed.dtype), blocks)
+    return jax.tree_util.tree_map(lambda a: a.reshape((n_blocks * block,) + a.shape[2:])[:n], out)
 
 
 def march(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int) -> Solution:
@@ -158,7 +201,7 @@ def march_chunked(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps
     for _ in range(-(-n_steps // chunk_steps)):
         carry, chunk = _chunk_jit(stepper, system, carry, dt, chunk_steps, total)
         chunks.append(chunk)
-    if any(is_traced(x) for x in jax.tree_util.tree_leaves((chunks, startup))):
+    if any_traced(chunks, startup):
         # a user function closed over a traced value (the caller is inside jit/vmap/grad)
         return _assemble(jnp, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0)
     chunks, startup, dt, t0 = jax.tree_util.tree_map(np.asarray, (chunks, startup, dt, t0))
