@@ -3,7 +3,7 @@
 Each test writes one mistake a user can make — a degenerate or linear Lagrangian without
 `degenerate=True`, a velocity map that is not linear in ξ (Definition 1), a Lagrangian written
 `l(Q, xi)`, a Lagrangian that is not a real scalar, a derivative map that leaves the
-configuration manifold — and checks that `integrate` raises a `ValueError` whose message starts
+configuration manifold (after the march: `tests/test_first_step_check.py`) — and checks that `integrate` raises a `ValueError` whose message starts
 with the argument at fault and says what is wrong. The march is stubbed (as in
 `test_bad_input.py`), so a refusal that came too late fails the test and nothing here compiles a
 march; the checks' own small programs are shared by the tests with the same maps and shapes.
@@ -134,24 +134,7 @@ def test_an_affine_velocity_map_is_refused():
 
 
 # --------------------------------------------------------------------------------------------
-# derivative_map
-
-
-@pytest.mark.parametrize(
-    "system, xi0",
-    [
-        (cj.models.rigid_body(INERTIA, derivative_map=cj.forward_difference), XI0),
-        (cj.models.rigid_body(INERTIA, derivative_map=cj.forward_difference), jnp.zeros(3)),
-        (cj.models.heavy_top(INERTIA, 1.5, derivative_map=cj.forward_difference), XI0),
-    ],
-    ids=["rigid_body", "rigid_body_at_rest", "heavy_top"],
-)
-def test_the_forward_difference_on_so3_leaves_the_rotations(system, xi0):
-    """One forward-difference step Q0 + h Q0 ξ̂ is not a rotation (QᵀQ = I + h² ξ̂ᵀξ̂), whatever
-    ξ0 (at rest the probe moves along a fixed direction)."""
-    message = refused(system, jnp.eye(3), xi0, r"^derivative_map: one step of forward difference from Q0 leaves "
-                                                 r"the configuration manifold: not a rotation matrix")
-    assert "clebsch_jax.cayley" in message
+# derivative_map: checked after the march, on its first step (tests/test_first_step_check.py)
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-r"""Checks of the model a user wrote, before marching: `check_model`.
+r"""Checks of the model a user wrote: `check_model` before marching, `check_first_step` after.
 
 The shape checks of `integrate` say whether the three maps *run*; these say whether they
 describe a Clebsch system the engine can march. Each looks at the concrete initial point
@@ -10,22 +10,26 @@ a smaller dt") or, worse, as a wrong answer:
   at $(\xi^0, Q^0)$ unless the system is built with `degenerate=True`; a Lagrangian written
   `l(Q, xi)` instead of `l(xi, Q)` is recognised.
 - `velocity_map`: $\xi \mapsto \mathcal L_\xi Q^0$ must be linear (Definition 1).
-- `derivative_map`: when the system checks its configurations (`ClebschSystem.check_Q`), one
-  step of the derivative map from $Q^0$ must stay on the configuration manifold.
+- `derivative_map` (`check_first_step`, on the first step the march made, since whether a step
+  stays on the manifold depends on the principle as well as on the derivative map): on a matrix
+  group acted on by right multiplication, or when the system checks its configurations
+  (`ClebschSystem.check_Q`), the step must stay on the configuration manifold.
 """
 
 from __future__ import annotations
 
 import functools
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .derivative_maps import MatrixGroupDifference
 from .jit import filter_jit
 from .validation import any_traced, is_traced, runnable_check
 
-__all__ = ["check_model"]
+__all__ = ["check_model", "check_first_step"]
 
 SINGULAR_RTOL = 1e-14
 """A Hessian is singular when its smallest singular value is at most this times its largest.
@@ -43,15 +47,13 @@ LINEAR_RTOL = 1e-8
 r"""A velocity map is linear when $|\mathcal L_\xi Q - J\xi| \le$ this $\times (|\mathcal L_\xi Q| + |J||\xi|)$
 at every probe ξ (round-off of a linear map is far below it, any genuine nonlinearity far above)."""
 
-SOLVE_RTOL = 1e-10
-r"""The probe step's solve counts as converged when its residual is this small relative to $|\mathcal L_\xi Q^0|$."""
+SQRT_TOL = 0.25
+r"""`_log` takes square roots of $g$ until $|g - I| \le$ this, then sums 60 terms of the series."""
 
-SOLVE_ITERATIONS = 8
-"""Newton iterations of the probe step's solve at most (it starts from the forward-difference step)."""
-
-PROBE_SIZE = 0.1
-r"""The probe step h moves Q by about this fraction of $\max(|Q^0|, 1)$: $h|\mathcal L_\xi Q^0| = $ PROBE_SIZE $\cdot \max(|Q^0|, 1)$."""
-
+GROUP_RTOL = 1e-8
+r"""A step leaves the group when the component of $\log((Q^0)^{-1}Q^1)$ outside the algebra $X(V)$
+is more than this fraction of it (round-off for a step that stays on the group; of the order of
+$\Delta t|\xi|$ for the forward difference with the left principle)."""
 
 def check_model(system, Q0, xi0, dt) -> None:
     r"""Refuse modelling errors of `system` at the initial point $(\xi^0, Q^0)$, before marching.
@@ -70,13 +72,7 @@ def check_model(system, Q0, xi0, dt) -> None:
        $\mathcal L_\xi Q^0 = J\xi$ to `LINEAR_RTOL` at $\xi^0$, at a fixed pseudo-random
        direction $d$ of $\xi^0$'s size (unit size if $\xi^0 = 0$) and at $2\xi^0 + d$: a map
        linear in ξ (Definition 1) passes, a nonlinear or affine one does not.
-    3. `derivative_map` (only when `system.check_Q` runs: `runnable_check`): with the probe
-       velocity $\xi = \xi^0$ (or $d$ if $\xi^0 = 0$), solve $\phi_h(Q^1, Q^0) = \mathcal L_\xi Q^0$
-       for $Q^1$ by Newton's method from $Q^0 + h\,\mathcal L_\xi Q^0$, with a step h that moves
-       Q by `PROBE_SIZE` $\cdot\max(|Q^0|, 1)$, and run `check_Q` on $Q^1$. A derivative map
-       that keeps Q on M does so for every step, and a step of that size makes the defect of one
-       that does not (the forward difference on a matrix group) obvious. If the solve does not
-       converge the check says nothing.
+    (The derivative map is checked after the march, on its first step: `check_first_step`.)
 
     The derivatives are evaluated by one compiled program per system and shapes (`filter_jit`),
     the decisions made with NumPy on its results. The checks run only when `Q0`, `xi0`, `dt` and
@@ -86,7 +82,7 @@ def check_model(system, Q0, xi0, dt) -> None:
 
     **Arguments:** the system and the initial point as `integrate` validated them (`Q0`, `xi0`
     float arrays of shapes the maps accept, `dt` a positive scalar: only its being concrete
-    matters, the probe step is chosen from $Q^0$ and $\xi^0$).
+    matters).
     """
     if any_traced(Q0, xi0, dt, system):
         return
@@ -101,8 +97,6 @@ def check_model(system, Q0, xi0, dt) -> None:
         if not system.degenerate:
             _check_legendre_map(system, Q0, xi0, found["hessian"])
         _check_linear(xi0, found)
-        if runnable_check(system, Q0) is not None:
-            _check_step(system, Q0, xi0, found)
     except _Traced:
         return
 
@@ -150,35 +144,8 @@ def _evaluate(system, Q0, xi0, direction):
     )
 
 
-def _probe_step(derivative_map, Q0, V):
-    r"""One step of the derivative map with velocity V (of Q0's shape): solve
-    $\phi_h(Q^1, Q^0) = V$ for $Q^1$ by Newton's method from $Q^0 + hV$, with h such that
-    $h|V| = $ `PROBE_SIZE` $\cdot\max(|Q^0|, 1)$. Returns $Q^1$, h and the final residual's norm."""
-    size = jnp.linalg.norm(V)
-    h = PROBE_SIZE * jnp.maximum(jnp.linalg.norm(Q0), 1.0) / size
-
-    def residual(q):
-        return (derivative_map(q.reshape(Q0.shape), Q0, h) - V).reshape(-1)
-
-    def unconverged(state):
-        i, _, r = state
-        norm = jnp.linalg.norm(r)
-        return (i < SOLVE_ITERATIONS) & (norm > SOLVE_RTOL * size) & jnp.isfinite(norm)
-
-    def newton(state):
-        i, q, r = state
-        q = q - jnp.linalg.solve(jax.jacfwd(residual)(q), r)
-        return i + 1, q, residual(q)
-
-    q = (Q0 + h * V).reshape(-1)
-    _, q, r = jax.lax.while_loop(unconverged, newton, (0, q, residual(q)))
-    return q.reshape(Q0.shape), h, jnp.linalg.norm(r)
-
-
 _derivatives = filter_jit(_evaluate)
-_step = filter_jit(_probe_step)
-"""The two programs of the checks: the step depends on the derivative map only, so every model
-with the same derivative map and shapes (all the SO(3) models with `cayley`) shares it."""
+"""The program of the checks, one per system and shapes."""
 
 
 def _singular(H: np.ndarray):
@@ -267,24 +234,96 @@ def _check_linear(xi0, found):
         "components and no constant term); put any nonlinear dependence on xi in the Lagrangian.")
 
 
-def _check_step(system, Q0, xi0, found):
-    moving = bool(np.any(np.asarray(xi0)))
-    V = found["velocities"][0 if moving else 1].reshape(Q0.shape)
-    size = float(np.linalg.norm(V))
-    if not (size > 0 and np.isfinite(size)):
+
+
+def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
+    r"""After a march: did its first step, $Q^0 \to Q^1$, stay on the configuration manifold?
+
+    Which principle keeps Q on M depends on the method that ran, not on the derivative map
+    alone (the forward difference leaves SO(3) with the left principle, but with the midpoint
+    principle the step is a Cayley transform and stays on it), so this looks at the step the
+    march actually made:
+
+    - the velocity map is right multiplication on a matrix group, $\mathcal L_\xi Q = Q X(\xi)$
+      with $X(V)$ a Lie algebra (`clebsch_jax.discrete.reduction.matrix_group_basis`), and the
+      derivative map is not of Definition 25's form (which keeps Q on the group by
+      construction): $\log((Q^0)^{-1}Q^1)$ must lie in $X(V)$ to `GROUP_RTOL`. This measures the
+      step's own defect whatever $Q^0$'s (a $Q^0$ that only just passes `check_Q` is not blamed
+      on the step). A defect is a `ValueError` naming `derivative_map` when the system checks
+      its configurations (`check_Q`), else a `UserWarning` (its configurations may then be any
+      matrices: the step is allowed, but Q drifts off the group);
+    - otherwise, when the system has a `check_Q`, it must accept $Q^1$ (`ValueError`).
+
+    Skipped when `Q1` is not finite (a failed step is reported by the march) or traced."""
+    if any_traced(Q0, Q1, system) or not np.all(np.isfinite(np.asarray(Q1))):
         return
-    Q1, h, residual = (_host(x) for x in _step(system.derivative_map, Q0, V))
-    if not (residual <= SOLVE_RTOL * size and np.all(np.isfinite(Q1))):
-        return  # the solve did not converge: no conclusion
-    problem = system.check_Q(Q1)
-    if not isinstance(problem, str):
+    Q0, Q1 = np.asarray(Q0), np.asarray(Q1)
+    checks = runnable_check(system, Q0) is not None
+    basis = _group_basis(system, Q0, xi0) if Q0.ndim == 2 and Q0.shape[0] == Q0.shape[1] else None
+    if basis is not None:
+        if isinstance(system.derivative_map, MatrixGroupDifference):
+            return
+        defect = _outside_algebra(np.linalg.solve(Q0, Q1), basis)
+        if not defect > GROUP_RTOL:
+            return
+        problem = system.check_Q(Q1) if checks else None
+        how = (f"(Q0^-1 Q1 is not in the group of the algebra X(V) by which velocity_map moves Q: the part of "
+               f"its logarithm outside X(V) is {defect:.1e} of it.)")
+    elif checks:
+        problem = system.check_Q(Q1)
+        if not isinstance(problem, str):
+            return
+        how = ""
+    else:
         return
-    dm = system.derivative_map
-    name = getattr(dm, "name", None) or getattr(dm, "__name__", None) or type(dm).__name__
-    xi = "xi0" if moving else "a random direction (xi0 = 0)"
-    raise ValueError(
-        f"derivative_map: one step of {name} from Q0 leaves the configuration manifold: {problem} (The step "
-        f"solved phi(Q1, Q0, h) = L(xi, Q0) for Q1, with h = {float(h):.3g} and xi = {xi}.) A derivative map must "
-        "keep Q on the manifold for every step (Definition 18); on a matrix group with L(xi, Q) = Q X use "
-        "clebsch_jax.cayley or clebsch_jax.exponential (forward_difference is for vector spaces). If no "
-        "derivative map can, the velocity map is not tangent to the manifold.")
+    name = _name(system.derivative_map)
+    fix = (f"Use a method whose steps keep Q on M (with {name}, e.g. scheme=\"midpoint\"), or, on a matrix group "
+           "with L(xi, Q) = Q X(xi), the derivative map clebsch_jax.cayley or clebsch_jax.exponential, which keep "
+           "Q on the group with every principle (Definition 25); forward_difference is for vector spaces.")
+    where = f"one step of {name} from Q0 ({method}) leaves the configuration manifold"
+    if checks:
+        found = f"{problem} " if isinstance(problem, str) else ""
+        raise ValueError(f"derivative_map: {where}: {found}{how} {fix}".replace("  ", " "))
+    warnings.warn(f"derivative_map: {where} on which velocity_map acts, a matrix group, so Q drifts off it at "
+                  f"every step {how} {fix} Give the system a check_Q to make this an error.", UserWarning,
+                  stacklevel=3)  # the caller of integrate
+
+
+def _name(fn) -> str:
+    return getattr(fn, "name", None) or getattr(fn, "__name__", None) or type(fn).__name__
+
+
+def _group_basis(system, Q0, xi0):
+    """`clebsch_jax.discrete.reduction.matrix_group_basis` (imported here: the reduction sits
+    above this module on the data path)."""
+    from ..discrete.reduction import matrix_group_basis
+    return matrix_group_basis(system, Q0, xi0)
+
+
+def _outside_algebra(g: np.ndarray, basis: np.ndarray) -> float:
+    """The part of log g outside span(basis), relative to |log g| (0 when g = I)."""
+    log = _log(g).reshape(-1)
+    size = np.linalg.norm(log)
+    if not size > 0:
+        return 0.0
+    B = basis.reshape(basis.shape[0], -1).T
+    return float(np.linalg.norm(log - B @ np.linalg.lstsq(B, log, rcond=None)[0]) / size)
+
+
+def _log(g: np.ndarray) -> np.ndarray:
+    """The principal matrix logarithm of g near the identity, by inverse scaling and squaring:
+    Denman–Beavers square roots until |g − I| <= `SQRT_TOL`, then 60 terms of the series of
+    log(I + A) (far below round-off at that size)."""
+    eye = np.eye(g.shape[0])
+    roots = 0
+    while np.linalg.norm(g - eye) > SQRT_TOL and roots < 30:
+        Y, Z = g, eye
+        for _ in range(30):
+            Y, Z = 0.5 * (Y + np.linalg.inv(Z)), 0.5 * (Z + np.linalg.inv(Y))
+        g, roots = Y, roots + 1
+    A = g - eye
+    power, log = A, A.copy()
+    for k in range(2, 61):
+        power = power @ A
+        log += (-1.0) ** (k + 1) / k * power
+    return log * 2.0**roots

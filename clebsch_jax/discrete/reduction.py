@@ -44,7 +44,7 @@ from ..core.derivative_maps import CayleyDifference, MatrixGroupDifference
 from ..core.system import ClebschSystem
 from ..core.validation import any_traced, is_traced
 
-__all__ = ["MatrixGroupReduction", "find_reduction", "reduced_residual", "outgoing_body_momentum",
+__all__ = ["MatrixGroupReduction", "find_reduction", "matrix_group_basis", "reduced_residual", "outgoing_body_momentum",
            "reduced_step"]
 
 
@@ -137,6 +137,37 @@ def _inspect(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | Non
     """
     if not isinstance(system.derivative_map, MatrixGroupDifference):
         return None, "the derivative map is not a matrix-group map (Definition 25)"
+    basis, reason = _group_basis(system, Q0, xi0)
+    if basis is None:
+        return None, reason
+    m = basis.shape[0]
+    B = basis.reshape(m, -1).T
+    return MatrixGroupReduction(basis=basis, pinv=np.linalg.pinv(B), xi_shape=tuple(np.shape(xi0))), "applies"
+
+
+def matrix_group_basis(system: ClebschSystem, Q0, xi0) -> np.ndarray | None:
+    r"""The basis $X(e_k)$, shape (dim V, n, n), of the Lie algebra by which the velocity map
+    moves Q when it is right multiplication on a matrix group, $\mathcal L_\xi Q = Q\,X(\xi)$,
+    with $X$ injective and closed (Theorem 12); None otherwise (or when the velocity map depends
+    on traced values). Cached like `find_reduction`: it depends only on the map and the shapes."""
+    if any_traced(system.velocity_map):
+        return None
+    key = ("basis", system.velocity_map, tuple(np.shape(Q0)), tuple(np.shape(xi0)))
+    try:
+        if key in _CACHE:
+            return _CACHE[key]
+    except TypeError:  # an unhashable map
+        return _group_basis(system, Q0, xi0)[0]
+    with jax.ensure_compile_time_eval():
+        basis = _group_basis(system, Q0, xi0)[0]
+    if len(_CACHE) >= 256:
+        _CACHE.clear()
+    _CACHE[key] = basis
+    return basis
+
+
+def _group_basis(system: ClebschSystem, Q0, xi0) -> tuple[np.ndarray | None, str]:
+    """Conditions (2) and (3) of `_inspect`: the basis X(e_k), or None and the reason."""
     shape = tuple(np.shape(Q0))
     if len(shape) != 2 or shape[0] != shape[1]:
         return None, f"Q is not a square matrix (shape {shape})"
@@ -154,13 +185,12 @@ def _inspect(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | Non
     scale = max(float(np.max(np.abs(moved))), 1.0)
     if np.max(np.abs(moved - G @ basis)) > 1e-12 * scale:
         return None, "the velocity map is not right multiplication Q·X(xi)"
-    B = basis.reshape(m, n * n).T
-    if np.linalg.matrix_rank(B) < m:
+    if np.linalg.matrix_rank(basis.reshape(m, n * n).T) < m:
         return None, "xi -> X(xi) is not injective"
     closure = check_closure(system, np.eye(n), np.zeros(xi_shape))
     if not closure.closed:
         return None, f"the velocity map is not closed (residual {closure.worst_residual:.1e})"
-    return MatrixGroupReduction(basis=basis, pinv=np.linalg.pinv(B), xi_shape=xi_shape), "applies"
+    return basis, "applies"
 
 
 def _xi_of(red: MatrixGroupReduction, log, scheme, F, dt):

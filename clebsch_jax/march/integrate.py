@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.jit import filter_jit
-from ..core.model_checks import check_model
+from ..core.model_checks import check_first_step, check_model
 from ..core.system import ClebschSystem
 from ..core.validation import (any_traced, check_configuration, float_array, is_array, is_traced, nonnegative, output_shape,
                                positive_int, positive_scalar)
@@ -234,7 +234,8 @@ def integrate(
     Compilation: with concrete arguments the march runs as compiled chunks of steps
     (`clebsch_jax.march.scan.march_chunked`): a later call on the same system and shapes
     compiles nothing for a new `n_steps`, `dt` or parameter values held as array leaves (the
-    built-in models'). Before compiling, the model is checked at the initial point
+    built-in models'). Before compiling, the model is checked at the initial point, and after
+    the march its first step is checked to stay on the configuration manifold
     (`clebsch_jax.core.model_checks`).
 
     Transformations: works under `jax.jit` (`n_steps`, `method` and the options are static)
@@ -260,6 +261,8 @@ def integrate(
         sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps)  # one scan, in the caller's program
     else:
         sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps)  # programs reused for any n_steps
+        if sol.Q is not None:
+            check_first_step(system, sol.method, Q0, xi0, sol.Q[1])
     if throw:
         if is_traced(sol.result):
             sol = dataclasses.replace(sol, result=check_traced(sol))

@@ -1,0 +1,88 @@
+"""A derivative map whose steps leave the configuration manifold is caught on the first step the
+march made (`core.model_checks.check_first_step`): whether a step stays on M depends on the
+principle as well as on the derivative map (the forward difference leaves SO(3) with the left
+principle, while with the midpoint principle its step is a Cayley transform), so the check looks
+at what actually ran. Runs are two steps long, on systems shared by the tests."""
+
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+
+INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
+XI0 = jnp.array([1.3, 0.8, -0.4])
+FORWARD = cj.models.rigid_body(INERTIA, derivative_map=cj.forward_difference)  # checks Q is a rotation
+
+
+def _se3_hat(x):
+    return jnp.block([[cj.lie.hat(x[:3]), x[3:, None]], [jnp.zeros((1, 4))]])
+
+
+def _se3_body(xi, Q):
+    return Q @ _se3_hat(xi)
+
+
+def _se3_kinetic(xi):
+    return 0.5 * jnp.sum(jnp.array([1.0, 2.0, 3.0, 1.0, 1.0, 1.0]) * xi**2)
+
+
+SE3 = cj.ClebschSystem(lagrangian=_se3_kinetic, velocity_map=_se3_body, derivative_map=cj.forward_difference)
+SE3_Q0 = jnp.eye(4).at[:3, 3].set(jnp.array([5.0, -2.0, 1.0]))  # far from the identity: the step is what counts
+SE3_XI0 = jnp.array([0.3, 0.2, -0.5, 1.0, 0.0, 0.2])
+
+
+@pytest.mark.parametrize("scheme", ["left", "right"])
+def test_the_forward_difference_with_a_one_sided_principle_leaves_the_rotations(scheme):
+    """Left: Q1 = Q0 (I + h ξ̂), with Q1ᵀQ1 = I + h² ξ̂ᵀξ̂: refused, naming the derivative map,
+    what check_Q says, and the two ways out."""
+    with pytest.raises(ValueError, match=r"^derivative_map: one step of forward difference from Q0 "
+                                         rf"\({scheme} principle\) leaves the configuration manifold: "
+                                         r"not a rotation matrix") as info:
+        cj.integrate(FORWARD, jnp.eye(3), XI0, dt=0.1, n_steps=2, scheme=scheme)
+    assert "clebsch_jax.cayley" in str(info.value) and 'scheme="midpoint"' in str(info.value)
+
+
+def test_the_forward_difference_with_the_midpoint_principle_stays_on_the_rotations():
+    """The default for this system is the midpoint principle: (Q1 − Q0)/h = ½(Q0 + Q1) ξ̂ makes
+    Q1 = Q0 cay(h ξ̂), a rotation. Accepted, and the rotations are kept to round-off."""
+    sol = cj.integrate(FORWARD, jnp.eye(3), XI0, dt=0.1, n_steps=2)
+    assert sol.scheme == "midpoint"
+    Q = np.asarray(sol.Q)
+    assert np.max(np.abs(np.einsum("nji,njk->nik", Q, Q) - np.eye(3))) < 1e-14
+
+
+def test_a_body_at_rest_is_not_blamed():
+    """At rest no step moves Q, so none leaves SO(3): the run is exact and accepted."""
+    sol = cj.integrate(FORWARD, jnp.eye(3), jnp.zeros(3), dt=0.1, n_steps=2, scheme="left")
+    np.testing.assert_array_equal(np.asarray(sol.Q[-1]), np.eye(3))
+
+
+def test_se3_without_a_check_warns_with_the_left_principle_and_not_with_the_midpoint():
+    """SE(3) written by hand, with no check_Q: the matrix group is read off the velocity map
+    (right multiplication by a closed algebra). The left principle's step leaves it (a warning:
+    without check_Q the configurations may be any 4×4 matrices); the midpoint's does not."""
+    with pytest.warns(UserWarning, match=r"^derivative_map: one step of forward difference from Q0 \(left "
+                                         r"principle\) leaves the configuration manifold on which velocity_map "
+                                         r"acts, a matrix group") as record:
+        sol = cj.integrate(SE3, SE3_Q0, SE3_XI0, dt=0.1, n_steps=2, scheme="left")
+    assert record[0].filename == __file__  # the warning points at the caller's line
+    R = np.asarray(sol.Q[1, :3, :3])
+    assert np.max(np.abs(R.T @ R - np.eye(3))) > 1e-4  # it did leave: the warning is not a false alarm
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sol = cj.integrate(SE3, SE3_Q0, SE3_XI0, dt=0.1, n_steps=2)
+    R = np.asarray(sol.Q[-1, :3, :3])
+    assert np.max(np.abs(R.T @ R - np.eye(3))) < 1e-14
+
+
+def test_a_rotation_that_only_just_passes_is_not_blamed_on_a_correct_step():
+    """Q0 with |Q0ᵀQ0 − I| = 1.4e-8, just inside the rotation check's 1.5e-8: a Cayley step
+    keeps that defect (it may even grow past the tolerance by round-off), and the check measures
+    the step itself, Q0⁻¹Q1, so the run is accepted."""
+    Q0 = np.asarray(cj.lie.so3_exp(jnp.array([0.3, 0.1, 0.2]))) * (1 + 0.7e-8)
+    assert 1.3e-8 < np.max(np.abs(Q0.T @ Q0 - np.eye(3))) < 1.5e-8
+    sol = cj.integrate(cj.models.rigid_body(INERTIA), Q0, XI0, dt=0.1, n_steps=2, scheme="left")
+    assert int(sol.result) == cj.Status.SUCCESS
