@@ -86,3 +86,26 @@ def test_a_rotation_that_only_just_passes_is_not_blamed_on_a_correct_step():
     assert 1.3e-8 < np.max(np.abs(Q0.T @ Q0 - np.eye(3))) < 1.5e-8
     sol = cj.integrate(cj.models.rigid_body(INERTIA), Q0, XI0, dt=0.1, n_steps=2, scheme="left")
     assert int(sol.result) == cj.Status.SUCCESS
+
+
+def _kinetic(xi):
+    return 0.5 * jnp.sum(xi**2)
+
+
+def _translation(xi, Q):
+    return xi
+
+
+def _unit_vector(Q):
+    n = float(np.linalg.norm(Q))
+    return None if abs(n - 1.0) <= 1e-12 else f"not a unit vector (|Q| = {n:.6g})."
+
+
+def test_a_velocity_map_not_tangent_to_the_manifold_is_refused_after_its_first_step():
+    """Translations of the plane are not tangent to the unit circle that check_Q declares: every
+    principle leaves it, and the first step's Q1 fails check_Q (no matrix group here)."""
+    circle = cj.ClebschSystem(lagrangian=_kinetic, velocity_map=_translation, derivative_map=cj.forward_difference,
+                              check_Q=_unit_vector)
+    with pytest.raises(ValueError, match=r"^derivative_map: one step of forward difference from Q0 \(midpoint "
+                                         r"principle\) leaves the configuration manifold: not a unit vector"):
+        cj.integrate(circle, np.array([0.6, 0.8]), np.ones(2), dt=0.1, n_steps=2)
