@@ -212,10 +212,14 @@ def _invariant_keys(shapes) -> dict:
 
 
 def _create(zarr, store, plan, config: dict):
+    with zarr.config.set({"array.write_empty_chunks": True}):
+        return _fill(zarr.open_group(_plain(store), mode="w"), plan, config)
+
+
+def _fill(root, plan, config: dict):
     import jax
 
     cfg, members, shapes, run, bs = plan
-    root = zarr.open_group(_plain(store), mode="w")
     for name, (dims, shape, dtype, chunk) in _variables(plan).items():
         chunks = (max(1, min(chunk, shape[0])),) + tuple(shape[1:]) if shape else ()
         fill = False if dtype == np.bool_ else (0 if np.issubdtype(dtype, np.integer) else np.nan)
@@ -316,10 +320,12 @@ def write_rows(root, plan, rows, run_id: int):
         n = r.stop - r.start
         spans.append((r, slice(start, start + n)))
         start += n
-    for var, data in arrays.items():
-        target = root[var]
-        for r, local in spans:
-            target[r] = data[local]
+    # every chunk written, even one that equals the fill value: a missing chunk means a truncated store
+    with _zarr().config.set({"array.write_empty_chunks": True}):
+        for var, data in arrays.items():
+            target = root[var]
+            for r, local in spans:
+                target[r] = data[local]
     for b in rows.batches:
         root["batch_run"][b] = run_id
         root["batch_done"][b] = True  # last: the batch counts as done only with all its data written
@@ -364,6 +370,9 @@ def open_sweep(store):
         raise SweepStoreError(f"store {name!r}: {int((~done).sum())} of {len(done)} batches are not written yet "
                               "(the sweep was interrupted): run the same sweep with this store to finish it.")
     keys = root.attrs.get("invariant_arrays", {})
+    per_member = {"param_index", "ic_index", "energy_error", *_COLUMNS,
+                  *(f"{kind}_{key}" for key in keys.values() for kind in ("initial", "drift")),
+                  *(f"saved_{k}" for k in _SAVED)}
 
     def read(var, required=True):
         if var not in root.array_keys():
@@ -372,7 +381,14 @@ def open_sweep(store):
                                       "store).")
             return None
         try:
-            return np.asarray(root[var][...])
+            arr = root[var]
+            if var in per_member and arr.nchunks_initialized < arr.nchunks:
+                raise SweepStoreError(f"store {name!r}: {arr.nchunks - arr.nchunks_initialized} of {arr.nchunks} "
+                                      f"chunks of {var!r} are missing (a truncated store); rerun the sweep with "
+                                      "overwrite=True.")
+            return np.asarray(arr[...])
+        except SweepStoreError:
+            raise
         except Exception as err:  # a truncated or garbled chunk: codecs raise many kinds
             raise SweepStoreError(f"store {name!r}: cannot read {var!r} ({type(err).__name__}: {err}): a "
                                   "truncated or corrupted store; rerun the sweep with overwrite=True.") from err

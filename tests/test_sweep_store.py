@@ -1,0 +1,222 @@
+r"""Sweeps written to a Zarr store (`cj.sweep(store=)`, `cj.open_sweep`) and run on Dask
+(`cj.sweep(client=)`): the stored table equals the in-memory one to the bit and reads back with
+xarray; a sweep killed (SIGKILL) after some batches resumes and recomputes only the rest; a
+store of another configuration is refused; a truncated or corrupted store is a clear error; a
+`LocalCluster` of two processes gives the in-process table to the bit, even when a worker dies
+in the middle of a batch.
+
+Compilation dominates: the in-process tests share one compiled chunk program (every sweep
+here uses `KW`, only array values change). The subprocess and cluster tests compile again in
+each process and are marked slow.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax.models import rigid_body
+
+zarr = pytest.importorskip("zarr")
+xarray = pytest.importorskip("xarray")
+
+
+def casimir(system, sol):
+    """|μ|² at every node: the Casimir of the rigid body's Lie–Poisson bracket."""
+    return jnp.sum(sol.momentum**2, axis=-1)
+
+
+KW = dict(dt=0.05, n_steps=16, chunk_steps=8, batch_size=2, save_every=4, grid=True)
+INERTIAS = np.array([[2.0, 1.0, 2.0 / 3.0], [1.0, 1.5, 0.5], [3.0, 2.0, 1.0]])
+OMEGAS = np.array([[1.3, 0.8, -0.4], [0.2, 1.0, 0.3], [-0.5, 0.1, 0.9]])
+EYES = np.broadcast_to(np.eye(3), (3, 3, 3))
+N_MEMBERS, N_BATCHES = 9, 5  # 3 inertias × 3 momenta in batches of 2: the last one padded
+
+
+def assert_same_table(a, b):
+    """Every per-member array equal to the bit (NaN where NaN), and the same static facts."""
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    assert ta == tb
+    for x, y in zip(la, lb):
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.dtype == y.dtype and x.shape == y.shape
+        assert np.array_equal(x, y, equal_nan=True)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, **KW)
+
+
+def stored(path, **change):
+    return cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, store=str(path),
+                    **{**KW, **change})
+
+
+def test_store_round_trip_with_xarray_and_open_sweep(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    res = stored(path)
+    assert_same_table(res, reference)
+    assert_same_table(cj.open_sweep(path), reference)
+
+    ds = xarray.open_zarr(path, consolidated=False)
+    assert ds.sizes["member"] == N_MEMBERS and ds.sizes["batch"] == N_BATCHES
+    assert ds["final_Q"].dims == ("member", "Q_axis0", "Q_axis1")
+    assert ds["saved_momentum"].dims == ("member", "node", "component")
+    assert ds["params_0"].dims == ("param", "params_0_axis0") and ds["Q0"].dims[0] == "ic"
+    np.testing.assert_array_equal(ds["params_0"].values[ds["param_index"].values], INERTIAS[reference.param_index])
+    np.testing.assert_array_equal(ds["status"].values, reference.status)
+    key = ds.attrs["invariant_arrays"]["casimir"]
+    np.testing.assert_array_equal(ds[f"drift_{key}"].values, reference.drift["casimir"])
+    assert ds.attrs["method"] == reference.method and ds.attrs["dt"] == KW["dt"]
+    assert ds.attrs["package_version"] == cj.__version__
+    assert ds["batch_done"].values.all() and (ds["batch_run"].values == 1).all()
+
+
+def test_a_store_of_another_configuration_is_refused(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    for change in ({"dt": 0.04}, {"n_steps": 24}, {"batch_size": 3}):
+        with pytest.raises(cj.SweepStoreError, match=f"store '{path}'.*another sweep configuration"):
+            stored(path, **change)
+    with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*inputs_sha256"):
+        cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS + 0.125, invariants={"casimir": casimir}, store=str(path), **KW)
+    res = stored(path, dt=0.04, overwrite=True)
+    assert_same_table(res, cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir},
+                                    **{**KW, "dt": 0.04}))
+    assert xarray.open_zarr(path, consolidated=False).attrs["dt"] == 0.04
+
+
+def test_a_truncated_or_corrupted_store_is_a_clear_error(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    chunk = path / "final_p" / "c" / "1" / "0" / "0"
+    assert chunk.is_file()
+    data = chunk.read_bytes()
+    chunk.write_bytes(data[: len(data) // 2])  # a garbled chunk of batch 1
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': cannot read 'final_p'"):
+        cj.open_sweep(path)
+    chunk.unlink()  # a missing chunk would read as NaN: it is reported instead
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': 1 of {N_BATCHES} chunks of 'final_p' are missing"):
+        cj.open_sweep(path)
+    (path / "status" / "zarr.json").unlink()  # an array gone
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': the array 'status' is missing"):
+        stored(path)
+    (path / "zarr.json").unlink()  # not a group any more
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}'"):
+        cj.open_sweep(path)
+
+
+def test_an_unfinished_store_is_not_read_as_a_result(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    root = zarr.open_group(str(path), mode="r+")
+    root["batch_done"][3] = False
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': 1 of {N_BATCHES} batches are not written"):
+        cj.open_sweep(path)
+
+
+def test_store_needs_the_optional_extra(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "zarr", None)  # as if not installed
+    with pytest.raises(ImportError, match=r"clebsch-jax\[sweep\]"):
+        stored(tmp_path / "sweep.zarr")
+
+
+# --------------------------------------------------------------------------------------------
+# Killed and resumed.
+
+SCRIPT = textwrap.dedent("""
+    import sys, time
+    import jax.numpy as jnp
+    import numpy as np
+    import clebsch_jax as cj
+
+    def casimir(system, sol):
+        return jnp.sum(sol.momentum**2, axis=-1)
+
+    data = np.load(sys.argv[2])
+    cj.sweep(cj.models.rigid_body, data["inertias"], data["eyes"], data["omegas"], dt=0.05, n_steps=16,
+             chunk_steps=8, batch_size=2, save_every=4, grid=True, invariants={"casimir": casimir},
+             store=sys.argv[1], progress=lambda info: time.sleep(0.5))  # slow enough to be killed mid-run
+""")
+
+
+@pytest.mark.slow
+def test_a_sweep_killed_after_some_batches_resumes_with_the_same_table(reference, tmp_path, capsys):
+    path, inputs = tmp_path / "sweep.zarr", tmp_path / "inputs.npz"
+    np.savez(inputs, inertias=INERTIAS, eyes=EYES, omegas=OMEGAS)
+    (tmp_path / "run.py").write_text(SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(tmp_path / "run.py"), str(path), str(inputs)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    done = np.zeros(N_BATCHES, bool)
+    deadline = time.monotonic() + 300
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                done = np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:])
+            except Exception:  # not created yet
+                pass
+            if done.any():
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()[1].decode()[-2000:]
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    done = np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:])
+    assert 1 <= done.sum() < N_BATCHES, done
+    written_before = done.copy()
+
+    capsys.readouterr()
+    res = stored(path)
+    skipped = sum(min(KW["batch_size"], N_MEMBERS - b * KW["batch_size"]) for b in np.flatnonzero(written_before))
+    assert f"skipped {skipped} of {N_MEMBERS} members" in capsys.readouterr().err
+    assert_same_table(res, reference)
+    runs = np.asarray(zarr.open_group(str(path), mode="r")["batch_run"][:])
+    np.testing.assert_array_equal(runs, np.where(written_before, 1, 2))  # only the unfinished batches rerun
+
+
+# --------------------------------------------------------------------------------------------
+# Dask.
+
+
+@pytest.fixture(scope="module")
+def client():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
+            distributed.Client(cl) as c:
+        yield c
+
+
+def killing_casimir(flag: str, driver: int):
+    """`casimir`, but the first worker process that traces it SIGKILLs itself (once, flagged
+    by the file `flag`): a worker dying in the middle of its first batch."""
+    def f(system, sol):
+        if os.getpid() != driver and not os.path.exists(flag):
+            open(flag, "w").close()
+            os.kill(os.getpid(), signal.SIGKILL)
+        return jnp.sum(sol.momentum**2, axis=-1)
+
+    return f
+
+
+@pytest.mark.slow
+def test_a_local_cluster_gives_the_in_process_table_even_when_a_worker_dies(reference, client, tmp_path):
+    flag = tmp_path / "killed"
+    inv = {"casimir": killing_casimir(str(flag), os.getpid())}
+    path = tmp_path / "sweep.zarr"
+    res = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants=inv, store=str(path), client=client, **KW)
+    assert flag.exists()  # a worker was killed in the middle of a batch
+    assert_same_table(res, reference)
+    assert np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:]).all()
+    assert_same_table(cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants=inv, client=client, **KW), reference)
