@@ -220,3 +220,105 @@ def test_a_local_cluster_gives_the_in_process_table_even_when_a_worker_dies(refe
     assert_same_table(res, reference)
     assert np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:]).all()
     assert_same_table(cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants=inv, client=client, **KW), reference)
+
+
+# --------------------------------------------------------------------------------------------
+# The command line.
+
+CONFIG = f"""
+model = "rigid_body"
+dt = {KW["dt"]}
+n_steps = {KW["n_steps"]}
+chunk_steps = {KW["chunk_steps"]}
+batch_size = {KW["batch_size"]}
+save_every = {KW["save_every"]}
+grid = true
+
+[params]
+values = {INERTIAS.tolist()}
+
+[initial]
+Q0 = {{identity = 3}}
+xi0 = {OMEGAS.tolist()}
+
+[invariants]
+casimir = "{__name__}:casimir"
+"""
+
+
+def test_the_command_line_sweeps_into_a_store_and_resumes(reference, tmp_path, capsys):
+    from clebsch_jax.cli import main
+
+    config, path = tmp_path / "sweep.toml", tmp_path / "sweep.zarr"
+    config.write_text(CONFIG)
+    assert main(["sweep", str(config), "--store", str(path), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert f"{N_MEMBERS} members x {KW['n_steps']} steps in {N_BATCHES} batches of {KW['batch_size']}" in out
+    assert f"{N_MEMBERS} x {KW['n_steps']} steps" in out and "casimir drift" in out
+    assert_same_table(cj.open_sweep(path), reference)
+    assert main(["sweep", str(config), "--store", str(path), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert f"skipped {N_MEMBERS} of {N_MEMBERS} members" in captured.err
+    assert "0 members computed in this run" in captured.out
+
+
+def test_the_command_line_help_documents_the_toml_format(capsys):
+    from clebsch_jax.cli import main
+
+    assert main(["--help"]) == 0 and "sweep" in capsys.readouterr().out
+    assert main(["sweep", "--help"]) == 0
+    out = capsys.readouterr().out
+    for text in ("--store", "--workers", "--scheduler", "--overwrite", "model =", "n_steps =", "[params]",
+                 "linspace", "[initial]", "xi0 =", "[options]", "[invariants]"):
+        assert text in out
+    assert main(["sweep", "x.toml", "--store", "s.zarr", "--workers", "2", "--scheduler", "tcp://h:8786"]) == 2
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda c: c.replace('"rigid_body"', '"no_such_model"'), "model: clebsch_jax.models has no function 'no_such_model'"),
+    (lambda c: "n_step = 3\n" + c, "unknown entry n_step"),
+    (lambda c: c.replace("[params]\nvalues", "[params]\nvalue"), "[params]: give exactly one of values"),
+    (lambda c: c + "[options]\nscheme = 3\n", "sweep.toml: sweep: one member"),  # refused by cj.sweep
+])
+def test_the_command_line_names_a_bad_config_entry(tmp_path, capsys, edit, message):
+    from clebsch_jax.cli import main
+
+    config = tmp_path / "sweep.toml"
+    config.write_text(edit(CONFIG))
+    assert main(["sweep", str(config), "--store", str(tmp_path / "s.zarr"), "--quiet"]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "s.zarr").exists()
+
+
+@pytest.mark.slow
+def test_the_command_line_on_local_workers_stops_on_ctrl_c_and_resumes(tmp_path):
+    config, path = tmp_path / "sweep.toml", tmp_path / "sweep.zarr"
+    long = dict(KW, n_steps=2000, chunk_steps=100, batch_size=1, save_every=None)  # batches of ~1 s
+    config.write_text(CONFIG.replace(f"n_steps = {KW['n_steps']}", f"n_steps = {long['n_steps']}")
+                      .replace(f"chunk_steps = {KW['chunk_steps']}", f"chunk_steps = {long['chunk_steps']}")
+                      .replace(f"batch_size = {KW['batch_size']}", "batch_size = 1")
+                      .replace(f"save_every = {KW['save_every']}\n", "")
+                      .replace(f'casimir = "{__name__}:casimir"', 'body_momentum = "body_momentum"'))
+    cmd = [sys.executable, "-m", "clebsch_jax", "sweep", str(config), "--store", str(path), "--quiet"]
+    proc = subprocess.Popen(cmd + ["--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:]).any():
+                break
+        except Exception:  # not created yet
+            pass
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-2000:]
+    assert "run the same command to resume" in err
+    done = np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:])
+    assert 1 <= done.sum() < N_MEMBERS
+
+    rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert f"skipped {done.sum()} of {N_MEMBERS} members" in rerun.stderr
+    whole = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"body_momentum": cj.diagnostics.body_momentum},
+                     **long)
+    assert_same_table(cj.open_sweep(path), whole)
