@@ -131,6 +131,18 @@ def test_store_needs_the_optional_extra(monkeypatch, tmp_path):
         stored(tmp_path / "sweep.zarr")
 
 
+def test_bad_store_client_and_overwrite_are_refused_before_compiling(tmp_path):
+    pytest.importorskip("distributed")
+    bad = [({"overwrite": True}, ValueError, "overwrite: True replaces a store, but no store= was given"),
+           ({"overwrite": "yes", "store": str(tmp_path / "s.zarr")}, ValueError, "overwrite: expected True or False"),
+           ({"client": "tcp://localhost:8786"}, ValueError, "client: expected a dask.distributed.Client, got str"),
+           ({"store": ""}, ValueError, "store: expected a path")]
+    for change, kind, message in bad:
+        with pytest.raises(kind, match=message):
+            cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, **{**KW, **change})
+    assert not (tmp_path / "s.zarr").exists()
+
+
 # --------------------------------------------------------------------------------------------
 # Killed and resumed.
 

@@ -28,7 +28,7 @@ import uuid
 
 from .sweep import SweepProgress
 
-__all__ = ["run_on_client"]
+__all__ = ["run_on_client", "check_client"]
 
 _PLANS: dict = {}  # token -> plan, in each worker process: one static configuration per sweep
 
@@ -47,7 +47,7 @@ def _batch_task(plan, token: str, b: int, store, run_id: int):
     return b
 
 
-def _check_client(client):
+def check_client(client):
     try:
         from distributed import Client
     except ImportError:
@@ -61,7 +61,6 @@ def run_on_client(client, plan, batches: list, store, run_id: int, progress):
     """Submit `batches` as tasks; yield each task's result as it finishes (rows, or the batch
     index when written to `store`). `progress` (as `sweep`'s) hears of each finished batch.
     Stopping the generator (or Ctrl-C) cancels the tasks not yet finished."""
-    _check_client(client)
     from distributed import as_completed
 
     B, bs, n_steps = plan.members.B, plan.batch_size, plan.run.n_steps

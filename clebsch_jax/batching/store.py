@@ -415,12 +415,28 @@ def open_sweep(store):
 # A stored sweep: skip what is done, run the rest (here or on a Dask cluster), read it back.
 
 
-def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, make_result):
-    """`sweep` with `store=` and/or `client=`: called by `sweep` after its checks."""
-    from .sweep import _place, _run_batches
-
+def check_arguments(store, client, overwrite) -> None:
+    """`sweep`'s `store`, `client` and `overwrite`, checked before anything is traced or compiled
+    (the optional packages they need named with the extra that installs them)."""
     if overwrite not in (True, False):
         raise ValueError(f"overwrite: expected True or False, got {overwrite!r}.")
+    if overwrite and store is None:
+        raise ValueError("overwrite: True replaces a store, but no store= was given.")
+    if store is not None:
+        _zarr()
+        if isinstance(store, (str, bytes)) and not store:
+            raise ValueError("store: expected a path or a zarr store, got an empty string.")
+    if client is not None:
+        from .distributed import check_client
+
+        check_client(client)
+
+
+def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, make_result):
+    """`sweep` with `store=` and/or `client=`: called by `sweep` after `check_arguments` and its
+    own checks."""
+    from .sweep import _place, _run_batches
+
     B, bs = plan.members.B, plan.batch_size
     n_batches = -(-B // bs)
     if store is None:  # a Dask cluster, the table kept in memory

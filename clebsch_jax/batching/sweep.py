@@ -859,6 +859,10 @@ def sweep(
     changing array values does not.
     """
     run = _check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, invariants, progress, devices)
+    if store is not None or client is not None or overwrite is not False:
+        from .store import check_arguments
+
+        check_arguments(store, client, overwrite)
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
     B, n_dev = members.B, len(run.devices)
     if batch_size is None:
