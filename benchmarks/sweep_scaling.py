@@ -59,7 +59,7 @@ SEED = 0
 WORKERS, THREADS = 2, 1
 TARGET_SCALING = 1.7
 TARGET_ZARR_OVERHEAD = 0.05
-DEFAULT_CASES = [(10_000, 200, 1_000, 100)]  # (members, steps, batch_size, chunk_steps)
+DEFAULT_CASES = [(100_000, 200, 10_000, 100)]  # (members, steps, batch_size, chunk_steps)
 QUICK_CASES = [(64, 20, 16, 10)]
 METHODS = ("in_process", "in_process_zarr", "cluster_zarr", "cluster")
 WORKER_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"

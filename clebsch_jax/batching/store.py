@@ -39,6 +39,7 @@ import hashlib
 import json
 import re
 import sys
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -460,11 +461,24 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
 
         for _ in run_on_client(client, plan, pending, store, run_id, run.progress):
             pass
-    else:
-        n_dev = len(run.devices)
+        return open_sweep(store)
+    # Each group's rows go to the store from a writer thread while the next group computes; the
+    # table is kept in memory too. Leaving the `with` (also on Ctrl-C) waits for the writes under way.
+    n_dev, used = len(run.devices), set()
+    with ThreadPoolExecutor(1, thread_name_prefix="clebsch-jax-sweep-store") as writer:
+        writes = []
         for g in range(0, len(pending), n_dev):
             rows = _run_batches(plan, pending[g:g + n_dev], run.devices, report)
-            write_rows(root, plan, rows, run_id)
-        if run.progress is True:
-            print(file=sys.stderr, flush=True)
-    return open_sweep(store)
+            used.update(rows.devices)
+            _place(tables, rows.tables, rows.rows)
+            writes.append(writer.submit(write_rows, root, plan, rows, run_id))
+            for w in writes:
+                if w.done():
+                    w.result()  # a failed write stops the sweep now
+        for w in writes:
+            w.result()
+    if run.progress is True:
+        print(file=sys.stderr, flush=True)
+    if len(pending) < n_batches:  # resumed: the skipped batches' rows are in the store only
+        return open_sweep(store)
+    return make_result(plan, tables, len(used))
