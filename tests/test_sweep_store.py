@@ -230,6 +230,9 @@ def test_a_local_cluster_gives_the_in_process_table_even_when_a_worker_dies(refe
     res = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants=inv, store=str(path), client=client, **KW)
     assert flag.exists()  # a worker was killed in the middle of a batch
     assert_same_table(res, reference)
+    # every worker compiled the chunk program at most once for its 2-3 batches (16 steps = 2 chunks of 8)
+    compiled = client.run(lambda: __import__("clebsch_jax.batching.sweep", fromlist=["_"])._run_chunk._cache_size())
+    assert max(compiled.values()) == 1, compiled
     assert np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:]).all()
     assert_same_table(cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants=inv, client=client, **KW), reference)
 
