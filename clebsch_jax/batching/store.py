@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -73,8 +74,6 @@ def store_name(store) -> str:
     if isinstance(store, str):
         return store
     try:
-        import os
-
         return os.fspath(store)
     except TypeError:
         return repr(store)
@@ -82,8 +81,6 @@ def store_name(store) -> str:
 
 def _plain(store):
     """A path-like store as a str (what zarr accepts); other stores unchanged."""
-    import os
-
     return os.fspath(store) if isinstance(store, os.PathLike) else store
 
 
