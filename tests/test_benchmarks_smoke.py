@@ -281,6 +281,21 @@ def check_defaults(summary: dict) -> None:
     assert all(t["met"] in (True, False) for t in targets.values())
 
 
+def check_sweep_scaling(summary: dict) -> None:
+    methods = ("in_process", "in_process_zarr", "cluster_zarr", "cluster")
+    assert summary["config"]["methods"] == list(methods)
+    assert summary["config"]["workers"] == 2 and summary["config"]["threads_per_worker"] == 1
+    for row in summary["results"]:
+        assert row["n_batches"] == -(-row["members"] // row["batch_size"]) >= 2
+        for m in methods:
+            _check_timed(row[m], ("member_steps_per_second",), m)
+        assert set(row["tables_identical_to_in_process"]) == set(methods[1:])
+        for q in row["ratios"].values():
+            assert 0 < q["min"] <= q["median"] <= q["max"]
+    for t in summary["targets"].values():
+        assert t["met"] in (True, False) and math.isfinite(t["value"])
+
+
 CHECKS = {
     "rigid_body_step_cost": check_rigid_body_step_cost,
     "vortex_step_cost": check_vortex_step_cost,
@@ -288,14 +303,18 @@ CHECKS = {
     "work_precision": check_work_precision,
     "soak": check_soak,
     "defaults": check_defaults,
+    "sweep_scaling": check_sweep_scaling,
 }
 
 
-@pytest.mark.slow  # minutes for the six scripts (benchmarks/README.md): run with -m slow, and in CI
+@pytest.mark.slow  # minutes for the seven scripts (benchmarks/README.md): run with -m slow, and in CI
 @pytest.mark.parametrize("name", list(CHECKS))
 def test_benchmark_quick(name, tmp_path):
     if name == "work_precision":  # diffrax is a benchmark peer only: the optional extra [bench]
         pytest.importorskip("diffrax", reason="work_precision needs diffrax: pip install -e '.[bench]'")
+    if name == "sweep_scaling":  # Dask and Zarr are the optional extra [sweep]
+        pytest.importorskip("distributed", reason="sweep_scaling needs dask.distributed: pip install -e '.[sweep]'")
+        pytest.importorskip("zarr", reason="sweep_scaling needs zarr: pip install -e '.[sweep]'")
     subprocess.run([sys.executable, str(BENCHMARKS / f"{name}.py"), "--quick", "--out", str(tmp_path), "--timeout", "0"],
                    check=True, capture_output=True, text=True)
 

@@ -693,6 +693,67 @@ def _collect(tables: _Tables, one: _Batch, run: _Run):
                 tables.saved[key][one.rows, -1] = take(value)
 
 
+class _Plan(NamedTuple):
+    """Everything a batch needs, built once by `sweep` (and sent once to each Dask worker)."""
+
+    cfg: _Config
+    members: _Members
+    shapes: _Shapes
+    run: _Run  # with progress False and devices [None]
+    batch_size: int
+
+
+class _Rows(NamedTuple):
+    """The table rows of some batches: `tables` holds them one after the other."""
+
+    batches: list  # batch indices
+    rows: list  # each batch's rows of the sweep's table (slices)
+    tables: _Tables
+    devices: set  # the devices they ran on
+
+
+def _run_batches(plan: _Plan, batches: list, devices: list, report: Callable) -> _Rows:
+    """Run batches side by side (batch i on `devices[i]`; None: JAX's default placement) → their
+    table rows. The one function behind an in-process sweep, a stored one and a Dask task: the
+    same program on the same padded inputs, so the rows are the same to the bit wherever they
+    are computed."""
+    cfg, members, shapes, run, bs = plan
+    group = [_start_batch(cfg, members, shapes, b, bs, dev) for b, dev in zip(batches, devices)]
+    rows, at = [], 0
+    for one in group:  # each batch's rows in the group's own table
+        rows.append(one.rows)
+        one.rows = slice(at, at + one.n_real)
+        at += one.n_real
+    tables = _allocate_tables(at, shapes, run)
+    _run_chunks(cfg, group, run, tables.saved, report)
+    used = set()
+    for one in group:
+        used.update(one.carry.status.devices())
+        _collect(tables, one, run)
+    return _Rows(list(batches), rows, tables, used)
+
+
+def _place(tables: _Tables, part: _Tables, rows: list):
+    """Copy a `_Rows` table `part` (its batches' rows one after the other) into `tables`."""
+    def put(dst, src):
+        if dst is None:
+            return
+        start = 0
+        for r in rows:
+            n = r.stop - r.start
+            dst[r] = src[start:start + n]
+            start += n
+
+    for key, column in tables.columns.items():
+        put(column, part.columns[key])
+    for k in tables.drift:
+        put(tables.initial[k], part.initial[k])
+        put(tables.drift[k], part.drift[k])
+    if tables.saved is not None:
+        for key in ("t", "Q", "xi", "momentum"):
+            put(tables.saved[key], part.saved[key])
+
+
 # --------------------------------------------------------------------------------------------
 # The entry point.
 
@@ -701,7 +762,7 @@ def sweep(
     make_system, params, Q0, xi0, *, dt, n_steps: int, P0=None, grid: bool = False,
     invariants: dict | None = None, chunk_steps: int | None = None, batch_size: int | None = None,
     save_every: int | None = None, member_chunk: int | None = None, devices=None, progress=False,
-    **options,
+    store=None, client=None, overwrite: bool = False, **options,
 ) -> SweepResult:
     r"""Run many members — parameters × initial conditions — through `integrate`; keep a table.
 
@@ -770,6 +831,21 @@ def sweep(
     - `progress`: False (default); True prints one updating line per chunk to stderr; or a
       callable receiving a `SweepProgress` after every chunk. Progress waits for each chunk to
       finish (otherwise chunks are dispatched asynchronously).
+    - `store`: None (default: the table is kept in memory only), or a Zarr v3 store (a path or a
+      `zarr` store): every finished batch is written to it, with named dimensions and the
+      sweep's configuration as attributes, so `xarray.open_zarr(store)` reads it and
+      `clebsch_jax.open_sweep(store)` gives the `SweepResult` back. Running the same sweep with
+      the same store again skips the batches already written (and says how many members it
+      skipped): a sweep killed at any moment resumes where it stopped, with the same table to
+      the bit. A store written by another configuration is refused (`clebsch_jax.batching.store`).
+      Needs the optional extra `pip install "clebsch-jax[sweep]"`.
+    - `client`: None, or a `dask.distributed.Client`: batches run as Dask tasks on its workers
+      (a `LocalCluster` of processes, or any cluster with a scheduler address), each worker
+      compiling the batch program once; with `store`, workers write their batches to it (it must
+      be reachable from every worker). A task whose worker dies is rerun by Dask elsewhere.
+      The table is identical to the bit to the in-process one (`clebsch_jax.batching.distributed`).
+    - `overwrite`: with `store`, replace a store written by another configuration instead of
+      refusing it.
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own.
@@ -783,6 +859,10 @@ def sweep(
     changing array values does not.
     """
     run = _check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, invariants, progress, devices)
+    if store is not None or client is not None or overwrite is not False:
+        from .store import check_arguments
+
+        check_arguments(store, client, overwrite)
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
     B, n_dev = members.B, len(run.devices)
     if batch_size is None:
@@ -795,18 +875,28 @@ def sweep(
     # groups of batches (one batch per device) × chunks
     n_batches = -(-B // batch_size)
     report = _reporter(run.progress, n_batches, run.n_steps, B, batch_size)
+    plan = _Plan(cfg, members, shapes, run._replace(progress=False, devices=[None]), batch_size)
+    if store is not None or client is not None:
+        from . import store as _store  # zarr, dask: the optional extra [sweep]
+
+        return _store.run_stored(plan, run, tables, store=store, client=client, overwrite=overwrite,
+                                 report=report, make_result=_result)
     used = set()
     for g in range(0, n_batches, n_dev):
-        group = [_start_batch(cfg, members, shapes, b, batch_size, dev)
-                 for b, dev in zip(range(g, min(g + n_dev, n_batches)), run.devices)]
-        _run_chunks(cfg, group, run, tables.saved, report)
-        for one in group:
-            used.update(one.carry.status.devices())
-            _collect(tables, one, run)
+        rows = _run_batches(plan, list(range(g, min(g + n_dev, n_batches))), run.devices, report)
+        used.update(rows.devices)
+        _place(tables, rows.tables, rows.rows)
     if run.progress is True:
         print(file=sys.stderr, flush=True)
+    return _result(plan, tables, len(used))
+
+
+def _result(plan: "_Plan", tables: _Tables, n_devices: int) -> SweepResult:
+    """The `SweepResult` of a plan's filled-in tables."""
+    members, run = plan.members, plan.run
     return SweepResult(
         param_index=members.param_index, ic_index=members.ic_index, energy_error=tables.drift["energy"],
         drift=tables.drift, initial=tables.initial, saved=tables.saved, n_steps=run.n_steps,
-        chunk_steps=run.chunk_steps, batch_size=batch_size, n_devices=len(used), **tables.columns, **shapes.facts,
+        chunk_steps=run.chunk_steps, batch_size=plan.batch_size, n_devices=n_devices, **tables.columns,
+        **plan.shapes.facts,
     )

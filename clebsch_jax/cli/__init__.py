@@ -2,10 +2,11 @@
 
 Built on the public API only (`import clebsch_jax as cj`), like any program using the library:
 
-- `_commands`: the parser and the subcommands `demo`, `run SCENE`, `bench` (`main`);
+- `_commands`: the parser and the subcommands `demo`, `run SCENE`, `bench`, `sweep` (`main`);
 - `_scenes`: the built-in scenes of `run` and `demo`, as data, and the chunked run that reduces
   a scene's batch to a summary and a plot;
-- `_demo`: the scene of Figure 1 of the paper (the rigid body of Example 30).
+- `_demo`: the scene of Figure 1 of the paper (the rigid body of Example 30);
+- `_sweep`: the subcommand `sweep` (a TOML-described `clebsch_jax.sweep` into a Zarr store).
 
 `python -m clebsch_jax`, `python -m clebsch_jax.cli` and the `clebsch-jax` script all run `main`.
 """

@@ -11,6 +11,8 @@ Subcommands:
   bar on stderr for long runs.
 - `bench [NAME ...]`: the scripts of the repository's `benchmarks/` folder, each in a
   subprocess with this Python (`--quick` passed through).
+- `sweep CONFIG.toml --store OUT.zarr [--workers N | --scheduler ADDRESS]`: a parameter sweep
+  described by a TOML file into a resumable Zarr store, here or on Dask workers (`_sweep`).
 
 Each subcommand is a `_add_<name>(subparsers)` function that registers its parser and sets
 `handler`.
@@ -706,6 +708,12 @@ def _add_bench(subparsers) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+def _add_sweep(subparsers) -> None:
+    from ._sweep import add
+
+    add(subparsers)
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog=PROG,
@@ -717,6 +725,7 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_demo(subparsers)
     _add_run(subparsers)
     _add_bench(subparsers)
+    _add_sweep(subparsers)
     return parser
 
 

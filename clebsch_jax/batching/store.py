@@ -1,0 +1,481 @@
+r"""A sweep's table in a Zarr (v3) store, written batch by batch: resumable, readable by xarray.
+
+`cj.sweep(..., store=path)` creates the store (or reopens it), then writes each batch's rows
+as soon as the batch is finished. `xarray.open_zarr(path)` is the analysis entry point and
+`cj.open_sweep(path)` gives the `SweepResult` back.
+
+**Layout.** One Zarr group; every array carries its dimension names (Zarr v3
+`dimension_names`, which xarray reads):
+
+- `member` (member,) and, per member, `param_index`, `ic_index`, `dt`, `status`, `failed_step`,
+  `energy_error`, `newton_iterations`, `max_residual`, `final_t`, `final_Q`, `final_p`,
+  `final_xi`, `final_momentum` (the state arrays with one more dimension per axis of Q or ξ:
+  `Q_axis0`, … and `component`, …), `initial_<k>` and `drift_<k>` of every invariant but the
+  energy (the names in the attribute `invariants`; `drift_energy` is `energy_error`);
+- the inputs: `Q0`, `xi0` (`P0` if given) over (ic, …) and every parameter leaf `params_<i>`
+  over (param, …); the member's row of them is `ic_index`, `param_index`;
+- with `save_every`: `saved_step` (node,) and `saved_t`, `saved_Q`, `saved_xi`,
+  `saved_momentum` over (member, node, …);
+- `batch_done` (batch,) and `batch_run` (batch,): whether batch b is written, and by which run
+  of the sweep (1 for the first, 2 for the first resume, …).
+
+Per-member arrays are chunked by the sweep's `batch_size` along `member`, so each batch writes
+whole chunks of its own and batches written at once by different processes never share one.
+
+**Resume.** The attribute `clebsch_jax_sweep` holds the sweep's configuration: the method and
+its options, `n_steps`, `batch_size`, `chunk_steps`, `save_every`, the invariants' names, the
+model, the number of members and a SHA-256 of every input array (parameters, `Q0`, `xi0`,
+`P0`, `dt`), and the package version. Running a sweep with an existing store compares them:
+a difference is refused (`SweepStoreError` naming the store and the differing entries) unless
+`overwrite=True`, which starts the store afresh. With the same configuration, every batch whose
+`batch_done` flag is set is skipped. The flag is written after the batch's data, so a process
+killed at any instant leaves either a batch marked done with all its data, or one not marked
+done, which the next run computes again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import sys
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+__all__ = ["open_sweep", "SweepStoreError"]
+
+ATTR = "clebsch_jax_sweep"
+FORMAT = 1  # the layout's version, part of the configuration
+
+_EXTRA = 'pip install "clebsch-jax[sweep]"'
+_COLUMNS = ("status", "failed_step", "newton_iterations", "max_residual", "final_t", "final_Q", "final_p",
+            "final_xi", "final_momentum")
+_SAVED = ("t", "Q", "xi", "momentum")
+
+
+class SweepStoreError(ValueError):
+    """A sweep store that cannot be used: another configuration, unfinished, truncated or corrupted."""
+
+
+def _zarr():
+    try:
+        import zarr
+    except ImportError:
+        raise ImportError(f"store=: writing a sweep to Zarr needs the zarr package (v3): {_EXTRA}") from None
+    if int(zarr.__version__.split(".")[0]) < 3:
+        raise ImportError(f"store=: needs zarr >= 3 (found {zarr.__version__}): {_EXTRA}")
+    return zarr
+
+
+def store_name(store) -> str:
+    """How errors name a store: its path, or its repr."""
+    if isinstance(store, str):
+        return store
+    try:
+        return os.fspath(store)
+    except TypeError:
+        return repr(store)
+
+
+def _plain(store):
+    """A path-like store as a str (what zarr accepts); other stores unchanged."""
+    return os.fspath(store) if isinstance(store, os.PathLike) else store
+
+
+# --------------------------------------------------------------------------------------------
+# The configuration a store belongs to.
+
+
+def _digest(arrays) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        if a is None:
+            h.update(b"none")
+            continue
+        a = np.ascontiguousarray(np.asarray(a))
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _describe(obj) -> str:
+    """A repr without memory addresses (they change from process to process)."""
+    if callable(obj) and hasattr(obj, "__qualname__"):
+        return f"{getattr(obj, '__module__', '?')}.{obj.__qualname__}"
+    return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(obj))
+
+
+def configuration(plan) -> dict:
+    """The sweep's configuration, as stored in the attribute `clebsch_jax_sweep` (JSON)."""
+    from .. import __version__
+    import jax
+
+    cfg, members, shapes, run, batch_size = plan
+    dts = np.unique(members.dt)
+    return {
+        "format": FORMAT,
+        "package_version": __version__,
+        "model": "shared system" if members.builder is None else _describe(members.builder),
+        "method": shapes.facts["method"] or shapes.facts["scheme"],
+        "scheme": shapes.facts["scheme"],
+        "form": shapes.facts["form"],
+        "order": shapes.facts["order"],
+        "options": {k: _describe(v) for k, v in cfg.options},
+        "dt": float(dts[0]) if len(dts) == 1 else "one per member",
+        "n_steps": run.n_steps,
+        "chunk_steps": run.chunk_steps,
+        "save_every": run.save_every,
+        "batch_size": batch_size,
+        "n_members": members.B,
+        "n_batches": -(-members.B // batch_size),
+        "invariants": [name for name in run.invariants if name != "energy"],
+        "inputs_sha256": _digest([*jax.tree_util.tree_leaves(members.params), members.Q0, members.xi0, members.P0,
+                                  members.dt, members.param_index, members.ic_index,
+                                  *(members.shared or [])]),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Creating, checking and writing.
+
+
+def _dims(prefix: str, shape: tuple) -> list:
+    return [f"{prefix}{k}" for k in range(len(shape))]
+
+
+def _xi_dims(shape: tuple) -> list:
+    return ["component"] if len(shape) == 1 else _dims("component", shape)
+
+
+def _variables(plan) -> dict:
+    """{name: (dimension names, shape, dtype, chunk along the first axis)} of every array."""
+    cfg, members, shapes, run, bs = plan
+    import jax
+
+    B, q, x = members.B, shapes.q, shapes.xi
+    qd, xd = _dims("Q_axis", q), _xi_dims(x)
+    n_batches = -(-B // bs)
+    out = {
+        "member": (["member"], (B,), np.int64, bs),
+        "param_index": (["member"], (B,), np.int64, bs),
+        "ic_index": (["member"], (B,), np.int64, bs),
+        "dt": (["member"], (B,), np.float64, bs),
+        "status": (["member"], (B,), np.int32, bs),
+        "failed_step": (["member"], (B,), np.int32, bs),
+        "energy_error": (["member"], (B,), np.float64, bs),
+        "newton_iterations": (["member"], (B,), np.int64, bs),
+        "max_residual": (["member"], (B,), np.float64, bs),
+        "final_t": (["member"], (B,), np.float64, bs),
+        "final_p": (["member"] + qd, (B,) + q, np.float64, bs),
+        "final_momentum": (["member"] + xd, (B,) + x, np.float64, bs),
+        "Q0": (["ic"] + qd, members.Q0.shape, np.float64, bs),
+        "xi0": (["ic"] + xd, members.xi0.shape, np.float64, bs),
+        "batch_done": (["batch"], (n_batches,), np.bool_, 1),
+        "batch_run": (["batch"], (n_batches,), np.int32, 1),
+    }
+    if shapes.has_Q:
+        out["final_Q"] = (["member"] + qd, (B,) + q, np.float64, bs)
+    if shapes.has_xi:
+        out["final_xi"] = (["member"] + xd, (B,) + x, np.float64, bs)
+    if members.P0 is not None:
+        out["P0"] = (["ic"] + qd, members.P0.shape, np.float64, bs)
+    if members.builder is not None:
+        for i, leaf in enumerate(jax.tree_util.tree_leaves(members.params)):
+            shape = tuple(np.shape(leaf))
+            out[f"params_{i}"] = (["param"] + _dims(f"params_{i}_axis", shape[1:]), shape, np.float64, bs)
+    for k, (name, v) in enumerate(shapes.invariants.items()):
+        if name == "energy":
+            continue
+        tail = tuple(v.shape[1:])
+        out[f"initial_{k}"] = (["member"] + _dims(f"initial_{k}_axis", tail), (B,) + tail, v.dtype, bs)
+        out[f"drift_{k}"] = (["member"], (B,), np.float64, bs)
+    out["initial_energy"] = (["member"], (B,), shapes.invariants["energy"].dtype, bs)
+    if run.save_every is not None:
+        S = len(range(0, run.n_steps + 1, run.save_every))
+        out["saved_step"] = (["node"], (S,), np.int64, S)
+        out["saved_t"] = (["member", "node"], (B, S), np.float64, bs)
+        out["saved_momentum"] = (["member", "node"] + xd, (B, S) + x, np.float64, bs)
+        if shapes.has_Q:
+            out["saved_Q"] = (["member", "node"] + qd, (B, S) + q, np.float64, bs)
+        if shapes.has_xi:
+            out["saved_xi"] = (["member", "node"] + xd, (B, S) + x, np.float64, bs)
+    return out
+
+
+def _invariant_keys(shapes) -> dict:
+    """{invariant name: the suffix of its arrays}: its position, since a name may hold any character."""
+    return {name: ("energy" if name == "energy" else str(k)) for k, name in enumerate(shapes.invariants)}
+
+
+def _create(zarr, store, plan, config: dict):
+    with zarr.config.set({"array.write_empty_chunks": True}):
+        return _fill(zarr.open_group(_plain(store), mode="w"), plan, config)
+
+
+def _fill(root, plan, config: dict):
+    import jax
+
+    cfg, members, shapes, run, bs = plan
+    for name, (dims, shape, dtype, chunk) in _variables(plan).items():
+        chunks = (max(1, min(chunk, shape[0])),) + tuple(shape[1:]) if shape else ()
+        fill = False if dtype == np.bool_ else (0 if np.issubdtype(dtype, np.integer) else np.nan)
+        root.create_array(name, shape=shape, dtype=dtype, chunks=chunks, dimension_names=dims, fill_value=fill)
+    root["member"][:] = np.arange(members.B)
+    root["param_index"][:] = members.param_index
+    root["ic_index"][:] = members.ic_index
+    root["dt"][:] = members.dt
+    root["Q0"][:] = members.Q0
+    root["xi0"][:] = members.xi0
+    if members.P0 is not None:
+        root["P0"][:] = members.P0
+    if members.builder is not None:
+        for i, leaf in enumerate(jax.tree_util.tree_leaves(members.params)):
+            root[f"params_{i}"][:] = np.asarray(leaf)
+    if run.save_every is not None:
+        root["saved_step"][:] = np.arange(0, run.n_steps + 1, run.save_every)
+    keys = _invariant_keys(shapes)
+    # the configuration last: a store without it was not finished being created
+    root.attrs.update({"invariant_arrays": keys, "runs": 0, "description": "clebsch_jax.sweep table",
+                       **{k: config[k] for k in ("method", "dt", "n_steps", "package_version")}, ATTR: config})
+    return root
+
+
+def _open_group(zarr, store, mode: str):
+    try:
+        return zarr.open_group(_plain(store), mode=mode)
+    except Exception as err:  # zarr raises several kinds for a missing or unreadable group
+        raise SweepStoreError(f"store {store_name(store)!r}: not a readable Zarr group ({type(err).__name__}: "
+                              f"{err}).") from err
+
+
+def open_for_run(store, plan, overwrite: bool):
+    """The store of this sweep: created, or reopened after checking its configuration."""
+    zarr = _zarr()
+    config = json.loads(json.dumps(configuration(plan)))  # as it reads back (tuples become lists)
+    name = store_name(store)
+    try:
+        root = zarr.open_group(_plain(store), mode="r")
+        exists = True
+    except Exception:  # nothing there yet (or not a group: refused below unless overwrite)
+        exists = False
+    if exists and len(list(root.keys())) == 0 and not root.attrs.asdict():
+        exists = False  # an empty group: nothing to keep
+    if exists and not overwrite:
+        stored = root.attrs.get(ATTR)
+        if stored is None:
+            raise SweepStoreError(f"store {name!r}: holds no clebsch_jax sweep configuration (attribute {ATTR!r}): "
+                                  "another kind of data, or a store whose creation was interrupted; pass "
+                                  "overwrite=True to replace it.")
+        diff = sorted(k for k in set(stored) | set(config) if stored.get(k) != config.get(k))
+        if diff:
+            shown = "; ".join(f"{k}: stored {stored.get(k)!r}, this sweep {config.get(k)!r}" for k in diff[:4])
+            raise SweepStoreError(f"store {name!r} was written by another sweep configuration ({shown}). Use "
+                                  "another store, or overwrite=True to replace it.")
+        root = _open_group(zarr, store, "r+")
+        _check_layout(root, plan, name)
+        return root
+    return _create(zarr, store, plan, config)
+
+
+def _check_layout(root, plan, name: str):
+    """Every array the configuration implies is there with its shape: else a clear error."""
+    have = set(root.array_keys())
+    for var, (_, shape, _, _) in _variables(plan).items():
+        if var not in have:
+            raise SweepStoreError(f"store {name!r}: the array {var!r} is missing (a truncated or corrupted store); "
+                                  "pass overwrite=True to start it afresh.")
+        if tuple(root[var].shape) != tuple(shape):
+            raise SweepStoreError(f"store {name!r}: the array {var!r} has shape {tuple(root[var].shape)}, expected "
+                                  f"{tuple(shape)} (a corrupted store); pass overwrite=True to start it afresh.")
+
+
+def done_batches(root, name: str) -> np.ndarray:
+    try:
+        return np.asarray(root["batch_done"][:], bool)
+    except Exception as err:
+        raise SweepStoreError(f"store {name!r}: cannot read 'batch_done' ({type(err).__name__}: {err}): a corrupted "
+                              "store; pass overwrite=True to start it afresh.") from err
+
+
+def write_rows(root, plan, rows, run_id: int):
+    """Write finished batches (a `_Rows`) into the store: data first, then each batch's flags."""
+    shapes = plan.shapes
+    keys = _invariant_keys(shapes)
+    part = rows.tables
+    arrays = {k: part.columns[k] for k in _COLUMNS if part.columns[k] is not None}
+    for name, key in keys.items():
+        arrays[f"initial_{key}"] = part.initial[name]
+        if name != "energy":
+            arrays[f"drift_{key}"] = part.drift[name]
+    arrays["energy_error"] = part.drift["energy"]
+    if part.saved is not None:
+        arrays.update({f"saved_{k}": part.saved[k] for k in _SAVED if part.saved[k] is not None})
+    start = 0
+    spans = []
+    for r in rows.rows:
+        n = r.stop - r.start
+        spans.append((r, slice(start, start + n)))
+        start += n
+    # every chunk written, even one that equals the fill value: a missing chunk means a truncated store
+    with _zarr().config.set({"array.write_empty_chunks": True}):
+        for var, data in arrays.items():
+            target = root[var]
+            for r, local in spans:
+                target[r] = data[local]
+    for b in rows.batches:
+        root["batch_run"][b] = run_id
+        root["batch_done"][b] = True  # last: the batch counts as done only with all its data written
+
+
+def start_run(root) -> int:
+    """The number of this run of the sweep on the store (1, 2, …), recorded in its attributes."""
+    run_id = int(root.attrs.get("runs", 0)) + 1
+    root.attrs["runs"] = run_id
+    return run_id
+
+
+# --------------------------------------------------------------------------------------------
+# Reading back.
+
+
+def open_sweep(store):
+    """The `SweepResult` of a finished sweep written to `store` (`cj.sweep(..., store=)`).
+
+    **Arguments:**
+
+    - `store`: the store's path or a `zarr` store.
+
+    **Returns:** a `SweepResult` equal to the bit to the one the sweep returned (its
+    `n_devices` is 1).
+
+    Raises `SweepStoreError` naming the store when it is not a sweep store, when some batches
+    are not written yet (rerun the sweep with the same store to finish them), or when it is
+    truncated or corrupted. For analysis, `xarray.open_zarr(store)` reads the same arrays with
+    their dimension names.
+    """
+    from .sweep import SweepResult
+
+    zarr = _zarr()
+    name = store_name(store)
+    root = _open_group(zarr, store, "r")
+    config = root.attrs.get(ATTR)
+    if config is None:
+        raise SweepStoreError(f"store {name!r}: holds no clebsch_jax sweep (no attribute {ATTR!r}).")
+    done = done_batches(root, name)
+    if not done.all():
+        raise SweepStoreError(f"store {name!r}: {int((~done).sum())} of {len(done)} batches are not written yet "
+                              "(the sweep was interrupted): run the same sweep with this store to finish it.")
+    keys = root.attrs.get("invariant_arrays", {})
+    per_member = {"param_index", "ic_index", "energy_error", *_COLUMNS,
+                  *(f"{kind}_{key}" for key in keys.values() for kind in ("initial", "drift")),
+                  *(f"saved_{k}" for k in _SAVED)}
+
+    def read(var, required=True):
+        if var not in root.array_keys():
+            if required:
+                raise SweepStoreError(f"store {name!r}: the array {var!r} is missing (a truncated or corrupted "
+                                      "store).")
+            return None
+        try:
+            arr = root[var]
+            if var in per_member and arr.nchunks_initialized < arr.nchunks:
+                raise SweepStoreError(f"store {name!r}: {arr.nchunks - arr.nchunks_initialized} of {arr.nchunks} "
+                                      f"chunks of {var!r} are missing (a truncated store); rerun the sweep with "
+                                      "overwrite=True.")
+            return np.asarray(arr[...])
+        except SweepStoreError:
+            raise
+        except Exception as err:  # a truncated or garbled chunk: codecs raise many kinds
+            raise SweepStoreError(f"store {name!r}: cannot read {var!r} ({type(err).__name__}: {err}): a "
+                                  "truncated or corrupted store; rerun the sweep with overwrite=True.") from err
+
+    columns = {k: read(k, required=k not in ("final_Q", "final_xi")) for k in _COLUMNS}
+    drift = {"energy": read("energy_error")}
+    initial = {}
+    for inv, key in keys.items():
+        initial[inv] = read(f"initial_{key}")
+        if inv != "energy":
+            drift[inv] = read(f"drift_{key}")
+    saved = None
+    if config["save_every"] is not None:
+        saved = {"step": read("saved_step"), "t": read("saved_t"), "Q": read("saved_Q", False),
+                 "xi": read("saved_xi", False), "momentum": read("saved_momentum")}
+    return SweepResult(
+        param_index=read("param_index"), ic_index=read("ic_index"), energy_error=drift["energy"], drift=drift,
+        initial=initial, saved=saved, n_steps=config["n_steps"], chunk_steps=config["chunk_steps"],
+        batch_size=config["batch_size"], n_devices=1, form=config["form"], scheme=config["scheme"],
+        order=config["order"], method=config["method"], **columns)
+
+
+# --------------------------------------------------------------------------------------------
+# A stored sweep: skip what is done, run the rest (here or on a Dask cluster), read it back.
+
+
+def check_arguments(store, client, overwrite) -> None:
+    """`sweep`'s `store`, `client` and `overwrite`, checked before anything is traced or compiled
+    (the optional packages they need named with the extra that installs them)."""
+    if overwrite not in (True, False):
+        raise ValueError(f"overwrite: expected True or False, got {overwrite!r}.")
+    if overwrite and store is None:
+        raise ValueError("overwrite: True replaces a store, but no store= was given.")
+    if store is not None:
+        _zarr()
+        if isinstance(store, (str, bytes)) and not store:
+            raise ValueError("store: expected a path or a zarr store, got an empty string.")
+    if client is not None:
+        from .distributed import check_client
+
+        check_client(client)
+
+
+def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, make_result):
+    """`sweep` with `store=` and/or `client=`: called by `sweep` after `check_arguments` and its
+    own checks."""
+    from .sweep import _place, _run_batches
+
+    B, bs = plan.members.B, plan.batch_size
+    n_batches = -(-B // bs)
+    if store is None:  # a Dask cluster, the table kept in memory
+        from .distributed import run_on_client
+
+        for rows in run_on_client(client, plan, list(range(n_batches)), None, 0, run.progress):
+            _place(tables, rows.tables, rows.rows)
+        return make_result(plan, tables, 1)
+    name = store_name(store)
+    root = open_for_run(store, plan, overwrite)
+    done = done_batches(root, name)
+    pending = [b for b in range(n_batches) if not done[b]]
+    if len(pending) < n_batches:
+        skipped = B - sum(min(bs, B - b * bs) for b in pending)
+        print(f"sweep: store {name!r}: skipped {skipped} of {B} members already written "
+              f"({n_batches - len(pending)} of {n_batches} batches); computing the other {len(pending)} batches.",
+              file=sys.stderr, flush=True)
+    run_id = start_run(root)
+    if client is not None:
+        from .distributed import run_on_client
+
+        for _ in run_on_client(client, plan, pending, store, run_id, run.progress):
+            pass
+        return open_sweep(store)
+    # Each group's rows go to the store from a writer thread while the next group computes; the
+    # table is kept in memory too. Leaving the `with` (also on Ctrl-C) waits for the writes under way.
+    n_dev, used = len(run.devices), set()
+    with ThreadPoolExecutor(1, thread_name_prefix="clebsch-jax-sweep-store") as writer:
+        writes = []
+        for g in range(0, len(pending), n_dev):
+            rows = _run_batches(plan, pending[g:g + n_dev], run.devices, report)
+            used.update(rows.devices)
+            _place(tables, rows.tables, rows.rows)
+            writes.append(writer.submit(write_rows, root, plan, rows, run_id))
+            for w in writes:
+                if w.done():
+                    w.result()  # a failed write stops the sweep now
+        for w in writes:
+            w.result()
+    if run.progress is True:
+        print(file=sys.stderr, flush=True)
+    if len(pending) < n_batches:  # resumed: the skipped batches' rows are in the store only
+        return open_sweep(store)
+    return make_result(plan, tables, len(used))

@@ -1,0 +1,339 @@
+r"""Sweeps written to a Zarr store (`cj.sweep(store=)`, `cj.open_sweep`) and run on Dask
+(`cj.sweep(client=)`): the stored table equals the in-memory one to the bit and reads back with
+xarray; a sweep killed (SIGKILL) after some batches resumes and recomputes only the rest; a
+store of another configuration is refused; a truncated or corrupted store is a clear error; a
+`LocalCluster` of two processes gives the in-process table to the bit, even when a worker dies
+in the middle of a batch.
+
+Compilation dominates: the in-process tests share one compiled chunk program (every sweep
+here uses `KW`, only array values change). The subprocess and cluster tests compile again in
+each process and are marked slow.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax.models import rigid_body
+
+zarr = pytest.importorskip("zarr")
+xarray = pytest.importorskip("xarray")
+
+
+def casimir(system, sol):
+    """|μ|² at every node: the Casimir of the rigid body's Lie–Poisson bracket."""
+    return jnp.sum(sol.momentum**2, axis=-1)
+
+
+KW = dict(dt=0.05, n_steps=16, chunk_steps=8, batch_size=2, save_every=4, grid=True)
+INERTIAS = np.array([[2.0, 1.0, 2.0 / 3.0], [1.0, 1.5, 0.5], [3.0, 2.0, 1.0]])
+OMEGAS = np.array([[1.3, 0.8, -0.4], [0.2, 1.0, 0.3], [-0.5, 0.1, 0.9]])
+EYES = np.broadcast_to(np.eye(3), (3, 3, 3))
+N_MEMBERS, N_BATCHES = 9, 5  # 3 inertias × 3 momenta in batches of 2: the last one padded
+
+
+def assert_same_table(a, b):
+    """Every per-member array equal to the bit (NaN where NaN), and the same static facts."""
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    assert ta == tb
+    for x, y in zip(la, lb):
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.dtype == y.dtype and x.shape == y.shape
+        assert np.array_equal(x, y, equal_nan=True)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, **KW)
+
+
+def stored(path, **change):
+    return cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, store=str(path),
+                    **{**KW, **change})
+
+
+def test_store_round_trip_with_xarray_and_open_sweep(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    res = stored(path)
+    assert_same_table(res, reference)
+    assert_same_table(cj.open_sweep(path), reference)
+
+    ds = xarray.open_zarr(path, consolidated=False)
+    assert ds.sizes["member"] == N_MEMBERS and ds.sizes["batch"] == N_BATCHES
+    assert ds["final_Q"].dims == ("member", "Q_axis0", "Q_axis1")
+    assert ds["saved_momentum"].dims == ("member", "node", "component")
+    assert ds["params_0"].dims == ("param", "params_0_axis0") and ds["Q0"].dims[0] == "ic"
+    np.testing.assert_array_equal(ds["params_0"].values[ds["param_index"].values], INERTIAS[reference.param_index])
+    np.testing.assert_array_equal(ds["status"].values, reference.status)
+    key = ds.attrs["invariant_arrays"]["casimir"]
+    np.testing.assert_array_equal(ds[f"drift_{key}"].values, reference.drift["casimir"])
+    assert ds.attrs["method"] == reference.method and ds.attrs["dt"] == KW["dt"]
+    assert ds.attrs["package_version"] == cj.__version__
+    assert ds["batch_done"].values.all() and (ds["batch_run"].values == 1).all()
+
+
+def test_a_store_of_another_configuration_is_refused(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    for change in ({"dt": 0.04}, {"n_steps": 24}, {"batch_size": 3}):
+        with pytest.raises(cj.SweepStoreError, match=f"store '{path}'.*another sweep configuration"):
+            stored(path, **change)
+    with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*inputs_sha256"):
+        cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS + 0.125, invariants={"casimir": casimir}, store=str(path), **KW)
+    res = stored(path, dt=0.04, overwrite=True)
+    assert_same_table(res, cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir},
+                                    **{**KW, "dt": 0.04}))
+    assert xarray.open_zarr(path, consolidated=False).attrs["dt"] == 0.04
+
+
+def test_a_truncated_or_corrupted_store_is_a_clear_error(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    chunk = path / "final_p" / "c" / "1" / "0" / "0"
+    assert chunk.is_file()
+    data = chunk.read_bytes()
+    chunk.write_bytes(data[: len(data) // 2])  # a garbled chunk of batch 1
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': cannot read 'final_p'"):
+        cj.open_sweep(path)
+    chunk.unlink()  # a missing chunk would read as NaN: it is reported instead
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': 1 of {N_BATCHES} chunks of 'final_p' are missing"):
+        cj.open_sweep(path)
+    (path / "status" / "zarr.json").unlink()  # an array gone
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': the array 'status' is missing"):
+        stored(path)
+    (path / "zarr.json").unlink()  # not a group any more
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}'"):
+        cj.open_sweep(path)
+
+
+def test_an_unfinished_store_is_not_read_as_a_result(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    root = zarr.open_group(str(path), mode="r+")
+    root["batch_done"][3] = False
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': 1 of {N_BATCHES} batches are not written"):
+        cj.open_sweep(path)
+
+
+def test_store_needs_the_optional_extra(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "zarr", None)  # as if not installed
+    with pytest.raises(ImportError, match=r"clebsch-jax\[sweep\]"):
+        stored(tmp_path / "sweep.zarr")
+
+
+def test_bad_store_client_and_overwrite_are_refused_before_compiling(tmp_path):
+    pytest.importorskip("distributed")
+    bad = [({"overwrite": True}, ValueError, "overwrite: True replaces a store, but no store= was given"),
+           ({"overwrite": "yes", "store": str(tmp_path / "s.zarr")}, ValueError, "overwrite: expected True or False"),
+           ({"client": "tcp://localhost:8786"}, ValueError, "client: expected a dask.distributed.Client, got str"),
+           ({"store": ""}, ValueError, "store: expected a path")]
+    for change, kind, message in bad:
+        with pytest.raises(kind, match=message):
+            cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, **{**KW, **change})
+    assert not (tmp_path / "s.zarr").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Killed and resumed.
+
+SCRIPT = textwrap.dedent("""
+    import sys, time
+    import jax.numpy as jnp
+    import numpy as np
+    import clebsch_jax as cj
+
+    def casimir(system, sol):
+        return jnp.sum(sol.momentum**2, axis=-1)
+
+    data = np.load(sys.argv[2])
+    cj.sweep(cj.models.rigid_body, data["inertias"], data["eyes"], data["omegas"], dt=0.05, n_steps=16,
+             chunk_steps=8, batch_size=2, save_every=4, grid=True, invariants={"casimir": casimir},
+             store=sys.argv[1], progress=lambda info: time.sleep(0.5))  # slow enough to be killed mid-run
+""")
+
+
+@pytest.mark.slow
+def test_a_sweep_killed_after_some_batches_resumes_with_the_same_table(reference, tmp_path, capsys):
+    path, inputs = tmp_path / "sweep.zarr", tmp_path / "inputs.npz"
+    np.savez(inputs, inertias=INERTIAS, eyes=EYES, omegas=OMEGAS)
+    (tmp_path / "run.py").write_text(SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(tmp_path / "run.py"), str(path), str(inputs)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    done = np.zeros(N_BATCHES, bool)
+    deadline = time.monotonic() + 300
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                done = np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:])
+            except Exception:  # not created yet
+                pass
+            if done.any():
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()[1].decode()[-2000:]
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    done = np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:])
+    assert 1 <= done.sum() < N_BATCHES, done
+    written_before = done.copy()
+
+    capsys.readouterr()
+    res = stored(path)
+    skipped = sum(min(KW["batch_size"], N_MEMBERS - b * KW["batch_size"]) for b in np.flatnonzero(written_before))
+    assert f"skipped {skipped} of {N_MEMBERS} members" in capsys.readouterr().err
+    assert_same_table(res, reference)
+    runs = np.asarray(zarr.open_group(str(path), mode="r")["batch_run"][:])
+    np.testing.assert_array_equal(runs, np.where(written_before, 1, 2))  # only the unfinished batches rerun
+
+
+# --------------------------------------------------------------------------------------------
+# Dask.
+
+
+@pytest.fixture(scope="module")
+def client():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
+            distributed.Client(cl) as c:
+        yield c
+
+
+def killing_casimir(flag: str, driver: int):
+    """`casimir`, but the first worker process that traces it SIGKILLs itself (once, flagged
+    by the file `flag`): a worker dying in the middle of its first batch."""
+    def f(system, sol):
+        if os.getpid() != driver and not os.path.exists(flag):
+            open(flag, "w").close()
+            os.kill(os.getpid(), signal.SIGKILL)
+        return jnp.sum(sol.momentum**2, axis=-1)
+
+    return f
+
+
+@pytest.mark.slow
+def test_a_local_cluster_gives_the_in_process_table_even_when_a_worker_dies(reference, client, tmp_path):
+    flag = tmp_path / "killed"
+    inv = {"casimir": killing_casimir(str(flag), os.getpid())}
+    path = tmp_path / "sweep.zarr"
+    res = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants=inv, store=str(path), client=client, **KW)
+    assert flag.exists()  # a worker was killed in the middle of a batch
+    assert_same_table(res, reference)
+    # every worker compiled the chunk program at most once for its 2-3 batches (16 steps = 2 chunks of 8)
+    compiled = client.run(lambda: __import__("clebsch_jax.batching.sweep", fromlist=["_"])._run_chunk._cache_size())
+    assert max(compiled.values()) == 1, compiled
+    assert np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:]).all()
+    assert_same_table(cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants=inv, client=client, **KW), reference)
+
+
+# --------------------------------------------------------------------------------------------
+# The command line.
+
+CONFIG = f"""
+model = "rigid_body"
+dt = {KW["dt"]}
+n_steps = {KW["n_steps"]}
+chunk_steps = {KW["chunk_steps"]}
+batch_size = {KW["batch_size"]}
+save_every = {KW["save_every"]}
+grid = true
+
+[params]
+values = {INERTIAS.tolist()}
+
+[initial]
+Q0 = {{identity = 3}}
+xi0 = {OMEGAS.tolist()}
+
+[invariants]
+casimir = "{__name__}:casimir"
+"""
+
+
+def test_the_command_line_sweeps_into_a_store_and_resumes(reference, tmp_path, capsys):
+    from clebsch_jax.cli import main
+
+    config, path = tmp_path / "sweep.toml", tmp_path / "sweep.zarr"
+    config.write_text(CONFIG)
+    assert main(["sweep", str(config), "--store", str(path), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert f"{N_MEMBERS} members x {KW['n_steps']} steps in {N_BATCHES} batches of {KW['batch_size']}" in out
+    assert f"{N_MEMBERS} x {KW['n_steps']} steps" in out and "casimir drift" in out
+    assert_same_table(cj.open_sweep(path), reference)
+    assert main(["sweep", str(config), "--store", str(path), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert f"skipped {N_MEMBERS} of {N_MEMBERS} members" in captured.err
+    assert "0 members computed in this run" in captured.out
+
+
+def test_the_command_line_help_documents_the_toml_format(capsys):
+    from clebsch_jax.cli import main
+
+    assert main(["--help"]) == 0 and "sweep" in capsys.readouterr().out
+    assert main(["sweep", "--help"]) == 0
+    out = capsys.readouterr().out
+    for text in ("--store", "--workers", "--scheduler", "--overwrite", "model =", "n_steps =", "[params]",
+                 "linspace", "[initial]", "xi0 =", "[options]", "[invariants]"):
+        assert text in out
+    assert main(["sweep", "x.toml", "--store", "s.zarr", "--workers", "2", "--scheduler", "tcp://h:8786"]) == 2
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda c: c.replace('"rigid_body"', '"no_such_model"'), "model: clebsch_jax.models has no function 'no_such_model'"),
+    (lambda c: "n_step = 3\n" + c, "unknown entry n_step"),
+    (lambda c: c.replace("[params]\nvalues", "[params]\nvalue"), "[params]: give exactly one of values"),
+    (lambda c: c + "[options]\nscheme = 3\n", "sweep.toml: sweep: one member"),  # refused by cj.sweep
+])
+def test_the_command_line_names_a_bad_config_entry(tmp_path, capsys, edit, message):
+    from clebsch_jax.cli import main
+
+    config = tmp_path / "sweep.toml"
+    config.write_text(edit(CONFIG))
+    assert main(["sweep", str(config), "--store", str(tmp_path / "s.zarr"), "--quiet"]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "s.zarr").exists()
+
+
+@pytest.mark.slow
+def test_the_command_line_on_local_workers_stops_on_ctrl_c_and_resumes(tmp_path):
+    config, path = tmp_path / "sweep.toml", tmp_path / "sweep.zarr"
+    long = dict(KW, n_steps=2000, chunk_steps=100, batch_size=1, save_every=None)  # batches of ~1 s
+    config.write_text(CONFIG.replace(f"n_steps = {KW['n_steps']}", f"n_steps = {long['n_steps']}")
+                      .replace(f"chunk_steps = {KW['chunk_steps']}", f"chunk_steps = {long['chunk_steps']}")
+                      .replace(f"batch_size = {KW['batch_size']}", "batch_size = 1")
+                      .replace(f"save_every = {KW['save_every']}\n", "")
+                      .replace(f'casimir = "{__name__}:casimir"', 'body_momentum = "body_momentum"'))
+    cmd = [sys.executable, "-m", "clebsch_jax", "sweep", str(config), "--store", str(path), "--quiet"]
+    proc = subprocess.Popen(cmd + ["--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:]).any():
+                break
+        except Exception:  # not created yet
+            pass
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-2000:]
+    assert "run the same command to resume" in err
+    done = np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:])
+    assert 1 <= done.sum() < N_MEMBERS
+
+    rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert f"skipped {done.sum()} of {N_MEMBERS} members" in rerun.stderr
+    whole = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"body_momentum": cj.diagnostics.body_momentum},
+                     **long)
+    assert_same_table(cj.open_sweep(path), whole)
