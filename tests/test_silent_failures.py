@@ -157,7 +157,7 @@ def test_bad_values_under_transformations_fail_at_step_zero(batching, run, rows)
     np.testing.assert_array_equal(sol.result, [Status.SUCCESS, Status.INVALID_INPUT])
     np.testing.assert_array_equal(sol.failed_step, [-1, 0])
     assert np.all(np.isnan(sol.momentum[1, 1:])) and not np.any(sol.valid[1])
-    with pytest.raises(cj.IntegrationError, match="batch member 1, step 0: this member's input is invalid"):
+    with pytest.raises(cj.IntegrationError, match="batch member 1, step 0 of 5: this member's input is invalid"):
         sol.raise_if_failed()
 
 

@@ -313,8 +313,8 @@ def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, d
         stats = stats._replace(status=xp.where((xp.arange(n_steps) == 0) & ~input_ok, Status.INVALID_INPUT,
                                                stats.status).astype(stats.status.dtype))
     energy = join(lambda c: c.energy, True)
-    if energy is not None:
-        jumped, step = _energy_jump(xp, *energy, stats.status)
+    jumped, step = _energy_jump(xp, *energy, stats.status) if energy is not None else (False, None)
+    if energy is not None and (xp is jnp or bool(jumped)):  # on the host, only a jump costs a pass
         step = xp.where(jumped, step, n_steps)
         fields = [(nodes.Q, True), (nodes.p, True), (nodes.momentum, True), (xin, True), (xi_step, False),
                   (P, False)]

@@ -144,7 +144,8 @@ def failure_message(code, step, n_steps, t, iterations, residual, member=None, s
         )
     if code == Status.INVALID_INPUT:
         return (
-            f"clebsch_jax.integrate: {where}step 0: {what}. The member made no step (its states are NaN). "
+            f"clebsch_jax.integrate: {where}step 0 of {n_steps}: {what}. The member made no step (its states are "
+            "NaN). "
             "Run integrate on this member's values outside jit/vmap to have the argument at fault named."
         )
     if code == Status.ENERGY_JUMP:
