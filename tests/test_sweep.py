@@ -109,7 +109,7 @@ def test_rigid_body_grid_conserves_the_casimir_for_every_member_and_reports_fail
     np.testing.assert_array_equal(res.ic_index, np.tile(np.arange(4), 3))
     bad = res.ic_index == 2
     np.testing.assert_array_equal(res.failed_members, np.flatnonzero(bad))  # members 2, 6, 10
-    assert np.all(res.status[bad] == Status.NONFINITE) and np.all(res.failed_step[bad] == 0)
+    assert np.all(res.status[bad] == Status.INVALID_INPUT) and np.all(res.failed_step[bad] == 0)
     assert np.all(np.isnan(res.final_momentum[bad])) and np.all(np.isnan(res.final_Q[bad]))
     ok = ~bad
     assert np.all(res.status[ok] == Status.SUCCESS) and np.all(res.failed_step[ok] == -1)
@@ -168,7 +168,7 @@ def test_a_member_failing_mid_run_is_reported_at_its_global_step_full_march():
     assert np.all(np.isnan(res.final_Q[0])) and np.isfinite(res.energy_error[0])
     assert res.drift["total_momentum"][0] < 1e-13  # up to the failure, Σp = 0 is kept
     # the NaN member
-    assert res.status[2] == Status.NONFINITE and res.failed_step[2] == 0 and np.isnan(res.energy_error[2])
+    assert res.status[2] == Status.INVALID_INPUT and res.failed_step[2] == 0 and np.isnan(res.energy_error[2])
     # the overtaking pair through four chunk hand-overs of (Q, p): Σp to round-off, the energy
     # bounded, and the exact solution at t = 4 to the method's O(Δt²) (1e-4 here, measured)
     assert res.status[1] == Status.SUCCESS and res.failed_step[1] == -1

@@ -99,6 +99,8 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
             raise ValueError("in_axes: the batched arguments must share one leading axis size, got "
                              f"{sorted(sizes) if sizes else 'no batched argument'}.")
         B = sizes.pop()
+        if B == 0:  # an empty batch: jax.vmap's empty outputs (no chunk to run)
+            return jax.vmap(fun, in_axes=in_axes)(*args)
         leaves = [jnp.asarray(x) for x in leaves]
         member = [jax.ShapeDtypeStruct(x.shape[1:] if a == 0 else x.shape, x.dtype) for x, a in zip(leaves, axes)]
         flags = [a == 0 for a in axes]

@@ -503,6 +503,9 @@ def _members(make_system, params, Q0, xi0, P0, dt, grid) -> _Members:
             raise ValueError(f"params: {n_p} parameter rows for {n_ic} initial conditions; pass as many, or "
                              "grid=True for every parameter row with every initial condition.")
         B = n_ic
+    if B == 0:
+        raise ValueError(f"sweep: no members to run (Q0 and xi0 have {n_ic} initial conditions"
+                         + (f", params {n_p} rows" if builder is not None else "") + "): the sweep is empty.")
     members = np.arange(B)
     param_index = members // n_ic if grid else (members if builder is not None else np.zeros(B, int))
     ic_index = members % n_ic if grid else members
@@ -797,7 +800,9 @@ def sweep(
     - `Q0`, `xi0`: initial configurations and velocities with a leading axis of length n_ic
       (`Q0[j]` and `xi0[j]` are one member's `integrate` arguments; use `Q0[None]` for a single
       one, `jnp.broadcast_to` to share one). Non-finite rows are *not* rejected: such members
-      fail (status `NONFINITE` at step 0) and are reported, so random samples need no cleaning.
+      fail (status `INVALID_INPUT` at step 0) and are reported, so random samples need no cleaning;
+      so do members whose parameter row is invalid (each row is checked in the member's program:
+      `clebsch_jax.march.scan.input_ok`).
     - `dt`: the time step, a positive scalar or one per member, shape (B,).
     - `n_steps`: steps per member (an int >= 1).
     - `P0`: optional initial multipliers, shape of `Q0`. Default: `initial_multiplier` of each

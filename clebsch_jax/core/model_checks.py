@@ -68,7 +68,8 @@ def check_model(system, Q0, xi0, dt) -> None:
        (point vortices need `degenerate=True`); when l has a potential, ξ and Q have the same
        shape and l's Hessian in its *second* argument is nonsingular, it says l looks written
        as `l(Q, xi)`; otherwise it gives the rank of $H$ and a null direction.
-    2. `velocity_map`: with $J$ the Jacobian of $\xi \mapsto \mathcal L_\xi Q^0$ at $\xi^0$,
+    2. `velocity_map`: it must be finite at the probes below and its Jacobian at ξ⁰ too
+       (NaN or inf there is refused); with $J$ the Jacobian of $\xi \mapsto \mathcal L_\xi Q^0$ at $\xi^0$,
        $\mathcal L_\xi Q^0 = J\xi$ to `LINEAR_RTOL` at $\xi^0$, at a fixed pseudo-random
        direction $d$ of $\xi^0$'s size (unit size if $\xi^0 = 0$) and at $2\xi^0 + d$: a map
        linear in ξ (Definition 1) passes, a nonlinear or affine one does not.
@@ -208,9 +209,15 @@ def _hessian_scale(system, Q0, xi0) -> float:
 
 def _check_linear(xi0, found):
     J, values = found["jacobian"], found["velocities"]
-    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(values))):
-        return  # a non-finite velocity is reported by the march
     labels = ("xi0", "a random direction d", "2 xi0 + d")
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(values))):
+        where = [label for label, v in zip(labels, values) if not np.all(np.isfinite(v))]
+        what = (f"L(xi, Q0) contains NaN or inf at xi = {', '.join(where)}" if where
+                else "its Jacobian in xi at xi0 contains NaN or inf")
+        raise ValueError(
+            f"velocity_map: not finite at the initial configuration Q0: {what}. The tangent vector L(xi, Q0) "
+            "must be finite for every xi (a division by, or a log or sqrt of, a component of Q that is 0 at "
+            "Q0?); start from a Q0 where the map is defined.")
     defects = []
     for label, x, value in zip(labels, found["probes"], values):
         defect = value - J @ x

@@ -69,8 +69,10 @@ class ClebschSystem:
       submanifold of the array space (e.g. $SO(3)$ in the 3×3 matrices): `check_Q(Q)` gets a
       NumPy array of `Q0`'s shape and returns None if it is acceptable, else a sentence saying
       what is wrong (`clebsch_jax.integrate` raises `ValueError("Q0: " + sentence)`). It runs
-      on concrete `Q0` only, before compiling: it is skipped when `Q0` is traced (under
-      `jax.jit`/`jax.vmap` over `Q0`) or when `check_Q` holds traced array leaves. `integrate`
+      on concrete `Q0` only, before compiling. When `Q0` is traced (under `jax.jit`/`jax.vmap`
+      over `Q0`) a check with an attribute `traced(Q) -> bool array` (True: on $M$) runs inside
+      the program instead, and a member off $M$ reports `Status.INVALID_INPUT` at step 0
+      (`models.check_rotation.traced` is `models.rotation_ok`); without one it is skipped. `integrate`
       also runs it on one step of the derivative map from `Q0` and refuses a derivative map
       that leaves $M$ (`clebsch_jax.core.model_checks.check_model`). The models
       `rigid_body` and `heavy_top` set it to a rotation check ($Q^TQ = I$ to $\sqrt\varepsilon$,

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["is_traced", "any_traced", "is_array", "float_array", "host_float_array", "positive_int", "nonnegative",
-           "positive_scalar", "output_shape", "check_configuration", "runnable_check"]
+           "positive_scalar", "output_shape", "check_configuration", "runnable_check", "nan_unless"]
 
 
 def is_traced(x) -> bool:
@@ -23,6 +23,14 @@ def is_traced(x) -> bool:
 def any_traced(*trees) -> bool:
     """Whether any array leaf of the pytrees `trees` is a tracer."""
     return any(is_traced(x) for x in jax.tree_util.tree_leaves(trees))
+
+
+def nan_unless(x, ok) -> jax.Array:
+    """A traced model parameter `x` made NaN where the traced condition `ok` fails: the value
+    check a model makes on concrete parameters, for parameters known only inside jit/vmap.
+    The Lagrangian is then NaN at the initial point, and `integrate` reports the member with
+    `Status.INVALID_INPUT` at step 0 instead of marching a meaningless model."""
+    return jnp.where(ok, x, jnp.nan)
 
 
 def is_array(x) -> bool:
@@ -40,10 +48,12 @@ def _real_dtype(dtype, name: str, allow_bool: bool):
 
 
 def float_array(x, name: str, *, allow_bool: bool = True) -> jax.Array:
-    """x as a JAX float array: refused (naming `name`) if it is not an array of real numbers
-    or, when concrete, not finite. Integers (and booleans, if `allow_bool`) become floats; a
-    Python float becomes a strongly typed array, so that it and a NumPy float compile to one
-    program."""
+    """x as a JAX float64 array: refused (naming `name`) if it is not an array of real numbers
+    or, when concrete, not finite. Integers (and booleans, if `allow_bool`) become float64, and
+    so do floats of lower precision (float32, float16, bfloat16: e.g. arrays made before the
+    package enabled float64): the engine computes in float64 only, whose round-off its
+    conservation properties and default tolerances assume. A Python float becomes a strongly
+    typed array, so that it and a NumPy float compile to one program."""
     if isinstance(x, (str, bytes)) or x is None:
         raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.")
     try:
@@ -51,8 +61,8 @@ def float_array(x, name: str, *, allow_bool: bool = True) -> jax.Array:
     except TypeError as err:
         raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.") from err
     _real_dtype(np.dtype(arr.dtype) if not hasattr(x, "dtype") else np.dtype(x.dtype), name, allow_bool)
-    if not jnp.issubdtype(arr.dtype, jnp.floating):
-        arr = arr.astype(jnp.result_type(float))
+    if not jnp.issubdtype(arr.dtype, jnp.floating) or arr.dtype != jnp.result_type(float):
+        arr = arr.astype(jnp.result_type(float))  # integers, booleans and float32/16 become float64
     if getattr(arr, "weak_type", False):
         arr = jnp.asarray(arr, dtype=arr.dtype)
     if not is_traced(x) and not is_traced(arr) and not np.all(np.isfinite(np.asarray(arr))):
@@ -70,7 +80,7 @@ def host_float_array(x, name: str) -> np.ndarray:
     except Exception as err:  # e.g. ragged lists
         raise TypeError(f"{name}: expected an array of numbers ({err}).") from None
     _real_dtype(arr.dtype, name, allow_bool=True)
-    return arr.astype(np.float64) if not np.issubdtype(arr.dtype, np.floating) else arr
+    return arr.astype(np.float64) if arr.dtype != np.float64 else arr  # float32/16 promoted too
 
 
 def positive_int(x, name: str, *, allow_none: bool = False, minimum: int = 1):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import numbers
+import os
 
 import jax
 import jax.numpy as jnp
@@ -120,6 +121,27 @@ def _check_maps_once(system, Q0, xi0, dt):
         _MAPS_CHECKED.popitem(last=False)
 
 
+def _memory_limit() -> int:
+    """The machine's physical memory in bytes (0 if unknown: no limit)."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def _check_size(Q0, xi0, n_steps: int):
+    """Refuse a run whose `Solution` could not fit in memory, before allocating it: every node
+    keeps Q, p, the momentum and ξ, every step P, ξ and four statistics (float64)."""
+    per_step = 8 * (3 * Q0.size + 3 * xi0.size + 8)
+    need, limit = per_step * (n_steps + 1), _memory_limit()
+    if limit and need > limit:
+        raise ValueError(
+            f"n_steps: {n_steps} steps would need about {need / 1e9:.3g} GB for the Solution "
+            f"({per_step} bytes per step), more than this machine's {limit / 1e9:.3g} GB of memory. Run it in "
+            "pieces (clebsch_jax.continue_from), or with clebsch_jax.sweep, which keeps per-member "
+            "reductions and every k-th node (save_every=k) instead of the whole trajectory.")
+
+
 def step_plan(system: ClebschSystem, scheme: str | None = None, order=None, composition=None, *,
               Q0=None, xi0=None) -> StepPlan:
     """The `StepPlan` `integrate` runs for these arguments: its sub-steps and its facts
@@ -157,6 +179,7 @@ def integrate(
     order: int | None = None,
     composition=None,
     throw: bool = True,
+    check_energy: bool = True,
 ) -> Solution:
     r"""March the discrete Clebsch equations (Lemma 20) of `system` from $(Q^0, \xi^0)$.
 
@@ -228,6 +251,13 @@ def integrate(
       `jit`/`vmap` the error is raised from a host callback. If False, failures are only
       recorded in the `Solution` (`result`, `failed_step`, per-step `stats.status`, `valid`);
       call `Solution.raise_if_failed()` later.
+    - `check_energy`: if True (default) a step whose energy change is orders of magnitude
+      beyond the run's so far fails with `Status.ENERGY_JUMP` (a converged step across a
+      singularity of the model, which would otherwise pass as a success): step n fails when
+      $|E^{n+1} - E^n|$ exceeds both `JUMP_FACTOR` (100) times the largest change of the
+      steps before it and `JUMP_FLOOR` (1) times the energy's size so far
+      (`clebsch_jax.march.scan`). It costs one evaluation of l per node; False switches it off.
+      Not made for degenerate systems (no nodal velocities).
 
     **Returns:** a `Solution`, with the method's facts (`form`, `scheme`, `order`, `method`).
 
@@ -244,12 +274,15 @@ def integrate(
     differentiation (`jax.lax.custom_root`).
     """
     _check_options(system, n_steps, rtol, atol, max_newton_iterations)
+    if not isinstance(check_energy, bool):
+        raise TypeError(f"check_energy: expected True or False, got {check_energy!r}.")
     n_steps = int(n_steps)  # a NumPy integer is accepted and becomes the static Python int
     if method is None:
         check_scheme(system, scheme)
     else:
         _check_method(method, locals())
     Q0, xi0, P0, dt, t0 = _check_arrays(system, Q0, xi0, P0, dt, t0)
+    _check_size(Q0, xi0, n_steps)
     if method is None:
         if jacobian == "blocks":
             check_particle_axis(Q0, xi0)
@@ -258,9 +291,11 @@ def integrate(
                                order=order, composition=composition)
     stepper = method.prepare(system, Q0, xi0)
     if any_traced(system, Q0, xi0, P0, dt, t0):
-        sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps)  # one scan, in the caller's program
-    else:
-        sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps)  # programs reused for any n_steps
+        # one scan, in the caller's program; values unknown until now are checked per member
+        sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy,
+                         check_inputs=True)
+    else:  # programs reused for any n_steps
+        sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy)
         if sol.Q is not None:
             check_first_step(system, sol.method, Q0, xi0, sol.Q[1])
     if throw:

@@ -33,10 +33,24 @@ from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper, Nodes
 from .solution import Solution
 
-__all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "nodal_velocities", "CHUNK_STEPS", "NODAL_BLOCK"]
+__all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "failed_to_nan", "nodal_velocities",
+           "input_ok", "CHUNK_STEPS", "NODAL_BLOCK", "JUMP_FACTOR", "JUMP_FLOOR"]
 
 CHUNK_STEPS = 1024
 """Steps per compiled chunk of `march_chunked` (the last chunk runs idle past `n_steps`)."""
+
+JUMP_FACTOR = 100.0
+r"""The energy check (`check_energy`): step n fails with `Status.ENERGY_JUMP` when its energy
+change $|E^{n+1} - E^n|$ exceeds `JUMP_FACTOR` times the largest change of the steps before it
+(two orders of magnitude: a variational step changes E by $O(\Delta t^{p+1})$, smoothly from
+step to step) ..."""
+
+JUMP_FLOOR = 1.0
+r"""... and `JUMP_FLOOR` times the energy's size so far, $\max_{k \le n}
+(|\langle\mu^k, \xi^k\rangle| + |l(\xi^k, Q^k)|)$: a step that changes E by more than the
+sizes of its kinetic and Lagrangian terms is not a small step of any convergent method, and
+the floor keeps round-off changes of an exactly conserved E (a free particle) from counting
+as a jump."""
 
 
 NODAL_BLOCK = 128
@@ -66,28 +80,72 @@ class Chunk(NamedTuple):
     xi: Any
     nodal_stats: NewtonStats
     valid: jax.Array
+    energy: Any = None  # (E, size) at the nodes, when the energy check is on (`node_energies`)
+
+
+@jax.custom_jvp
+def failed_to_nan(a, ok):
+    """`a` where `ok`, NaN elsewhere — and NaN derivatives there too: a value computed from a
+    failed step's state has a NaN gradient, never a zero one (a plain `where` would give the
+    NaN a zero derivative, and an optimiser would stall with no clue)."""
+    return jnp.where(ok, a, jnp.nan)
+
+
+@failed_to_nan.defjvp
+def _failed_to_nan_jvp(primals, tangents):
+    a, ok = primals
+    return failed_to_nan(a, ok), tangents[0] * jnp.where(ok, 1.0, jnp.nan).astype(a.dtype)
 
 
 def gate(alive, stats: NewtonStats, values):
-    """After a failed step a member's values become NaN and later steps are marked SKIPPED,
-    with no Newton updates or Jacobians counted (the loop only ran over NaNs beside the live
-    members) and a NaN residual. Returns (ok, stats with statuses, gated values)."""
+    """After a failed step a member's values become NaN (with NaN derivatives:
+    `failed_to_nan`) and later steps are marked SKIPPED, with no Newton updates or Jacobians
+    counted (the loop only ran over NaNs beside the live members) and a NaN residual. Returns
+    (ok, stats with statuses, gated values)."""
     ok = alive & (stats.status == Status.SUCCESS)
-    values = jax.tree_util.tree_map(lambda a: jnp.where(ok, a, jnp.nan), values)
+    values = jax.tree_util.tree_map(
+        lambda a: failed_to_nan(a, ok) if jnp.issubdtype(a.dtype, jnp.inexact) else jnp.where(ok, a, jnp.nan), values)
     return ok, skip_stats(stats, alive), values
 
 
-def start(stepper: AbstractStepper, system, Q0, xi0, P0, dt):
-    """The stepper's initial state as a `Carry`, and the iterations its start-up took."""
+def input_ok(system, Q0, xi0, P0, dt):
+    r"""Whether a member's input is valid, as a traced boolean: the checks `integrate` makes
+    before compiling on concrete values, for values only known inside jit/vmap. `dt` finite and
+    positive; `Q0`, `xi0`, `P0` and the system's array leaves (its parameters) finite; `Q0`
+    on the manifold, when `system.check_Q` has a
+    traced form (`check_Q.traced(Q) -> bool`, as the SO(n) models' rotation check has); the
+    Lagrangian and the velocity map finite at $(\xi^0, Q^0)$ (the built-in models make their
+    Lagrangian NaN for parameters out of range when these are traced)."""
+    finite = lambda a: jnp.all(jnp.isfinite(a))
+    ok = finite(dt) & (dt > 0) & finite(Q0) & finite(xi0)
+    if P0 is not None:
+        ok = ok & finite(P0)
+    for leaf in jax.tree_util.tree_leaves(system):  # the model's parameters
+        if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.inexact):
+            ok = ok & finite(leaf)
+    ok = ok & finite(system.l(xi0, Q0)) & finite(system.velocity_map(xi0, Q0))
+    traced_check = getattr(system.check_Q, "traced", None)
+    if traced_check is not None:
+        ok = ok & jnp.asarray(traced_check(Q0), bool)
+    return ok
+
+
+def start(stepper: AbstractStepper, system, Q0, xi0, P0, dt, check_inputs: bool = False):
+    """The stepper's initial state as a `Carry`, and the iterations its start-up took. With
+    `check_inputs` a member whose input is not valid (`input_ok`) starts failed: it makes no
+    step and its step 0 is reported `Status.INVALID_INPUT`."""
     state0, startup_iterations = stepper.init(system, Q0, xi0, P0, dt)
-    carry = Carry(state0, stepper.init_memory(system, state0), jnp.asarray(0, jnp.int32), jnp.asarray(True),
+    alive = input_ok(system, Q0, xi0, P0, dt) if check_inputs else jnp.asarray(True)
+    carry = Carry(state0, stepper.init_memory(system, state0), jnp.asarray(0, jnp.int32), alive,
                   jnp.zeros_like(xi0))
     return carry, jnp.asarray(startup_iterations, jnp.int32)
 
 
-def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n_total) -> tuple[Carry, Chunk]:
-    """`length` steps from `carry`, their nodes and nodal velocities; the steps numbered
-    `n_total` (an int32 array: the run's number of steps) and later leave the carry unchanged."""
+def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n_total,
+              check_energy: bool = False) -> tuple[Carry, Chunk]:
+    """`length` steps from `carry`, their nodes and nodal velocities (and, with `check_energy`,
+    their energies: `node_energies`); the steps numbered `n_total` (an int32 array: the run's
+    number of steps) and later leave the carry unchanged."""
 
     def advance(c: Carry):
         state, memory, out, stats = stepper.step(system, c.state, c.memory, dt, c.n, c.alive)
@@ -134,7 +192,19 @@ def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n
                                        status=jnp.full(length + 1, Status.SUCCESS, jnp.int32), jacobians=zero), valid)
     else:
         xi, nodal = nodal_velocities(system, stepper.nodal_solver, nodes.nodal_Q, nodes.momentum, guesses, valid)
-    return last._replace(xi_last=xi_last), Chunk(nodes, stats, xi, nodal, valid)
+    energy = node_energies(system, nodes.nodal_Q, nodes.momentum, xi) if check_energy and xi is not None else None
+    return last._replace(xi_last=xi_last), Chunk(nodes, stats, xi, nodal, valid, energy)
+
+
+def node_energies(system, Qs, mus, xis):
+    r"""The energy $E^n = \langle\mu^n, \xi^n\rangle - l(\xi^n, Q^n)$ at every node ($\mu^n$ the
+    momentum, equal to $\delta l/\delta\xi$ at the nodal velocity) and its size
+    $|\langle\mu^n, \xi^n\rangle| + |l(\xi^n, Q^n)|$, for the energy check."""
+    def one(q, mu, x):
+        pairing, lagrangian = jnp.sum(mu * x), system.l(x, q)
+        return pairing - lagrangian, jnp.abs(pairing) + jnp.abs(lagrangian)
+
+    return jax.vmap(one)(Qs, mus, xis)
 
 
 def _finite_rows(a):
@@ -178,13 +248,16 @@ def _blocked(solve, args, valid, block: int):
     return jax.tree_util.tree_map(lambda a: a.reshape((n_blocks * block,) + a.shape[2:])[:n], out)
 
 
-def march(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int) -> Solution:
+def march(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int, check_energy: bool = False,
+          check_inputs: bool = False) -> Solution:
     """Run `stepper` (prepared for `system`) for `n_steps` steps of size `dt` from
-    $(Q^0, \\xi^0)$ (and $P^0$, if not None) in one scan and assemble the `Solution`."""
-    carry, startup = start(stepper, system, Q0, xi0, P0, dt)
+    $(Q^0, \\xi^0)$ (and $P^0$, if not None) in one scan and assemble the `Solution`. With
+    `check_energy` a step whose energy jumps fails (`Status.ENERGY_JUMP`); with `check_inputs`
+    an invalid input fails step 0 (`Status.INVALID_INPUT`: `input_ok`)."""
+    carry, startup = start(stepper, system, Q0, xi0, P0, dt, check_inputs)
     # with the trip count as in `march_chunked` (every step taken): the same step program
-    _, chunk = run_chunk(stepper, system, carry, dt, n_steps, jnp.asarray(n_steps, jnp.int32))
-    return _assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0)
+    _, chunk = run_chunk(stepper, system, carry, dt, n_steps, jnp.asarray(n_steps, jnp.int32), check_energy)
+    return _assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0, carry.alive)
 
 
 _start_jit = filter_jit(start)
@@ -192,14 +265,14 @@ _chunk_jit = filter_jit(run_chunk)
 
 
 def march_chunked(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int,
-                  chunk_steps: int = CHUNK_STEPS) -> Solution:
+                  chunk_steps: int = CHUNK_STEPS, check_energy: bool = False) -> Solution:
     """`march` with concrete arguments, as compiled chunks of `chunk_steps` steps: the
     programs depend on the stepper, the system and the shapes, not on `n_steps` or `dt`."""
     carry, startup = _start_jit(stepper, system, Q0, xi0, P0, dt)
     total = jnp.asarray(n_steps, jnp.int32)
     chunks = []
     for _ in range(-(-n_steps // chunk_steps)):
-        carry, chunk = _chunk_jit(stepper, system, carry, dt, chunk_steps, total)
+        carry, chunk = _chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
         chunks.append(chunk)
     if any_traced(chunks, startup):
         # a user function closed over a traced value (the caller is inside jit/vmap/grad)
@@ -215,8 +288,58 @@ def _join(xp, chunks, n_steps: int, node: bool):
     return xp.concatenate([joined, chunks[-1][-1:]]) if node else joined
 
 
-def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, dt, t0, Q0, xi0) -> Solution:
-    """The `Solution` from the chunks' records (`xp`: `numpy` or `jax.numpy`, as they are)."""
+def _running_max(xp, a):
+    """max(a[0], …, a[n]) for every n, NaN entries counting as 0."""
+    a = xp.where(xp.isnan(a), 0.0, a)
+    return np.maximum.accumulate(a) if xp is np else jax.lax.cummax(a, axis=0)
+
+
+def _energy_jump(xp, energy, size, status):
+    """The first step that fails the energy check (`JUMP_FACTOR`, `JUMP_FLOOR`) before any
+    other failure, and whether there is one. Non-finite energies (after a failure, or at a node
+    whose velocity was not recovered) are not compared."""
+    change = xp.abs(energy[1:] - energy[:-1])
+    largest_before = xp.concatenate([xp.zeros(1, change.dtype), _running_max(xp, change)[:-1]])
+    jumped = change > xp.maximum(JUMP_FACTOR * largest_before, JUMP_FLOOR * _running_max(xp, size)[:-1])
+    before_failure = xp.cumsum(status != Status.SUCCESS) == 0
+    jumped = jumped & before_failure
+    return xp.any(jumped), xp.argmax(jumped)
+
+
+def _fail_from(xp, step, code, stats, nodal, valid, fields):
+    """The records with step `step` failed (`code`): later steps SKIPPED, the nodes after it
+    invalid, with NaN values (and NaN derivatives: `failed_to_nan`); `fields` are (array,
+    node?) pairs. `step` may be len(steps): nothing fails."""
+    n_steps = stats.status.shape[0]
+    steps, nodes = xp.arange(n_steps), xp.arange(n_steps + 1)
+    stats = stats._replace(status=xp.where(steps == step, code, stats.status).astype(stats.status.dtype))
+    stats = skip_stats(stats, steps <= step) if xp is jnp else _np_skip(stats, steps <= step)
+    keep_node = nodes <= step
+    nodal = skip_stats(nodal, keep_node) if xp is jnp else _np_skip(nodal, keep_node)
+    valid = valid & keep_node
+
+    def mask(a, keep):
+        if a is None:
+            return None
+        keep = keep.reshape(keep.shape + (1,) * (a.ndim - 1))
+        return np.where(keep, a, np.nan) if xp is np else failed_to_nan(a, keep)
+
+    out = [mask(a, keep_node if node else steps < step) for a, node in fields]
+    return stats, nodal, valid, out
+
+
+def _np_skip(stats: NewtonStats, attempted) -> NewtonStats:
+    """`skip_stats` on NumPy arrays."""
+    return NewtonStats(iterations=np.where(attempted, stats.iterations, 0).astype(stats.iterations.dtype),
+                       residual_norm=np.where(attempted, stats.residual_norm, np.nan),
+                       status=np.where(attempted, stats.status, Status.SKIPPED).astype(np.int32),
+                       jacobians=np.where(attempted, stats.jacobians, 0).astype(stats.jacobians.dtype))
+
+
+def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, dt, t0, Q0, xi0,
+              input_ok=None) -> Solution:
+    """The `Solution` from the chunks' records (`xp`: `numpy` or `jax.numpy`, as they are).
+    `input_ok` (traced runs with `check_inputs`): False makes step 0 `Status.INVALID_INPUT`."""
     def join(get, node):
         fields = [get(c) for c in chunks]
         if fields[0] is None:
@@ -229,6 +352,18 @@ def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, d
                            .astype(stats.iterations.dtype))  # start-up work belongs to step 0
     P, xi_step = join(lambda c: c.nodes.P, False), join(lambda c: c.nodes.xi_step, False)
     xin, nodal, valid = join(lambda c: c.xi, True), join(lambda c: c.nodal_stats, True), join(lambda c: c.valid, True)
+    if input_ok is not None:  # an invalid member made no step: its step 0 says why
+        stats = stats._replace(status=xp.where((xp.arange(n_steps) == 0) & ~input_ok, Status.INVALID_INPUT,
+                                               stats.status).astype(stats.status.dtype))
+    energy = join(lambda c: c.energy, True)
+    jumped, step = _energy_jump(xp, *energy, stats.status) if energy is not None else (False, None)
+    if energy is not None and (xp is jnp or bool(jumped)):  # on the host, only a jump costs a pass
+        step = xp.where(jumped, step, n_steps)
+        fields = [(nodes.Q, True), (nodes.p, True), (nodes.momentum, True), (xin, True), (xi_step, False),
+                  (P, False)]
+        stats, nodal, valid, out = _fail_from(xp, step, Status.ENERGY_JUMP, stats, nodal, valid, fields)
+        Qn, pn, mun, xin, xi_step, P = out
+        nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
     facts = stepper.facts(system)
     failed = stats.status != Status.SUCCESS
     any_step, first_step = xp.any(failed), xp.argmax(failed)

@@ -142,6 +142,19 @@ def failure_message(code, step, n_steps, t, iterations, residual, member=None, s
             "the Lagrangian may be degenerate in xi (if so, build the system with degenerate=True, which "
             "uses the midpoint principle). Use throw=False to inspect the solution."
         )
+    if code == Status.INVALID_INPUT:
+        return (
+            f"clebsch_jax.integrate: {where}step 0 of {n_steps}: {what}. The member made no step (its states are "
+            "NaN). "
+            "Run integrate on this member's values outside jit/vmap to have the argument at fault named."
+        )
+    if code == Status.ENERGY_JUMP:
+        return (
+            f"clebsch_jax.integrate: {where}step {step} of {n_steps} (t = {t:.6g}): {what} (residual "
+            f"{residual:.3e}). Later states are marked invalid (NaN). Check the model for a singularity "
+            "near the state before this step; a smaller dt may step around it, or integrate(..., "
+            "check_energy=False) accepts the step."
+        )
     if scheme == "gauss":
         made = f"{iterations} fixed-point sweeps; the cap is 5 x max_newton_iterations sweeps per step"
     elif solves > 1:

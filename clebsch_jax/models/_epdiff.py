@@ -90,7 +90,7 @@ from jax.tree_util import Partial
 
 from ..core.derivative_maps import DerivativeMap, VectorSpaceDifference, forward_difference
 from ..core.system import ClebschSystem
-from ..core.validation import is_traced
+from ..core.validation import is_traced, nan_unless
 
 __all__ = [
     "peakons",
@@ -164,12 +164,15 @@ def _translation(xi, Q):
 
 
 def _width(width) -> jax.Array:
-    """The kernel width α as a float scalar, checked finite and positive when concrete (skipped
-    when traced: under `jax.jit`/`jax.vmap` over it, in `cj.sweep`)."""
+    """The kernel width α as a float scalar, checked finite and positive when concrete; when
+    traced (under `jax.jit`/`jax.vmap` over it, in `cj.sweep`) made NaN unless positive, which
+    `integrate` reports as `Status.INVALID_INPUT` at step 0."""
     w = jnp.asarray(width, dtype=jnp.result_type(float))
     if w.shape != ():
         raise ValueError(f"width: expected a scalar kernel width, got shape {w.shape} (vmap over a batch of widths).")
-    if not is_traced(w) and not (bool(w > 0) and bool(jnp.isfinite(w))):
+    if is_traced(w):
+        return nan_unless(w, w > 0)  # reported by integrate as Status.INVALID_INPUT
+    if not (bool(w > 0) and bool(jnp.isfinite(w))):
         raise ValueError(f"width: must be finite and positive, got {float(w)}.")
     return w
 
@@ -224,7 +227,7 @@ def peakons(width=1.0, derivative_map: DerivativeMap = ordered_difference) -> Cl
 
     - `width`: the kernel width α > 0 of $K(x) = e^{-|x|/\alpha}$ (a scalar array leaf: `vmap`
       over it to sweep; a concrete width is checked, a `ValueError` naming `width`, while
-      under `jax.jit`/`jax.vmap` the check is skipped);
+      under `jax.jit`/`jax.vmap` a bad one is reported as `Status.INVALID_INPUT` at step 0);
     - Q: positions, shape (N,); ξ = u(Q): the velocities at the peaks, shape (N,);
     - $l(\xi, Q) = \tfrac12\xi\cdot K(Q)^{-1}\xi$, $\mathcal L_\xi Q = \xi$;
     - `derivative_map`: a vector-space map; the default `ordered_difference` is the forward

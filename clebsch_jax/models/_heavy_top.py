@@ -9,7 +9,7 @@ from jax.tree_util import Partial
 
 from ..core.derivative_maps import DerivativeMap, cayley
 from ..core.system import ClebschSystem
-from ..core.validation import is_traced
+from ..core.validation import is_traced, nan_unless
 from ._rigid_body import right_multiplication, check_rotation, principal_moments
 
 __all__ = ["heavy_top"]
@@ -42,8 +42,9 @@ def heavy_top(inertia, mass_gravity_length, center_of_mass=(0.0, 0.0, 1.0),
     argument is a traced leaf: `vmap` over them to sweep.
 
     Bad values raise `ValueError` naming the argument; value checks run when the arguments are
-    concrete (under `jax.jit`/`jax.vmap` over them they are skipped). In `integrate`, a concrete
-    `Q0` must be a rotation (`check_rotation`).
+    concrete; under `jax.jit`/`jax.vmap` over them a bad inertia, a zero centre of mass or a
+    non-finite value is reported as `Status.INVALID_INPUT` at step 0. In `integrate`, `Q0` must
+    be a rotation (`check_rotation`; traced: `rotation_ok`).
     """
     dtype = jnp.result_type(float)
     inertia = principal_moments(inertia)
@@ -54,6 +55,8 @@ def heavy_top(inertia, mass_gravity_length, center_of_mass=(0.0, 0.0, 1.0),
         values = np.asarray(chi)
         if not np.all(np.isfinite(values)) or not np.any(values != 0):
             raise ValueError(f"center_of_mass: must be a finite, nonzero direction, got {values.tolist()}.")
+    else:
+        chi = nan_unless(chi, jnp.any(chi != 0))
     chi = chi / jnp.linalg.norm(chi)
     mgl = jnp.asarray(mass_gravity_length, dtype=dtype)
     if mgl.shape != ():

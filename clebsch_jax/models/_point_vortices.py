@@ -29,7 +29,7 @@ from jax.tree_util import Partial
 
 from ..core.derivative_maps import DerivativeMap, forward_difference
 from ..core.system import ClebschSystem
-from ..core.validation import is_traced
+from ..core.validation import is_traced, nan_unless
 
 __all__ = [
     "point_vortices",
@@ -68,7 +68,8 @@ def _circulations(circulations, *, nonzero: bool = False) -> jax.Array:
     """`circulations` as a float array (N,), checked when concrete: finite, and with `nonzero`
     no zero entry (a vortex of zero circulation drops out of l: its velocity is not determined
     and the step's Newton matrix is singular). Negative circulations are meaningful (opposite
-    spin). The value checks are skipped when traced (under `jax.jit`/`jax.vmap`, in `cj.sweep`)."""
+    spin). When traced (under `jax.jit`/`jax.vmap`, in `cj.sweep`) circulations with a zero entry
+    are made NaN, which `integrate` reports as `Status.INVALID_INPUT` at step 0."""
     gamma = jnp.asarray(circulations, dtype=jnp.result_type(float))
     if gamma.ndim != 1 or gamma.shape[0] < 1:
         raise ValueError(f"circulations: expected a 1-D array of N >= 1 circulations, got shape {gamma.shape}.")
@@ -80,6 +81,8 @@ def _circulations(circulations, *, nonzero: bool = False) -> jax.Array:
             raise ValueError(f"circulations: must be nonzero: vortex {int(np.argmax(values == 0))} has zero "
                              "circulation, which leaves its motion undetermined by the Lagrangian (a passive "
                              "tracer is not a point vortex); negative circulations are fine.")
+    elif nonzero:
+        gamma = nan_unless(gamma, jnp.all(gamma != 0))  # reported by integrate as Status.INVALID_INPUT
     return gamma
 
 
@@ -88,7 +91,7 @@ def point_vortices(circulations, derivative_map: DerivativeMap = forward_differe
 
     - `circulations`: shape (N,), finite and nonzero, of either sign (an array leaf: `vmap`
       over it to sweep; a concrete value is checked, a `ValueError` naming `circulations`,
-      while under `jax.jit`/`jax.vmap` the check is skipped);
+      while under `jax.jit`/`jax.vmap` a bad one is reported as `Status.INVALID_INPUT`);
     - Q: positions, shape (N, 2); ξ: velocities, shape (N, 2);
     - `derivative_map`: a vector-space map with a midpoint (default
       `clebsch_jax.forward_difference`).

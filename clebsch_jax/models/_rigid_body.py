@@ -10,9 +10,10 @@ from jax.tree_util import Partial
 from .. import lie
 from ..core.derivative_maps import DerivativeMap, cayley, forward_difference
 from ..core.system import ClebschSystem
-from ..core.validation import is_traced
+from ..core.validation import is_traced, nan_unless
 
-__all__ = ["rigid_body", "rigid_body_vector", "rigid_body_vector_start", "check_rotation", "ROTATION_TOLERANCE"]
+__all__ = ["rigid_body", "rigid_body_vector", "rigid_body_vector_start", "check_rotation", "rotation_ok",
+           "ROTATION_TOLERANCE"]
 
 
 ROTATION_TOLERANCE = float(np.sqrt(np.finfo(np.float64).eps))
@@ -56,12 +57,23 @@ def check_rotations(Qs) -> tuple[int, str] | None:
                "(SO(n) needs det Q = +1; flip the sign of one column).")
 
 
+def rotation_ok(Q) -> jax.Array:
+    """`check_rotation` as a traced boolean (True: a rotation), for values known only inside
+    `jax.jit`/`jax.vmap`: there `integrate` reports a member whose `Q0` is not a rotation with
+    `Status.INVALID_INPUT` at step 0."""
+    Q = jnp.asarray(Q)
+    defect = jnp.max(jnp.abs(Q.T @ Q - jnp.eye(Q.shape[-1], dtype=Q.dtype)))
+    return (defect <= ROTATION_TOLERANCE) & (jnp.linalg.det(Q) > 0)
+
+
 check_rotation.batched = check_rotations
+check_rotation.traced = rotation_ok
 
 
 def principal_moments(inertia, name: str = "inertia") -> jax.Array:
-    """`inertia` as a float array of shape (3,), checked: finite and positive when concrete
-    (skipped when traced, e.g. under `jax.vmap`/`jax.jit` or in `cj.sweep`)."""
+    """`inertia` as a float array of shape (3,), checked: finite and positive when concrete (a
+    `ValueError`); when traced (under `jax.vmap`/`jax.jit`, in `cj.sweep`) made NaN unless
+    positive (`nan_unless`), which `integrate` reports as `Status.INVALID_INPUT` at step 0."""
     if np.iscomplexobj(inertia):
         raise ValueError(f"{name}: the principal moments must be real, got a complex array.")
     inertia = jnp.asarray(inertia, dtype=jnp.result_type(float))
@@ -71,7 +83,8 @@ def principal_moments(inertia, name: str = "inertia") -> jax.Array:
         values = np.asarray(inertia)
         if not np.all(np.isfinite(values)) or not np.all(values > 0):
             raise ValueError(f"{name}: the principal moments must be finite and positive, got {values.tolist()}.")
-    return inertia
+        return inertia
+    return nan_unless(inertia, jnp.all(inertia > 0))
 
 
 def _kinetic_energy(inertia: jax.Array, xi: jax.Array) -> jax.Array:
@@ -96,8 +109,9 @@ def rigid_body(inertia, derivative_map: DerivativeMap = cayley) -> ClebschSystem
     angular momentum, equal to $\mathbb I\Omega$ on solutions (Lemma 7).
 
     Bad values raise `ValueError` naming the argument: `inertia` not finite and positive
-    (checked here when concrete; under `jax.jit`/`jax.vmap` over it the check is skipped), and,
-    in `integrate`, a `Q0` that is not a rotation (`check_rotation`, on a concrete `Q0`).
+    (checked here when concrete; under `jax.jit`/`jax.vmap` over it a bad one is reported as
+    `Status.INVALID_INPUT` at step 0), and, in `integrate`, a `Q0` that is not a rotation
+    (`check_rotation`, on a concrete `Q0`; `rotation_ok` under tracing).
     """
     return ClebschSystem(
         lagrangian=Partial(_kinetic_energy, principal_moments(inertia)),

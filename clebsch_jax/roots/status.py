@@ -30,6 +30,8 @@ class Status(enum.IntEnum):
     SKIPPED = 4  # not attempted: an earlier step of this batch member failed
     LEGENDRE = 5  # the nodal velocity could not be recovered from (Q, p)
     DIVERGED = 6  # a fixed-point iteration (Gauss-Legendre step) stopped contracting
+    ENERGY_JUMP = 7  # the step's energy change is orders of magnitude beyond the run's so far
+    INVALID_INPUT = 8  # under jit/vmap: this member's arguments or model parameters are invalid
 
     @property
     def message(self) -> str:
@@ -47,6 +49,13 @@ _MESSAGES = {
     "relation dl/dxi(xi, Q) = -p<>Q",
     Status.DIVERGED: "the fixed-point iteration of a Gauss-Legendre step stopped contracting or overflowed "
     "(dt too large for it, or the model is not finite at the stage values)",
+    Status.ENERGY_JUMP: "the step converged, but the energy changed in it by orders of magnitude more than in "
+    "any earlier step and by more than the energy's own size (a step across a singularity of the model: "
+    "the solve found a root on the far side)",
+    Status.INVALID_INPUT: "this member's input is invalid, found under jit/vmap where it could not be refused "
+    "before compiling: dt not finite and positive, Q0/xi0/P0 not finite, Q0 off the configuration manifold "
+    "(check_Q), or the Lagrangian or velocity map not finite at (xi0, Q0) (a model parameter out of range, "
+    "e.g. a non-positive inertia, makes the built-in models' Lagrangian NaN)",
 }
 Status.MESSAGES = _MESSAGES
 """`Status.MESSAGES`: code → sentence (integer codes look up the same entries)."""
