@@ -29,7 +29,7 @@ from ..steppers.reduced import ReducedStep
 
 __all__ = ["fast_method", "FAST_UPDATES"]
 
-FAST_UPDATES = 3
+FAST_UPDATES = FixedNewton.updates
 """Chord updates per solve on the fast path (K)."""
 
 

@@ -56,6 +56,7 @@ from ..march.solution import IntegrationError
 from ..roots.status import Status
 from .batch_last import batch
 from .fast import fast_method as _fast_method
+from .scalarise import scalarise
 
 __all__ = ["sweep", "SweepResult", "SweepProgress"]
 
@@ -313,12 +314,15 @@ def _member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset
     return new, saved
 
 
-def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
+def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows: bool = False):
+    """The chunk of every member of a batch: `cj.batch` (in chunks of `member_chunk`), or with
+    `rows` the scalarising evaluation (`clebsch_jax.batching.scalarise`, the whole batch)."""
     def one(p, c, d, s, f, o):
         return _member_chunk(cfg, p, s, c, d, f, o)
 
-    return batch(one, in_axes=(0, 0, 0, None, None, None), chunk=cfg.member_chunk)(params, carry, dt, shared,
-                                                                                 first, offset)
+    axes = (0, 0, 0, None, None, None)
+    run = scalarise(one, in_axes=axes) if rows else batch(one, in_axes=axes, chunk=cfg.member_chunk)
+    return run(params, carry, dt, shared, first, offset)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -330,7 +334,7 @@ def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     if cfg.fast_method is None:
         return (*_batched_chunk(general, params, carry, dt, shared, first, offset), jnp.asarray(False))
     fast = dataclasses.replace(general, options=(("method", cfg.fast_method),))
-    new, saved = _batched_chunk(fast, params, carry, dt, shared, first, offset)
+    new, saved = _batched_chunk(fast, params, carry, dt, shared, first, offset, rows=True)
     ok = jnp.all((new.status == Status.SUCCESS) | (carry.status != Status.SUCCESS))
     new, saved = jax.lax.cond(ok, lambda: (new, saved),
                               lambda: _batched_chunk(general, params, carry, dt, shared, first, offset))
@@ -738,7 +742,7 @@ def sweep(
     make_system, params, Q0, xi0, *, dt, n_steps: int, P0=None, grid: bool = False,
     invariants: dict | None = None, chunk_steps: int | None = None, batch_size: int | None = None,
     save_every: int | None = None, member_chunk: int | None = None, devices=None, progress=False,
-    fast: bool = True, **options,
+    fast: bool = False, **options,
 ) -> SweepResult:
     r"""Run many members — parameters × initial conditions — through `integrate`; keep a table.
 
@@ -790,7 +794,7 @@ def sweep(
       `n_steps` compiles one program (otherwise a second one for the last chunk). Chunks of
       tens of steps cost little over one unchunked run (see `clebsch_jax.batching.sweep`).
     - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024), or
-      16384 on the fast path, whose program's fixed cost per operation is shared by more
+      16384 with `fast=True`, whose program's fixed cost per operation is shared by more
       members); the last batch is padded with copies of the last member.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
       k when the run has more than one chunk.
@@ -808,11 +812,15 @@ def sweep(
     - `progress`: False (default); True prints one updating line per chunk to stderr; or a
       callable receiving a `SweepProgress` after every chunk. Progress waits for each chunk to
       finish (otherwise chunks are dispatched asynchronously).
-    - `fast`: True (default): where the method has a fast path (`clebsch_jax.batching.fast`:
-      the reduced march), each chunk first solves every step by a fixed number of Newton
-      updates with a check per member and step, and runs again with the general Newton loop
-      when a check fails — the same table to round-off, counted in
-      `SweepResult.fallback_chunks`. False: the general loop only.
+    - `fast`: False (default): the general Newton loop. True: where the method has a fast
+      path (`clebsch_jax.batching.fast`: the reduced march), each chunk first solves every
+      step by a fixed number of Newton updates with a check per member and step, its steps
+      evaluated with one row per component (`clebsch_jax.batching.scalarise`), and runs again
+      with the general loop when a check fails — the same table to round-off, reruns counted
+      in `SweepResult.fallback_chunks`. Not yet the default: a chunk's work after its steps
+      (the nodal velocities and invariants at every node, the hand-over) costs as much as
+      before, and the fast chunk compiles beside the general one (`benchmarks/throughput.py`
+      measures both).
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own.

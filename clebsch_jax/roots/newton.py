@@ -303,8 +303,8 @@ def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: f
     otherwise (SINGULAR or NONFINITE when those stopped it). The caller that gets a failure
     solves again with the general loop (`newton_solve_reusing`): a chunk of a `sweep` does.
     With a predictor of order p from earlier steps ($\|z_0 - z^*\| = O(\Delta t^{p+1})$) the
-    chord error after K updates is $O(\Delta t^{(K+1)(p+1)})$, at round-off for K = 2 in a
-    well-resolved march.
+    chord error after K updates is $O(\Delta t^{(K+1)(p+1)})$: at round-off after two updates
+    in a well-resolved march, so that with K = 3 the check meets an update at the noise floor.
 
     Derivatives of the root come from the implicit function theorem, as for `newton_solve`.
     `finish(z) -> (F(z), extra)` as in `newton_solve_reusing`; its residual is the check's.

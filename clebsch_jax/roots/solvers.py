@@ -78,14 +78,18 @@ class FixedNewton(Newton):
     the general loop, so every member and step it reports is solved as `Newton` solves it).
 
     **Arguments:** those of `Newton` (the stopping rule of the check, the general loop of the
-    start-up steps and of the nodal solves), and
+    start-up steps and of one-off solves), and
 
-    - `updates`: chord updates per solve (default 2).
+    - `updates`: chord updates per solve (default 3: with a good guess the last update is
+      already at round-off, so the check sees two updates at the noise floor and tells a
+      converged solve from one still contracting, as the general loop's stagnation rule does).
+
+    `solve` (a one-off solve, e.g. of a nodal velocity, whose guess may be poor) is `Newton`'s.
     - `warmup`: the first steps of a march (counted by the caller's `step`) solve with the
       general loop (default 4), while the predictor has too few earlier steps to be accurate.
     """
 
-    updates: int = 2
+    updates: int = 3
     warmup: int = 4
 
     def __post_init__(self):

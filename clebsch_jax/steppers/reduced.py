@@ -123,9 +123,12 @@ class ReducedStep(PrincipleStep):
         # iterates on NaNs without forming any.
         guess = xi_last + predict(n, jnp.zeros_like(xi_last), history)
         reuse = False if self._fresh(system) else (n > 0) | ~alive
-        xi, stats, H, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish,
-                                                                 step=n)
+        xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish,
+                                                                     step=n)
         carry_Q = self._carry_Q(system)
+        # a fresh Jacobian every solve: the carried matrix is never read, so it is handed on
+        # unchanged (a loop-invariant placeholder rather than a new value per step)
+        H = H if reuse is False else H_new
         return (mu1, Q1 if carry_Q else Q, xi), (push(history, xi - xi_last), H), (xi, Q1), stats
 
     def nodes(self, system, state0, states, outs) -> Nodes:
