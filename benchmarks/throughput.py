@@ -5,6 +5,7 @@ Run from the repository root:
 
     python benchmarks/throughput.py            # default run, 7.6 min on 2 idle cores
     python benchmarks/throughput.py --quick    # smoke test, tiny sizes (not a measurement)
+    python benchmarks/throughput.py --sweep-only   # part 4 only: the sweep against the hand kernel
 
 Three parts, timed with the harness the benchmarks share (`_timing.py`: a first call compiles,
 every call ends in `jax.block_until_ready`, the median of `--repeats` samples, the methods of a
@@ -43,6 +44,14 @@ case sampled in turn, load average recorded):
    the first compiles and writes the programs (`compile_s`, the cold start the target speaks
    of), the second loads them (`warm`: what a new process pays once the cache holds them,
    e.g. the second `clebsch-jax run` or a restarted notebook kernel).
+
+4. **Sweep** (`--sweep-only`, written to `throughput_sweep.json`/`.png`; issue 20): the
+   documented `cj.sweep(rigid_body, …, reconstruct=False)` call with default options and with
+   `fast=True`, `jax.jit(cj.batch(integrate → final momentum, energy error))`, the hand-written
+   rows kernel `hand_rows_march` (the yardstick: each component a (B,) row, closed-form
+   Jacobian and cofactor inverse, fixed chord updates, `fori_loop(unroll=4)`, final state and
+   energy error only) and NumPy RK4 of Euler's equations on (3, B) arrays; M body-steps/s,
+   ratios, compile times (first call − second call), energy errors, fallback counts.
 
 The issue's targets (reported, never asserted): the reduced rigid body at >= 10^7 body-steps
 per second and >= 3x the NumPy RK4 rate, flat from B = 10^3 to 10^6 (here: every rate within
@@ -334,6 +343,125 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
     row["ratios"]["vmap_over_hand_rate"] = rate["vmap"] / rate[HAND]
     row["best"] = max((m for m in calls if m not in (RK4, HAND)), key=rate.get)
     return row
+
+
+# --------------------------------------------------------------------------------------------
+# Part 4 (`--sweep-only`, its own results file): the documented sweep call against the yardstick
+# of issue 20, final state and energy error only (no trajectories kept).
+
+SWEEP_RESULTS_NAME = "throughput_sweep"
+HAND_ROWS = "jax_by_hand_rows"  # hand_rows_march: the yardstick of issue 20, not a library path
+SWEEP_DEFAULT = ((1_000, 200), (10_000, 200), (100_000, 100))
+SWEEP_QUICK = ((8, 10),)
+SWEEP_INERTIA = (0.5, 0.6, 1.0)  # issue 20's table
+SWEEP_TARGETS = {"over_hand_at_1e3": 0.5, "over_hand_from_1e4": 0.75, "over_rk4": 2.0, "compile_s": 2.0}
+
+
+def rk4_euler_final(inertia, omega0, dt, n_steps):
+    """NumPy RK4 of Euler's equations 𝕀ω̇ = 𝕀ω × ω on (3, B) arrays, final ω and the largest
+    |E − E⁰| over the steps (the peer of issue 20's table: no Q, no trajectory)."""
+    I = np.asarray(inertia, float)[:, None]
+    w = np.ascontiguousarray(np.asarray(omega0, float).T)
+
+    def f(w):
+        m = I * w
+        return np.stack([m[1] * w[2] - m[2] * w[1], m[2] * w[0] - m[0] * w[2], m[0] * w[1] - m[1] * w[0]]) / I
+
+    def energy(w):
+        return 0.5 * np.sum(I * w * w, axis=0)
+
+    E0, err = energy(w), np.zeros(w.shape[1])
+    for _ in range(n_steps):
+        k1 = f(w)
+        k2 = f(w + 0.5 * dt * k1)
+        k3 = f(w + 0.5 * dt * k2)
+        k4 = f(w + dt * k3)
+        w = w + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        err = np.maximum(err, np.abs(energy(w) - E0))
+    return w.T, err
+
+
+def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
+    """M body-steps/s of the documented sweep call (default options and with `fast=True`),
+    `jit(cj.batch(integrate → final))`, the hand-written rows kernel and NumPy RK4."""
+    _, omega0 = rigid.initial_conditions(batch)
+    inertia = np.asarray(SWEEP_INERTIA)
+    inertias = np.broadcast_to(inertia, (batch, 3))
+    Q0 = np.broadcast_to(np.eye(3), (batch, 3, 3))
+    system = models.rigid_body(jnp.asarray(inertia))
+
+    def sweep_call(**extra):
+        return lambda: cj.sweep(models.rigid_body, inertias, Q0, omega0, dt=rigid.DT, n_steps=n_steps,
+                                reconstruct=False, **extra)
+
+    def member(q, x):
+        sol = cj.integrate(system, q, x, dt=rigid.DT, n_steps=n_steps, reconstruct=False, throw=False)
+        E = cj.diagnostics.energy(system, sol)
+        return sol.momentum[-1], jnp.max(jnp.abs(E - E[0]))
+
+    batched = jax.jit(cj.batch(member, chunk=min(batch, 1024)))
+    Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
+    hand = hand_rows_march(inertia, rigid.DT, n_steps)
+    calls = {"sweep": sweep_call(), "sweep_fast": sweep_call(fast=True),
+             "cj_batch": lambda: jax.block_until_ready(batched(Q0_j, xi0_j)),
+             HAND_ROWS: lambda: jax.block_until_ready(hand(xi0_j)),
+             RK4: lambda: rk4_euler_final(inertia, omega0, rigid.DT, n_steps)}
+    name = f"sweep B={batch} n_steps={n_steps}"
+    timings, outs = run.time(calls, what=name, repeats=run.repeats or 3)
+    row = {"part": "sweep", "batch": batch, "n_steps": n_steps, "methods": list(calls)}
+    for m in calls:
+        row[m] = _rates(timings[m], n_steps, batch, "body")
+        row[m]["compile_s"] = timings[m]["first_call_s"] - timings[m]["second_call_s"]
+    mu_hand, err_hand = (np.asarray(a) for a in outs[HAND_ROWS])
+    for m in ("sweep", "sweep_fast"):
+        res = outs[m].raise_if_failed()
+        row[m]["max_abs_final_momentum_diff_vs_hand"] = float(np.max(np.abs(res.final_momentum - mu_hand)))
+        row[m]["max_energy_error"] = float(np.max(res.energy_error))
+        row[m]["fast_chunks"], row[m]["fallback_chunks"] = res.fast_chunks, res.fallback_chunks
+    row[HAND_ROWS]["max_energy_error"] = float(np.max(err_hand))
+    row["cj_batch"]["max_energy_error"] = float(np.max(np.asarray(outs["cj_batch"][1])))
+    row[RK4]["max_energy_error"] = float(np.max(outs[RK4][1]))
+    rate = {m: row[m]["body_steps_per_second"] for m in calls}
+    row["ratios"] = {**{f"{m}_over_hand": rate[m] / rate[HAND_ROWS] for m in calls if m != HAND_ROWS},
+                     **{f"{m}_over_numpy_rk4": rate[m] / rate[RK4] for m in calls if m != RK4}}
+    return row
+
+
+def print_sweep_report(summary: dict) -> None:
+    harness.print_header(summary, "Sweep throughput (issue 20)",
+                         f"Free rigid body {SWEEP_INERTIA}, reduced CAY march (reconstruct=False), dt = {rigid.DT}; "
+                         "final state and energy error per body, no trajectories kept.")
+    rows = summary["results"]
+    print("\nM body-steps/s (compile s) and ratios:")
+    names = ("sweep", "sweep_fast", "cj_batch", HAND_ROWS, RK4)
+    harness.print_table(
+        f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>20}" for m in names) + " |"
+        f"{'sweep/hand':>11}{'fast/hand':>10}{'sweep/RK4':>10}{'fast/RK4':>9} | fallbacks",
+        (f"{r['batch']:>8}{r['n_steps']:>6} |"
+         + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>11.3g} ({r[m]['compile_s']:5.1f})" for m in names)
+         + f" |{r['ratios']['sweep_over_hand']:>11.3g}{r['ratios']['sweep_fast_over_hand']:>10.3g}"
+         f"{r['ratios']['sweep_over_numpy_rk4']:>10.3g}{r['ratios']['sweep_fast_over_numpy_rk4']:>9.3g} | "
+         f"{r['sweep_fast']['fallback_chunks']}/{r['sweep_fast']['fast_chunks']}"
+         for r in rows))
+    print("max energy error: " + "; ".join(
+        f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows))
+    t = SWEEP_TARGETS
+    print(f"Targets: sweep >= {t['over_hand_at_1e3']}x hand at B=1e3, >= {t['over_hand_from_1e4']}x from 1e4, "
+          f">= {t['over_rk4']}x NumPy RK4, compile <= {t['compile_s']} s (reported, never asserted).")
+
+
+def plot_sweep(summary: dict, path: Path) -> None:
+    fig, ax = harness.figure((1,), size=(7, 4.6))
+    styles = {"sweep": ("o", "C2"), "sweep_fast": ("*", "C3"), "cj_batch": ("D", "C0"), HAND_ROWS: ("^", "C7"), RK4: ("s", "C1")}
+    for m, (marker, color) in styles.items():
+        pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"]]
+        ax.loglog(*zip(*pts), marker=marker, color=color, label=m)
+    ax.set_xlabel("batch size B (bodies)")
+    ax.set_ylabel("body-steps per second")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(harness.plot_title(summary, "sweep vs hand kernel, rigid body"), fontsize=9)
+    fig.savefig(path, dpi=120)
 
 
 # --------------------------------------------------------------------------------------------
@@ -689,12 +817,24 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
     # the child process of part 3: measure these models (comma-separated) and print JSON
     parser.add_argument("--compile-model", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--compile-cache", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--sweep-only", action="store_true",
+                        help=f"only part 4, the sweep against the hand kernel ({SWEEP_RESULTS_NAME}.json/.png)")
 
 
 def main(argv=None) -> dict | None:
     """Runs the three parts, prints the report, writes the JSON and the PNG; returns the summary."""
-    run = harness.Run(RESULTS_NAME, argv, description="Throughput of the built-in models against NumPy RK4s, "
+    argv = sys.argv[1:] if argv is None else argv
+    run = harness.Run(SWEEP_RESULTS_NAME if "--sweep-only" in argv else RESULTS_NAME, argv,
+                      description="Throughput of the built-in models against NumPy RK4s, "
                       "and their compile times (see module docstring).", add_arguments=_add_arguments)
+    if run.args.sweep_only:
+        with run:
+            rows = run.measure(SWEEP_DEFAULT, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}",
+                               lambda B, n: sweep_case(B, n, run))
+        summary = run.summary(config={"inertia": list(SWEEP_INERTIA), "dt": rigid.DT, "seed": rigid.SEED,
+                                      "cases": [{"batch": b, "n_steps": n} for b, n in run.cases]},
+                              results=rows, targets=SWEEP_TARGETS)
+        return run.finish(summary, print_sweep_report, plot_sweep)
     if run.args.compile_model:  # a child of part 3
         with harness.quick_mode(run.quick):
             print(json.dumps(first_call_cost(run.args.compile_model.split(","), run.args.compile_cache)))
