@@ -63,7 +63,6 @@ __all__ = ["sweep", "SweepResult", "SweepProgress"]
 _RESERVED = ("P0", "t0", "throw", "dt", "n_steps")
 _DEFAULT_CHUNK = 100
 _DEFAULT_BATCH = 1024
-_DEFAULT_FAST_BATCH = 16384  # the fast path's program has a fixed cost per operation: large batches
 
 
 # --------------------------------------------------------------------------------------------
@@ -793,9 +792,8 @@ def sweep(
       `save_every`). Memory is about `batch_size · chunk_steps` nodes; a chunk size that divides
       `n_steps` compiles one program (otherwise a second one for the last chunk). Chunks of
       tens of steps cost little over one unchunked run (see `clebsch_jax.batching.sweep`).
-    - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024), or
-      16384 with `fast=True`, whose program's fixed cost per operation is shared by more
-      members); the last batch is padded with copies of the last member.
+    - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024)); the
+      last batch is padded with copies of the last member.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
       k when the run has more than one chunk.
     - `member_chunk`: a batch runs through `clebsch_jax.batch` (batch-last, the batch's members
@@ -843,7 +841,7 @@ def sweep(
     if fast:
         cfg = dataclasses.replace(cfg, fast_method=_fast_method_of(cfg, members))
     if batch_size is None:  # every device gets a batch
-        batch_size = min(-(-B // n_dev), _DEFAULT_BATCH if cfg.fast_method is None else _DEFAULT_FAST_BATCH)
+        batch_size = min(-(-B // n_dev), _DEFAULT_BATCH)
     batch_size = _positive_int(batch_size, "batch_size")
     tables = _allocate_tables(B, shapes, run)
 
