@@ -5,6 +5,7 @@ Run from the repository root:
 
     python benchmarks/throughput.py            # default run, 7.6 min on 2 idle cores
     python benchmarks/throughput.py --quick    # smoke test, tiny sizes (not a measurement)
+    python benchmarks/throughput.py --sweep-only   # part 4 only: the sweep against the hand kernel
 
 Three parts, timed with the harness the benchmarks share (`_timing.py`: a first call compiles,
 every call ends in `jax.block_until_ready`, the median of `--repeats` samples, the methods of a
@@ -43,6 +44,14 @@ case sampled in turn, load average recorded):
    the first compiles and writes the programs (`compile_s`, the cold start the target speaks
    of), the second loads them (`warm`: what a new process pays once the cache holds them,
    e.g. the second `clebsch-jax run` or a restarted notebook kernel).
+
+4. **Sweep** (`--sweep-only`, written to `throughput_sweep.json`/`.png`; issue 20): the
+   documented `cj.sweep(rigid_body, …, reconstruct=False)` call with default options and with
+   `fast=True`, `jax.jit(cj.batch(integrate → final momentum, energy error))`, the hand-written
+   rows kernel `hand_rows_march` (the yardstick: each component a (B,) row, closed-form
+   Jacobian and cofactor inverse, fixed chord updates, `fori_loop(unroll=4)`, final state and
+   energy error only) and NumPy RK4 of Euler's equations on (3, B) arrays; M body-steps/s,
+   ratios, compile times (first call − second call), energy errors, fallback counts.
 
 The issue's targets (reported, never asserted): the reduced rigid body at >= 10^7 body-steps
 per second and >= 3x the NumPy RK4 rate, flat from B = 10^3 to 10^6 (here: every rate within
@@ -207,6 +216,72 @@ def hand_march(inertia, dt, n_steps, updates=HAND_UPDATES):
     return march
 
 
+ROWS_UPDATES, ROWS_UNROLL = 3, 4
+
+
+def hand_rows_march(inertia, dt, n_steps, updates=ROWS_UPDATES, unroll=ROWS_UNROLL):
+    """The reduced CAY rigid-body step by hand in the fastest shape found for XLA on the CPU (the
+    yardstick of the sweep's fast path, not a library path): each component of ξ and μ its own
+    (B,) row, the linear predictor 2ξⁿ⁻¹ − ξⁿ⁻², the Jacobian of D(Δt ξ, 𝕀ξ) in closed form at
+    the prediction and inverted by cofactors with one division, `updates` chord updates with no
+    test, `fori_loop(unroll=unroll)` over the steps, no trajectory: returns the final μ (3, B)
+    and the largest |E - E⁰| over the steps (B,), E = ½ Σ μᵢ²/Iᵢ evaluated at each node.
+    Same discrete equations as `hand_march` and `integrate` (μⁿ⁺¹ = D(−Δt ξ, 𝕀ξ))."""
+    I = [float(v) for v in np.asarray(inertia)]
+    h = float(dt)
+
+    def D(y, M):  # M + y×M/2 + y (y·M)/4, on rows
+        yM = y[0] * M[0] + y[1] * M[1] + y[2] * M[2]
+        c = (y[1] * M[2] - y[2] * M[1], y[2] * M[0] - y[0] * M[2], y[0] * M[1] - y[1] * M[0])
+        return tuple(M[i] + 0.5 * c[i] + 0.25 * y[i] * yM for i in range(3))
+
+    def energy(mu):
+        return 0.5 * (mu[0] * mu[0] / I[0] + mu[1] * mu[1] / I[1] + mu[2] * mu[2] / I[2])
+
+    def jac(x):  # d/dx of D(h x, I x), rows J[i][j]
+        M = tuple(I[i] * x[i] for i in range(3))
+        xM = x[0] * M[0] + x[1] * M[1] + x[2] * M[2]
+        J = [[None] * 3 for _ in range(3)]
+        for i in range(3):
+            for j in range(3):
+                # (h/2)(x × (I e_j) - M × e_j)_i + (h²/4)(δ_ij x·M + 2 x_i M_j)
+                e = [0.0, 0.0, 0.0]
+                e[j] = 1.0
+                Ie = [I[k] * e[k] for k in range(3)]
+                k1, k2 = (i + 1) % 3, (i + 2) % 3
+                cross_xI = x[k1] * Ie[k2] - x[k2] * Ie[k1]
+                cross_Me = M[k1] * e[k2] - M[k2] * e[k1]
+                J[i][j] = (I[i] if i == j else 0.0) + 0.5 * h * (cross_xI - cross_Me) \
+                    + 0.25 * h * h * ((xM if i == j else 0.0) + 2.0 * x[i] * M[j])
+        return J
+
+    def inv3(A):  # cofactors, one division
+        c = [[A[(i + 1) % 3][(j + 1) % 3] * A[(i + 2) % 3][(j + 2) % 3]
+              - A[(i + 1) % 3][(j + 2) % 3] * A[(i + 2) % 3][(j + 1) % 3] for j in range(3)] for i in range(3)]
+        r = 1.0 / (A[0][0] * c[0][0] + A[0][1] * c[0][1] + A[0][2] * c[0][2])
+        return [[c[j][i] * r for j in range(3)] for i in range(3)]
+
+    def step(_, carry):
+        mu, x1, x2, E0, err = carry
+        x = tuple(2.0 * a - b for a, b in zip(x1, x2))
+        H = inv3(jac(x))
+        for _ in range(updates):
+            r = tuple(a - b for a, b in zip(D(tuple(h * v for v in x), tuple(I[i] * x[i] for i in range(3))), mu))
+            x = tuple(x[i] - (H[i][0] * r[0] + H[i][1] * r[1] + H[i][2] * r[2]) for i in range(3))
+        mu1 = D(tuple(-h * v for v in x), tuple(I[i] * x[i] for i in range(3)))
+        return mu1, x, x1, E0, jnp.maximum(err, jnp.abs(energy(mu1) - E0))
+
+    @jax.jit
+    def march(xi0):  # (B, 3) in; final μ (B, 3) and energy error (B,) out
+        x0 = tuple(xi0[:, i] for i in range(3))
+        mu0 = tuple(I[i] * x0[i] for i in range(3))
+        E0 = energy(mu0)
+        carry = (mu0, x0, x0, E0, jnp.zeros_like(E0))
+        mu, _, _, _, err = jax.lax.fori_loop(0, n_steps, step, carry, unroll=unroll)
+        return jnp.stack(mu, axis=1), err
+    return march
+
+
 def hand_call(batch: int, n_steps: int, Q0, omega0):
     march = hand_march(rigid.INERTIA, rigid.DT, n_steps)
     Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
@@ -268,6 +343,125 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
     row["ratios"]["vmap_over_hand_rate"] = rate["vmap"] / rate[HAND]
     row["best"] = max((m for m in calls if m not in (RK4, HAND)), key=rate.get)
     return row
+
+
+# --------------------------------------------------------------------------------------------
+# Part 4 (`--sweep-only`, its own results file): the documented sweep call against the yardstick
+# of issue 20, final state and energy error only (no trajectories kept).
+
+SWEEP_RESULTS_NAME = "throughput_sweep"
+HAND_ROWS = "jax_by_hand_rows"  # hand_rows_march: the yardstick of issue 20, not a library path
+SWEEP_DEFAULT = ((1_000, 200), (10_000, 200), (100_000, 100))
+SWEEP_QUICK = ((8, 10),)
+SWEEP_INERTIA = (0.5, 0.6, 1.0)  # issue 20's table
+SWEEP_TARGETS = {"over_hand_at_1e3": 0.5, "over_hand_from_1e4": 0.75, "over_rk4": 2.0, "compile_s": 2.0}
+
+
+def rk4_euler_final(inertia, omega0, dt, n_steps):
+    """NumPy RK4 of Euler's equations 𝕀ω̇ = 𝕀ω × ω on (3, B) arrays, final ω and the largest
+    |E − E⁰| over the steps (the peer of issue 20's table: no Q, no trajectory)."""
+    I = np.asarray(inertia, float)[:, None]
+    w = np.ascontiguousarray(np.asarray(omega0, float).T)
+
+    def f(w):
+        m = I * w
+        return np.stack([m[1] * w[2] - m[2] * w[1], m[2] * w[0] - m[0] * w[2], m[0] * w[1] - m[1] * w[0]]) / I
+
+    def energy(w):
+        return 0.5 * np.sum(I * w * w, axis=0)
+
+    E0, err = energy(w), np.zeros(w.shape[1])
+    for _ in range(n_steps):
+        k1 = f(w)
+        k2 = f(w + 0.5 * dt * k1)
+        k3 = f(w + 0.5 * dt * k2)
+        k4 = f(w + dt * k3)
+        w = w + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        err = np.maximum(err, np.abs(energy(w) - E0))
+    return w.T, err
+
+
+def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
+    """M body-steps/s of the documented sweep call (default options and with `fast=True`),
+    `jit(cj.batch(integrate → final))`, the hand-written rows kernel and NumPy RK4."""
+    _, omega0 = rigid.initial_conditions(batch)
+    inertia = np.asarray(SWEEP_INERTIA)
+    inertias = np.broadcast_to(inertia, (batch, 3))
+    Q0 = np.broadcast_to(np.eye(3), (batch, 3, 3))
+    system = models.rigid_body(jnp.asarray(inertia))
+
+    def sweep_call(**extra):
+        return lambda: cj.sweep(models.rigid_body, inertias, Q0, omega0, dt=rigid.DT, n_steps=n_steps,
+                                reconstruct=False, **extra)
+
+    def member(q, x):
+        sol = cj.integrate(system, q, x, dt=rigid.DT, n_steps=n_steps, reconstruct=False, throw=False)
+        E = cj.diagnostics.energy(system, sol)
+        return sol.momentum[-1], jnp.max(jnp.abs(E - E[0]))
+
+    batched = jax.jit(cj.batch(member, chunk=min(batch, 1024)))
+    Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
+    hand = hand_rows_march(inertia, rigid.DT, n_steps)
+    calls = {"sweep": sweep_call(), "sweep_fast": sweep_call(fast=True),
+             "cj_batch": lambda: jax.block_until_ready(batched(Q0_j, xi0_j)),
+             HAND_ROWS: lambda: jax.block_until_ready(hand(xi0_j)),
+             RK4: lambda: rk4_euler_final(inertia, omega0, rigid.DT, n_steps)}
+    name = f"sweep B={batch} n_steps={n_steps}"
+    timings, outs = run.time(calls, what=name, repeats=run.repeats or 3)
+    row = {"part": "sweep", "batch": batch, "n_steps": n_steps, "methods": list(calls)}
+    for m in calls:
+        row[m] = _rates(timings[m], n_steps, batch, "body")
+        row[m]["compile_s"] = timings[m]["first_call_s"] - timings[m]["second_call_s"]
+    mu_hand, err_hand = (np.asarray(a) for a in outs[HAND_ROWS])
+    for m in ("sweep", "sweep_fast"):
+        res = outs[m].raise_if_failed()
+        row[m]["max_abs_final_momentum_diff_vs_hand"] = float(np.max(np.abs(res.final_momentum - mu_hand)))
+        row[m]["max_energy_error"] = float(np.max(res.energy_error))
+        row[m]["fast_chunks"], row[m]["fallback_chunks"] = res.fast_chunks, res.fallback_chunks
+    row[HAND_ROWS]["max_energy_error"] = float(np.max(err_hand))
+    row["cj_batch"]["max_energy_error"] = float(np.max(np.asarray(outs["cj_batch"][1])))
+    row[RK4]["max_energy_error"] = float(np.max(outs[RK4][1]))
+    rate = {m: row[m]["body_steps_per_second"] for m in calls}
+    row["ratios"] = {**{f"{m}_over_hand": rate[m] / rate[HAND_ROWS] for m in calls if m != HAND_ROWS},
+                     **{f"{m}_over_numpy_rk4": rate[m] / rate[RK4] for m in calls if m != RK4}}
+    return row
+
+
+def print_sweep_report(summary: dict) -> None:
+    harness.print_header(summary, "Sweep throughput (issue 20)",
+                         f"Free rigid body {SWEEP_INERTIA}, reduced CAY march (reconstruct=False), dt = {rigid.DT}; "
+                         "final state and energy error per body, no trajectories kept.")
+    rows = summary["results"]
+    print("\nM body-steps/s (compile s) and ratios:")
+    names = ("sweep", "sweep_fast", "cj_batch", HAND_ROWS, RK4)
+    harness.print_table(
+        f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>20}" for m in names) + " |"
+        f"{'sweep/hand':>11}{'fast/hand':>10}{'sweep/RK4':>10}{'fast/RK4':>9} | fallbacks",
+        (f"{r['batch']:>8}{r['n_steps']:>6} |"
+         + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>11.3g} ({r[m]['compile_s']:5.1f})" for m in names)
+         + f" |{r['ratios']['sweep_over_hand']:>11.3g}{r['ratios']['sweep_fast_over_hand']:>10.3g}"
+         f"{r['ratios']['sweep_over_numpy_rk4']:>10.3g}{r['ratios']['sweep_fast_over_numpy_rk4']:>9.3g} | "
+         f"{r['sweep_fast']['fallback_chunks']}/{r['sweep_fast']['fast_chunks']}"
+         for r in rows))
+    print("max energy error: " + "; ".join(
+        f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows))
+    t = SWEEP_TARGETS
+    print(f"Targets: sweep >= {t['over_hand_at_1e3']}x hand at B=1e3, >= {t['over_hand_from_1e4']}x from 1e4, "
+          f">= {t['over_rk4']}x NumPy RK4, compile <= {t['compile_s']} s (reported, never asserted).")
+
+
+def plot_sweep(summary: dict, path: Path) -> None:
+    fig, ax = harness.figure((1,), size=(7, 4.6))
+    styles = {"sweep": ("o", "C2"), "sweep_fast": ("*", "C3"), "cj_batch": ("D", "C0"), HAND_ROWS: ("^", "C7"), RK4: ("s", "C1")}
+    for m, (marker, color) in styles.items():
+        pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"]]
+        ax.loglog(*zip(*pts), marker=marker, color=color, label=m)
+    ax.set_xlabel("batch size B (bodies)")
+    ax.set_ylabel("body-steps per second")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(harness.plot_title(summary, "sweep vs hand kernel, rigid body"), fontsize=9)
+    fig.savefig(path, dpi=120)
 
 
 # --------------------------------------------------------------------------------------------
@@ -623,12 +817,24 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
     # the child process of part 3: measure these models (comma-separated) and print JSON
     parser.add_argument("--compile-model", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--compile-cache", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--sweep-only", action="store_true",
+                        help=f"only part 4, the sweep against the hand kernel ({SWEEP_RESULTS_NAME}.json/.png)")
 
 
 def main(argv=None) -> dict | None:
     """Runs the three parts, prints the report, writes the JSON and the PNG; returns the summary."""
-    run = harness.Run(RESULTS_NAME, argv, description="Throughput of the built-in models against NumPy RK4s, "
+    argv = sys.argv[1:] if argv is None else argv
+    run = harness.Run(SWEEP_RESULTS_NAME if "--sweep-only" in argv else RESULTS_NAME, argv,
+                      description="Throughput of the built-in models against NumPy RK4s, "
                       "and their compile times (see module docstring).", add_arguments=_add_arguments)
+    if run.args.sweep_only:
+        with run:
+            rows = run.measure(SWEEP_DEFAULT, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}",
+                               lambda B, n: sweep_case(B, n, run))
+        summary = run.summary(config={"inertia": list(SWEEP_INERTIA), "dt": rigid.DT, "seed": rigid.SEED,
+                                      "cases": [{"batch": b, "n_steps": n} for b, n in run.cases]},
+                              results=rows, targets=SWEEP_TARGETS)
+        return run.finish(summary, print_sweep_report, plot_sweep)
     if run.args.compile_model:  # a child of part 3
         with harness.quick_mode(run.quick):
             print(json.dumps(first_call_cost(run.args.compile_model.split(","), run.args.compile_cache)))

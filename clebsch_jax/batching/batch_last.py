@@ -92,17 +92,9 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
     def batched(*args):
         leaves, tree = jax.tree_util.tree_flatten(args)
         axes = _flat_axes(in_axes, args)
-        sizes = {jnp.shape(x)[0] for x, a in zip(leaves, axes) if a == 0 and jnp.ndim(x) > 0}
-        if any(a == 0 and jnp.ndim(x) == 0 for x, a in zip(leaves, axes)):
-            raise ValueError("in_axes: a batched argument is a scalar; it has no axis 0 to batch over.")
-        if len(sizes) != 1:
-            raise ValueError("in_axes: the batched arguments must share one leading axis size, got "
-                             f"{sorted(sizes) if sizes else 'no batched argument'}.")
-        B = sizes.pop()
+        B, leaves, member = _members(leaves, axes)
         if B == 0:  # an empty batch: jax.vmap's empty outputs (no chunk to run)
             return jax.vmap(fun, in_axes=in_axes)(*args)
-        leaves = [jnp.asarray(x) for x in leaves]
-        member = [jax.ShapeDtypeStruct(x.shape[1:] if a == 0 else x.shape, x.dtype) for x, a in zip(leaves, axes)]
         flags = [a == 0 for a in axes]
 
         def flat_fun(*flat):
@@ -139,6 +131,20 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
         return jax.tree_util.tree_unflatten(out_tree, outs)
 
     return batched
+
+
+def _members(leaves, axes):
+    """The batch size B, the leaves as arrays and one member's shapes (checked: every batched
+    leaf has a leading axis, all of one size)."""
+    sizes = {jnp.shape(x)[0] for x, a in zip(leaves, axes) if a == 0 and jnp.ndim(x) > 0}
+    if any(a == 0 and jnp.ndim(x) == 0 for x, a in zip(leaves, axes)):
+        raise ValueError("in_axes: a batched argument is a scalar; it has no axis 0 to batch over.")
+    if len(sizes) != 1:
+        raise ValueError("in_axes: the batched arguments must share one leading axis size, got "
+                         f"{sorted(sizes) if sizes else 'no batched argument'}.")
+    leaves = [jnp.asarray(x) for x in leaves]
+    member = [jax.ShapeDtypeStruct(x.shape[1:] if a == 0 else x.shape, x.dtype) for x, a in zip(leaves, axes)]
+    return sizes.pop(), leaves, member
 
 
 def _flat_axes(in_axes, args):

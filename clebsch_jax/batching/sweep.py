@@ -55,6 +55,8 @@ from ..march.integrate import integrate
 from ..march.solution import IntegrationError
 from ..roots.status import Status
 from .batch_last import batch
+from .fast import fast_method as _fast_method
+from .scalarise import scalarise
 
 __all__ = ["sweep", "SweepResult", "SweepProgress"]
 
@@ -100,6 +102,10 @@ class SweepResult:
     - Static facts: `n_steps`, `chunk_steps`, `batch_size`, `n_devices` (the number of devices
       the members' results were computed on, read back from the output arrays), `form` ("full" or
       "reduced"), `scheme`, `order`, `method` (of the `integrate` run).
+    - `fast_chunks`: the chunks (of steps, of one batch) run on the fast path
+      (`clebsch_jax.batching.fast`; 0 when it does not apply or `fast=False`), and
+      `fallback_chunks`: how many of them some member's check rejected, so that the chunk
+      ran again with the general Newton loop.
     """
 
     param_index: np.ndarray
@@ -125,6 +131,8 @@ class SweepResult:
     scheme: str = ""
     order: int = 0
     method: str = ""
+    fast_chunks: int = 0
+    fallback_chunks: int = 0
 
     def __len__(self) -> int:
         return int(self.status.shape[0])
@@ -194,7 +202,8 @@ jax.tree_util.register_dataclass(
     data_fields=["param_index", "ic_index", "status", "failed_step", "energy_error", "drift", "initial",
                  "newton_iterations", "max_residual", "final_t", "final_Q", "final_p", "final_xi",
                  "final_momentum", "saved"],
-    meta_fields=["n_steps", "chunk_steps", "batch_size", "n_devices", "form", "scheme", "order", "method"],
+    meta_fields=["n_steps", "chunk_steps", "batch_size", "n_devices", "form", "scheme", "order", "method",
+                 "fast_chunks", "fallback_chunks"],
 )
 
 
@@ -240,6 +249,7 @@ class _Config:
     save_every: int | None
     shared_def: tuple | None = None  # (treedef, leaves with None for arrays) of a shared system
     member_chunk: int | None = None  # members per cj.batch chunk inside a batch (None: one)
+    fast_method: object = None  # the fast path's stepper (clebsch_jax.batching.fast), None: none
 
 
 def _integrate(cfg: _Config, system, Q, xi, P, t, dt, n):
@@ -303,13 +313,31 @@ def _member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset
     return new, saved
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
+def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows: bool = False):
+    """The chunk of every member of a batch: `cj.batch` (in chunks of `member_chunk`), or with
+    `rows` the scalarising evaluation (`clebsch_jax.batching.scalarise`, the whole batch)."""
     def one(p, c, d, s, f, o):
         return _member_chunk(cfg, p, s, c, d, f, o)
 
-    return batch(one, in_axes=(0, 0, 0, None, None, None), chunk=cfg.member_chunk)(params, carry, dt, shared,
-                                                                                 first, offset)
+    axes = (0, 0, 0, None, None, None)
+    run = scalarise(one, in_axes=axes) if rows else batch(one, in_axes=axes, chunk=cfg.member_chunk)
+    return run(params, carry, dt, shared, first, offset)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
+    """One chunk of a batch: (carry, saved, fell_back). With a fast method, the chunk runs with
+    it first, and again with the general method when some member that was alive failed in it
+    (`clebsch_jax.batching.fast`); `fell_back` says whether it did."""
+    general = dataclasses.replace(cfg, fast_method=None)
+    if cfg.fast_method is None:
+        return (*_batched_chunk(general, params, carry, dt, shared, first, offset), jnp.asarray(False))
+    fast = dataclasses.replace(general, options=(("method", cfg.fast_method),))
+    new, saved = _batched_chunk(fast, params, carry, dt, shared, first, offset, rows=True)
+    ok = jnp.all((new.status == Status.SUCCESS) | (carry.status != Status.SUCCESS))
+    new, saved = jax.lax.cond(ok, lambda: (new, saved),
+                              lambda: _batched_chunk(general, params, carry, dt, shared, first, offset))
+    return new, saved, ~ok
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -530,6 +558,16 @@ def _chunk_config(run: _Run, members: _Members, options: dict) -> _Config:
     return cfg
 
 
+def _fast_method_of(cfg: _Config, members: _Members):
+    """The fast path's method for this sweep (`clebsch_jax.batching.fast`), chosen on the first
+    member as `integrate` chooses (the choice depends on the system's facts and the options,
+    the same for every member), or None."""
+    p_row = None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
+    j = members.ic_index[0]
+    return _fast_method(_system_of(cfg, p_row, members.shared), jnp.asarray(members.Q0[j]),
+                        jnp.asarray(members.xi0[j]), dict(cfg.options))
+
+
 class _Shapes(NamedTuple):
     """One member's shapes and the facts of its march."""
 
@@ -636,16 +674,18 @@ def _start_batch(cfg: _Config, members: _Members, shapes: _Shapes, b: int, batch
     return _Batch(b, rows, n_real, params, put(jnp.asarray(members.dt[member])), shared, carry)
 
 
-def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report: Callable):
+def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report: Callable, fell_back: list):
     """March a group of batches (one per device, side by side) through every chunk: each batch's
-    carry moves on, the chunk's saved nodes go to `saved`, `report(group, step)` follows a chunk."""
+    carry moves on, the chunk's saved nodes go to `saved`, whether it fell back from the fast
+    path to `fell_back` (device scalars), `report(group, step)` follows a chunk."""
     for st, n in run.chunks:
         c = cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
         outs = []
         for one in group:  # dispatched asynchronously: the devices march side by side
-            one.carry, chunk_saved = _run_chunk(c, one.params, one.carry, one.dt, one.shared, jnp.asarray(st == 0),
-                                                jnp.asarray(st, jnp.int32))
+            one.carry, chunk_saved, fb = _run_chunk(c, one.params, one.carry, one.dt, one.shared,
+                                                    jnp.asarray(st == 0), jnp.asarray(st, jnp.int32))
             outs.append(chunk_saved)
+            fell_back.append(fb)
         if saved is not None:
             k0, kn = st // run.save_every, len(range(0, n, run.save_every))
             for one, chunk_saved in zip(group, outs):
@@ -713,6 +753,7 @@ class _Rows(NamedTuple):
     rows: list  # each batch's rows of the sweep's table (slices)
     tables: _Tables
     devices: set  # the devices they ran on
+    fast_chunks: tuple = (0, 0)  # chunks run by the fast path, and of those rerun by the general one
 
 
 def _run_batches(plan: _Plan, batches: list, devices: list, report: Callable) -> _Rows:
@@ -728,12 +769,14 @@ def _run_batches(plan: _Plan, batches: list, devices: list, report: Callable) ->
         one.rows = slice(at, at + one.n_real)
         at += one.n_real
     tables = _allocate_tables(at, shapes, run)
-    _run_chunks(cfg, group, run, tables.saved, report)
+    fell_back = []
+    _run_chunks(cfg, group, run, tables.saved, report, fell_back)
     used = set()
     for one in group:
         used.update(one.carry.status.devices())
         _collect(tables, one, run)
-    return _Rows(list(batches), rows, tables, used)
+    fast = (0 if cfg.fast_method is None else len(fell_back), int(sum(bool(f) for f in jax.device_get(fell_back))))
+    return _Rows(list(batches), rows, tables, used, fast)
 
 
 def _place(tables: _Tables, part: _Tables, rows: list):
@@ -765,7 +808,7 @@ def sweep(
     make_system, params, Q0, xi0, *, dt, n_steps: int, P0=None, grid: bool = False,
     invariants: dict | None = None, chunk_steps: int | None = None, batch_size: int | None = None,
     save_every: int | None = None, member_chunk: int | None = None, devices=None, progress=False,
-    store=None, client=None, overwrite: bool = False, **options,
+    store=None, client=None, overwrite: bool = False, fast: bool = False, **options,
 ) -> SweepResult:
     r"""Run many members — parameters × initial conditions — through `integrate`; keep a table.
 
@@ -851,6 +894,15 @@ def sweep(
       The table is identical to the bit to the in-process one (`clebsch_jax.batching.distributed`).
     - `overwrite`: with `store`, replace a store written by another configuration instead of
       refusing it.
+    - `fast`: False (default): the general Newton loop. True: where the method has a fast
+      path (`clebsch_jax.batching.fast`: the reduced march), each chunk first solves every
+      step by a fixed number of Newton updates with a check per member and step, its steps
+      evaluated with one row per component (`clebsch_jax.batching.scalarise`), and runs again
+      with the general loop when a check fails — the same table to round-off, reruns counted
+      in `SweepResult.fallback_chunks`. Not yet the default: a chunk's work after its steps
+      (the nodal velocities and invariants at every node, the hand-over) costs as much as
+      before, and the fast chunk compiles beside the general one (`benchmarks/throughput.py`
+      measures both).
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own.
@@ -868,13 +920,17 @@ def sweep(
         from .store import check_arguments
 
         check_arguments(store, client, overwrite)
+    if not isinstance(fast, bool):
+        raise ValueError(f"fast: expected True or False, got {fast!r}.")
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
     B, n_dev = members.B, len(run.devices)
-    if batch_size is None:
-        batch_size = min(-(-B // n_dev), _DEFAULT_BATCH)  # every device gets a batch
-    batch_size = _positive_int(batch_size, "batch_size")
     cfg = _chunk_config(run, members, options)
     shapes = _probe(cfg, members)
+    if fast:
+        cfg = dataclasses.replace(cfg, fast_method=_fast_method_of(cfg, members))
+    if batch_size is None:  # every device gets a batch
+        batch_size = min(-(-B // n_dev), _DEFAULT_BATCH)
+    batch_size = _positive_int(batch_size, "batch_size")
     tables = _allocate_tables(B, shapes, run)
 
     # groups of batches (one batch per device) × chunks
@@ -886,22 +942,24 @@ def sweep(
 
         return _store.run_stored(plan, run, tables, store=store, client=client, overwrite=overwrite,
                                  report=report, make_result=_result)
-    used = set()
+    used, chunks = set(), np.zeros(2, int)
     for g in range(0, n_batches, n_dev):
         rows = _run_batches(plan, list(range(g, min(g + n_dev, n_batches))), run.devices, report)
         used.update(rows.devices)
+        chunks += rows.fast_chunks
         _place(tables, rows.tables, rows.rows)
     if run.progress is True:
         print(file=sys.stderr, flush=True)
-    return _result(plan, tables, len(used))
+    return _result(plan, tables, len(used), chunks)
 
 
-def _result(plan: "_Plan", tables: _Tables, n_devices: int) -> SweepResult:
-    """The `SweepResult` of a plan's filled-in tables."""
+def _result(plan: "_Plan", tables: _Tables, n_devices: int, chunks=(0, 0)) -> SweepResult:
+    """The `SweepResult` of a plan's filled-in tables; `chunks`: (fast chunks, fallback chunks)
+    of the fast path in this process (0, 0 for a stored or Dask run, which do not count them)."""
     members, run = plan.members, plan.run
     return SweepResult(
         param_index=members.param_index, ic_index=members.ic_index, energy_error=tables.drift["energy"],
         drift=tables.drift, initial=tables.initial, saved=tables.saved, n_steps=run.n_steps,
         chunk_steps=run.chunk_steps, batch_size=plan.batch_size, n_devices=n_devices, **tables.columns,
-        **plan.shapes.facts,
+        **plan.shapes.facts, fast_chunks=int(chunks[0]), fallback_chunks=int(chunks[1]),
     )

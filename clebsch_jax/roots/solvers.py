@@ -15,9 +15,11 @@ import jax.numpy as jnp
 from ..core.validation import nonnegative, positive_int
 from .blocks import block_newton_solve, block_newton_solve_reusing, identity_blocks
 from .fixed_point import fixed_point_solve
-from .newton import newton_solve, newton_solve_reusing
+import jax
 
-__all__ = ["Newton", "BlockNewton", "FixedPoint"]
+from .newton import fixed_newton_solve, newton_solve, newton_solve_reusing
+
+__all__ = ["Newton", "FixedNewton", "BlockNewton", "FixedPoint"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,14 +56,61 @@ class Newton:
         """Solve F(z) = 0 from `guess`. **Returns:** `(z, NewtonStats)`."""
         return newton_solve(F, guess, **self._options)
 
-    def solve_reusing(self, F, guess, H, reuse, finish=None):
-        """Solve F(z) = 0 first with the carried inverse Jacobian `H` (if `reuse`).
+    def solve_reusing(self, F, guess, H, reuse, finish=None, step=None):
+        """Solve F(z) = 0 first with the carried inverse Jacobian `H` (if `reuse`; `step`, the
+        step's number in a march, is not used).
         **Returns:** `(z, NewtonStats, H, extra)` (see `newton_solve_reusing`)."""
         return newton_solve_reusing(F, guess, H, reuse, finish=finish, **self._options)
 
     def initial_matrix(self, guess):
         """A placeholder carried matrix for the first solve of a march."""
         return jnp.eye(guess.size, dtype=guess.dtype)
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedNewton(Newton):
+    r"""A fixed number of chord updates from the step's prediction, then a check
+    (`clebsch_jax.roots.newton.fixed_newton_solve`): straight-line code, with no loop whose
+    trip count depends on the data, for batches of many members that all converge alike.
+
+    A solve the check does not accept has status MAX_ITERATIONS: it is not at round-off, and
+    the caller solves again with `Newton` (`clebsch_jax.sweep` reruns the chunk of steps with
+    the general loop, so every member and step it reports is solved as `Newton` solves it).
+
+    **Arguments:** those of `Newton` (the stopping rule of the check, the general loop of the
+    start-up steps and of one-off solves), and
+
+    - `updates`: chord updates per solve (default 3: with a good guess the last update is
+      already at round-off, so the check sees two updates at the noise floor and tells a
+      converged solve from one still contracting, as the general loop's stagnation rule does).
+
+    `solve` (a one-off solve, e.g. of a nodal velocity, whose guess may be poor) is `Newton`'s.
+    - `warmup`: the first steps of a march (counted by the caller's `step`) solve with the
+      general loop (default 4), while the predictor has too few earlier steps to be accurate.
+    """
+
+    updates: int = 3
+    warmup: int = 4
+
+    def __post_init__(self):
+        super().__post_init__()
+        object.__setattr__(self, "updates", positive_int(self.updates, "updates"))
+        object.__setattr__(self, "warmup", positive_int(self.warmup, "warmup", minimum=0))
+
+    def solve_reusing(self, F, guess, H, reuse, finish=None, step=None):
+        """`updates` chord updates and a check; the general loop for steps before `warmup`
+        (`step`: the step's number, None: treated as past the warm-up).
+        **Returns:** `(z, NewtonStats, H, extra)` as `Newton.solve_reusing`."""
+        def fixed(_):
+            return fixed_newton_solve(F, guess, updates=self.updates, rtol=self.rtol, atol=self.atol, finish=finish)
+
+        if step is None or self.warmup == 0:
+            return fixed(None)
+
+        def general(_):
+            return newton_solve_reusing(F, guess, H, reuse, finish=finish, **self._options)
+
+        return jax.lax.cond(step < self.warmup, general, fixed, None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,7 +127,7 @@ class BlockNewton(Newton):
     def solve(self, F, guess):
         return block_newton_solve(F, guess, **self._options)
 
-    def solve_reusing(self, F, guess, H, reuse, finish=None):
+    def solve_reusing(self, F, guess, H, reuse, finish=None, step=None):
         z, stats, H = block_newton_solve_reusing(F, guess, H, reuse, **self._options)
         return z, stats, H, None
 

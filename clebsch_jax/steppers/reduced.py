@@ -29,7 +29,7 @@ from ..core.derivative_maps import CayleyDifference
 from ..core.system import momentum_map
 from ..discrete.legendre import initial_multiplier
 from ..discrete.reduction import MatrixGroupReduction, find_reduction, reduced_step
-from ..roots.solvers import Newton
+from ..roots.solvers import FixedNewton, Newton
 from .base import Nodes, Principle
 from .full import seed_velocity
 from .predictor import empty_history, predict, push
@@ -49,7 +49,7 @@ class ReducedStep(PrincipleStep):
     **Arguments:**
 
     - `principle`: `Principle.LEFT` (default) or `RIGHT`.
-    - `root_finder`: a `Newton()`.
+    - `root_finder`: a `Newton()` (or a `FixedNewton()`, which `clebsch_jax.sweep` uses).
     - `reconstruct`: carry and return $Q^n$ (default True). With False and an l without
       potential, `Solution.Q` is None and Q is never computed.
     - `need_P`: also return the minimum-norm multiplier $P^n$ of each step.
@@ -70,8 +70,9 @@ class ReducedStep(PrincipleStep):
 
     def __post_init__(self):
         super().__post_init__()
-        if type(self.root_finder) is not Newton:
-            raise TypeError(f"root_finder: the reduced step solves dim V equations with clebsch_jax.Newton(), got "
+        if type(self.root_finder) not in (Newton, FixedNewton):
+            raise TypeError(f"root_finder: the reduced step solves dim V equations with clebsch_jax.Newton() (or "
+                            f"its fixed-update form, clebsch_jax.roots.solvers.FixedNewton), got "
                             f"{self.root_finder!r}.")
 
     def prepare(self, system, Q0, xi0) -> "ReducedStep":
@@ -122,8 +123,12 @@ class ReducedStep(PrincipleStep):
         # iterates on NaNs without forming any.
         guess = xi_last + predict(n, jnp.zeros_like(xi_last), history)
         reuse = False if self._fresh(system) else (n > 0) | ~alive
-        xi, stats, H, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish)
+        xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish,
+                                                                     step=n)
         carry_Q = self._carry_Q(system)
+        # a fresh Jacobian every solve: the carried matrix is never read, so it is handed on
+        # unchanged (a loop-invariant placeholder rather than a new value per step)
+        H = H if reuse is False else H_new
         return (mu1, Q1 if carry_Q else Q, xi), (push(history, xi - xi_last), H), (xi, Q1), stats
 
     def nodes(self, system, state0, states, outs) -> Nodes:

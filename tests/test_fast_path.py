@@ -1,0 +1,156 @@
+r"""The fast path of `sweep` (`clebsch_jax.batching.fast`): fixed Newton updates with a check per
+member and step, the chunk rerun with the general loop when a check fails, and the scalarising
+evaluator (`clebsch_jax.batching.scalarise`) that runs its loop with one row per component.
+
+The references are independent runs of `integrate` (the general Newton loop) per member, not
+the fast path. Compile time dominates: the rigid-body sweeps share one program (`RB`: batches
+of 4, 2 chunks of 20 steps), and only array values (inertias, initial data, dt) change.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import clebsch_jax as cj
+from clebsch_jax import Status
+from clebsch_jax.batching.fast import fast_method
+from clebsch_jax.batching.scalarise import scalarise
+from clebsch_jax.models import heavy_top, point_vortices, rigid_body
+from clebsch_jax.roots.newton import fixed_newton_solve, newton_solve
+from clebsch_jax.roots.solvers import FixedNewton
+
+N_STEPS = 40
+RB = dict(n_steps=N_STEPS, chunk_steps=20, batch_size=4, reconstruct=False, fast=True,
+          invariants={"casimir": lambda system, sol: jnp.sum(sol.momentum**2, axis=-1)})
+INERTIAS = np.array([[2.0, 1.0, 2.0 / 3.0], [1.0, 1.5, 0.5], [0.5, 0.6, 1.0], [1.2, 1.1, 0.7]])
+OMEGAS = np.array([[1.3, 0.8, -0.4], [0.2, 1.0, 0.3], [-0.5, 0.1, 0.9], [0.3, -0.7, 0.3]])
+EYES = np.broadcast_to(np.eye(3), (4, 3, 3))
+
+
+def reference(system, Q0, xi0, dt, n_steps, **options):
+    """One member by `integrate` with the general Newton loop: final momentum and energy error."""
+    sol = cj.integrate(system, jnp.asarray(Q0), jnp.asarray(xi0), dt=dt, n_steps=n_steps, **options)
+    E = np.asarray(cj.diagnostics.energy(system, sol))
+    return np.asarray(sol.momentum[-1]), float(np.max(np.abs(E - E[0])))
+
+
+def test_rigid_bodies_agree_with_integrate_and_keep_invariants():
+    res = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, **RB)
+    assert res.fast_chunks == 2 and res.fallback_chunks == 0  # one batch, two chunks, all checks passed
+    assert np.all(res.succeeded)
+    for m in range(4):
+        mu, energy_error = reference(rigid_body(INERTIAS[m]), np.eye(3), OMEGAS[m], 0.05, N_STEPS,
+                                     reconstruct=False)
+        np.testing.assert_allclose(res.final_momentum[m], mu, rtol=0, atol=1e-13)
+        # the same scheme to round-off: the same energy error (it is O(dt²), far above round-off)
+        assert abs(res.energy_error[m] - energy_error) <= 1e-13
+    # the Casimir |μ|² of the reduced CAY march is conserved to round-off
+    assert np.max(res.drift["casimir"]) < 1e-13
+
+
+def test_forced_fallback_large_dt_gives_the_general_answer():
+    # Δt = 0.6 with |ω| ~ 3: the predictor is poor, K fixed updates do not reach round-off,
+    # every chunk is rerun with the general loop; the answers are the general loop's
+    omegas = 3.0 * OMEGAS
+    res = cj.sweep(rigid_body, INERTIAS, EYES, omegas, dt=0.6, **RB)
+    assert res.fallback_chunks >= 1 and res.fast_chunks == 2
+    general = cj.sweep(rigid_body, INERTIAS, EYES, omegas, dt=0.6, **{**RB, "fast": False})
+    assert general.fast_chunks == 0 and general.fallback_chunks == 0
+    np.testing.assert_array_equal(res.status, general.status)
+    np.testing.assert_allclose(res.final_momentum, general.final_momentum, rtol=0, atol=1e-12)
+    for m in range(4):
+        mu, _ = reference(rigid_body(INERTIAS[m]), np.eye(3), omegas[m], 0.6, N_STEPS, reconstruct=False,
+                          throw=False)
+        np.testing.assert_allclose(res.final_momentum[m], mu, rtol=0, atol=1e-12)
+
+
+def test_failing_member_reported_with_step_and_member():
+    omegas = OMEGAS.copy()
+    omegas[2] = np.nan  # member 2 fails at step 0; the others are unaffected
+    res = cj.sweep(rigid_body, INERTIAS, EYES, omegas, dt=0.05, **RB)
+    assert list(res.failed_members) == [2]
+    assert res.status[2] == Status.NONFINITE and res.failed_step[2] == 0
+    assert res.fallback_chunks >= 1  # the chunk with the failure ran on the general path
+    ok = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, **RB)
+    np.testing.assert_allclose(res.final_momentum[[0, 1, 3]], ok.final_momentum[[0, 1, 3]], rtol=0, atol=1e-13)
+
+
+def _top(params):
+    return heavy_top(params[:3], params[3])
+
+
+def test_heavy_tops_agree_with_integrate():
+    params = np.array([[1.0, 1.0, 0.4, 1.5], [1.0, 1.2, 0.5, 0.8]])
+    Q0 = np.stack([np.asarray(cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))),
+                   np.asarray(cj.lie.so3_exp(jnp.array([0.2, 0.3, 0.0])))])
+    omegas = np.array([[0.1, 0.2, 5.0], [0.3, -0.2, 3.0]])
+    res = cj.sweep(_top, params, Q0, omegas, dt=0.01, n_steps=30, chunk_steps=15, fast=True)
+    assert res.form == "reduced" and res.fast_chunks == 2 and res.fallback_chunks == 0
+    for m in range(2):
+        sol = cj.integrate(_top(params[m]), jnp.asarray(Q0[m]), jnp.asarray(omegas[m]), dt=0.01, n_steps=30)
+        np.testing.assert_allclose(res.final_momentum[m], np.asarray(sol.momentum[-1]), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(res.final_Q[m], np.asarray(sol.Q[-1]), rtol=0, atol=1e-13)
+
+
+def test_vortex_cluster_has_no_fast_path_and_agrees():
+    # the midpoint full step of point vortices has no fixed-update form yet: the sweep runs the
+    # general path (fast_chunks 0) and its answers are integrate's
+    G = np.array([1.0, 1.0, -0.5])
+    Q0 = np.array([[[1.0, 0.0], [-0.5, 0.8], [-0.4, -0.9]]])
+    xi0 = np.zeros_like(Q0)
+    assert fast_method(point_vortices(jnp.asarray(G)), jnp.asarray(Q0[0]), jnp.asarray(xi0[0]), {}) is None
+    res = cj.sweep(point_vortices, G[None], Q0, xi0, dt=0.05, n_steps=10, fast=True)
+    assert res.fast_chunks == 0
+    sol = cj.integrate(point_vortices(jnp.asarray(G)), jnp.asarray(Q0[0]), jnp.asarray(xi0[0]), dt=0.05, n_steps=10)
+    np.testing.assert_allclose(res.final_p[0], np.asarray(sol.p[-1]), rtol=0, atol=1e-13)
+
+
+def test_fixed_newton_solve_checks_its_answer():
+    # F(z) = z³ + z - c: from a close guess 3 chord updates reach round-off; from a far one they
+    # do not, and the status says so (a caller then solves with the general loop)
+    c = jnp.array([2.0, 10.0])
+    F = lambda z: z**3 + z - c
+    root, _ = newton_solve(F, jnp.array([1.0, 2.0]), rtol=0.0, atol=0.0, max_iterations=20)
+    near, st, _, _ = fixed_newton_solve(F, root + 1e-5, updates=3, rtol=0.0, atol=0.0)
+    assert st.status == Status.SUCCESS
+    np.testing.assert_allclose(near, root, rtol=0, atol=1e-14)
+    _, st_far, _, _ = fixed_newton_solve(F, root + 0.5, updates=3, rtol=0.0, atol=0.0)
+    assert st_far.status == Status.MAX_ITERATIONS
+    # derivatives of the root by the implicit function theorem: dz/dc = 1 / (3z² + 1)
+    g = jax.grad(lambda cc: jnp.sum(fixed_newton_solve(lambda z: z**3 + z - cc, root + 1e-6, updates=3,
+                                                       rtol=0.0, atol=0.0)[0]))(c)
+    np.testing.assert_allclose(g, 1.0 / (3.0 * root**2 + 1.0), rtol=1e-12)
+
+
+def test_fixed_newton_in_integrate_reports_unconverged_steps():
+    body = rigid_body(jnp.array([0.5, 0.6, 1.0]))
+    method = fast_method(body, jnp.eye(3), jnp.array([3.0, 1.0, -2.0]), {"reconstruct": False})
+    assert isinstance(method.root_finder, FixedNewton)
+    sol = cj.integrate(body, jnp.eye(3), jnp.array([3.0, 1.0, -2.0]), dt=0.6, n_steps=12, method=method, throw=False)
+    status = np.asarray(sol.stats.status)
+    # the warm-up steps use the general loop and succeed; a later step's check fails
+    assert np.all(status[:method.root_finder.warmup] == Status.SUCCESS)
+    assert Status.MAX_ITERATIONS in status
+
+
+def test_scalarise_matches_vmap():
+    def f(x, A):
+        M = A @ jnp.outer(x, x) + jnp.eye(3) * x[0]  # dot_general, broadcast, a constant eye
+
+        def body(c, _):
+            y = jnp.cross(c, M @ c) * 0.1 + c
+            k = jnp.argmax(jnp.abs(y))  # a batched index: handled stacked
+            return y / jnp.linalg.norm(y), y[k] + jax.lax.dynamic_slice(y, (jnp.asarray(1),), (1,))[0]
+
+        c, ys = jax.lax.scan(body, x, None, length=5)
+        n = jax.lax.while_loop(lambda s: s[0] < jnp.abs(c[0]) * 10 + 1, lambda s: (s[0] + 1.0, s[1] * 0.5),
+                               (0.0, jnp.sum(c)))
+        r = jax.lax.cond(x[1] > 0, lambda v: v[::-1], lambda v: -v, c)
+        return r, ys, n[1], jnp.sum(M, axis=0)
+
+    xs = jnp.asarray(np.random.default_rng(0).normal(size=(7, 3)))
+    A = jnp.asarray(np.random.default_rng(1).normal(size=(3, 3)))
+    want = jax.vmap(f, in_axes=(0, None))(xs, A)
+    got = jax.jit(scalarise(f, in_axes=(0, None)))(xs, A)
+    for w, g in zip(jax.tree_util.tree_leaves(want), jax.tree_util.tree_leaves(got)):
+        np.testing.assert_allclose(g, w, rtol=1e-14, atol=1e-14)
