@@ -297,7 +297,8 @@ def integrate(
     else:  # programs reused for any n_steps
         sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy)
         if sol.Q is not None:
-            check_first_step(system, sol.method, Q0, xi0, sol.Q[1])
+            # on the host: indexing the device array would compile a slice for each n_steps
+            check_first_step(system, sol.method, Q0, xi0, np.asarray(sol.Q)[1])
     if throw:
         if is_traced(sol.result):
             sol = dataclasses.replace(sol, result=check_traced(sol))
