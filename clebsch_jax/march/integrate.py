@@ -296,7 +296,7 @@ def integrate(
                          check_inputs=True)
     else:  # programs reused for any n_steps
         sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy)
-        if sol.Q is not None:
+        if sol.Q is not None and not any_traced(sol.Q):  # traced when the maps close over tracers
             # on the host: indexing the device array would compile a slice for each n_steps
             check_first_step(system, sol.method, Q0, xi0, np.asarray(sol.Q)[1])
     if throw:
