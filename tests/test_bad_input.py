@@ -12,6 +12,10 @@ from hypothesis import strategies as st
 import clebsch_jax as cj
 from clebsch_jax.march import integrate as _integrate
 
+from .systems import kinetic as _oscillator
+from .systems import translation as _translation
+from .systems import unit_vector as _unit_vector
+
 SYSTEM = cj.models.rigid_body(np.array([2.0, 1.0, 2.0 / 3.0]))
 Q0, XI0 = np.eye(3), np.array([0.3, 0.1, 1.0])
 
@@ -251,19 +255,6 @@ _shapes = st.lists(st.integers(min_value=1, max_value=4), min_size=1, max_size=3
 def _array(shape):
     return st.lists(_finite, min_size=int(np.prod(shape)), max_size=int(np.prod(shape))).map(
         lambda v: np.array(v).reshape(shape))
-
-
-def _oscillator(xi):
-    return 0.5 * jnp.sum(xi**2)
-
-
-def _translation(xi, Q):
-    return xi
-
-
-def _unit_vector(Q):
-    n = float(np.linalg.norm(Q))
-    return None if abs(n - 1.0) <= 1e-12 else f"not a unit vector (|Q| = {n:.6g})."
 
 
 def _spring(xi, Q):

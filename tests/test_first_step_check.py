@@ -12,6 +12,8 @@ import pytest
 
 import clebsch_jax as cj
 
+from .systems import kinetic, translation, unit_vector
+
 INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
 XI0 = jnp.array([1.3, 0.8, -0.4])
 FORWARD = cj.models.rigid_body(INERTIA, derivative_map=cj.forward_difference)  # checks Q is a rotation
@@ -88,24 +90,11 @@ def test_a_rotation_that_only_just_passes_is_not_blamed_on_a_correct_step():
     assert int(sol.result) == cj.Status.SUCCESS
 
 
-def _kinetic(xi):
-    return 0.5 * jnp.sum(xi**2)
-
-
-def _translation(xi, Q):
-    return xi
-
-
-def _unit_vector(Q):
-    n = float(np.linalg.norm(Q))
-    return None if abs(n - 1.0) <= 1e-12 else f"not a unit vector (|Q| = {n:.6g})."
-
-
 def test_a_velocity_map_not_tangent_to_the_manifold_is_refused_after_its_first_step():
     """Translations of the plane are not tangent to the unit circle that check_Q declares: every
     principle leaves it, and the first step's Q1 fails check_Q (no matrix group here)."""
-    circle = cj.ClebschSystem(lagrangian=_kinetic, velocity_map=_translation, derivative_map=cj.forward_difference,
-                              check_Q=_unit_vector)
+    circle = cj.ClebschSystem(lagrangian=kinetic, velocity_map=translation, derivative_map=cj.forward_difference,
+                              check_Q=unit_vector)
     with pytest.raises(ValueError, match=r"^derivative_map: one step of forward difference from Q0 \(midpoint "
                                          r"principle\) leaves the configuration manifold: not a unit vector"):
         cj.integrate(circle, np.array([0.6, 0.8]), np.ones(2), dt=0.1, n_steps=2)
