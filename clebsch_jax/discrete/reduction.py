@@ -104,21 +104,27 @@ def _concrete(x) -> bool:
 _CACHE: dict = {}
 
 
+def _memo(key, compute):
+    """`compute()`, kept in `_CACHE` under `key` (cleared when it holds 256 entries); computed
+    every time when the key cannot be hashed (an unhashable map)."""
+    try:
+        if key in _CACHE:
+            return _CACHE[key]
+    except TypeError:
+        return compute()
+    value = compute()
+    if len(_CACHE) >= 256:
+        _CACHE.clear()
+    _CACHE[key] = value
+    return value
+
+
 def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | None, str]:
     """`_find_reduction`, cached: the verdict depends only on the two maps and the shapes."""
     if any_traced(system.velocity_map):
         return _find_reduction(system, Q0, xi0)
-    key = (system.velocity_map, system.derivative_map, tuple(np.shape(Q0)), tuple(np.shape(xi0)))
-    try:
-        hit = _CACHE.get(key)
-    except TypeError:  # an unhashable map
-        return _find_reduction(system, Q0, xi0)
-    if hit is None:
-        hit = _find_reduction(system, Q0, xi0)
-        if len(_CACHE) >= 256:
-            _CACHE.clear()
-        _CACHE[key] = hit
-    return hit
+    key = ("reduction", system.velocity_map, system.derivative_map, tuple(np.shape(Q0)), tuple(np.shape(xi0)))
+    return _memo(key, lambda: _find_reduction(system, Q0, xi0))
 
 
 def _find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | None, str]:
@@ -137,7 +143,7 @@ def _inspect(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | Non
     """
     if not isinstance(system.derivative_map, MatrixGroupDifference):
         return None, "the derivative map is not a matrix-group map (Definition 25)"
-    basis, reason = _group_basis(system, Q0, xi0)
+    basis, reason = _cached_group_basis(system, Q0, xi0)
     if basis is None:
         return None, reason
     m = basis.shape[0]
@@ -152,18 +158,17 @@ def matrix_group_basis(system: ClebschSystem, Q0, xi0) -> np.ndarray | None:
     on traced values). Cached like `find_reduction`: it depends only on the map and the shapes."""
     if any_traced(system.velocity_map):
         return None
-    key = ("basis", system.velocity_map, tuple(np.shape(Q0)), tuple(np.shape(xi0)))
-    try:
-        if key in _CACHE:
-            return _CACHE[key]
-    except TypeError:  # an unhashable map
-        return _group_basis(system, Q0, xi0)[0]
     with jax.ensure_compile_time_eval():
-        basis = _group_basis(system, Q0, xi0)[0]
-    if len(_CACHE) >= 256:
-        _CACHE.clear()
-    _CACHE[key] = basis
-    return basis
+        return _cached_group_basis(system, Q0, xi0)[0]
+
+
+def _cached_group_basis(system: ClebschSystem, Q0, xi0) -> tuple[np.ndarray | None, str]:
+    """`_group_basis`, cached per velocity map and shapes when the map holds no traced values
+    (shared by the reduction's inspection and `matrix_group_basis`: one evaluation each)."""
+    if any_traced(system.velocity_map):
+        return _group_basis(system, Q0, xi0)
+    key = ("basis", system.velocity_map, tuple(np.shape(Q0)), tuple(np.shape(xi0)))
+    return _memo(key, lambda: _group_basis(system, Q0, xi0))
 
 
 def _group_basis(system: ClebschSystem, Q0, xi0) -> tuple[np.ndarray | None, str]:
