@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .discrete.legendre import cotangent_from_momentum
+from .march.scan import energy_terms
 from .march.solution import Solution
 from .core.system import ClebschSystem
 
@@ -37,8 +38,8 @@ def _over_nodes(fn, sol: Solution, *arrays):
 
 def node_energy(system: ClebschSystem, Q, xi) -> jax.Array:
     r"""The energy $E = \langle \delta l/\delta\xi, \xi\rangle - l(\xi, Q)$ at one node."""
-    lval, g = jax.value_and_grad(lambda y: system.l(y, Q))(xi)
-    return jnp.sum(g * xi) - lval
+    pairing, lagrangian = energy_terms(system, Q, xi)
+    return pairing - lagrangian
 
 
 def energy(system: ClebschSystem, sol: Solution) -> jax.Array:

@@ -21,6 +21,7 @@ from jax.tree_util import Partial
 import clebsch_jax as cj
 from clebsch_jax import Status
 from clebsch_jax.march import integrate as integrate_module
+from clebsch_jax.march.scan import energy_jump
 
 I3, W = jnp.eye(3), jnp.array([1.3, 0.8, -0.4])
 INERTIA = jnp.array([2.0, 1.0, 2 / 3])
@@ -72,9 +73,7 @@ def test_a_jump_is_reported_with_its_member_under_vmap():
     reaches the attractive wall (strength > 0: potential -strength/|5 - x|) fails; one bounces
     off a repulsive wall and one moves along it, both successes, untouched by the failure."""
     def run(strength, v):
-        system = cj.ClebschSystem(lagrangian=Partial(_wall, strength), velocity_map=WALL.velocity_map,
-                                  derivative_map=cj.forward_difference)
-        return cj.integrate(system, jnp.zeros(2), v, dt=0.1, n_steps=120, scheme="left", throw=False)
+        return cj.integrate(_wall_system(strength), jnp.zeros(2), v, dt=0.1, n_steps=120, scheme="left", throw=False)
 
     strengths = jnp.array([-1.0, 1.0, 1.0])
     vs = jnp.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
@@ -84,6 +83,71 @@ def test_a_jump_is_reported_with_its_member_under_vmap():
     np.testing.assert_array_equal(sol.Q[0], alone.Q)
     with pytest.raises(cj.IntegrationError, match="batch member 1, step"):
         sol.raise_if_failed()
+
+
+def _wall_system(strength):
+    return cj.ClebschSystem(lagrangian=Partial(_wall, strength), velocity_map=WALL.velocity_map,
+                            derivative_map=cj.forward_difference)
+
+
+def test_a_sweep_finds_the_same_jump_across_its_chunks():
+    """Variant: a sweep checks the energy over the whole run, chunk by chunk (its running
+    maxima carried from chunk to chunk), and finds the jump at the step `integrate` finds, in
+    the middle of a chunk; the failed member's later nodes and final state are NaN, its energy
+    error covers the nodes before the jump, and the other members are untouched."""
+    strengths = jnp.array([1.0, -1.0])
+    Q0, v = jnp.zeros((1, 2)), jnp.array([[1.0, 0.0]])
+    res = cj.sweep(_wall_system, strengths, Q0, v, dt=0.1, n_steps=120, grid=True, chunk_steps=16, save_every=4,
+                   scheme="left")
+    ref = [cj.integrate(_wall_system(s), Q0[0], v[0], dt=0.1, n_steps=120, scheme="left", throw=False)
+           for s in strengths]
+    step = int(ref[0].failed_step)
+    assert int(ref[0].result) == Status.ENERGY_JUMP and step % 16 not in (0, 15)  # inside a chunk
+    np.testing.assert_array_equal(res.status, [Status.ENERGY_JUMP, Status.SUCCESS])
+    np.testing.assert_array_equal(res.failed_step, [step, -1])
+    assert np.all(np.isnan(res.final_Q[0])) and np.all(np.isnan(res.final_momentum[0]))
+    np.testing.assert_allclose(res.final_Q[1], ref[1].Q[-1], rtol=1e-12, atol=1e-12)
+    saved = res.saved["step"]
+    assert np.all(np.isfinite(res.saved["Q"][0, saved <= step])) and np.all(np.isnan(res.saved["Q"][0, saved > step]))
+    energy = np.asarray(cj.diagnostics.energy(_wall_system(strengths[0]), ref[0]))
+    np.testing.assert_allclose(res.energy_error[0], np.max(np.abs(energy[: step + 1] - energy[0])), rtol=1e-9)
+    off = cj.sweep(_wall_system, strengths, Q0, v, dt=0.1, n_steps=120, grid=True, chunk_steps=16, scheme="left",
+                   check_energy=False)
+    np.testing.assert_array_equal(off.status, [Status.SUCCESS, Status.SUCCESS])
+
+
+_JUMP_N = 24
+_jump_traced = jax.jit(lambda E, size, status, largest, size_max: energy_jump(jnp, E, size, status, largest, size_max))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-1.0, 1.0), min_size=_JUMP_N + 1, max_size=_JUMP_N + 1),
+       st.lists(st.sampled_from([1e-3, 1e-1, 10.0]), min_size=_JUMP_N + 1, max_size=_JUMP_N + 1),
+       st.lists(st.integers(0, 2), min_size=_JUMP_N + 1, max_size=_JUMP_N + 1),
+       st.sampled_from([(1e-4, 1e-2, 1.0), (1e-2, 1.0, 1e2)]), st.integers(0, _JUMP_N))
+def test_the_energy_check_made_in_pieces_is_the_check_of_the_whole_run(noise, scale, level, sizes, failure):
+    """The sweep checks a run chunk by chunk, carrying the running maxima: on any energy
+    sequence (changes of scales 1e-3 to 10, energy sizes of 1e-4 to 1e2, so that some changes
+    are jumps and some are not only because of the maxima carried; a failed step at `failure`
+    or none) the pieces, split at every step, find the jump the whole run has, at the same step,
+    and hand on the same maxima; the traced check (a scan) agrees with the NumPy one."""
+    E = np.cumsum(np.asarray(noise) * np.asarray(scale))
+    sizes = np.asarray(sizes)[np.asarray(level)]
+    status = np.where(np.arange(_JUMP_N) == failure, Status.MAX_ITERATIONS, Status.SUCCESS).astype(np.int32)
+    whole = energy_jump(np, E, sizes, status)
+    traced = _jump_traced(E, sizes, status, 0.0, 0.0)
+    assert bool(traced[0]) == bool(whole[0]) and (not whole[0] or int(traced[1]) == int(whole[1]))
+    np.testing.assert_array_equal(np.asarray(traced[2:]), np.asarray(whole[2:]))
+    for split in range(1, _JUMP_N):
+        first = energy_jump(np, E[: split + 1], sizes[: split + 1], status[:split])
+        if first[0] or failure < split:  # the sweep stops checking a member at its first failure
+            assert bool(first[0]) == bool(whole[0] and whole[1] < split)
+            assert not first[0] or int(first[1]) == int(whole[1])
+            continue
+        second = energy_jump(np, E[split:], sizes[split:], status[split:], first[2], first[3])
+        assert bool(second[0]) == bool(whole[0])
+        assert not whole[0] or split + int(second[1]) == int(whole[1])
+        np.testing.assert_array_equal(second[2:], whole[2:])
 
 
 def test_the_energy_check_passes_a_long_smooth_run():

@@ -51,6 +51,6 @@ def fast_method(system, Q0, xi0, options: dict, updates: int = FAST_UPDATES):
     `options["method"]`), its reduced steps solved by `updates` fixed updates. Only the
     reduced march has one for now (its steps solve dim V unknowns from a closed-form residual)."""
     method = options.get("method")
-    if method is None:
-        method = choose_method(system, Q0, xi0, **options)
+    if method is None:  # the options that choose the method (not those of the march: check_energy)
+        method = choose_method(system, Q0, xi0, **{k: v for k, v in options.items() if k != "check_energy"})
     return _with_fixed_updates(method, updates)

@@ -52,6 +52,7 @@ from ..core.validation import runnable_check as _runnable_check
 from ..discrete.legendre import initial_multiplier
 from ..march.continuation import continue_from
 from ..march.integrate import integrate
+from ..march.scan import energy_jump, node_energies
 from ..march.solution import IntegrationError
 from ..roots.status import Status
 from .batch_last import batch
@@ -236,6 +237,8 @@ class _Carry(NamedTuple):
     drift: dict
     momentum: jax.Array
     final_xi: jax.Array | None
+    energy_change: jax.Array  # the energy check's running maxima (`clebsch_jax.march.scan.energy_jump`)
+    energy_size: jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
@@ -250,6 +253,7 @@ class _Config:
     shared_def: tuple | None = None  # (treedef, leaves with None for arrays) of a shared system
     member_chunk: int | None = None  # members per cj.batch chunk inside a batch (None: one)
     fast_method: object = None  # the fast path's stepper (clebsch_jax.batching.fast), None: none
+    check_energy: bool = True  # the energy check, made by the sweep over the whole run (`_energy_check`)
 
 
 def _integrate(cfg: _Config, system, Q, xi, P, t, dt, n):
@@ -281,33 +285,64 @@ def _deviation(values, ref):
     return jnp.max(d.reshape(d.shape[0], -1), axis=1) if d.ndim > 1 else d
 
 
+def _node_Q(cfg: _Config, sol, carry: _Carry):
+    """The configurations at the chunk's nodes: the chunk's start where Q is not reconstructed
+    (the reduced march: the Lagrangian does not depend on Q)."""
+    return sol.Q if sol.Q is not None else jnp.broadcast_to(carry.Q, (cfg.n + 1,) + carry.Q.shape)
+
+
+def _energy_check(cfg: _Config, system, sol, carry: _Carry):
+    """`integrate`'s energy check (`check_energy`) over the whole run, made chunk by chunk: the
+    chunks run unchecked and the sweep compares each step's energy change with the running
+    maxima of the steps before it, carried from chunk to chunk. Returns (jumped, step, the
+    running maxima after the chunk, the nodes' energies or None)."""
+    if not cfg.check_energy or sol.xi is None:  # degenerate systems are not checked (as in integrate)
+        return jnp.asarray(False), jnp.asarray(cfg.n), carry.energy_change, carry.energy_size, None
+    E, size = node_energies(system, _node_Q(cfg, sol, carry), sol.xi)
+    return (*energy_jump(jnp, E, size, sol.stats.status, carry.energy_change, carry.energy_size), E)
+
+
 def _member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset):
     system = _system_of(cfg, params, shared)
+    # A member that failed before starts the chunk failed (a NaN state): a failed step made its
+    # state NaN already, a jump found by the energy check did not. (Masking the state handed on
+    # by the chunk that found the jump instead, on a value computed in that chunk, makes XLA's
+    # program several times slower; `_collect` masks the final state of a failed member.)
+    alive = carry.status == Status.SUCCESS
+    carry = carry._replace(**{k: jnp.where(alive, getattr(carry, k), jnp.nan) for k in ("Q", "xi", "P")})
     sol = _integrate(cfg, system, carry.Q, carry.xi, carry.P, carry.t, dt, cfg.n)
+    jumped, jump_step, energy_change, energy_size, E = _energy_check(cfg, system, sol, carry)
+    end = jnp.where(jumped, jump_step, cfg.n)  # a jump fails its step: the nodes after it are unknown
+    steps, nodes = jnp.arange(cfg.n), jnp.arange(cfg.n + 1)
     # Nodes whose state is known: before any failure, with the nodal velocity recovered.
-    known = sol.valid & (sol.nodal_stats.status == Status.SUCCESS)
+    known = sol.valid & (sol.nodal_stats.status == Status.SUCCESS) & (nodes <= end)
     initial, drift = {}, {}
     for name, fn in cfg.invariants:
-        v = jnp.asarray(fn(system, sol))
+        # the energy invariant is the energy the check computed (the same function of the nodes)
+        v = E if (fn is _diagnostics.energy and E is not None) else jnp.asarray(fn(system, sol))
         ref = jnp.where(first, v[0], carry.initial[name])
         dev = jnp.where(known, _deviation(v, ref), -jnp.inf)
         d = jnp.maximum(carry.drift[name], jnp.max(dev))
         initial[name], drift[name] = ref, jnp.where(jnp.all(jnp.isfinite(ref)), d, jnp.nan)
-    new_failure = (carry.status == Status.SUCCESS) & (sol.result != Status.SUCCESS)
-    status = jnp.where(new_failure, sol.result, carry.status).astype(jnp.int32)
-    failed_step = jnp.where(new_failure, offset + sol.failed_step, carry.failed_step).astype(jnp.int32)
-    attempted = sol.stats.status != Status.SKIPPED
+    result = jnp.where(jumped, Status.ENERGY_JUMP, sol.result)
+    new_failure = (carry.status == Status.SUCCESS) & (result != Status.SUCCESS)
+    status = jnp.where(new_failure, result, carry.status).astype(jnp.int32)
+    failed_step = jnp.where(new_failure, offset + jnp.where(jumped, jump_step, sol.failed_step),
+                            carry.failed_step).astype(jnp.int32)
+    attempted = (sol.stats.status != Status.SKIPPED) & (steps <= end)
     iterations = carry.iterations + jnp.sum(jnp.where(attempted, sol.stats.iterations, 0))
-    good = sol.stats.status == Status.SUCCESS
+    good = (sol.stats.status == Status.SUCCESS) & (steps < end)
     max_residual = jnp.maximum(carry.max_residual, jnp.max(jnp.where(good, sol.stats.residual_norm, 0.0)))
     # The hand-over: the canonical state (Qⁿ, pⁿ) at the chunk's last node.
     start = continue_from(system, sol, Q=carry.Q)
     new = _Carry(Q=start.Q0, P=start.P0, xi=start.xi0, t=start.t0, status=status, failed_step=failed_step,
                  iterations=iterations, max_residual=max_residual, initial=initial, drift=drift,
-                 momentum=sol.momentum[-1], final_xi=None if sol.xi is None else sol.xi[-1])
+                 momentum=sol.momentum[-1], final_xi=None if sol.xi is None else sol.xi[-1],
+                 energy_change=energy_change, energy_size=energy_size)
     saved = None
     if cfg.save_every is not None:
         pick = slice(0, cfg.n, cfg.save_every)  # nodes 0, k, … of the chunk; its end is the next chunk's 0
+        # (nodes after an energy jump are made NaN on the host: `_collect`)
         saved = {"t": sol.ts[pick], "Q": None if sol.Q is None else sol.Q[pick],
                  "xi": None if sol.xi is None else sol.xi[pick], "momentum": sol.momentum[pick]}
     return new, saved
@@ -332,7 +367,7 @@ def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     general = dataclasses.replace(cfg, fast_method=None)
     if cfg.fast_method is None:
         return (*_batched_chunk(general, params, carry, dt, shared, first, offset), jnp.asarray(False))
-    fast = dataclasses.replace(general, options=(("method", cfg.fast_method),))
+    fast = dataclasses.replace(general, options=(("check_energy", False), ("method", cfg.fast_method)))
     new, saved = _batched_chunk(fast, params, carry, dt, shared, first, offset, rows=True)
     ok = jnp.all((new.status == Status.SUCCESS) | (carry.status != Status.SUCCESS))
     new, saved = jax.lax.cond(ok, lambda: (new, saved),
@@ -547,9 +582,15 @@ def _members(make_system, params, Q0, xi0, P0, dt, grid) -> _Members:
 
 
 def _chunk_config(run: _Run, members: _Members, options: dict) -> _Config:
-    """The static part of a chunk, which jit hashes: refused here if it is not hashable."""
+    """The static part of a chunk, which jit hashes: refused here if it is not hashable. The
+    energy check (`check_energy`, on by default as in `integrate`) is the sweep's own, over
+    the whole run (`_energy_check`): the chunks' `integrate` calls run without it."""
+    check_energy = options.get("check_energy", True)
+    if not isinstance(check_energy, bool):
+        raise TypeError(f"check_energy: expected True or False, got {check_energy!r}.")
+    options = {**options, "check_energy": False}
     cfg = _Config(members.builder, tuple(run.invariants.items()), tuple(sorted(options.items())), run.chunk_steps,
-                  run.save_every, members.shared_def, run.member_chunk)
+                  run.save_every, members.shared_def, run.member_chunk, check_energy=check_energy)
     try:
         hash(cfg)
     except TypeError as err:
@@ -668,7 +709,7 @@ def _start_batch(cfg: _Config, members: _Members, shapes: _Shapes, b: int, batch
         failed_step=put(jnp.full((batch_size,), -1, jnp.int32)), iterations=zeros((), jnp.int64),
         max_residual=zeros(()), initial={k: zeros(v.shape[1:], v.dtype) for k, v in shapes.invariants.items()},
         drift={k: zeros(()) for k in shapes.invariants}, momentum=zeros(shapes.xi),
-        final_xi=zeros(shapes.xi) if shapes.has_xi else None,
+        final_xi=zeros(shapes.xi) if shapes.has_xi else None, energy_change=zeros(()), energy_size=zeros(()),
     )
     rows = slice(b * batch_size, b * batch_size + n_real)
     return _Batch(b, rows, n_real, params, put(jnp.asarray(members.dt[member])), shared, carry)
@@ -721,19 +762,33 @@ def _collect(tables: _Tables, one: _Batch, run: _Run):
     """A finished batch's carry into its rows of the host tables."""
     host = jax.device_get(one.carry)
     take = lambda a: np.asarray(a)[:one.n_real]
+    failed = np.asarray(host.status) != Status.SUCCESS
+
+    def state(a):  # a failed member's final state is NaN (after a jump the chunk's march ran on)
+        return None if a is None else np.where(failed.reshape((-1,) + (1,) * (np.ndim(a) - 1)), np.nan, a)
+
     final = {"status": host.status, "failed_step": host.failed_step, "newton_iterations": host.iterations,
-             "max_residual": host.max_residual, "final_t": host.t, "final_Q": host.Q, "final_p": host.P,
-             "final_xi": host.final_xi, "final_momentum": host.momentum}
+             "max_residual": host.max_residual, "final_t": host.t, "final_Q": state(host.Q),
+             "final_p": state(host.P), "final_xi": state(host.final_xi), "final_momentum": state(host.momentum)}
     for key, column in tables.columns.items():
         if column is not None:
             column[one.rows] = take(final[key])
     for k in tables.drift:
         tables.initial[k][one.rows], tables.drift[k][one.rows] = take(host.initial[k]), take(host.drift[k])
-    if tables.saved is not None and run.n_steps % run.save_every == 0:  # the last node closes the saved series
+    if tables.saved is None:
+        return
+    if run.n_steps % run.save_every == 0:  # the last node closes the saved series
         last = {"t": host.t, "Q": host.Q, "xi": host.final_xi, "momentum": host.momentum}
         for key, value in last.items():
             if tables.saved[key] is not None:
                 tables.saved[key][one.rows, -1] = take(value)
+    # a failed member's nodes after its failed step are NaN (after a jump the march ran on)
+    after = take(failed)[:, None] & (tables.saved["step"][None, :] > take(host.failed_step)[:, None])
+    for key in ("Q", "xi", "momentum"):
+        if tables.saved[key] is not None:
+            block = tables.saved[key][one.rows]
+            block[after] = np.nan
+            tables.saved[key][one.rows] = block
 
 
 class _Plan(NamedTuple):
@@ -905,7 +960,9 @@ def sweep(
       measures both).
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
-      sweep's own.
+      sweep's own. `check_energy` (default True) is `integrate`'s energy check made over the
+      whole run rather than per chunk: the sweep carries its running maxima from chunk to
+      chunk, so a member fails with `Status.ENERGY_JUMP` at the step `integrate` would report.
 
     **Returns:** a `SweepResult`.
 

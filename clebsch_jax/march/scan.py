@@ -34,7 +34,7 @@ from ..steppers.base import AbstractStepper, Nodes
 from .solution import Solution
 
 __all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "failed_to_nan", "nodal_velocities",
-           "input_ok", "CHUNK_STEPS", "NODAL_BLOCK", "JUMP_FACTOR", "JUMP_FLOOR"]
+           "input_ok", "energy_terms", "node_energies", "energy_jump", "CHUNK_STEPS", "NODAL_BLOCK", "JUMP_FACTOR", "JUMP_FLOOR"]
 
 CHUNK_STEPS = 1024
 """Steps per compiled chunk of `march_chunked` (the last chunk runs idle past `n_steps`)."""
@@ -47,7 +47,7 @@ step to step) ..."""
 
 JUMP_FLOOR = 1.0
 r"""... and `JUMP_FLOOR` times the energy's size so far, $\max_{k \le n}
-(|\langle\mu^k, \xi^k\rangle| + |l(\xi^k, Q^k)|)$: a step that changes E by more than the
+(|\langle\delta l/\delta\xi, \xi^k\rangle| + |l(\xi^k, Q^k)|)$: a step that changes E by more than the
 sizes of its kinetic and Lagrangian terms is not a small step of any convergent method, and
 the floor keeps round-off changes of an exactly conserved E (a free particle) from counting
 as a jump."""
@@ -192,19 +192,28 @@ def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n
                                        status=jnp.full(length + 1, Status.SUCCESS, jnp.int32), jacobians=zero), valid)
     else:
         xi, nodal = nodal_velocities(system, stepper.nodal_solver, nodes.nodal_Q, nodes.momentum, guesses, valid)
-    energy = node_energies(system, nodes.nodal_Q, nodes.momentum, xi) if check_energy and xi is not None else None
+    energy = node_energies(system, nodes.nodal_Q, xi) if check_energy and xi is not None else None
     return last._replace(xi_last=xi_last), Chunk(nodes, stats, xi, nodal, valid, energy)
 
 
-def node_energies(system, Qs, mus, xis):
-    r"""The energy $E^n = \langle\mu^n, \xi^n\rangle - l(\xi^n, Q^n)$ at every node ($\mu^n$ the
-    momentum, equal to $\delta l/\delta\xi$ at the nodal velocity) and its size
-    $|\langle\mu^n, \xi^n\rangle| + |l(\xi^n, Q^n)|$, for the energy check."""
-    def one(q, mu, x):
-        pairing, lagrangian = jnp.sum(mu * x), system.l(x, q)
+def energy_terms(system, Q, xi):
+    r"""The two terms of the energy $E = \langle \delta l/\delta\xi, \xi\rangle - l(\xi, Q)$ at one
+    node: (the pairing, $l$). At a nodal velocity $\delta l/\delta\xi$ is the node's momentum
+    (Lemma 7), so $E$ is the Hamiltonian of Lemma 8 there."""
+    lval, g = jax.value_and_grad(lambda y: system.l(y, Q))(xi)
+    return jnp.sum(g * xi), lval
+
+
+def node_energies(system, Qs, xis):
+    r"""The energy $E^n$ at every node (`energy_terms`) and its size
+    $|\langle\delta l/\delta\xi, \xi^n\rangle| + |l(\xi^n, Q^n)|$, for the energy check. Read
+    from the nodal velocities alone: the momenta are not needed (a program that does not
+    return them never stores them)."""
+    def one(q, x):
+        pairing, lagrangian = energy_terms(system, q, x)
         return pairing - lagrangian, jnp.abs(pairing) + jnp.abs(lagrangian)
 
-    return jax.vmap(one)(Qs, mus, xis)
+    return jax.vmap(one)(Qs, xis)
 
 
 def _finite_rows(a):
@@ -288,22 +297,47 @@ def _join(xp, chunks, n_steps: int, node: bool):
     return xp.concatenate([joined, chunks[-1][-1:]]) if node else joined
 
 
-def _running_max(xp, a):
-    """max(a[0], …, a[n]) for every n, NaN entries counting as 0."""
-    a = xp.where(xp.isnan(a), 0.0, a)
-    return np.maximum.accumulate(a) if xp is np else jax.lax.cummax(a, axis=0)
+def _running_max(a):
+    """max(a[0], …, a[n]) for every n (NumPy), NaN entries counting as 0."""
+    return np.maximum.accumulate(np.where(np.isnan(a), 0.0, a))
 
 
-def _energy_jump(xp, energy, size, status):
+def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0):
     """The first step that fails the energy check (`JUMP_FACTOR`, `JUMP_FLOOR`) before any
-    other failure, and whether there is one. Non-finite energies (after a failure, or at a node
-    whose velocity was not recovered) are not compared."""
+    other failure, and whether there is one, for nodes `energy`, `size` (`node_energies`) and
+    steps `status`. Non-finite energies (after a failure, or at a node whose velocity was not
+    recovered) are not compared. `largest` and `size_max` are the running maxima of the steps
+    and nodes before these (a run checked in pieces, as `sweep` does); returned with the
+    jump are their values after these steps: (jumped, step, largest, size_max).
+
+    On NumPy arrays the running maxima are vectorised; traced, the check is one scan over the
+    steps (XLA's cumulative max and sum on CPU, associative scans, cost several times more)."""
     change = xp.abs(energy[1:] - energy[:-1])
-    largest_before = xp.concatenate([xp.zeros(1, change.dtype), _running_max(xp, change)[:-1]])
-    jumped = change > xp.maximum(JUMP_FACTOR * largest_before, JUMP_FLOOR * _running_max(xp, size)[:-1])
-    before_failure = xp.cumsum(status != Status.SUCCESS) == 0
-    jumped = jumped & before_failure
-    return xp.any(jumped), xp.argmax(jumped)
+    if xp is np:
+        running_change, running_size = _running_max(change), _running_max(size)
+        largest_before = np.maximum(largest, np.concatenate([np.zeros(1, change.dtype), running_change[:-1]]))
+        size_before = np.maximum(size_max, running_size[:-1])
+        jumped = change > np.maximum(JUMP_FACTOR * largest_before, JUMP_FLOOR * size_before)
+        jumped = jumped & (np.cumsum(status != Status.SUCCESS) == 0)  # before any other failure
+        return (np.any(jumped), np.argmax(jumped), np.maximum(largest, running_change[-1]),
+                np.maximum(size_max, running_size[-1]))
+
+    zero_nan = lambda a: jnp.where(jnp.isnan(a), 0.0, a)
+
+    def step(c, x):
+        largest, size_max, clean, first, n = c
+        d, s, st = x
+        size_max = jnp.maximum(size_max, zero_nan(s))
+        clean = clean & (st == Status.SUCCESS)
+        jumped = clean & (d > jnp.maximum(JUMP_FACTOR * largest, JUMP_FLOOR * size_max))
+        first = jnp.where(jumped & (first < 0), n, first)
+        return (jnp.maximum(largest, zero_nan(d)), size_max, clean, first, n + 1), None
+
+    dtype = change.dtype
+    init = (jnp.asarray(largest, dtype), jnp.asarray(size_max, dtype), jnp.asarray(True), jnp.asarray(-1, jnp.int32),
+            jnp.asarray(0, jnp.int32))
+    (largest, size_max, _, first, _), _ = jax.lax.scan(step, init, (change, size[:-1], status))
+    return first >= 0, jnp.maximum(first, 0), largest, jnp.maximum(size_max, zero_nan(size[-1]))
 
 
 def _fail_from(xp, step, code, stats, nodal, valid, fields):
@@ -356,7 +390,7 @@ def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, d
         stats = stats._replace(status=xp.where((xp.arange(n_steps) == 0) & ~input_ok, Status.INVALID_INPUT,
                                                stats.status).astype(stats.status.dtype))
     energy = join(lambda c: c.energy, True)
-    jumped, step = _energy_jump(xp, *energy, stats.status) if energy is not None else (False, None)
+    jumped, step = energy_jump(xp, *energy, stats.status)[:2] if energy is not None else (False, None)
     if energy is not None and (xp is jnp or bool(jumped)):  # on the host, only a jump costs a pass
         step = xp.where(jumped, step, n_steps)
         fields = [(nodes.Q, True), (nodes.p, True), (nodes.momentum, True), (xin, True), (xi_step, False),
