@@ -14,6 +14,8 @@ the median of `--repeats` samples, the methods of a case sampled in turn, every 
   the run. Cases: the free rigid body (reduced CAY march) as one plain call, and as a
   `jax.jit(jax.vmap(...))` batch of B bodies; a user system on the plane with a potential
   (the midpoint principle, full march) as one plain call.
+  Also a `cj.sweep` of B rigid bodies (reduced CAY, default chunks), whose check is made by
+  the sweep over the whole run, chunk by chunk.
 - **input check under tracing** (`clebsch_jax.march.scan.march(..., check_inputs=True)`
   against `False`, the engine's own entry below `integrate`, which always checks under
   jit/vmap): dt, Q0, ξ0 and the model's parameters finite, Q0 a rotation and l and the
@@ -45,8 +47,9 @@ from clebsch_jax.steppers.choose import choose_method  # noqa: E402
 RESULTS_NAME = "check_cost"
 DT = 0.01
 INERTIA = (2.0, 1.0, 2 / 3)
-DEFAULT_CASES = (("rigid_body", 1, 4000), ("rigid_body", 256, 1000), ("plane_potential", 1, 4000))
-QUICK_CASES = (("rigid_body", 1, 50), ("rigid_body", 4, 50), ("plane_potential", 1, 50))
+DEFAULT_CASES = (("rigid_body", 1, 4000), ("rigid_body", 256, 1000), ("plane_potential", 1, 4000),
+                 ("rigid_sweep", 1000, 200))
+QUICK_CASES = (("rigid_body", 1, 50), ("rigid_body", 4, 50), ("plane_potential", 1, 50), ("rigid_sweep", 4, 20))
 
 
 def _plane_lagrangian(k, xi, Q):
@@ -59,7 +62,7 @@ def _translation(xi, Q):
 
 def _setup(model: str, batch: int):
     rng = np.random.default_rng(0)
-    if model == "rigid_body":
+    if model in ("rigid_body", "rigid_sweep"):
         system = cj.models.rigid_body(jnp.array(INERTIA))
         Q0 = jnp.eye(3)
         xi0 = jnp.asarray(rng.normal(size=(batch, 3)) if batch > 1 else [1.3, 0.8, -0.4])
@@ -87,6 +90,13 @@ def _calls(model: str, batch: int, n_steps: int) -> dict:
                                                n_steps, check_energy=False, check_inputs=check_inputs)))
         return lambda: run(xi0)
 
+    def swept(check_energy):
+        Qs = jnp.broadcast_to(Q0, (batch,) + Q0.shape)
+        return lambda: cj.sweep(cj.models.rigid_body, jnp.array(INERTIA)[None], Qs, xi0, dt=DT, n_steps=n_steps,
+                                grid=True, check_energy=check_energy)
+
+    if model == "rigid_sweep":
+        return {"energy_check": swept(True), "no_energy_check": swept(False)}
     if batch == 1:
         return {"energy_check": plain(True), "no_energy_check": plain(False)}
     return {"energy_check": batched(True), "no_energy_check": batched(False),
@@ -98,7 +108,8 @@ def run_case(model, batch, n_steps, run: harness.Run) -> dict:
     blocked = {name: (lambda f=f: jax.block_until_ready(f())) for name, f in calls.items()}
     timings, outs = run.time(blocked, what=f"{model} B={batch}")
     for name, sol in outs.items():
-        if not np.all(np.asarray(sol.result) == cj.Status.SUCCESS):
+        status = sol.status if isinstance(sol, cj.SweepResult) else sol.result
+        if not np.all(np.asarray(status) == cj.Status.SUCCESS):
             raise RuntimeError(f"{model} B={batch}: {name} did not succeed")
     seconds = {name: t["per_call_s"] for name, t in timings.items()}
     ratios = {"energy_check_over_none": seconds["energy_check"] / seconds["no_energy_check"]}

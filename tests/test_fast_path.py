@@ -10,6 +10,7 @@ of 4, 2 chunks of 20 steps), and only array values (inertias, initial data, dt) 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import clebsch_jax as cj
 from clebsch_jax import Status
@@ -79,6 +80,7 @@ def _top(params):
     return heavy_top(params[:3], params[3])
 
 
+@pytest.mark.slow  # compiles a scalarised and a general heavy-top chunk: most of a minute
 def test_heavy_tops_agree_with_integrate():
     params = np.array([[1.0, 1.0, 0.4, 1.5], [1.0, 1.2, 0.5, 0.8]])
     Q0 = np.stack([np.asarray(cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))),

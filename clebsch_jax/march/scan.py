@@ -152,6 +152,7 @@ def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n
         ok, stats, (state, out) = gate(c.alive, stats, (state, out))
         return c._replace(state=state, memory=memory, n=c.n + 1, alive=ok), (state, out, stats, c.alive)
 
+    advance = jax.jit(advance)
     blank = jax.eval_shape(lambda c: advance(c)[1], carry)
 
     def idle(c: Carry):
@@ -247,6 +248,7 @@ def _blocked(solve, args, valid, block: int):
     pad = lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], n_blocks * block - n, axis=0)])
     blocks = jax.tree_util.tree_map(lambda a: pad(a).reshape((n_blocks, block) + a.shape[1:]), args)
     needed = (jnp.max(jnp.where(valid, jnp.arange(n), -1)) + block) // block  # blocks up to the last valid entry
+    solve = jax.jit(solve)  # traced once: the shapes below and the cond's branch share the trace
     blank = jax.eval_shape(solve, *jax.tree_util.tree_map(lambda a: a[0], blocks))
 
     def one(b, xs):
