@@ -54,20 +54,34 @@ def float_array(x, name: str, *, allow_bool: bool = True) -> jax.Array:
     package enabled float64): the engine computes in float64 only, whose round-off its
     conservation properties and default tolerances assume. A Python float becomes a strongly
     typed array, so that it and a NumPy float compile to one program."""
+    return _float_array(x, name, allow_bool)[0]
+
+
+def _float_array(x, name: str, allow_bool: bool):
+    """`float_array`, and its values on the host (None when traced). Concrete input is checked
+    and converted with NumPy and moved to the device once: each JAX operation on a small array
+    costs a dispatch, which a short call would pay several times per argument."""
     if isinstance(x, (str, bytes)) or x is None:
         raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.")
+    f64 = jnp.result_type(float)
+    if is_traced(x):
+        _real_dtype(np.dtype(x.dtype), name, allow_bool)
+        if x.dtype != f64 or getattr(x, "weak_type", False):
+            x = jnp.asarray(x, dtype=f64)  # integers, booleans and lower precisions; weak types made strong
+        return x, None
     try:
-        arr = jnp.asarray(x)
-    except TypeError as err:
+        host = np.asarray(x)
+    except (TypeError, ValueError) as err:
         raise TypeError(f"{name}: expected an array of numbers, got {type(x).__name__}.") from err
-    _real_dtype(np.dtype(arr.dtype) if not hasattr(x, "dtype") else np.dtype(x.dtype), name, allow_bool)
-    if not jnp.issubdtype(arr.dtype, jnp.floating) or arr.dtype != jnp.result_type(float):
-        arr = arr.astype(jnp.result_type(float))  # integers, booleans and float32/16 become float64
-    if getattr(arr, "weak_type", False):
-        arr = jnp.asarray(arr, dtype=arr.dtype)
-    if not is_traced(x) and not is_traced(arr) and not np.all(np.isfinite(np.asarray(arr))):
+    _real_dtype(host.dtype, name, allow_bool)
+    if isinstance(x, jax.Array) and x.dtype == f64 and not getattr(x, "weak_type", False):
+        arr = x
+    else:
+        host = host.astype(f64)
+        arr = jnp.asarray(host)  # a NumPy array: strongly typed
+    if not np.all(np.isfinite(host)):
         raise ValueError(f"{name}: contains non-finite values (NaN or inf).")
-    return arr
+    return arr, host
 
 
 def host_float_array(x, name: str) -> np.ndarray:
@@ -101,11 +115,11 @@ def nonnegative(x, name: str) -> float:
 
 def positive_scalar(x, name: str, *, allow_bool: bool = True) -> jax.Array:
     """A scalar float array, positive when concrete (a time step)."""
-    arr = float_array(x, name, allow_bool=allow_bool)
+    arr, host = _float_array(x, name, allow_bool)
     if arr.shape != ():
         raise ValueError(f"{name}: expected a scalar, got an array of shape {arr.shape}.")
-    if not is_traced(arr) and not float(np.asarray(arr)) > 0:
-        raise ValueError(f"{name}: must be positive, got {float(arr)}.")
+    if host is not None and not float(host) > 0:
+        raise ValueError(f"{name}: must be positive, got {float(host)}.")
     return arr
 
 
