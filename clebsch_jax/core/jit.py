@@ -9,12 +9,7 @@ import jax
 
 from .validation import is_array
 
-__all__ = ["filter_jit", "ONCE_PER_CALL"]
-
-ONCE_PER_CALL = {"xla_backend_optimization_level": 0}
-"""XLA options for small programs that run once per call (the model checks, the closure
-test): compiled without LLVM's optimisations, which cost more compile time than they could
-ever save at run time there."""
+__all__ = ["filter_jit"]
 
 
 class _Dynamic:
@@ -25,12 +20,11 @@ class _Dynamic:
 _DYNAMIC = _Dynamic()
 
 
-def filter_jit(fun, compiler_options: dict | None = None):
+def filter_jit(fun):
     """`fun` compiled with its array leaves traced and its other leaves static (hashed); one
-    program per distinct static part and array shapes (`compiler_options`: XLA's, as for
-    `jax.jit`)."""
+    program per distinct static part and array shapes."""
 
-    @functools.partial(jax.jit, static_argnums=(0, 1), compiler_options=compiler_options)
+    @functools.partial(jax.jit, static_argnums=(0, 1))
     def jitted(treedef, static, dynamic):
         leaves = [d if s is _DYNAMIC else s for s, d in zip(static, dynamic)]
         args, kwargs = jax.tree_util.tree_unflatten(treedef, leaves)

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .derivative_maps import MatrixGroupDifference
-from .jit import ONCE_PER_CALL, filter_jit
+from .jit import filter_jit
 from .validation import any_traced, is_traced, runnable_check
 
 __all__ = ["check_model", "check_first_step"]
@@ -145,7 +145,7 @@ def _evaluate(system, Q0, xi0, direction):
     )
 
 
-_derivatives = filter_jit(_evaluate, compiler_options=ONCE_PER_CALL)
+_derivatives = filter_jit(_evaluate)
 """The program of the checks, one per system and shapes."""
 
 

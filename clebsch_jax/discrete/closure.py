@@ -19,7 +19,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.jit import ONCE_PER_CALL
 from ..core.system import ClebschSystem, momentum_map
 
 __all__ = ["ClosureResult", "check_closure", "euler_poincare_field", "sample_points"]
@@ -85,7 +84,7 @@ def sample_points(system: ClebschSystem, Q: jax.Array, xi: jax.Array, n_points: 
     return _flow(system.velocity_map, Q, etas.astype(jnp.result_type(Q)), spread)
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=ONCE_PER_CALL)
+@functools.partial(jax.jit, static_argnums=0)
 def _flow(velocity_map, Q, etas, spread):
     substeps = 16
     h = spread / substeps
@@ -102,7 +101,7 @@ def _flow(velocity_map, Q, etas, spread):
     return jnp.concatenate([Q[None], jax.vmap(one)(etas)])
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=ONCE_PER_CALL)
+@functools.partial(jax.jit, static_argnums=0)
 def _bracket_data(velocity_map, pts, basis):
     """At every sample point: A = [L_{e_k} Q] (d, m) and B_ij = (T L_{e_j}) L_{e_i} Q - (T L_{e_i}) L_{e_j} Q.
 

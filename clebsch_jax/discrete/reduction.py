@@ -38,7 +38,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.jit import ONCE_PER_CALL
 from ..core import linalg as _linalg
 from ..discrete.closure import check_closure
 from ..core.derivative_maps import CayleyDifference, MatrixGroupDifference
@@ -183,8 +182,7 @@ def _group_basis(system: ClebschSystem, Q0, xi0) -> tuple[np.ndarray | None, str
     E = np.eye(m).reshape((m,) + xi_shape)
     G = np.eye(n) + 0.3 * np.random.default_rng(7).normal(size=(n, n))
     # one compiled program for all evaluations (op-by-op evaluation compiles every operation)
-    basis, moved = jax.jit(lambda E, Q: jax.vmap(lambda q: jax.vmap(lambda e: system.velocity_map(e, q))(E))(Q),
-                           compiler_options=ONCE_PER_CALL)(
+    basis, moved = jax.jit(lambda E, Q: jax.vmap(lambda q: jax.vmap(lambda e: system.velocity_map(e, q))(E))(Q))(
         E, np.stack([np.eye(n), G]))
     if not (_concrete(basis) and _concrete(moved)):
         return None, "the velocity map depends on traced values, so it cannot be inspected"
