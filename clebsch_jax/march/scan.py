@@ -34,7 +34,8 @@ from ..steppers.base import AbstractStepper, Nodes
 from .solution import Solution
 
 __all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "failed_to_nan", "nodal_velocities",
-           "input_ok", "energy_terms", "node_energies", "energy_jump", "CHUNK_STEPS", "NODAL_BLOCK", "JUMP_FACTOR", "JUMP_FLOOR"]
+           "input_ok", "energy_terms", "node_energies", "energy_jump", "CHUNK_STEPS", "NODAL_BLOCK",
+           "JUMP_FACTOR", "JUMP_FLOOR"]
 
 CHUNK_STEPS = 1024
 """Steps per compiled chunk of `march_chunked` (the last chunk runs idle past `n_steps`)."""
