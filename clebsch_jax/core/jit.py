@@ -24,11 +24,13 @@ def filter_jit(fun):
     """`fun` compiled with its array leaves traced and its other leaves static (hashed); one
     program per distinct static part and array shapes."""
 
-    @functools.partial(jax.jit, static_argnums=(0, 1))
     def jitted(treedef, static, dynamic):
         leaves = [d if s is _DYNAMIC else s for s, d in zip(static, dynamic)]
         args, kwargs = jax.tree_util.tree_unflatten(treedef, leaves)
         return fun(*args, **kwargs)
+
+    jitted.__name__ = jitted.__qualname__ = getattr(fun, "__name__", "jitted")  # names the program in JAX's logs
+    jitted = functools.partial(jax.jit, static_argnums=(0, 1))(jitted)
 
     @functools.wraps(fun)
     def wrapper(*args, **kwargs):

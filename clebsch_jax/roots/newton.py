@@ -185,13 +185,11 @@ def newton_loop(F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max
     fresh ones, i.e. full Newton. Under `vmap` the outer loop runs only as often as the
     slowest member needs.
 
-    Returns (z, NewtonStats, H), H the matrix to carry to the next solve; the stats'
-    `residual_norm` is left NaN for the caller, who evaluates F at the root anyway."""
+    Returns (z, NewtonStats, H), H the matrix to carry to the next solve (None when `H0` is
+    None: a one-off solve carries no matrix through its loop); the stats' `residual_norm` is
+    left NaN for the caller, who evaluates F at the root anyway."""
     if reuse is False:
         z1, k0, converged0, nonfinite0 = z0, jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(False)
-        if H0 is None:  # a placeholder of the matrix's structure for the loop's carry
-            H0 = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype),
-                                        jax.eval_shape(lambda z: matrix.invert(F, z)[1], z0))
     else:
         z1, k0, converged0, nonfinite0 = _chord(F, z0, H0, rtol, atol, max_contraction=max_contraction,
                                                 active=reuse, apply=matrix.apply, max_updates=matrix.max_updates)
@@ -208,7 +206,7 @@ def newton_loop(F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max
         status = jnp.where(singular, Status.SINGULAR,
                            jnp.where(nonfinite, Status.NONFINITE, Status.SUCCESS)).astype(jnp.int32)
         done = conv | singular | nonfinite
-        H = jax.tree_util.tree_map(lambda old, new: jnp.where(singular, old, new), H_old, H)
+        H = None if H_old is None else jax.tree_util.tree_map(lambda old, new: jnp.where(singular, old, new), H_old, H)
         return j + 1, jnp.where(singular, z, z1), H, status, done, updates + jnp.where(singular, 0, k)
 
     status0 = jnp.where(nonfinite0, Status.NONFINITE, Status.SUCCESS).astype(jnp.int32)
