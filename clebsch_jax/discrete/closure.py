@@ -72,19 +72,23 @@ def _basis(xi_shape, dtype):
     return np.eye(m, dtype=dtype).reshape((m,) + tuple(xi_shape))
 
 
+def _directions(xi, n_points: int, seed: int, dtype):
+    """`n_points` random unit directions of ξ's shape (the flows of `sample_points`)."""
+    rng = np.random.default_rng(seed)
+    etas = rng.normal(size=(n_points,) + tuple(np.shape(xi)))
+    etas = etas / np.linalg.norm(etas.reshape(n_points, -1), axis=1).reshape((-1,) + (1,) * np.ndim(xi))
+    return etas.astype(dtype)
+
+
 def sample_points(system: ClebschSystem, Q: jax.Array, xi: jax.Array, n_points: int, spread: float,
                   seed: int = 0) -> jax.Array:
     r"""Points near Q reached by following the velocity map: $\dot Q = \mathcal L_\eta Q$ for a
     random unit $\eta$ (RK4, 16 substeps, time `spread`). They stay on the orbit of Q, so a
     model defined only on a submanifold (rotations, a sphere) is evaluated where it is valid.
     Returns shape (n_points + 1, *Q.shape), Q first."""
-    rng = np.random.default_rng(seed)
-    etas = rng.normal(size=(n_points,) + tuple(np.shape(xi)))
-    etas = etas / np.linalg.norm(etas.reshape(n_points, -1), axis=1).reshape((-1,) + (1,) * np.ndim(xi))
-    return _flow(system.velocity_map, Q, etas.astype(jnp.result_type(Q)), spread)
+    return _flow_jit(system.velocity_map, Q, _directions(xi, n_points, seed, jnp.result_type(Q)), spread)
 
 
-@functools.partial(jax.jit, static_argnums=0)
 def _flow(velocity_map, Q, etas, spread):
     substeps = 16
     h = spread / substeps
@@ -102,10 +106,16 @@ def _flow(velocity_map, Q, etas, spread):
 
 
 @functools.partial(jax.jit, static_argnums=0)
+def _sampled_bracket_data(velocity_map, Q, etas, spread, basis):
+    """`_flow` and `_bracket_data` in one program: (points, A, B)."""
+    pts = _flow(velocity_map, Q, etas, spread)
+    return (pts,) + _bracket_data(velocity_map, pts, basis)
+
+
 def _bracket_data(velocity_map, pts, basis):
     """At every sample point: A = [L_{e_k} Q] (d, m) and B_ij = (T L_{e_j}) L_{e_i} Q - (T L_{e_i}) L_{e_j} Q.
 
-    Jitted once per velocity map (it is static), all pairs in one batched jvp."""
+    All pairs in one batched jvp (compiled once per velocity map, which is static)."""
     m = basis.shape[0]
 
     def at_point(q):
@@ -118,6 +128,10 @@ def _bracket_data(velocity_map, pts, basis):
         return A, B
 
     return jax.vmap(at_point)(pts)
+
+
+_flow_jit = jax.jit(_flow, static_argnums=0)
+_bracket_data_jit = jax.jit(_bracket_data, static_argnums=0)
 
 
 def check_closure(
@@ -156,11 +170,14 @@ def check_closure(
     """
     Q = jnp.asarray(Q, dtype=jnp.result_type(float))
     xi = jnp.asarray(xi, dtype=Q.dtype)
-    pts = jnp.asarray(points, dtype=Q.dtype) if points is not None else sample_points(
-        system, Q, xi, n_points, spread, seed)
     basis = _basis(xi.shape, Q.dtype)
     m = basis.shape[0]
-    As, Bs = _bracket_data(system.velocity_map, pts, basis)  # (S, d, m), (S, m, m, d)
+    if points is None:  # one program: the sample points and the brackets there
+        etas = _directions(xi, n_points, seed, Q.dtype)
+        pts, As, Bs = _sampled_bracket_data(system.velocity_map, Q, etas, spread, basis)
+    else:
+        pts = jnp.asarray(points, dtype=Q.dtype)
+        As, Bs = _bracket_data_jit(system.velocity_map, pts, basis)  # (S, d, m), (S, m, m, d)
     A = np.asarray(As).reshape(-1, m)
     B = np.moveaxis(np.asarray(Bs), 0, 2).reshape(m, m, -1)  # (m, m, S*d)
     c = np.zeros((m, m, m))
