@@ -2,7 +2,7 @@ r"""Optimal control and parameter identification through `integrate` (gradients 
 
 Every step of `integrate` is a Newton solve of Lemma 20; its derivatives with respect to
 anything the residual depends on — the initial data $(Q^0, P^0)$, model parameters — come
-from the implicit function theorem (`jax.lax.custom_root`, `clebsch_jax.roots`): for a step
+from the implicit function theorem (`clebsch_jax.roots.implicit`): for a step
 $F(z; \theta) = 0$, $\partial z/\partial\theta = -(\partial_z F)^{-1}\partial_\theta F$, one
 linear solve with the Jacobian at the root, never a derivative of the iterations. So
 `jax.grad` of any scalar function of a `Solution` is the exact gradient of the discrete

@@ -124,12 +124,15 @@ def positive_scalar(x, name: str, *, allow_bool: bool = True) -> jax.Array:
 
 
 def output_shape(fn_name: str, fn, args, describe: str):
-    """The shape and dtype `fn(*args)` returns (args may be `ShapeDtypeStruct`s), or a
-    `ValueError` naming `fn_name` and the call `describe` when it cannot run on them."""
+    """(the shape and dtype `fn(*args)` returns, whether `fn` closes over a traced value), args
+    may be `ShapeDtypeStruct`s; or a `ValueError` naming `fn_name` and the call `describe` when
+    it cannot run on them. A function built inside a caller's `jit`/`vmap`/`grad` may close
+    over the caller's tracers: they are the traced constants of its jaxpr."""
     try:
-        return jax.eval_shape(fn, *args)
+        closed, shape = jax.make_jaxpr(fn, return_shape=True)(*args)
     except Exception as err:  # the user's function could not even run on these shapes
         raise ValueError(f"{fn_name}: calling it as {describe} failed: {type(err).__name__}: {err}") from None
+    return shape, any(is_traced(c) for c in closed.consts)
 
 
 def runnable_check(system, Q0):

@@ -56,7 +56,8 @@ def _real_output(name: str, out, expected: str):
 def _check_arrays(system, Q0, xi0, P0, dt, t0):
     """The arrays as float arrays, and the three maps called on their shapes (`ValueError`
     naming the map that cannot run on them or returns the wrong shape or dtype); then, on
-    concrete values, the configuration (`check_configuration`) and the model (`check_model`)."""
+    concrete values, the configuration (`check_configuration`) and the model (`check_model`).
+    Returns them and whether a map closes over a traced value (`_check_maps`)."""
     Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
     dt = positive_scalar(dt, "dt")
     if P0 is not None:
@@ -66,43 +67,47 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     t0 = float_array(t0, "t0")
     if t0.shape != ():
         raise ValueError(f"t0: expected a scalar, got an array of shape {t0.shape}.")
-    _check_maps_once(system, Q0, xi0, dt)
+    closes = _check_maps_once(system, Q0, xi0, dt)
     check_configuration(system, Q0)
     check_model(system, Q0, xi0, dt)
-    return Q0, xi0, P0, dt, t0.astype(dt.dtype)
+    return Q0, xi0, P0, dt, t0.astype(dt.dtype), closes
 
 
-def _check_maps(system, Q0, xi0, dt):
+def _check_maps(system, Q0, xi0, dt) -> bool:
     """The three maps called on the shapes of Q0, xi0 and dt (`ValueError` naming the map
-    that cannot run on them or returns the wrong shape or dtype)."""
+    that cannot run on them or returns the wrong shape or dtype). Returns whether a map closes
+    over a traced value (a system built inside the caller's `jit`/`vmap`/`grad`)."""
     sx, sq = jax.ShapeDtypeStruct(xi0.shape, xi0.dtype), jax.ShapeDtypeStruct(Q0.shape, Q0.dtype)
     shapes = f"xi0 of shape {xi0.shape} and Q0 of shape {Q0.shape}"
     call = ("lagrangian(xi0, Q0)" if system.has_potential else "lagrangian(xi0)") + f" with {shapes}"
-    lag = output_shape("lagrangian", system.l, (sx, sq), call)
+    lag, closes_l = output_shape("lagrangian", system.l, (sx, sq), call)
     _real_output("lagrangian", lag, "a real floating-point scalar")
     if lag.shape != ():
         raise ValueError(f"lagrangian: must return a scalar, returned shape {lag.shape} for {shapes}.")
-    vel = output_shape("velocity_map", system.velocity_map, (sx, sq), f"velocity_map(xi0, Q0) with {shapes}")
+    vel, closes_v = output_shape("velocity_map", system.velocity_map, (sx, sq), f"velocity_map(xi0, Q0) with {shapes}")
     _real_output("velocity_map", vel, "a real floating-point array of Q's shape")
     if vel.shape != Q0.shape:
         raise ValueError(
             f"velocity_map: must return an array of Q's shape {Q0.shape}, returned {vel.shape} for {shapes}."
         )
-    der = output_shape("derivative_map", system.derivative_map, (sq, sq, jax.ShapeDtypeStruct((), dt.dtype)),
+    der, closes_d = output_shape("derivative_map", system.derivative_map, (sq, sq, jax.ShapeDtypeStruct((), dt.dtype)),
                        f"derivative_map(Q_next, Q, dt) with Q of shape {Q0.shape}")
     _real_output("derivative_map", der, "a real floating-point array of Q's shape")
     if der.shape != Q0.shape:
         raise ValueError(f"derivative_map: must return an array of Q's shape {Q0.shape}, returned {der.shape}.")
+    return closes_l or closes_v or closes_d
 
 
 _MAPS_CHECKED: collections.OrderedDict = collections.OrderedDict()
 _MAPS_CHECKED_SIZE = 256
 
 
-def _check_maps_once(system, Q0, xi0, dt):
+def _check_maps_once(system, Q0, xi0, dt) -> bool:
     """`_check_maps`, skipped when it already passed for the same system structure (its
     functions and static fields) and the same shapes and dtypes: its outcome depends on
-    nothing else, and tracing the three maps is most of a short call's fixed cost."""
+    nothing else, and tracing the three maps is most of a short call's fixed cost. Returns
+    `_check_maps`'s answer (a map closing over a traced value is checked every time: such a
+    function is made anew inside each trace)."""
     leaves, treedef = jax.tree_util.tree_flatten(system)
     # arrays by shape and dtype (weak types included), anything else (functions) as itself
     avals = tuple((np.shape(x), jnp.result_type(x)) if is_array(x) or is_traced(x) else x
@@ -114,11 +119,13 @@ def _check_maps_once(system, Q0, xi0, dt):
         return _check_maps(system, Q0, xi0, dt)
     if key in _MAPS_CHECKED:
         _MAPS_CHECKED.move_to_end(key)
-        return
-    _check_maps(system, Q0, xi0, dt)
+        return False
+    if _check_maps(system, Q0, xi0, dt):
+        return True
     _MAPS_CHECKED[key] = True
     if len(_MAPS_CHECKED) > _MAPS_CHECKED_SIZE:
         _MAPS_CHECKED.popitem(last=False)
+    return False
 
 
 def _memory_limit() -> int:
@@ -271,7 +278,7 @@ def integrate(
     Transformations: works under `jax.jit` (`n_steps`, `method` and the options are static)
     and `jax.vmap` over `Q0`, `xi0`, `P0`, `dt` and array parameters inside the system.
     Derivatives (forward and reverse mode) flow through the root finders by implicit
-    differentiation (`jax.lax.custom_root`).
+    differentiation (`clebsch_jax.roots.implicit`).
     """
     _check_options(system, n_steps, rtol, atol, max_newton_iterations)
     if not isinstance(check_energy, bool):
@@ -281,7 +288,7 @@ def integrate(
         check_scheme(system, scheme)
     else:
         _check_method(method, locals())
-    Q0, xi0, P0, dt, t0 = _check_arrays(system, Q0, xi0, P0, dt, t0)
+    Q0, xi0, P0, dt, t0, closes = _check_arrays(system, Q0, xi0, P0, dt, t0)
     _check_size(Q0, xi0, n_steps)
     if method is None:
         if jacobian == "blocks":
@@ -290,8 +297,9 @@ def integrate(
                                rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian,
                                order=order, composition=composition)
     stepper = method.prepare(system, Q0, xi0)
-    if any_traced(system, Q0, xi0, P0, dt, t0):
-        # one scan, in the caller's program; values unknown until now are checked per member
+    if closes or any_traced(system, Q0, xi0, P0, dt, t0):
+        # one scan, in the caller's program (differentiable by it); values unknown until now
+        # are checked per member
         sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy,
                          check_inputs=True)
     else:  # programs reused for any n_steps

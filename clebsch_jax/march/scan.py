@@ -6,16 +6,16 @@ what the nodes are (`AbstractStepper.nodes`), the nodal velocities are recovered
 Lemma 7's relation at every node (except for degenerate systems), and the overall result and
 first failure are found.
 
-The march is cut into **chunks** (`run_chunk`): a scan of a fixed number of steps that hands
-its carry — the stepper's state and memory, the step number, the failure flag and the last
-step velocity — to the next chunk. Called with concrete arguments, `integrate` runs the march
-as `march_chunked`: one compiled program for the start and one for a chunk of `CHUNK_STEPS`
-steps, whose trip count is an argument (`n_total`: steps from `n_total` on leave the carry
-unchanged), so a new `n_steps` or `dt` reuses both programs. Under a JAX transformation
-(`jit`, `vmap`, `grad`) the march is one chunk of exactly `n_steps` steps (`march`), traced
-into the caller's program. Both assemble the `Solution` with the same code, on NumPy arrays
-or traced ones, and the carry is handed over exactly: the chunked march is the same
-arithmetic as the single scan.
+The march is cut into **chunks** (`run_chunk`): a loop over a fixed number of steps that
+hands its carry — the stepper's state and memory, the step number, the failure flag and the
+last step velocity — to the next chunk. Called with concrete arguments (and maps that close
+over no traced value), `integrate` runs the march as `march_chunked`: one compiled program
+for the start and one for a chunk of `CHUNK_STEPS` steps, whose loop stops at the run's
+number of steps (`n_total`, an argument), so a new `n_steps` or `dt` reuses both programs.
+Under a JAX transformation (`jit`, `vmap`, `grad`) the march is one `lax.scan` of exactly
+`n_steps` steps (`march`), traced into the caller's program. Both assemble the `Solution`
+with the same code, on NumPy arrays or traced ones, and the carry is handed over exactly: the
+chunked march is the same arithmetic as the single scan.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from ..steppers.base import AbstractStepper, Nodes
 from .solution import Solution
 
 __all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "failed_to_nan", "nodal_velocities",
-           "input_ok", "energy_terms", "node_energies", "energy_jump", "CHUNK_STEPS", "NODAL_BLOCK",
+           "input_ok", "energy_terms", "node_energies", "energy_jump", "CHUNK_STEPS",
            "JUMP_FACTOR", "JUMP_FLOOR"]
 
 CHUNK_STEPS = 1024
@@ -52,11 +52,6 @@ r"""... and `JUMP_FLOOR` times the energy's size so far, $\max_{k \le n}
 sizes of its kinetic and Lagrangian terms is not a small step of any convergent method, and
 the floor keeps round-off changes of an exactly conserved E (a free particle) from counting
 as a jump."""
-
-
-NODAL_BLOCK = 128
-"""Steps, and nodes per vmapped block of nodal solves, per block of a chunk longer than this:
-blocks holding only steps or nodes past the run's last step (or a failure) are skipped."""
 
 
 class Carry(NamedTuple):
@@ -143,39 +138,32 @@ def start(stepper: AbstractStepper, system, Q0, xi0, P0, dt, check_inputs: bool 
 
 
 def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n_total,
-              check_energy: bool = False) -> tuple[Carry, Chunk]:
+              check_energy: bool = False, exact: bool = False) -> tuple[Carry, Chunk]:
     """`length` steps from `carry`, their nodes and nodal velocities (and, with `check_energy`,
     their energies: `node_energies`); the steps numbered `n_total` (an int32 array: the run's
-    number of steps) and later leave the carry unchanged."""
+    number of steps) and later are not made and leave the carry unchanged.
+
+    Two shapes of program, the same arithmetic per step and node:
+
+    - `exact=True` (`march`, traced into the caller's program): every one of the `length` steps
+      is made (`n_total - carry.n >= length`): one `lax.scan`, transposable for reverse-mode
+      derivatives.
+    - `exact=False` (`march_chunked`, concrete values): the steps run in a `lax.while_loop`
+      that stops at `n_total`; the records of the steps not made stay zero (`valid` False), so
+      a chunk that runs past the end of a run costs nothing for those steps. (A loop whose trip
+      count depends on the data cannot be transposed: this shape is for values that are not
+      differentiated.) The nodal velocities of the nodes not reached start from NaN seeds,
+      whose solves stop at their first update."""
 
     def advance(c: Carry):
         state, memory, out, stats = stepper.step(system, c.state, c.memory, dt, c.n, c.alive)
         ok, stats, (state, out) = gate(c.alive, stats, (state, out))
         return c._replace(state=state, memory=memory, n=c.n + 1, alive=ok), (state, out, stats, c.alive)
 
-    advance = jax.jit(advance)
-    blank = jax.eval_shape(lambda c: advance(c)[1], carry)
-
-    def idle(c: Carry):
-        _, out, stats, _ = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), blank)
-        return c, (c.state, out, stats, jnp.asarray(False))
-
-    def body(c: Carry, _):
-        return jax.lax.cond(c.n < n_total, advance, idle, c)
-
-    if length > NODAL_BLOCK and length % NODAL_BLOCK == 0:
-        # blocks of steps, a block wholly past the end skipped: a chunk running idle past the
-        # end of a run costs almost nothing for its idle steps
-        def block(c: Carry, _):
-            run = lambda c: jax.lax.scan(body, c, None, length=NODAL_BLOCK)
-            skip = lambda c: (c, jax.tree_util.tree_map(
-                lambda a: jnp.broadcast_to(a, (NODAL_BLOCK,) + a.shape), idle(c)[1]))  # idle steps
-            return jax.lax.cond(c.n < n_total, run, skip, c)
-
-        last, ys = jax.lax.scan(block, carry, None, length=length // NODAL_BLOCK)
-        states, outs, stats, valid = jax.tree_util.tree_map(lambda a: a.reshape((length,) + a.shape[2:]), ys)
+    if exact:
+        last, (states, outs, stats, valid) = jax.lax.scan(lambda c, _: advance(c), carry, None, length=length)
     else:
-        last, (states, outs, stats, valid) = jax.lax.scan(body, carry, None, length=length)
+        last, (states, outs, stats, valid) = _steps_until(jax.jit(advance, inline=True), carry, length, n_total)
     nodes = stepper.nodes(system, carry.state, states, outs)
     made = jnp.clip(n_total - carry.n, 0, length)
     xi_last = jnp.where(made > 0, nodes.xi_step[jnp.maximum(made - 1, 0)], carry.xi_last)
@@ -196,6 +184,32 @@ def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n
         xi, nodal = nodal_velocities(system, stepper.nodal_solver, nodes.nodal_Q, nodes.momentum, guesses, valid)
     energy = node_energies(system, nodes.nodal_Q, xi) if check_energy and xi is not None else None
     return last._replace(xi_last=xi_last), Chunk(nodes, stats, xi, nodal, valid, energy)
+
+
+def _zeros(shapes, lead: tuple = ()):
+    """Zero arrays of the shapes and dtypes `shapes` (from `jax.eval_shape`), with the leading
+    axes `lead`."""
+    return jax.tree_util.tree_map(lambda s: jnp.zeros(lead + s.shape, s.dtype), shapes)
+
+
+def _steps_until(advance, carry: Carry, length: int, n_total):
+    """(last carry, outputs of `length` steps) as a scan of `advance` would give them, with the
+    steps from `n_total` on not made: their records are zero (`valid` False) and their states
+    the last state, which the node after the run's last step (the chunk's last node) holds."""
+    stop = jnp.minimum(n_total, carry.n + length)
+    out0 = _zeros(jax.eval_shape(lambda c: advance(c)[1], carry), (length,))
+
+    def body(state):
+        c, i, out = state
+        c, y = advance(c)
+        return c, i + 1, jax.tree_util.tree_map(lambda o, v: o.at[i].set(v), out, y)
+
+    last, made, (states, *records) = jax.lax.while_loop(lambda st: st[0].n < stop, body,
+                                                          (carry, jnp.asarray(0, jnp.int32), out0))
+    idle = jnp.arange(length) >= made
+    states = jax.tree_util.tree_map(lambda a, s: jnp.where(idle.reshape((-1,) + (1,) * s.ndim), s, a),
+                                    states, last.state)
+    return last, (states, *records)
 
 
 def energy_terms(system, Q, xi):
@@ -223,41 +237,15 @@ def _finite_rows(a):
     return finite.reshape((-1,) + (1,) * (a.ndim - 1))
 
 
-def nodal_velocities(system, finder, Qs, mus, guesses, valid, block: int = NODAL_BLOCK):
-    """Solve Lemma 7's relation for ξ at every node (vmapped `finder.solve`), gated by `valid`.
-
-    More than `block` nodes are solved in blocks of `block` (a scan whose blocks past the last
-    valid node are skipped by `lax.cond`), so a chunk that runs idle past the end of a run
-    costs nothing for its idle nodes; the arithmetic of each node's solve is the same."""
+def nodal_velocities(system, finder, Qs, mus, guesses, valid):
+    """Solve Lemma 7's relation for ξ at every node (vmapped `finder.solve`), gated by `valid`:
+    a node that is not valid starts from a NaN seed, and its solve stops at the first update."""
     expand = lambda v, a: v.reshape(v.shape + (1,) * (a.ndim - 1))
     seeds = jnp.where(expand(valid, guesses), guesses, jnp.nan)
     solve = jax.vmap(lambda q, mu, g: finder.solve(lambda x: nodal_residual(system, q, mu, x), g))
-    n = valid.shape[0]
-    if n <= block:
-        xin, st = solve(Qs, mus, seeds)
-    else:
-        xin, st = _blocked(solve, (Qs, mus, seeds), valid, block)
+    xin, st = solve(Qs, mus, seeds)
     ok = valid & (st.status == Status.SUCCESS)  # a failed nodal solve leaves no plausible-looking ξ
     return jnp.where(expand(ok, xin), xin, jnp.nan), skip_stats(st, valid)
-
-
-def _blocked(solve, args, valid, block: int):
-    """`solve(*args)` (vmapped over the leading axis of `args`) in blocks of `block` entries,
-    skipping the blocks after the last `valid` entry; their outputs are zeros."""
-    n = valid.shape[0]
-    n_blocks = -(-n // block)
-    pad = lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], n_blocks * block - n, axis=0)])
-    blocks = jax.tree_util.tree_map(lambda a: pad(a).reshape((n_blocks, block) + a.shape[1:]), args)
-    needed = (jnp.max(jnp.where(valid, jnp.arange(n), -1)) + block) // block  # blocks up to the last valid entry
-    solve = jax.jit(solve)  # traced once: the shapes below and the cond's branch share the trace
-    blank = jax.eval_shape(solve, *jax.tree_util.tree_map(lambda a: a[0], blocks))
-
-    def one(b, xs):
-        return b + 1, jax.lax.cond(b < needed, lambda: solve(*xs),
-                                   lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), blank))
-
-    _, out = jax.lax.scan(one, jnp.asarray(0, needed.dtype), blocks)
-    return jax.tree_util.tree_map(lambda a: a.reshape((n_blocks * block,) + a.shape[2:])[:n], out)
 
 
 def march(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int, check_energy: bool = False,
@@ -267,8 +255,8 @@ def march(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int, c
     `check_energy` a step whose energy jumps fails (`Status.ENERGY_JUMP`); with `check_inputs`
     an invalid input fails step 0 (`Status.INVALID_INPUT`: `input_ok`)."""
     carry, startup = start(stepper, system, Q0, xi0, P0, dt, check_inputs)
-    # with the trip count as in `march_chunked` (every step taken): the same step program
-    _, chunk = run_chunk(stepper, system, carry, dt, n_steps, jnp.asarray(n_steps, jnp.int32), check_energy)
+    _, chunk = run_chunk(stepper, system, carry, dt, n_steps, jnp.asarray(n_steps, jnp.int32), check_energy,
+                         exact=True)
     return _assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0, carry.alive)
 
 
@@ -281,13 +269,14 @@ def march_chunked(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps
     """`march` with concrete arguments, as compiled chunks of `chunk_steps` steps: the
     programs depend on the stepper, the system and the shapes, not on `n_steps` or `dt`."""
     carry, startup = _start_jit(stepper, system, Q0, xi0, P0, dt)
-    total = jnp.asarray(n_steps, jnp.int32)
+    total = np.asarray(n_steps, np.int32)  # a NumPy scalar: no conversion program
     chunks = []
     for _ in range(-(-n_steps // chunk_steps)):
         carry, chunk = _chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
         chunks.append(chunk)
     if any_traced(chunks, startup):
-        # a user function closed over a traced value (the caller is inside jit/vmap/grad)
+        # a function the map checks do not call closed over a traced value (the caller is
+        # inside jit/vmap; integrate sends maps that close over one to `march`)
         return _assemble(jnp, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0)
     chunks, startup, dt, t0 = jax.tree_util.tree_map(np.asarray, (chunks, startup, dt, t0))
     return jax.device_put(_assemble(np, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0))

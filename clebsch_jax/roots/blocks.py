@@ -18,7 +18,7 @@ evaluation, like a fixed-point iteration, but with the fast, stiff single-partic
 exactly. When the updates stop contracting the matrix is refreshed; a step that still does not
 converge is reported (`MAX_ITERATIONS`), never accepted.
 
-Derivatives through the solve use the implicit function theorem (`jax.lax.custom_root`), with
+Derivatives through the solve use the implicit function theorem (`clebsch_jax.roots.implicit`), with
 the tangent systems solved by `TANGENT_SWEEPS` sweeps of the same block-preconditioned iteration.
 """
 

@@ -63,7 +63,7 @@ def fixed_point_solve(G: Callable, guess, *, rtol: float, atol: float, max_itera
         return x - ravel_pytree(G(unravel(x)))[0]
 
     def loop(f, x0):
-        g = lambda x: x - f(x)  # G itself, from the residual custom_root passes in
+        g = lambda x: x - f(x)  # G itself, from the residual implicit_root passes in
         zmax = jnp.max(jnp.abs(x0)) if size is None else jnp.asarray(size, x0.dtype)
         tol = tolerance(x0, rtol, atol, zmax)
         scale = jnp.maximum(1.0, zmax)

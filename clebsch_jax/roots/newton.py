@@ -12,7 +12,7 @@ iterate, each followed by chord (simplified Newton) updates while they contract.
 - `clebsch_jax.roots.blocks`: the lumped block-diagonal Jacobian of many interacting particles.
 
 Under `jax.vmap` the `while_loop`s run until every member has stopped; each member keeps its
-own status. The solve is wrapped in `jax.lax.custom_root` (`implicit_root`), so derivatives of
+own status. The solve is wrapped in `implicit_root` (the rule of `jax.lax.custom_root`), so derivatives of
 the root with respect to what the residual closes over come from the implicit function
 theorem, never from differentiating the iterations.
 """
@@ -255,10 +255,7 @@ def newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: flo
         return ravel_pytree(F(unravel(x)))[0]
 
     def loop(f, x0):
-        z, stats, H_new = newton_loop(f, x0, H, reuse, rtol, atol, max_iterations, max_contraction, matrix=matrix)
-        # the carried matrix leaves custom_root as auxiliary output, which needs float leaves;
-        # a one-off solve (H None) carries none out (an LU factor holds integer pivots)
-        return z, stats, (None if H is None else H_new)
+        return newton_loop(f, x0, H, reuse, rtol, atol, max_iterations, max_contraction, matrix=matrix)
 
     flat, stats, H_new = implicit_root(F_flat, flat0, loop, matrix.tangent_solve)
     z = unravel(flat)
