@@ -10,7 +10,7 @@ The march is cut into **chunks** (`run_chunk`): a loop over a fixed number of st
 hands its carry — the stepper's state and memory, the step number, the failure flag and the
 last step velocity — to the next chunk. Called with concrete arguments (and maps that close
 over no traced value), `integrate` runs the march as `march_chunked`: one compiled program
-for the start and one for a chunk of `CHUNK_STEPS` steps, whose loop stops at the run's
+for the start and one for a chunk of `chunk_length` steps, whose loop stops at the run's
 number of steps (`n_total`, an argument), so a new `n_steps` or `dt` reuses both programs.
 Under a JAX transformation (`jit`, `vmap`, `grad`) the march is one `lax.scan` of exactly
 `n_steps` steps (`march`), traced into the caller's program. Both assemble the `Solution`
@@ -34,11 +34,19 @@ from ..steppers.base import AbstractStepper, Nodes
 from .solution import Solution
 
 __all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "failed_to_nan", "nodal_velocities",
-           "input_ok", "energy_terms", "node_energies", "energy_jump", "CHUNK_STEPS",
-           "JUMP_FACTOR", "JUMP_FLOOR"]
+           "input_ok", "energy_terms", "node_energies", "energy_jump", "chunk_length", "CHUNK_STEPS",
+           "CHUNK_VALUES", "MIN_CHUNK_STEPS", "JUMP_FACTOR", "JUMP_FLOOR"]
 
 CHUNK_STEPS = 1024
-"""Steps per compiled chunk of `march_chunked` (the last chunk runs idle past `n_steps`)."""
+"""The most steps per compiled chunk of `march_chunked` (`chunk_length`)."""
+
+CHUNK_VALUES = 32768
+"""`chunk_length`: a chunk of a large member (many particles) holds about this many values of
+its state per record (Q and ξ per node), so that a short run of a large system does not fill
+and copy buffers of `CHUNK_STEPS` nodes."""
+
+MIN_CHUNK_STEPS = 64
+"""The fewest steps per chunk (`chunk_length`)."""
 
 JUMP_FACTOR = 100.0
 r"""The energy check (`check_energy`): step n fails with `Status.ENERGY_JUMP` when its energy
@@ -264,10 +272,23 @@ _start_jit = filter_jit(start)
 _chunk_jit = filter_jit(run_chunk)
 
 
+def chunk_length(Q0, xi0) -> int:
+    """Steps per chunk of `march_chunked` for a member of these shapes: `CHUNK_STEPS`, or for a
+    large member the power of two that keeps about `CHUNK_VALUES` values of Q and ξ per chunk
+    (at least `MIN_CHUNK_STEPS`). A function of the shapes only, so the programs stay
+    independent of `n_steps`."""
+    per_node = max(1, int(np.size(Q0)) + int(np.size(xi0)))
+    steps = 1 << max(0, (CHUNK_VALUES // per_node).bit_length() - 1)
+    return int(min(CHUNK_STEPS, max(MIN_CHUNK_STEPS, steps)))
+
+
 def march_chunked(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int,
-                  chunk_steps: int = CHUNK_STEPS, check_energy: bool = False) -> Solution:
-    """`march` with concrete arguments, as compiled chunks of `chunk_steps` steps: the
-    programs depend on the stepper, the system and the shapes, not on `n_steps` or `dt`."""
+                  chunk_steps: int | None = None, check_energy: bool = False) -> Solution:
+    """`march` with concrete arguments, as compiled chunks of `chunk_steps` steps (default
+    `chunk_length`): the programs depend on the stepper, the system and the shapes, not on
+    `n_steps` or `dt`."""
+    if chunk_steps is None:
+        chunk_steps = chunk_length(Q0, xi0)
     carry, startup = _start_jit(stepper, system, Q0, xi0, P0, dt)
     total = np.asarray(n_steps, np.int32)  # a NumPy scalar: no conversion program
     chunks = []
