@@ -17,8 +17,9 @@ How: each engine runs in its own long-lived worker process (this script with `--
 `PYTHONPATH` set to the engine's checkout; the worker checks that `clebsch_jax` came from
 there), so both are imported once and every program is compiled once per engine. For each
 scene both workers build the same call from the same inputs (public API only, the subset both
-engines share) and make a first call (compiles) and a second (fixes `number`, the calls per
-sample, so that a sample lasts at least `--min-sample` s). Then `--repeats` rounds each take one
+engines share) and make a first call (compiles) and a second; the faster engine's second call
+fixes `number`, the calls per sample of both engines, so that a sample lasts at least
+`--min-sample` s (one engine's slow warm-up call does not leave it samples of a few calls). Then `--repeats` rounds each take one
 sample of old and one of new, one after the other — the worker that goes first alternates from
 round to round, the other worker sleeps meanwhile — so both see the same machine load. A
 sample is timed inside its worker (`time.perf_counter` around `number` blocking calls, no
@@ -399,10 +400,13 @@ def measure_scene(name: str, workers: dict, run: harness.Run, tmp: Path) -> dict
     description, sizes, quick_sizes = SCENES[name]
     sizes = quick_sizes if run.quick else sizes
     load_start = _load()
-    prepared, number = {}, {}
-    for e in ENGINES:
-        prepared[e] = workers[e].ask("prepare", scene=name, sizes=sizes, final_path=str(tmp / f"{name}-{e}.npz"))
-        number[e] = max(1, math.ceil(run.min_sample_s / max(prepared[e]["second_call_s"], 1e-9)))
+    prepared = {e: workers[e].ask("prepare", scene=name, sizes=sizes, final_path=str(tmp / f"{name}-{e}.npz"))
+                for e in ENGINES}
+    # one number of calls per sample for both engines, from the faster second call: a slow
+    # warm-up call of one engine does not shrink its samples to a few calls that one slow
+    # episode of the machine decides
+    fastest = min(prepared[e]["second_call_s"] for e in ENGINES)
+    number = dict.fromkeys(ENGINES, max(1, math.ceil(run.min_sample_s / max(fastest, 1e-9))))
     wall = {e: [] for e in ENGINES}
     cpu = {e: [] for e in ENGINES}
     firsts, round_loads = [], []
