@@ -28,27 +28,44 @@ def initial_multiplier(system: ClebschSystem, Q0: jax.Array, xi0: jax.Array) -> 
     return cotangent_from_momentum(system, Q0, jax.grad(lambda x: system.l(x, Q0))(xi0))
 
 
+_DIRECT_MAX = 32
+"""Up to this many components of V the minimum-norm cotangent is a dense least-squares solve."""
+
 _DENSE_MAX = 256
-"""Above this many components of V the minimum-norm cotangent is found matrix-free."""
+"""Above this many components of V it is found matrix-free only (the dense matrix is not formed)."""
 
 
 def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) -> jax.Array:
     r"""The minimum-norm $p \in T^*_QM$ with momentum map $-p\diamond Q = \mu$.
 
     Solves $A^T p = \mu$, $A = \partial_\xi \mathcal L_\xi Q$, by least squares (`mu` has ξ's
-    shape). Used for the initial multiplier and to rebuild momenta from a reduced march. For
-    large V (more than `_DENSE_MAX` components, e.g. many particles) $A$ is never formed: the
-    minimum-norm solution $p = A y$, $A^TA\,y = \mu$, is found by conjugate gradients with
-    products by $A$ and $A^T$ (one iteration when the velocity map is a translation).
+    shape). Used for the initial multiplier and to rebuild momenta from a reduced march.
+
+    - Up to `_DIRECT_MAX` components of V: the dense minimum-norm least-squares solve.
+    - Above: matrix-free first — $p = A y$ with $A^TA\,y = \mu$ by conjugate gradients, products
+      by $A$ and $A^T$ only (one iteration when the velocity map is a translation, as for point
+      vortices). Up to `_DENSE_MAX` components the result is checked, $|A^Tp - \mu|_\infty \le
+      10^3\varepsilon\max(1, |\mu|_\infty)$, and the dense solve is made where it fails. (A dense
+      solve of a few hundred unknowns is a LAPACK call whose threads keep spinning after it
+      returns and slow the compiled march that follows: `benchmarks/README.md`.)
     """
     lin = lambda x: system.velocity_map(x.reshape(mu.shape), Q)
-    if mu.size <= _DENSE_MAX:
-        A = jax.jacfwd(lambda x: lin(x).ravel())(jnp.zeros(mu.size, Q.dtype))
-        return jnp.linalg.lstsq(A.T, mu.ravel())[0].reshape(Q.shape)
+    if mu.size <= _DIRECT_MAX:
+        return _dense_cotangent(lin, Q, mu)
     _, vjp = jax.vjp(lin, jnp.zeros_like(mu))
     y, _ = jax.scipy.sparse.linalg.cg(lambda v: vjp(lin(v))[0], mu, tol=1e-15, atol=0.0, maxiter=200)
-    return lin(y)
+    p = lin(y)
+    if mu.size > _DENSE_MAX:
+        return p
+    scale = jnp.maximum(1.0, jnp.max(jnp.abs(mu)))
+    solved = jnp.max(jnp.abs(vjp(p)[0] - mu)) <= 1e3 * jnp.finfo(mu.dtype).eps * scale
+    return jax.lax.cond(solved, lambda: p, lambda: _dense_cotangent(lin, Q, mu))
 
+
+def _dense_cotangent(lin, Q, mu):
+    r"""The minimum-norm solution of $A^T p = \mu$ by a dense least-squares solve."""
+    A = jax.jacfwd(lambda x: lin(x).ravel())(jnp.zeros(mu.size, Q.dtype))
+    return jnp.linalg.lstsq(A.T, mu.ravel())[0].reshape(Q.shape)
 
 
 def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax.Array, *,
