@@ -171,6 +171,7 @@ def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n
     if exact:
         last, (states, outs, stats, valid) = jax.lax.scan(lambda c, _: advance(c), carry, None, length=length)
     else:
+        # jitted (inlined) so that it is traced once, for the records' shapes and the loop body
         last, (states, outs, stats, valid) = _steps_until(jax.jit(advance, inline=True), carry, length, n_total)
     nodes = stepper.nodes(system, carry.state, states, outs)
     made = jnp.clip(n_total - carry.n, 0, length)
