@@ -223,6 +223,8 @@ def test_bad_input_is_rejected_before_compiling(monkeypatch):
         (dict(t0=1.0), "t0: set by sweep itself"),
         (dict(devices=0), "devices"),
         (dict(invariants={"scalar": lambda s, sol: jnp.sum(sol.momentum)}), "invariants: 'scalar'"),
+        (dict(invariants={"short": lambda s, sol: sol.momentum[1:]}),
+         "invariants: 'short' must return one value per node"),
         (dict(scheme="sideways"), "scheme"),
         (dict(Q0=np.concatenate([eyes(3), np.diag([1.0, 1.0, -1.0])[None]])), r"Q0\[3\]: det Q = -1"),
         (dict(Q0=np.concatenate([eyes(2), 1.01 * eyes(1), np.diag([1.0, 1.0, -1.0])[None]])),

@@ -629,7 +629,7 @@ def _probe(cfg: _Config, members: _Members) -> _Shapes:
 
     def probe(p, s, q, x, d):
         system = _system_of(cfg, p, s)
-        sol = _integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, 1)
+        sol = _integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, cfg.n)
         return sol, {name: jnp.asarray(fn(system, sol)) for name, fn in cfg.invariants}
 
     try:
@@ -642,9 +642,9 @@ def _probe(cfg: _Config, members: _Members) -> _Shapes:
     # e.g. rotations for SO(3) models: the probe above traces Q0, which skips the check
     _check_configurations(_system_of(cfg, p_row, members.shared), members.Q0, members.n_ic)
     for name, v in inv_shape.items():
-        if v.ndim < 1 or v.shape[0] != 2:
-            raise ValueError(f"invariants: {name!r} must return one value per node (leading axis n+1 = 2 "
-                             f"for a 1-step solution), returned shape {v.shape}.")
+        if v.ndim < 1 or v.shape[0] != cfg.n + 1:
+            raise ValueError(f"invariants: {name!r} must return one value per node (leading axis n+1 = "
+                             f"{cfg.n + 1} for a {cfg.n}-step solution), returned shape {v.shape}.")
     facts = dict(form=sol_shape.form, scheme=sol_shape.scheme, order=int(sol_shape.order),
                  method=str(getattr(sol_shape, "method", "")))
     return _Shapes(q_row.shape, x_row.shape, sol_shape.Q is not None, sol_shape.xi is not None, inv_shape, facts)
