@@ -19,9 +19,10 @@ there), so both are imported once and every program is compiled once per engine.
 scene both workers build the same call from the same inputs (public API only, the subset both
 engines share) and make a first call (compiles) and a second; the faster engine's second call
 fixes `number`, the calls per sample of both engines, so that a sample lasts at least
-`--min-sample` s (one engine's slow warm-up call does not leave it samples of a few calls). Then `--repeats` rounds each take one
-sample of old and one of new, one after the other — the worker that goes first alternates from
-round to round, the other worker sleeps meanwhile — so both see the same machine load. A
+`--min-sample` s (one engine's slow warm-up call does not leave it samples of a few calls).
+Then `--repeats` rounds each take one sample of old and one of new, one after the other — the
+worker that goes first alternates from round to round, the other worker sleeps meanwhile — so
+both see the same machine load. A
 sample is timed inside its worker (`time.perf_counter` around `number` blocking calls, no
 inter-process traffic inside); time per call = median over the rounds of (sample / number);
 the ratio new/old is the ratio of the medians, and the ratios of the two samples of each round

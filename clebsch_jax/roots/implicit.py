@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core import linalg
+from ..core.validation import is_traced
 
 __all__ = ["implicit_root", "dense_tangent_solve"]
 
@@ -48,7 +49,7 @@ def _closure_convert(fun: Callable, *example_args):
     function must not close over another trace's values."""
     closed, out_shape = jax.make_jaxpr(fun, return_shape=True)(*example_args)
     out_tree = jax.tree_util.tree_structure(out_shape)
-    is_tracer = [isinstance(c, jax.core.Tracer) for c in closed.consts]
+    is_tracer = [is_traced(c) for c in closed.consts]
     kept = [c for c, t in zip(closed.consts, is_tracer) if not t]
     hoisted = [c for c, t in zip(closed.consts, is_tracer) if t]
     n_args = len(example_args)
