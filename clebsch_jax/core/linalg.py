@@ -108,12 +108,16 @@ def solve(A: jax.Array, B: jax.Array, *, unroll: bool = False) -> jax.Array:
     return jnp.linalg.solve(A, B)
 
 
-def factor(A: jax.Array):
-    """Factor A once for repeated solves: the inverse (n ≤ 3) or LU. Returns (factor, singular)."""
+def factor(A: jax.Array, fence: bool = False):
+    """Factor A once for repeated solves: the inverse (n ≤ 3) or LU. Returns (factor, singular).
+    `fence`: the closed form's adjugate and determinant are formed behind an
+    `optimization_barrier` (`clebsch_jax.roots.newton.fence`)."""
     n = A.shape[-1]
     eps = jnp.finfo(A.dtype).eps
     if n <= CLOSED_FORM_MAX:
         adj, d = _adjugate_and_det(A)
+        if fence:
+            adj, d = jax.lax.optimization_barrier((adj, d))
         bound = jnp.prod(jnp.linalg.norm(A, axis=-1), axis=-1)
         return adj / d[..., None, None], jnp.abs(d) <= n * eps * bound
     lu, perm = lu_factor(A)
@@ -121,10 +125,10 @@ def factor(A: jax.Array):
     return (lu, perm), jnp.min(pivots, axis=-1) <= n * eps * jnp.max(pivots, axis=-1)
 
 
-def inverse(A: jax.Array):
+def inverse(A: jax.Array, fence: bool = False):
     """Explicit inverse (closed form for n ≤ 3, LU otherwise) and the singularity flag of
-    `factor`. Returns (inverse, singular)."""
-    fac, singular = factor(A)
+    `factor` (`fence` as there). Returns (inverse, singular)."""
+    fac, singular = factor(A, fence)
     if isinstance(fac, tuple):
         eye = jnp.eye(A.shape[-1], dtype=A.dtype)
         return jax.vmap(lambda e: lu_solve(fac, e), out_axes=-1)(eye), singular

@@ -112,10 +112,25 @@ class Matrix(NamedTuple):
     max_updates: int = MAX_CHORD_ITERATIONS
 
 
+def fence(values):
+    """`values` behind an `optimization_barrier`: XLA fuses on neither side of it. A fixed solve
+    is long straight-line code; fenced between its phases (the Jacobian, its inverse, each
+    update) it is fused phase by phase, where unfenced XLA makes fusions that each recompute
+    the terms they share with others (every entry of an inverse its own Jacobian)."""
+    return jax.lax.optimization_barrier(values)
+
+
 def _dense_inverse(F: Callable, z: jax.Array):
     """F(z), the explicit inverse of the exact Jacobian at z and whether it is singular."""
     Fz, J = jacobian(F, z, unroll=z.shape[0] <= linalg.UNROLL_MAX)
     H, singular = linalg.inverse(J)
+    return Fz, H, singular
+
+
+def _fenced_inverse(F: Callable, z: jax.Array):
+    """`_dense_inverse` with the Jacobian and the adjugate and determinant fenced (`fence`)."""
+    Fz, J = fence(jacobian(F, z, unroll=z.shape[0] <= linalg.UNROLL_MAX))
+    H, singular = linalg.inverse(J, fence=True)
     return Fz, H, singular
 
 
@@ -128,6 +143,9 @@ def _dense_factor(F: Callable, z: jax.Array):
 
 DENSE_INVERSE = Matrix(_dense_inverse, linalg.matvec)
 """The exact Jacobian, inverted explicitly: the matrix a march carries from solve to solve."""
+
+FENCED_INVERSE = Matrix(_fenced_inverse, linalg.matvec)
+"""`DENSE_INVERSE` fenced between its phases: the matrix of the fixed solves (`fixed_newton_solve`)."""
 
 DENSE_FACTOR = Matrix(_dense_factor, linalg.solve_factored)
 """The exact Jacobian, factored (LU above three unknowns): for one-off solves of more unknowns."""
@@ -287,11 +305,12 @@ def newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations
 
 
 def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: float, finish: Callable | None = None,
-                       matrix: Matrix = DENSE_INVERSE):
+                       matrix: Matrix = FENCED_INVERSE, refresh: bool = False):
     r"""Solve $F(z) = 0$ by a fixed number of chord updates with one matrix formed at the guess,
     as straight-line code (no loop, no test between updates), then check the result.
 
-    Updates $z_{k+1} = z_k - J(z_0)^{-1}F(z_k)$, k < `updates`. The check is the size of the
+    Updates $z_{k+1} = z_k - J(z_0)^{-1}F(z_k)$, k < `updates` (with `refresh`, full Newton
+    updates $z_{k+1} = z_k - J(z_k)^{-1}F(z_k)$; the check then uses the last matrix). The check is the size of the
     update the residual at the result would make, $\eta = \|J(z_0)^{-1}F(z_K)\|_\infty$: the
     solve has status SUCCESS when `converged` (the general loop's stopping rule) accepts it —
     an update at round-off size, or a stalled one at the noise floor — and MAX_ITERATIONS
@@ -312,13 +331,16 @@ def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: f
         return ravel_pytree(F(unravel(x)))[0]
 
     def loop(f, x0):
-        Fz, M, singular = matrix.invert(f, x0)
+        Fz, M, singular = fence(matrix.invert(f, x0))
         x, eta = x0, jnp.asarray(jnp.inf, x0.dtype)
         for k in range(updates):
             dz = matrix.apply(M, Fz)
-            x, eta = x - dz, max_abs(dz)
-            if k + 1 < updates:
-                Fz = f(x)
+            x, eta = fence((x - dz, max_abs(dz)))
+            if k + 1 < updates and refresh:
+                Fz, M, singular_k = fence(matrix.invert(f, x))
+                singular = singular | singular_k
+            elif k + 1 < updates:
+                Fz = fence(f(x))
         stats = NewtonStats(iterations=jnp.asarray(updates, jnp.int32), residual_norm=jnp.asarray(jnp.nan, x.dtype),
                             status=jnp.where(singular, Status.SINGULAR, Status.SUCCESS).astype(jnp.int32),
                             jacobians=jnp.asarray(1, jnp.int32))
@@ -326,7 +348,7 @@ def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: f
 
     flat, stats, (M, eta_last) = implicit_root(F_flat, flat0, loop, matrix.tangent_solve)
     z = unravel(flat)
-    residual, extra = (F(z), None) if finish is None else finish(z)
+    residual, extra = fence((F(z), None) if finish is None else finish(z))
     # the check: the update the residual at z would make, judged by the general loop's rule
     dz = matrix.apply(jax.lax.stop_gradient(M), ravel_pytree(residual)[0])
     eta, zmax = max_abs(jnp.stack([dz, flat]))
@@ -335,5 +357,5 @@ def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: f
     status = jnp.where(~(jnp.isfinite(eta) & jnp.isfinite(zmax)), Status.NONFINITE,
                        jnp.where(stats.status != Status.SUCCESS, stats.status,
                                  jnp.where(done, Status.SUCCESS, Status.MAX_ITERATIONS)))
-    stats = stats._replace(status=status.astype(jnp.int32))
-    return z, with_residual(stats, residual), jax.lax.stop_gradient(M), extra
+    stats = fence(with_residual(stats._replace(status=status.astype(jnp.int32)), residual))
+    return z, stats, jax.lax.stop_gradient(M), extra

@@ -87,10 +87,13 @@ class FixedNewton(Newton):
     `solve` (a one-off solve, e.g. of a nodal velocity, whose guess may be poor) is `Newton`'s.
     - `warmup`: the first steps of a march (counted by the caller's `step`) solve with the
       general loop (default 4), while the predictor has too few earlier steps to be accurate.
+    - `refresh`: form a fresh Jacobian at every update (full Newton updates, which converge
+      quadratically from a poorer guess) instead of once per solve (default False).
     """
 
     updates: int = 3
     warmup: int = 4
+    refresh: bool = False
 
     def __post_init__(self):
         super().__post_init__()
@@ -102,7 +105,8 @@ class FixedNewton(Newton):
         (`step`: the step's number, None: treated as past the warm-up).
         **Returns:** `(z, NewtonStats, H, extra)` as `Newton.solve_reusing`."""
         def fixed(_):
-            return fixed_newton_solve(F, guess, updates=self.updates, rtol=self.rtol, atol=self.atol, finish=finish)
+            return fixed_newton_solve(F, guess, updates=self.updates, rtol=self.rtol, atol=self.atol, finish=finish,
+                                      refresh=self.refresh)
 
         if step is None or self.warmup == 0:
             return fixed(None)
