@@ -254,6 +254,12 @@ def _same_params(eqn, vals, bs, B):
     return _bind(eqn, _match(vals, bs, [True] * len(vals), B)), [True] * len(eqn.outvars)
 
 
+def _as_is(eqn, vals, bs, B):
+    """`optimization_barrier`: applied to the operands as they are, all made batched (as
+    `_flags` predicts for an operation with a batched operand)."""
+    return _bind(eqn, _match(vals, bs, [True] * len(vals), B)), [True] * len(vals)
+
+
 def _broadcast_in_dim(eqn, vals, bs, B):
     x, *dyn = vals
     if dyn or not bs[0]:
@@ -483,6 +489,7 @@ _RULES = {
     "transpose": _transpose,
     "dot_general": _dot_general,
     "concatenate": _same_params,
+    "optimization_barrier": _as_is,
     "stack": _same_params,
     "while": _while,
     "scan": _scan,

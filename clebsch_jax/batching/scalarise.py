@@ -248,13 +248,33 @@ def _eval(jaxpr, consts, args, B):
     for eqn in jaxpr.eqns:
         vals = [read(v) for v in eqn.invars]
         if all(k == U for k, _ in vals):
-            outs = [(U, o) for o in _bl._bind(eqn, [x for _, x in vals])]
+            outs = [(U, o) for o in _unbatched(eqn, [x for _, x in vals])]
         else:
             outs = _apply(eqn, vals, B)
         for v, o in zip(eqn.outvars, outs):
             if not isinstance(v, jex.DropVar):
                 env[v] = o
     return [read(v) for v in jaxpr.outvars]
+
+
+FOLD_SIZE = 64
+"""An unbatched operation whose operands are all known when the program is traced, with at most
+this many output elements, is evaluated then (a NumPy constant): the entries of `jnp.eye`
+(the tangents a forward-mode Jacobian pushes through the step), the predictor's coefficients.
+Products with their zeros and ones are then not emitted at all."""
+
+
+def _unbatched(eqn, xs):
+    """An operation on unbatched operands: folded to NumPy constants when it can be
+    (`FOLD_SIZE`), else emitted as it is."""
+    small = all(math.prod(v.aval.shape) <= FOLD_SIZE for v in eqn.outvars if hasattr(v.aval, "shape"))
+    if small and not eqn.effects and eqn.primitive.name not in _CONTROL and eqn.primitive.name not in _bl._CALLS:
+        known = [_concrete(x) for x in xs]
+        if all(k is not None for k in known):
+            with jax.ensure_compile_time_eval():
+                outs = _bl._bind(eqn, [jnp.asarray(k) for k in known])
+            return [np.asarray(o) for o in outs]
+    return _bl._bind(eqn, xs)
 
 
 def _apply(eqn, vals, B):
@@ -401,6 +421,20 @@ def _identity(eqn, vals, B):
     return [(R, _one_rows(eqn, vals, B))]
 
 
+def _barrier(eqn, vals, B):
+    """`optimization_barrier` over every row of its operands (known components pass through):
+    XLA fuses on neither side of it, so a long straight-line step is not fused into a few
+    huge fusions that recompute shared terms."""
+    flat = [(k, x.ravel().tolist() if k == R else [x]) for k, x in vals]
+    live = [e for k, es in flat for e in es if not (k == R and _is_const(e))]
+    it = iter(lax.optimization_barrier(live) if live else [])
+    outs = []
+    for (k, es), v in zip(flat, eqn.invars):
+        new = [e if (k == R and _is_const(e)) else next(it) for e in es]
+        outs.append((R, _obj(tuple(v.aval.shape), new)) if k == R else (k, new[0]))
+    return outs
+
+
 def _dynamic_slice(eqn, vals, B):
     """A slice at unbatched (traced) starts: a select among the few possible slices."""
     x = _one_rows(eqn, vals, B)
@@ -532,7 +566,8 @@ def _scan(eqn, vals, B):
         # each row of an output its own stacked series: XLA writes them in place
         return new, _pack(_canon(outs[nk:], ys_kinds, ys_avals, B), B)
 
-    unroll = max(int(p["unroll"]), min(SCAN_UNROLL, p["length"]))
+    # an unroll the program asks for is kept; otherwise at least SCAN_UNROLL
+    unroll = int(p["unroll"]) if int(p["unroll"]) > 1 else min(SCAN_UNROLL, p["length"])
     carry, ys = lax.scan(step, init, xs, length=p["length"], reverse=p["reverse"], unroll=unroll)
     return _unpack(carry, carry_kinds, carry_avals) + [_series(k, y, a.shape, p["length"], B)
                                                        for k, y, a in zip(ys_kinds, ys, ys_avals)]
@@ -616,7 +651,7 @@ def _cond(eqn, vals, B):
     return _unpack(outs, kinds, out_avals)
 
 
-_CONTROL = {"scan", "while", "cond"}
+_CONTROL = {"scan", "while", "cond", "optimization_barrier"}
 
 _RULES = {
     **{name: _elementwise for name in _bl._ELEMENTWISE},
@@ -631,6 +666,7 @@ _RULES = {
     "split": _split,
     "stack": _stack,
     "stop_gradient": _identity,
+    "optimization_barrier": _barrier,
     "dynamic_slice": _dynamic_slice,
     "dot_general": _dot_general,
     "scan": _scan,
