@@ -336,22 +336,33 @@ def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0):
         return (np.any(jumped), np.argmax(jumped), np.maximum(largest, running_change[-1]),
                 np.maximum(size_max, running_size[-1]))
 
-    zero_nan = lambda a: jnp.where(jnp.isnan(a), 0.0, a)
-
     def step(c, x):
         largest, size_max, clean, first, n = c
         d, s, st = x
-        size_max = jnp.maximum(size_max, zero_nan(s))
         clean = clean & (st == Status.SUCCESS)
-        jumped = clean & (d > jnp.maximum(JUMP_FACTOR * largest, JUMP_FLOOR * size_max))
+        largest, size_max, jumped = jump_step(largest, size_max, d, s)
+        jumped = clean & jumped
         first = jnp.where(jumped & (first < 0), n, first)
-        return (jnp.maximum(largest, zero_nan(d)), size_max, clean, first, n + 1), None
+        return (largest, size_max, clean, first, n + 1), None
 
     dtype = change.dtype
     init = (jnp.asarray(largest, dtype), jnp.asarray(size_max, dtype), jnp.asarray(True), jnp.asarray(-1, jnp.int32),
             jnp.asarray(0, jnp.int32))
     (largest, size_max, _, first, _), _ = jax.lax.scan(step, init, (change, size[:-1], status))
-    return first >= 0, jnp.maximum(first, 0), largest, jnp.maximum(size_max, zero_nan(size[-1]))
+    return first >= 0, jnp.maximum(first, 0), largest, jnp.maximum(size_max, _zero_nan(size[-1]))
+
+
+def _zero_nan(a):
+    return jnp.where(jnp.isnan(a), 0.0, a)
+
+
+def jump_step(largest, size_max, change, size):
+    """One step of the energy check: (running largest change, running largest size after the
+    step, whether the step jumped), for the step's energy change and the size at the node it
+    leaves (`node_energies`); `size_max` holds the sizes of the nodes before that one."""
+    size_max = jnp.maximum(size_max, _zero_nan(size))
+    jumped = change > jnp.maximum(JUMP_FACTOR * largest, JUMP_FLOOR * size_max)
+    return jnp.maximum(largest, _zero_nan(change)), size_max, jumped
 
 
 def _fail_from(xp, step, code, stats, nodal, valid, fields):
