@@ -80,7 +80,7 @@ def _top(params):
     return heavy_top(params[:3], params[3])
 
 
-@pytest.mark.slow  # compiles a scalarised and a general heavy-top chunk: most of a minute
+@pytest.mark.slow  # compiles a lean heavy-top chunk (potential, Q reconstructed): most of a minute
 def test_heavy_tops_agree_with_integrate():
     params = np.array([[1.0, 1.0, 0.4, 1.5], [1.0, 1.2, 0.5, 0.8]])
     Q0 = np.stack([np.asarray(cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))),
@@ -89,9 +89,13 @@ def test_heavy_tops_agree_with_integrate():
     res = cj.sweep(_top, params, Q0, omegas, dt=0.01, n_steps=30, chunk_steps=15, fast=True)
     assert res.form == "reduced" and res.fast_chunks == 2 and res.fallback_chunks == 0
     for m in range(2):
-        sol = cj.integrate(_top(params[m]), jnp.asarray(Q0[m]), jnp.asarray(omegas[m]), dt=0.01, n_steps=30)
+        system = _top(params[m])
+        sol = cj.integrate(system, jnp.asarray(Q0[m]), jnp.asarray(omegas[m]), dt=0.01, n_steps=30)
         np.testing.assert_allclose(res.final_momentum[m], np.asarray(sol.momentum[-1]), rtol=0, atol=1e-13)
         np.testing.assert_allclose(res.final_Q[m], np.asarray(sol.Q[-1]), rtol=0, atol=1e-13)
+        E = np.asarray(cj.diagnostics.energy(system, sol))
+        # a difference of energies of size ~10: their round-off (~1e-15) is the tolerance's scale
+        np.testing.assert_allclose(res.energy_error[m], np.max(np.abs(E - E[0])), rtol=0, atol=1e-13)
 
 
 def test_vortex_cluster_has_no_fast_path_and_agrees():
@@ -156,3 +160,100 @@ def test_scalarise_matches_vmap():
     got = jax.jit(scalarise(f, in_axes=(0, None)))(xs, A)
     for w, g in zip(jax.tree_util.tree_leaves(want), jax.tree_util.tree_leaves(got)):
         np.testing.assert_allclose(g, w, rtol=1e-14, atol=1e-14)
+
+
+# -- the lean chunk (`clebsch_jax.batching.lean`): no invariant but the energy, nothing saved ------
+
+LEAN = dict(n_steps=N_STEPS, chunk_steps=20, batch_size=4, reconstruct=False)
+
+
+def test_lean_sweep_agrees_with_the_general_one_and_falls_back_like_it():
+    import clebsch_jax.batching.sweep as sw
+
+    general_programs = sw._run_chunk._cache_size()
+    lean = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **LEAN)
+    assert lean.fast_chunks == 2 and lean.fallback_chunks == 0
+    # no check failed: the general chunk program was not even compiled
+    assert sw._run_chunk._cache_size() == general_programs
+    general = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, **LEAN)
+    assert np.all(lean.succeeded) and np.all(general.succeeded)
+    for key in ("final_momentum", "final_xi", "final_p", "final_t", "energy_error"):
+        # the same steps and nodes to round-off (Newton's last updates and the hand-over differ)
+        np.testing.assert_allclose(getattr(lean, key), getattr(general, key), rtol=0, atol=1e-13, err_msg=key)
+    assert np.max(lean.max_residual) < 1e-14
+    for m in range(4):
+        mu, energy_error = reference(rigid_body(INERTIAS[m]), np.eye(3), OMEGAS[m], 0.05, N_STEPS, reconstruct=False)
+        np.testing.assert_allclose(lean.final_momentum[m], mu, rtol=0, atol=1e-13)
+        assert abs(lean.energy_error[m] - energy_error) <= 1e-13
+
+    # failures: a NaN velocity and a negative moment of inertia (invalid input at step 0) and
+    # steps too large for the fixed updates; each chunk with a failure runs again on the
+    # general path, and the table is the general one
+    omegas, dts, inertias = 3.0 * OMEGAS, np.array([0.6, 0.05, 0.05, 0.05]), INERTIAS.copy()
+    omegas[1] = np.nan
+    inertias[3, 0] = -1.0
+    res = cj.sweep(rigid_body, inertias, EYES, omegas, dt=dts, fast=True, **LEAN)
+    ref = cj.sweep(rigid_body, inertias, EYES, omegas, dt=dts, **LEAN)
+    assert res.fallback_chunks >= 1
+    np.testing.assert_array_equal(res.status, ref.status)
+    np.testing.assert_array_equal(res.failed_step, ref.failed_step)
+    assert res.status[1] == res.status[3] == Status.INVALID_INPUT
+    ok = ref.status == Status.SUCCESS
+    np.testing.assert_allclose(res.final_momentum[ok], ref.final_momentum[ok], rtol=0, atol=1e-12)
+
+
+def test_lean_chunk_carries_what_the_general_chunk_carries():
+    """One member, no batching: the lean chunk's carry (state, running energy-check maxima,
+    drift) against the general chunk's, for a first and a later chunk."""
+    import dataclasses
+
+    import clebsch_jax.batching.sweep as sw
+
+    res = {}
+    for fast in (False, True):
+        cap = {}
+        real = sw._run_fast_chunk if fast else sw._run_chunk
+
+        def spy(cfg, *args, real=real, cap=cap):
+            cap.setdefault("calls", []).append((cfg, args))
+            return real(cfg, *args)
+        sw_name = "_run_fast_chunk" if fast else "_run_chunk"
+        setattr(sw, sw_name, spy)
+        try:
+            cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=fast, **LEAN)
+        finally:
+            setattr(sw, sw_name, real)
+        res[fast] = cap["calls"]
+    for (cfg_g, args_g), (cfg_f, args_f) in zip(res[False], res[True]):
+        general = dataclasses.replace(cfg_f, fast_method=None, lean=False)
+        fast = dataclasses.replace(general, options=(("check_energy", False), ("method", cfg_f.fast_method)))
+        params, carry, dt, shared, first, offset = args_g
+        one = lambda c, j: jax.tree_util.tree_map(lambda a: a[j], c)
+        for j in range(4):
+            g, _ = sw._member_chunk(general, params[j], shared, one(carry, j), dt[j], first, offset)
+            f, _ = sw._lean_member_chunk(fast, params[j], shared, one(carry, j), dt[j], first, offset)
+            for name in ("Q", "P", "xi", "t", "momentum", "final_xi", "energy_change", "energy_size", "max_residual"):
+                np.testing.assert_allclose(getattr(f, name), getattr(g, name), rtol=1e-12, atol=1e-14, err_msg=name)
+            np.testing.assert_allclose(f.drift["energy"], g.drift["energy"], rtol=1e-9, atol=1e-15)
+            np.testing.assert_allclose(f.initial["energy"], g.initial["energy"], rtol=0, atol=1e-14)
+            assert int(f.status) == int(g.status) == Status.SUCCESS
+
+
+def test_full_newton_updates_converge_from_a_far_guess():
+    # refresh: a fresh Jacobian at every update (the lean chunk's warm-up), quadratic convergence
+    c = jnp.array([2.0, 10.0])
+    F = lambda z: z**3 + z - c
+    root, _ = newton_solve(F, jnp.array([1.0, 2.0]), rtol=0.0, atol=0.0, max_iterations=20)
+    _, chord, _, _ = fixed_newton_solve(F, root + 0.5, updates=6, rtol=0.0, atol=0.0)
+    z, full, _, _ = fixed_newton_solve(F, root + 0.5, updates=6, rtol=0.0, atol=0.0, refresh=True)
+    assert chord.status == Status.MAX_ITERATIONS and full.status == Status.SUCCESS
+    np.testing.assert_allclose(z, root, rtol=0, atol=1e-14)
+
+
+def test_scalarise_keeps_optimization_barriers():
+    def f(x):
+        a, b = jax.lax.optimization_barrier((x * x, jnp.sum(x)))
+        return jax.lax.fori_loop(0, 3, lambda i, c: jax.lax.optimization_barrier(c * 0.5 + a * b), x)
+    xs = jnp.arange(12.0).reshape(4, 3)
+    np.testing.assert_allclose(jax.jit(scalarise(f))(xs), jax.vmap(f)(xs), rtol=1e-15)
+    assert "optimization_barrier" in str(jax.make_jaxpr(scalarise(f))(xs))

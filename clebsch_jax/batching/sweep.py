@@ -57,6 +57,7 @@ from ..march.solution import IntegrationError
 from ..roots.status import Status
 from .batch_last import batch
 from .fast import fast_method as _fast_method
+from .lean import lean_chunk, supports as _lean_supports
 from .scalarise import scalarise
 
 __all__ = ["sweep", "SweepResult", "SweepProgress"]
@@ -254,6 +255,7 @@ class _Config:
     member_chunk: int | None = None  # members per cj.batch chunk inside a batch (None: one)
     fast_method: object = None  # the fast path's stepper (clebsch_jax.batching.fast), None: none
     check_energy: bool = True  # the energy check, made by the sweep over the whole run (`_energy_check`)
+    lean: bool = False  # the fast path runs the lean chunk (`clebsch_jax.batching.lean`)
 
 
 def _integrate(cfg: _Config, system, Q, xi, P, t, dt, n):
@@ -348,10 +350,21 @@ def _member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset
     return new, saved
 
 
+def _lean_member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset):
+    """A member's chunk on the lean path (`clebsch_jax.batching.lean`): the fast method's steps
+    with the sweep's reductions in the loop, no records."""
+    system = _system_of(cfg, params, shared)
+    stepper = dict(cfg.options)["method"].prepare(system, carry.Q, carry.xi)  # the fast method: `_run_fast_chunk`
+    new, _ = lean_chunk(stepper, system, carry, dt, cfg.n, first)
+    return new, None
+
+
 def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows: bool = False):
     """The chunk of every member of a batch: `cj.batch` (in chunks of `member_chunk`), or with
     `rows` the scalarising evaluation (`clebsch_jax.batching.scalarise`, the whole batch)."""
     def one(p, c, d, s, f, o):
+        if cfg.lean:
+            return _lean_member_chunk(cfg, p, s, c, d, f, o)
         return _member_chunk(cfg, p, s, c, d, f, o)
 
     axes = (0, 0, 0, None, None, None)
@@ -361,18 +374,23 @@ def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows:
 
 @functools.partial(jax.jit, static_argnums=0)
 def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
-    """One chunk of a batch: (carry, saved, fell_back). With a fast method, the chunk runs with
-    it first, and again with the general method when some member that was alive failed in it
-    (`clebsch_jax.batching.fast`); `fell_back` says whether it did."""
+    """One chunk of a batch by the general path: (carry, saved)."""
+    return _batched_chunk(dataclasses.replace(cfg, fast_method=None, lean=False), params, carry, dt, shared, first,
+                          offset)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _run_fast_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
+    """One chunk of a batch by the fast path (`clebsch_jax.batching.fast`; the lean chunk,
+    `clebsch_jax.batching.lean`, where `cfg.lean`): (carry, saved, ok), `ok` False when some
+    member that was alive failed in it — the caller then runs the chunk again from the same
+    carry with `_run_chunk`, which reports the failure. A separate program, so that the general
+    one is compiled only for a sweep that needs it."""
     general = dataclasses.replace(cfg, fast_method=None)
-    if cfg.fast_method is None:
-        return (*_batched_chunk(general, params, carry, dt, shared, first, offset), jnp.asarray(False))
     fast = dataclasses.replace(general, options=(("check_energy", False), ("method", cfg.fast_method)))
     new, saved = _batched_chunk(fast, params, carry, dt, shared, first, offset, rows=True)
     ok = jnp.all((new.status == Status.SUCCESS) | (carry.status != Status.SUCCESS))
-    new, saved = jax.lax.cond(ok, lambda: (new, saved),
-                              lambda: _batched_chunk(general, params, carry, dt, shared, first, offset))
-    return new, saved, ~ok
+    return new, saved, ok
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -609,6 +627,18 @@ def _fast_method_of(cfg: _Config, members: _Members):
                         jnp.asarray(members.xi0[j]), dict(cfg.options))
 
 
+def _lean_applies(cfg: _Config, members: _Members, method) -> bool:
+    """Whether the fast path can run the lean chunk: a method it supports, no node saved, no
+    invariant but the energy (the others are functions of a chunk's `Solution`), the energy
+    check on (the lean chunk always makes it)."""
+    if method is None or cfg.save_every is not None or not cfg.check_energy:
+        return False
+    if [name for name, _ in cfg.invariants] != ["energy"] or cfg.invariants[0][1] is not _diagnostics.energy:
+        return False
+    p_row = None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
+    return _lean_supports(method, _system_of(cfg, p_row, members.shared))
+
+
 class _Shapes(NamedTuple):
     """One member's shapes and the facts of its march."""
 
@@ -718,15 +748,23 @@ def _start_batch(cfg: _Config, members: _Members, shapes: _Shapes, b: int, batch
 def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report: Callable, fell_back: list):
     """March a group of batches (one per device, side by side) through every chunk: each batch's
     carry moves on, the chunk's saved nodes go to `saved`, whether it fell back from the fast
-    path to `fell_back` (device scalars), `report(group, step)` follows a chunk."""
+    path to `fell_back` (bools), `report(group, step)` follows a chunk."""
     for st, n in run.chunks:
         c = cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
-        outs = []
+        at = (jnp.asarray(st == 0), jnp.asarray(st, jnp.int32))
+        outs, fast = [], []
         for one in group:  # dispatched asynchronously: the devices march side by side
-            one.carry, chunk_saved, fb = _run_chunk(c, one.params, one.carry, one.dt, one.shared,
-                                                    jnp.asarray(st == 0), jnp.asarray(st, jnp.int32))
-            outs.append(chunk_saved)
-            fell_back.append(fb)
+            args = (one.params, one.carry, one.dt, one.shared) + at
+            fast.append(_run_fast_chunk(c, *args) if cfg.fast_method is not None else None)
+            outs.append(_run_chunk(c, *args) if cfg.fast_method is None else args)
+        if cfg.fast_method is not None:  # the general path where a fast chunk failed
+            oks = jax.device_get([f[2] for f in fast])
+            for i, (one, f, ok) in enumerate(zip(group, fast, oks)):
+                outs[i] = f[:2] if ok else _run_chunk(c, *outs[i])
+                fell_back.append(not ok)
+        for one, out in zip(group, outs):
+            one.carry = out[0]
+        outs = [out[1] for out in outs]
         if saved is not None:
             k0, kn = st // run.save_every, len(range(0, n, run.save_every))
             for one, chunk_saved in zip(group, outs):
@@ -830,7 +868,7 @@ def _run_batches(plan: _Plan, batches: list, devices: list, report: Callable) ->
     for one in group:
         used.update(one.carry.status.devices())
         _collect(tables, one, run)
-    fast = (0 if cfg.fast_method is None else len(fell_back), int(sum(bool(f) for f in jax.device_get(fell_back))))
+    fast = (0 if cfg.fast_method is None else len(fell_back), int(sum(fell_back)))
     return _Rows(list(batches), rows, tables, used, fast)
 
 
@@ -950,14 +988,19 @@ def sweep(
     - `overwrite`: with `store`, replace a store written by another configuration instead of
       refusing it.
     - `fast`: False (default): the general Newton loop. True: where the method has a fast
-      path (`clebsch_jax.batching.fast`: the reduced march), each chunk first solves every
-      step by a fixed number of Newton updates with a check per member and step, its steps
-      evaluated with one row per component (`clebsch_jax.batching.scalarise`), and runs again
-      with the general loop when a check fails — the same table to round-off, reruns counted
-      in `SweepResult.fallback_chunks`. Not yet the default: a chunk's work after its steps
-      (the nodal velocities and invariants at every node, the hand-over) costs as much as
-      before, and the fast chunk compiles beside the general one (`benchmarks/throughput.py`
-      measures both).
+      path (`clebsch_jax.batching.fast`: the reduced march, possibly composed), each chunk
+      first solves every step by a fixed number of Newton updates with a check per member and
+      step, each component of a member its own row (`clebsch_jax.batching.scalarise`). When
+      the sweep keeps no node and no invariant but the energy, the chunk is the lean one
+      (`clebsch_jax.batching.lean`): the nodal velocities and the energy check are made in the
+      same loop and nothing is recorded; otherwise the chunk records its steps as `integrate`
+      does. Where any member's check fails in a chunk, that chunk runs again from the same
+      start with the general loop, which reports the failure (status and step) as
+      `fast=False` would; reruns are counted in `SweepResult.fallback_chunks`, and the general
+      program is compiled only when a rerun needs it. The table agrees with `fast=False` to
+      round-off (Newton iteration counts are those of the path that ran). Not yet the
+      default: it is faster only for large batches (`batch_size` of several thousand) and
+      compiles longer (`benchmarks/throughput.py --sweep-only` measures both).
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own. `check_energy` (default True) is `integrate`'s energy check made over the
@@ -984,7 +1027,8 @@ def sweep(
     cfg = _chunk_config(run, members, options)
     shapes = _probe(cfg, members)
     if fast:
-        cfg = dataclasses.replace(cfg, fast_method=_fast_method_of(cfg, members))
+        method = _fast_method_of(cfg, members)
+        cfg = dataclasses.replace(cfg, fast_method=method, lean=_lean_applies(cfg, members, method))
     if batch_size is None:  # every device gets a batch
         batch_size = min(-(-B // n_dev), _DEFAULT_BATCH)
     batch_size = _positive_int(batch_size, "batch_size")

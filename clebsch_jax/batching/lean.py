@@ -1,0 +1,196 @@
+r"""The sweep's lean chunk: steps, nodal velocities and the sweep's reductions in one loop.
+
+A sweep keeps per-member reductions, not trajectories (`clebsch_jax.sweep`). The general chunk
+(`integrate` over the chunk's steps, then the nodal velocities, the energies and the invariants
+of every node) records each step and node and reduces them afterwards. The lean chunk makes
+the same steps with the fast path's method (`clebsch_jax.batching.fast`: a fixed number of
+Newton updates and a check per member and step) and, at each new node, in the same loop body:
+
+- the nodal velocity (Lemma 7: $\delta l/\delta\xi(\xi, Q) = \mu$), by fixed Newton updates
+  from $2\xi_{\text{step}} - \xi_{\text{node}}$ and a check;
+- the energy $E = \langle\delta l/\delta\xi, \xi\rangle - l$, its running drift from the
+  run's first node, and `integrate`'s energy check (`clebsch_jax.march.scan.jump_step`);
+- whether anything failed: a step or nodal solve that its check does not accept, a
+  non-finite value, an energy jump, an invalid input.
+
+Nothing is stored per step, so the loop body is all the program holds. The chunk's outputs are
+the general chunk's (the carry handed to the next chunk, the reductions); a member that failed
+before the chunk stays failed. Where any member that was alive failed in the chunk, `sweep`
+reruns the chunk with the general path, which reports the failure's status and step: the lean
+chunk only has to notice that something failed, never to say what.
+
+The first `warmup` steps of a chunk (the fast method's `FixedNewton.warmup`), while the
+predictor has few earlier steps, make full Newton updates (a fresh Jacobian at every update)
+instead of chord updates: still straight-line code, in a loop of their own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from ..core.system import momentum_map
+from ..discrete.legendre import cotangent_from_momentum
+from ..discrete.residual import nodal_residual
+from ..march.scan import energy_terms, input_ok, jump_step
+from ..roots.newton import fixed_newton_solve
+from ..roots.solvers import FixedNewton
+from ..roots.status import Status
+from ..steppers.base import AbstractWrapper
+from ..steppers.reduced import ReducedStep
+
+__all__ = ["lean_chunk", "supports", "LEAN_UPDATES", "NODAL_UPDATES", "WARMUP_UPDATES"]
+
+NODAL_UPDATES = 2
+"""Chord updates of a node's velocity solve: the relation is linear for a Lagrangian quadratic
+in ξ (one update is exact, the second is at the noise floor, which the check needs)."""
+
+
+LEAN_UPDATES = 2
+"""Chord updates per step after the warm-up. With the predictor's high order the first update
+is at round-off in a well-resolved march and the second at the noise floor; the check then
+tells a converged solve from one still contracting (a chunk where it fails runs again with the
+general path)."""
+
+WARMUP_UPDATES = 4
+"""Full Newton updates per step in the warm-up, from a guess of error O(Δt)."""
+
+UNROLL = 2
+"""Steps per iteration of the main loop: XLA keeps the carry's rows in place over an unrolled
+pair; more copies of the long step body cost compile time for no further gain."""
+
+
+def warmup_method(stepper):
+    """The fast method with its fixed solves making full Newton updates (`FixedNewton.refresh`)
+    and no warm-up of their own: the steps of a chunk before the predictor is accurate."""
+    if isinstance(stepper, AbstractWrapper):
+        return dataclasses.replace(stepper, base=warmup_method(stepper.base))
+    finder = dataclasses.replace(stepper.root_finder, refresh=True, warmup=0, updates=WARMUP_UPDATES)
+    return dataclasses.replace(stepper, root_finder=finder)
+
+
+def _main_method(stepper):
+    if isinstance(stepper, AbstractWrapper):
+        return dataclasses.replace(stepper, base=_main_method(stepper.base))
+    return dataclasses.replace(stepper, root_finder=dataclasses.replace(stepper.root_finder, warmup=0,
+                                                                        updates=LEAN_UPDATES))
+
+
+def _warmup_steps(stepper) -> int:
+    return _warmup_steps(stepper.base) if isinstance(stepper, AbstractWrapper) else stepper.root_finder.warmup
+
+
+def _finder(stepper) -> FixedNewton:
+    return _finder(stepper.base) if isinstance(stepper, AbstractWrapper) else stepper.root_finder
+
+
+def _base(stepper):
+    while isinstance(stepper, AbstractWrapper):
+        stepper = stepper.base
+    return stepper
+
+
+def supports(stepper, system) -> bool:
+    """Whether the lean chunk runs this fast method: reduced steps (possibly wrapped) with fixed
+    Newton solves, for a system with nodal velocities."""
+    base = _base(stepper)
+    return isinstance(base, ReducedStep) and isinstance(base.root_finder, FixedNewton) and not system.degenerate
+
+
+def _nodal_velocity(system, finder: FixedNewton, Q, mu, guess):
+    """ξ at a node from its momentum μ, by `NODAL_UPDATES` chord updates and the check."""
+    xi, stats, _, _ = fixed_newton_solve(lambda x: nodal_residual(system, Q, mu, x), guess, updates=NODAL_UPDATES,
+                                         rtol=finder.rtol, atol=finder.atol)
+    return xi, stats
+
+
+def lean_chunk(stepper, system, carry, dt, n: int, first):
+    r"""`n` steps of one member from the sweep's carry, with the reductions made in the loop.
+
+    **Arguments:** `stepper`, the fast method prepared for `system` (`supports`); `carry`, the
+    sweep's carry (`clebsch_jax.batching.sweep._Carry`: the canonical state (Q, P), the nodal
+    velocity ξ, t and the running reductions); `dt`; `n` the chunk's steps; `first` whether
+    this is the run's first chunk (the energy drift's reference is then this chunk's node 0).
+
+    **Returns:** `(new carry, ok)`: `ok` False when anything failed in the chunk for a member
+    that was alive at its start (the caller reruns the chunk with the general path; the new
+    carry's status is then not the one to report)."""
+    alive0 = carry.status == Status.SUCCESS
+    nan_unless = lambda a: jnp.where(alive0, a, jnp.nan)
+    Q0, P0, xi0 = nan_unless(carry.Q), nan_unless(carry.P), nan_unless(carry.xi)
+    finder = _finder(stepper)
+    ok = input_ok(system, Q0, xi0, P0, dt)
+
+    # node 0: its momentum and velocity (what the general path's start and nodal solve give)
+    mu0 = momentum_map(system, P0, Q0, xi0)
+    xin0, st0 = _nodal_velocity(system, finder, Q0, mu0, xi0)
+    ok = ok & (st0.status == Status.SUCCESS)
+    state0, _ = stepper.init(system, Q0, xin0, None, dt)
+    state0 = (mu0,) + tuple(state0[1:])  # a reduced step's state (μ, Q, ξ): μ = −P⋄Q as given
+    memory0 = stepper.init_memory(system, state0)
+    E0, size0 = _energy(system, Q0, xin0)
+    ref = jnp.where(first, E0, carry.initial["energy"])
+    carries_Q = _base(stepper)._carry_Q(system)  # else Q stays the chunk's start (reconstruct=False)
+    reductions = dict(
+        ok=ok, iterations=jnp.asarray(0, carry.iterations.dtype), residual=jnp.zeros((), dt.dtype),
+        change=carry.energy_change, size=jnp.maximum(carry.energy_size, _zero_nan(size0)), E=E0,
+        drift=jnp.abs(E0 - ref), xin=xin0, mu=mu0, **({"Q": Q0} if carries_Q else {}),
+    )
+
+    def body_of(method):
+        def body(k, c):
+            state_prev, memory, red = c
+            state, memory, out, stats = method.step(system, state_prev, memory, dt, k, jnp.asarray(True))
+            nodes = method.nodes(system, state_prev, _one(state), _one(out))
+            Qn, mun, xi_step = nodes.nodal_Q[1], nodes.momentum[1], nodes.xi_step[0]
+            xin, nst = _nodal_velocity(system, finder, Qn, mun, 2 * xi_step - red["xin"])
+            E, size = _energy(system, Qn, xin)
+            # red["size"] holds the sizes of the nodes up to the one this step leaves
+            change, _, jumped = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
+            size_max = jnp.maximum(red["size"], _zero_nan(size))
+            good = (stats.status == Status.SUCCESS) & (nst.status == Status.SUCCESS) & ~jumped
+            red = dict(
+                ok=red["ok"] & good, iterations=red["iterations"] + stats.iterations,
+                residual=jnp.maximum(red["residual"], stats.residual_norm), change=change, size=size_max, E=E,
+                drift=jnp.maximum(red["drift"], jnp.abs(E - ref)), xin=xin, mu=mun,
+                **({"Q": nodes.Q[1]} if carries_Q else {}),
+            )
+            return state, memory, red
+        return body
+
+    w = min(_warmup_steps(stepper), n)
+    c = (state0, memory0, reductions)
+    if w:  # a while loop, which is not unrolled: its long body is compiled once
+        warm = body_of(warmup_method(stepper))
+        c = jax.lax.while_loop(lambda kc: kc[0] < w, lambda kc: (kc[0] + 1, warm(kc[0], kc[1])),
+                               (jnp.asarray(0, jnp.int32), c))[1]
+    if n > w:
+        c = jax.lax.fori_loop(w, n, body_of(_main_method(stepper)), c, unroll=min(UNROLL, n - w))
+    red = c[2]
+    Qn, mun = red.get("Q", Q0), red["mu"]
+    ok = alive0 & red["ok"] & jnp.isfinite(red["drift"])
+    status = jnp.where(alive0 & ~ok, Status.MAX_ITERATIONS, carry.status).astype(carry.status.dtype)
+    initial = {**carry.initial, "energy": ref}
+    drift = {**carry.drift, "energy": jnp.maximum(carry.drift["energy"], red["drift"])}
+    new = carry._replace(
+        Q=Qn, P=cotangent_from_momentum(system, Qn, mun), xi=red["xin"],
+        t=carry.t + dt * n, status=status, iterations=carry.iterations + red["iterations"],
+        max_residual=jnp.maximum(carry.max_residual, red["residual"]), initial=initial, drift=drift,
+        momentum=mun, final_xi=red["xin"], energy_change=red["change"], energy_size=red["size"],
+    )
+    return new, ok | ~alive0
+
+
+def _one(tree):
+    return jax.tree_util.tree_map(lambda a: a[None], tree)
+
+
+def _zero_nan(a):
+    return jnp.where(jnp.isnan(a), 0.0, a)
+
+
+def _energy(system, Q, xi):
+    pairing, lagrangian = energy_terms(system, Q, xi)
+    return pairing - lagrangian, jnp.abs(pairing) + jnp.abs(lagrangian)
