@@ -46,9 +46,9 @@ case sampled in turn, load average recorded):
    e.g. the second `clebsch-jax run` or a restarted notebook kernel).
 
 4. **Sweep** (`--sweep-only`, written to `throughput_sweep.json`/`.png`; issue 20): the
-   documented `cj.sweep(rigid_body, …, reconstruct=False)` call with default options, with
-   `fast=True` (the lean chunk, `clebsch_jax.batching.lean`) and with `fast=True,
-   batch_size=min(B, BIG_BATCH)`, `jax.jit(cj.batch(integrate → final momentum, energy error))`, the hand-written
+   documented `cj.sweep(rigid_body, …, reconstruct=False)` call with default options and with
+   `fast=True` (the lean chunk, `clebsch_jax.batching.lean`, in batches of up to 16384
+   members), `jax.jit(cj.batch(integrate → final momentum, energy error))`, the hand-written
    rows kernel `hand_rows_march` (the yardstick: each component a (B,) row, closed-form
    Jacobian and cofactor inverse, fixed chord updates, `fori_loop(unroll=4)`, final state and
    energy error only) and NumPy RK4 of Euler's equations on (3, B) arrays; M body-steps/s,
@@ -382,11 +382,6 @@ def rk4_euler_final(inertia, omega0, dt, n_steps):
     return w.T, err
 
 
-BIG_BATCH = 16_384
-"""`batch_size` of the `sweep_fast_big` row: the lean chunk's rows are long enough for XLA's
-per-operation cost to be shared by many members."""
-
-
 def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
     """M body-steps/s of the documented sweep call (default options and with `fast=True`),
     `jit(cj.batch(integrate → final))`, the hand-written rows kernel and NumPy RK4."""
@@ -409,7 +404,6 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
     Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
     hand = hand_rows_march(inertia, rigid.DT, n_steps)
     calls = {"sweep": sweep_call(), "sweep_fast": sweep_call(fast=True),
-             "sweep_fast_big": sweep_call(fast=True, batch_size=min(batch, BIG_BATCH)),
              "cj_batch": lambda: jax.block_until_ready(batched(Q0_j, xi0_j)),
              HAND_ROWS: lambda: jax.block_until_ready(hand(xi0_j)),
              RK4: lambda: rk4_euler_final(inertia, omega0, rigid.DT, n_steps)}
@@ -420,7 +414,7 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
         row[m] = _rates(timings[m], n_steps, batch, "body")
         row[m]["compile_s"] = timings[m]["first_call_s"] - timings[m]["second_call_s"]
     mu_hand, err_hand = (np.asarray(a) for a in outs[HAND_ROWS])
-    for m in ("sweep", "sweep_fast", "sweep_fast_big"):
+    for m in ("sweep", "sweep_fast"):
         res = outs[m].raise_if_failed()
         row[m]["max_abs_final_momentum_diff_vs_hand"] = float(np.max(np.abs(res.final_momentum - mu_hand)))
         row[m]["max_energy_error"] = float(np.max(res.energy_error))
@@ -440,18 +434,15 @@ def print_sweep_report(summary: dict) -> None:
                          "final state and energy error per body, no trajectories kept.")
     rows = summary["results"]
     print("\nM body-steps/s (compile s) and ratios:")
-    names = ("sweep", "sweep_fast", "sweep_fast_big", "cj_batch", HAND_ROWS, RK4)
+    names = ("sweep", "sweep_fast", "cj_batch", HAND_ROWS, RK4)
     harness.print_table(
         f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>20}" for m in names) + " |"
-        f"{'sweep/hand':>11}{'fast/hand':>10}{'big/hand':>9}{'sweep/RK4':>10}{'fast/RK4':>9}{'big/RK4':>8} | fallbacks",
+        f"{'sweep/hand':>11}{'fast/hand':>10}{'sweep/RK4':>10}{'fast/RK4':>9} | fallbacks",
         (f"{r['batch']:>8}{r['n_steps']:>6} |"
          + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>11.3g} ({r[m]['compile_s']:5.1f})" for m in names)
          + f" |{r['ratios']['sweep_over_hand']:>11.3g}{r['ratios']['sweep_fast_over_hand']:>10.3g}"
-         f"{r['ratios']['sweep_fast_big_over_hand']:>9.3g}"
-         f"{r['ratios']['sweep_over_numpy_rk4']:>10.3g}{r['ratios']['sweep_fast_over_numpy_rk4']:>9.3g}"
-         f"{r['ratios']['sweep_fast_big_over_numpy_rk4']:>8.3g} | "
-         f"{r['sweep_fast']['fallback_chunks']}/{r['sweep_fast']['fast_chunks']}, "
-         f"{r['sweep_fast_big']['fallback_chunks']}/{r['sweep_fast_big']['fast_chunks']}"
+         f"{r['ratios']['sweep_over_numpy_rk4']:>10.3g}{r['ratios']['sweep_fast_over_numpy_rk4']:>9.3g} | "
+         f"{r['sweep_fast']['fallback_chunks']}/{r['sweep_fast']['fast_chunks']}"
          for r in rows))
     print("max energy error: " + "; ".join(
         f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows))
@@ -462,8 +453,8 @@ def print_sweep_report(summary: dict) -> None:
 
 def plot_sweep(summary: dict, path: Path) -> None:
     fig, ax = harness.figure((1,), size=(7, 4.6))
-    styles = {"sweep": ("o", "C2"), "sweep_fast": ("*", "C3"), "sweep_fast_big": ("P", "C4"), "cj_batch": ("D", "C0"),
-              HAND_ROWS: ("^", "C7"), RK4: ("s", "C1")}
+    styles = {"sweep": ("o", "C2"), "sweep_fast": ("*", "C3"), "cj_batch": ("D", "C0"), HAND_ROWS: ("^", "C7"),
+              RK4: ("s", "C1")}
     for m, (marker, color) in styles.items():
         pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"]]
         ax.loglog(*zip(*pts), marker=marker, color=color, label=m)

@@ -35,6 +35,7 @@ from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum
 from ..discrete.residual import nodal_residual
 from ..march.scan import energy_terms, input_ok, jump_step
+from ..roots.implicit import undifferentiated
 from ..roots.newton import fixed_newton_solve
 from ..roots.solvers import FixedNewton
 from ..roots.status import Status
@@ -116,7 +117,15 @@ def lean_chunk(stepper, system, carry, dt, n: int, first):
 
     **Returns:** `(new carry, ok)`: `ok` False when anything failed in the chunk for a member
     that was alive at its start (the caller reruns the chunk with the general path; the new
-    carry's status is then not the one to report)."""
+    carry's status is then not the one to report).
+
+    Not differentiable: its solves are traced without their implicit derivative rules
+    (`clebsch_jax.roots.implicit.undifferentiated`), which would trace each one twice."""
+    with undifferentiated():
+        return _lean_chunk(stepper, system, carry, dt, n, first)
+
+
+def _lean_chunk(stepper, system, carry, dt, n: int, first):
     alive0 = carry.status == Status.SUCCESS
     nan_unless = lambda a: jnp.where(alive0, a, jnp.nan)
     Q0, P0, xi0 = nan_unless(carry.Q), nan_unless(carry.P), nan_unless(carry.xi)

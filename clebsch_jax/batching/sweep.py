@@ -65,6 +65,9 @@ __all__ = ["sweep", "SweepResult", "SweepProgress"]
 _RESERVED = ("P0", "t0", "throw", "dt", "n_steps")
 _DEFAULT_CHUNK = 100
 _DEFAULT_BATCH = 1024
+_DEFAULT_BATCH_LEAN = 16_384
+"""Members per compiled call of the lean chunk (`fast=True`): it records nothing, and its rows
+of many members share XLA's per-operation cost (`benchmarks/throughput.py --sweep-only`)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -954,8 +957,9 @@ def sweep(
       `save_every`). Memory is about `batch_size · chunk_steps` nodes; a chunk size that divides
       `n_steps` compiles one program (otherwise a second one for the last chunk). Chunks of
       tens of steps cost little over one unchunked run (see `clebsch_jax.batching.sweep`).
-    - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024)); the
-      last batch is padded with copies of the last member.
+    - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024), or
+      16384 for the lean chunk of `fast=True`); the last batch is padded with copies of the
+      last member.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
       k when the run has more than one chunk.
     - `member_chunk`: a batch runs through `clebsch_jax.batch` (batch-last, the batch's members
@@ -999,8 +1003,9 @@ def sweep(
       `fast=False` would; reruns are counted in `SweepResult.fallback_chunks`, and the general
       program is compiled only when a rerun needs it. The table agrees with `fast=False` to
       round-off (Newton iteration counts are those of the path that ran). Not yet the
-      default: it is faster only for large batches (`batch_size` of several thousand) and
-      compiles longer (`benchmarks/throughput.py --sweep-only` measures both).
+      default: the lean chunk compiles longer than the general one, which a short sweep does
+      not repay, and its speed needs long rows (its default `batch_size` is larger;
+      `benchmarks/throughput.py --sweep-only` measures both paths).
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own. `check_energy` (default True) is `integrate`'s energy check made over the
@@ -1030,7 +1035,7 @@ def sweep(
         method = _fast_method_of(cfg, members)
         cfg = dataclasses.replace(cfg, fast_method=method, lean=_lean_applies(cfg, members, method))
     if batch_size is None:  # every device gets a batch
-        batch_size = min(-(-B // n_dev), _DEFAULT_BATCH)
+        batch_size = min(-(-B // n_dev), _DEFAULT_BATCH_LEAN if cfg.lean else _DEFAULT_BATCH)
     batch_size = _positive_int(batch_size, "batch_size")
     tables = _allocate_tables(B, shapes, run)
 

@@ -4,6 +4,7 @@ parameters) never differentiate the iterations."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from typing import Callable
 
@@ -14,7 +15,7 @@ import numpy as np
 from ..core import linalg
 from ..core.validation import is_traced
 
-__all__ = ["implicit_root", "dense_tangent_solve"]
+__all__ = ["implicit_root", "dense_tangent_solve", "undifferentiated"]
 
 
 def dense_tangent_solve(g, y):
@@ -35,10 +36,29 @@ def implicit_root(F: Callable, x0: jax.Array, loop: Callable, tangent_solve: Cal
     differentiated. F and the loop are closure-converted (`_closure_convert`), so the values
     they close over pass the custom-derivative boundary as arguments.
     Returns `(x, NewtonStats, extra)`."""
+    if _UNDIFFERENTIATED[-1]:  # the caller's program is never differentiated (`undifferentiated`)
+        return loop(F, x0)
     F_conv, F_consts = _closure_convert(F, x0)
     solve = lambda x, *consts: loop(lambda z: F_conv(z, *consts), x)
     solve_conv, loop_consts = _closure_convert(solve, x0, *F_consts)  # their tangents are not used
     return _root(F_conv, solve_conv, tangent_solve, x0, tuple(F_consts), tuple(loop_consts))
+
+
+_UNDIFFERENTIATED = [False]
+
+
+@contextlib.contextmanager
+def undifferentiated():
+    """Within this context `implicit_root` calls its loop directly, with no derivative rule:
+    for tracing a program that no derivative is ever taken of (the sweep's lean chunk), where
+    the closure conversion would trace every solve twice. Only for code that traces no
+    module-level `jax.jit` function with a root inside it: JAX caches such a trace and would
+    reuse it, without the rule, in a later differentiated call."""
+    _UNDIFFERENTIATED.append(True)
+    try:
+        yield
+    finally:
+        _UNDIFFERENTIATED.pop()
 
 
 def _closure_convert(fun: Callable, *example_args):
