@@ -957,9 +957,9 @@ def sweep(
       `save_every`). Memory is about `batch_size · chunk_steps` nodes; a chunk size that divides
       `n_steps` compiles one program (otherwise a second one for the last chunk). Chunks of
       tens of steps cost little over one unchunked run (see `clebsch_jax.batching.sweep`).
-    - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024), or
-      16384 for the lean chunk of `fast=True`); the last batch is padded with copies of the
-      last member.
+    - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024); for
+      the lean chunk of `fast=True`, batches of equal size up to 16384); the last batch is
+      padded with copies of the last member.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
       k when the run has more than one chunk.
     - `member_chunk`: a batch runs through `clebsch_jax.batch` (batch-last, the batch's members
@@ -1035,7 +1035,11 @@ def sweep(
         method = _fast_method_of(cfg, members)
         cfg = dataclasses.replace(cfg, fast_method=method, lean=_lean_applies(cfg, members, method))
     if batch_size is None:  # every device gets a batch
-        batch_size = min(-(-B // n_dev), _DEFAULT_BATCH_LEAN if cfg.lean else _DEFAULT_BATCH)
+        per_device = -(-B // n_dev)
+        if cfg.lean:  # batches of equal size (no padded members), at most _DEFAULT_BATCH_LEAN
+            batch_size = -(-per_device // -(-per_device // _DEFAULT_BATCH_LEAN))
+        else:
+            batch_size = min(per_device, _DEFAULT_BATCH)
     batch_size = _positive_int(batch_size, "batch_size")
     tables = _allocate_tables(B, shapes, run)
 
