@@ -202,6 +202,7 @@ def test_lean_sweep_agrees_with_the_general_one_and_falls_back_like_it():
     np.testing.assert_allclose(res.final_momentum[ok], ref.final_momentum[ok], rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow  # two sweeps and eight member chunks evaluated op by op: half a minute
 def test_lean_chunk_carries_what_the_general_chunk_carries():
     """One member, no batching: the lean chunk's carry (state, running energy-check maxima,
     drift) against the general chunk's, for a first and a later chunk."""
@@ -237,6 +238,16 @@ def test_lean_chunk_carries_what_the_general_chunk_carries():
             np.testing.assert_allclose(f.drift["energy"], g.drift["energy"], rtol=1e-9, atol=1e-15)
             np.testing.assert_allclose(f.initial["energy"], g.initial["energy"], rtol=0, atol=1e-14)
             assert int(f.status) == int(g.status) == Status.SUCCESS
+
+
+@pytest.mark.slow  # compiles the lean and the general chunk of an order-4 composition
+def test_lean_sweep_of_a_composition_agrees_with_the_general_one():
+    # the lean chunk steps through wrappers (Composed of the reduced step): same answers
+    lean = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, order=4, **{**LEAN, "reconstruct": True})
+    general = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, order=4, **{**LEAN, "reconstruct": True})
+    assert lean.order == 4 and lean.fast_chunks == 2 and lean.fallback_chunks == 0
+    for key in ("final_momentum", "final_Q", "final_xi", "energy_error"):
+        np.testing.assert_allclose(getattr(lean, key), getattr(general, key), rtol=0, atol=1e-13, err_msg=key)
 
 
 def test_full_newton_updates_converge_from_a_far_guess():
