@@ -755,19 +755,18 @@ def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report
     for st, n in run.chunks:
         c = cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
         at = (jnp.asarray(st == 0), jnp.asarray(st, jnp.int32))
-        outs, fast = [], []
-        for one in group:  # dispatched asynchronously: the devices march side by side
-            args = (one.params, one.carry, one.dt, one.shared) + at
-            fast.append(_run_fast_chunk(c, *args) if cfg.fast_method is not None else None)
-            outs.append(_run_chunk(c, *args) if cfg.fast_method is None else args)
-        if cfg.fast_method is not None:  # the general path where a fast chunk failed
-            oks = jax.device_get([f[2] for f in fast])
-            for i, (one, f, ok) in enumerate(zip(group, fast, oks)):
-                outs[i] = f[:2] if ok else _run_chunk(c, *outs[i])
-                fell_back.append(not ok)
-        for one, out in zip(group, outs):
-            one.carry = out[0]
-        outs = [out[1] for out in outs]
+        args = [(one.params, one.carry, one.dt, one.shared) + at for one in group]
+        # dispatched asynchronously: the devices march side by side
+        if cfg.fast_method is None:
+            results = [_run_chunk(c, *a) for a in args]
+        else:  # the fast chunks, then the general one where a fast chunk failed
+            fast = [_run_fast_chunk(c, *a) for a in args]
+            oks = [bool(ok) for ok in jax.device_get([f[2] for f in fast])]
+            results = [f[:2] if ok else _run_chunk(c, *a) for f, ok, a in zip(fast, oks, args)]
+            fell_back.extend(not ok for ok in oks)
+        for one, (carry, _) in zip(group, results):
+            one.carry = carry
+        outs = [chunk_saved for _, chunk_saved in results]
         if saved is not None:
             k0, kn = st // run.save_every, len(range(0, n, run.save_every))
             for one, chunk_saved in zip(group, outs):

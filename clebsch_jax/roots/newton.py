@@ -310,8 +310,9 @@ def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: f
     as straight-line code (no loop, no test between updates), then check the result.
 
     Updates $z_{k+1} = z_k - J(z_0)^{-1}F(z_k)$, k < `updates` (with `refresh`, full Newton
-    updates $z_{k+1} = z_k - J(z_k)^{-1}F(z_k)$; the check then uses the last matrix). The check is the size of the
-    update the residual at the result would make, $\eta = \|J(z_0)^{-1}F(z_K)\|_\infty$: the
+    updates $z_{k+1} = z_k - J(z_k)^{-1}F(z_k)$; the check then uses the last matrix). The
+    check is the size of the update the residual at the result would make,
+    $\eta = \|J(z_0)^{-1}F(z_K)\|_\infty$: the
     solve has status SUCCESS when `converged` (the general loop's stopping rule) accepts it —
     an update at round-off size, or a stalled one at the noise floor — and MAX_ITERATIONS
     otherwise (SINGULAR or NONFINITE when those stopped it). The caller that gets a failure
