@@ -167,6 +167,7 @@ def test_scalarise_matches_vmap():
 LEAN = dict(n_steps=N_STEPS, chunk_steps=20, batch_size=4, reconstruct=False)
 
 
+@pytest.mark.slow  # compiles the lean and the general chunk (the lean chunk is opt-in: fast=True)
 def test_lean_sweep_agrees_with_the_general_one_and_falls_back_like_it():
     import clebsch_jax.batching.sweep as sw
 
