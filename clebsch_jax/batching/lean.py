@@ -63,28 +63,11 @@ UNROLL = 2
 pair; more copies of the long step body cost compile time for no further gain."""
 
 
-def warmup_method(stepper):
-    """The fast method with its fixed solves making full Newton updates (`FixedNewton.refresh`)
-    and no warm-up of their own: the steps of a chunk before the predictor is accurate."""
+def _with_finder(stepper, **changes):
+    """`stepper` with its reduced step's `FixedNewton` changed (`changes`), through wrappers."""
     if isinstance(stepper, AbstractWrapper):
-        return dataclasses.replace(stepper, base=warmup_method(stepper.base))
-    finder = dataclasses.replace(stepper.root_finder, refresh=True, warmup=0, updates=WARMUP_UPDATES)
-    return dataclasses.replace(stepper, root_finder=finder)
-
-
-def _main_method(stepper):
-    if isinstance(stepper, AbstractWrapper):
-        return dataclasses.replace(stepper, base=_main_method(stepper.base))
-    return dataclasses.replace(stepper, root_finder=dataclasses.replace(stepper.root_finder, warmup=0,
-                                                                        updates=LEAN_UPDATES))
-
-
-def _warmup_steps(stepper) -> int:
-    return _warmup_steps(stepper.base) if isinstance(stepper, AbstractWrapper) else stepper.root_finder.warmup
-
-
-def _finder(stepper) -> FixedNewton:
-    return _finder(stepper.base) if isinstance(stepper, AbstractWrapper) else stepper.root_finder
+        return dataclasses.replace(stepper, base=_with_finder(stepper.base, **changes))
+    return dataclasses.replace(stepper, root_finder=dataclasses.replace(stepper.root_finder, **changes))
 
 
 def _base(stepper):
@@ -129,7 +112,7 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
     alive0 = carry.status == Status.SUCCESS
     nan_unless = lambda a: jnp.where(alive0, a, jnp.nan)
     Q0, P0, xi0 = nan_unless(carry.Q), nan_unless(carry.P), nan_unless(carry.xi)
-    finder = _finder(stepper)
+    finder = _base(stepper).root_finder
     ok = input_ok(system, Q0, xi0, P0, dt)
 
     # node 0: its momentum and velocity (what the general path's start and nodal solve give)
@@ -169,14 +152,15 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
             return state, memory, red
         return body
 
-    w = min(_warmup_steps(stepper), n)
+    w = min(finder.warmup, n)
     c = (state0, memory0, reductions)
     if w:  # a while loop, which is not unrolled: its long body is compiled once
-        warm = body_of(warmup_method(stepper))
+        warm = body_of(_with_finder(stepper, refresh=True, warmup=0, updates=WARMUP_UPDATES))
         c = jax.lax.while_loop(lambda kc: kc[0] < w, lambda kc: (kc[0] + 1, warm(kc[0], kc[1])),
                                (jnp.asarray(0, jnp.int32), c))[1]
     if n > w:
-        c = jax.lax.fori_loop(w, n, body_of(_main_method(stepper)), c, unroll=min(UNROLL, n - w))
+        main = _with_finder(stepper, warmup=0, updates=LEAN_UPDATES)
+        c = jax.lax.fori_loop(w, n, body_of(main), c, unroll=min(UNROLL, n - w))
     red = c[2]
     Qn, mun = red.get("Q", Q0), red["mu"]
     ok = alive0 & red["ok"] & jnp.isfinite(red["drift"])
