@@ -34,7 +34,7 @@ import jax.numpy as jnp
 from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum
 from ..discrete.residual import nodal_residual
-from ..march.scan import energy_terms, input_ok, jump_step
+from ..march.scan import input_ok, jump_step, node_energy, zero_nan
 from ..roots.implicit import undifferentiated
 from ..roots.newton import fixed_newton_solve
 from ..roots.solvers import FixedNewton
@@ -122,12 +122,12 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
     state0, _ = stepper.init(system, Q0, xin0, None, dt)
     state0 = (mu0,) + tuple(state0[1:])  # a reduced step's state (μ, Q, ξ): μ = −P⋄Q as given
     memory0 = stepper.init_memory(system, state0)
-    E0, size0 = _energy(system, Q0, xin0)
+    E0, size0 = node_energy(system, Q0, xin0)
     ref = jnp.where(first, E0, carry.initial["energy"])
     carries_Q = _base(stepper)._carry_Q(system)  # else Q stays the chunk's start (reconstruct=False)
     reductions = dict(
         ok=ok, iterations=jnp.asarray(0, carry.iterations.dtype), residual=jnp.zeros((), dt.dtype),
-        change=carry.energy_change, size=jnp.maximum(carry.energy_size, _zero_nan(size0)), E=E0,
+        change=carry.energy_change, size=jnp.maximum(carry.energy_size, zero_nan(size0)), E=E0,
         drift=jnp.abs(E0 - ref), xin=xin0, mu=mu0, **({"Q": Q0} if carries_Q else {}),
     )
 
@@ -138,10 +138,10 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
             nodes = method.nodes(system, state_prev, _one(state), _one(out))
             Qn, mun, xi_step = nodes.nodal_Q[1], nodes.momentum[1], nodes.xi_step[0]
             xin, nst = _nodal_velocity(system, finder, Qn, mun, 2 * xi_step - red["xin"])
-            E, size = _energy(system, Qn, xin)
+            E, size = node_energy(system, Qn, xin)
             # red["size"] holds the sizes of the nodes up to the one this step leaves
             change, _, jumped = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
-            size_max = jnp.maximum(red["size"], _zero_nan(size))
+            size_max = jnp.maximum(red["size"], zero_nan(size))
             good = (stats.status == Status.SUCCESS) & (nst.status == Status.SUCCESS) & ~jumped
             red = dict(
                 ok=red["ok"] & good, iterations=red["iterations"] + stats.iterations,
@@ -178,12 +178,3 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
 
 def _one(tree):
     return jax.tree_util.tree_map(lambda a: a[None], tree)
-
-
-def _zero_nan(a):
-    return jnp.where(jnp.isnan(a), 0.0, a)
-
-
-def _energy(system, Q, xi):
-    pairing, lagrangian = energy_terms(system, Q, xi)
-    return pairing - lagrangian, jnp.abs(pairing) + jnp.abs(lagrangian)

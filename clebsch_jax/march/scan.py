@@ -34,7 +34,7 @@ from ..steppers.base import AbstractStepper, Nodes
 from .solution import Solution
 
 __all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "failed_to_nan", "nodal_velocities",
-           "input_ok", "energy_terms", "node_energies", "energy_jump", "chunk_length", "CHUNK_STEPS",
+           "input_ok", "energy_terms", "node_energy", "node_energies", "energy_jump", "chunk_length", "CHUNK_STEPS",
            "CHUNK_VALUES", "MIN_CHUNK_STEPS", "JUMP_FACTOR", "JUMP_FLOOR"]
 
 CHUNK_STEPS = 1024
@@ -234,11 +234,13 @@ def node_energies(system, Qs, xis):
     $|\langle\delta l/\delta\xi, \xi^n\rangle| + |l(\xi^n, Q^n)|$, for the energy check. Read
     from the nodal velocities alone: the momenta are not needed (a program that does not
     return them never stores them)."""
-    def one(q, x):
-        pairing, lagrangian = energy_terms(system, q, x)
-        return pairing - lagrangian, jnp.abs(pairing) + jnp.abs(lagrangian)
+    return jax.vmap(lambda q, x: node_energy(system, q, x))(Qs, xis)
 
-    return jax.vmap(one)(Qs, xis)
+
+def node_energy(system, Q, xi):
+    """`node_energies` at one node: (E, its size)."""
+    pairing, lagrangian = energy_terms(system, Q, xi)
+    return pairing - lagrangian, jnp.abs(pairing) + jnp.abs(lagrangian)
 
 
 def _finite_rows(a):
@@ -349,10 +351,11 @@ def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0):
     init = (jnp.asarray(largest, dtype), jnp.asarray(size_max, dtype), jnp.asarray(True), jnp.asarray(-1, jnp.int32),
             jnp.asarray(0, jnp.int32))
     (largest, size_max, _, first, _), _ = jax.lax.scan(step, init, (change, size[:-1], status))
-    return first >= 0, jnp.maximum(first, 0), largest, jnp.maximum(size_max, _zero_nan(size[-1]))
+    return first >= 0, jnp.maximum(first, 0), largest, jnp.maximum(size_max, zero_nan(size[-1]))
 
 
-def _zero_nan(a):
+def zero_nan(a):
+    """a with NaN made 0 (a size or change the running maxima of the energy check skip)."""
     return jnp.where(jnp.isnan(a), 0.0, a)
 
 
@@ -360,9 +363,9 @@ def jump_step(largest, size_max, change, size):
     """One step of the energy check: (running largest change, running largest size after the
     step, whether the step jumped), for the step's energy change and the size at the node it
     leaves (`node_energies`); `size_max` holds the sizes of the nodes before that one."""
-    size_max = jnp.maximum(size_max, _zero_nan(size))
+    size_max = jnp.maximum(size_max, zero_nan(size))
     jumped = change > jnp.maximum(JUMP_FACTOR * largest, JUMP_FLOOR * size_max)
-    return jnp.maximum(largest, _zero_nan(change)), size_max, jumped
+    return jnp.maximum(largest, zero_nan(change)), size_max, jumped
 
 
 def _fail_from(xp, step, code, stats, nodal, valid, fields):
