@@ -476,6 +476,7 @@ def test_scheme_a_system_refuses_is_one_line_exit_2(tmp_path, capsys):
     assert "--scheme left on vortices" in line and "degenerate" in line
 
 
+@pytest.mark.slow  # CI runs it; compiles the Gauss march of a scene; the scenes' default runs are checked by the demo fixture
 def test_run_with_gauss_keeps_the_impulses_and_is_more_accurate(tmp_path, capsys):
     """`--scheme gauss --order 8` on the leapfrogging vortices: the summary records the
     Gauss-Legendre method; both impulses at round-off and H far closer than the default order-2

@@ -44,6 +44,7 @@ def _run(cache: str) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # CI runs it; two processes, each compiling a march
 def test_second_process_loads_the_compiled_march_and_matches_to_the_bit(tmp_path):
     cache = tmp_path / "xla"
     first, second, uncached = _run(str(cache)), _run(str(cache)), _run("off")

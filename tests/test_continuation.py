@@ -81,6 +81,7 @@ def test_reduced_rigid_body(reconstruct):
     _assert_continues(long, continued)
 
 
+@pytest.mark.slow  # CI runs it; continuation of the full march is checked in the default run on point vortices
 def test_full_march_heavy_top_midpoint():
     system = models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5)
     Q0 = lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))

@@ -153,6 +153,7 @@ def test_jit_and_closures():
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-14)
 
 
+@pytest.mark.slow  # CI runs it; reverse mode through the march is checked in the default run by test_gradients_through_the_march_match_finite_differences
 def test_reverse_mode_through_a_system_built_inside_grad():
     """A Lagrangian that closes over the differentiated parameter: integrate sees the closure
     (the maps' traced constants) and runs the single scan, which reverse mode can transpose
@@ -200,7 +201,9 @@ def _breaks_above(c):
     )
 
 
-@pytest.mark.parametrize("reduce", [False, True])
+# the full march (False) is slow-marked, CI runs it; a full march failing mid-run is reported in the
+# default run by tests/test_sweep.py (test_a_member_failing_mid_run_is_reported_at_its_global_step_full_march)
+@pytest.mark.parametrize("reduce", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_failure_is_reported_with_step_and_member_and_never_as_silent_nan(reduce):
     """ξ₁ of the second member reaches 0.46 and first exceeds 0.4 after some steps; the first
     member stays near 0.05. Both marches must report the step and the member."""

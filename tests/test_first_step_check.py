@@ -62,6 +62,7 @@ def test_a_body_at_rest_is_not_blamed():
     np.testing.assert_array_equal(np.asarray(sol.Q[-1]), np.eye(3))
 
 
+@pytest.mark.slow  # CI runs it; two SE(3) marches compiled for one warning
 def test_se3_without_a_check_warns_with_the_left_principle_and_not_with_the_midpoint():
     """SE(3) written by hand, with no check_Q: the matrix group is read off the velocity map
     (right multiplication by a closed algebra). The left principle's step leaves it (a warning:

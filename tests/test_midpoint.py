@@ -13,6 +13,7 @@ from clebsch_jax import diagnostics as dg
 from .test_reduction import _vertical, heavy_top_rhs
 
 
+@pytest.mark.slow  # CI runs it; the default methods' second order (the midpoint principle among them) is measured in the default run by tests/test_defaults.py
 def test_heavy_top_midpoint_is_second_order_and_conservative():
     """With a potential the left/right principles are first order (l at one end of the step);
     the midpoint principle evaluates l and the velocity map at Qⁿ·(Qⁿ⁻¹Qⁿ⁺¹)^½ and is second

@@ -208,6 +208,7 @@ def test_block_jacobian_gives_the_dense_newton_trajectory():
     assert float(jnp.max(blocks.stats.residual_norm)) < 1e-13
 
 
+@pytest.mark.slow  # CI runs it; gradients through the march are checked in the default run by tests/test_engine.py
 def test_gradients_through_the_block_solver_match_finite_differences():
     gamma, Q0 = _random_vortices(5, 2)
 
