@@ -252,25 +252,87 @@ def test_drift_diagnostics_are_per_member_and_rank_strict():
 
 
 @pytest.mark.parametrize("spread", [1.0, 1e-7])
-def test_minimum_norm_cotangent_of_forty_components_matches_the_dense_solve(spread):
+def test_minimum_norm_cotangent_of_forty_components_is_the_exact_solution(spread):
     """Above `_DIRECT_MAX` components the cotangent is found by conjugate gradients and checked;
     where CG cannot reach round-off (a velocity map whose scales span 1e-7..1: A^T A has
-    condition 1e14) the dense least-squares solve is made instead. Either way it is the dense
-    minimum-norm solution; also under vmap (the check becomes a select)."""
-    from clebsch_jax.discrete.legendre import _DIRECT_MAX, _dense_cotangent
+    condition 1e14) the dense solve is made instead. Either way it is the minimum-norm solution,
+    here known exactly (A = mix·diag(s), mix with orthonormal columns: p = mix·(μ/s)); also under
+    vmap (the check becomes a select)."""
+    from clebsch_jax.discrete.legendre import _DIRECT_MAX
 
     n = 40
     assert _DIRECT_MAX < n
     rng = np.random.default_rng(3)
-    scales = jnp.asarray(np.geomspace(spread, 1.0, n))
-    mix = jnp.asarray(np.linalg.qr(rng.normal(size=(n + 4, n)))[0])  # orthonormal columns: A = mix·diag(s)
+    scales = np.geomspace(spread, 1.0, n)
+    mix = np.linalg.qr(rng.normal(size=(n + 4, n)))[0]  # orthonormal columns: A = mix·diag(s)
     system = cj.ClebschSystem(lagrangian=lambda x, Q: 0.5 * jnp.sum(x * x) - 0.5 * jnp.sum(Q * Q),
-                              velocity_map=lambda x, Q: mix @ (scales * x), derivative_map=cj.forward_difference)
-    Q, mu = jnp.asarray(rng.normal(size=n + 4)), jnp.asarray(rng.normal(size=n))
-    p = cj.cotangent_from_momentum(system, Q, mu)
-    expected = _dense_cotangent(lambda x: system.velocity_map(x, Q), Q, mu)
-    # the dense solve's own round-off, amplified by the smallest scale
-    tol = 1e-12 / spread
-    np.testing.assert_allclose(np.asarray(p), np.asarray(expected), rtol=0, atol=tol)
-    batched = jax.vmap(lambda m: cj.cotangent_from_momentum(system, Q, m))(jnp.stack([mu, 2.0 * mu]))
-    np.testing.assert_allclose(np.asarray(batched[1]), 2.0 * np.asarray(expected), rtol=0, atol=2 * tol)
+                              velocity_map=lambda x, Q: jnp.asarray(mix) @ (jnp.asarray(scales) * x),
+                              derivative_map=cj.forward_difference)
+    Q, mu = jnp.asarray(rng.normal(size=n + 4)), rng.normal(size=n)
+    expected = mix @ (mu / scales)
+    p = cj.cotangent_from_momentum(system, Q, jnp.asarray(mu))
+    # round-off relative to |p| ~ 1/spread (Gram–Schmidt on these nearly orthogonal columns
+    # keeps it near ε, closer than an SVD least-squares solve gets)
+    tol = 1e-14 / spread
+    np.testing.assert_allclose(np.asarray(p), expected, rtol=0, atol=tol)
+    batched = jax.vmap(lambda m: cj.cotangent_from_momentum(system, Q, m))(jnp.stack([jnp.asarray(mu), 2.0 * mu]))
+    np.testing.assert_allclose(np.asarray(batched[1]), 2.0 * expected, rtol=0, atol=2 * tol)
+
+
+@pytest.mark.parametrize("n", [4, 6, 9])
+def test_dense_solves_above_three_unknowns_match_numpy(n):
+    """`linalg.solve` and `inv` above the closed form (n > 3): straight-line elimination up to
+    `ELIMINATION_MAX`, the `lu_factor` loop above it; against NumPy's LAPACK on random and
+    pivot-needing matrices, vector and matrix right-hand sides, with leading axes."""
+    from clebsch_jax.core import linalg
+
+    assert 4 <= linalg.ELIMINATION_MAX < 9
+    rng = np.random.default_rng(n)
+    A = rng.normal(size=(3, n, n)) + 2.0 * np.eye(n)
+    A[1] = np.eye(n)[rng.permutation(n)] * rng.uniform(1.0, 2.0, n)  # a zero diagonal: the pivots swap rows
+    A[2, 0, 0] = 0.0
+    b, B = rng.normal(size=(3, n)), rng.normal(size=(3, n, 2))
+    for got, ref in [(linalg.solve(A, b), np.linalg.solve(A, b[..., None])[..., 0]),
+                     (linalg.solve(A, B), np.linalg.solve(A, B)),
+                     (linalg.inv(A), np.linalg.inv(A)),
+                     (linalg.solve(A[0], B), np.linalg.solve(A[0], B))]:
+        # round-off of well-conditioned solves (condition numbers below 1e3 here)
+        np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-12 * np.max(np.abs(ref)))
+
+
+def test_batched_marches_call_no_lapack_kernel():
+    """A batched march and the cotangent hand-over compile to XLA operations only: jaxlib's
+    batched LAPACK kernels share XLA's intra-op thread pool and deadlocked a sweep running on
+    two host devices (`tests/test_sweep.py`, `devices=2`)."""
+    from clebsch_jax.discrete.legendre import cotangent_from_momentum
+    from .test_first_step_check import _se3_body, _se3_kinetic
+
+    se3 = cj.ClebschSystem(lagrangian=_se3_kinetic, velocity_map=_se3_body, derivative_map=cj.cayley)
+    rigid = cj.models.rigid_body(INERTIA)
+    programs = {
+        "rigid body": (lambda x: cj.integrate(rigid, jnp.eye(3), x, dt=0.1, n_steps=3, throw=False).momentum,
+                       jnp.ones((2, 3))),
+        "SE(3), Cayley": (lambda x: cj.integrate(se3, jnp.eye(4), x, dt=0.1, n_steps=3, throw=False).momentum,
+                          jnp.ones((2, 6))),
+        "hand-over": (lambda m: cotangent_from_momentum(rigid, jnp.eye(3), m), jnp.ones((2, 3))),
+    }
+    for name, (fn, x) in programs.items():
+        text = jax.jit(jax.vmap(fn)).lower(x).as_text().lower()
+        assert "lapack" not in text, name
+
+
+def test_minimum_norm_cotangent_of_a_rank_deficient_map_matches_least_squares():
+    """The dense solve (no LAPACK: Gram–Schmidt) against NumPy's least squares: a full-rank and
+    a rank-deficient A (a velocity map with isotropy), under vmap and jit; its gradient is finite."""
+    from clebsch_jax.discrete.legendre import min_norm_transpose_solve
+
+    rng = np.random.default_rng(5)
+    for m, n, rank in [(9, 3, 3), (12, 6, 4)]:
+        A = rng.normal(size=(m, rank)) @ rng.normal(size=(rank, n))
+        bs = A.T @ rng.normal(size=(m, 2))  # consistent right-hand sides (momenta of some p)
+        ps = jax.jit(jax.vmap(min_norm_transpose_solve, in_axes=(None, 1)))(jnp.asarray(A), jnp.asarray(bs))
+        for k in range(2):
+            ref = np.linalg.lstsq(A.T, bs[:, k], rcond=None)[0]
+            np.testing.assert_allclose(np.asarray(ps[k]), ref, rtol=0, atol=1e-13 * np.max(np.abs(ref)))
+        g = jax.grad(lambda b: jnp.sum(min_norm_transpose_solve(jnp.asarray(A), b) ** 2))(jnp.asarray(bs[:, 0]))
+        assert np.all(np.isfinite(np.asarray(g)))

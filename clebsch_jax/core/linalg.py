@@ -3,9 +3,12 @@
 On CPU, `jnp.linalg.solve` on a 3×3 matrix is a LAPACK custom call with fixed overhead that
 dwarfs the arithmetic, and under `vmap` it becomes a batched call that is slower still. For
 n ≤ 3 the adjugate formulas below are a handful of multiply-adds that fuse with the
-surrounding code; larger systems use LU. The matrices solved here (Cayley factors I ± X/2,
-group elements near I, Newton Jacobians of small steps) are well conditioned, where the
-adjugate formula is as accurate as LU (the tests compare them).
+surrounding code; larger systems use LU with partial pivoting written in XLA operations
+(`lu_factor`), never LAPACK: jaxlib's batched LAPACK kernels (LU, SVD) run on XLA's intra-op
+thread pool and deadlock when two host devices call them side by side (a sweep with
+`devices=2`). The matrices solved here (Cayley factors I ± X/2, group elements near I, Newton
+Jacobians of small steps) are well conditioned, where the adjugate formula is as accurate as
+LU (the tests compare them).
 """
 
 from __future__ import annotations
@@ -78,15 +81,15 @@ def _adjugate_and_det(A: jax.Array):
 
 
 def inv(A: jax.Array) -> jax.Array:
-    """Matrix inverse (adjugate / determinant for n ≤ 3, LU otherwise)."""
+    """Matrix inverse (adjugate / determinant for n ≤ 3, `lu_factor` otherwise)."""
     if A.shape[-1] <= CLOSED_FORM_MAX:
         adj, d = _adjugate_and_det(A)
         return adj / d[..., None, None]
-    return jnp.linalg.inv(A)
+    return _lu_apply(A, jnp.broadcast_to(jnp.eye(A.shape[-1], dtype=A.dtype), A.shape))
 
 
 def solve(A: jax.Array, B: jax.Array, *, unroll: bool = False) -> jax.Array:
-    """Solve A X = B for a matrix or a vector B (closed form for n ≤ 3, LU otherwise).
+    """Solve A X = B for a matrix or a vector B (closed form for n ≤ 3, `lu_factor` otherwise).
 
     `unroll`: write the closed form's products with `matmul`/`matvec` (fusible multiply-adds)
     instead of dot operations; same formula, rounding may differ in the last bit.
@@ -105,7 +108,58 @@ def solve(A: jax.Array, B: jax.Array, *, unroll: bool = False) -> jax.Array:
         scale = d[..., None] if vec else d[..., None, None]
         X = product(adj, B) / scale
         return X + product(adj, B - product(A, X)) / scale
-    return jnp.linalg.solve(A, B)
+    return _lu_apply(A, B)
+
+
+ELIMINATION_MAX = 8
+"""Up to this size `solve` and `inv` eliminate in straight-line code (`_eliminate`); above, the
+`lu_factor` loop."""
+
+
+def _eliminate(a: jax.Array, b: jax.Array) -> jax.Array:
+    """a⁻¹b for one small a (n, n) and b (n, k): Gaussian elimination with partial pivoting,
+    unrolled over the n columns, the row swaps written as arithmetic with one-hot rows (no
+    gather), then back substitution."""
+    n = a.shape[-1]
+    M = jnp.concatenate([a, b], axis=-1)
+    rows = jnp.arange(n)
+    for k in range(n):
+        col = jnp.where(rows >= k, jnp.abs(M[:, k]), -1.0)
+        hot = (rows == jnp.argmax(col)).astype(M.dtype)  # the pivot's row
+        top = (rows == k).astype(M.dtype)
+        row_p, row_k = hot @ M, M[k]
+        M = M + (top - hot)[:, None] * (row_p - row_k)[None, :]  # swap rows k and p (none if p = k)
+        pivot = M[k, k]
+        factors = jnp.where(rows > k, M[:, k] / jnp.where(pivot == 0.0, 1.0, pivot), 0.0)
+        M = M - factors[:, None] * M[k][None, :]
+    U, X = M[:, :n], M[:, n:]
+    out = [None] * n
+    for i in reversed(range(n)):
+        acc = X[i]
+        for j in range(i + 1, n):
+            acc = acc - U[i, j] * out[j]
+        out[i] = acc / U[i, i]
+    return jnp.stack(out)
+
+
+def _lu_apply(A: jax.Array, B: jax.Array) -> jax.Array:
+    """A⁻¹B by `_eliminate` (n ≤ `ELIMINATION_MAX`) or `lu_factor` / `lu_solve` (B a vector or
+    a matrix; leading axes broadcast)."""
+    vec = B.ndim == A.ndim - 1
+    lead = jnp.broadcast_shapes(A.shape[:-2], B.shape[:-1] if vec else B.shape[:-2])
+    A = jnp.broadcast_to(A, lead + A.shape[-2:])
+    B = jnp.broadcast_to(B, lead + B.shape[-1 if vec else -2:])
+
+    def one(a, b):
+        if a.shape[-1] <= ELIMINATION_MAX:
+            x = _eliminate(a, b[:, None] if vec else b)
+            return x[:, 0] if vec else x
+        fac = lu_factor(a)
+        return lu_solve(fac, b) if vec else jax.vmap(lambda col: lu_solve(fac, col), in_axes=1, out_axes=1)(b)
+
+    for _ in lead:
+        one = jax.vmap(one)
+    return one(A, B)
 
 
 def factor(A: jax.Array, fence: bool = False):

@@ -14,7 +14,7 @@ from ..core.system import ClebschSystem, momentum_map
 from ..roots.newton import newton_solve
 from .residual import nodal_residual
 
-__all__ = ["initial_multiplier", "cotangent_from_momentum", "nodal_velocity"]
+__all__ = ["initial_multiplier", "cotangent_from_momentum", "min_norm_transpose_solve", "nodal_velocity"]
 
 
 def initial_multiplier(system: ClebschSystem, Q0: jax.Array, xi0: jax.Array) -> jax.Array:
@@ -29,7 +29,7 @@ def initial_multiplier(system: ClebschSystem, Q0: jax.Array, xi0: jax.Array) -> 
 
 
 _DIRECT_MAX = 32
-"""Up to this many components of V the minimum-norm cotangent is a dense least-squares solve."""
+"""Up to this many components of V the minimum-norm cotangent is a dense solve."""
 
 _DENSE_MAX = 256
 """Above this many components of V it is found matrix-free only (the dense matrix is not formed)."""
@@ -38,16 +38,19 @@ _DENSE_MAX = 256
 def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) -> jax.Array:
     r"""The minimum-norm $p \in T^*_QM$ with momentum map $-p\diamond Q = \mu$.
 
-    Solves $A^T p = \mu$, $A = \partial_\xi \mathcal L_\xi Q$, by least squares (`mu` has ξ's
-    shape). Used for the initial multiplier and to rebuild momenta from a reduced march.
+    Solves $A^T p = \mu$, $A = \partial_\xi \mathcal L_\xi Q$, for the $p$ in the range of $A$
+    (`mu` has ξ's shape). Used for the initial multiplier and to rebuild momenta from a reduced
+    march.
 
-    - Up to `_DIRECT_MAX` components of V: the dense minimum-norm least-squares solve.
+    - Up to `_DIRECT_MAX` components of V: the dense solve `min_norm_transpose_solve` (an
+      orthogonal basis of the range of $A$ by Gram–Schmidt, no LAPACK call).
     - Above: matrix-free first — $p = A y$ with $A^TA\,y = \mu$ by conjugate gradients, products
       by $A$ and $A^T$ only (one iteration when the velocity map is a translation, as for point
       vortices). Up to `_DENSE_MAX` components the result is checked, $|A^Tp - \mu|_\infty \le
-      10^3\varepsilon\max(1, |\mu|_\infty)$, and the dense solve is made where it fails. (A dense
-      solve of a few hundred unknowns is a LAPACK call whose threads keep spinning after it
-      returns and slow the compiled march that follows: `benchmarks/README.md`.)
+      10^3\varepsilon\max(1, |\mu|_\infty)$, and the dense solve is made where it fails.
+
+    No LAPACK call: jaxlib's batched LAPACK kernels share XLA's intra-op thread pool and were
+    seen to deadlock when two host devices ran them side by side (a sweep with `devices=2`).
     """
     lin = lambda x: system.velocity_map(x.reshape(mu.shape), Q)
     if mu.size <= _DIRECT_MAX:
@@ -63,9 +66,52 @@ def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) 
 
 
 def _dense_cotangent(lin, Q, mu):
-    r"""The minimum-norm solution of $A^T p = \mu$ by a dense least-squares solve."""
+    r"""The minimum-norm solution of $A^T p = \mu$, $A$ formed densely by forward mode."""
     A = jax.jacfwd(lambda x: lin(x).ravel())(jnp.zeros(mu.size, Q.dtype))
-    return jnp.linalg.lstsq(A.T, mu.ravel())[0].reshape(Q.shape)
+    return min_norm_transpose_solve(A, mu.ravel()).reshape(Q.shape)
+
+
+def min_norm_transpose_solve(A: jax.Array, b: jax.Array) -> jax.Array:
+    r"""The $p$ in the range of `A` (m, n) with $A^T p = b$: the minimum-norm solution.
+
+    Gram–Schmidt with reorthogonalisation (each column projected out twice) gives $A = UR$,
+    the columns of $U$ orthonormal and $R$ upper triangular; then $p = Uc$ with $R^T c = b$ by
+    forward substitution. A column whose part outside the earlier ones is below
+    $\max(m, n)\,\varepsilon$ times the largest column is dependent: its column of $U$ and its
+    equation are left out (the system is consistent when $b$ is a momentum $-p\diamond Q$). The
+    error is that of a Householder QR, about $\kappa(A)\varepsilon$ (the normal equations would
+    square the condition number).
+
+    Plain XLA operations (a `fori_loop` over the n columns), for the reason
+    `cotangent_from_momentum` gives; jit-, vmap- and grad-compatible."""
+    m, n = A.shape
+    eps = jnp.finfo(A.dtype).eps
+    cols = jnp.arange(n)
+    tol = max(m, n) * eps * jnp.max(jnp.sqrt(jnp.sum(A * A, axis=0)))
+
+    def column(j, state):
+        U, R = state
+        v = A @ (cols == j).astype(A.dtype)
+        r = jnp.zeros(n, A.dtype)
+        for _ in range(2):  # project out the earlier columns twice ("twice is enough")
+            s = U.T @ v  # U's columns j, j+1, ... are still zero
+            v, r = v - U @ s, r + s
+        norm = jnp.sqrt(jnp.sum(v * v))
+        keep = norm > tol
+        u = jnp.where(keep, v / jnp.where(keep, norm, 1.0), 0.0)
+        U = jnp.where(cols == j, u[:, None], U)
+        R = jnp.where(cols == j, jnp.where(cols == j, jnp.where(keep, norm, 0.0), r)[:, None], R)
+        return U, R
+
+    U, R = jax.lax.fori_loop(0, n, column, (jnp.zeros_like(A), jnp.zeros((n, n), A.dtype)))
+
+    def forward(j, c):  # R^T c = b, row j; c_j = 0 for a dependent column
+        rj = R[:, j]
+        d = rj[j]
+        cj = (b[j] - jnp.sum(jnp.where(cols < j, rj * c, 0.0))) / jnp.where(d != 0, d, 1.0)
+        return jnp.where(cols == j, jnp.where(d != 0, cj, 0.0), c)
+
+    return U @ jax.lax.fori_loop(0, n, forward, jnp.zeros(n, A.dtype))
 
 
 def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax.Array, *,
