@@ -54,7 +54,11 @@ from ..march.continuation import continue_from
 from ..march.integrate import integrate
 from ..march.scan import energy_jump, node_energies
 from ..march.solution import IntegrationError
+from ..roots.solvers import Newton
 from ..roots.status import Status
+from ..steppers.base import AbstractWrapper
+from ..steppers.choose import choose_method as _choose_method
+from ..steppers.full import FullStep
 from .batch_last import batch
 from .fast import fast_method as _fast_method
 from .lean import lean_chunk, supports as _lean_supports
@@ -620,6 +624,41 @@ def _chunk_config(run: _Run, members: _Members, options: dict) -> _Config:
     return cfg
 
 
+_PARTICLE_MEMBER_CHUNK = 32
+"""`member_chunk` of a sweep of degenerate particle systems (`_particle_defaults`): small
+chunks of block Newton loops, each running until its slowest member stops
+(`benchmarks/throughput.py` measures clusters of point vortices)."""
+
+
+def _particle_defaults(cfg: _Config, members: _Members) -> _Config:
+    """`cfg` with the block Newton matrix (`jacobian="blocks"`) and `_PARTICLE_MEMBER_CHUNK` when
+    the user chose neither the Jacobian nor the method and the first member (all share the
+    system's facts and shapes) is a degenerate system of N >= 2 particles marched by a full
+    step with a dense Newton matrix."""
+    options = dict(cfg.options)
+    if "jacobian" in options or "method" in options:
+        return cfg
+    p_row = None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
+    j = members.ic_index[0]
+    Q0, xi0 = np.shape(members.Q0[j]), np.shape(members.xi0[j])
+    if len(Q0) < 2 or len(xi0) < 2 or Q0[0] != xi0[0] or Q0[0] < 2:
+        return cfg
+    system = _system_of(cfg, p_row, members.shared)
+    if not getattr(system, "degenerate", False):
+        return cfg
+    try:
+        method = _choose_method(system, jnp.asarray(members.Q0[j]), jnp.asarray(members.xi0[j]),
+                                **{k: v for k, v in options.items() if k != "check_energy"})
+    except (TypeError, ValueError):  # the probe reports bad options with the member named
+        return cfg
+    while isinstance(method, AbstractWrapper):
+        method = method.base
+    if not (isinstance(method, FullStep) and type(method.root_finder) is Newton):
+        return cfg
+    return dataclasses.replace(cfg, options=tuple(sorted({**options, "jacobian": "blocks"}.items())),
+                               member_chunk=cfg.member_chunk or _PARTICLE_MEMBER_CHUNK)
+
+
 def _fast_method_of(cfg: _Config, members: _Members):
     """The fast path's method for this sweep (`clebsch_jax.batching.fast`), chosen on the first
     member as `integrate` chooses (the choice depends on the system's facts and the options,
@@ -1007,7 +1046,12 @@ def sweep(
       `benchmarks/throughput.py --sweep-only` measures both paths).
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
-      sweep's own. `check_energy` (default True) is `integrate`'s energy check made over the
+      sweep's own. One default differs from `integrate`'s: members that are degenerate
+      particle systems (point vortices: `Q0` and `xi0` of shape (N, d), N >= 2) marched by the
+      full step get `jacobian="blocks"` and, unless given, `member_chunk=32`. A dense Jacobian of
+      3·N·d unknowns factored per member and step costs tens of times a batch's RK4 step; the
+      block Newton loop solves to the same round-off. Pass `jacobian="dense"` for the dense
+      one. `check_energy` (default True) is `integrate`'s energy check made over the
       whole run rather than per chunk: the sweep carries its running maxima from chunk to
       chunk, so a member fails with `Status.ENERGY_JUMP` at the step `integrate` would report.
 
@@ -1028,7 +1072,7 @@ def sweep(
         raise ValueError(f"fast: expected True or False, got {fast!r}.")
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
     B, n_dev = members.B, len(run.devices)
-    cfg = _chunk_config(run, members, options)
+    cfg = _particle_defaults(_chunk_config(run, members, options), members)
     shapes = _probe(cfg, members)
     if fast:
         method = _fast_method_of(cfg, members)
