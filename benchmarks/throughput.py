@@ -52,7 +52,11 @@ case sampled in turn, load average recorded):
    rows kernel `hand_rows_march` (the yardstick: each component a (B,) row, closed-form
    Jacobian and cofactor inverse, fixed chord updates, `fori_loop(unroll=4)`, final state and
    energy error only) and NumPy RK4 of Euler's equations on (3, B) arrays; M body-steps/s,
-   ratios, compile times (first call − second call), energy errors, fallback counts.
+   ratios, compile times (first call − second call), energy errors, fallback counts. With
+   `--sweep-only` the script asks XLA for two host devices (`XLA_FLAGS`, set before JAX
+   starts, unless the caller set a device count) and adds `sweep_fast_2dev`: `fast=True,
+   devices=2`, the batches dealt to both cores. Every other row runs on device 0 as before;
+   the hand kernel and RK4 use one core.
 
 The issue's targets (reported, never asserted): the reduced rigid body at >= 10^7 body-steps
 per second and >= 3x the NumPy RK4 rate, flat from B = 10^3 to 10^6 (here: every rate within
@@ -68,11 +72,16 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import os
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+if "--sweep-only" in sys.argv and "device_count" not in os.environ.get("XLA_FLAGS", ""):
+    # two host devices for the sweep's `devices=2` row (before JAX starts: a process-wide flag)
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
 
 import jax
 import jax.numpy as jnp
@@ -351,11 +360,15 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
 # of issue 20, final state and energy error only (no trajectories kept).
 
 SWEEP_RESULTS_NAME = "throughput_sweep"
+TWO_DEVICES = "sweep_fast_2dev"  # sweep(fast=True, devices=2), with --sweep-only (two host devices)
 HAND_ROWS = "jax_by_hand_rows"  # hand_rows_march: the yardstick of issue 20, not a library path
 SWEEP_DEFAULT = ((1_000, 200), (10_000, 200), (100_000, 100))
 SWEEP_QUICK = ((8, 10),)
 SWEEP_INERTIA = (0.5, 0.6, 1.0)  # issue 20's table
-SWEEP_TARGETS = {"over_hand_at_1e3": 0.5, "over_hand_from_1e4": 0.75, "over_rk4": 2.0, "compile_s": 2.0}
+SWEEP_TARGETS = {"over_hand_at_1e3": 0.5, "over_hand_from_1e4": 0.75, "over_rk4": 2.0, "compile_s": 2.0,
+                 "vortex_clusters_over_rk4_step": 1.0}
+SWEEP_VORTEX_DEFAULT = ((4, 1000, 100), (10, 1000, 50))  # (N vortices per cluster, clusters, steps)
+SWEEP_VORTEX_QUICK = ((4, 8, 5),)
 
 
 def rk4_euler_final(inertia, omega0, dt, n_steps):
@@ -407,6 +420,8 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
              "cj_batch": lambda: jax.block_until_ready(batched(Q0_j, xi0_j)),
              HAND_ROWS: lambda: jax.block_until_ready(hand(xi0_j)),
              RK4: lambda: rk4_euler_final(inertia, omega0, rigid.DT, n_steps)}
+    if len(jax.devices()) >= 2:
+        calls[TWO_DEVICES] = sweep_call(fast=True, devices=2)  # the default batch size gives each device a batch
     name = f"sweep B={batch} n_steps={n_steps}"
     timings, outs = run.time(calls, what=name, repeats=run.repeats or 3)
     row = {"part": "sweep", "batch": batch, "n_steps": n_steps, "methods": list(calls)}
@@ -414,7 +429,7 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
         row[m] = _rates(timings[m], n_steps, batch, "body")
         row[m]["compile_s"] = timings[m]["first_call_s"] - timings[m]["second_call_s"]
     mu_hand, err_hand = (np.asarray(a) for a in outs[HAND_ROWS])
-    for m in ("sweep", "sweep_fast"):
+    for m in ("sweep", "sweep_fast") + ((TWO_DEVICES,) if TWO_DEVICES in calls else ()):
         res = outs[m].raise_if_failed()
         row[m]["max_abs_final_momentum_diff_vs_hand"] = float(np.max(np.abs(res.final_momentum - mu_hand)))
         row[m]["max_energy_error"] = float(np.max(res.energy_error))
@@ -428,13 +443,36 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
     return row
 
 
+def sweep_vortex_case(N: int, batch: int, n_steps: int, run: harness.Run) -> dict:
+    """Cost per step of the documented sweep of `batch` clusters of N point vortices (default
+    options: the midpoint principle, block Newton by default for particle systems) against the
+    NumPy RK4 of the same batch (`vortex_step_cost.rk4_march`), same initial conditions and dt."""
+    G, Q0 = vortex.initial_conditions(N, batch)
+    xi0 = np.asarray(jax.vmap(models.vortex_velocity)(jnp.asarray(G), jnp.asarray(Q0)))
+    calls = {"sweep": lambda: cj.sweep(models.point_vortices, G, Q0, xi0, dt=vortex.DT, n_steps=n_steps),
+             RK4: lambda: vortex.rk4_march(G, Q0, vortex.DT, n_steps)}
+    timings, outs = run.time(calls, what=f"vortex clusters N={N} B={batch}", repeats=run.repeats or 3)
+    row = {"part": "sweep_vortices", "N": N, "batch": batch, "n_steps": n_steps, "methods": list(calls)}
+    for m in calls:
+        row[m] = _rates(timings[m], n_steps, N * batch, "vortex")
+        row[m]["compile_s"] = timings[m]["first_call_s"] - timings[m]["second_call_s"]
+    res = outs["sweep"]
+    ok = res.status == 0
+    rk4_final = outs[RK4][-1]
+    row["sweep"].update(failed_members=int(np.sum(~ok)), max_energy_error=float(np.nanmax(res.energy_error)),
+                        max_abs_final_Q_diff_vs_rk4=float(np.max(np.abs(res.final_Q[ok] - rk4_final[ok]))))
+    row["ratios"] = {"sweep_over_numpy_rk4_step": row["sweep"]["seconds_per_step"] / row[RK4]["seconds_per_step"]}
+    return row
+
+
 def print_sweep_report(summary: dict) -> None:
     harness.print_header(summary, "Sweep throughput (issue 20)",
                          f"Free rigid body {SWEEP_INERTIA}, reduced CAY march (reconstruct=False), dt = {rigid.DT}; "
                          "final state and energy error per body, no trajectories kept.")
-    rows = summary["results"]
+    rows = [r for r in summary["results"] if r["part"] == "sweep"]
     print("\nM body-steps/s (compile s) and ratios:")
     names = ("sweep", "sweep_fast", "cj_batch", HAND_ROWS, RK4)
+    names += (TWO_DEVICES,) if all(TWO_DEVICES in r for r in rows) else ()
     harness.print_table(
         f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>20}" for m in names) + " |"
         f"{'sweep/hand':>11}{'fast/hand':>10}{'sweep/RK4':>10}{'fast/RK4':>9} | fallbacks",
@@ -444,19 +482,38 @@ def print_sweep_report(summary: dict) -> None:
          f"{r['ratios']['sweep_over_numpy_rk4']:>10.3g}{r['ratios']['sweep_fast_over_numpy_rk4']:>9.3g} | "
          f"{r['sweep_fast']['fallback_chunks']}/{r['sweep_fast']['fast_chunks']}"
          for r in rows))
+    if TWO_DEVICES in names:
+        print("sweep_fast_2dev (both cores) over hand / over NumPy RK4: " + "; ".join(
+            f"B={r['batch']}: {r['ratios'][TWO_DEVICES + '_over_hand']:.3g} / "
+            f"{r['ratios'][TWO_DEVICES + '_over_numpy_rk4']:.3g}" for r in rows))
     print("max energy error: " + "; ".join(
         f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows))
+    vortex_rows = [r for r in summary["results"] if r["part"] == "sweep_vortices"]
+    if vortex_rows:
+        print("\nClusters of point vortices, documented sweep (default options) against NumPy RK4, ms per step "
+              "of the whole batch:")
+        harness.print_table(
+            f"{'N':>4}{'B':>7}{'steps':>6} |{'sweep':>10}{'RK4':>9}{'sweep/RK4':>10} | compile s | failed | "
+            "max |Q - Q_RK4|",
+            (f"{r['N']:>4}{r['batch']:>7}{r['n_steps']:>6} |{r['sweep']['seconds_per_step'] * 1e3:>10.3g}"
+             f"{r[RK4]['seconds_per_step'] * 1e3:>9.3g}{r['ratios']['sweep_over_numpy_rk4_step']:>10.3g} | "
+             f"{r['sweep']['compile_s']:9.1f} | {r['sweep']['failed_members']:>6} | "
+             f"{r['sweep']['max_abs_final_Q_diff_vs_rk4']:.1e}" for r in vortex_rows))
     t = SWEEP_TARGETS
     print(f"Targets: sweep >= {t['over_hand_at_1e3']}x hand at B=1e3, >= {t['over_hand_from_1e4']}x from 1e4, "
-          f">= {t['over_rk4']}x NumPy RK4, compile <= {t['compile_s']} s (reported, never asserted).")
+          f">= {t['over_rk4']}x NumPy RK4, compile <= {t['compile_s']} s; vortex clusters <= "
+          f"{t['vortex_clusters_over_rk4_step']}x an RK4 step (reported, never asserted).")
 
 
 def plot_sweep(summary: dict, path: Path) -> None:
     fig, ax = harness.figure((1,), size=(7, 4.6))
     styles = {"sweep": ("o", "C2"), "sweep_fast": ("*", "C3"), "cj_batch": ("D", "C0"), HAND_ROWS: ("^", "C7"),
-              RK4: ("s", "C1")}
+              RK4: ("s", "C1"), TWO_DEVICES: ("P", "C4")}
     for m, (marker, color) in styles.items():
-        pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"]]
+        pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"]
+               if r["part"] == "sweep" and m in r]
+        if not pts:
+            continue
         ax.loglog(*zip(*pts), marker=marker, color=color, label=m)
     ax.set_xlabel("batch size B (bodies)")
     ax.set_ylabel("body-steps per second")
@@ -833,8 +890,15 @@ def main(argv=None) -> dict | None:
         with run:
             rows = run.measure(SWEEP_DEFAULT, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}",
                                lambda B, n: sweep_case(B, n, run))
+            rigid_cases = run.cases
+            rows += run.measure(SWEEP_VORTEX_DEFAULT, SWEEP_VORTEX_QUICK,
+                                lambda N, B, n: f"sweep of {B} clusters of {N} vortices, n_steps={n}",
+                                lambda N, B, n: sweep_vortex_case(N, B, n, run))
         summary = run.summary(config={"inertia": list(SWEEP_INERTIA), "dt": rigid.DT, "seed": rigid.SEED,
-                                      "cases": [{"batch": b, "n_steps": n} for b, n in run.cases]},
+                                      "cases": [{"batch": b, "n_steps": n} for b, n in rigid_cases],
+                                      "vortex_clusters": {"dt": vortex.DT, "seed": vortex.SEED,
+                                                          "cases": [{"N": N, "batch": b, "n_steps": n}
+                                                                    for N, b, n in run.cases]}},
                               results=rows, targets=SWEEP_TARGETS)
         return run.finish(summary, print_sweep_report, plot_sweep)
     if run.args.compile_model:  # a child of part 3
