@@ -100,6 +100,7 @@ def test_method_options_belong_to_the_stepper():
         cj.integrate(RIGID, EYE, XI0, dt=0.1, n_steps=3, method="gauss")
 
 
+@pytest.mark.slow  # CI runs it; vmap and grad through integrate are checked by default in tests/test_engine.py
 def test_a_stepper_runs_under_vmap_and_grad():
     """A method object is static data: vmapped over initial data and differentiated through."""
     method = cj.SymmetricPair(cj.ReducedStep())
