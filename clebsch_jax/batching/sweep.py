@@ -624,6 +624,12 @@ def _chunk_config(run: _Run, members: _Members, options: dict) -> _Config:
     return cfg
 
 
+def _first_row(members: _Members):
+    """The first member's parameter row (None without `make_system`): the choices made on one
+    member (method, fast path, defaults) hold for all, which share the system's facts."""
+    return None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
+
+
 _PARTICLE_MEMBER_CHUNK = 32
 """`member_chunk` of a sweep of degenerate particle systems (`_particle_defaults`): small
 chunks of block Newton loops, each running until its slowest member stops
@@ -638,12 +644,11 @@ def _particle_defaults(cfg: _Config, members: _Members) -> _Config:
     options = dict(cfg.options)
     if "jacobian" in options or "method" in options:
         return cfg
-    p_row = None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
     j = members.ic_index[0]
     Q0, xi0 = np.shape(members.Q0[j]), np.shape(members.xi0[j])
     if len(Q0) < 2 or len(xi0) < 2 or Q0[0] != xi0[0] or Q0[0] < 2:
         return cfg
-    system = _system_of(cfg, p_row, members.shared)
+    system = _system_of(cfg, _first_row(members), members.shared)
     if not getattr(system, "degenerate", False):
         return cfg
     try:
@@ -663,9 +668,8 @@ def _fast_method_of(cfg: _Config, members: _Members):
     """The fast path's method for this sweep (`clebsch_jax.batching.fast`), chosen on the first
     member as `integrate` chooses (the choice depends on the system's facts and the options,
     the same for every member), or None."""
-    p_row = None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
     j = members.ic_index[0]
-    return _fast_method(_system_of(cfg, p_row, members.shared), jnp.asarray(members.Q0[j]),
+    return _fast_method(_system_of(cfg, _first_row(members), members.shared), jnp.asarray(members.Q0[j]),
                         jnp.asarray(members.xi0[j]), dict(cfg.options))
 
 
@@ -677,8 +681,7 @@ def _lean_applies(cfg: _Config, members: _Members, method) -> bool:
         return False
     if [name for name, _ in cfg.invariants] != ["energy"] or cfg.invariants[0][1] is not _diagnostics.energy:
         return False
-    p_row = None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
-    return _lean_supports(method, _system_of(cfg, p_row, members.shared))
+    return _lean_supports(method, _system_of(cfg, _first_row(members), members.shared))
 
 
 class _Shapes(NamedTuple):
@@ -695,7 +698,7 @@ class _Shapes(NamedTuple):
 def _probe(cfg: _Config, members: _Members) -> _Shapes:
     """One member's shapes, by tracing integrate (its own checks name Q0, xi0, ...): no compile.
     Then the system's own check of its configurations on every concrete Q0[j]."""
-    p_row = None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
+    p_row = _first_row(members)
     j = members.ic_index[0]
     q_row, x_row = jnp.asarray(members.Q0[j]), jnp.asarray(members.xi0[j])
 

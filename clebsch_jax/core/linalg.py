@@ -3,8 +3,8 @@
 On CPU, `jnp.linalg.solve` on a 3×3 matrix is a LAPACK custom call with fixed overhead that
 dwarfs the arithmetic, and under `vmap` it becomes a batched call that is slower still. For
 n ≤ 3 the adjugate formulas below are a handful of multiply-adds that fuse with the
-surrounding code; larger systems use LU with partial pivoting written in XLA operations
-(`lu_factor`), never LAPACK: jaxlib's batched LAPACK kernels (LU, SVD) run on XLA's intra-op
+surrounding code; larger systems eliminate with partial pivoting in XLA operations
+(straight-line up to `ELIMINATION_MAX`, the `lu_factor` loop above), never LAPACK: jaxlib's batched LAPACK kernels (LU, SVD) run on XLA's intra-op
 thread pool and deadlock when two host devices call them side by side (a sweep with
 `devices=2`). The matrices solved here (Cayley factors I ± X/2, group elements near I, Newton
 Jacobians of small steps) are well conditioned, where the adjugate formula is as accurate as
@@ -81,7 +81,7 @@ def _adjugate_and_det(A: jax.Array):
 
 
 def inv(A: jax.Array) -> jax.Array:
-    """Matrix inverse (adjugate / determinant for n ≤ 3, `lu_factor` otherwise)."""
+    """Matrix inverse (adjugate / determinant for n ≤ 3, elimination otherwise: `_lu_apply`)."""
     if A.shape[-1] <= CLOSED_FORM_MAX:
         adj, d = _adjugate_and_det(A)
         return adj / d[..., None, None]
@@ -89,7 +89,8 @@ def inv(A: jax.Array) -> jax.Array:
 
 
 def solve(A: jax.Array, B: jax.Array, *, unroll: bool = False) -> jax.Array:
-    """Solve A X = B for a matrix or a vector B (closed form for n ≤ 3, `lu_factor` otherwise).
+    """Solve A X = B for a matrix or a vector B (closed form for n ≤ 3, elimination otherwise:
+    `_lu_apply`).
 
     `unroll`: write the closed form's products with `matmul`/`matvec` (fusible multiply-adds)
     instead of dot operations; same formula, rounding may differ in the last bit.
