@@ -1004,7 +1004,8 @@ def sweep(
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
       k when the run has more than one chunk.
     - `member_chunk`: a batch runs through `clebsch_jax.batch` (batch-last, the batch's members
-      in chunks of `member_chunk` one after the other; default None: one chunk). A chunk's
+      in chunks of `member_chunk` one after the other; default None: one chunk, or 32 for
+      degenerate particle systems, see `**options`). A chunk's
       Newton loops run until its slowest member stops, so members whose iteration counts
       differ widely (clusters of point vortices) run faster in small chunks (e.g. 64).
     - `devices`: None (default: JAX's default device); True or "all" (every `jax.devices()`),
