@@ -300,10 +300,47 @@ def test_dense_solves_above_three_unknowns_match_numpy(n):
         np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-12 * np.max(np.abs(ref)))
 
 
+@pytest.mark.parametrize("n", [3, 12])
+def test_positive_definite_solves_match_numpy_batched_or_not_and_are_nan_otherwise(n):
+    """`linalg.spd_solve`: one matrix by LAPACK, a vmapped batch by Cholesky in XLA operations;
+    both against NumPy, NaN for a matrix that is
+    not positive definite; for n = 3, derivatives up to third order (implicit, through
+    `custom_linear_solve`) equal to those through `jax.scipy`'s Cholesky."""
+    from clebsch_jax.core import linalg
+
+    rng = np.random.default_rng(n)
+    A = rng.normal(size=(2, n, n))
+    K = A @ np.swapaxes(A, 1, 2) + n * np.eye(n)
+    b = rng.normal(size=(2, n))
+    ref = np.linalg.solve(K, b[..., None])[..., 0]
+    batched = jax.vmap(linalg.spd_solve)(jnp.asarray(K), jnp.asarray(b))
+    single = [linalg.spd_solve(K[i], b[i]) for i in range(2)]
+    for got in (batched, np.stack(single)):
+        np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-13 * np.max(np.abs(ref)))  # round-off
+    indefinite = jnp.asarray(np.eye(n) - 2.0 * np.outer(np.eye(n)[0], np.eye(n)[0]))  # diag(-1, 1, ..., 1)
+    assert np.all(np.isnan(np.asarray(linalg.spd_solve(indefinite, jnp.ones(n)))))
+    assert np.all(np.isnan(np.asarray(jax.vmap(linalg.spd_solve)(jnp.stack([indefinite] * 2), jnp.ones((2, n))))))
+    if n != 3:
+        return
+    kernel = lambda q: jnp.exp(-jnp.abs(q[:, None] - q[None, :]))  # the peakon kernel, SPD for distinct q
+    energy = lambda solve: lambda q, x: 0.5 * x @ solve(kernel(q), x)
+    ours = energy(linalg.spd_solve)
+    scipy = energy(lambda K, x: jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(K, lower=True), x))
+    third = lambda f: jax.jacfwd(jax.hessian(f, (0, 1)), (0, 1))
+    q, x = rng.normal(size=(2, n))
+    want = jax.jit(third(scipy))(q, x)
+    got = jax.jit(jax.vmap(third(ours)))(jnp.stack([q, q]), jnp.stack([x, x]))
+    for w, g in zip(jax.tree_util.tree_leaves(want), jax.tree_util.tree_leaves(got)):
+        scale = max(1.0, float(np.max(np.abs(w))))
+        # Round-off of a few hundred flops of O(1) terms.
+        np.testing.assert_allclose(np.asarray(g), np.stack([w, w]), rtol=0, atol=1e-13 * scale)
+
+
 def test_batched_marches_call_no_lapack_kernel():
-    """A batched march and the cotangent hand-over compile to XLA operations only: jaxlib's
-    batched LAPACK kernels share XLA's intra-op thread pool and deadlocked a sweep running on
-    two host devices (`tests/test_sweep.py`, `devices=2`)."""
+    """Batched marches (the peakons' Cholesky solve included) and the cotangent hand-over compile
+    to XLA operations only: jaxlib's batched LAPACK kernels share XLA's intra-op thread pool and
+    deadlocked a sweep on two host devices (`tests/test_sweep.py`, `devices=2`) and a sweep of
+    2048 peakon systems on one."""
     from clebsch_jax.discrete.legendre import cotangent_from_momentum
     from .test_first_step_check import _se3_body, _se3_kinetic
 
@@ -315,6 +352,9 @@ def test_batched_marches_call_no_lapack_kernel():
         "SE(3), Cayley": (lambda x: cj.integrate(se3, jnp.eye(4), x, dt=0.1, n_steps=3, throw=False).momentum,
                           jnp.ones((2, 6))),
         "hand-over": (lambda m: cotangent_from_momentum(rigid, jnp.eye(3), m), jnp.ones((2, 3))),
+        # Q0 batched too: one unbatched Cholesky (a Q0 shared by the members) is LAPACK, and safe.
+        "peakons": (lambda x: cj.integrate(cj.models.peakons(), x[0] * jnp.array([-1.0, 0.0, 1.5]), x[1], dt=0.01,
+                                           n_steps=3, throw=False).Q, jnp.ones((2, 2, 3))),
     }
     for name, (fn, x) in programs.items():
         text = jax.jit(jax.vmap(fn)).lower(x).as_text().lower()

@@ -322,3 +322,30 @@ def test_a_sweep_of_vortex_clusters_defaults_to_block_newton_and_agrees_with_int
         # positions of size ~1 after 30 steps solved to round-off by both matrices
         np.testing.assert_allclose(blocks.final_Q[m], np.asarray(sol.Q[-1]), rtol=0, atol=1e-13)
         np.testing.assert_allclose(dense.final_Q[m], np.asarray(sol.Q[-1]), rtol=0, atol=1e-13)
+
+
+PEAKON_BATCHES = r"""
+import numpy as np, jax, jax.numpy as jnp
+import clebsch_jax as cj
+rng = np.random.default_rng(0)
+B = 2048
+Q0 = np.sort(2.0 * rng.normal(size=(B, 3)), axis=1)
+xi0 = np.asarray(jax.vmap(cj.models.peakon_velocity)(jnp.asarray(Q0), jnp.asarray(np.abs(rng.normal(size=(B, 3))) + 0.5)))
+for _ in range(2):
+    res = cj.sweep(cj.models.peakons, np.ones(B), Q0, xi0, dt=0.01, n_steps=20, chunk_steps=10, batch_size=B // 2)
+print("finished", len(res.failed_members))
+"""
+
+
+@pytest.mark.slow  # CI runs it; a second process (a hang must not stop the test run)
+def test_a_sweep_of_many_peakon_systems_finishes():
+    """2048 systems of 3 peakons in batches of 1024, swept twice on one device. With the
+    Lagrangian's Cholesky solve a LAPACK kernel, the batched triangular solve deadlocked on
+    XLA's thread pool (the script timed out); batched, it is XLA operations now
+    (`clebsch_jax.core.linalg.spd_solve`)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent(PEAKON_BATCHES)], capture_output=True, text=True,
+                         cwd=root, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "finished 0" in out.stdout

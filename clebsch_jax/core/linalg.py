@@ -4,11 +4,13 @@ On CPU, `jnp.linalg.solve` on a 3×3 matrix is a LAPACK custom call with fixed o
 dwarfs the arithmetic, and under `vmap` it becomes a batched call that is slower still. For
 n ≤ 3 the adjugate formulas below are a handful of multiply-adds that fuse with the
 surrounding code; larger systems eliminate with partial pivoting in XLA operations
-(straight-line up to `ELIMINATION_MAX`, the `lu_factor` loop above), never LAPACK: jaxlib's batched LAPACK kernels (LU, SVD) run on XLA's intra-op
-thread pool and deadlock when two host devices call them side by side (a sweep with
-`devices=2`). The matrices solved here (Cayley factors I ± X/2, group elements near I, Newton
-Jacobians of small steps) are well conditioned, where the adjugate formula is as accurate as
-LU (the tests compare them).
+(straight-line up to `ELIMINATION_MAX`, the `lu_factor` loop above), never LAPACK: jaxlib's
+batched LAPACK kernels (LU, SVD, triangular solves) run on XLA's intra-op thread pool and
+deadlock when two host devices call them side by side (a sweep with `devices=2`), and even on
+one device for a batched Cholesky solve. `spd_solve` calls LAPACK for one matrix and XLA
+operations for a batch. The matrices solved here (Cayley factors I ± X/2, group elements near
+I, Newton Jacobians of small steps) are well conditioned, where the adjugate formula is as
+accurate as LU (the tests compare them).
 """
 
 from __future__ import annotations
@@ -16,8 +18,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["inv", "solve", "factor", "inverse", "solve_factored", "lu_factor", "lu_solve", "matmul", "matvec",
-           "weighted_sum"]
+__all__ = ["inv", "solve", "spd_solve", "cholesky", "cholesky_solve", "factor", "inverse", "solve_factored", "lu_factor", "lu_solve", "matmul",
+           "matvec", "weighted_sum"]
 
 CLOSED_FORM_MAX = 3
 
@@ -141,6 +143,87 @@ def _eliminate(a: jax.Array, b: jax.Array) -> jax.Array:
             acc = acc - U[i, j] * out[j]
         out[i] = acc / U[i, i]
     return jnp.stack(out)
+
+
+def cholesky(K: jax.Array) -> jax.Array:
+    """The lower Cholesky factor L (L Lᵀ = K) of one symmetric positive definite K (n, n) in XLA
+    operations: a `fori_loop` over the columns (one compiled body whatever n; straight-line code
+    compiled several times slower in differentiated marches), reading K's lower triangle; NaN
+    where K is not numerically positive definite (a pivot's square root of a negative number)."""
+    K = jnp.asarray(K)
+    n = K.shape[-1]
+    idx = jnp.arange(n)
+
+    def column(j, L):
+        row = jnp.where(idx < j, L[j], 0.0)  # L[j, :j]
+        d = jnp.sqrt(K[j, j] - jnp.sum(row * row))
+        col = (K[:, j] - L @ row) / d
+        return jnp.where(idx[None, :] == j, jnp.where(idx > j, col, jnp.where(idx == j, d, 0.0))[:, None], L)
+
+    return jax.lax.fori_loop(0, n, column, jnp.zeros_like(K))
+
+
+def cholesky_solve(L: jax.Array, b: jax.Array) -> jax.Array:
+    """(L Lᵀ)⁻¹b for a lower Cholesky factor L (n, n) and b of shape (n, ...): two triangular
+    solves in XLA operations, each a `fori_loop` over the rows."""
+    L, b = jnp.asarray(L), jnp.asarray(b)
+    n = L.shape[-1]
+    idx = jnp.arange(n)
+    rhs = b.reshape(n, -1)
+
+    def forward(i, y):  # L y = b, row i
+        yi = (rhs[i] - jnp.where(idx < i, L[i], 0.0) @ y) / L[i, i]
+        return jnp.where((idx == i)[:, None], yi[None, :], y)
+
+    def backward(k, x):  # Lᵀ x = y, row i = n - 1 - k
+        i = n - 1 - k
+        xi = (x[i] - jnp.where(idx > i, L[:, i], 0.0) @ x) / L[i, i]
+        return jnp.where((idx == i)[:, None], xi[None, :], x)
+
+    y = jax.lax.fori_loop(0, n, forward, jnp.zeros_like(rhs))
+    return jax.lax.fori_loop(0, n, backward, y).reshape(b.shape)
+
+
+@jax.custom_batching.custom_vmap
+def _cholesky_factor(K: jax.Array) -> jax.Array:
+    return jax.lax.linalg.cholesky(K, symmetrize_input=False)
+
+
+@_cholesky_factor.def_vmap
+def _cholesky_factor_batched(axis_size, in_batched, K):
+    del axis_size, in_batched
+    return jax.vmap(cholesky)(K), True
+
+
+@jax.custom_batching.custom_vmap
+def _cholesky_apply(L: jax.Array, b: jax.Array) -> jax.Array:
+    return jax.scipy.linalg.cho_solve((L, True), b)
+
+
+@_cholesky_apply.def_vmap
+def _cholesky_apply_batched(axis_size, in_batched, L, b):
+    if not in_batched[0]:  # one factor, many right-hand sides (a Jacobian's tangents): one call
+        columns = jnp.moveaxis(b, 0, -1)
+        x = _cholesky_apply(L, columns.reshape(columns.shape[0], -1)).reshape(columns.shape)
+        return jnp.moveaxis(x, -1, 0), True
+    b = b if in_batched[1] else jnp.broadcast_to(b, (axis_size,) + b.shape)
+    return jax.vmap(cholesky_solve)(L, b), True
+
+
+def spd_solve(K: jax.Array, b: jax.Array) -> jax.Array:
+    """K⁻¹b for one symmetric positive definite K (n, n) and b of shape (n, ...) by Cholesky;
+    NaN where K is not numerically positive definite.
+
+    One K is factored and solved by LAPACK (with many right-hand sides at once when only b is
+    batched, as in `jax.jacfwd`); when K is batched by `jax.vmap` the factor and the triangular
+    solves are `cholesky` and `cholesky_solve`, XLA operations
+    (`jax.custom_batching.custom_vmap`): jaxlib's batched LAPACK triangular solve deadlocked a
+    sweep of 2048 peakon systems on one device. Derivatives are implicit (`jax.lax.custom_linear_solve`): the tangent of
+    x = K⁻¹b is K⁻¹(ḃ − K̇x), solved with the same factor, so no derivative of any order runs
+    through the factorisation."""
+    K, b = jnp.asarray(K), jnp.asarray(b)
+    L = _cholesky_factor(jax.lax.stop_gradient(K))
+    return jax.lax.custom_linear_solve(lambda x: K @ x, b, lambda _, r: _cholesky_apply(L, r), symmetric=True)
 
 
 def _lu_apply(A: jax.Array, B: jax.Array) -> jax.Array:

@@ -88,6 +88,7 @@ import jax
 import jax.numpy as jnp
 from jax.tree_util import Partial
 
+from ..core import linalg as _linalg
 from ..core.derivative_maps import DerivativeMap, VectorSpaceDifference, forward_difference
 from ..core.system import ClebschSystem
 from ..core.validation import is_traced, nan_unless
@@ -141,9 +142,9 @@ def _landmark_matrix(width, Q):
 
 
 def _solve_spd(K, b):
-    """K⁻¹ b for symmetric positive definite K by Cholesky; NaN when K is not numerically SPD."""
-    factor = jax.scipy.linalg.cho_factor(K, lower=True)
-    return jax.scipy.linalg.cho_solve(factor, b)
+    """K⁻¹ b for symmetric positive definite K by Cholesky (`clebsch_jax.core.linalg.spd_solve`:
+    no batched LAPACK call, implicit derivatives); NaN when K is not numerically SPD."""
+    return _linalg.spd_solve(K, b)
 
 
 # --------------------------------------------------------------------------------------------
