@@ -7,6 +7,8 @@ Run from the repository root:
     python benchmarks/work_precision.py            # default run, ~6 min on 2 cores at load 0.4-1.6
     python benchmarks/work_precision.py --long     # the rigid-body batch at T = 1e4 only (~10 min at
                                                    # load 1-2), written as work_precision_long.{json,png}
+    python benchmarks/work_precision.py --clusters # batches of leapfrogging clusters at T = 1e3 (issue 20),
+                                                   # written as work_precision_clusters.{json,png}
     python benchmarks/work_precision.py --quick    # smoke test, tiny sizes (not a measurement)
 
 **Scenes** (one process, one run, the same initial conditions for every method):
@@ -19,6 +21,12 @@ Run from the repository root:
   $Q_0 = ((0, 1), (0, -1), (0, 0.5), (0, -0.5))$, T = 50 (about 9 leapfrogging cycles).
 - `vortices_100`: 100 random vortices (`vortex_step_cost.initial_conditions(100, 1)`, seed 0:
   circulations $\pm U(0.5, 1.5)$, positions normal $\times 10$), T = 10.
+- `vortex_clusters` (`--clusters` only): a batch of 16 leapfrogging clusters of 4 vortices
+  (`cluster_initial`: cluster 0 is `vortices_4`'s, the others perturbed off its mirror
+  symmetry by 0.01), T = 1e3. Ours: `vortices_4`'s Gauss-Legendre march vmapped over the clusters;
+  diffrax vmapped (each cluster its own steps); no SciPy or RK4 points. Issue 20's target is
+  read per diffrax point (`cluster_targets`): at each tolerance from 1e-8 to 1e-12 a point of
+  ours no slower, no worse in global error and >= 100x better in energy error (or below 1e-13).
 
 **Methods**:
 
@@ -161,6 +169,14 @@ LONG = {
         "dop853": (1e-8, 1e-11), "rk4": (0.05,),
     },
 }
+CLUSTERS = {  # issue 20: batches of leapfrogging clusters over long times (`--clusters`)
+    "vortex_clusters": {
+        "batch": 16, "T": 1e3, "n_samples": 200, "chunk": 100,
+        "ours": {}, "gauss": {4: (0.25, 0.125), 6: (0.5, 0.25), 8: (0.5, 0.25, 0.125), 12: (0.5, 0.25),
+                              16: (1.0, 0.5)},
+        "tsit5": (1e-8, 1e-10, 1e-12), "dopri8": (1e-8, 1e-10, 1e-12, 1e-13), "dop853": (), "rk4": (),
+    },
+}
 QUICK = {
     "rigid_body": {
         "batch": 4, "T": 20.0, "n_samples": 10, "chunk": 50,
@@ -177,8 +193,18 @@ QUICK = {
         "ours": {2: (0.1,)}, "tsit5": (), "dopri8": (1e-8, 1e-13), "dop853": (1e-9,), "rk4": (0.1,),
     },
 }
+QUICK_CLUSTERS = {
+    "vortex_clusters": {
+        "batch": 2, "T": 2.0, "n_samples": 4, "chunk": 4,
+        "ours": {}, "gauss": {8: (0.25,)}, "tsit5": (1e-8,), "dopri8": (1e-8, 1e-13), "dop853": (), "rk4": (),
+    },
+}
 MEASURES = ("global_error", "energy_error", "invariant_error")  # the three columns of the plot
-INVARIANT = {"rigid_body": "casimir_error", "vortices_4": "impulse_error", "vortices_100": "impulse_error"}
+INVARIANT = {"rigid_body": "casimir_error", "vortices_4": "impulse_error", "vortices_100": "impulse_error",
+             "vortex_clusters": "impulse_error"}
+CLUSTER_RTOLS = (1e-12, 1e-8)  # issue 20: at each diffrax tolerance in this range ...
+CLUSTER_ENERGY_RATIO = 100.0  # ... a point of ours no slower, no worse in global error, and this much
+CLUSTER_ENERGY_ROUND_OFF = 1e-13  # better in energy error, or at round-off (relative energy error below this)
 
 
 # --------------------------------------------------------------------------------------------
@@ -197,7 +223,7 @@ def rigid_initial(batch: int, seed: int = SEED) -> np.ndarray:
 class RigidBody:
     """The rigid-body batch: state (B, 3) body momenta Pi."""
 
-    name, invariant = "rigid_body", "casimir_error"
+    name, invariant, batched = "rigid_body", "casimir_error", True
 
     def __init__(self, cfg):
         self.cfg, self.T = cfg, float(cfg["T"])
@@ -205,6 +231,7 @@ class RigidBody:
         self.y0 = rigid_initial(cfg["batch"])
         self.scale = 1.0  # |Pi0| = 1: atol = rtol
         self.label = f"rigid body, B = {cfg['batch']}, T = {self.T:g}"
+        self.members = cfg["batch"]
 
     def rhs_jax(self, t, y, args):
         return jnp.cross(y, y / jnp.asarray(self.inertia))
@@ -295,7 +322,7 @@ class RigidBody:
 class Vortices:
     """N point vortices: state (N, 2) positions."""
 
-    invariant = "impulse_error"
+    invariant, batched, members = "impulse_error", False, 1
 
     def __init__(self, name, cfg):
         self.name, self.cfg, self.T = name, cfg, float(cfg["T"])
@@ -347,6 +374,24 @@ class Vortices:
         all valid): n_chunks * chunk steps, restarting each chunk from the last (Q, p). `scheme`
         None: the midpoint principle and its compositions; "gauss": Gauss-Legendre (its
         "Newton updates" are fixed-point sweeps, its Jacobians 0)."""
+        march, facts = self._march(order, scheme)
+        prog = jax.jit(march, compiler_options=compiler_options)
+        y0 = jnp.asarray(self.y0)
+
+        def call(dt, n_chunks):
+            Q, _, _, h, lin, ang, upd, jac, ok = jax.block_until_ready(prog(y0, dt, n_chunks))
+            n = n_chunks * self.cfg["chunk"]
+            return {"y_T": np.asarray(Q), "energy_error": float(h), "impulse_error": float(ang) / self.ang_norm,
+                    "linear_impulse_error": float(lin) / self.lin_norm, "updates_per_step": float(upd) / n,
+                    "updates_per_step_slowest_body": float(upd) / n, "jacobians_per_step": float(jac) / n,
+                    "valid": bool(ok)}
+
+        return call, facts
+
+    def _march(self, order: int, scheme, impulse_per_node: bool = False):
+        """(march(Q0, dt, n_chunks) of one system, facts): see `ours_program`. With
+        `impulse_per_node`, the angular impulse's change at a node is divided by
+        $\sum_a|\Gamma_a||Q_a|^2$ at that node (`VortexClusters`)."""
         G, chunk, jacobian = jnp.asarray(self.gamma), self.cfg["chunk"], self.jacobian
         system = models.point_vortices(G)
 
@@ -363,7 +408,10 @@ class Vortices:
                 Qs = sol.Q  # (chunk + 1, N, 2), every node
                 h = jnp.max(jnp.abs(models.vortex_hamiltonian(G, Qs) - H0)) / jnp.abs(H0)
                 lin = jnp.max(jnp.abs(models.vortex_linear_impulse(G, Qs) - lin0))
-                ang = jnp.max(jnp.abs(models.vortex_angular_impulse(G, Qs) - ang0))
+                ang = jnp.abs(models.vortex_angular_impulse(G, Qs) - ang0)
+                if impulse_per_node:
+                    ang = ang / jnp.sum(jnp.abs(G) * jnp.sum(Qs**2, -1), -1)
+                ang = jnp.max(ang)
                 return (Qs[-1], sol.p[-1], sol.xi_step[-1], jnp.maximum(h_max, h), jnp.maximum(lin_max, lin),
                         jnp.maximum(ang_max, ang), upd + jnp.sum(sol.stats.iterations.astype(float)),
                         jac + jnp.sum(sol.stats.jacobians.astype(float)), ok & jnp.all(sol.valid))
@@ -371,20 +419,120 @@ class Vortices:
             init = (Q0, P0, xi0, 0.0, 0.0, 0.0, 0.0, 0.0, jnp.array(True))
             return jax.lax.fori_loop(0, n_chunks, body, init)
 
-        prog = jax.jit(march, compiler_options=compiler_options)
+        return march, {"system": "point_vortices(G)", "form": "full",
+                      "jacobian": jacobian + (" (constraint matrix; fixed-point sweeps)" if scheme == "gauss" else ""),
+                      "plan": cj.step_plan(system, scheme=scheme, order=order)}
+
+
+PERTURB = 0.01
+"""Standard deviation of the clusters' coordinate perturbations: with 0.02, one cluster of 16
+(seed 0) was sensitive (Dopri8 at rtol 1e-13 and 1e-14 differed by O(1) at T = 1e3 from
+t ≈ 240 on); with 0.01 every cluster's two references agree to ~1e-8."""
+
+
+def cluster_initial(batch: int, seed: int = SEED) -> np.ndarray:
+    """B leapfrogging clusters (B, 4, 2): cluster 0 is the `vortices_4` configuration
+    ((0, 1), (0, -1), (0, 0.5), (0, -0.5)); the others have their outer and inner half-widths
+    drawn from 1 ± 0.05 and 0.5 ± 0.025 and every coordinate moved by `PERTURB` × a standard
+    normal (fixed seed), which breaks the mirror symmetry (so the angular impulse is a test)."""
+    rng = np.random.default_rng(seed)
+    a = 1.0 + 0.05 * rng.uniform(-1.0, 1.0, batch)
+    c = 0.5 + 0.025 * rng.uniform(-1.0, 1.0, batch)
+    Q = np.zeros((batch, 4, 2))
+    Q[:, :, 1] = np.stack([a, -a, c, -c], axis=1)
+    Q += PERTURB * rng.normal(size=Q.shape)
+    Q[0] = [[0.0, 1.0], [0.0, -1.0], [0.0, 0.5], [0.0, -0.5]]
+    return Q
+
+
+class VortexClusters(Vortices):
+    """B clusters of 4 leapfrogging vortices, Γ = (1, −1, 1, −1): state (B, 4, 2). The peers'
+    right-hand side is one cluster's, vmapped (diffrax: each cluster its own steps); ours is
+    `Vortices`' march of one cluster (Gauss-Legendre, the dense 8×8 constraint matrix),
+    vmapped over the clusters."""
+
+    batched = True
+
+    def __init__(self, cfg):
+        self.name, self.cfg, self.T = "vortex_clusters", cfg, float(cfg["T"])
+        self.members = cfg["batch"]
+        self.gamma = np.array([1.0, -1.0, 1.0, -1.0])
+        self.y0 = cluster_initial(cfg["batch"])
+        self.jacobian = "dense"
+        self.label = f"{self.members} clusters of 4 vortices leapfrogging, T = {self.T:g}"
+        self.scale = float(np.max(np.abs(self.y0)))
+        self.lin_norm = np.sum(np.abs(self.gamma) * np.linalg.norm(self.y0, axis=-1), -1)  # (B,)
+        self.ang_norm = np.sum(np.abs(self.gamma) * np.sum(self.y0**2, -1), -1)
+
+    def rhs_np(self, y):
+        return vortex.biot_savart(np.broadcast_to(self.gamma, y.shape[:-1]), y)
+
+    def diagnostics(self, ys) -> dict:
+        """Energy and impulse errors over samples ys (n, B, 4, 2): max over samples and clusters.
+        The angular impulse's change is relative to $\sum_a|\Gamma_a||Q_a|^2$ at the same time:
+        the clusters travel far from the origin (that sum grows ~10⁵-fold by T = 1e3), where
+        evaluating the impulse alone loses that much to round-off."""
+        H, lin, ang = (np.asarray(a) for a in self._invariants(ys))
+        here = np.sum(np.abs(self.gamma) * np.sum(np.asarray(ys) ** 2, -1), -1)  # (n, B)
+        return {"energy_error": float(np.max(np.abs(H - H[0]) / np.abs(H[0]))),
+                "impulse_error": float(np.max(np.abs(ang - ang[0]) / here)),
+                "linear_impulse_error": float(np.max(np.linalg.norm(lin - lin[0], axis=-1) / self.lin_norm))}
+
+    def global_error(self, y, ref) -> dict:
+        d = np.max(np.linalg.norm(np.asarray(y) - ref, axis=-1), axis=-1)  # per cluster
+        return {"global_error": float(np.max(d)), "global_error_median": float(np.median(d))}
+
+    def ours_program(self, order: int, compiler_options=None, scheme=None):
+        march, facts = self._march(order, scheme, impulse_per_node=True)
+        prog = jax.jit(jax.vmap(march, in_axes=(0, None, None)), compiler_options=compiler_options)
         y0 = jnp.asarray(self.y0)
 
         def call(dt, n_chunks):
             Q, _, _, h, lin, ang, upd, jac, ok = jax.block_until_ready(prog(y0, dt, n_chunks))
-            n = n_chunks * chunk
-            return {"y_T": np.asarray(Q), "energy_error": float(h), "impulse_error": float(ang) / self.ang_norm,
-                    "linear_impulse_error": float(lin) / self.lin_norm, "updates_per_step": float(upd) / n,
-                    "updates_per_step_slowest_body": float(upd) / n, "jacobians_per_step": float(jac) / n,
-                    "valid": bool(ok)}
+            n, B = n_chunks * self.cfg["chunk"], self.members
+            upd = np.asarray(upd)
+            return {"y_T": np.asarray(Q), "energy_error": float(jnp.max(h)),
+                    "impulse_error": float(np.max(ang)),  # relative to each node's sum |Γ||Q|²
+                    "linear_impulse_error": float(np.max(np.asarray(lin) / self.lin_norm)),
+                    "updates_per_step": float(np.sum(upd)) / (B * n),
+                    # the busiest cluster's mean (the per-step maximum is not recorded here)
+                    "updates_per_step_slowest_body": float(np.max(upd)) / n,
+                    "jacobians_per_step": float(np.sum(np.asarray(jac))) / (B * n), "valid": bool(np.all(ok))}
 
-        return call, {"system": "point_vortices(G)", "form": "full",
-                      "jacobian": jacobian + (" (constraint matrix; fixed-point sweeps)" if scheme == "gauss" else ""),
-                      "plan": cj.step_plan(system, scheme=scheme, order=order)}
+        return call, facts
+
+
+def cluster_targets(scene_result: dict) -> dict:
+    """Issue 20's reading for the clusters: at each diffrax point with rtol in `CLUSTER_RTOLS`, is
+    there a point of ours no slower, no worse in global error, and with an energy error
+    `CLUSTER_ENERGY_RATIO` times smaller (or below `CLUSTER_ENERGY_ROUND_OFF`)? Each row names the
+    fastest such point, or else the point of ours that comes closest (the fastest among those
+    at least as accurate in both errors, with its time ratio)."""
+    pts = [p for p in scene_result["points"] if p["valid"]]
+    ours = [p for p in pts if p["family"] == OURS]
+    rows = []
+    for peer in sorted((p for p in pts if p["family"] == DIFFRAX
+                        and CLUSTER_RTOLS[0] * (1 - 1e-9) <= p["param"] <= CLUSTER_RTOLS[1] * (1 + 1e-9)),
+                       key=lambda p: (p["method"], -p["param"])):
+        def accurate(o):
+            return (o["global_error"] <= peer["global_error"]
+                    and (o["energy_error"] * CLUSTER_ENERGY_RATIO <= peer["energy_error"]
+                         or o["energy_error"] <= CLUSTER_ENERGY_ROUND_OFF))
+        good = sorted((o for o in ours if accurate(o)), key=lambda o: o["wall_s"])
+        met = [o for o in good if o["wall_s"] <= peer["wall_s"]]
+        best = met[0] if met else (good[0] if good else None)
+        rows.append({
+            "peer": f"{peer['method']} rtol {peer['param']:g}", "peer_wall_s": peer["wall_s"],
+            "peer_global": peer["global_error"], "peer_energy": peer["energy_error"], "met": bool(met),
+            "ours": None if best is None else f"{best['method']} dt {best['param']:g}",
+            "ours_wall_s": None if best is None else best["wall_s"],
+            "ours_global": None if best is None else best["global_error"],
+            "ours_energy": None if best is None else best["energy_error"],
+            "time_ratio_ours_over_peer": None if best is None else best["wall_s"] / peer["wall_s"],
+        })
+    return {"rtols": list(CLUSTER_RTOLS), "energy_ratio": CLUSTER_ENERGY_RATIO,
+            "energy_round_off": CLUSTER_ENERGY_ROUND_OFF, "rows": rows,
+            "met": bool(rows) and all(r["met"] for r in rows)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -406,15 +554,15 @@ def diffrax_program(scene, solver_name: str, compiler_options=None):
             throw=False)
         return sol.ys, sol.stats["num_steps"], sol.result == diffrax.RESULTS.successful
 
-    fn = jax.vmap(one, in_axes=(0, None)) if scene.name == "rigid_body" else one
+    fn = jax.vmap(one, in_axes=(0, None)) if scene.batched else one
     prog = jax.jit(fn, compiler_options=compiler_options)
     y0 = jnp.asarray(scene.y0)
 
     def call(rtol):
         ys, steps, ok = jax.block_until_ready(prog(y0, rtol))
         ys = np.asarray(ys)
-        if scene.name == "rigid_body":
-            ys = np.moveaxis(ys, 0, 1)  # (n_samples + 1, B, 3)
+        if scene.batched:
+            ys = np.moveaxis(ys, 0, 1)  # (n_samples + 1, B, ...)
         return {"ys": ys, "steps": int(np.max(steps)), "steps_mean": float(np.mean(steps)), "valid": bool(np.all(ok))}
 
     return call
@@ -574,7 +722,7 @@ def _peer_point(scene, family, method, param_name, param, timing, res, y_ref, co
 def _ours_point(scene, order, dt, n_chunks, timing, res, y_ref, plan, facts, compile_s, method) -> dict:
     n_steps = n_chunks * scene.cfg["chunk"]
     solves = plan.solves_per_step
-    members = scene.y0.shape[0] if scene.name == "rigid_body" else 1
+    members = scene.members
     point = {
         "family": OURS, "method": method, "order": plan.order, "composition": plan.name,
         "solves_per_step": solves, "param_name": "dt", "param": dt, "steps": n_steps, "chunks": n_chunks,
@@ -768,6 +916,17 @@ def print_report(summary: dict) -> None:
                 if p["family"] == OURS else "")
              + ("" if p["valid"] else "  FAILED")
              for p in sc["points"]))
+    for key, ct in summary.get("cluster_targets", {}).items():
+        print(f"\nIssue 20 target, {key}: at each diffrax tolerance from {ct['rtols'][1]:g} to {ct['rtols'][0]:g}, a "
+              f"point of ours no slower, no worse in global error, and >= {ct['energy_ratio']:g}x better in energy "
+              f"(or below {ct['energy_round_off']:g}): {'MET' if ct['met'] else 'NOT MET'}")
+        for r in ct["rows"]:
+            ours = ("no point of ours is as accurate" if r["ours"] is None else
+                    f"{'met by' if r['met'] else 'closest:'} {r['ours']} {r['ours_wall_s']:.3g} s "
+                    f"({r['time_ratio_ours_over_peer']:.2f}x), global {r['ours_global']:.1e}, "
+                    f"energy {r['ours_energy']:.1e}")
+            print(f"  {r['peer']:<18} {r['peer_wall_s']:8.3g} s, global {r['peer_global']:.1e}, energy "
+                  f"{r['peer_energy']:.1e}: {ours}")
     for key, tg in summary["targets"].items():
         print(f"\nIssue 5 targets, {key} (rigid-body batch, T = {tg['T']:g}), at equal wall time:")
         for name, what in (("energy", f"max energy error, best diffrax / ours >= {ENERGY_TARGET:g}"),
@@ -796,6 +955,7 @@ _STYLE = {  # method -> (marker, colour, label)
     "order6": ("o", "#2171b5", "ours, order 6"),
     "order8": ("o", "#08306b", "ours, order 8"),
     "gauss4": ("*", "#74c476", "ours, Gauss-Legendre order 4"),
+    "gauss6": ("*", "#41ab5d", "ours, Gauss-Legendre order 6"),
     "gauss8": ("*", "#006d2c", "ours, Gauss-Legendre order 8"),
     "gauss12": ("P", "#e7298a", "ours, Gauss-Legendre order 12"),
     "gauss16": ("X", "#7a0177", "ours, Gauss-Legendre order 16"),
@@ -857,7 +1017,10 @@ def plot(summary: dict, path: Path) -> None:
 def _add_arguments(parser) -> None:
     parser.add_argument("--long", action="store_true",
                         help="the rigid-body batch at T = 1e4 (written as work_precision_long.{json,png})")
-    parser.add_argument("--scenes", nargs="+", choices=list(DEFAULT), default=None,
+    parser.add_argument("--clusters", action="store_true",
+                        help="batches of leapfrogging 4-vortex clusters at T = 1e3 (issue 20; written as "
+                             "work_precision_clusters.{json,png})")
+    parser.add_argument("--scenes", nargs="+", choices=list(DEFAULT) + list(CLUSTERS), default=None,
                         help="run only these scenes (default: all; with --long: rigid_body)")
     parser.add_argument("--point-budget", type=float, default=None, dest="point_budget",
                         help="seconds of samples per point (default 5; 0.05 with --quick)")
@@ -867,24 +1030,33 @@ def main(argv=None) -> dict:
     import sys
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    name = "work_precision_long" if "--long" in argv else "work_precision"
+    name = ("work_precision_long" if "--long" in argv else "work_precision_clusters" if "--clusters" in argv
+            else "work_precision")
     with harness.Run(name, argv, description="Work-precision diagram: ours (orders 2-8) against diffrax, "
                      "SciPy and NumPy (see module docstring).", add_arguments=_add_arguments) as run:
         args = run.args
         if args.point_budget is None:
             args.point_budget = 0.05 if run.quick else 5.0
-        config = QUICK if run.quick else LONG if args.long else DEFAULT
+        if args.long and args.clusters:
+            raise SystemExit("--long and --clusters are separate runs: give one of them")
+        if args.clusters:
+            config = QUICK_CLUSTERS if run.quick else CLUSTERS
+        else:
+            config = QUICK if run.quick else LONG if args.long else DEFAULT
         names = [s for s in (args.scenes or list(config)) if s in config]
         results = []
         for s in names:
-            scene = RigidBody(config[s]) if s == "rigid_body" else Vortices(s, config[s])
+            scene = (RigidBody(config[s]) if s == "rigid_body" else VortexClusters(config[s])
+                     if s == "vortex_clusters" else Vortices(s, config[s]))
             results.append(run_scene(scene, run))
     tg = {f"rigid_body_T{r['T']:g}": targets(r) for r in results if r["scene"] == "rigid_body"}
     # the same comparisons on the vortex scenes, for context (the issue states no target there)
     context = {r["scene"]: targets(r) for r in results if r["scene"] != "rigid_body"}
+    clusters = {r["scene"]: cluster_targets(r) for r in results if r["scene"] == "vortex_clusters"}
     summary = run.summary(
         config={
-            "mode": "quick" if run.quick else "long" if args.long else "default",
+            "mode": ("quick " if run.quick else "") + ("long" if args.long else "clusters" if args.clusters
+                                                         else "default"),
             "point_budget_s": args.point_budget,
             "timing": "first call of a compiled program is a sample; more while their total < point_budget_s "
                       "(at most `repeats`); median. Points timed one after another, load recorded per point.",
@@ -899,6 +1071,7 @@ def main(argv=None) -> dict:
         results=results,
         targets=tg,
         vortex_comparisons=context,
+        cluster_targets=clusters,
     )
     return run.finish(summary, print_report, plot)
 

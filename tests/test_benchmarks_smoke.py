@@ -215,6 +215,24 @@ def check_work_precision(summary: dict) -> None:
     assert all(comparison[k]["met"] in (True, False, None) for k in ("energy", "global"))
 
 
+def check_work_precision_clusters(summary: dict) -> None:
+    (sc,) = summary["results"]
+    assert sc["scene"] == "vortex_clusters" and sc["shape"] == [2, 4, 2]
+    assert {p["family"] for p in sc["points"]} == {"ours", "diffrax"}
+    for p in sc["points"]:
+        where = (p["method"], p["param"])
+        assert p["valid"] and _positive_finite(p["wall_s"]), where
+        for key in ("global_error", "energy_error", "invariant_error"):
+            assert math.isfinite(p[key]) and p[key] >= 0, (where, key)
+        if p["family"] == "ours":
+            # Gauss-Legendre keeps the angular impulse (quadratic) to round-off (loose bound)
+            assert p["method"].startswith("gauss") and p["invariant_error"] < 1e-12, where
+    ct = summary["cluster_targets"]["vortex_clusters"]
+    assert ct["met"] in (True, False) and ct["rows"]  # the quick run's rtol 1e-8 points are compared
+    for r in ct["rows"]:
+        assert r["met"] in (True, False) and (r["ours"] is None or _positive_finite(r["time_ratio_ours_over_peer"]))
+
+
 def check_soak(summary: dict) -> None:
     cases = {r["case"]: r for r in summary["results"]}
     assert set(cases) == {"rigid_body", "rigid_body_order4", "vortices_4"}
@@ -301,22 +319,27 @@ CHECKS = {
     "vortex_step_cost": check_vortex_step_cost,
     "throughput": check_throughput,
     "work_precision": check_work_precision,
+    "work_precision_clusters": check_work_precision_clusters,
     "soak": check_soak,
     "defaults": check_defaults,
     "sweep_scaling": check_sweep_scaling,
 }
 
 
+SCRIPTS = {"work_precision_clusters": ("work_precision", ["--clusters"])}  # name -> (script, extra arguments)
+
+
 @pytest.mark.slow  # minutes for the seven scripts (benchmarks/README.md): run with -m slow, and in CI
 @pytest.mark.parametrize("name", list(CHECKS))
 def test_benchmark_quick(name, tmp_path):
-    if name == "work_precision":  # diffrax is a benchmark peer only: the optional extra [bench]
+    script, extra = SCRIPTS.get(name, (name, []))
+    if script == "work_precision":  # diffrax is a benchmark peer only: the optional extra [bench]
         pytest.importorskip("diffrax", reason="work_precision needs diffrax: pip install -e '.[bench]'")
     if name == "sweep_scaling":  # Dask and Zarr are the optional extra [sweep]
         pytest.importorskip("distributed", reason="sweep_scaling needs dask.distributed: pip install -e '.[sweep]'")
         pytest.importorskip("zarr", reason="sweep_scaling needs zarr: pip install -e '.[sweep]'")
-    subprocess.run([sys.executable, str(BENCHMARKS / f"{name}.py"), "--quick", "--out", str(tmp_path), "--timeout", "0"],
-                   check=True, capture_output=True, text=True)
+    subprocess.run([sys.executable, str(BENCHMARKS / f"{script}.py"), "--quick", *extra, "--out", str(tmp_path),
+                    "--timeout", "0"], check=True, capture_output=True, text=True)
 
     assert (tmp_path / f"{name}.png").stat().st_size > 0
     summary = json.loads((tmp_path / f"{name}.json").read_text())
