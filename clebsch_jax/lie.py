@@ -96,9 +96,40 @@ def cayley_log(A: jax.Array) -> jax.Array:
     return 2.0 * _linalg.solve(A + eye, A - eye)
 
 
+_PADE13 = (64764752532480000.0, 32382376266240000.0, 7771770303897600.0, 1187353796428800.0,
+           129060195264000.0, 10559470521600.0, 670442572800.0, 33522128640.0, 1323241920.0, 40840800.0,
+           960960.0, 16380.0, 182.0, 1.0)
+_PADE13_THETA = 5.371920351148152  # largest 1-norm where the [13/13] Padé approximant is exact to ε (Higham 2005)
+EXPM_MAX_SQUARINGS = 16
+"""`expm` scales its argument by at most 2⁻¹⁶ (1-norms up to about 3.5·10⁵ are exact)."""
+
+
 def expm(X: jax.Array) -> jax.Array:
-    """Matrix exponential (`jax.scipy.linalg.expm`, Padé with scaling and squaring)."""
-    return jax.scipy.linalg.expm(X)
+    """Matrix exponential of X (..., n, n): the [13/13] Padé approximant with scaling and
+    squaring (Higham 2005), in XLA operations — the denominator solved by
+    `clebsch_jax.core.linalg.solve`, the squarings a scan of `EXPM_MAX_SQUARINGS` steps that
+    square only as often as the scaling needs (so reverse mode works). `jax.scipy.linalg.expm`
+    is the same algorithm with a LAPACK LU, whose batched kernel is what deadlocked sweeps
+    (`clebsch_jax.core.linalg`); the tests compare the two."""
+    X = jnp.asarray(X)
+    eye = _eye_like(X)
+    norm = jnp.max(jnp.sum(jnp.abs(X), axis=-2), axis=-1)  # the 1-norm
+    s = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, jnp.finfo(X.dtype).tiny) / _PADE13_THETA)), 0,
+                 EXPM_MAX_SQUARINGS)
+    A = X / (2.0 ** s)[..., None, None]
+    mm = _linalg.matmul
+    A2 = mm(A, A)
+    A4 = mm(A2, A2)
+    A6 = mm(A4, A2)
+    b = _PADE13
+    U = mm(A, mm(A6, b[13] * A6 + b[11] * A4 + b[9] * A2) + b[7] * A6 + b[5] * A4 + b[3] * A2 + b[1] * eye)
+    V = mm(A6, b[12] * A6 + b[10] * A4 + b[8] * A2) + b[6] * A6 + b[4] * A4 + b[2] * A2 + b[0] * eye
+    R = _linalg.solve(V - U, V + U)
+
+    def square(R, k):
+        return jnp.where((k < s)[..., None, None], mm(R, R), R), None
+
+    return jax.lax.scan(square, R, jnp.arange(EXPM_MAX_SQUARINGS))[0]
 
 
 def sqrtm(A: jax.Array, *, iterations: int = 8) -> jax.Array:
