@@ -322,9 +322,8 @@ def test_dense_solves_above_three_unknowns_match_numpy(n):
 @pytest.mark.parametrize("n", [3, 12])
 def test_positive_definite_solves_match_numpy_batched_or_not_and_are_nan_otherwise(n):
     """`linalg.spd_solve`: one matrix by LAPACK, a vmapped batch by Cholesky in XLA operations;
-    both against NumPy, NaN for a matrix that is
-    not positive definite; for n = 3, derivatives up to third order (implicit, through
-    `custom_linear_solve`) equal to those through `jax.scipy`'s Cholesky."""
+    both against NumPy, and NaN for a matrix that is not positive definite (derivatives:
+    `test_positive_definite_solve_derivatives_up_to_third_order_match_jax_scipy`)."""
     from clebsch_jax.core import linalg
 
     rng = np.random.default_rng(n)
@@ -339,14 +338,21 @@ def test_positive_definite_solves_match_numpy_batched_or_not_and_are_nan_otherwi
     indefinite = jnp.asarray(np.eye(n) - 2.0 * np.outer(np.eye(n)[0], np.eye(n)[0]))  # diag(-1, 1, ..., 1)
     assert np.all(np.isnan(np.asarray(linalg.spd_solve(indefinite, jnp.ones(n)))))
     assert np.all(np.isnan(np.asarray(jax.vmap(linalg.spd_solve)(jnp.stack([indefinite] * 2), jnp.ones((2, n))))))
-    if n != 3:
-        return
-    kernel = lambda q: jnp.exp(-jnp.abs(q[:, None] - q[None, :]))  # the peakon kernel, SPD for distinct q
+
+
+@pytest.mark.slow  # ~5 s of compile; the landmark gradient tests (test_control.py) differentiate it too
+def test_positive_definite_solve_derivatives_up_to_third_order_match_jax_scipy():
+    """Derivatives of ½xᵀK(q)⁻¹x (the peakon kernel) up to third order through `linalg.spd_solve`
+    (implicit, `custom_linear_solve`; batched: the XLA-operations Cholesky) equal those through
+    `jax.scipy`'s Cholesky."""
+    from clebsch_jax.core import linalg
+
+    kernel = lambda q: jnp.exp(-jnp.abs(q[:, None] - q[None, :]))  # SPD for distinct q
     energy = lambda solve: lambda q, x: 0.5 * x @ solve(kernel(q), x)
     ours = energy(linalg.spd_solve)
     scipy = energy(lambda K, x: jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(K, lower=True), x))
     third = lambda f: jax.jacfwd(jax.hessian(f, (0, 1)), (0, 1))
-    q, x = rng.normal(size=(2, n))
+    q, x = np.random.default_rng(3).normal(size=(2, 3))
     want = jax.jit(third(scipy))(q, x)
     got = jax.jit(jax.vmap(third(ours)))(jnp.stack([q, q]), jnp.stack([x, x]))
     for w, g in zip(jax.tree_util.tree_leaves(want), jax.tree_util.tree_leaves(got)):
