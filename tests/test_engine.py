@@ -362,10 +362,10 @@ def test_positive_definite_solve_derivatives_up_to_third_order_match_jax_scipy()
 
 
 def test_batched_marches_call_no_lapack_kernel():
-    """Batched marches (the peakons' Cholesky solve and the exponential map's `expm` included) and the cotangent hand-over compile
-    to XLA operations only: jaxlib's batched LAPACK kernels share XLA's intra-op thread pool and
-    deadlocked a sweep on two host devices (`tests/test_sweep.py`, `devices=2`) and a sweep of
-    2048 peakon systems on one."""
+    """Batched marches (the peakons' Cholesky solve and the exponential map's `expm` included)
+    and the cotangent hand-over compile to XLA operations only: jaxlib's batched LAPACK kernels
+    share XLA's intra-op thread pool and deadlocked a sweep on two host devices
+    (`tests/test_sweep.py`, `devices=2`) and a sweep of 2048 peakon systems on one."""
     from clebsch_jax.discrete.legendre import cotangent_from_momentum
     from .test_first_step_check import _se3_body, _se3_kinetic
 

@@ -330,7 +330,8 @@ import clebsch_jax as cj
 rng = np.random.default_rng(0)
 B = 2048
 Q0 = np.sort(2.0 * rng.normal(size=(B, 3)), axis=1)
-xi0 = np.asarray(jax.vmap(cj.models.peakon_velocity)(jnp.asarray(Q0), jnp.asarray(np.abs(rng.normal(size=(B, 3))) + 0.5)))
+p0 = np.abs(rng.normal(size=(B, 3))) + 0.5
+xi0 = np.asarray(jax.vmap(cj.models.peakon_velocity)(jnp.asarray(Q0), jnp.asarray(p0)))
 for _ in range(2):
     res = cj.sweep(cj.models.peakons, np.ones(B), Q0, xi0, dt=0.01, n_steps=20, chunk_steps=10, batch_size=B // 2)
 print("finished", len(res.failed_members))

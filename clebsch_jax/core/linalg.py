@@ -18,8 +18,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["inv", "solve", "spd_solve", "cholesky", "cholesky_solve", "factor", "inverse", "solve_factored", "lu_factor", "lu_solve", "matmul",
-           "matvec", "weighted_sum"]
+__all__ = ["inv", "solve", "spd_solve", "cholesky", "cholesky_solve", "factor", "inverse", "solve_factored",
+           "lu_factor", "lu_solve", "matmul", "matvec", "weighted_sum"]
 
 CLOSED_FORM_MAX = 3
 
@@ -218,9 +218,9 @@ def spd_solve(K: jax.Array, b: jax.Array) -> jax.Array:
     batched, as in `jax.jacfwd`); when K is batched by `jax.vmap` the factor and the triangular
     solves are `cholesky` and `cholesky_solve`, XLA operations
     (`jax.custom_batching.custom_vmap`): jaxlib's batched LAPACK triangular solve deadlocked a
-    sweep of 2048 peakon systems on one device. Derivatives are implicit (`jax.lax.custom_linear_solve`): the tangent of
-    x = K⁻¹b is K⁻¹(ḃ − K̇x), solved with the same factor, so no derivative of any order runs
-    through the factorisation."""
+    sweep of 2048 peakon systems on one device. Derivatives are implicit
+    (`jax.lax.custom_linear_solve`): the tangent of x = K⁻¹b is K⁻¹(ḃ − K̇x), solved with the
+    same factor, so no derivative of any order runs through the factorisation."""
     K, b = jnp.asarray(K), jnp.asarray(b)
     L = _cholesky_factor(jax.lax.stop_gradient(K))
     return jax.lax.custom_linear_solve(lambda x: K @ x, b, lambda _, r: _cholesky_apply(L, r), symmetric=True)

@@ -141,22 +141,16 @@ def _landmark_matrix(width, Q):
     return _pairwise(_gauss_k, width, Q)
 
 
-def _solve_spd(K, b):
-    """K⁻¹ b for symmetric positive definite K by Cholesky (`clebsch_jax.core.linalg.spd_solve`:
-    no batched LAPACK call, implicit derivatives); NaN when K is not numerically SPD."""
-    return _linalg.spd_solve(K, b)
-
-
 # --------------------------------------------------------------------------------------------
 # The Clebsch system: l(ξ, Q) = ½ ξ·K(Q)⁻¹ξ, L_ξ Q = ξ.
 
 
 def _peakon_lagrangian(width, xi, Q):
-    return 0.5 * jnp.sum(xi * _solve_spd(_peakon_matrix(width, Q), xi))
+    return 0.5 * jnp.sum(xi * _linalg.spd_solve(_peakon_matrix(width, Q), xi))
 
 
 def _landmark_lagrangian(width, xi, Q):
-    return 0.5 * jnp.sum(xi * _solve_spd(_landmark_matrix(width, Q), xi))
+    return 0.5 * jnp.sum(xi * _linalg.spd_solve(_landmark_matrix(width, Q), xi))
 
 
 def _translation(xi, Q):
@@ -297,7 +291,7 @@ def _velocity(matrix, w, q, p):
 
 
 def _momenta(matrix, w, q, xi):
-    return _solve_spd(matrix(w, q), xi)
+    return _linalg.spd_solve(matrix(w, q), xi)
 
 
 def peakon_kernel_matrix(Q, width=1.0) -> jax.Array:
