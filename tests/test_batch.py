@@ -171,8 +171,8 @@ def test_failure_is_reported_per_member():
     def run(q, x):
         return cj.integrate(system, q, x, dt=0.1, n_steps=10, throw=False)
 
-    ref = jax.vmap(run)(Q0, omegas)
-    out = cj.batch(run)(Q0, omegas)
+    ref = jax.jit(jax.vmap(run))(Q0, omegas)  # jitted: op by op (one dispatch per operation) it is slow
+    out = jax.jit(cj.batch(run))(Q0, omegas)
     np.testing.assert_array_equal(np.asarray(out.result), np.asarray(ref.result))
     np.testing.assert_array_equal(np.asarray(out.failed_step), np.asarray(ref.failed_step))
     assert np.asarray(out.result)[2] != cj.Status.SUCCESS
