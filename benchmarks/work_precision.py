@@ -462,7 +462,7 @@ class VortexClusters(Vortices):
         self.label = f"{self.members} clusters of 4 vortices leapfrogging, T = {self.T:g}"
         self.scale = float(np.max(np.abs(self.y0)))
         self.lin_norm = np.sum(np.abs(self.gamma) * np.linalg.norm(self.y0, axis=-1), -1)  # (B,)
-        self.ang_norm = np.sum(np.abs(self.gamma) * np.sum(self.y0**2, -1), -1)
+        # the angular impulse is judged per node and sample instead (`diagnostics`)
 
     def rhs_np(self, y):
         return vortex.biot_savart(np.broadcast_to(self.gamma, y.shape[:-1]), y)
@@ -1055,8 +1055,8 @@ def main(argv=None) -> dict:
     clusters = {r["scene"]: cluster_targets(r) for r in results if r["scene"] == "vortex_clusters"}
     summary = run.summary(
         config={
-            "mode": ("quick " if run.quick else "") + ("long" if args.long else "clusters" if args.clusters
-                                                         else "default"),
+            "mode": ("quick clusters" if run.quick and args.clusters else "quick" if run.quick else "long"
+                     if args.long else "clusters" if args.clusters else "default"),
             "point_budget_s": args.point_budget,
             "timing": "first call of a compiled program is a sample; more while their total < point_budget_s "
                       "(at most `repeats`); median. Points timed one after another, load recorded per point.",
