@@ -269,3 +269,66 @@ def test_scalarise_keeps_optimization_barriers():
     xs = jnp.arange(12.0).reshape(4, 3)
     np.testing.assert_allclose(jax.jit(scalarise(f))(xs), jax.vmap(f)(xs), rtol=1e-15)
     assert "optimization_barrier" in str(jax.make_jaxpr(scalarise(f))(xs))
+
+
+# Unbatched operations on values known at trace time, one of each kind `scalarise` folds in NumPy
+FOLDED = {
+    "arithmetic": lambda a, b: (a + b, a - b, a * b, a / b, -a, jnp.maximum(a, b), jnp.minimum(a, b), jnp.abs(b)),
+    "comparisons": lambda a, b: (a == b, a != b, a < b, a <= b, a > b, a >= b, (a < b) & (a > 0), (a < b) | ~(b > 0)),
+    "select": lambda a, b: (jnp.where(a > b, a, b), jax.lax.select_n(jnp.arange(3) % 2 == 0, a, b)),
+    "layout": lambda a, b: (jnp.eye(3, dtype=a.dtype), jnp.broadcast_to(a[:, None], (3, 4)), a.reshape(1, 3),
+                            jnp.squeeze(a.reshape(1, 3), 0), a[1:], a[::2], jnp.outer(a, b).T, a[::-1],
+                            jnp.concatenate([a, b]), jnp.stack([a, b], 1), *jnp.split(a, 3)),
+    "types": lambda a, b: (a.astype(jnp.int32), jnp.arange(4), (a > 0).astype(a.dtype)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(FOLDED))
+def test_scalarise_folds_known_values_in_numpy_exactly(name):
+    """Every operation of `FOLDED[name]` on known operands gives, folded in NumPy, JAX's own
+    result to the bit (the folding rules are exact: rounded IEEE arithmetic and re-indexing)."""
+    from clebsch_jax.batching.batch_last import _bind
+    from clebsch_jax.batching.scalarise import _numpy_fold
+
+    a, b = np.array([0.3, -1.7, 2.5]), np.array([1.1, -1.7, 1e-3])
+    jaxpr = jax.make_jaxpr(FOLDED[name])(a, b).jaxpr
+    env = {jaxpr.invars[0]: a, jaxpr.invars[1]: b}
+    read = lambda v: np.asarray(v.val) if isinstance(v, jax.extend.core.Literal) else env[v]
+    folded = 0
+    for eqn in jaxpr.eqns:
+        known = [read(v) for v in eqn.invars]
+        with jax.ensure_compile_time_eval():
+            want = [np.asarray(o) for o in _bind(eqn, [jnp.asarray(k) for k in known])]
+        got = _numpy_fold(eqn, known)
+        if got is not None:
+            folded += 1
+            for g, w in zip(got, want):
+                g = np.asarray(g, dtype=w.dtype)
+                assert g.shape == w.shape and np.array_equal(g, w), eqn
+        for v, w in zip(eqn.outvars, want):
+            env[v] = w
+    assert folded >= len(jaxpr.eqns) - 2  # at most the `jit` wrappers of jnp.where and split are not folded
+
+
+def test_scalarise_traces_known_values_without_compiling():
+    """Tracing a member program whose loop builds constants (an identity, slices, a split) runs
+    no eager JAX operation: `scalarise` folds them in NumPy, where each would otherwise be
+    dispatched and, per new shape, compiled on its own."""
+    def f(x):
+        def body(c, _):
+            e = jnp.eye(3, dtype=c.dtype)
+            w = jnp.stack(jnp.split(jnp.arange(3.0), 3))[:, 0]
+            return e[:, 1:] @ c[:2] * 0.25 + c * 0.5 + w[::-1] * 1e-3, None
+        return jax.lax.scan(body, x, None, length=3)[0]
+
+    xs = jnp.asarray(np.random.default_rng(2).normal(size=(5, 3)))
+    compiles = []
+    record = [True]
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, secs, **kw: compiles.append(event) if record[0] and "backend_compile" in event else None)
+    try:
+        jax.jit(scalarise(f)).lower(xs)
+    finally:
+        record[0] = False
+    assert compiles == []
+    np.testing.assert_allclose(jax.jit(scalarise(f))(xs), jax.vmap(f)(xs), rtol=1e-15)

@@ -261,7 +261,9 @@ FOLD_SIZE = 64
 """An unbatched operation whose operands are all known when the program is traced, with at most
 this many output elements, is evaluated then (a NumPy constant): the entries of `jnp.eye`
 (the tangents a forward-mode Jacobian pushes through the step), the predictor's coefficients.
-Products with their zeros and ones are then not emitted at all."""
+Products with their zeros and ones are then not emitted at all. The evaluation is NumPy's own
+where it has a rule (`_numpy_fold`), not an eager JAX operation: a few hundred of those, each
+dispatched and, per new shape, compiled, made much of a lean chunk's trace time."""
 
 
 def _unbatched(eqn, xs):
@@ -271,10 +273,74 @@ def _unbatched(eqn, xs):
     if small and not eqn.effects and eqn.primitive.name not in _CONTROL and eqn.primitive.name not in _bl._CALLS:
         known = [_concrete(x) for x in xs]
         if all(k is not None for k in known):
-            with jax.ensure_compile_time_eval():
-                outs = _bl._bind(eqn, [jnp.asarray(k) for k in known])
-            return [np.asarray(o) for o in outs]
+            outs = _numpy_fold(eqn, known)
+            if outs is None:
+                with jax.ensure_compile_time_eval():
+                    outs = _bl._bind(eqn, [jnp.asarray(k) for k in known])
+            return [np.asarray(o, dtype=v.aval.dtype) for o, v in zip(outs, eqn.outvars)]
     return _bl._bind(eqn, xs)
+
+
+def _slice_np(x, p):
+    return x[tuple(slice(a, b, None if p["strides"] is None else p["strides"][i])
+                   for i, (a, b) in enumerate(zip(p["start_indices"], p["limit_indices"])))]
+
+
+def _broadcast_np(x, p):
+    shape, dims = tuple(p["shape"]), tuple(p["broadcast_dimensions"])
+    expanded = np.reshape(x, [x.shape[dims.index(d)] if d in dims else 1 for d in range(len(shape))])
+    return np.broadcast_to(expanded, shape)
+
+
+def _iota_np(p):
+    shape, d = tuple(p["shape"]), p["dimension"]
+    return np.broadcast_to(np.arange(shape[d]).reshape([-1 if i == d else 1 for i in range(len(shape))]), shape)
+
+
+def _split_np(x, p):
+    edges = np.cumsum(p["sizes"])[:-1]
+    return np.split(x, edges, axis=p["axis"])
+
+
+_NUMPY_FOLD = {  # exactly rounded IEEE operations (and pure re-indexing), which NumPy and XLA agree on
+    "add": lambda p, a, b: [a + b], "sub": lambda p, a, b: [a - b], "mul": lambda p, a, b: [a * b],
+    "neg": lambda p, a: [-a], "max": lambda p, a, b: [np.maximum(a, b)], "min": lambda p, a, b: [np.minimum(a, b)],
+    "eq": lambda p, a, b: [a == b], "ne": lambda p, a, b: [a != b], "lt": lambda p, a, b: [a < b],
+    "le": lambda p, a, b: [a <= b], "gt": lambda p, a, b: [a > b], "ge": lambda p, a, b: [a >= b],
+    "and": lambda p, a, b: [a & b], "or": lambda p, a, b: [a | b], "not": lambda p, a: [~a],
+    "abs": lambda p, a: [np.abs(a)],
+    "select_n": lambda p, c, *xs: [np.choose(np.asarray(c, np.int64), np.broadcast_arrays(*xs))],
+    "convert_element_type": lambda p, a: [a.astype(p["new_dtype"])],
+    "broadcast_in_dim": lambda p, a: [_broadcast_np(a, p)],
+    "reshape": lambda p, a: [np.reshape(a, p["new_sizes"])],
+    "squeeze": lambda p, a: [np.squeeze(a, tuple(p["dimensions"]))],
+    "slice": lambda p, a: [_slice_np(a, p)],
+    "transpose": lambda p, a: [np.transpose(a, p["permutation"])],
+    "rev": lambda p, a: [np.flip(a, tuple(p["dimensions"]))],
+    "concatenate": lambda p, *xs: [np.concatenate(xs, axis=p["dimension"])],
+    "stack": lambda p, *xs: [np.stack(xs, axis=p["axis"])],
+    "split": lambda p, a: _split_np(a, p),
+    "iota": lambda p: [_iota_np(p)],
+}
+
+
+def _numpy_fold(eqn, known):
+    """An unbatched operation on known operands evaluated in NumPy (None where it has no rule
+    here): JAX would run it eagerly, a dispatch and, for each new shape, a compile of its own.
+    Floating-point division is folded too (exactly rounded); integer division is not (C
+    semantics, which NumPy's differs from)."""
+    name = eqn.primitive.name
+    if name == "div" and all(np.issubdtype(k.dtype, np.floating) for k in known):
+        return [known[0] / known[1]]
+    rule = _NUMPY_FOLD.get(name)
+    if rule is None:
+        return None
+    if name in ("and", "or", "not") and not all(k.dtype == bool or np.issubdtype(k.dtype, np.integer) for k in known):
+        return None
+    try:
+        return rule(eqn.params, *known)
+    except (KeyError, TypeError, ValueError):  # parameters this rule does not know: JAX evaluates it
+        return None
 
 
 def _apply(eqn, vals, B):
@@ -329,9 +395,12 @@ def _elementwise(eqn, vals, B):
         res = _fold(eqn, args)
         if res is None:
             if all(_is_const(a) for a in args):
-                with eqn.ctx.manager, jax.ensure_compile_time_eval():
-                    res = eqn.primitive.bind(*[jnp.asarray(a) for a in args], **params)
-                res = [np.asarray(r) for r in (res if eqn.primitive.multiple_results else [res])]
+                res = _numpy_fold(eqn, [np.asarray(a) for a in args])
+                if res is None:
+                    with eqn.ctx.manager, jax.ensure_compile_time_eval():
+                        res = eqn.primitive.bind(*[jnp.asarray(a) for a in args], **params)
+                    res = res if eqn.primitive.multiple_results else [res]
+                res = [np.asarray(r, dtype=v.aval.dtype) for r, v in zip(res, eqn.outvars)]
             else:
                 args = [_lift(a, B, v.aval.dtype) for a, v in zip(args, eqn.invars)]
                 with eqn.ctx.manager:
