@@ -203,6 +203,35 @@ def test_lean_sweep_agrees_with_the_general_one_and_falls_back_like_it():
     np.testing.assert_allclose(res.final_momentum[ok], ref.final_momentum[ok], rtol=0, atol=1e-12)
 
 
+def test_auto_takes_the_lean_chunk_only_for_large_sweeps():
+    from clebsch_jax.batching.sweep import AUTO_LEAN_MIN_MEMBER_STEPS, AUTO_LEAN_MIN_MEMBERS, _auto_lean
+
+    assert not _auto_lean(1000, 10**6)  # short rows: the general chunk is as fast
+    assert not _auto_lean(AUTO_LEAN_MIN_MEMBERS, 10)  # long rows, little work: the compile is not repaid
+    assert _auto_lean(AUTO_LEAN_MIN_MEMBERS, -(-AUTO_LEAN_MIN_MEMBER_STEPS // AUTO_LEAN_MIN_MEMBERS))
+    assert _auto_lean(10**5, 10**3)
+
+
+@pytest.mark.slow  # compiles the lean chunk of the other lean tests (the same configuration)
+def test_auto_runs_the_lean_chunk_of_a_large_sweep_and_the_general_loop_otherwise(monkeypatch):
+    import clebsch_jax.batching.sweep as sw
+
+    lean = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **LEAN)
+    small = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, **LEAN)  # the default, "auto"
+    assert small.fast_chunks == 0
+    # the same four members counted as a large sweep: "auto" runs the lean chunk, to the bit
+    monkeypatch.setattr(sw, "AUTO_LEAN_MIN_MEMBERS", 4)
+    monkeypatch.setattr(sw, "AUTO_LEAN_MIN_MEMBER_STEPS", 4 * N_STEPS)
+    auto = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, **LEAN)
+    assert auto.fast_chunks == 2 and auto.fallback_chunks == 0
+    for key in ("final_momentum", "final_xi", "final_p", "energy_error", "newton_iterations"):
+        np.testing.assert_array_equal(getattr(auto, key), getattr(lean, key), err_msg=key)
+    # where the lean chunk does not apply (an invariant besides the energy), "auto" keeps the
+    # general loop, as fast=False: the recording fast chunk is not faster than it
+    inv = {"casimir": lambda system, sol: jnp.sum(sol.momentum**2, axis=-1)}
+    assert cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, invariants=inv, **LEAN).fast_chunks == 0
+
+
 @pytest.mark.slow  # two sweeps and eight member chunks evaluated op by op: half a minute
 def test_lean_chunk_carries_what_the_general_chunk_carries():
     """One member, no batching: the lean chunk's carry (state, running energy-check maxima,

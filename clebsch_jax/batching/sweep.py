@@ -73,6 +73,21 @@ _DEFAULT_BATCH_LEAN = 16_384
 """Members per compiled call of the lean chunk (`fast=True`): it records nothing, and its rows
 of many members share XLA's per-operation cost (`benchmarks/throughput.py --sweep-only`)."""
 
+AUTO_LEAN_MIN_MEMBERS = 8192
+"""`fast="auto"` runs the lean chunk only for sweeps of at least this many members: its rows
+need to be long to beat the general chunk (`benchmarks/throughput.py --sweep-only`)."""
+
+AUTO_LEAN_MIN_MEMBER_STEPS = 2 * 10**7
+"""... and of at least this many member-steps (members × `n_steps`): the lean chunk takes a few
+seconds longer to compile than the general one, which its faster steps repay only over a long
+enough sweep (the break-even follows from the compile times and rates that
+`benchmarks/throughput.py --sweep-only` measures)."""
+
+
+def _auto_lean(B: int, n_steps: int) -> bool:
+    """Whether `fast="auto"` tries the lean chunk for a sweep of B members and `n_steps` steps."""
+    return B >= AUTO_LEAN_MIN_MEMBERS and B * n_steps >= AUTO_LEAN_MIN_MEMBER_STEPS
+
 
 # --------------------------------------------------------------------------------------------
 # The result: one row per member.
@@ -945,7 +960,7 @@ def sweep(
     make_system, params, Q0, xi0, *, dt, n_steps: int, P0=None, grid: bool = False,
     invariants: dict | None = None, chunk_steps: int | None = None, batch_size: int | None = None,
     save_every: int | None = None, member_chunk: int | None = None, devices=None, progress=False,
-    store=None, client=None, overwrite: bool = False, fast: bool = False, **options,
+    store=None, client=None, overwrite: bool = False, fast: bool | str = "auto", **options,
 ) -> SweepResult:
     r"""Run many members — parameters × initial conditions — through `integrate`; keep a table.
 
@@ -1033,8 +1048,8 @@ def sweep(
       The table is identical to the bit to the in-process one (`clebsch_jax.batching.distributed`).
     - `overwrite`: with `store`, replace a store written by another configuration instead of
       refusing it.
-    - `fast`: False (default): the general Newton loop. True: where the method has a fast
-      path (`clebsch_jax.batching.fast`: the reduced march, possibly composed), each chunk
+    - `fast`: "auto" (default), True or False. False: the general Newton loop. True: where the
+      method has a fast path (`clebsch_jax.batching.fast`: the reduced march, possibly composed), each chunk
       first solves every step by a fixed number of Newton updates with a check per member and
       step, each component of a member its own row (`clebsch_jax.batching.scalarise`). When
       the sweep keeps no node and no invariant but the energy, the chunk is the lean one
@@ -1044,10 +1059,13 @@ def sweep(
       start with the general loop, which reports the failure (status and step) as
       `fast=False` would; reruns are counted in `SweepResult.fallback_chunks`, and the general
       program is compiled only when a rerun needs it. The table agrees with `fast=False` to
-      round-off (Newton iteration counts are those of the path that ran). Not yet the
-      default: the lean chunk compiles longer than the general one, which a short sweep does
-      not repay, and its speed needs long rows (its default `batch_size` is larger;
-      `benchmarks/throughput.py --sweep-only` measures both paths).
+      round-off (Newton iteration counts are those of the path that ran). "auto": the lean
+      chunk where it applies and the sweep is large — at least `AUTO_LEAN_MIN_MEMBERS` members
+      and `AUTO_LEAN_MIN_MEMBER_STEPS` member-steps — else the general loop: the lean chunk
+      compiles longer than the general one, which a short sweep does not repay, and its speed
+      needs long rows (its default `batch_size` is larger; `benchmarks/throughput.py
+      --sweep-only` measures both paths). The choice depends on B and `n_steps` only, so a
+      stored sweep resumes with the path it started with.
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own. One default differs from `integrate`'s: members that are degenerate
@@ -1072,15 +1090,17 @@ def sweep(
         from .store import check_arguments
 
         check_arguments(store, client, overwrite)
-    if not isinstance(fast, bool):
-        raise ValueError(f"fast: expected True or False, got {fast!r}.")
+    if not (isinstance(fast, bool) or (isinstance(fast, str) and fast == "auto")):
+        raise ValueError(f"fast: expected True, False or 'auto', got {fast!r}.")
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
     B, n_dev = members.B, len(run.devices)
     cfg = _particle_defaults(_chunk_config(run, members, options), members)
     shapes = _probe(cfg, members)
-    if fast:
+    if fast is True or (fast == "auto" and _auto_lean(B, run.n_steps)):
         method = _fast_method_of(cfg, members)
-        cfg = dataclasses.replace(cfg, fast_method=method, lean=_lean_applies(cfg, members, method))
+        lean = _lean_applies(cfg, members, method)
+        if fast is True or lean:  # "auto" takes the fast path only as the lean chunk
+            cfg = dataclasses.replace(cfg, fast_method=method, lean=lean)
     if batch_size is None:  # every device gets a batch
         per_device = -(-B // n_dev)
         if cfg.lean:  # batches of equal size (no padded members), at most _DEFAULT_BATCH_LEAN
