@@ -331,14 +331,16 @@ def _numpy_fold(eqn, known):
     semantics, which NumPy's differs from)."""
     name = eqn.primitive.name
     if name == "div" and all(np.issubdtype(k.dtype, np.floating) for k in known):
-        return [known[0] / known[1]]
+        with np.errstate(all="ignore"):
+            return [known[0] / known[1]]
     rule = _NUMPY_FOLD.get(name)
     if rule is None:
         return None
     if name in ("and", "or", "not") and not all(k.dtype == bool or np.issubdtype(k.dtype, np.integer) for k in known):
         return None
     try:
-        return rule(eqn.params, *known)
+        with np.errstate(all="ignore"):  # IEEE results (inf·0 = NaN, x/0 = inf), silently, as JAX
+            return rule(eqn.params, *known)
     except (KeyError, TypeError, ValueError):  # parameters this rule does not know: JAX evaluates it
         return None
 
