@@ -20,8 +20,10 @@ reruns the chunk with the general path, which reports the failure's status and s
 chunk only has to notice that something failed, never to say what.
 
 The first `warmup` steps of a chunk (the fast method's `FixedNewton.warmup`), while the
-predictor has few earlier steps, make full Newton updates (a fresh Jacobian at every update)
-instead of chord updates: still straight-line code, in a loop of their own.
+predictor has few earlier steps, are solved by the general Newton loop instead, in the same
+loop over the steps: `FixedNewton` chooses its solve by the step's number (a `cond` on a value
+every member shares), so the nodal velocities, the energy check and the reductions are
+compiled once for every step.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from ..roots.status import Status
 from ..steppers.base import AbstractWrapper
 from ..steppers.reduced import ReducedStep
 
-__all__ = ["lean_chunk", "supports", "LEAN_UPDATES", "NODAL_UPDATES", "WARMUP_UPDATES"]
+__all__ = ["lean_chunk", "supports", "LEAN_UPDATES", "NODAL_UPDATES"]
 
 NODAL_UPDATES = 2
 """Chord updates of a node's velocity solve: the relation is linear for a Lagrangian quadratic
@@ -55,12 +57,9 @@ is at round-off in a well-resolved march and the second at the noise floor; the 
 tells a converged solve from one still contracting (a chunk where it fails runs again with the
 general path)."""
 
-WARMUP_UPDATES = 4
-"""Full Newton updates per step in the warm-up, from a guess of error O(Δt)."""
-
 UNROLL = 2
-"""Steps per iteration of the main loop: XLA keeps the carry's rows in place over an unrolled
-pair; more copies of the long step body cost compile time for no further gain."""
+"""Steps per iteration of the loop: XLA keeps the carry's rows in place over an unrolled pair;
+more copies of the long step body cost compile time for no further gain."""
 
 
 def _with_finder(stepper, **changes):
@@ -131,36 +130,29 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
         drift=jnp.abs(E0 - ref), xin=xin0, mu=mu0, **({"Q": Q0} if carries_Q else {}),
     )
 
-    def body_of(method):
-        def body(k, c):
-            state_prev, memory, red = c
-            state, memory, out, stats = method.step(system, state_prev, memory, dt, k, jnp.asarray(True))
-            nodes = method.nodes(system, state_prev, _one(state), _one(out))
-            Qn, mun, xi_step = nodes.nodal_Q[1], nodes.momentum[1], nodes.xi_step[0]
-            xin, nst = _nodal_velocity(system, finder, Qn, mun, 2 * xi_step - red["xin"])
-            E, size = node_energy(system, Qn, xin)
-            # red["size"] holds the sizes of the nodes up to the one this step leaves
-            change, _, jumped = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
-            size_max = jnp.maximum(red["size"], zero_nan(size))
-            good = (stats.status == Status.SUCCESS) & (nst.status == Status.SUCCESS) & ~jumped
-            red = dict(
-                ok=red["ok"] & good, iterations=red["iterations"] + stats.iterations,
-                residual=jnp.maximum(red["residual"], stats.residual_norm), change=change, size=size_max, E=E,
-                drift=jnp.maximum(red["drift"], jnp.abs(E - ref)), xin=xin, mu=mun,
-                **({"Q": nodes.Q[1]} if carries_Q else {}),
-            )
-            return state, memory, red
-        return body
+    # warm-up steps by the general loop, the others by LEAN_UPDATES fixed updates (module docstring)
+    method = _with_finder(stepper, warmup=min(finder.warmup, n), updates=LEAN_UPDATES)
 
-    w = min(finder.warmup, n)
-    c = (state0, memory0, reductions)
-    if w:  # a while loop, which is not unrolled: its long body is compiled once
-        warm = body_of(_with_finder(stepper, refresh=True, warmup=0, updates=WARMUP_UPDATES))
-        c = jax.lax.while_loop(lambda kc: kc[0] < w, lambda kc: (kc[0] + 1, warm(kc[0], kc[1])),
-                               (jnp.asarray(0, jnp.int32), c))[1]
-    if n > w:
-        main = _with_finder(stepper, warmup=0, updates=LEAN_UPDATES)
-        c = jax.lax.fori_loop(w, n, body_of(main), c, unroll=min(UNROLL, n - w))
+    def body(k, c):
+        state_prev, memory, red = c
+        state, memory, out, stats = method.step(system, state_prev, memory, dt, k, jnp.asarray(True))
+        nodes = method.nodes(system, state_prev, _one(state), _one(out))
+        Qn, mun, xi_step = nodes.nodal_Q[1], nodes.momentum[1], nodes.xi_step[0]
+        xin, nst = _nodal_velocity(system, finder, Qn, mun, 2 * xi_step - red["xin"])
+        E, size = node_energy(system, Qn, xin)
+        # red["size"] holds the sizes of the nodes up to the one this step leaves
+        change, _, jumped = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
+        size_max = jnp.maximum(red["size"], zero_nan(size))
+        good = (stats.status == Status.SUCCESS) & (nst.status == Status.SUCCESS) & ~jumped
+        red = dict(
+            ok=red["ok"] & good, iterations=red["iterations"] + stats.iterations,
+            residual=jnp.maximum(red["residual"], stats.residual_norm), change=change, size=size_max, E=E,
+            drift=jnp.maximum(red["drift"], jnp.abs(E - ref)), xin=xin, mu=mun,
+            **({"Q": nodes.Q[1]} if carries_Q else {}),
+        )
+        return state, memory, red
+
+    c = jax.lax.fori_loop(0, n, body, (state0, memory0, reductions), unroll=min(UNROLL, n))
     red = c[2]
     Qn, mun = red.get("Q", Q0), red["mu"]
     ok = alive0 & red["ok"] & jnp.isfinite(red["drift"])
