@@ -351,3 +351,30 @@ def test_a_sweep_of_many_peakon_systems_finishes():
                          cwd=root, env=env, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "finished 0" in out.stdout
+
+
+@pytest.mark.slow  # compiles a sweep's programs for a batch shape of its own
+def test_a_sweep_compiles_only_its_programs():
+    """The sweep's host code deals the inputs out as NumPy arrays and device transfers: the only
+    programs compiled from `clebsch_jax.batching.sweep` itself are its jitted ones (the chunk,
+    the initial multipliers), never an eager JAX operation (a gather, a broadcast, ...), which
+    would compile once per new shape on every first call."""
+    import traceback
+
+    compiled, record = [], [True]
+
+    def listen(event, secs, fun_name=None, **kw):
+        if record[0] and "backend_compile" in event:
+            frames = [f.filename for f in traceback.extract_stack() if "clebsch_jax" in f.filename]
+            if frames and frames[-1].endswith(os.path.join("batching", "sweep.py")):
+                compiled.append(fun_name)
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    n = 7  # a batch shape no other test uses
+    inertias = np.concatenate([INERTIAS, INERTIAS[:3]])
+    omegas = np.concatenate([OMEGAS, -OMEGAS[:3]])
+    try:
+        res = cj.sweep(rigid_body, inertias, eyes(n), omegas, dt=0.05, n_steps=6, chunk_steps=3)
+    finally:
+        record[0] = False
+    assert np.all(res.succeeded)
+    assert set(compiled) <= {"jit(_run_chunk)", "jit(_initial_multipliers)", "jit(stage)"}, compiled

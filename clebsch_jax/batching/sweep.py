@@ -572,10 +572,11 @@ def _systems(make_system, params):
 
 
 def _parameter_rows(params):
-    """`params` as JAX float arrays and its number of rows (every leaf's leading axis)."""
+    """`params` as NumPy float arrays on the host (sliced batch by batch there: no JAX operation
+    to compile) and its number of rows (every leaf's leading axis)."""
     if not jax.tree_util.tree_leaves(params):
         raise ValueError("params: has no array leaves.")
-    params = jax.tree_util.tree_map(lambda a: jnp.asarray(_float_array(a, "params")), params)
+    params = jax.tree_util.tree_map(lambda a: _float_array(a, "params"), params)
     sizes = {np.shape(a)[0] if np.ndim(a) else None for a in jax.tree_util.tree_leaves(params)}
     if None in sizes or len(sizes) != 1:
         shapes = [np.shape(a) for a in jax.tree_util.tree_leaves(params)]
@@ -788,21 +789,22 @@ def _start_batch(cfg: _Config, members: _Members, shapes: _Shapes, b: int, batch
     member = np.minimum(np.arange(b * batch_size, (b + 1) * batch_size), members.B - 1)
     n_real = min(batch_size, members.B - b * batch_size)
     ic = members.ic_index[member]
-    put = functools.partial(jax.device_put, device=device) if device is not None else (lambda x: x)
+    # host arrays moved to the device as they are: a transfer each, no JAX operation to compile
+    put = functools.partial(jax.device_put, device=device)
     params = None if members.builder is None else put(_member_slices(members.params, members.param_index[member]))
-    Q, xi = put(jnp.asarray(members.Q0[ic])), put(jnp.asarray(members.xi0[ic]))
+    Q, xi = put(members.Q0[ic]), put(members.xi0[ic])
     shared = None if members.shared is None else put(members.shared)
-    P = _initial_multipliers(cfg, params, Q, xi, shared) if members.P0 is None else put(jnp.asarray(members.P0[ic]))
-    zeros = lambda shape, dtype=jnp.float64: put(jnp.zeros((batch_size,) + shape, dtype))
+    P = _initial_multipliers(cfg, params, Q, xi, shared) if members.P0 is None else put(members.P0[ic])
+    zeros = lambda shape, dtype=np.float64: put(np.zeros((batch_size,) + shape, dtype))
     carry = _Carry(
-        Q=Q, P=P, xi=xi, t=zeros(()), status=zeros((), jnp.int32),
-        failed_step=put(jnp.full((batch_size,), -1, jnp.int32)), iterations=zeros((), jnp.int64),
+        Q=Q, P=P, xi=xi, t=zeros(()), status=zeros((), np.int32),
+        failed_step=put(np.full((batch_size,), -1, np.int32)), iterations=zeros((), np.int64),
         max_residual=zeros(()), initial={k: zeros(v.shape[1:], v.dtype) for k, v in shapes.invariants.items()},
         drift={k: zeros(()) for k in shapes.invariants}, momentum=zeros(shapes.xi),
         final_xi=zeros(shapes.xi) if shapes.has_xi else None, energy_change=zeros(()), energy_size=zeros(()),
     )
     rows = slice(b * batch_size, b * batch_size + n_real)
-    return _Batch(b, rows, n_real, params, put(jnp.asarray(members.dt[member])), shared, carry)
+    return _Batch(b, rows, n_real, params, put(members.dt[member]), shared, carry)
 
 
 def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report: Callable, fell_back: list):
@@ -811,7 +813,7 @@ def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report
     path to `fell_back` (bools), `report(group, step)` follows a chunk."""
     for st, n in run.chunks:
         c = cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
-        at = (jnp.asarray(st == 0), jnp.asarray(st, jnp.int32))
+        at = (np.asarray(st == 0), np.asarray(st, np.int32))  # host values: no eager JAX operation
         args = [(one.params, one.carry, one.dt, one.shared) + at for one in group]
         # dispatched asynchronously: the devices march side by side
         if cfg.fast_method is None:
