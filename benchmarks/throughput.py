@@ -46,8 +46,9 @@ case sampled in turn, load average recorded):
    e.g. the second `clebsch-jax run` or a restarted notebook kernel).
 
 4. **Sweep** (`--sweep-only`, written to `throughput_sweep.json`/`.png`; issue 20): the
-   documented `cj.sweep(rigid_body, …, reconstruct=False)` call with default options and with
-   `fast=True` (the lean chunk, `clebsch_jax.batching.lean`, in batches of up to 16384
+   documented `cj.sweep(rigid_body, …, reconstruct=False)` call with default options
+   (`fast="auto"`: the general Newton loop below 2·10⁷ member-steps, the lean chunk from there,
+   so at B = 10⁵ × 200 steps) and with `fast=True` (the lean chunk, `clebsch_jax.batching.lean`, in batches of up to 16384
    members), `jax.jit(cj.batch(integrate → final momentum, energy error))`, the hand-written
    rows kernel `hand_rows_march` (the yardstick: each component a (B,) row, closed-form
    Jacobian and cofactor inverse, fixed chord updates, `fori_loop(unroll=4)`, final state and
@@ -362,7 +363,7 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
 SWEEP_RESULTS_NAME = "throughput_sweep"
 TWO_DEVICES = "sweep_fast_2dev"  # sweep(fast=True, devices=2), with --sweep-only (two host devices)
 HAND_ROWS = "jax_by_hand_rows"  # hand_rows_march: the yardstick of issue 20, not a library path
-SWEEP_DEFAULT = ((1_000, 200), (10_000, 200), (100_000, 100))
+SWEEP_DEFAULT = ((1_000, 200), (10_000, 200), (100_000, 200))  # the last at fast="auto"'s threshold: lean chunk
 SWEEP_QUICK = ((8, 10),)
 SWEEP_INERTIA = (0.5, 0.6, 1.0)  # issue 20's table
 SWEEP_TARGETS = {"over_hand_at_1e3": 0.5, "over_hand_from_1e4": 0.75, "over_rk4": 2.0, "compile_s": 2.0,
@@ -475,11 +476,12 @@ def print_sweep_report(summary: dict) -> None:
     names += (TWO_DEVICES,) if all(TWO_DEVICES in r for r in rows) else ()
     harness.print_table(
         f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>20}" for m in names) + " |"
-        f"{'sweep/hand':>11}{'fast/hand':>10}{'sweep/RK4':>10}{'fast/RK4':>9} | fallbacks",
+        f"{'sweep/hand':>11}{'fast/hand':>10}{'sweep/RK4':>10}{'fast/RK4':>9} | sweep's path | fallbacks",
         (f"{r['batch']:>8}{r['n_steps']:>6} |"
          + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>11.3g} ({r[m]['compile_s']:5.1f})" for m in names)
          + f" |{r['ratios']['sweep_over_hand']:>11.3g}{r['ratios']['sweep_fast_over_hand']:>10.3g}"
          f"{r['ratios']['sweep_over_numpy_rk4']:>10.3g}{r['ratios']['sweep_fast_over_numpy_rk4']:>9.3g} | "
+         f"{'lean' if r['sweep']['fast_chunks'] else 'general':>12} | "
          f"{r['sweep_fast']['fallback_chunks']}/{r['sweep_fast']['fast_chunks']}"
          for r in rows))
     if TWO_DEVICES in names:
