@@ -1067,7 +1067,9 @@ def sweep(
       compiles longer than the general one, which a short sweep does not repay, and its speed
       needs long rows (its default `batch_size` is larger; `benchmarks/throughput.py
       --sweep-only` measures both paths). The choice depends on B and `n_steps` only, so a
-      stored sweep resumes with the path it started with.
+      stored sweep resumes with the path it started with (a store that a large sweep wrote
+      with `fast=False`, the default before "auto", resumes with `fast=False`: the store
+      refuses a run on the other path).
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own. One default differs from `integrate`'s: members that are degenerate
