@@ -232,6 +232,20 @@ def test_auto_runs_the_lean_chunk_of_a_large_sweep_and_the_general_loop_otherwis
     assert cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, invariants=inv, **LEAN).fast_chunks == 0
 
 
+@pytest.mark.slow  # the lean chunk of the tests above (the same configuration), written to a Zarr store
+def test_a_stored_lean_sweep_gives_the_in_process_table_and_reopens(tmp_path):
+    # the path a large stored sweep takes under fast="auto": same program, same rows, to the bit
+    pytest.importorskip("zarr")
+    kept = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **LEAN)
+    store = tmp_path / "lean.zarr"
+    written = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, store=store, **LEAN)
+    reopened = cj.open_sweep(store)
+    assert written.fast_chunks == 2
+    for res in (written, reopened):
+        for key in ("status", "final_momentum", "final_xi", "final_p", "energy_error", "newton_iterations"):
+            np.testing.assert_array_equal(getattr(res, key), getattr(kept, key), err_msg=key)
+
+
 @pytest.mark.slow  # two sweeps and eight member chunks evaluated op by op: half a minute
 def test_lean_chunk_carries_what_the_general_chunk_carries():
     """One member, no batching: the lean chunk's carry (state, running energy-check maxima,

@@ -441,9 +441,11 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
     if store is None:  # a Dask cluster, the table kept in memory
         from .distributed import run_on_client
 
+        chunks = np.zeros(2, int)
         for rows in run_on_client(client, plan, list(range(n_batches)), None, 0, run.progress):
             _place(tables, rows.tables, rows.rows)
-        return make_result(plan, tables, 1)
+            chunks += rows.fast_chunks
+        return make_result(plan, tables, 1, chunks)
     name = store_name(store)
     root = open_for_run(store, plan, overwrite)
     done = done_batches(root, name)
@@ -462,12 +464,13 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
         return open_sweep(store)
     # Each group's rows go to the store from a writer thread while the next group computes; the
     # table is kept in memory too. Leaving the `with` (also on Ctrl-C) waits for the writes under way.
-    n_dev, used = len(run.devices), set()
+    n_dev, used, chunks = len(run.devices), set(), np.zeros(2, int)
     with ThreadPoolExecutor(1, thread_name_prefix="clebsch-jax-sweep-store") as writer:
         writes = []
         for g in range(0, len(pending), n_dev):
             rows = _run_batches(plan, pending[g:g + n_dev], run.devices, report)
             used.update(rows.devices)
+            chunks += rows.fast_chunks
             _place(tables, rows.tables, rows.rows)
             writes.append(writer.submit(write_rows, root, plan, rows, run_id))
             for w in writes:
@@ -479,4 +482,4 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
         print(file=sys.stderr, flush=True)
     if len(pending) < n_batches:  # resumed: the skipped batches' rows are in the store only
         return open_sweep(store)
-    return make_result(plan, tables, len(used))
+    return make_result(plan, tables, len(used), chunks)

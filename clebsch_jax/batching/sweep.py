@@ -129,7 +129,8 @@ class SweepResult:
     - `fast_chunks`: the chunks (of steps, of one batch) run on the fast path
       (`clebsch_jax.batching.fast`; 0 when it does not apply or `fast=False`), and
       `fallback_chunks`: how many of them some member's check rejected, so that the chunk
-      ran again with the general Newton loop.
+      ran again with the general Newton loop. A table read from a store (`open_sweep`, also
+      the result of a resumed or Dask-written stored sweep) does not keep these counts: 0.
     """
 
     param_index: np.ndarray
