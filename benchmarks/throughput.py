@@ -48,11 +48,11 @@ case sampled in turn, load average recorded):
 4. **Sweep** (`--sweep-only`, written to `throughput_sweep.json`/`.png`; issue 20): the
    documented `cj.sweep(rigid_body, …, reconstruct=False)` call with default options
    (`fast="auto"`: the general Newton loop below 2·10⁷ member-steps, the lean chunk from there,
-   so at B = 10⁵ × 200 steps) and with `fast=True` (the lean chunk, `clebsch_jax.batching.lean`, in batches of up to 16384
-   members), `jax.jit(cj.batch(integrate → final momentum, energy error))`, the hand-written
-   rows kernel `hand_rows_march` (the yardstick: each component a (B,) row, closed-form
-   Jacobian and cofactor inverse, fixed chord updates, `fori_loop(unroll=4)`, final state and
-   energy error only) and NumPy RK4 of Euler's equations on (3, B) arrays; M body-steps/s,
+   so at B = 10⁵ × 200 steps) and with `fast=True` (the lean chunk, `clebsch_jax.batching.lean`,
+   in batches of up to 16384 members), `jax.jit(cj.batch(integrate → final momentum, energy
+   error))`, the hand-written rows kernel `hand_rows_march` (the yardstick: each component a
+   (B,) row, closed-form Jacobian and cofactor inverse, fixed chord updates,
+   `fori_loop(unroll=4)`, final state and energy error only) and NumPy RK4 of Euler's equations on (3, B) arrays; M body-steps/s,
    ratios, compile times (first call − second call), energy errors, fallback counts. With
    `--sweep-only` the script asks XLA for two host devices (`XLA_FLAGS`, set before JAX
    starts, unless the caller set a device count) and adds `sweep_fast_2dev`: `fast=True,

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import traceback
+
+import jax
 import numpy as np
 from scipy.integrate import solve_ivp
 
@@ -114,3 +118,26 @@ def implicit_midpoint_vortices(gamma, Q0, dt, n_steps):
         Q = Q1
         out.append(Q)
     return np.stack(out)
+
+
+@contextlib.contextmanager
+def compiles_recorded(where: str | None = None):
+    """The XLA compilations made inside the `with` block, as a list of program names filled in
+    as they happen; with `where`, only those whose innermost `clebsch_jax` frame is in a file
+    whose path ends with `where`. (JAX's listeners cannot be removed: this one stops recording
+    when the block ends.)"""
+    names, on = [], [True]
+
+    def listen(event, secs, fun_name=None, **kw):
+        if not (on[0] and "backend_compile" in event):
+            return
+        if where is not None:
+            frames = [f.filename for f in traceback.extract_stack() if "clebsch_jax" in f.filename]
+            if not (frames and frames[-1].endswith(where)):
+                return
+        names.append(fun_name)
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield names
+    finally:
+        on[0] = False

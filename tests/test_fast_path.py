@@ -20,6 +20,8 @@ from clebsch_jax.models import heavy_top, point_vortices, rigid_body
 from clebsch_jax.roots.newton import fixed_newton_solve, newton_solve
 from clebsch_jax.roots.solvers import FixedNewton
 
+from .helpers import compiles_recorded
+
 N_STEPS = 40
 RB = dict(n_steps=N_STEPS, chunk_steps=20, batch_size=4, reconstruct=False, fast=True,
           invariants={"casimir": lambda system, sol: jnp.sum(sol.momentum**2, axis=-1)})
@@ -366,13 +368,7 @@ def test_scalarise_traces_known_values_without_compiling():
         return jax.lax.scan(body, x, None, length=3)[0]
 
     xs = jnp.asarray(np.random.default_rng(2).normal(size=(5, 3)))
-    compiles = []
-    record = [True]
-    jax.monitoring.register_event_duration_secs_listener(
-        lambda event, secs, **kw: compiles.append(event) if record[0] and "backend_compile" in event else None)
-    try:
+    with compiles_recorded() as compiles:
         jax.jit(scalarise(f)).lower(xs)
-    finally:
-        record[0] = False
     assert compiles == []
     np.testing.assert_allclose(jax.jit(scalarise(f))(xs), jax.vmap(f)(xs), rtol=1e-15)

@@ -21,7 +21,7 @@ import pytest
 import clebsch_jax as cj
 from clebsch_jax import Status
 from clebsch_jax.models import peakon_hamiltonian, peakon_velocity, peakons, rigid_body
-from .helpers import cay_velocity, hat
+from .helpers import cay_velocity, compiles_recorded, hat
 from .test_epdiff import COLLISION, OVERTAKE, peakon_antipeakon_exact, two_peakons_exact
 
 
@@ -359,22 +359,10 @@ def test_a_sweep_compiles_only_its_programs():
     programs compiled from `clebsch_jax.batching.sweep` itself are its jitted ones (the chunk,
     the initial multipliers), never an eager JAX operation (a gather, a broadcast, ...), which
     would compile once per new shape on every first call."""
-    import traceback
-
-    compiled, record = [], [True]
-
-    def listen(event, secs, fun_name=None, **kw):
-        if record[0] and "backend_compile" in event:
-            frames = [f.filename for f in traceback.extract_stack() if "clebsch_jax" in f.filename]
-            if frames and frames[-1].endswith(os.path.join("batching", "sweep.py")):
-                compiled.append(fun_name)
-    jax.monitoring.register_event_duration_secs_listener(listen)
     n = 7  # a batch shape no other test uses
     inertias = np.concatenate([INERTIAS, INERTIAS[:3]])
     omegas = np.concatenate([OMEGAS, -OMEGAS[:3]])
-    try:
+    with compiles_recorded(where=os.path.join("batching", "sweep.py")) as compiled:
         res = cj.sweep(rigid_body, inertias, eyes(n), omegas, dt=0.05, n_steps=6, chunk_steps=3)
-    finally:
-        record[0] = False
     assert np.all(res.succeeded)
     assert set(compiled) <= {"jit(_run_chunk)", "jit(_initial_multipliers)", "jit(stage)"}, compiled
