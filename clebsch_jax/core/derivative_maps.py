@@ -84,6 +84,10 @@ class MatrixGroupDifference(DerivativeMap):
     exp: Callable[[jax.Array], jax.Array]
     name: str = "matrix group"
     symmetric: bool = True
+    exponential_pair: bool = False
+    """Whether `log` is the principal matrix logarithm and `exp` the matrix exponential (on the
+    group): the reduced march then evaluates its step with the closed form of the derivative
+    of the logarithm (`clebsch_jax.discrete.reduction`) instead of differentiating `log`."""
 
     def __call__(self, Q_next, Q, dt):
         return Q @ self.log(_linalg.solve(Q, Q_next)) / dt
@@ -116,11 +120,11 @@ class CayleyDifference(MatrixGroupDifference):
 cayley = CayleyDifference()
 """Definition 25 with the Cayley transform of Example 30 (the CAY integrator)."""
 
-exponential = MatrixGroupDifference(log=lie.logm, exp=lie.expm, name="exponential")
+exponential = MatrixGroupDifference(log=lie.logm, exp=lie.expm, name="exponential", exponential_pair=True)
 """Definition 25 with the exact matrix logarithm/exponential (Definitions 23-24)."""
 
 so3_exponential = MatrixGroupDifference(
-    log=lie.logm, exp=lambda X: lie.so3_exp(lie.vee(X)), name="so3 exponential"
+    log=lie.logm, exp=lambda X: lie.so3_exp(lie.vee(X)), name="so3 exponential", exponential_pair=True
 )
 """Definition 25 with the exact exponential on SO(3): Rodrigues' formula for exp (used by the
 reduced march to reconstruct Q), the matrix logarithm for log (the full march solves in ambient

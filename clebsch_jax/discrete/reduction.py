@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -253,10 +254,14 @@ def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
     (left) of the residual and $F \to F(I + X(\eta))$, $Q^a \to Q^{n+1}(I + X(\eta))$ (right)
     of the outgoing momentum: one evaluation of $\overline{\exp}$, $\overline{\log}$ and one
     reverse pass serve both. For the Cayley map the derivative of $\overline{\log}$ is
-    explicit (`_cayley_step`). Returns `(r, mu1, Q1)`; `mu1` is None unless `outgoing`, and
-    `Q1` may be None when `outgoing` is False."""
+    explicit (`_cayley_step`); for the exponential pair it is $\varphi_1(\mathrm{ad})^{-1}$
+    (`_exponential_step`), not traced through the logarithm's algorithm. Returns
+    `(r, mu1, Q1)`; `mu1` is None unless `outgoing`, and `Q1` may be None when `outgoing` is
+    False."""
     if isinstance(system.derivative_map, CayleyDifference):
         return _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing)
+    if getattr(system.derivative_map, "exponential_pair", False):
+        return _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing)
     F = system.derivative_map.exp(dt * red.X(xi))
     Q1 = Q0 @ F
     Qa = Q0 if scheme == "left" else Q1
@@ -337,6 +342,90 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
     if g_Q is not None and scheme == "right":
         mu1 = mu1 + dt * red.X_adjoint(mm(Q1.T, g_Q))
     return r, mu1, Q1
+
+
+def _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
+    r"""`reduced_step` for the exponential pair ($\overline{\exp} = \exp$, $\overline{\log}$ the
+    principal logarithm), with the derivative of the logarithm in closed form.
+
+    At $F = \exp(Y)$, $Y = \Delta t X(\xi)$, $\log F = Y$ and, to first order in Z,
+    $\log(e^{Z}F) = Y + \varphi_1(\mathrm{ad}_Y)^{-1}Z$ and $\log(F e^{Z}) = Y +
+    \varphi_1(-\mathrm{ad}_Y)^{-1}Z$, with $\varphi_1(z) = (e^z - 1)/z$ (the derivative of the
+    exponential). In the algebra's coordinates $\mathrm{ad}_Y$ is the m×m matrix $A$ with
+    $[Y, X(e_b)] = X(A e_b)$, so with $g = \nabla_\xi l$
+
+    $$ X^T(G_F F^T) = \varphi_1(A)^{-T} g, \qquad X^T(F^T G_F) = \varphi_1(-A)^{-T} g , $$
+
+    the two maps `reduced_step` takes from the ambient gradient $G_F$ of $\ell_d$: the same
+    equations as differentiating `log` (which goes through every step of the matrix
+    logarithm's algorithm in reverse mode), for $|Y|$ below the logarithm's branch cut.
+    $e^A$ and $\varphi_1(A)$ come from `_exp_and_phi1`, and $\varphi_1(-A) = e^{-A}\varphi_1(A)$ gives the
+    second map from the first solve. Both schemes give the same $\xi(F)$ for this pair ($\log F^{-1} = -\log F$);
+    the potential terms are those of `reduced_step`, with $G_Q = \Delta t\,\partial l/\partial Q$."""
+    y = dt * jnp.ravel(xi)
+    C = _ad_constants(red)  # A = Σ_a y_a C[a]
+    E, Phi = _exp_and_phi1(jnp.tensordot(y, jnp.asarray(C, y.dtype), axes=1))
+    need_F = outgoing or (system.has_potential and scheme == "right")
+    Q1 = Q0 @ system.derivative_map.exp(dt * red.X(xi)) if need_F else None
+    Qa = Q0 if scheme == "left" else Q1
+    if system.has_potential:
+        g, g_Q = jax.grad(system.l, argnums=(0, 1))(xi, Qa)
+    else:
+        g, g_Q = jax.grad(lambda x: system.l(x, Q0))(xi), None
+    w = _linalg.solve(Phi.T, jnp.ravel(g))  # φ₁(A)^{-T} g
+    r = mu - w.reshape(xi.shape)
+    if g_Q is not None and scheme == "left":
+        r = r + dt * red.X_adjoint(Q0.T @ g_Q)
+    if not outgoing:
+        return r, None, Q1
+    # φ₁(-A) = e^{-A} φ₁(A), so φ₁(-A)^{-T} g = (e^A)^T φ₁(A)^{-T} g: no second solve; as
+    # `outgoing_body_momentum`, no term of the left potential
+    mu1 = (E.T @ w).reshape(xi.shape)
+    if g_Q is not None and scheme == "right":
+        mu1 = mu1 + dt * red.X_adjoint(Q1.T @ g_Q)
+    return r, mu1, Q1
+
+
+PHI1_SCALING = 4
+"""`_exp_and_phi1` halves its argument this many times (and doubles back): the Taylor series
+then converges to round-off for |A| up to about the logarithm's branch cut."""
+
+PHI1_DEGREE = 13
+"""Terms of the Taylor series of e^A and φ₁(A) at the scaled argument."""
+
+
+def _exp_and_phi1(A):
+    r"""$(e^A, \varphi_1(A))$, $\varphi_1(z) = (e^z - 1)/z$, for a small m×m matrix A: the Taylor
+    series $\varphi_1(B) = \sum_k B^k/(k+1)!$ (Horner) at $B = A/2^s$, $e^B = I + B\varphi_1(B)$,
+    then $s$ doublings $\varphi_1(2B) = \tfrac12\varphi_1(B)(I + e^B)$, $e^{2B} = (e^B)^2$
+    (s = `PHI1_SCALING`, degree `PHI1_DEGREE`: a few m×m products, no solve and no loop whose
+    length depends on the data, which under `vmap` costs far less than the exponential of the
+    2m×2m block matrix that holds φ₁ too). Accurate to round-off for
+    $|A|_1 \lesssim 2^{s}\cdot 0.4$, which covers $|Y| < \pi$ for so(3)."""
+    m = A.shape[-1]
+    eye = jnp.eye(m, dtype=A.dtype)
+    B = A / (2.0 ** PHI1_SCALING)
+    phi = eye / math.factorial(PHI1_DEGREE + 1)
+    for k in range(PHI1_DEGREE, 0, -1):  # Σ_k B^k/(k+1)!, from the highest term
+        phi = eye / math.factorial(k) + _linalg.matmul(B, phi)
+    E = eye + _linalg.matmul(B, phi)
+    for _ in range(PHI1_SCALING):
+        phi = 0.5 * _linalg.matmul(phi, eye + E)
+        E = _linalg.matmul(E, E)
+    return E, phi
+
+
+@functools.lru_cache(maxsize=64)
+def _ad_constants(red: MatrixGroupReduction) -> np.ndarray:
+    r"""C (m, m, m) with $[X(e_a), X(e_b)] = X(C[a] e_b)$: the algebra's structure constants in
+    its basis (NumPy, found once per reduction), so that $\mathrm{ad}_{X(y)} = \sum_a y_a C[a]$."""
+    B = red.basis
+    m = B.shape[0]
+    brackets = np.einsum("aij,bjk->abik", B, B) - np.einsum("bij,ajk->abik", B, B)  # [X_a, X_b]
+    coords = np.einsum("ln,abn->abl", red.pinv, brackets.reshape(m, m, -1))  # X^{-1} of each
+    C = np.swapaxes(coords, 1, 2)  # C[a][:, b] = X^{-1}[X_a, X_b]
+    cut = 1e-14 * max(np.max(np.abs(C)), 1e-300)
+    return np.where(np.abs(C) > cut, C, 0.0)
 
 
 POLYNOMIAL_MAX_TERMS = 512
