@@ -359,9 +359,10 @@ def _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
     the two maps `reduced_step` takes from the ambient gradient $G_F$ of $\ell_d$: the same
     equations as differentiating `log` (which goes through every step of the matrix
     logarithm's algorithm in reverse mode), for $|Y|$ below the logarithm's branch cut.
-    $e^A$ and $\varphi_1(A)$ come from `_exp_and_phi1`, and $\varphi_1(-A) = e^{-A}\varphi_1(A)$ gives the
-    second map from the first solve. Both schemes give the same $\xi(F)$ for this pair ($\log F^{-1} = -\log F$);
-    the potential terms are those of `reduced_step`, with $G_Q = \Delta t\,\partial l/\partial Q$."""
+    $e^A$ and $\varphi_1(A)$ come from `_exp_and_phi1`, and $\varphi_1(-A) = e^{-A}\varphi_1(A)$
+    gives the second map from the first solve. Both schemes give the same $\xi(F)$ for this
+    pair ($\log F^{-1} = -\log F$); the potential terms are those of `reduced_step`, with
+    $G_Q = \Delta t\,\partial l/\partial Q$."""
     y = dt * jnp.ravel(xi)
     C = _ad_constants(red)  # A = Σ_a y_a C[a]
     E, Phi = _exp_and_phi1(jnp.tensordot(y, jnp.asarray(C, y.dtype), axes=1))
