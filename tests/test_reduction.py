@@ -476,3 +476,28 @@ def test_reduced_march_newton_counts_and_round_off(fresh):
     assert float(jnp.max(sol.stats.residual_norm)) < 1e-15
     C = np.sum(np.asarray(sol.momentum) ** 2, axis=1)
     assert np.max(np.abs(C - C[0])) / C[0] < 1e-13
+
+
+def test_exp_and_phi1_match_the_block_exponential():
+    """`_exp_and_phi1` (scaled Taylor series and doublings) against SciPy's expm of the block
+    matrix [[A, I], [0, 0]], whose upper blocks are e^A and φ₁(A), for 1-norms over twelve
+    orders of magnitude, so(3) and a non-normal 6×6."""
+    import scipy.linalg as sl
+
+    from clebsch_jax.discrete.reduction import _exp_and_phi1
+
+    rng = np.random.default_rng(11)
+    f = jax.jit(_exp_and_phi1)
+    for m in (3, 6):
+        for norm in (1e-10, 1e-3, 0.1, 1.0, 3.0, 10.0, 30.0, 100.0):
+            A = rng.normal(size=(m, m)) if m == 6 else hat(rng.normal(size=3))
+            A *= norm / np.max(np.sum(np.abs(A), axis=0))
+            E, P = f(jnp.asarray(A))
+            block = np.zeros((2 * m, 2 * m))
+            block[:m, :m], block[:m, m:] = A, np.eye(m)
+            X = sl.expm(block)
+            # both are rounded results of an exponential whose condition grows with |A|: at
+            # round-off up to |A|₁ = 3, then a relative difference growing with the norm
+            tol = 1e-14 if norm <= 3 else 1e-10
+            for got, want in ((E, X[:m, :m]), (P, X[:m, m:])):
+                assert np.max(np.abs(np.asarray(got) - want)) <= tol * np.max(np.abs(want)), (m, norm)

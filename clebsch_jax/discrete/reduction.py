@@ -387,32 +387,38 @@ def _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
     return r, mu1, Q1
 
 
-PHI1_SCALING = 4
-"""`_exp_and_phi1` halves its argument this many times (and doubles back): the Taylor series
-then converges to round-off for |A| up to about the logarithm's branch cut."""
+PHI1_MAX_SCALING = 8
+"""The most halvings (and doublings back) of `_exp_and_phi1`: its series is at round-off for
+|A|₁ up to 0.4·2⁸ ≈ 100 (for a compact group a step that large is far past the logarithm's
+branch cut already) and loses accuracy gradually beyond. Each doubling costs its products
+whether it is applied or not (a select)."""
 
 PHI1_DEGREE = 13
-"""Terms of the Taylor series of e^A and φ₁(A) at the scaled argument."""
+"""Terms of the Taylor series of e^B and φ₁(B) at the scaled argument B, |B|₁ ≤ 0.4: the first
+term left out is below 10⁻¹⁷ of the sum."""
 
 
 def _exp_and_phi1(A):
     r"""$(e^A, \varphi_1(A))$, $\varphi_1(z) = (e^z - 1)/z$, for a small m×m matrix A: the Taylor
-    series $\varphi_1(B) = \sum_k B^k/(k+1)!$ (Horner) at $B = A/2^s$, $e^B = I + B\varphi_1(B)$,
-    then $s$ doublings $\varphi_1(2B) = \tfrac12\varphi_1(B)(I + e^B)$, $e^{2B} = (e^B)^2$
-    (s = `PHI1_SCALING`, degree `PHI1_DEGREE`: a few m×m products, no solve and no loop whose
-    length depends on the data, which under `vmap` costs far less than the exponential of the
-    2m×2m block matrix that holds φ₁ too). Accurate to round-off for
-    $|A|_1 \lesssim 2^{s}\cdot 0.4$, which covers $|Y| < \pi$ for so(3)."""
+    series $\varphi_1(B) = \sum_k B^k/(k+1)!$ (Horner) at $B = A/2^s$ with s the least
+    number of halvings that makes $|B|_1 \le 0.4$, $e^B = I + B\varphi_1(B)$, then s doublings
+    $\varphi_1(2B) = \tfrac12\varphi_1(B)(I + e^B)$, $e^{2B} = (e^B)^2$: m×m products only,
+    no solve. The doublings are `PHI1_MAX_SCALING` steps each applied only while it is needed
+    (a select, so under `vmap` every member may need a different s); under `vmap` this costs
+    far less than the exponential of the 2m×2m block matrix that holds φ₁ too."""
     m = A.shape[-1]
     eye = jnp.eye(m, dtype=A.dtype)
-    B = A / (2.0 ** PHI1_SCALING)
+    norm = jnp.max(jnp.sum(jnp.abs(A), axis=-2))  # the 1-norm
+    s = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300) / 0.4)), 0, PHI1_MAX_SCALING)
+    B = A * jnp.exp2(-s)  # exact: a power of two
     phi = eye / math.factorial(PHI1_DEGREE + 1)
     for k in range(PHI1_DEGREE, 0, -1):  # Σ_k B^k/(k+1)!, from the highest term
         phi = eye / math.factorial(k) + _linalg.matmul(B, phi)
     E = eye + _linalg.matmul(B, phi)
-    for _ in range(PHI1_SCALING):
-        phi = 0.5 * _linalg.matmul(phi, eye + E)
-        E = _linalg.matmul(E, E)
+    for i in range(PHI1_MAX_SCALING):
+        more = i < s
+        phi, E = (jnp.where(more, 0.5 * _linalg.matmul(phi, eye + E), phi),
+                  jnp.where(more, _linalg.matmul(E, E), E))
     return E, phi
 
 
