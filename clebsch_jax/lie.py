@@ -5,6 +5,8 @@ All functions are pure `jax.numpy` code: jit-, vmap- and grad-compatible.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 
@@ -18,6 +20,7 @@ __all__ = [
     "cayley_exp",
     "cayley_log",
     "expm",
+    "exp_and_phi1",
     "logm",
     "sqrtm",
     "so3_exp",
@@ -113,9 +116,7 @@ def expm(X: jax.Array) -> jax.Array:
     (`clebsch_jax.core.linalg`); the tests compare the two."""
     X = jnp.asarray(X)
     eye = _eye_like(X)
-    norm = jnp.max(jnp.sum(jnp.abs(X), axis=-2), axis=-1)  # the 1-norm
-    s = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, jnp.finfo(X.dtype).tiny) / _PADE13_THETA)), 0,
-                 EXPM_MAX_SQUARINGS)
+    s = _halvings(X, _PADE13_THETA, EXPM_MAX_SQUARINGS)
     A = X / (2.0 ** s)[..., None, None]
     mm = _linalg.matmul
     A2 = mm(A, A)
@@ -130,6 +131,50 @@ def expm(X: jax.Array) -> jax.Array:
         return jnp.where((k < s)[..., None, None], mm(R, R), R), None
 
     return jax.lax.scan(square, R, jnp.arange(EXPM_MAX_SQUARINGS))[0]
+
+
+def _halvings(X: jax.Array, theta: float, at_most: int) -> jax.Array:
+    """The least number of halvings (0 … `at_most`) that bring X's 1-norm to `theta` or below:
+    the scaling of a scaling-and-squaring method (`expm`, `exp_and_phi1`)."""
+    norm = jnp.max(jnp.sum(jnp.abs(X), axis=-2), axis=-1)
+    return jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, jnp.finfo(X.dtype).tiny) / theta)), 0, at_most)
+
+
+PHI1_MAX_SCALING = 8
+"""The most halvings (and doublings back) of `exp_and_phi1`: its series is at round-off for
+|A|₁ up to 0.4·2⁸ ≈ 100 (for a compact group a step that large is far past the logarithm's
+branch cut already) and loses accuracy gradually beyond. Each doubling costs its products
+whether it is applied or not (a select)."""
+
+PHI1_DEGREE = 13
+"""Terms of the Taylor series of e^B and φ₁(B) at the scaled argument B, |B|₁ ≤ 0.4: the first
+term left out is below 10⁻¹⁷ of the sum."""
+
+
+def exp_and_phi1(A: jax.Array):
+    r"""$(e^A, \varphi_1(A))$, $\varphi_1(z) = (e^z - 1)/z$, for a small m×m matrix A: the Taylor
+    series $\varphi_1(B) = \sum_k B^k/(k+1)!$ (Horner) at $B = A/2^s$ with s the least
+    number of halvings that makes $|B|_1 \le 0.4$, $e^B = I + B\varphi_1(B)$, then s doublings
+    $\varphi_1(2B) = \tfrac12\varphi_1(B)(I + e^B)$, $e^{2B} = (e^B)^2$: m×m products only,
+    no solve. The doublings are `PHI1_MAX_SCALING` steps each applied only while it is needed
+    (a select, so under `vmap` every member may need a different s); under `vmap` this costs
+    far less than the exponential of the 2m×2m block matrix that holds φ₁ too. One matrix
+    (`jax.vmap` for many); jit-, vmap- and grad-compatible (no loop whose length depends on
+    the data). Used by the reduced march of the exponential map
+    (`clebsch_jax.discrete.reduction`)."""
+    A = jnp.asarray(A)
+    eye = jnp.eye(A.shape[-1], dtype=A.dtype)
+    s = _halvings(A, 0.4, PHI1_MAX_SCALING)
+    B = A / 2.0 ** s  # exact: a power of two
+    phi = eye / math.factorial(PHI1_DEGREE + 1)
+    for k in range(PHI1_DEGREE, 0, -1):  # Σ_k B^k/(k+1)!, from the highest term
+        phi = eye / math.factorial(k) + _linalg.matmul(B, phi)
+    E = eye + _linalg.matmul(B, phi)
+    for i in range(PHI1_MAX_SCALING):
+        more = i < s
+        phi, E = (jnp.where(more, 0.5 * _linalg.matmul(phi, eye + E), phi),
+                  jnp.where(more, _linalg.matmul(E, E), E))
+    return E, phi
 
 
 def sqrtm(A: jax.Array, *, iterations: int = 8) -> jax.Array:

@@ -479,15 +479,13 @@ def test_reduced_march_newton_counts_and_round_off(fresh):
 
 
 def test_exp_and_phi1_match_the_block_exponential():
-    """`_exp_and_phi1` (scaled Taylor series and doublings) against SciPy's expm of the block
+    """`lie.exp_and_phi1` (scaled Taylor series and doublings) against SciPy's expm of the block
     matrix [[A, I], [0, 0]], whose upper blocks are e^A and φ₁(A), for 1-norms over twelve
     orders of magnitude, so(3) and a non-normal 6×6."""
     import scipy.linalg as sl
 
-    from clebsch_jax.discrete.reduction import _exp_and_phi1
-
     rng = np.random.default_rng(11)
-    f = jax.jit(_exp_and_phi1)
+    f = jax.jit(cj.lie.exp_and_phi1)
     for m in (3, 6):
         for norm in (1e-10, 1e-3, 0.1, 1.0, 3.0, 10.0, 30.0, 100.0):
             A = rng.normal(size=(m, m)) if m == 6 else hat(rng.normal(size=3))

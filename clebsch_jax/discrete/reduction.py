@@ -33,12 +33,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import lie
 from ..core import linalg as _linalg
 from ..discrete.closure import check_closure
 from ..core.derivative_maps import CayleyDifference, MatrixGroupDifference
@@ -359,13 +359,13 @@ def _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
     the two maps `reduced_step` takes from the ambient gradient $G_F$ of $\ell_d$: the same
     equations as differentiating `log` (which goes through every step of the matrix
     logarithm's algorithm in reverse mode), for $|Y|$ below the logarithm's branch cut.
-    $e^A$ and $\varphi_1(A)$ come from `_exp_and_phi1`, and $\varphi_1(-A) = e^{-A}\varphi_1(A)$
+    $e^A$ and $\varphi_1(A)$ come from `lie.exp_and_phi1`, and $\varphi_1(-A) = e^{-A}\varphi_1(A)$
     gives the second map from the first solve. Both schemes give the same $\xi(F)$ for this
     pair ($\log F^{-1} = -\log F$); the potential terms are those of `reduced_step`, with
     $G_Q = \Delta t\,\partial l/\partial Q$."""
     y = dt * jnp.ravel(xi)
     C = _ad_constants(red)  # A = Σ_a y_a C[a]
-    E, Phi = _exp_and_phi1(jnp.tensordot(y, jnp.asarray(C, y.dtype), axes=1))
+    E, Phi = lie.exp_and_phi1(jnp.tensordot(y, jnp.asarray(C, y.dtype), axes=1))
     need_F = outgoing or (system.has_potential and scheme == "right")
     Q1 = Q0 @ system.derivative_map.exp(dt * red.X(xi)) if need_F else None
     Qa = Q0 if scheme == "left" else Q1
@@ -385,41 +385,6 @@ def _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
     if g_Q is not None and scheme == "right":
         mu1 = mu1 + dt * red.X_adjoint(Q1.T @ g_Q)
     return r, mu1, Q1
-
-
-PHI1_MAX_SCALING = 8
-"""The most halvings (and doublings back) of `_exp_and_phi1`: its series is at round-off for
-|A|₁ up to 0.4·2⁸ ≈ 100 (for a compact group a step that large is far past the logarithm's
-branch cut already) and loses accuracy gradually beyond. Each doubling costs its products
-whether it is applied or not (a select)."""
-
-PHI1_DEGREE = 13
-"""Terms of the Taylor series of e^B and φ₁(B) at the scaled argument B, |B|₁ ≤ 0.4: the first
-term left out is below 10⁻¹⁷ of the sum."""
-
-
-def _exp_and_phi1(A):
-    r"""$(e^A, \varphi_1(A))$, $\varphi_1(z) = (e^z - 1)/z$, for a small m×m matrix A: the Taylor
-    series $\varphi_1(B) = \sum_k B^k/(k+1)!$ (Horner) at $B = A/2^s$ with s the least
-    number of halvings that makes $|B|_1 \le 0.4$, $e^B = I + B\varphi_1(B)$, then s doublings
-    $\varphi_1(2B) = \tfrac12\varphi_1(B)(I + e^B)$, $e^{2B} = (e^B)^2$: m×m products only,
-    no solve. The doublings are `PHI1_MAX_SCALING` steps each applied only while it is needed
-    (a select, so under `vmap` every member may need a different s); under `vmap` this costs
-    far less than the exponential of the 2m×2m block matrix that holds φ₁ too."""
-    m = A.shape[-1]
-    eye = jnp.eye(m, dtype=A.dtype)
-    norm = jnp.max(jnp.sum(jnp.abs(A), axis=-2))  # the 1-norm
-    s = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300) / 0.4)), 0, PHI1_MAX_SCALING)
-    B = A * jnp.exp2(-s)  # exact: a power of two
-    phi = eye / math.factorial(PHI1_DEGREE + 1)
-    for k in range(PHI1_DEGREE, 0, -1):  # Σ_k B^k/(k+1)!, from the highest term
-        phi = eye / math.factorial(k) + _linalg.matmul(B, phi)
-    E = eye + _linalg.matmul(B, phi)
-    for i in range(PHI1_MAX_SCALING):
-        more = i < s
-        phi, E = (jnp.where(more, 0.5 * _linalg.matmul(phi, eye + E), phi),
-                  jnp.where(more, _linalg.matmul(E, E), E))
-    return E, phi
 
 
 @functools.lru_cache(maxsize=64)
