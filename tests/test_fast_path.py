@@ -130,6 +130,31 @@ def test_fixed_newton_solve_checks_its_answer():
     np.testing.assert_allclose(g, 1.0 / (3.0 * root**2 + 1.0), rtol=1e-12)
 
 
+def test_the_round_off_rule_leaves_out_the_tests_a_zero_tolerance_cannot_pass():
+    """`tolerance` of the Python zeros is the Python 0.0, and `converged` then leaves its two
+    tests on tol out of the program (fewer operations in every check of a fast step): the same
+    verdict as with a traced zero tolerance, on sizes from 0 to overflow, a NaN update included.
+    Not compared: max|z| NaN (every caller has stopped as non-finite then), and a previous update
+    larger than max(1, max|z|) (after an update of that size the iterate has it), where θ·η can
+    underflow and the old estimate accepted an update above round-off."""
+    from clebsch_jax.roots.newton import converged, tolerance
+
+    z = jnp.zeros(3)
+    assert tolerance(z, 0.0, 0.0) == 0.0 and isinstance(tolerance(z, 0.0, 0.0), float)
+    assert not isinstance(tolerance(z, 1e-12, 0.0), float)  # a real tolerance stays an array
+    eps = np.finfo(float).eps
+    sizes = np.array([0.0, 1e-300, eps, 4 * eps, 8 * eps, 9 * eps, 1e-12, 1e3 * eps, 2e4 * eps, 0.5, 1.0, 3.0,
+                      1e300, np.inf, np.nan])
+    eta, prev, zmax = (a.ravel() for a in np.meshgrid(sizes, sizes[:-2], sizes[:-1], indexing="ij"))
+    verdict = jax.jit(lambda e, p, k, zm, static_zero: converged(
+        e, p, k, 0.0 if static_zero else jnp.zeros(()), z, zm), static_argnums=4)
+    real = prev <= np.maximum(1.0, zmax)
+    eta, prev, zmax = eta[real], prev[real], zmax[real]
+    for k in (0, 1, 3):
+        kk = jnp.asarray(k, jnp.int32)
+        np.testing.assert_array_equal(verdict(eta, prev, kk, zmax, True), verdict(eta, prev, kk, zmax, False))
+
+
 def test_fixed_newton_in_integrate_reports_unconverged_steps():
     body = rigid_body(jnp.array([0.5, 0.6, 1.0]))
     method = fast_method(body, jnp.eye(3), jnp.array([3.0, 1.0, -2.0]), {"reconstruct": False})
