@@ -7,7 +7,8 @@ the same steps with the fast path's method (`clebsch_jax.batching.fast`: a fixed
 Newton updates and a check per member and step) and, at each new node, in the same loop body:
 
 - the nodal velocity (Lemma 7: $\delta l/\delta\xi(\xi, Q) = \mu$), by fixed Newton updates
-  from $2\xi_{\text{step}} - \xi_{\text{node}}$ and a check;
+  from $\tfrac32\xi^n - \tfrac12\xi^{n-1}$ (the velocities of the two steps before the node,
+  extrapolated to it) and a check;
 - the energy $E = \langle\delta l/\delta\xi, \xi\rangle - l$, its running drift from the
   run's first node, and `integrate`'s energy check (`clebsch_jax.march.scan.jump_step`);
 - whether anything failed: a step or nodal solve that its check does not accept, a
@@ -127,7 +128,7 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
     reductions = dict(
         ok=ok, iterations=jnp.asarray(0, carry.iterations.dtype), residual=jnp.zeros((), dt.dtype),
         change=carry.energy_change, size=jnp.maximum(carry.energy_size, zero_nan(size0)), E=E0,
-        drift=jnp.abs(E0 - ref), xin=xin0, mu=mu0, **({"Q": Q0} if carries_Q else {}),
+        drift=jnp.abs(E0 - ref), xin=xin0, mu=mu0, xstep=xin0, **({"Q": Q0} if carries_Q else {}),
     )
 
     # warm-up steps by the general loop, the others by LEAN_UPDATES fixed updates (module docstring)
@@ -138,7 +139,11 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
         state, memory, out, stats = method.step(system, state_prev, memory, dt, k, jnp.asarray(True))
         nodes = method.nodes(system, state_prev, _one(state), _one(out))
         Qn, mun, xi_step = nodes.nodal_Q[1], nodes.momentum[1], nodes.xi_step[0]
-        xin, nst = _nodal_velocity(system, finder, Qn, mun, 2 * xi_step - red["xin"])
+        # the guess extrapolates the step velocities (ξ of the steps before and after the
+        # node): no node's solved velocity feeds the next node's solve (a chain from step to step
+        # that made the loop slower); the chunk's first node extrapolates from node 0
+        guess = jnp.where(k == 0, 2 * xi_step - xin0, 1.5 * xi_step - 0.5 * red["xstep"])
+        xin, nst = _nodal_velocity(system, finder, Qn, mun, guess)
         E, size = node_energy(system, Qn, xin)
         # red["size"] holds the sizes of the nodes up to the one this step leaves
         change, _, jumped = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
@@ -147,7 +152,7 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
         red = dict(
             ok=red["ok"] & good, iterations=red["iterations"] + stats.iterations,
             residual=jnp.maximum(red["residual"], stats.residual_norm), change=change, size=size_max, E=E,
-            drift=jnp.maximum(red["drift"], jnp.abs(E - ref)), xin=xin, mu=mun,
+            drift=jnp.maximum(red["drift"], jnp.abs(E - ref)), xin=xin, mu=mun, xstep=xi_step,
             **({"Q": nodes.Q[1]} if carries_Q else {}),
         )
         return state, memory, red
