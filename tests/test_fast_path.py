@@ -311,6 +311,30 @@ def test_lean_chunk_carries_what_the_general_chunk_carries():
             assert int(f.status) == int(g.status) == Status.SUCCESS
 
 
+def _quartic_body(inertia):
+    """A rigid body whose kinetic energy has a quartic term: l = ½ξ·𝕀ξ + (ξ·ξ)²/8, so that the
+    nodal relation is nonlinear (its Hessian depends on ξ)."""
+    return cj.ClebschSystem(lagrangian=lambda xi, Q: 0.5 * jnp.sum(inertia * xi * xi) + 0.125 * jnp.sum(xi * xi) ** 2,
+                            velocity_map=lambda xi, Q: Q @ cj.lie.hat(xi), derivative_map=cj.cayley)
+
+
+@pytest.mark.slow  # compiles the lean and the general chunk of a new system
+def test_lean_sweep_of_a_nonlinear_nodal_relation_falls_back_then_gives_up():
+    # the lean chunk's nodal solves (two chord updates) reach round-off where the nodal relation
+    # is linear in ξ (every built-in model); here it is not, every check fails, and after
+    # FAST_GIVE_UP rejected chunks in a row the batch runs the general path only: the third
+    # chunk is not tried. The table is the general path's either way.
+    from clebsch_jax.batching.sweep import FAST_GIVE_UP
+
+    run = {**LEAN, "n_steps": 3 * LEAN["chunk_steps"]}
+    lean = cj.sweep(_quartic_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **run)
+    general = cj.sweep(_quartic_body, INERTIAS, EYES, OMEGAS, dt=0.05, **run)
+    assert FAST_GIVE_UP == 2 and lean.fast_chunks == lean.fallback_chunks == 2
+    assert np.all(lean.succeeded) and np.all(general.succeeded)
+    for key in ("final_momentum", "final_xi", "final_p", "energy_error", "newton_iterations"):
+        np.testing.assert_array_equal(getattr(lean, key), getattr(general, key), err_msg=key)
+
+
 @pytest.mark.slow  # compiles the lean and the general chunk of an order-4 composition
 def test_lean_sweep_of_a_composition_agrees_with_the_general_one():
     # the lean chunk steps through wrappers (Composed of the reduced step): same answers

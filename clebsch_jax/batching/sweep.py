@@ -68,6 +68,14 @@ __all__ = ["sweep", "SweepResult", "SweepProgress"]
 
 _RESERVED = ("P0", "t0", "throw", "dt", "n_steps")
 _DEFAULT_CHUNK = 100
+
+FAST_GIVE_UP = 2
+"""A batch whose fast-path chunks some member's check rejected this many times in a row runs
+its remaining chunks on the general path directly (the table is the same: a rejected chunk is
+run again by the general path anyway): the fast path does not suit its march — e.g. a
+Lagrangian whose nodal relation is not linear in ξ, which the lean chunk's fixed updates do
+not solve to round-off, or steps too large for them — and trying each chunk twice would make
+the sweep slower than `fast=False`."""
 _DEFAULT_BATCH = 1024
 _DEFAULT_BATCH_LEAN = 16_384
 """Members per compiled call of the lean chunk (`fast=True`): it records nothing, and its rows
@@ -782,6 +790,7 @@ class _Batch:
     dt: jax.Array
     shared: list | None
     carry: _Carry
+    fallbacks_in_a_row: int = 0  # fast chunks of this batch rerun by the general path, the last ones
 
 
 def _start_batch(cfg: _Config, members: _Members, shapes: _Shapes, b: int, batch_size: int, device) -> _Batch:
@@ -817,13 +826,18 @@ def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report
         at = (np.asarray(st == 0), np.asarray(st, np.int32))  # host values: no eager JAX operation
         args = [(one.params, one.carry, one.dt, one.shared) + at for one in group]
         # dispatched asynchronously: the devices march side by side
-        if cfg.fast_method is None:
-            results = [_run_chunk(c, *a) for a in args]
-        else:  # the fast chunks, then the general one where a fast chunk failed
-            fast = [_run_fast_chunk(c, *a) for a in args]
-            oks = [bool(ok) for ok in jax.device_get([f[2] for f in fast])]
-            results = [f[:2] if ok else _run_chunk(c, *a) for f, ok, a in zip(fast, oks, args)]
-            fell_back.extend(not ok for ok in oks)
+        # the fast chunks, then the general one where a fast chunk failed; a batch whose fast
+        # chunks failed FAST_GIVE_UP times in a row runs the general one directly
+        trying = [cfg.fast_method is not None and one.fallbacks_in_a_row < FAST_GIVE_UP for one in group]
+        fast = [_run_fast_chunk(c, *a) if t else None for a, t in zip(args, trying)]
+        oks = iter(bool(ok) for ok in jax.device_get([f[2] for f in fast if f is not None]))
+        results = []
+        for one, f, a in zip(group, fast, args):
+            ok = f is not None and next(oks)
+            results.append(f[:2] if ok else _run_chunk(c, *a))
+            if f is not None:
+                fell_back.append(not ok)
+                one.fallbacks_in_a_row = 0 if ok else one.fallbacks_in_a_row + 1
         for one, (carry, _) in zip(group, results):
             one.carry = carry
         outs = [chunk_saved for _, chunk_saved in results]
@@ -1061,7 +1075,8 @@ def sweep(
       does. Where any member's check fails in a chunk, that chunk runs again from the same
       start with the general loop, which reports the failure (status and step) as
       `fast=False` would; reruns are counted in `SweepResult.fallback_chunks`, and the general
-      program is compiled only when a rerun needs it. The table agrees with `fast=False` to
+      program is compiled only when a rerun needs it. After `FAST_GIVE_UP` reruns in a row a
+      batch runs its remaining chunks on the general path only. The table agrees with `fast=False` to
       round-off (Newton iteration counts are those of the path that ran). "auto": the lean
       chunk where it applies and the sweep is large — at least `AUTO_LEAN_MIN_MEMBERS` members
       and `AUTO_LEAN_MIN_MEMBER_STEPS` member-steps — else the general loop: the lean chunk
