@@ -56,8 +56,9 @@ case sampled in turn, load average recorded):
    ratios, compile times (first call − second call), energy errors, fallback counts. With
    `--sweep-only` the script asks XLA for two host devices (`XLA_FLAGS`, set before JAX
    starts, unless the caller set a device count) and adds `sweep_fast_2dev`: `fast=True,
-   devices=2`, the batches dealt to both cores. Every other row runs on device 0 as before;
-   the hand kernel and RK4 use one core.
+   devices=2`, the batches dealt to both cores. Every other row runs on device 0 as before.
+   Cores: every JAX row, the hand kernel included, runs with XLA's intra-op threads on every
+   core the process may use (`taskset` limits them); NumPy's RK4 uses one.
 
 The issue's targets (reported, never asserted): the reduced rigid body at >= 10^7 body-steps
 per second and >= 3x the NumPy RK4 rate, flat from B = 10^3 to 10^6 (here: every rate within
