@@ -320,8 +320,8 @@ def _quartic_body(inertia):
 
 @pytest.mark.slow  # compiles the lean and the general chunk of a new system
 def test_lean_sweep_of_a_nonlinear_nodal_relation_falls_back_then_gives_up():
-    # the lean chunk's nodal solves (two chord updates) reach round-off where the nodal relation
-    # is linear in ξ (every built-in model); here it is not, every check fails, and after
+    # the lean chunk's nodal solves (two chord updates) reach round-off where l is quadratic in
+    # ξ (the rigid body, the heavy top); here it is not, every check fails, and after
     # FAST_GIVE_UP rejected chunks in a row the batch runs the general path only: the third
     # chunk is not tried. The table is the general path's either way.
     from clebsch_jax.batching.sweep import FAST_GIVE_UP

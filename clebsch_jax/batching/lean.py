@@ -139,9 +139,9 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
         state, memory, out, stats = method.step(system, state_prev, memory, dt, k, jnp.asarray(True))
         nodes = method.nodes(system, state_prev, _one(state), _one(out))
         Qn, mun, xi_step = nodes.nodal_Q[1], nodes.momentum[1], nodes.xi_step[0]
-        # the guess extrapolates the step velocities (ξ of the steps before and after the
-        # node): no node's solved velocity feeds the next node's solve (a chain from step to step
-        # that made the loop slower); the chunk's first node extrapolates from node 0
+        # the guess extrapolates the velocities of the two steps before the node: no node's
+        # solved velocity feeds the next node's solve (a chain from step to step that made the
+        # loop slower); the chunk's first node extrapolates from node 0
         guess = jnp.where(k == 0, 2 * xi_step - xin0, 1.5 * xi_step - 0.5 * red["xstep"])
         xin, nst = _nodal_velocity(system, finder, Qn, mun, guess)
         E, size = node_energy(system, Qn, xin)

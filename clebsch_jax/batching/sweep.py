@@ -69,17 +69,18 @@ __all__ = ["sweep", "SweepResult", "SweepProgress"]
 _RESERVED = ("P0", "t0", "throw", "dt", "n_steps")
 _DEFAULT_CHUNK = 100
 
-FAST_GIVE_UP = 2
-"""A batch whose fast-path chunks some member's check rejected this many times in a row runs
-its remaining chunks on the general path directly (the table is the same: a rejected chunk is
-run again by the general path anyway): the fast path does not suit its march — e.g. a
-Lagrangian whose nodal relation is not linear in ξ, which the lean chunk's fixed updates do
-not solve to round-off, or steps too large for them — and trying each chunk twice would make
-the sweep slower than `fast=False`."""
 _DEFAULT_BATCH = 1024
 _DEFAULT_BATCH_LEAN = 16_384
 """Members per compiled call of the lean chunk (`fast=True`): it records nothing, and its rows
 of many members share XLA's per-operation cost (`benchmarks/throughput.py --sweep-only`)."""
+
+FAST_GIVE_UP = 2
+"""A batch whose fast-path chunks some member's check rejected this many times in a row runs
+its remaining chunks on the general path directly (the table is the same: a rejected chunk is
+run again by the general path anyway): the fast path does not suit its march — e.g. a
+Lagrangian that is not quadratic in ξ, whose nodal relation the lean chunk's two fixed updates
+do not solve to round-off, or steps too large for them — and trying each chunk twice would make
+the sweep slower than `fast=False`."""
 
 AUTO_LEAN_MIN_MEMBERS = 8192
 """`fast="auto"` runs the lean chunk only for sweeps of at least this many members: its rows
@@ -1075,17 +1076,17 @@ def sweep(
       does. Where any member's check fails in a chunk, that chunk runs again from the same
       start with the general loop, which reports the failure (status and step) as
       `fast=False` would; reruns are counted in `SweepResult.fallback_chunks`, and the general
-      program is compiled only when a rerun needs it. After `FAST_GIVE_UP` reruns in a row a
-      batch runs its remaining chunks on the general path only. The table agrees with `fast=False` to
-      round-off (Newton iteration counts are those of the path that ran). "auto": the lean
-      chunk where it applies and the sweep is large — at least `AUTO_LEAN_MIN_MEMBERS` members
-      and `AUTO_LEAN_MIN_MEMBER_STEPS` member-steps — else the general loop: the lean chunk
-      compiles longer than the general one, which a short sweep does not repay, and its speed
-      needs long rows (its default `batch_size` is larger; `benchmarks/throughput.py
-      --sweep-only` measures both paths). The choice depends on B and `n_steps` only, so a
-      stored sweep resumes with the path it started with (a store that a large sweep wrote
-      with `fast=False`, the default before "auto", resumes with `fast=False`: the store
-      refuses a run on the other path).
+      program is compiled only when a rerun needs it; after `FAST_GIVE_UP` reruns in a row a
+      batch runs its remaining chunks on the general path only. The table agrees with
+      `fast=False` to round-off (Newton iteration counts are those of the path that ran).
+      "auto": the lean chunk where it applies and the sweep is large — at least
+      `AUTO_LEAN_MIN_MEMBERS` members and `AUTO_LEAN_MIN_MEMBER_STEPS` member-steps — else the
+      general loop: the lean chunk compiles longer than the general one, which a short sweep
+      does not repay, and its speed needs long rows (its default `batch_size` is larger;
+      `benchmarks/throughput.py --sweep-only` measures both paths). The choice depends on B
+      and `n_steps` only, so a stored sweep resumes with the path it started with (a store
+      that a large sweep wrote with `fast=False`, the default before "auto", resumes with
+      `fast=False`: the store refuses a run on the other path).
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own. One default differs from `integrate`'s: members that are degenerate
