@@ -391,7 +391,7 @@ def test_cayley_polynomial_gives_way_to_the_matrix_form_for_large_algebras(monke
 
 
 def test_predictor_is_exact_on_polynomials_and_falls_back_on_rough_data():
-    from clebsch_jax.steppers.predictor import PREDICTOR_ORDER, predict
+    from clebsch_jax.steppers.predictor import PREDICTOR_ORDER, degree_flags, predict
 
     t = np.arange(PREDICTOR_ORDER + 1, 0, -1.0) * 0.1  # history newest first, times 0.6 ... 0.1
     poly = lambda s: np.stack([1 + s - 2 * s**2 + 3 * s**3, 0.5 * s**2, np.full_like(s, 2.0)], axis=-1)
@@ -405,6 +405,13 @@ def test_predictor_is_exact_on_polynomials_and_falls_back_on_rough_data():
     # a sawtooth: the differences grow, so only the linear predictor is used
     rough = jnp.asarray(np.resize([1.0, -1.0], PREDICTOR_ORDER + 1)[:, None])
     assert float(predict(n, xi0[:1], rough)[0]) == 3.0
+    # the choice made beforehand (a march carries it from the step before) is the same choice
+    for k in range(PREDICTOR_ORDER + 2):
+        for h, x in ((history, xi0), (rough, xi0[:1])):
+            kk = jnp.asarray(k)
+            np.testing.assert_array_equal(predict(kk, x, h, degree_flags(kk, h)), predict(kk, x, h))
+    assert degree_flags(n, history).tolist()[:3] == [True] * 3  # a cubic: its differences up to the third
+    assert degree_flags(n, rough).tolist() == [True] + [False] * (PREDICTOR_ORDER - 1)
 
 
 def _cubic_system():

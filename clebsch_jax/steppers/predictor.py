@@ -11,7 +11,7 @@ import numpy as np
 
 from ..roots.newton import max_abs
 
-__all__ = ["PREDICTOR_ORDER", "predict", "push", "empty_history"]
+__all__ = ["PREDICTOR_ORDER", "predict", "degree_flags", "push", "empty_history"]
 
 
 PREDICTOR_ORDER = 5
@@ -19,7 +19,7 @@ PREDICTOR_ORDER = 5
 (`predict`)."""
 
 
-def predict(n, first, history):
+def predict(n, first, history, keeps=None):
     """Initial guess of step n's unknowns: `first` at n = 0, then the polynomial extrapolation
     of the solutions of the last steps, `history` (newest first, leading axis p + 1), in
     Newton's backward-difference form zⁿ ≈ Σⱼ ∇ʲzⁿ⁻¹, j = 0 … p.
@@ -28,21 +28,45 @@ def predict(n, first, history):
     support) and, beyond 1, a difference is used only while the differences decrease by at
     least half each (max-norm): over a smooth, well-resolved trajectory the predictor is then
     of high order (error O(Δtᵖ⁺¹), which saves Newton updates), while an under-resolved or
-    rough one (where high-degree extrapolation amplifies) falls back to low degree."""
+    rough one (where high-degree extrapolation amplifies) falls back to low degree.
+
+    `keeps`, if given, is that choice made beforehand (`degree_flags(n, history)`)."""
+    D = _differences(history)
+    if keeps is None:
+        keeps = _flags(n, D)
+    total = D[0]
+    for j in range(1, D.shape[0]):
+        total = total + jnp.where(keeps[j - 1], D[j], 0.0)
+    return jnp.where(n == 0, first, total.reshape(first.shape))
+
+
+def degree_flags(n, history):
+    """Which differences `predict(n, ·, history)` uses beyond the first: (p,) booleans. A march
+    computes them at the end of the step before (its history is then complete) and carries
+    them: each component's prediction then reads them instead of recomputing the max-norm sizes
+    of every component's differences (which XLA does in each component's computation when the
+    components are rows of their own, `clebsch_jax.batching.scalarise`)."""
+    return jnp.stack(_flags(n, _differences(history)))
+
+
+def _differences(history):
+    """The backward differences ∇ʲzⁿ⁻¹ = Σᵢ (-1)ⁱ C(j, i) zⁿ⁻¹⁻ⁱ, j = 0 … p, as rows (p + 1, size),
+    each computed in one piece (elementwise, which XLA fuses into one operation)."""
     p = history.shape[0] - 1
     H = history.reshape(p + 1, -1)
-    # rows of D: the backward differences ∇ʲzⁿ⁻¹ = Σᵢ (-1)ⁱ C(j, i) zⁿ⁻¹⁻ⁱ, j = 0 … p, and their
-    # sizes, each computed in one piece (elementwise, which XLA fuses into one operation)
     C = np.array([[(-1) ** i * math.comb(j, i) for i in range(p + 1)] for j in range(p + 1)], dtype=float)
-    D = functools.reduce(jnp.add, [jnp.asarray(C[:, i:i + 1], H.dtype) * H[i] for i in range(p + 1)])
+    return functools.reduce(jnp.add, [jnp.asarray(C[:, i:i + 1], H.dtype) * H[i] for i in range(p + 1)])
+
+
+def _flags(n, D):
     size = max_abs(D)
-    total, keep = D[0], jnp.asarray(True)
-    for j in range(1, p + 1):
+    keeps, keep = [], jnp.asarray(True)
+    for j in range(1, D.shape[0]):
         if j >= 2:
             keep = keep & (size[j] <= 0.5 * size[j - 1])
         keep = keep & (n > j)
-        total = total + jnp.where(keep, D[j], 0.0)
-    return jnp.where(n == 0, first, total.reshape(first.shape))
+        keeps.append(keep)
+    return keeps
 
 
 def push(history, z):

@@ -33,7 +33,7 @@ from ..discrete.reduction import MatrixGroupReduction, find_reduction, reduced_s
 from ..roots.solvers import FixedNewton, Newton
 from .base import Nodes, Principle
 from .full import seed_velocity
-from .predictor import empty_history, predict, push
+from .predictor import degree_flags, empty_history, predict, push
 from .principles import PrincipleStep
 
 __all__ = ["ReducedStep"]
@@ -105,11 +105,12 @@ class ReducedStep(PrincipleStep):
 
     def init_memory(self, system, state):
         _, _, xi = state
-        return empty_history(xi.shape, xi.dtype), jnp.eye(xi.size, dtype=xi.dtype)
+        history = empty_history(xi.shape, xi.dtype)
+        return history, jnp.eye(xi.size, dtype=xi.dtype), degree_flags(0, history)
 
     def step(self, system, state, memory, h, n, alive):
         mu, Q, xi_last = state
-        history, H = memory
+        history, H, keeps = memory
         red, principle = self.reduction, self.principle
 
         def residual(x):
@@ -122,7 +123,7 @@ class ReducedStep(PrincipleStep):
         # A fresh Jacobian at the guess, or the inverse Jacobian of this slot's last solve
         # (refreshed when it stops contracting, formed at step 0); a member that has failed
         # iterates on NaNs without forming any.
-        guess = xi_last + predict(n, jnp.zeros_like(xi_last), history)
+        guess = xi_last + predict(n, jnp.zeros_like(xi_last), history, keeps)
         reuse = False if self._fresh(system) else (n > 0) | ~alive
         xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish,
                                                                      step=n)
@@ -130,7 +131,9 @@ class ReducedStep(PrincipleStep):
         # a fresh Jacobian every solve: the carried matrix is never read, so it is handed on
         # unchanged (a loop-invariant placeholder rather than a new value per step)
         H = H if reuse is False else H_new
-        return (mu1, Q1 if carry_Q else Q, xi), (push(history, xi - xi_last), H), (xi, Q1), stats
+        history = push(history, xi - xi_last)
+        # the next step's choice of differences, carried (`degree_flags`)
+        return (mu1, Q1 if carry_Q else Q, xi), (history, H, degree_flags(n + 1, history)), (xi, Q1), stats
 
     def nodes(self, system, state0, states, outs) -> Nodes:
         mu0, Qc0, xi0 = state0
