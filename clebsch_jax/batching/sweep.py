@@ -68,7 +68,6 @@ __all__ = ["sweep", "SweepResult", "SweepProgress"]
 
 _RESERVED = ("P0", "t0", "throw", "dt", "n_steps")
 _DEFAULT_CHUNK = 100
-
 _DEFAULT_BATCH = 1024
 _DEFAULT_BATCH_LEAN = 16_384
 """Members per compiled call of the lean chunk (`fast=True`): it records nothing, and its rows
