@@ -257,7 +257,12 @@ def factor(A: jax.Array, fence: bool = False):
         if fence:
             adj, d = jax.lax.optimization_barrier((adj, d))
         bound = jnp.prod(jnp.linalg.norm(A, axis=-1), axis=-1)
-        return adj / d[..., None, None], jnp.abs(d) <= n * eps * bound
+        # one reciprocal and n² products, not n² divisions: XLA copies the determinant (cheap
+        # arithmetic) into every consumer, so each entry's division would recompute it and A
+        # (in a batch of rows, the whole Jacobian for every entry); the reciprocal, a division,
+        # is computed once and read (the entries differ from adj / d in the last bit, which
+        # a chord matrix may: the iteration's fixed point is set by the residual)
+        return adj * (1 / d)[..., None, None], jnp.abs(d) <= n * eps * bound
     lu, perm = lu_factor(A)
     pivots = jnp.abs(jnp.diagonal(lu, axis1=-2, axis2=-1))
     return (lu, perm), jnp.min(pivots, axis=-1) <= n * eps * jnp.max(pivots, axis=-1)
