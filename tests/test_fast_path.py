@@ -166,27 +166,35 @@ def test_fixed_newton_in_integrate_reports_unconverged_steps():
     assert Status.MAX_ITERATIONS in status
 
 
-def test_scalarise_matches_vmap():
-    def f(x, A):
-        M = A @ jnp.outer(x, x) + jnp.eye(3) * x[0]  # dot_general, broadcast, a constant eye
+def _scalarise_case(x, A):
+    M = A @ jnp.outer(x, x) + jnp.eye(3) * x[0]  # dot_general, broadcast, a constant eye
 
-        def body(c, _):
-            y = jnp.cross(c, M @ c) * 0.1 + c
-            k = jnp.argmax(jnp.abs(y))  # a batched index: handled stacked
-            return y / jnp.linalg.norm(y), y[k] + jax.lax.dynamic_slice(y, (jnp.asarray(1),), (1,))[0]
+    def body(c, _):
+        y = jnp.cross(c, M @ c) * 0.1 + c
+        k = jnp.argmax(jnp.abs(y))  # a batched index: handled stacked
+        return y / jnp.linalg.norm(y), y[k] + jax.lax.dynamic_slice(y, (jnp.asarray(1),), (1,))[0]
 
-        c, ys = jax.lax.scan(body, x, None, length=5)
-        n = jax.lax.while_loop(lambda s: s[0] < jnp.abs(c[0]) * 10 + 1, lambda s: (s[0] + 1.0, s[1] * 0.5),
-                               (0.0, jnp.sum(c)))
-        r = jax.lax.cond(x[1] > 0, lambda v: v[::-1], lambda v: -v, c)
-        return r, ys, n[1], jnp.sum(M, axis=0)
+    c, ys = jax.lax.scan(body, x, None, length=5)
+    n = jax.lax.while_loop(lambda s: s[0] < jnp.abs(c[0]) * 10 + 1, lambda s: (s[0] + 1.0, s[1] * 0.5),
+                           (0.0, jnp.sum(c)))
+    r = jax.lax.cond(x[1] > 0, lambda v: v[::-1], lambda v: -v, c)
+    return r, ys, n[1], jnp.sum(M, axis=0)
 
+
+@pytest.mark.parametrize("loops_only", [True, False])
+def test_scalarise_matches_vmap(loops_only):
+    f = _scalarise_case
     xs = jnp.asarray(np.random.default_rng(0).normal(size=(7, 3)))
     A = jnp.asarray(np.random.default_rng(1).normal(size=(3, 3)))
     want = jax.vmap(f, in_axes=(0, None))(xs, A)
-    got = jax.jit(scalarise(f, in_axes=(0, None)))(xs, A)
+    run = scalarise(f, in_axes=(0, None), loops_only=loops_only)
+    got = jax.jit(run)(xs, A)
     for w, g in zip(jax.tree_util.tree_leaves(want), jax.tree_util.tree_leaves(got)):
         np.testing.assert_allclose(g, w, rtol=1e-14, atol=1e-14)
+    # the 3x3 product and the column sums outside the loop: stacked (sums over a member axis),
+    # or, rows everywhere, sums of row products
+    outside = {e.primitive.name for e in jax.make_jaxpr(run)(xs, A).jaxpr.eqns}
+    assert bool(outside & {"dot_general", "reduce_sum"}) == loops_only
 
 
 # -- the lean chunk (`clebsch_jax.batching.lean`): no invariant but the energy, nothing saved ------

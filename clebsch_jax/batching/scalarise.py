@@ -56,9 +56,9 @@ MAX_PRODUCTS = 512
 """A `dot_general` (or reduction) of rows with more products than this is stacked instead."""
 
 _IN_LOOP = [False]
-"""Whether the evaluator is inside a `scan` body (the last entry): only there are values held
-as rows; outside, every value stays stacked as `batch_last` holds it (a scan's trajectory
-outputs and what is computed from them are large)."""
+"""Whether small values are held as rows here (the last entry): inside a `scan` body, and
+everywhere under `scalarise(..., loops_only=False)`; elsewhere every value stays stacked as
+`batch_last` holds it (a scan's trajectory outputs and what is computed from them are large)."""
 
 # A value in the evaluator is (kind, x): U unbatched (an array of the member's shape), S stacked
 # batch-last (member shape + (B,)), R rows (a NumPy object array of the member's shape with
@@ -66,12 +66,16 @@ outputs and what is computed from them are large)."""
 U, S, R = "u", "s", "r"
 
 
-def scalarise(fun: Callable, in_axes=0) -> Callable:
+def scalarise(fun: Callable, in_axes=0, *, loops_only: bool = True) -> Callable:
     """`jax.vmap(fun, in_axes)` evaluated with each component of a small member value as its
     own (B,) row (module docstring).
 
     **Arguments:** `fun`, a function of arrays that `jax.vmap` could batch; `in_axes`, 0 or None
-    per positional argument (as `clebsch_jax.batch`).
+    per positional argument (as `clebsch_jax.batch`); `loops_only`: hold values as rows only
+    inside loop bodies (`_IN_LOOP`), or, False, wherever they are small — for a program whose
+    work outside its loops is on small values too (the lean chunk's start and end: a momentum
+    map, a minimum-norm cotangent, whose small products would otherwise be stacked
+    `dot_general`s).
 
     **Returns:** a function with `jax.vmap(fun, in_axes)`'s signature and outputs (every output
     batched along axis 0).
@@ -91,7 +95,11 @@ def scalarise(fun: Callable, in_axes=0) -> Callable:
 
         closed, out_shapes = jax.make_jaxpr(flat_fun, return_shape=True)(*member)
         ins = [(S, jnp.moveaxis(x, 0, -1)) if a == 0 else (U, x) for x, a in zip(leaves, axes)]
-        outs = _eval(closed.jaxpr, closed.consts, ins, B)
+        _IN_LOOP.append(not loops_only)
+        try:
+            outs = _eval(closed.jaxpr, closed.consts, ins, B)
+        finally:
+            _IN_LOOP.pop()
         flat_out = [_to_batch_first(o, v.aval.shape, B) for o, v in zip(outs, closed.jaxpr.outvars)]
         return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out_shapes), flat_out)
 

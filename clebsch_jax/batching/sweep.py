@@ -399,7 +399,10 @@ def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows:
         return _member_chunk(cfg, p, s, c, d, f, o)
 
     axes = (0, 0, 0, None, None, None)
-    run = scalarise(one, in_axes=axes) if rows else batch(one, in_axes=axes, chunk=cfg.member_chunk)
+    if rows:  # the lean chunk's start and end compute on small values only (one node each)
+        run = scalarise(one, in_axes=axes, loops_only=not cfg.lean)
+    else:
+        run = batch(one, in_axes=axes, chunk=cfg.member_chunk)
     return run(params, carry, dt, shared, first, offset)
 
 
