@@ -330,17 +330,37 @@ def _quartic_body(inertia):
 def test_lean_sweep_of_a_nonlinear_nodal_relation_falls_back_then_gives_up():
     # the lean chunk's nodal solves (two chord updates) reach round-off where l is quadratic in
     # ξ (the rigid body, the heavy top); here it is not, every check fails, and after
-    # FAST_GIVE_UP rejected chunks in a row the batch runs the general path only: the third
-    # chunk is not tried. The table is the general path's either way.
-    from clebsch_jax.batching.sweep import FAST_GIVE_UP
+    # FAST_GIVE_UP rejected calls in a row the batch runs the general path only: the third
+    # call (of LEAN_CHUNKS chunks) is not tried. A rejected call's chunks are rerun one by one,
+    # so the table is the general path's to the bit.
+    from clebsch_jax.batching.sweep import FAST_GIVE_UP, LEAN_CHUNKS
 
-    run = {**LEAN, "n_steps": 3 * LEAN["chunk_steps"]}
+    run = {**LEAN, "chunk_steps": 5, "n_steps": 3 * LEAN_CHUNKS * 5}
     lean = cj.sweep(_quartic_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **run)
     general = cj.sweep(_quartic_body, INERTIAS, EYES, OMEGAS, dt=0.05, **run)
-    assert FAST_GIVE_UP == 2 and lean.fast_chunks == lean.fallback_chunks == 2
+    assert FAST_GIVE_UP == 2 and lean.fast_chunks == lean.fallback_chunks == 2 * LEAN_CHUNKS
     assert np.all(lean.succeeded) and np.all(general.succeeded)
     for key in ("final_momentum", "final_xi", "final_p", "energy_error", "newton_iterations"):
         np.testing.assert_array_equal(getattr(lean, key), getattr(general, key), err_msg=key)
+
+
+def test_lean_calls_cover_several_chunks_of_one_length():
+    # the lean chunk covers up to LEAN_CHUNKS chunks per call, as many as divide the number of
+    # full chunks (one compiled length), and a short last chunk alone; other paths one each
+    from clebsch_jax.batching.sweep import LEAN_CHUNKS, _calls, _Run
+
+    def lengths(n_steps, chunk_steps, lean=True):
+        run = _Run(n_steps, chunk_steps, None, None, {}, False, [None])
+        calls = _calls(run, lean)
+        assert [c for call in calls for c in call] == run.chunks  # every chunk once, in order
+        return [sum(n for _, n in call) for call in calls]
+
+    assert LEAN_CHUNKS == 4
+    assert lengths(800, 100) == [400, 400]
+    assert lengths(1000, 100) == [200] * 5
+    assert lengths(250, 100) == [200, 50]
+    assert lengths(700, 100) == [100] * 7
+    assert lengths(800, 100, lean=False) == [100] * 8
 
 
 @pytest.mark.slow  # compiles the lean and the general chunk of an order-4 composition

@@ -74,12 +74,17 @@ _DEFAULT_BATCH_LEAN = 16_384
 of many members share XLA's per-operation cost (`benchmarks/throughput.py --sweep-only`)."""
 
 FAST_GIVE_UP = 2
-"""A batch whose fast-path chunks some member's check rejected this many times in a row runs
-its remaining chunks on the general path directly (the table is the same: a rejected chunk is
+"""A batch whose fast-path calls (a chunk, or `LEAN_CHUNKS` for the lean chunk) some member's
+check rejected this many times in a row runs its remaining chunks on the general path directly (the table is the same: a rejected chunk is
 run again by the general path anyway): the fast path does not suit its march — e.g. a
 Lagrangian that is not quadratic in ξ, whose nodal relation the lean chunk's two fixed updates
 do not solve to round-off, or steps too large for them — and trying each chunk twice would make
 the sweep slower than `fast=False`."""
+
+LEAN_CHUNKS = 4
+"""Chunks of `chunk_steps` steps per call of the lean chunk, at most (`_calls`): its start and
+end (the momentum map, node 0's velocity, the warm-up steps, the cotangent P of the last node)
+are then paid once per that many chunks."""
 
 AUTO_LEAN_MIN_MEMBERS = 8192
 """`fast="auto"` runs the lean chunk only for sweeps of at least this many members: its rows
@@ -137,7 +142,8 @@ class SweepResult:
     - `fast_chunks`: the chunks (of steps, of one batch) run on the fast path
       (`clebsch_jax.batching.fast`; 0 when it does not apply or `fast=False`), and
       `fallback_chunks`: how many of them some member's check rejected, so that the chunk
-      ran again with the general Newton loop. A table read from a store (`open_sweep`, also
+      ran again with the general Newton loop (a lean call covers several chunks: they count
+      together). A table read from a store (`open_sweep`, also
       the result of a resumed or Dask-written stored sweep) does not keep these counts: 0.
     """
 
@@ -241,7 +247,8 @@ jax.tree_util.register_dataclass(
 
 
 class SweepProgress(NamedTuple):
-    """What a `progress` callback receives after every chunk."""
+    """What a `progress` callback receives after every chunk (every call of the lean chunk,
+    which covers several)."""
 
     batch: int  # 0-based index of the current batch
     n_batches: int
@@ -820,36 +827,70 @@ def _start_batch(cfg: _Config, members: _Members, shapes: _Shapes, b: int, batch
     return _Batch(b, rows, n_real, params, put(members.dt[member]), shared, carry)
 
 
+def _calls(run: _Run, lean: bool) -> list:
+    """The chunks of `run.chunks` that each call of the fast path covers: one each, or for the
+    lean chunk up to `LEAN_CHUNKS` consecutive full chunks — as many as divide their number, so
+    that every call but a short last chunk's has the same length (one compiled program)."""
+    full = [c for c in run.chunks if c[1] == run.chunk_steps]
+    rest = [[c] for c in run.chunks[len(full):]]
+    per = max(d for d in range(1, LEAN_CHUNKS + 1) if len(full) % d == 0) if lean else 1
+    return [full[i:i + per] for i in range(0, len(full), per)] + rest
+
+
+def _general_chunks(cfg: _Config, run: _Run, one: _Batch, chunks: list, saved: dict | None):
+    """The general path over `chunks` from the batch's carry (dispatched, not waited for): the
+    new carry; each chunk's saved nodes go to `saved`."""
+    carry = one.carry
+    for st, n in chunks:
+        c = cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
+        carry, chunk_saved = _run_chunk(c, one.params, carry, one.dt, one.shared, *_at(st))
+        _save(saved, run, one, st, n, chunk_saved)
+    return carry
+
+
+def _at(st: int):
+    """A chunk's (first, offset) arguments: host values, so no eager JAX operation."""
+    return np.asarray(st == 0), np.asarray(st, np.int32)
+
+
+def _save(saved: dict | None, run: _Run, one: _Batch, st: int, n: int, chunk_saved):
+    if saved is None:
+        return
+    k0, kn = st // run.save_every, len(range(0, n, run.save_every))
+    for key in ("t", "Q", "xi", "momentum"):
+        if saved[key] is not None:
+            saved[key][one.rows, k0:k0 + kn] = np.asarray(chunk_saved[key])[:one.n_real]
+
+
 def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report: Callable, fell_back: list):
     """March a group of batches (one per device, side by side) through every chunk: each batch's
-    carry moves on, the chunk's saved nodes go to `saved`, whether it fell back from the fast
-    path to `fell_back` (bools), `report(group, step)` follows a chunk."""
-    for st, n in run.chunks:
+    carry moves on, the chunks' saved nodes go to `saved`, whether each chunk tried on the fast
+    path fell back to `fell_back` (bools), `report(group, step)` follows each call.
+
+    A call of the fast path covers one chunk, or `LEAN_CHUNKS` for the lean chunk (which
+    records nothing, so its length costs no memory, and its work at the start and end of a call
+    is then shared by more steps); where it fails, the general path runs the call's chunks one
+    by one from the same carry."""
+    for chunks in _calls(run, cfg.lean):
+        st, n = chunks[0][0], sum(k for _, k in chunks)
         c = cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
-        at = (np.asarray(st == 0), np.asarray(st, np.int32))  # host values: no eager JAX operation
-        args = [(one.params, one.carry, one.dt, one.shared) + at for one in group]
         # dispatched asynchronously: the devices march side by side
-        # the fast chunks, then the general one where a fast chunk failed; a batch whose fast
-        # chunks failed FAST_GIVE_UP times in a row runs the general one directly
+        # the fast calls, then the general chunks where a fast call failed; a batch whose fast
+        # calls failed FAST_GIVE_UP times in a row runs the general chunks directly
         trying = [cfg.fast_method is not None and one.fallbacks_in_a_row < FAST_GIVE_UP for one in group]
-        fast = [_run_fast_chunk(c, *a) if t else None for a, t in zip(args, trying)]
+        fast = [_run_fast_chunk(c, one.params, one.carry, one.dt, one.shared, *_at(st)) if t else None
+                for one, t in zip(group, trying)]
         oks = iter(bool(ok) for ok in jax.device_get([f[2] for f in fast if f is not None]))
-        results = []
-        for one, f, a in zip(group, fast, args):
+        for one, f in zip(group, fast):
             ok = f is not None and next(oks)
-            results.append(f[:2] if ok else _run_chunk(c, *a))
+            if ok:
+                one.carry = f[0]
+                _save(saved, run, one, st, n, f[1])
+            else:
+                one.carry = _general_chunks(cfg, run, one, chunks, saved)
             if f is not None:
-                fell_back.append(not ok)
+                fell_back.extend([not ok] * len(chunks))
                 one.fallbacks_in_a_row = 0 if ok else one.fallbacks_in_a_row + 1
-        for one, (carry, _) in zip(group, results):
-            one.carry = carry
-        outs = [chunk_saved for _, chunk_saved in results]
-        if saved is not None:
-            k0, kn = st // run.save_every, len(range(0, n, run.save_every))
-            for one, chunk_saved in zip(group, outs):
-                for key in ("t", "Q", "xi", "momentum"):
-                    if saved[key] is not None:
-                        saved[key][one.rows, k0:k0 + kn] = np.asarray(chunk_saved[key])[:one.n_real]
         report(group, st + n)
 
 
@@ -1033,6 +1074,8 @@ def sweep(
       `save_every`). Memory is about `batch_size · chunk_steps` nodes; a chunk size that divides
       `n_steps` compiles one program (otherwise a second one for the last chunk). Chunks of
       tens of steps cost little over one unchunked run (see `clebsch_jax.batching.sweep`).
+      The lean chunk of `fast` records nothing and runs up to `LEAN_CHUNKS` chunks per call
+      (as many as divide the number of chunks); a rerun is made chunk by chunk.
     - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024); for
       the lean chunk of `fast=True`, batches of equal size up to 16384); the last batch is
       padded with copies of the last member.
