@@ -366,3 +366,24 @@ def test_a_sweep_compiles_only_its_programs():
         res = cj.sweep(rigid_body, inertias, eyes(n), omegas, dt=0.05, n_steps=6, chunk_steps=3)
     assert np.all(res.succeeded)
     assert set(compiled) <= {"jit(_run_chunk)", "jit(_initial_multipliers)", "jit(stage)"}, compiled
+
+
+def test_a_repeated_sweep_traces_its_member_once(monkeypatch):
+    """The probe of a member's shapes (a trace of `integrate`) depends only on one member's
+    shapes and dtypes and the sweep's options: a second sweep reuses it (with other values,
+    members or steps), a new chunk length traces again, and the table is the same either way."""
+    import clebsch_jax.batching.sweep as sw
+
+    traces = []
+    real = jax.eval_shape
+    monkeypatch.setattr(jax, "eval_shape", lambda *a, **k: traces.append(1) or real(*a, **k))
+    run = dict(dt=0.05, n_steps=6, chunk_steps=3)
+    first = cj.sweep(rigid_body, INERTIAS, eyes(4), OMEGAS, **run)
+    again = cj.sweep(rigid_body, INERTIAS, eyes(4), OMEGAS, **run)
+    assert len(traces) == 1
+    np.testing.assert_array_equal(again.final_momentum, first.final_momentum)
+    cj.sweep(rigid_body, INERTIAS[:3], eyes(3), OMEGAS[:3], **{**run, "n_steps": 9})  # the same chunk
+    assert len(traces) == 1
+    cj.sweep(rigid_body, INERTIAS, eyes(4), OMEGAS, **{**run, "chunk_steps": 2})  # a new chunk: traced
+    assert len(traces) == 2
+    assert len(sw._TRACES) <= sw._TRACES_MAX
