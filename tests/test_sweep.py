@@ -374,6 +374,7 @@ def test_a_repeated_sweep_traces_its_member_once(monkeypatch):
     members or steps), a new chunk length traces again, and the table is the same either way."""
     import clebsch_jax.batching.sweep as sw
 
+    monkeypatch.setattr(sw, "_TRACES", {})  # other tests' sweeps of these shapes are cached
     traces = []
     real = jax.eval_shape
     monkeypatch.setattr(jax, "eval_shape", lambda *a, **k: traces.append(1) or real(*a, **k))
