@@ -384,6 +384,29 @@ def test_full_newton_updates_converge_from_a_far_guess():
     np.testing.assert_allclose(z, root, rtol=0, atol=1e-14)
 
 
+def test_scalarise_unrolls_loops_inside_loops_but_not_a_short_loop_outside():
+    # a short scan outside every loop (once per call) stays a loop: unrolled, XLA would compile
+    # every copy; the same scan inside a loop body (once per step) is unrolled, which keeps its
+    # rows in place
+    from clebsch_jax.batching.scalarise import SCAN_UNROLL, SHORT_SCAN
+
+    def short(x):
+        return jax.lax.fori_loop(0, 3, lambda i, c: c * 0.5 + x, x)
+
+    def f(x):
+        return short(x) + jax.lax.fori_loop(0, 10, lambda i, c: short(c) * 0.1, x)
+
+    xs = jnp.arange(12.0).reshape(4, 3)
+    np.testing.assert_allclose(jax.jit(scalarise(f, loops_only=False))(xs), jax.vmap(f)(xs), rtol=1e-15)
+    jaxpr = jax.make_jaxpr(scalarise(f, loops_only=False))(xs).jaxpr
+    outer = [e for e in jaxpr.eqns if e.primitive.name == "scan"]
+    assert sorted((e.params["length"], e.params["unroll"]) for e in outer) == [(3, 1), (10, SCAN_UNROLL)]
+    assert 3 <= SHORT_SCAN < 10
+    long_loop = next(e for e in outer if e.params["length"] == 10)
+    inner = [e for e in long_loop.params["jaxpr"].jaxpr.eqns if e.primitive.name == "scan"]
+    assert [e.params["unroll"] for e in inner] == [3]
+
+
 def test_scalarise_keeps_optimization_barriers():
     def f(x):
         a, b = jax.lax.optimization_barrier((x * x, jnp.sum(x)))

@@ -52,6 +52,16 @@ SCAN_UNROLL = 4
 """`scan`s of rows are unrolled this many times (at least): XLA then keeps the rows of the
 carry in place instead of copying each after every iteration."""
 
+SHORT_SCAN = 8
+"""... except scans of at most this many iterations outside every loop (a small factorisation's
+loop over its columns, run once per call, not once per step as a loop inside a march's loop
+body is): their copies cost nothing worth saving, while XLA compiles every unrolled copy of
+their body (the lean chunk's minimum-norm cotangent, a loop of three, unrolled: about a third
+of its compile time)."""
+
+_LOOP_DEPTH = [0]
+"""How many `scan` or `while` bodies the evaluator is inside."""
+
 MAX_PRODUCTS = 512
 """A `dot_general` (or reduction) of rows with more products than this is stacked instead."""
 
@@ -637,16 +647,24 @@ def _scan(eqn, vals, B):
         c = _unpack(carry, carry_kinds, carry_avals)
         xv = [(k, xi) for k, xi in zip(x_kinds, x)]
         _IN_LOOP.append(True)
+        _LOOP_DEPTH[0] += 1
         try:
             outs = _eval(body.jaxpr, body.consts, list(consts) + c + xv, B)
         finally:
             _IN_LOOP.pop()
+            _LOOP_DEPTH[0] -= 1
         new = _pack(_canon(outs[:nk], carry_kinds, carry_avals, B), B)
         # each row of an output its own stacked series: XLA writes them in place
         return new, _pack(_canon(outs[nk:], ys_kinds, ys_avals, B), B)
 
-    # an unroll the program asks for is kept; otherwise at least SCAN_UNROLL
-    unroll = int(p["unroll"]) if int(p["unroll"]) > 1 else min(SCAN_UNROLL, p["length"])
+    # an unroll the program asks for is kept; otherwise at least SCAN_UNROLL, except for a short
+    # scan outside every loop
+    if int(p["unroll"]) > 1:
+        unroll = int(p["unroll"])
+    elif p["length"] <= SHORT_SCAN and _LOOP_DEPTH[0] == 0:
+        unroll = 1
+    else:
+        unroll = min(SCAN_UNROLL, p["length"])
     carry, ys = lax.scan(step, init, xs, length=p["length"], reverse=p["reverse"], unroll=unroll)
     return _unpack(carry, carry_kinds, carry_avals) + [_series(k, y, a.shape, p["length"], B)
                                                        for k, y, a in zip(ys_kinds, ys, ys_avals)]
@@ -677,7 +695,11 @@ def _while(eqn, vals, B):
         return _eval(cond_j.jaxpr, cond_j.consts, list(cc) + _unpack(carry, kinds, carry_avals), B)[0]
 
     def body(carry):
-        outs = _eval(body_j.jaxpr, body_j.consts, list(bc) + _unpack(carry, kinds, carry_avals), B)
+        _LOOP_DEPTH[0] += 1
+        try:
+            outs = _eval(body_j.jaxpr, body_j.consts, list(bc) + _unpack(carry, kinds, carry_avals), B)
+        finally:
+            _LOOP_DEPTH[0] -= 1
         return _pack(_canon(outs, kinds, carry_avals, B), B)
 
     if not pred_batched:
