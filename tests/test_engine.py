@@ -1,6 +1,7 @@
 """The engine: Lemma 20 from the whole discrete action, Remarks 21-22, transforms, maps."""
 
 import functools
+import itertools
 
 import jax
 import jax.numpy as jnp
@@ -392,17 +393,26 @@ def test_batched_marches_call_no_lapack_kernel():
 
 
 def test_minimum_norm_cotangent_of_a_rank_deficient_map_matches_least_squares():
-    """The dense solve (no LAPACK: Gram–Schmidt) against NumPy's least squares: a full-rank and
-    a rank-deficient A (a velocity map with isotropy), under vmap and jit; its gradient is finite."""
-    from clebsch_jax.discrete.legendre import min_norm_transpose_solve
+    """The dense solve (no LAPACK: Gram–Schmidt) against NumPy's least squares: full-rank and
+    rank-deficient A (a velocity map with isotropy), written out (up to STRAIGHT_MAX columns) and
+    as a loop, under vmap and jit; its gradient is finite. The two forms agree to round-off."""
+    from clebsch_jax.discrete.legendre import STRAIGHT_MAX, min_norm_transpose_solve
 
     rng = np.random.default_rng(5)
-    for m, n, rank in [(9, 3, 3), (12, 6, 4)]:
+    for m, n, rank in [(9, 3, 3), (9, 3, 2), (8, 4, 3), (12, 6, 4)]:
+        A = rng.normal(size=(m, rank)) @ rng.normal(size=(rank, n))
+        b = jnp.asarray(A.T @ rng.normal(size=m))
+        straight = min_norm_transpose_solve(jnp.asarray(A), b, unroll=True)
+        loop = min_norm_transpose_solve(jnp.asarray(A), b)
+        np.testing.assert_allclose(straight, loop, rtol=0, atol=1e-14 * np.max(np.abs(loop)))
+    assert STRAIGHT_MAX >= 4
+    for (m, n, rank), unroll in itertools.product([(9, 3, 3), (9, 3, 2), (12, 6, 4)], [False, True]):
         A = rng.normal(size=(m, rank)) @ rng.normal(size=(rank, n))
         bs = A.T @ rng.normal(size=(m, 2))  # consistent right-hand sides (momenta of some p)
-        ps = jax.jit(jax.vmap(min_norm_transpose_solve, in_axes=(None, 1)))(jnp.asarray(A), jnp.asarray(bs))
+        solve = functools.partial(min_norm_transpose_solve, unroll=unroll)
+        ps = jax.jit(jax.vmap(solve, in_axes=(None, 1)))(jnp.asarray(A), jnp.asarray(bs))
         for k in range(2):
             ref = np.linalg.lstsq(A.T, bs[:, k], rcond=None)[0]
             np.testing.assert_allclose(np.asarray(ps[k]), ref, rtol=0, atol=1e-13 * np.max(np.abs(ref)))
-        g = jax.grad(lambda b: jnp.sum(min_norm_transpose_solve(jnp.asarray(A), b) ** 2))(jnp.asarray(bs[:, 0]))
+        g = jax.grad(lambda b: jnp.sum(solve(jnp.asarray(A), b) ** 2))(jnp.asarray(bs[:, 0]))
         assert np.all(np.isfinite(np.asarray(g)))

@@ -166,7 +166,7 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
     initial = {**carry.initial, "energy": ref}
     drift = {**carry.drift, "energy": jnp.maximum(carry.drift["energy"], red["drift"])}
     new = carry._replace(
-        Q=Qn, P=cotangent_from_momentum(system, Qn, mun), xi=red["xin"],
+        Q=Qn, P=cotangent_from_momentum(system, Qn, mun, unroll=True), xi=red["xin"],
         t=carry.t + dt * n, status=status, iterations=carry.iterations + red["iterations"],
         max_residual=jnp.maximum(carry.max_residual, red["residual"]), initial=initial, drift=drift,
         momentum=mun, final_xi=red["xin"], energy_change=red["change"], energy_size=red["size"],

@@ -7,6 +7,8 @@ and recover nodal velocities."""
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -35,7 +37,8 @@ _DENSE_MAX = 256
 """Above this many components of V it is found matrix-free only (the dense matrix is not formed)."""
 
 
-def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) -> jax.Array:
+def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array, *,
+                            unroll: bool = False) -> jax.Array:
     r"""The minimum-norm $p \in T^*_QM$ with momentum map $-p\diamond Q = \mu$.
 
     Solves $A^T p = \mu$, $A = \partial_\xi \mathcal L_\xi Q$, for the $p$ in the range of $A$
@@ -51,10 +54,11 @@ def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) 
 
     No LAPACK call: jaxlib's batched LAPACK kernels share XLA's intra-op thread pool and were
     seen to deadlock when two host devices ran them side by side (a sweep with `devices=2`).
+    `unroll`: the dense solve's `unroll` (for a batch of rows).
     """
     lin = lambda x: system.velocity_map(x.reshape(mu.shape), Q)
     if mu.size <= _DIRECT_MAX:
-        return _dense_cotangent(lin, Q, mu)
+        return _dense_cotangent(lin, Q, mu, unroll)
     _, vjp = jax.vjp(lin, jnp.zeros_like(mu))
     y, _ = jax.scipy.sparse.linalg.cg(lambda v: vjp(lin(v))[0], mu, tol=1e-15, atol=0.0, maxiter=200)
     p = lin(y)
@@ -62,16 +66,16 @@ def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array) 
         return p
     scale = jnp.maximum(1.0, jnp.max(jnp.abs(mu)))
     solved = jnp.max(jnp.abs(vjp(p)[0] - mu)) <= 1e3 * jnp.finfo(mu.dtype).eps * scale
-    return jax.lax.cond(solved, lambda: p, lambda: _dense_cotangent(lin, Q, mu))
+    return jax.lax.cond(solved, lambda: p, lambda: _dense_cotangent(lin, Q, mu, unroll))
 
 
-def _dense_cotangent(lin, Q, mu):
+def _dense_cotangent(lin, Q, mu, unroll=False):
     r"""The minimum-norm solution of $A^T p = \mu$, $A$ formed densely by forward mode."""
     A = jax.jacfwd(lambda x: lin(x).ravel())(jnp.zeros(mu.size, Q.dtype))
-    return min_norm_transpose_solve(A, mu.ravel()).reshape(Q.shape)
+    return min_norm_transpose_solve(A, mu.ravel(), unroll=unroll).reshape(Q.shape)
 
 
-def min_norm_transpose_solve(A: jax.Array, b: jax.Array) -> jax.Array:
+def min_norm_transpose_solve(A: jax.Array, b: jax.Array, *, unroll: bool = False) -> jax.Array:
     r"""The $p$ in the range of `A` (m, n) with $A^T p = b$: the minimum-norm solution.
 
     Gram–Schmidt with reorthogonalisation (each column projected out twice) gives $A = UR$,
@@ -83,11 +87,16 @@ def min_norm_transpose_solve(A: jax.Array, b: jax.Array) -> jax.Array:
     square the condition number).
 
     Plain XLA operations (a `fori_loop` over the n columns), for the reason
-    `cotangent_from_momentum` gives; jit-, vmap- and grad-compatible."""
+    `cotangent_from_momentum` gives; jit-, vmap- and grad-compatible. `unroll`: written out
+    column by column up to `STRAIGHT_MAX` columns, for a batch of rows
+    (`clebsch_jax.batching.scalarise`), where the loop's masks over every column cannot be
+    folded away (a stacked batch compiles the loop's few operations faster)."""
     m, n = A.shape
     eps = jnp.finfo(A.dtype).eps
     cols = jnp.arange(n)
     tol = max(m, n) * eps * jnp.max(jnp.sqrt(jnp.sum(A * A, axis=0)))
+    if unroll and n <= STRAIGHT_MAX:
+        return _min_norm_straight(A, b, tol)
 
     def column(j, state):
         U, R = state
@@ -112,6 +121,39 @@ def min_norm_transpose_solve(A: jax.Array, b: jax.Array) -> jax.Array:
         return jnp.where(cols == j, jnp.where(d != 0, cj, 0.0), c)
 
     return U @ jax.lax.fori_loop(0, n, forward, jnp.zeros(n, A.dtype))
+
+
+STRAIGHT_MAX = 4
+"""`min_norm_transpose_solve(unroll=True)` with at most this many columns is written out column
+by column: the loop's masks over every column go, and the projections are onto the earlier
+columns only."""
+
+
+def _min_norm_straight(A, b, tol):
+    """`min_norm_transpose_solve`, unrolled: the same Gram–Schmidt and forward substitution
+    without the terms the loop adds as zeros."""
+    n = A.shape[1]
+    U, R = [], [[None] * n for _ in range(n)]
+    for j in range(n):
+        v = A[:, j]
+        r = [jnp.zeros((), A.dtype)] * j
+        for _ in range(2):  # project out the earlier columns twice ("twice is enough")
+            if j:
+                s = [jnp.sum(U[k] * v) for k in range(j)]
+                v = v - functools.reduce(jnp.add, [U[k] * s[k] for k in range(j)])
+                r = [r[k] + s[k] for k in range(j)]
+        norm = jnp.sqrt(jnp.sum(v * v))
+        keep = norm > tol
+        U.append(jnp.where(keep, v / jnp.where(keep, norm, 1.0), 0.0))
+        R[j][j] = jnp.where(keep, norm, 0.0)
+        for k in range(j):
+            R[k][j] = r[k]
+    c = []
+    for j in range(n):  # R^T c = b, row j; c_j = 0 for a dependent column
+        d = R[j][j]
+        acc = b[j] - functools.reduce(jnp.add, [R[k][j] * c[k] for k in range(j)]) if j else b[j]
+        c.append(jnp.where(d != 0, acc / jnp.where(d != 0, d, 1.0), 0.0))
+    return functools.reduce(jnp.add, [U[j] * c[j] for j in range(n)])
 
 
 def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax.Array, *,
