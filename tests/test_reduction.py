@@ -391,7 +391,7 @@ def test_cayley_polynomial_gives_way_to_the_matrix_form_for_large_algebras(monke
 
 
 def test_predictor_is_exact_on_polynomials_and_falls_back_on_rough_data():
-    from clebsch_jax.steppers.predictor import PREDICTOR_ORDER, degree_flags, predict
+    from clebsch_jax.steppers.predictor import PREDICTOR_ORDER, degree, predict
 
     t = np.arange(PREDICTOR_ORDER + 1, 0, -1.0) * 0.1  # history newest first, times 0.6 ... 0.1
     poly = lambda s: np.stack([1 + s - 2 * s**2 + 3 * s**3, 0.5 * s**2, np.full_like(s, 2.0)], axis=-1)
@@ -409,9 +409,9 @@ def test_predictor_is_exact_on_polynomials_and_falls_back_on_rough_data():
     for k in range(PREDICTOR_ORDER + 2):
         for h, x in ((history, xi0), (rough, xi0[:1])):
             kk = jnp.asarray(k)
-            np.testing.assert_array_equal(predict(kk, x, h, degree_flags(kk, h)), predict(kk, x, h))
-    assert degree_flags(n, history).tolist()[:3] == [True] * 3  # a cubic: its differences up to the third
-    assert degree_flags(n, rough).tolist() == [True] + [False] * (PREDICTOR_ORDER - 1)
+            np.testing.assert_array_equal(predict(kk, x, h, degree(kk, h)), predict(kk, x, h))
+    assert int(degree(n, history)) >= 3  # a cubic: its differences up to the third
+    assert int(degree(n, rough)) == 1
 
 
 def _cubic_system():

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..roots.newton import max_abs
 
-__all__ = ["PREDICTOR_ORDER", "predict", "degree_flags", "push", "empty_history"]
+__all__ = ["PREDICTOR_ORDER", "predict", "degree", "push", "empty_history"]
 
 
 PREDICTOR_ORDER = 5
@@ -19,7 +19,7 @@ PREDICTOR_ORDER = 5
 (`predict`)."""
 
 
-def predict(n, first, history, keeps=None):
+def predict(n, first, history, degree_=None):
     """Initial guess of step n's unknowns: `first` at n = 0, then the polynomial extrapolation
     of the solutions of the last steps, `history` (newest first, leading axis p + 1), in
     Newton's backward-difference form zⁿ ≈ Σⱼ ∇ʲzⁿ⁻¹, j = 0 … p.
@@ -30,23 +30,25 @@ def predict(n, first, history, keeps=None):
     of high order (error O(Δtᵖ⁺¹), which saves Newton updates), while an under-resolved or
     rough one (where high-degree extrapolation amplifies) falls back to low degree.
 
-    `keeps`, if given, is that choice made beforehand (`degree_flags(n, history)`)."""
+    `degree_`, if given, is that choice made beforehand (`degree(n, history)`)."""
     D = _differences(history)
-    if keeps is None:
-        keeps = _flags(n, D)
+    if degree_ is None:
+        degree_ = _degree(n, D)
     total = D[0]
     for j in range(1, D.shape[0]):
-        total = total + jnp.where(keeps[j - 1], D[j], 0.0)
+        total = total + jnp.where(j <= degree_, D[j], 0.0)
     return jnp.where(n == 0, first, total.reshape(first.shape))
 
 
-def degree_flags(n, history):
-    """Which differences `predict(n, ·, history)` uses beyond the first: (p,) booleans. A march
-    computes them at the end of the step before (its history is then complete) and carries
-    them: each component's prediction then reads them instead of recomputing the max-norm sizes
-    of every component's differences (which XLA does in each component's computation when the
-    components are rows of their own, `clebsch_jax.batching.scalarise`)."""
-    return jnp.stack(_flags(n, _differences(history)))
+def degree(n, history):
+    """How many differences `predict(n, ·, history)` uses beyond the first: an int32 from 0 to
+    p. A march computes it at the end of the step before (its history is then complete) and
+    carries it: each component's prediction then reads it instead of recomputing the max-norm
+    sizes of every component's differences (which XLA does in each component's computation
+    when the components are rows of their own, `clebsch_jax.batching.scalarise`). One number
+    rather than a flag per difference: XLA computes each flag, with the chain of tests before
+    it, in a computation of its own."""
+    return _degree(n, _differences(history))
 
 
 def _differences(history):
@@ -58,15 +60,17 @@ def _differences(history):
     return functools.reduce(jnp.add, [jnp.asarray(C[:, i:i + 1], H.dtype) * H[i] for i in range(p + 1)])
 
 
-def _flags(n, D):
+def _degree(n, D):
+    """The differences used beyond the first: a difference j ≥ 1 while j < n and, beyond the
+    first, while each is at most half the one before (max-norm)."""
     size = max_abs(D)
-    keeps, keep = [], jnp.asarray(True)
+    count, keep = jnp.zeros((), jnp.int32), jnp.asarray(True)
     for j in range(1, D.shape[0]):
         if j >= 2:
             keep = keep & (size[j] <= 0.5 * size[j - 1])
         keep = keep & (n > j)
-        keeps.append(keep)
-    return keeps
+        count = count + keep.astype(jnp.int32)
+    return count
 
 
 def push(history, z):

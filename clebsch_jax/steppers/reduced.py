@@ -33,7 +33,7 @@ from ..discrete.reduction import MatrixGroupReduction, find_reduction, reduced_s
 from ..roots.solvers import FixedNewton, Newton
 from .base import Nodes, Principle
 from .full import seed_velocity
-from .predictor import degree_flags, empty_history, predict, push
+from .predictor import degree, empty_history, predict, push
 from .principles import PrincipleStep
 
 __all__ = ["ReducedStep"]
@@ -106,11 +106,11 @@ class ReducedStep(PrincipleStep):
     def init_memory(self, system, state):
         _, _, xi = state
         history = empty_history(xi.shape, xi.dtype)
-        return history, jnp.eye(xi.size, dtype=xi.dtype), degree_flags(0, history)
+        return history, jnp.eye(xi.size, dtype=xi.dtype), degree(0, history)
 
     def step(self, system, state, memory, h, n, alive):
         mu, Q, xi_last = state
-        history, H, keeps = memory
+        history, H, deg = memory
         red, principle = self.reduction, self.principle
 
         def residual(x):
@@ -123,7 +123,7 @@ class ReducedStep(PrincipleStep):
         # A fresh Jacobian at the guess, or the inverse Jacobian of this slot's last solve
         # (refreshed when it stops contracting, formed at step 0); a member that has failed
         # iterates on NaNs without forming any.
-        guess = xi_last + predict(n, jnp.zeros_like(xi_last), history, keeps)
+        guess = xi_last + predict(n, jnp.zeros_like(xi_last), history, deg)
         reuse = False if self._fresh(system) else (n > 0) | ~alive
         xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish,
                                                                      step=n)
@@ -132,8 +132,8 @@ class ReducedStep(PrincipleStep):
         # unchanged (a loop-invariant placeholder rather than a new value per step)
         H = H if reuse is False else H_new
         history = push(history, xi - xi_last)
-        # the next step's choice of differences, carried (`degree_flags`)
-        return (mu1, Q1 if carry_Q else Q, xi), (history, H, degree_flags(n + 1, history)), (xi, Q1), stats
+        # the next step's choice of differences, carried (`degree`)
+        return (mu1, Q1 if carry_Q else Q, xi), (history, H, degree(n + 1, history)), (xi, Q1), stats
 
     def nodes(self, system, state0, states, outs) -> Nodes:
         mu0, Qc0, xi0 = state0
