@@ -75,11 +75,11 @@ of many members share XLA's per-operation cost (`benchmarks/throughput.py --swee
 
 FAST_GIVE_UP = 2
 """A batch whose fast-path calls (a chunk, or `LEAN_CHUNKS` for the lean chunk) some member's
-check rejected this many times in a row runs its remaining chunks on the general path directly (the table is the same: a rejected chunk is
-run again by the general path anyway): the fast path does not suit its march — e.g. a
-Lagrangian that is not quadratic in ξ, whose nodal relation the lean chunk's two fixed updates
-do not solve to round-off, or steps too large for them — and trying each chunk twice would make
-the sweep slower than `fast=False`."""
+check rejected this many times in a row runs its remaining chunks on the general path directly
+(the table is the same: a rejected call's chunks are run again by the general path anyway): the
+fast path does not suit its march — e.g. a Lagrangian that is not quadratic in ξ, whose nodal
+relation the lean chunk's two fixed updates do not solve to round-off, or steps too large for
+them — and trying each chunk twice would make the sweep slower than `fast=False`."""
 
 LEAN_CHUNKS = 4
 """Chunks of `chunk_steps` steps per call of the lean chunk, at most (`_calls`): its start and
@@ -866,10 +866,14 @@ def _general_chunks(cfg: _Config, run: _Run, one: _Batch, chunks: list, saved: d
     new carry; each chunk's saved nodes go to `saved`."""
     carry = one.carry
     for st, n in chunks:
-        c = cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
-        carry, chunk_saved = _run_chunk(c, one.params, carry, one.dt, one.shared, *_at(st))
+        carry, chunk_saved = _run_chunk(_steps(cfg, run, n), one.params, carry, one.dt, one.shared, *_at(st))
         _save(saved, run, one, st, n, chunk_saved)
     return carry
+
+
+def _steps(cfg: _Config, run: _Run, n: int) -> _Config:
+    """`cfg` for a call of n steps (the same object for the run's chunk length)."""
+    return cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
 
 
 def _at(st: int):
@@ -897,7 +901,7 @@ def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report
     by one from the same carry."""
     for chunks in _calls(run, cfg.lean):
         st, n = chunks[0][0], sum(k for _, k in chunks)
-        c = cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
+        c = _steps(cfg, run, n)
         # dispatched asynchronously: the devices march side by side
         # the fast calls, then the general chunks where a fast call failed; a batch whose fast
         # calls failed FAST_GIVE_UP times in a row runs the general chunks directly
@@ -1142,11 +1146,12 @@ def sweep(
       the sweep keeps no node and no invariant but the energy, the chunk is the lean one
       (`clebsch_jax.batching.lean`): the nodal velocities and the energy check are made in the
       same loop and nothing is recorded; otherwise the chunk records its steps as `integrate`
-      does. Where any member's check fails in a chunk, that chunk runs again from the same
-      start with the general loop, which reports the failure (status and step) as
-      `fast=False` would; reruns are counted in `SweepResult.fallback_chunks`, and the general
-      program is compiled only when a rerun needs it; after `FAST_GIVE_UP` reruns in a row a
-      batch runs its remaining chunks on the general path only. The table agrees with
+      does. Where any member's check fails in a chunk (in a call of the lean chunk: in any of
+      its chunks), the chunks of that call run again from the same start with the general
+      loop, which reports the failure (status and step) as `fast=False` would; reruns are
+      counted in `SweepResult.fallback_chunks`, and the general program is compiled only
+      when a rerun needs it; after `FAST_GIVE_UP` rejected calls in a row a batch runs its
+      remaining chunks on the general path only. The table agrees with
       `fast=False` to round-off (Newton iteration counts are those of the path that ran).
       "auto": the lean chunk where it applies and the sweep is large — at least
       `AUTO_LEAN_MIN_MEMBERS` members and `AUTO_LEAN_MIN_MEMBER_STEPS` member-steps — else the

@@ -19,7 +19,7 @@ PREDICTOR_ORDER = 5
 (`predict`)."""
 
 
-def predict(n, first, history, degree_=None):
+def predict(n, first, history, degree=None):
     """Initial guess of step n's unknowns: `first` at n = 0, then the polynomial extrapolation
     of the solutions of the last steps, `history` (newest first, leading axis p + 1), in
     Newton's backward-difference form zⁿ ≈ Σⱼ ∇ʲzⁿ⁻¹, j = 0 … p.
@@ -30,13 +30,13 @@ def predict(n, first, history, degree_=None):
     of high order (error O(Δtᵖ⁺¹), which saves Newton updates), while an under-resolved or
     rough one (where high-degree extrapolation amplifies) falls back to low degree.
 
-    `degree_`, if given, is that choice made beforehand (`degree(n, history)`)."""
+    `degree`, if given, is that choice made beforehand (the function `degree(n, history)`)."""
     D = _differences(history)
-    if degree_ is None:
-        degree_ = _degree(n, D)
+    if degree is None:
+        degree = _degree(n, D)
     total = D[0]
     for j in range(1, D.shape[0]):
-        total = total + jnp.where(j <= degree_, D[j], 0.0)
+        total = total + jnp.where(j <= degree, D[j], 0.0)
     return jnp.where(n == 0, first, total.reshape(first.shape))
 
 
