@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import diagnostics as _diagnostics
+from ..core.jit import memo
 from ..core.system import ClebschSystem
 from ..core.validation import check_configuration as _check_configuration
 from ..core.validation import host_float_array as _float_array
@@ -734,29 +735,19 @@ def _trace_member(cfg: _Config, *args):
     """`jax.eval_shape` of one member's chunk (its `Solution` and invariants), cached by the
     arguments' shapes and dtypes: the trace reads nothing else, and repeating it cost a sweep of
     a thousand members a third of its time."""
+    def probe(p, s, q, x, d):
+        system = _system_of(cfg, p, s)
+        sol = _integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, cfg.n)
+        return sol, {name: jnp.asarray(fn(system, sol)) for name, fn in cfg.invariants}
+
     leaves, tree = jax.tree_util.tree_flatten(args)
     key = (cfg, tree, tuple((np.shape(x), np.result_type(x), getattr(x, "weak_type", False)) for x in leaves))
-    try:
-        hit = _TRACES.get(key)
-    except TypeError:  # an unhashable static part: trace every time
-        key, hit = None, None
-    if hit is None:
-        def probe(p, s, q, x, d):
-            system = _system_of(cfg, p, s)
-            sol = _integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, cfg.n)
-            return sol, {name: jnp.asarray(fn(system, sol)) for name, fn in cfg.invariants}
-
-        hit = jax.eval_shape(probe, *args)
-        if key is not None:
-            if len(_TRACES) >= _TRACES_MAX:
-                _TRACES.pop(next(iter(_TRACES)))
-            _TRACES[key] = hit
-    return hit
+    return memo(_TRACES, key, lambda: jax.eval_shape(probe, *args), _TRACES_MAX)
 
 
 _TRACES: dict = {}
 _TRACES_MAX = 64
-"""`_trace_member`'s cache: the oldest entry goes first."""
+"""`_trace_member`'s cache (`clebsch_jax.core.jit.memo`): cleared when it holds this many."""
 
 
 def _probe(cfg: _Config, members: _Members) -> _Shapes:

@@ -9,7 +9,7 @@ import jax
 
 from .validation import is_array
 
-__all__ = ["filter_jit"]
+__all__ = ["filter_jit", "memo"]
 
 
 class _Dynamic:
@@ -40,3 +40,22 @@ def filter_jit(fun):
         return jitted(treedef, static, dynamic)
 
     return wrapper
+
+
+def memo(cache: dict, key, compute, limit: int):
+    """`compute()`, kept in `cache` under `key` (the cache is cleared when it holds `limit`
+    entries); computed every time when the key cannot be hashed (e.g. an unhashable map). For
+    results of Python-level work on static facts (a trace, an inspection of a map) that every
+    call would otherwise repeat."""
+    try:
+        hashable = True
+        if key in cache:
+            return cache[key]
+    except TypeError:
+        hashable = False
+    value = compute()  # outside the handler: its own errors are not chained to the TypeError
+    if hashable:
+        if len(cache) >= limit:
+            cache.clear()
+        cache[key] = value
+    return value

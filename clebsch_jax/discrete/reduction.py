@@ -40,6 +40,7 @@ import numpy as np
 
 from .. import lie
 from ..core import linalg as _linalg
+from ..core.jit import memo
 from ..discrete.closure import check_closure
 from ..core.derivative_maps import CayleyDifference, MatrixGroupDifference
 from ..core.system import ClebschSystem
@@ -103,21 +104,11 @@ def _concrete(x) -> bool:
 
 
 _CACHE: dict = {}
+"""The reduction's inspections of a map (`clebsch_jax.core.jit.memo`, at most 256)."""
 
 
 def _memo(key, compute):
-    """`compute()`, kept in `_CACHE` under `key` (cleared when it holds 256 entries); computed
-    every time when the key cannot be hashed (an unhashable map)."""
-    try:
-        if key in _CACHE:
-            return _CACHE[key]
-    except TypeError:
-        return compute()
-    value = compute()
-    if len(_CACHE) >= 256:
-        _CACHE.clear()
-    _CACHE[key] = value
-    return value
+    return memo(_CACHE, key, compute, 256)
 
 
 def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | None, str]:
