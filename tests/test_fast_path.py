@@ -78,6 +78,38 @@ def test_failing_member_reported_with_step_and_member():
     np.testing.assert_allclose(res.final_momentum[[0, 1, 3]], ok.final_momentum[[0, 1, 3]], rtol=0, atol=1e-13)
 
 
+@pytest.mark.slow  # compiles the recording fast chunk and the general chunk of a rerun group
+def test_only_the_members_whose_check_failed_run_again(monkeypatch):
+    # Members 1, 4 and 6 take steps of 0.6 with |ω| ~ 3 (the fixed updates do not reach
+    # round-off); the others are easy. Only those three run again on the general path, in groups
+    # of FALLBACK_BATCH = 2 members (the last group padded with a copy of its member), every
+    # chunk; the table (saved nodes included) is the general path's.
+    import clebsch_jax.batching.sweep as sw
+
+    monkeypatch.setattr(sw, "FALLBACK_BATCH", 2)
+    inertias, eyes = np.concatenate([INERTIAS, INERTIAS]), np.concatenate([EYES, EYES])
+    omegas, dts = np.concatenate([OMEGAS, OMEGAS]), np.full(8, 0.05)
+    hard = np.array([1, 4, 6])
+    omegas[hard] *= 3.0
+    dts[hard] = 0.6
+    run = {**RB, "batch_size": 8, "save_every": 10}
+    res = cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **run)
+    ref = cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **{**run, "fast": False})
+    assert res.fast_chunks == res.fallback_chunks == 2
+    assert res.fallback_member_chunks == len(hard) * 2
+    np.testing.assert_array_equal(res.status, ref.status)
+    np.testing.assert_array_equal(res.failed_step, ref.failed_step)
+    for key in ("final_momentum", "final_xi", "final_p", "energy_error"):
+        np.testing.assert_allclose(getattr(res, key), getattr(ref, key), rtol=0, atol=1e-12, err_msg=key)
+    np.testing.assert_allclose(res.drift["casimir"], ref.drift["casimir"], rtol=0, atol=1e-12)
+    for key in ("t", "momentum", "xi"):
+        np.testing.assert_allclose(res.saved[key], ref.saved[key], rtol=0, atol=1e-12, err_msg=key)
+    # a hard member's Newton iterations are the general loop's; an easy member's, the fixed updates'
+    np.testing.assert_array_equal(res.newton_iterations[hard], ref.newton_iterations[hard])
+    easy = np.setdiff1d(np.arange(8), hard)
+    assert np.all(res.newton_iterations[easy] != ref.newton_iterations[easy])
+
+
 def _top(params):
     return heavy_top(params[:3], params[3])
 

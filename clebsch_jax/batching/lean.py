@@ -16,8 +16,8 @@ Newton updates and a check per member and step) and, at each new node, in the sa
 
 Nothing is stored per step, so the loop body is all the program holds. The chunk's outputs are
 the general chunk's (the carry handed to the next chunk, the reductions); a member that failed
-before the chunk stays failed. Where any member that was alive failed in the chunk, `sweep`
-reruns its steps with the general path (in the sweep's chunks: one lean chunk covers several,
+before the chunk stays failed. A member that was alive and failed in the chunk is run again
+by `sweep` with the general path (in the sweep's chunks: one lean chunk covers several,
 `clebsch_jax.batching.sweep.LEAN_CHUNKS`), which reports the failure's status and step: the
 lean chunk only has to notice that something failed, never to say what.
 

@@ -441,7 +441,7 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
     if store is None:  # a Dask cluster, the table kept in memory
         from .distributed import run_on_client
 
-        chunks = np.zeros(2, int)
+        chunks = np.zeros(3, int)
         for rows in run_on_client(client, plan, list(range(n_batches)), None, 0, run.progress):
             _place(tables, rows.tables, rows.rows)
             chunks += rows.fast_chunks
@@ -464,7 +464,7 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
         return open_sweep(store)
     # Each group's rows go to the store from a writer thread while the next group computes; the
     # table is kept in memory too. Leaving the `with` (also on Ctrl-C) waits for the writes under way.
-    n_dev, used, chunks = len(run.devices), set(), np.zeros(2, int)
+    n_dev, used, chunks = len(run.devices), set(), np.zeros(3, int)
     with ThreadPoolExecutor(1, thread_name_prefix="clebsch-jax-sweep-store") as writer:
         writes = []
         for g in range(0, len(pending), n_dev):

@@ -75,12 +75,22 @@ _DEFAULT_BATCH_LEAN = 16_384
 of many members share XLA's per-operation cost (`benchmarks/throughput.py --sweep-only`)."""
 
 FAST_GIVE_UP = 2
-"""A batch whose fast-path calls (a chunk, or `LEAN_CHUNKS` for the lean chunk) some member's
-check rejected this many times in a row runs its remaining chunks on the general path directly
-(the table is the same: a rejected call's chunks are run again by the general path anyway): the
-fast path does not suit its march — e.g. a Lagrangian that is not quadratic in ξ, whose nodal
-relation the lean chunk's two fixed updates do not solve to round-off, or steps too large for
-them — and trying each chunk twice would make the sweep slower than `fast=False`."""
+"""A batch in which at least half the members' checks failed in this many fast-path calls in a
+row (a call covers a chunk, or `LEAN_CHUNKS` for the lean chunk) runs its remaining chunks on
+the general path directly (the table is the same: a member whose check failed is run again by
+the general path anyway): the fast path does not suit its march — e.g. a Lagrangian that is not
+quadratic in ξ, whose nodal relation the lean chunk's two fixed updates do not solve to
+round-off, or steps too large for them — and trying each chunk twice would make the sweep
+slower than `fast=False`. A call in which fewer members failed reruns only those
+(`FALLBACK_BATCH`) and keeps the fast path."""
+
+FALLBACK_BATCH = 256
+"""Members per call of the general path where it reruns the members whose fast-path check
+failed in a call (gathered from the batch, the last group padded with copies of its last
+member; at most the batch size): a few hard members — fast rotations, steps too large for the
+fixed updates — then cost the general path's time for themselves only, not for their whole
+batch, and every rerun compiles the same program. General batches of this size run at the
+general path's full rate (`benchmarks/throughput.py --sweep-only`)."""
 
 LEAN_CHUNKS = 4
 """Chunks of `chunk_steps` steps per call of the lean chunk, at most (`_calls`): its start and
@@ -141,11 +151,13 @@ class SweepResult:
       the members' results were computed on, read back from the output arrays), `form` ("full" or
       "reduced"), `scheme`, `order`, `method` (of the `integrate` run).
     - `fast_chunks`: the chunks (of steps, of one batch) run on the fast path
-      (`clebsch_jax.batching.fast`; 0 when it does not apply or `fast=False`), and
-      `fallback_chunks`: how many of them some member's check rejected, so that the chunk
-      ran again with the general Newton loop (a lean call covers several chunks: they count
-      together). A table read from a store (`open_sweep`, also
-      the result of a resumed or Dask-written stored sweep) does not keep these counts: 0.
+      (`clebsch_jax.batching.fast`; 0 when it does not apply or `fast=False`);
+      `fallback_chunks`: how many of them some member's check rejected, so that the member's
+      chunk ran again with the general Newton loop (a lean call covers several chunks: they
+      count together); `fallback_member_chunks`: the (member, chunk) pairs run again so —
+      divided by `fast_chunks` × members per batch, the share of the work the general path
+      redid. A table read from a store (`open_sweep`, also the result of a resumed or
+      Dask-written stored sweep) does not keep these counts: 0.
     """
 
     param_index: np.ndarray
@@ -173,6 +185,7 @@ class SweepResult:
     method: str = ""
     fast_chunks: int = 0
     fallback_chunks: int = 0
+    fallback_member_chunks: int = 0
 
     def __len__(self) -> int:
         return int(self.status.shape[0])
@@ -243,7 +256,7 @@ jax.tree_util.register_dataclass(
                  "newton_iterations", "max_residual", "final_t", "final_Q", "final_p", "final_xi",
                  "final_momentum", "saved"],
     meta_fields=["n_steps", "chunk_steps", "batch_size", "n_devices", "form", "scheme", "order", "method",
-                 "fast_chunks", "fallback_chunks"],
+                 "fast_chunks", "fallback_chunks", "fallback_member_chunks"],
 )
 
 
@@ -424,15 +437,27 @@ def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
 @functools.partial(jax.jit, static_argnums=0)
 def _run_fast_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     """One chunk of a batch by the fast path (`clebsch_jax.batching.fast`; the lean chunk,
-    `clebsch_jax.batching.lean`, where `cfg.lean`): (carry, saved, ok), `ok` False when some
-    member that was alive failed in it — the caller then runs the chunk again from the same
-    carry with `_run_chunk`, which reports the failure. A separate program, so that the general
-    one is compiled only for a sweep that needs it."""
+    `clebsch_jax.batching.lean`, where `cfg.lean`): (carry, saved, ok), `ok` (B,) False for a
+    member that was alive and failed in it — the caller then runs that member's chunk again
+    from the same carry with `_run_chunk` (`_rerun`), which reports the failure. A separate
+    program, so that the general one is compiled only for a sweep that needs it."""
     general = dataclasses.replace(cfg, fast_method=None)
     fast = dataclasses.replace(general, options=(("check_energy", False), ("method", cfg.fast_method)))
     new, saved = _batched_chunk(fast, params, carry, dt, shared, first, offset, rows=True)
-    ok = jnp.all((new.status == Status.SUCCESS) | (carry.status != Status.SUCCESS))
+    ok = (new.status == Status.SUCCESS) | (carry.status != Status.SUCCESS)
     return new, saved, ok
+
+
+@jax.jit
+def _take_members(tree, idx):
+    """The rows `idx` of every leaf of a batch's pytree (params, dt, carry)."""
+    return jax.tree_util.tree_map(lambda a: a[idx], tree)
+
+
+@jax.jit
+def _put_members(tree, idx, rows):
+    """`tree` with its rows `idx` replaced by `rows`; an index past the end (padding) is dropped."""
+    return jax.tree_util.tree_map(lambda a, r: a.at[idx].set(r, mode="drop"), tree, rows)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -741,7 +766,8 @@ def _trace_member(cfg: _Config, *args):
         return sol, {name: jnp.asarray(fn(system, sol)) for name, fn in cfg.invariants}
 
     leaves, tree = jax.tree_util.tree_flatten(args)
-    key = (cfg, tree, tuple((np.shape(x), np.result_type(x), getattr(x, "weak_type", False)) for x in leaves))
+    dtype = lambda x: x.dtype if hasattr(x, "dtype") else np.result_type(x)  # not an array as a dtype (deprecated)
+    key = (cfg, tree, tuple((np.shape(x), dtype(x), getattr(x, "weak_type", False)) for x in leaves))
     return memo(_TRACES, key, lambda: jax.eval_shape(probe, *args), _TRACES_MAX)
 
 
@@ -862,6 +888,27 @@ def _general_chunks(cfg: _Config, run: _Run, one: _Batch, chunks: list, saved: d
     return carry
 
 
+def _rerun(cfg: _Config, run: _Run, one: _Batch, chunks: list, saved: dict | None, members: np.ndarray, carry):
+    """The general path over `chunks` from the batch's carry for its `members` (indices of real
+    members), in groups of `FALLBACK_BATCH`: `carry` (the fast path's new carry) with those
+    members' rows replaced by the general path's; their saved nodes go to `saved`. All the
+    batch's members in one group: the batch itself, as `_general_chunks`."""
+    size = min(FALLBACK_BATCH, len(one.dt))
+    if len(members) == one.n_real and size == len(one.dt):
+        return _general_chunks(cfg, run, one, chunks, saved)
+    table_rows = np.arange(one.rows.start, one.rows.stop)
+    for g in range(0, len(members), size):
+        part = members[g:g + size]
+        pad = size - len(part)
+        take = np.concatenate([part, np.full(pad, part[-1])]).astype(np.int32)
+        params, dt, start = _take_members((one.params, one.dt, one.carry), take)
+        sub = _Batch(one.index, table_rows[part], len(part), params, dt, one.shared, start)
+        new = _general_chunks(cfg, run, sub, chunks, saved)
+        put = np.concatenate([part, np.full(pad, len(one.dt))]).astype(np.int32)  # padding: dropped
+        carry = _put_members(carry, put, new)
+    return carry
+
+
 def _steps(cfg: _Config, run: _Run, n: int) -> _Config:
     """`cfg` for a call of n steps (the same object for the run's chunk length)."""
     return cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
@@ -873,6 +920,8 @@ def _at(st: int):
 
 
 def _save(saved: dict | None, run: _Run, one: _Batch, st: int, n: int, chunk_saved):
+    """A chunk's saved nodes into the batch's rows of `saved` (`one.rows`: a slice, or the
+    table rows of a rerun's members)."""
     if saved is None:
         return
     k0, kn = st // run.save_every, len(range(0, n, run.save_every))
@@ -883,33 +932,32 @@ def _save(saved: dict | None, run: _Run, one: _Batch, st: int, n: int, chunk_sav
 
 def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report: Callable, fell_back: list):
     """March a group of batches (one per device, side by side) through every chunk: each batch's
-    carry moves on, the chunks' saved nodes go to `saved`, whether each chunk tried on the fast
-    path fell back to `fell_back` (bools), `report(group, step)` follows each call.
+    carry moves on, the chunks' saved nodes go to `saved`, each fast-path call's (chunks,
+    members rerun) to `fell_back`, `report(group, step)` follows each call.
 
     A call of the fast path covers one chunk, or `LEAN_CHUNKS` for the lean chunk (which
     records nothing, so its length costs no memory, and its work at the start and end of a call
-    is then shared by more steps); where it fails, the general path runs the call's chunks one
-    by one from the same carry."""
+    is then shared by more steps); the members whose check failed in it are run again by the
+    general path, chunk by chunk from the call's start (`_rerun`)."""
     for chunks in _calls(run, cfg.lean):
         st, n = chunks[0][0], sum(k for _, k in chunks)
         c = _steps(cfg, run, n)
         # dispatched asynchronously: the devices march side by side
-        # the fast calls, then the general chunks where a fast call failed; a batch whose fast
-        # calls failed FAST_GIVE_UP times in a row runs the general chunks directly
+        # the fast calls, then the general path for the members whose check failed; a batch in
+        # which most members failed FAST_GIVE_UP times in a row runs the general chunks directly
         trying = [cfg.fast_method is not None and one.fallbacks_in_a_row < FAST_GIVE_UP for one in group]
         fast = [_run_fast_chunk(c, one.params, one.carry, one.dt, one.shared, *_at(st)) if t else None
                 for one, t in zip(group, trying)]
-        oks = iter(bool(ok) for ok in jax.device_get([f[2] for f in fast if f is not None]))
+        oks = iter(jax.device_get([f[2] for f in fast if f is not None]))
         for one, f in zip(group, fast):
-            ok = f is not None and next(oks)
-            if ok:
-                one.carry = f[0]
-                _save(saved, run, one, st, n, f[1])
-            else:
-                one.carry = _general_chunks(cfg, run, one, chunks, saved)
-            if f is not None:
-                fell_back.extend([not ok] * len(chunks))
-                one.fallbacks_in_a_row = 0 if ok else one.fallbacks_in_a_row + 1
+            if f is None:
+                one.carry = _rerun(cfg, run, one, chunks, saved, np.arange(one.n_real), one.carry)
+                continue
+            failed = np.flatnonzero(~np.asarray(next(oks))[:one.n_real])
+            _save(saved, run, one, st, n, f[1])  # a rerun member's rows are written again by `_rerun`
+            one.carry = _rerun(cfg, run, one, chunks, saved, failed, f[0]) if failed.size else f[0]
+            fell_back.append((len(chunks), failed.size))
+            one.fallbacks_in_a_row = one.fallbacks_in_a_row + 1 if 2 * failed.size >= one.n_real else 0
         report(group, st + n)
 
 
@@ -985,7 +1033,8 @@ class _Rows(NamedTuple):
     rows: list  # each batch's rows of the sweep's table (slices)
     tables: _Tables
     devices: set  # the devices they ran on
-    fast_chunks: tuple = (0, 0)  # chunks run by the fast path, and of those rerun by the general one
+    fast_chunks: tuple = (0, 0, 0)  # chunks run by the fast path, those with members rerun by the
+    # general one, and the (member, chunk) pairs rerun
 
 
 def _run_batches(plan: _Plan, batches: list, devices: list, report: Callable) -> _Rows:
@@ -1007,7 +1056,7 @@ def _run_batches(plan: _Plan, batches: list, devices: list, report: Callable) ->
     for one in group:
         used.update(one.carry.status.devices())
         _collect(tables, one, run)
-    fast = (0 if cfg.fast_method is None else len(fell_back), int(sum(fell_back)))
+    fast = (sum(k for k, _ in fell_back), sum(k for k, m in fell_back if m), sum(k * m for k, m in fell_back))
     return _Rows(list(batches), rows, tables, used, fast)
 
 
@@ -1137,12 +1186,14 @@ def sweep(
       the sweep keeps no node and no invariant but the energy, the chunk is the lean one
       (`clebsch_jax.batching.lean`): the nodal velocities and the energy check are made in the
       same loop and nothing is recorded; otherwise the chunk records its steps as `integrate`
-      does. Where any member's check fails in a chunk (in a call of the lean chunk: in any of
-      its chunks), the chunks of that call run again from the same start with the general
-      loop, which reports the failure (status and step) as `fast=False` would; reruns are
-      counted in `SweepResult.fallback_chunks`, and the general program is compiled only
-      when a rerun needs it; after `FAST_GIVE_UP` rejected calls in a row a batch runs its
-      remaining chunks on the general path only. The table agrees with
+      does. A member whose check fails in a chunk (in a call of the lean chunk: in any of its
+      chunks) runs that call's chunks again from the same start with the general loop, which
+      reports a failure (status and step) as `fast=False` would; only such members run again
+      (gathered in groups of `FALLBACK_BATCH`), the others keep the fast path's results.
+      Reruns are counted in `SweepResult.fallback_chunks` and `fallback_member_chunks`, and
+      the general program is compiled only when a rerun needs it; after `FAST_GIVE_UP` calls
+      in a row in which at least half a batch's members failed, the batch runs its remaining
+      chunks on the general path only. The table agrees with
       `fast=False` to round-off (Newton iteration counts are those of the path that ran).
       "auto": the lean chunk where it applies and the sweep is large — at least
       `AUTO_LEAN_MIN_MEMBERS` members and `AUTO_LEAN_MIN_MEMBER_STEPS` member-steps — else the
@@ -1205,7 +1256,7 @@ def sweep(
 
         return _store.run_stored(plan, run, tables, store=store, client=client, overwrite=overwrite,
                                  report=report, make_result=_result)
-    used, chunks = set(), np.zeros(2, int)
+    used, chunks = set(), np.zeros(3, int)
     for g in range(0, n_batches, n_dev):
         rows = _run_batches(plan, list(range(g, min(g + n_dev, n_batches))), run.devices, report)
         used.update(rows.devices)
@@ -1216,7 +1267,7 @@ def sweep(
     return _result(plan, tables, len(used), chunks)
 
 
-def _result(plan: "_Plan", tables: _Tables, n_devices: int, chunks=(0, 0)) -> SweepResult:
+def _result(plan: "_Plan", tables: _Tables, n_devices: int, chunks=(0, 0, 0)) -> SweepResult:
     """The `SweepResult` of a plan's filled-in tables; `chunks`: (fast chunks, fallback chunks)
     of the fast path in this process (0, 0 for a stored or Dask run, which do not count them)."""
     members, run = plan.members, plan.run
@@ -1225,4 +1276,5 @@ def _result(plan: "_Plan", tables: _Tables, n_devices: int, chunks=(0, 0)) -> Sw
         drift=tables.drift, initial=tables.initial, saved=tables.saved, n_steps=run.n_steps,
         chunk_steps=run.chunk_steps, batch_size=plan.batch_size, n_devices=n_devices, **tables.columns,
         **plan.shapes.facts, fast_chunks=int(chunks[0]), fallback_chunks=int(chunks[1]),
+        fallback_member_chunks=int(chunks[2]),
     )
