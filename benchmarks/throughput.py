@@ -59,6 +59,10 @@ case sampled in turn, load average recorded):
    devices=2`, the batches dealt to both cores. Every other row runs on device 0 as before.
    Cores: every JAX row, the hand kernel included, runs with XLA's intra-op threads on every
    core the process may use (`taskset` limits them); NumPy's RK4 uses one.
+   A *mixed-momenta* case (`mixed_momenta`: ω ~ N(0, 1), B = 10⁴ × 800 steps) runs the
+   default sweep, `fast=True`, `fast=False`, the hand kernel and RK4 on members of which ~1 %
+   turn too fast for the fast path's fixed updates: what their reruns on the general path cost
+   (`fallback_share`: member-chunks rerun over member-chunks tried).
 
 The issue's targets (reported, never asserted): the reduced rigid body at >= 10^7 body-steps
 per second and >= 3x the NumPy RK4 rate, flat from B = 10^3 to 10^6 (here: every rate within
@@ -366,6 +370,8 @@ TWO_DEVICES = "sweep_fast_2dev"  # sweep(fast=True, devices=2), with --sweep-onl
 HAND_ROWS = "jax_by_hand_rows"  # hand_rows_march: the yardstick of issue 20, not a library path
 SWEEP_DEFAULT = ((1_000, 200), (10_000, 200), (100_000, 200))  # the last at fast="auto"'s threshold: lean chunk
 SWEEP_QUICK = ((8, 10),)
+SWEEP_MIXED_DEFAULT = ((10_000, 800),)  # mixed_momenta: a few members per batch rerun on the general path
+SWEEP_MIXED_QUICK = ((8, 10),)
 SWEEP_INERTIA = (0.5, 0.6, 1.0)  # issue 20's table
 SWEEP_TARGETS = {"over_hand_at_1e3": 0.5, "over_hand_from_1e4": 0.75, "over_rk4": 2.0, "compile_s": 2.0,
                  "vortex_clusters_over_rk4_step": 1.0}
@@ -397,10 +403,18 @@ def rk4_euler_final(inertia, omega0, dt, n_steps):
     return w.T, err
 
 
-def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
+def mixed_momenta(batch: int) -> np.ndarray:
+    """Initial angular velocities ω ~ N(0, 1) per component (seed `rigid.SEED`): body momenta
+    up to |m| ~ 4, so that ~1 % of the members turn too fast for the fast path's two fixed
+    updates at Δt = 0.05 (the sweep reruns those on the general path)."""
+    return np.random.default_rng(rigid.SEED).normal(size=(batch, 3))
+
+
+def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) -> dict:
     """M body-steps/s of the documented sweep call (default options and with `fast=True`),
-    `jit(cj.batch(integrate → final))`, the hand-written rows kernel and NumPy RK4."""
-    _, omega0 = rigid.initial_conditions(batch)
+    `jit(cj.batch(integrate → final))`, the hand-written rows kernel and NumPy RK4. `mixed`:
+    on `mixed_momenta`, with `fast=False` in place of `cj.batch` and the second device."""
+    omega0 = mixed_momenta(batch) if mixed else rigid.initial_conditions(batch)[1]
     inertia = np.asarray(SWEEP_INERTIA)
     inertias = np.broadcast_to(inertia, (batch, 3))
     Q0 = np.broadcast_to(np.eye(3), (batch, 3, 3))
@@ -422,22 +436,33 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run) -> dict:
              "cj_batch": lambda: jax.block_until_ready(batched(Q0_j, xi0_j)),
              HAND_ROWS: lambda: jax.block_until_ready(hand(xi0_j)),
              RK4: lambda: rk4_euler_final(inertia, omega0, rigid.DT, n_steps)}
-    if len(jax.devices()) >= 2:
+    if mixed:
+        del calls["cj_batch"]
+        calls["sweep_general"] = sweep_call(fast=False)
+    elif len(jax.devices()) >= 2:
         calls[TWO_DEVICES] = sweep_call(fast=True, devices=2)  # the default batch size gives each device a batch
-    name = f"sweep B={batch} n_steps={n_steps}"
+    name = f"sweep{' (mixed momenta)' if mixed else ''} B={batch} n_steps={n_steps}"
     timings, outs = run.time(calls, what=name, repeats=run.repeats or 3)
-    row = {"part": "sweep", "batch": batch, "n_steps": n_steps, "methods": list(calls)}
+    row = {"part": "sweep_mixed" if mixed else "sweep", "batch": batch, "n_steps": n_steps, "methods": list(calls)}
     for m in calls:
         row[m] = _rates(timings[m], n_steps, batch, "body")
         row[m]["compile_s"] = timings[m]["first_call_s"] - timings[m]["second_call_s"]
     mu_hand, err_hand = (np.asarray(a) for a in outs[HAND_ROWS])
-    for m in ("sweep", "sweep_fast") + ((TWO_DEVICES,) if TWO_DEVICES in calls else ()):
+    for m in [m for m in calls if m.startswith("sweep")]:
         res = outs[m].raise_if_failed()
         row[m]["max_abs_final_momentum_diff_vs_hand"] = float(np.max(np.abs(res.final_momentum - mu_hand)))
         row[m]["max_energy_error"] = float(np.max(res.energy_error))
         row[m]["fast_chunks"], row[m]["fallback_chunks"] = res.fast_chunks, res.fallback_chunks
+        row[m]["fallback_member_chunks"] = res.fallback_member_chunks
+        # the share of member-chunks the general path ran again
+        row[m]["fallback_share"] = res.fallback_member_chunks / max(1, res.fast_chunks * min(res.batch_size, batch))
+    if mixed:
+        fast, general = outs["sweep_fast"], outs["sweep_general"]
+        row["sweep_fast"]["max_abs_final_momentum_diff_vs_general"] = float(
+            np.max(np.abs(fast.final_momentum - general.final_momentum)))
     row[HAND_ROWS]["max_energy_error"] = float(np.max(err_hand))
-    row["cj_batch"]["max_energy_error"] = float(np.max(np.asarray(outs["cj_batch"][1])))
+    if "cj_batch" in calls:
+        row["cj_batch"]["max_energy_error"] = float(np.max(np.asarray(outs["cj_batch"][1])))
     row[RK4]["max_energy_error"] = float(np.max(outs[RK4][1]))
     rate = {m: row[m]["body_steps_per_second"] for m in calls}
     row["ratios"] = {**{f"{m}_over_hand": rate[m] / rate[HAND_ROWS] for m in calls if m != HAND_ROWS},
@@ -491,6 +516,18 @@ def print_sweep_report(summary: dict) -> None:
             f"{r['ratios'][TWO_DEVICES + '_over_numpy_rk4']:.3g}" for r in rows))
     print("max energy error: " + "; ".join(
         f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows))
+    mixed = [r for r in summary["results"] if r["part"] == "sweep_mixed"]
+    if mixed:
+        print("\nMixed momenta (omega ~ N(0, 1)): M body-steps/s (compile s); the share of member-chunks rerun "
+              "on the general path:")
+        names = ("sweep", "sweep_fast", "sweep_general", HAND_ROWS, RK4)
+        harness.print_table(
+            f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>20}" for m in names) + " | fast/general | fast/hand | rerun",
+            (f"{r['batch']:>8}{r['n_steps']:>6} |"
+             + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>11.3g} ({r[m]['compile_s']:5.1f})" for m in names)
+             + f" | {r['sweep_fast']['body_steps_per_second'] / r['sweep_general']['body_steps_per_second']:>12.3g}"
+             f" | {r['ratios']['sweep_fast_over_hand']:>9.3g} | {r['sweep_fast']['fallback_share']:.2%}"
+             for r in mixed))
     vortex_rows = [r for r in summary["results"] if r["part"] == "sweep_vortices"]
     if vortex_rows:
         print("\nClusters of point vortices, documented sweep (default options) against NumPy RK4, ms per step "
@@ -894,11 +931,16 @@ def main(argv=None) -> dict | None:
             rows = run.measure(SWEEP_DEFAULT, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}",
                                lambda B, n: sweep_case(B, n, run))
             rigid_cases = run.cases
+            rows += run.measure(SWEEP_MIXED_DEFAULT, SWEEP_MIXED_QUICK,
+                                lambda B, n: f"sweep (mixed momenta) B={B} n_steps={n}",
+                                lambda B, n: sweep_case(B, n, run, mixed=True))
+            mixed_cases = run.cases
             rows += run.measure(SWEEP_VORTEX_DEFAULT, SWEEP_VORTEX_QUICK,
                                 lambda N, B, n: f"sweep of {B} clusters of {N} vortices, n_steps={n}",
                                 lambda N, B, n: sweep_vortex_case(N, B, n, run))
         summary = run.summary(config={"inertia": list(SWEEP_INERTIA), "dt": rigid.DT, "seed": rigid.SEED,
                                       "cases": [{"batch": b, "n_steps": n} for b, n in rigid_cases],
+                                      "mixed_momenta_cases": [{"batch": b, "n_steps": n} for b, n in mixed_cases],
                                       "vortex_clusters": {"dt": vortex.DT, "seed": vortex.SEED,
                                                           "cases": [{"N": N, "batch": b, "n_steps": n}
                                                                     for N, b, n in run.cases]}},
