@@ -273,7 +273,7 @@ def test_lean_sweep_agrees_with_the_general_one_and_falls_back_like_it():
 def test_auto_takes_the_lean_chunk_only_for_large_sweeps():
     from clebsch_jax.batching.sweep import AUTO_LEAN_MIN_MEMBER_STEPS, AUTO_LEAN_MIN_MEMBERS, _auto_lean
 
-    assert not _auto_lean(1000, 10**6)  # short rows: the general chunk is as fast
+    assert not _auto_lean(AUTO_LEAN_MIN_MEMBERS - 1, 10**6)  # short rows: the compile is not repaid
     assert not _auto_lean(AUTO_LEAN_MIN_MEMBERS, 10)  # long rows, little work: the compile is not repaid
     assert _auto_lean(AUTO_LEAN_MIN_MEMBERS, -(-AUTO_LEAN_MIN_MEMBER_STEPS // AUTO_LEAN_MIN_MEMBERS))
     assert _auto_lean(10**5, 10**3)
@@ -308,7 +308,9 @@ def test_a_stored_lean_sweep_gives_the_in_process_table_and_reopens(tmp_path):
     written = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, store=store, **LEAN)
     reopened = cj.open_sweep(store)
     assert written.fast_chunks == 2
-    for res in (written, reopened):
+    # resumed by the default "auto" (four members are below its thresholds): the stored path
+    resumed = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, store=store, **LEAN)
+    for res in (written, reopened, resumed):
         for key in ("status", "final_momentum", "final_xi", "final_p", "energy_error", "newton_iterations"):
             np.testing.assert_array_equal(getattr(res, key), getattr(kept, key), err_msg=key)
 

@@ -96,6 +96,27 @@ def test_a_store_of_another_configuration_is_refused(reference, tmp_path):
     assert xarray.open_zarr(path, consolidated=False).attrs["dt"] == 0.04
 
 
+def test_fast_auto_resumes_on_the_path_a_store_was_written_with(reference, tmp_path):
+    # "auto" picks its path from B and n_steps; a stored sweep keeps the path it was written
+    # with (the store refuses the other), so thresholds can change without stranding stores
+    from clebsch_jax.batching.store import ATTR, stored_fast
+    from clebsch_jax.batching.sweep import _resumed_path
+
+    path = tmp_path / "sweep.zarr"
+    assert stored_fast(path) is None and _resumed_path("auto", path, False) == "auto"  # nothing there yet
+    stored(path, fast=False)
+    assert stored_fast(path) is False
+    assert _resumed_path("auto", path, False) is False
+    assert _resumed_path("auto", path, True) == "auto"  # overwrite: a new sweep
+    assert _resumed_path(True, path, False) is True  # an explicit choice stays (and is refused)
+    fast_store = zarr.open_group(str(tmp_path / "fast.zarr"), mode="w")
+    fast_store.attrs[ATTR] = {"fast": True}
+    assert _resumed_path("auto", tmp_path / "fast.zarr", False) is True
+    zarr.open_group(str(tmp_path / "other.zarr"), mode="w").attrs["x"] = 1  # not a sweep's store
+    assert stored_fast(tmp_path / "other.zarr") is None
+    assert_same_table(stored(path), reference)  # the default, "auto", reads the stored table back
+
+
 def test_a_truncated_or_corrupted_store_is_a_clear_error(reference, tmp_path):
     path = tmp_path / "sweep.zarr"
     stored(path)

@@ -251,6 +251,16 @@ def _open_group(zarr, store, mode: str):
                               f"{err}).") from err
 
 
+def stored_fast(store) -> bool | None:
+    """Whether the sweep stored in `store` ran the fast path (its configuration's "fast"); None
+    where no sweep configuration is stored there (nothing yet, or not a sweep's store)."""
+    try:
+        stored = _zarr().open_group(_plain(store), mode="r").attrs.get(ATTR)
+    except Exception:  # nothing there: the sweep creates it (open_for_run reports other problems)
+        return None
+    return bool(stored["fast"]) if isinstance(stored, dict) and "fast" in stored else None
+
+
 def open_for_run(store, plan, overwrite: bool):
     """The store of this sweep: created, or reopened after checking its configuration."""
     zarr = _zarr()

@@ -97,20 +97,33 @@ LEAN_CHUNKS = 4
 end (the momentum map, node 0's velocity, the warm-up steps, the cotangent P of the last node)
 are then paid once per that many chunks."""
 
-AUTO_LEAN_MIN_MEMBERS = 8192
-"""`fast="auto"` runs the lean chunk only for sweeps of at least this many members: its rows
-need to be long to beat the general chunk (`benchmarks/throughput.py --sweep-only`)."""
+AUTO_LEAN_MIN_MEMBERS = 1000
+"""`fast="auto"` runs the lean chunk only for sweeps of at least this many members: on shorter
+rows its steps gain too little over the general chunk's to repay its compile
+(`benchmarks/README.md`, "Measurements behind the engine's choices")."""
 
-AUTO_LEAN_MIN_MEMBER_STEPS = 2 * 10**7
-"""... and of at least this many member-steps (members × `n_steps`): the lean chunk takes a few
-seconds longer to compile than the general one, which its faster steps repay only over a long
-enough sweep (the break-even follows from the compile times and rates that
-`benchmarks/throughput.py --sweep-only` measures)."""
+AUTO_LEAN_MIN_MEMBER_STEPS = 10**7
+"""... and of at least this many member-steps (members × `n_steps`): the lean chunk takes
+longer to compile than the general one, and a sweep with members that fail its check compiles
+the general one too for their reruns; its faster steps repay that only over a long enough
+sweep (the break-even follows from the first-call times and rates measured in
+`benchmarks/README.md`). A stored sweep resumes on the path it was written with, whatever
+these thresholds are now (`_resumed_path`)."""
 
 
 def _auto_lean(B: int, n_steps: int) -> bool:
     """Whether `fast="auto"` tries the lean chunk for a sweep of B members and `n_steps` steps."""
     return B >= AUTO_LEAN_MIN_MEMBERS and B * n_steps >= AUTO_LEAN_MIN_MEMBER_STEPS
+
+
+def _resumed_path(fast, store, overwrite: bool):
+    """`fast`, except that "auto" with a `store` that holds a sweep (and no `overwrite`) is the
+    path that sweep ran: True or False, so that it resumes (the store refuses the other path)."""
+    if fast != "auto" or store is None or overwrite:
+        return fast
+    from .store import stored_fast
+
+    return {None: "auto", True: True, False: False}[stored_fast(store)]
 
 
 # --------------------------------------------------------------------------------------------
@@ -1200,9 +1213,9 @@ def sweep(
       general loop: the lean chunk compiles longer than the general one, which a short sweep
       does not repay, and its speed needs long rows (its default `batch_size` is larger;
       `benchmarks/throughput.py --sweep-only` measures both paths). The choice depends on B
-      and `n_steps` only, so a stored sweep resumes with the path it started with (a store
-      that a large sweep wrote with `fast=False`, the default before "auto", resumes with
-      `fast=False`: the store refuses a run on the other path).
+      and `n_steps` only — except that a sweep resumed from a `store` takes the path the store
+      was written with (the store refuses a run on the other path, so a store written before
+      a change of these thresholds, or with `fast=False`, still resumes).
     - `**options`: passed to every `integrate` call (`scheme`, `reduce`, `reconstruct`, `order`,
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own. One default differs from `integrate`'s: members that are degenerate
@@ -1233,6 +1246,7 @@ def sweep(
     B, n_dev = members.B, len(run.devices)
     cfg = _particle_defaults(_chunk_config(run, members, options), members)
     shapes = _probe(cfg, members)
+    fast = _resumed_path(fast, store, overwrite)
     if fast is True or (fast == "auto" and _auto_lean(B, run.n_steps)):
         method = _fast_method_of(cfg, members)
         lean = _lean_applies(cfg, members, method)
