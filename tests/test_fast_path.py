@@ -51,12 +51,17 @@ def test_rigid_bodies_agree_with_integrate_and_keep_invariants():
     assert np.max(res.drift["casimir"]) < 1e-13
 
 
-def test_forced_fallback_large_dt_gives_the_general_answer():
+def test_forced_fallback_large_dt_gives_the_general_answer(monkeypatch):
     # Δt = 0.6 with |ω| ~ 3: the predictor is poor, K fixed updates do not reach round-off,
     # every chunk is rerun with the general loop; the answers are the general loop's
+    import clebsch_jax.batching.sweep as sw
+
     omegas = 3.0 * OMEGAS
     res = cj.sweep(rigid_body, INERTIAS, EYES, omegas, dt=0.6, **RB)
     assert res.fallback_chunks >= 1 and res.fast_chunks == 2
+    # fast=False runs each batch whole: no member is gathered into rerun groups
+    monkeypatch.setattr(sw, "FALLBACK_BATCH", 2)
+    monkeypatch.setattr(sw, "_take_members", lambda *a: pytest.fail("fast=False gathered members"))
     general = cj.sweep(rigid_body, INERTIAS, EYES, omegas, dt=0.6, **{**RB, "fast": False})
     assert general.fast_chunks == 0 and general.fallback_chunks == 0
     np.testing.assert_array_equal(res.status, general.status)
