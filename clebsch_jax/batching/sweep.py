@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import diagnostics as _diagnostics
-from ..core.jit import memo
+from ..core.jit import QUICK_COMPILE, memo
 from ..core.system import ClebschSystem
 from ..core.validation import check_configuration as _check_configuration
 from ..core.validation import host_float_array as _float_array
@@ -440,7 +440,7 @@ def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows:
     return run(params, carry, dt, shared, first, offset)
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(jax.jit, static_argnums=0, compiler_options=QUICK_COMPILE)
 def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     """One chunk of a batch by the general path: (carry, saved)."""
     return _batched_chunk(dataclasses.replace(cfg, fast_method=None, lean=False), params, carry, dt, shared, first,
@@ -461,19 +461,19 @@ def _run_fast_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     return new, saved, ok
 
 
-@jax.jit
+@functools.partial(jax.jit, compiler_options=QUICK_COMPILE)
 def _take_members(tree, idx):
     """The rows `idx` of every leaf of a batch's pytree (params, dt, carry)."""
     return jax.tree_util.tree_map(lambda a: a[idx], tree)
 
 
-@jax.jit
+@functools.partial(jax.jit, compiler_options=QUICK_COMPILE)
 def _put_members(tree, idx, rows):
     """`tree` with its rows `idx` replaced by `rows`; an index past the end (padding) is dropped."""
     return jax.tree_util.tree_map(lambda a, r: a.at[idx].set(r, mode="drop"), tree, rows)
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(jax.jit, static_argnums=0, compiler_options=QUICK_COMPILE)
 def _initial_multipliers(cfg: _Config, params, Q0, xi0, shared):
     def one(p, q, x, s):
         return initial_multiplier(_system_of(cfg, p, s), q, x)

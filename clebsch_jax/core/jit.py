@@ -9,7 +9,16 @@ import jax
 
 from .validation import is_array
 
-__all__ = ["filter_jit", "memo"]
+__all__ = ["filter_jit", "memo", "QUICK_COMPILE"]
+
+QUICK_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+"""XLA options (`jax.jit(..., compiler_options=QUICK_COMPILE)`) for programs whose compile time
+matters more than the last bit of their speed: inspections run once, and the sweep's general
+chunk, the default path of short sweeps. XLA's CPU compiler then emits fused loops with its
+older emitters, which compile faster; the sweep's general chunk ran at the same rate, while
+the lean chunk and some `integrate` programs (Gauss–Legendre) ran slower, so they keep the
+default (`benchmarks/README.md`, "Measurements behind the engine's choices"). A field of XLA's
+debug options that only its CPU compiler reads."""
 
 
 class _Dynamic:
