@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import diagnostics as _diagnostics
-from ..core.jit import QUICK_COMPILE, memo
+from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, memo
 from ..core.system import ClebschSystem
 from ..core.validation import check_configuration as _check_configuration
 from ..core.validation import host_float_array as _float_array
@@ -447,18 +447,26 @@ def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
                           offset)
 
 
-@functools.partial(jax.jit, static_argnums=0)
 def _run_fast_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     """One chunk of a batch by the fast path (`clebsch_jax.batching.fast`; the lean chunk,
     `clebsch_jax.batching.lean`, where `cfg.lean`): (carry, saved, ok), `ok` (B,) False for a
     member that was alive and failed in it — the caller then runs that member's chunk again
     from the same carry with `_run_chunk` (`_rerun`), which reports the failure. A separate
-    program, so that the general one is compiled only for a sweep that needs it."""
+    program, so that the general one is compiled only for a sweep that needs it; the lean
+    chunk's is compiled with `LEAN_COMPILE`."""
+    return (_lean_program if cfg.lean else _fast_program)(cfg, params, carry, dt, shared, first, offset)
+
+
+def _fast_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     general = dataclasses.replace(cfg, fast_method=None)
     fast = dataclasses.replace(general, options=(("check_energy", False), ("method", cfg.fast_method)))
     new, saved = _batched_chunk(fast, params, carry, dt, shared, first, offset, rows=True)
     ok = (new.status == Status.SUCCESS) | (carry.status != Status.SUCCESS)
     return new, saved, ok
+
+
+_fast_program = jax.jit(_fast_chunk, static_argnums=0)
+_lean_program = jax.jit(_fast_chunk, static_argnums=0, compiler_options=LEAN_COMPILE)
 
 
 @functools.partial(jax.jit, compiler_options=QUICK_COMPILE)

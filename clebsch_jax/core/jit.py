@@ -9,7 +9,7 @@ import jax
 
 from .validation import is_array
 
-__all__ = ["filter_jit", "memo", "QUICK_COMPILE"]
+__all__ = ["filter_jit", "memo", "QUICK_COMPILE", "LEAN_COMPILE"]
 
 QUICK_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 """XLA options (`jax.jit(..., compiler_options=QUICK_COMPILE)`) for programs whose compile time
@@ -19,6 +19,13 @@ older emitters, which compile faster; the sweep's general chunk ran at the same 
 the lean chunk and some `integrate` programs (Gauss–Legendre) ran slower, so they keep the
 default (`benchmarks/README.md`, "Measurements behind the engine's choices"). A field of XLA's
 debug options that only its CPU compiler reads."""
+
+LEAN_COMPILE = {"xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}
+"""XLA options of the sweep's lean chunk (`clebsch_jax.batching.lean`): XLA's CPU preset for a
+fast compile. On that program of long rows it compiled faster and ran faster, with bitwise the
+same results; on `integrate`'s programs it compiled slower and ran slower, so nothing else uses
+it (`benchmarks/README.md`, "Measurements behind the engine's choices"). A field of XLA's debug
+options that only its CPU compiler reads."""
 
 
 class _Dynamic:
