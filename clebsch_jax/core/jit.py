@@ -13,12 +13,13 @@ __all__ = ["filter_jit", "memo", "QUICK_COMPILE", "LEAN_COMPILE"]
 
 QUICK_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 """XLA options (`jax.jit(..., compiler_options=QUICK_COMPILE)`) for programs whose compile time
-matters more than the last bit of their speed: inspections run once, and the sweep's general
-chunk, the default path of short sweeps. XLA's CPU compiler then emits fused loops with its
-older emitters, which compile faster; the sweep's general chunk ran at the same rate, while
-the lean chunk and some `integrate` programs (Gauss–Legendre) ran slower, so they keep the
-default (`benchmarks/README.md`, "Measurements behind the engine's choices"). A field of XLA's
-debug options that only its CPU compiler reads."""
+matters more than the last bit of their speed: inspections run once, the sweep's general
+chunk, and `integrate`'s march for every stepper whose `quick_compile` is True. XLA's CPU
+compiler then emits fused loops with its older emitters, which compile faster; those
+programs ran at the same rate (within a few per cent), while the lean chunk and the
+Gauss–Legendre march ran slower, so they keep the default (`benchmarks/README.md`,
+"Measurements behind the engine's choices"). A field of XLA's debug options that only its
+CPU compiler reads."""
 
 LEAN_COMPILE = {"xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}
 """XLA options of the sweep's lean chunk (`clebsch_jax.batching.lean`): XLA's CPU preset for a
@@ -36,9 +37,9 @@ class _Dynamic:
 _DYNAMIC = _Dynamic()
 
 
-def filter_jit(fun):
+def filter_jit(fun, compiler_options: dict | None = None):
     """`fun` compiled with its array leaves traced and its other leaves static (hashed); one
-    program per distinct static part and array shapes."""
+    program per distinct static part and array shapes; `compiler_options` as `jax.jit`'s."""
 
     def jitted(treedef, static, dynamic):
         leaves = [d if s is _DYNAMIC else s for s, d in zip(static, dynamic)]
@@ -46,7 +47,7 @@ def filter_jit(fun):
         return fun(*args, **kwargs)
 
     jitted.__name__ = jitted.__qualname__ = getattr(fun, "__name__", "jitted")  # names the program in JAX's logs
-    jitted = functools.partial(jax.jit, static_argnums=(0, 1))(jitted)
+    jitted = jax.jit(jitted, static_argnums=(0, 1), compiler_options=compiler_options)
 
     @functools.wraps(fun)
     def wrapper(*args, **kwargs):

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.jit import filter_jit
+from ..core.jit import QUICK_COMPILE, filter_jit
 from ..core.validation import any_traced
 from ..discrete.residual import nodal_residual
 from ..roots.status import NewtonStats, Status, skip_stats
@@ -271,8 +271,10 @@ def march(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int, c
     return _assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0, carry.alive)
 
 
-_start_jit = filter_jit(start)
-_chunk_jit = filter_jit(run_chunk)
+_PROGRAMS = {quick: (filter_jit(start, compiler_options=QUICK_COMPILE if quick else None),
+                     filter_jit(run_chunk, compiler_options=QUICK_COMPILE if quick else None))
+             for quick in (False, True)}
+"""The compiled start and chunk of `march_chunked`, by the stepper's `quick_compile`."""
 
 
 def chunk_length(Q0, xi0) -> int:
@@ -292,11 +294,12 @@ def march_chunked(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps
     `n_steps` or `dt`."""
     if chunk_steps is None:
         chunk_steps = chunk_length(Q0, xi0)
-    carry, startup = _start_jit(stepper, system, Q0, xi0, P0, dt)
+    start_jit, chunk_jit = _PROGRAMS[bool(stepper.quick_compile)]
+    carry, startup = start_jit(stepper, system, Q0, xi0, P0, dt)
     total = np.asarray(n_steps, np.int32)  # a NumPy scalar: no conversion program
     chunks = []
     for _ in range(-(-n_steps // chunk_steps)):
-        carry, chunk = _chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
+        carry, chunk = chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
         chunks.append(chunk)
     if any_traced(chunks, startup):
         # a function the map checks do not call closed over a traced value (the caller is

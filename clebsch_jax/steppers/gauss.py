@@ -14,6 +14,7 @@ Jacobian.
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -66,6 +67,8 @@ class GaussLegendre(AbstractStepper):
     root_finder: FixedPoint = FixedPoint()
     nodal_solver: Newton = Newton()
     constraint_blocks: bool = False
+
+    quick_compile: ClassVar[bool] = False  # its sweeps ran slower with QUICK_COMPILE
 
     def __post_init__(self):
         if isinstance(self.order, bool) or self.order not in GAUSS_ORDERS:
