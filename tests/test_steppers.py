@@ -63,6 +63,17 @@ def test_steppers_are_hashable_values():
     assert len({cj.Newton(), cj.Newton(rtol=0.0), cj.BlockNewton()}) == 2
 
 
+def test_quick_compile_is_a_fact_of_the_base_stepper():
+    """`integrate` compiles a march with `QUICK_COMPILE` unless its stepper says otherwise: the
+    Gauss–Legendre step does (its sweeps ran slower so); wrappers ask their base."""
+    from clebsch_jax.march.scan import _PROGRAMS
+
+    assert cj.FullStep().quick_compile and cj.ReducedStep().quick_compile
+    assert cj.Composed(cj.SymmetricPair(cj.FullStep()), cj.SUZUKI_4).quick_compile
+    assert not cj.GaussLegendre(order=8).quick_compile
+    assert set(_PROGRAMS) == {True, False}
+
+
 @pytest.mark.parametrize("make, match", [
     (lambda: cj.FullStep("sideways"), r"^principle: expected one of"),
     (lambda: cj.FullStep(root_finder=cj.FixedPoint()), r"^root_finder: expected"),
