@@ -151,6 +151,9 @@ class Case:
     # the round-off test may take one update or Jacobian more or fewer. Loosened for these cases only.
     # Since `integrate` marches in compiled chunks (each step inside a `lax.cond`), XLA also fuses
     # the SE(2) exponential map's step differently: the same round-off effect on its counts.
+    # Since `integrate` compiles the march with `QUICK_COMPILE` (XLA's older CPU fusion
+    # emitters, d3afbfd), the block chord updates of the midpoint vortex case round differently
+    # too: 7 of its 30 steps stop one update earlier or later, every float array within RTOL.
     counts_at_round_off: bool = False
 
 
@@ -184,7 +187,7 @@ CASES = (
         jacobian="dense"), counts_at_round_off=True),
     Case("vortices_midpoint_blocks", lambda: _integrate(
         VORTICES, VORTEX_Q0, VORTEX_XI0, dt=0.05, n_steps=30, scheme="midpoint", reduce=False,
-        jacobian="blocks"), slow=True),
+        jacobian="blocks"), slow=True, counts_at_round_off=True),
     Case("vortices_gauss_order4", lambda: _integrate(
         VORTICES, VORTEX_Q0, VORTEX_XI0, dt=0.1, n_steps=20, scheme="gauss", reduce=False,
         jacobian="blocks", order=4), slow=True),
