@@ -1292,8 +1292,9 @@ def sweep(
 
 
 def _result(plan: "_Plan", tables: _Tables, n_devices: int, chunks=(0, 0, 0)) -> SweepResult:
-    """The `SweepResult` of a plan's filled-in tables; `chunks`: (fast chunks, fallback chunks)
-    of the fast path in this process (0, 0 for a stored or Dask run, which do not count them)."""
+    """The `SweepResult` of a plan's filled-in tables; `chunks`: (fast chunks, fallback chunks,
+    fallback member-chunks) of the fast path in this process (zeros for a stored or Dask run,
+    which do not count them)."""
     members, run = plan.members, plan.run
     return SweepResult(
         param_index=members.param_index, ic_index=members.ic_index, energy_error=tables.drift["energy"],

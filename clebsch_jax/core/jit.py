@@ -18,15 +18,15 @@ chunk, and `integrate`'s march for every stepper whose `quick_compile` is True. 
 compiler then emits fused loops with its older emitters, which compile faster; those
 programs ran at the same rate (within a few per cent), while the lean chunk and the
 Gauss–Legendre march ran slower, so they keep the default (`benchmarks/README.md`,
-"Measurements behind the engine's choices"). A field of XLA's debug options that only its
-CPU compiler reads."""
+"Measurements behind the engine's choices"). A field of XLA's debug options, read by its CPU
+compiler (other backends were not available to test it on)."""
 
 LEAN_COMPILE = {"xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}
 """XLA options of the sweep's lean chunk (`clebsch_jax.batching.lean`): XLA's CPU preset for a
 fast compile. On that program of long rows it compiled faster and ran faster, with bitwise the
 same results; on `integrate`'s programs it compiled slower and ran slower, so nothing else uses
 it (`benchmarks/README.md`, "Measurements behind the engine's choices"). A field of XLA's debug
-options that only its CPU compiler reads."""
+options, read by its CPU compiler (other backends were not available to test it on)."""
 
 
 class _Dynamic:
