@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .derivative_maps import MatrixGroupDifference
-from .jit import filter_jit
+from .jit import QUICK_COMPILE, filter_jit
 from .validation import any_traced, is_traced, runnable_check
 
 __all__ = ["check_model", "check_first_step"]
@@ -145,7 +145,7 @@ def _evaluate(system, Q0, xi0, direction):
     )
 
 
-_derivatives = filter_jit(_evaluate)
+_derivatives = filter_jit(_evaluate, compiler_options=QUICK_COMPILE)  # run once per system: compile time counts
 """The program of the checks, one per system and shapes."""
 
 
