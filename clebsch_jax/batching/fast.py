@@ -6,12 +6,13 @@ A sweep's members are many similar trajectories marched side by side. The genera
 data: batched, it tests "is any member still running" after every update and pays for the
 slowest member. With a good predictor every member of a well-resolved march is at round-off
 after the same small number K of updates, so the sweep first runs a chunk of steps with
-`FixedNewton` (K chord updates as straight-line code, then one check per member and step),
-and reruns the chunk from the same start with the general loop for the members whose check
-failed (gathered from the batch: the few hard members of a batch cost the general path's time
-for themselves only; `clebsch_jax.batching.sweep.FALLBACK_BATCH`). A rerun chunk is the general
-path's chunk, so statuses and failures (step and member) are the general path's; the fast chunk that is kept has every member and step solved to round-off, as the
-general loop solves it: the two agree to round-off (`tests/test_fast_path.py`).
+`FixedNewton` (K chord updates as straight-line code, then one check per member and step), and
+reruns the chunk from the same start with the general loop for the members whose check failed
+(gathered from the batch: the few hard members of a batch cost the general path's time for
+themselves only; `clebsch_jax.batching.sweep.FALLBACK_BATCH`). A rerun chunk is the general
+path's chunk, so statuses and failures (step and member) are the general path's; the fast chunk
+that is kept has every member and step solved to round-off, as the general loop solves it: the
+two agree to round-off (`tests/test_fast_path.py`).
 
 The fast method is derived from the method `integrate` would choose (`fast_method`): each
 `ReducedStep` with a `Newton` root finder gets a `FixedNewton` with the same stopping rule;
