@@ -175,6 +175,21 @@ def test_jit_and_closures():
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-14)
 
 
+def test_programs_with_compiler_options_run_inside_a_callers_trace():
+    """The engine compiles some programs with XLA options (`QUICK_COMPILE`), which JAX refuses
+    on a jit staged into another trace; `jit_with_options` then runs the same function without
+    them, so `integrate`'s checks and marches stay jit-, grad- and vmap-compatible."""
+    from clebsch_jax.core.jit import QUICK_COMPILE, jit_with_options
+
+    fun = lambda x: jnp.sin(x) * x
+    with pytest.raises(ValueError, match="top-level"):  # what a plain jit with options does
+        jax.jit(lambda x: jax.jit(fun, compiler_options=QUICK_COMPILE)(x))(1.0)
+    f = jit_with_options(fun, QUICK_COMPILE)
+    assert float(f(1.0)) == float(fun(1.0)) and float(jax.jit(f)(1.0)) == float(jax.jit(fun)(1.0))
+    np.testing.assert_allclose(float(jax.grad(f)(1.0)), np.cos(1.0) + np.sin(1.0), rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(jax.vmap(f)(jnp.arange(3.0))), np.sin(np.arange(3.0)) * np.arange(3.0))
+
+
 @pytest.mark.slow  # CI runs it; reverse mode through the march is checked in the default run by test_gradients_through_the_march_match_finite_differences
 def test_reverse_mode_through_a_system_built_inside_grad():
     """A Lagrangian that closes over the differentiated parameter: integrate sees the closure

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import diagnostics as _diagnostics
-from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, memo
+from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, jit_with_options, memo
 from ..core.system import ClebschSystem
 from ..core.validation import check_configuration as _check_configuration
 from ..core.validation import host_float_array as _float_array
@@ -440,7 +440,7 @@ def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows:
     return run(params, carry, dt, shared, first, offset)
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=QUICK_COMPILE)
+@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE, static_argnums=0)
 def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     """One chunk of a batch by the general path: (carry, saved)."""
     return _batched_chunk(dataclasses.replace(cfg, fast_method=None, lean=False), params, carry, dt, shared, first,
@@ -466,22 +466,22 @@ def _fast_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
 
 
 _fast_program = jax.jit(_fast_chunk, static_argnums=0)
-_lean_program = jax.jit(_fast_chunk, static_argnums=0, compiler_options=LEAN_COMPILE)
+_lean_program = jit_with_options(_fast_chunk, LEAN_COMPILE, static_argnums=0)
 
 
-@functools.partial(jax.jit, compiler_options=QUICK_COMPILE)
+@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE)
 def _take_members(tree, idx):
     """The rows `idx` of every leaf of a batch's pytree (params, dt, carry)."""
     return jax.tree_util.tree_map(lambda a: a[idx], tree)
 
 
-@functools.partial(jax.jit, compiler_options=QUICK_COMPILE)
+@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE)
 def _put_members(tree, idx, rows):
     """`tree` with its rows `idx` replaced by `rows`; an index past the end (padding) is dropped."""
     return jax.tree_util.tree_map(lambda a, r: a.at[idx].set(r, mode="drop"), tree, rows)
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=QUICK_COMPILE)
+@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE, static_argnums=0)
 def _initial_multipliers(cfg: _Config, params, Q0, xi0, shared):
     def one(p, q, x, s):
         return initial_multiplier(_system_of(cfg, p, s), q, x)

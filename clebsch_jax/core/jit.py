@@ -9,10 +9,10 @@ import jax
 
 from .validation import is_array
 
-__all__ = ["filter_jit", "memo", "QUICK_COMPILE", "LEAN_COMPILE"]
+__all__ = ["filter_jit", "jit_with_options", "memo", "QUICK_COMPILE", "LEAN_COMPILE"]
 
 QUICK_COMPILE = {"xla_cpu_use_fusion_emitters": False}
-"""XLA options (`jax.jit(..., compiler_options=QUICK_COMPILE)`) for programs whose compile time
+"""XLA options (`jit_with_options(fun, QUICK_COMPILE)`) for programs whose compile time
 matters more than the last bit of their speed: inspections run once, the sweep's general
 chunk, and `integrate`'s march for every stepper whose `quick_compile` is True. XLA's CPU
 compiler then emits fused loops with its older emitters, which compile faster; those
@@ -37,9 +37,39 @@ class _Dynamic:
 _DYNAMIC = _Dynamic()
 
 
+_NESTED = "can only be passed to top-level `jax.jit`"
+"""The start of JAX's error for compiler options on a jit staged into another trace."""
+
+
+def jit_with_options(fun, compiler_options: dict | None, **jit_kwargs):
+    """`jax.jit(fun, **jit_kwargs)` whose calls compile with `compiler_options` (e.g.
+    `QUICK_COMPILE`) where they are programs of their own. JAX refuses compiler options on a
+    jit called inside another trace (the caller's `jit`, or a `grad` that stages the call): that
+    call runs the same function through a jit without them, as part of the caller's program.
+    `_cache_size()` counts the programs of both."""
+    if not compiler_options:
+        return jax.jit(fun, **jit_kwargs)
+    with_options = jax.jit(fun, compiler_options=compiler_options, **jit_kwargs)
+    plain = jax.jit(fun, **jit_kwargs)
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        try:
+            return with_options(*args, **kwargs)
+        except ValueError as err:
+            if _NESTED not in str(err):
+                raise
+        return plain(*args, **kwargs)
+
+    call._cache_size = lambda: with_options._cache_size() + plain._cache_size()
+    call.lower = with_options.lower
+    return call
+
+
 def filter_jit(fun, compiler_options: dict | None = None):
     """`fun` compiled with its array leaves traced and its other leaves static (hashed); one
-    program per distinct static part and array shapes; `compiler_options` as `jax.jit`'s."""
+    program per distinct static part and array shapes; `compiler_options` as in
+    `jit_with_options`."""
 
     def jitted(treedef, static, dynamic):
         leaves = [d if s is _DYNAMIC else s for s, d in zip(static, dynamic)]
@@ -47,7 +77,7 @@ def filter_jit(fun, compiler_options: dict | None = None):
         return fun(*args, **kwargs)
 
     jitted.__name__ = jitted.__qualname__ = getattr(fun, "__name__", "jitted")  # names the program in JAX's logs
-    jitted = jax.jit(jitted, static_argnums=(0, 1), compiler_options=compiler_options)
+    jitted = jit_with_options(jitted, compiler_options, static_argnums=(0, 1))
 
     @functools.wraps(fun)
     def wrapper(*args, **kwargs):

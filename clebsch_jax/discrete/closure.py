@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.jit import QUICK_COMPILE
+from ..core.jit import QUICK_COMPILE, jit_with_options
 from ..core.system import ClebschSystem, momentum_map
 
 __all__ = ["ClosureResult", "check_closure", "euler_poincare_field", "sample_points"]
@@ -106,7 +106,7 @@ def _flow(velocity_map, Q, etas, spread):
     return jnp.concatenate([Q[None], jax.vmap(one)(etas)])
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=QUICK_COMPILE)
+@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE, static_argnums=0)
 def _sampled_bracket_data(velocity_map, Q, etas, spread, basis):
     """`_flow` and `_bracket_data` in one program: (points, A, B)."""
     pts = _flow(velocity_map, Q, etas, spread)
@@ -131,8 +131,8 @@ def _bracket_data(velocity_map, pts, basis):
     return jax.vmap(at_point)(pts)
 
 
-_flow_jit = jax.jit(_flow, static_argnums=0, compiler_options=QUICK_COMPILE)
-_bracket_data_jit = jax.jit(_bracket_data, static_argnums=0, compiler_options=QUICK_COMPILE)
+_flow_jit = jit_with_options(_flow, QUICK_COMPILE, static_argnums=0)
+_bracket_data_jit = jit_with_options(_bracket_data, QUICK_COMPILE, static_argnums=0)
 
 
 def check_closure(

@@ -40,7 +40,7 @@ import numpy as np
 
 from .. import lie
 from ..core import linalg as _linalg
-from ..core.jit import QUICK_COMPILE, memo
+from ..core.jit import QUICK_COMPILE, jit_with_options, memo
 from ..discrete.closure import check_closure
 from ..core.derivative_maps import CayleyDifference, MatrixGroupDifference
 from ..core.system import ClebschSystem
@@ -174,8 +174,8 @@ def _group_basis(system: ClebschSystem, Q0, xi0) -> tuple[np.ndarray | None, str
     E = np.eye(m).reshape((m,) + xi_shape)
     G = np.eye(n) + 0.3 * np.random.default_rng(7).normal(size=(n, n))
     # one compiled program for all evaluations (op-by-op evaluation compiles every operation)
-    values = jax.jit(lambda E, Q: jax.vmap(lambda q: jax.vmap(lambda e: system.velocity_map(e, q))(E))(Q),
-                     compiler_options=QUICK_COMPILE)(
+    values = jit_with_options(lambda E, Q: jax.vmap(lambda q: jax.vmap(lambda e: system.velocity_map(e, q))(E))(Q),
+                              QUICK_COMPILE)(
         E, np.stack([np.eye(n), G]))
     if not _concrete(values):
         return None, "the velocity map depends on traced values, so it cannot be inspected"
