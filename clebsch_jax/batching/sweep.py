@@ -972,9 +972,8 @@ def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report
         oks = iter(jax.device_get([f[2] for f in fast if f is not None]))
         for one, f in zip(group, fast):
             if f is None:  # the general path: for every batch without a fast method, or given up
-                everyone = np.arange(one.n_real)
                 one.carry = (_general_chunks(cfg, run, one, chunks, saved) if cfg.fast_method is None
-                             else _rerun(cfg, run, one, chunks, saved, everyone, one.carry))
+                             else _rerun(cfg, run, one, chunks, saved, np.arange(one.n_real), one.carry))
                 continue
             failed = np.flatnonzero(~np.asarray(next(oks))[:one.n_real])
             _save(saved, run, one, st, n, f[1])  # a rerun member's rows are written again by `_rerun`

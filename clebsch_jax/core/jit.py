@@ -62,7 +62,6 @@ def jit_with_options(fun, compiler_options: dict | None, **jit_kwargs):
         return plain(*args, **kwargs)
 
     call._cache_size = lambda: with_options._cache_size() + plain._cache_size()
-    call.lower = with_options.lower
     return call
 
 
