@@ -423,6 +423,39 @@ def test_full_newton_updates_converge_from_a_far_guess():
     np.testing.assert_allclose(z, root, rtol=0, atol=1e-14)
 
 
+def test_rounds_of_chord_updates_converge_where_one_round_does_not():
+    # rounds: a fresh Jacobian and `updates` chord updates per round, in one loop whose trip
+    # count may be traced (FixedNewton.warmup_rounds: more rounds on the warm-up steps only)
+    c = jnp.array([2.0, 10.0])
+    F = lambda z: z**3 + z - c
+    root, _ = newton_solve(F, jnp.array([1.0, 2.0]), rtol=0.0, atol=0.0, max_iterations=20)
+    _, one, _, _ = fixed_newton_solve(F, root + 0.5, updates=2, rtol=0.0, atol=0.0)
+    assert one.status == Status.MAX_ITERATIONS
+
+    @jax.jit
+    def solve(rounds):
+        return fixed_newton_solve(F, root + 0.5, updates=2, rtol=0.0, atol=0.0, rounds=rounds)[:2]
+
+    z, st = solve(5)
+    assert st.status == Status.SUCCESS and st.iterations == 10 and st.jacobians == 5
+    np.testing.assert_allclose(z, root, rtol=0, atol=1e-14)
+    assert solve(1)[1].status == Status.MAX_ITERATIONS  # the same program, one round: not converged
+    # under vmap with a batched guess and grad through the implicit rule
+    z = jax.vmap(lambda g: fixed_newton_solve(F, g, updates=2, rtol=0.0, atol=0.0, rounds=5)[0])(
+        jnp.stack([root + 0.5, root - 0.3]))
+    np.testing.assert_allclose(z, jnp.stack([root, root]), rtol=0, atol=1e-14)
+    dz = jax.grad(lambda s: fixed_newton_solve(lambda z: z**3 + z - s * c, root, updates=2, rtol=0.0, atol=0.0,
+                                               rounds=jnp.asarray(2))[0][0])(1.0)
+    np.testing.assert_allclose(dz, c[0] / (3 * root[0] ** 2 + 1), rtol=1e-12)
+
+    # FixedNewton: warm-up steps by rounds, later steps by one round, one solve compiled
+    finder = FixedNewton(updates=2, warmup=3, warmup_rounds=5)
+    step = jax.jit(lambda n: finder.solve_reusing(F, root + 0.5, None, False, step=n)[1].status)
+    assert step(2) == Status.SUCCESS and step(3) == Status.MAX_ITERATIONS
+    with pytest.raises(ValueError, match="warmup_rounds"):
+        FixedNewton(warmup_rounds=-1)
+
+
 def test_scalarise_unrolls_loops_inside_loops_but_not_a_short_loop_outside():
     # a short scan outside every loop (once per call) stays a loop: unrolled, XLA would compile
     # every copy; the same scan inside a loop body (once per step) is unrolled, which keeps its

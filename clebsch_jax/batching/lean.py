@@ -22,10 +22,12 @@ by `sweep` with the general path (in the sweep's chunks: one lean chunk covers s
 lean chunk only has to notice that something failed, never to say what.
 
 The first `warmup` steps of a chunk (the fast method's `FixedNewton.warmup`), while the
-predictor has few earlier steps, are solved by the general Newton loop instead, in the same
-loop over the steps: `FixedNewton` chooses its solve by the step's number (a `cond` on a value
-every member shares), so the nodal velocities, the energy check and the reductions are
-compiled once for every step.
+predictor has few earlier steps, take `WARMUP_ROUNDS` rounds of a fresh Jacobian and
+`LEAN_UPDATES` chord updates, the later steps one round: the rounds are a loop inside the solve
+whose trip count is the step's (a value every member shares), so the step, the nodal
+velocities, the energy check and the reductions are compiled once for every step, and the
+solve once (`FixedNewton.warmup_rounds`). A warm-up step that its check does not accept fails
+the member's chunk, which then runs again on the general path.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from ..roots.status import Status
 from ..steppers.base import AbstractWrapper
 from ..steppers.reduced import ReducedStep
 
-__all__ = ["lean_chunk", "supports", "LEAN_UPDATES", "NODAL_UPDATES"]
+__all__ = ["lean_chunk", "supports", "LEAN_UPDATES", "NODAL_UPDATES", "WARMUP_ROUNDS"]
 
 NODAL_UPDATES = 2
 """Chord updates of a node's velocity solve: the relation is linear for a Lagrangian quadratic
@@ -58,6 +60,12 @@ LEAN_UPDATES = 2
 is at round-off in a well-resolved march and the second at the noise floor; the check then
 tells a converged solve from one still contracting (a chunk where it fails runs again with the
 general path)."""
+
+WARMUP_ROUNDS = 4
+"""Rounds (a fresh Jacobian and `LEAN_UPDATES` chord updates each) of a warm-up step. Step 0
+starts from the last velocity (a guess off by O(Δt)); two chord updates take an error e to
+O(e³), so a few rounds reach round-off from any guess the general loop would accept in its
+first few Jacobians. Instead of the general loop, which compiled as a second solve."""
 
 UNROLL = 2
 """Steps per iteration of the loop: XLA keeps the carry's rows in place over an unrolled pair;
@@ -132,8 +140,8 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
         drift=jnp.abs(E0 - ref), xin=xin0, mu=mu0, xstep=xin0, **({"Q": Q0} if carries_Q else {}),
     )
 
-    # warm-up steps by the general loop, the others by LEAN_UPDATES fixed updates (module docstring)
-    method = _with_finder(stepper, warmup=min(finder.warmup, n), updates=LEAN_UPDATES)
+    # warm-up steps by WARMUP_ROUNDS rounds, the others by one round of LEAN_UPDATES (module docstring)
+    method = _with_finder(stepper, warmup=min(finder.warmup, n), updates=LEAN_UPDATES, warmup_rounds=WARMUP_ROUNDS)
 
     def body(k, c):
         state_prev, memory, red = c

@@ -320,7 +320,7 @@ def newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations
 
 
 def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: float, finish: Callable | None = None,
-                       matrix: Matrix = FENCED_INVERSE, refresh: bool = False):
+                       matrix: Matrix = FENCED_INVERSE, refresh: bool = False, rounds=1):
     r"""Solve $F(z) = 0$ by a fixed number of chord updates with one matrix formed at the guess,
     as straight-line code (no loop, no test between updates), then check the result.
 
@@ -336,19 +336,26 @@ def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: f
     chord error after K updates is $O(\Delta t^{(K+1)(p+1)})$: at round-off after two updates
     in a well-resolved march, so that with K = 3 the check meets an update at the noise floor.
 
+    `rounds` (an int, or a traced integer shared by every member of a batch): that many
+    rounds, each a matrix formed at the current iterate and `updates` chord updates, in one
+    loop whose body is the single copy of the solve's code — a march that needs more rounds
+    on a few steps (a predictor still short of history) and one on the others compiles the
+    solve once (`FixedNewton.warmup_rounds`). The check then uses the last round's matrix.
+    A Python 1 (default) is straight-line code, no loop.
+
     Derivatives of the root come from the implicit function theorem, as for `newton_solve`.
     `finish(z) -> (F(z), extra)` as in `newton_solve_reusing`; its residual is the check's.
 
-    **Returns:** `(z, NewtonStats, M, extra)`, M the matrix formed at the guess (no derivatives).
+    **Returns:** `(z, NewtonStats, M, extra)`, M the matrix of the last round (no derivatives).
     """
     flat0, unravel = ravel_pytree(guess)
 
     def F_flat(x):
         return ravel_pytree(F(unravel(x)))[0]
 
-    def loop(f, x0):
-        Fz, M, singular = fence(matrix.invert(f, x0))
-        x, eta = x0, jnp.asarray(jnp.inf, x0.dtype)
+    def one_round(f, x):
+        Fz, M, singular = fence(matrix.invert(f, x))
+        eta = jnp.asarray(jnp.inf, x.dtype)
         for k in range(updates):
             dz = matrix.apply(M, Fz)
             x, eta = fence((x - dz, max_abs(dz)))
@@ -357,9 +364,24 @@ def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: f
                 singular = singular | singular_k
             elif k + 1 < updates:
                 Fz = fence(f(x))
-        stats = NewtonStats(iterations=jnp.asarray(updates, jnp.int32), residual_norm=jnp.asarray(jnp.nan, x.dtype),
+        return x, M, eta, singular
+
+    def loop(f, x0):
+        if isinstance(rounds, int) and rounds == 1:
+            x, M, eta, singular = one_round(f, x0)
+        else:  # the rounds in a loop: the round's code once (the matrix's shape from a trace of it)
+            M0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype),
+                                        jax.eval_shape(lambda x: matrix.invert(f, x)[1], x0))
+            def body(_, c):
+                x, M, eta, singular = c
+                x, M, eta, singular_k = one_round(f, x)
+                return x, M, eta, singular | singular_k
+            x, M, eta, singular = jax.lax.fori_loop(
+                0, rounds, body, (x0, M0, jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(False)))
+        n_rounds = jnp.asarray(rounds, jnp.int32)
+        stats = NewtonStats(iterations=n_rounds * updates, residual_norm=jnp.asarray(jnp.nan, x.dtype),
                             status=jnp.where(singular, Status.SINGULAR, Status.SUCCESS).astype(jnp.int32),
-                            jacobians=jnp.asarray(1, jnp.int32))
+                            jacobians=n_rounds * (updates if refresh else 1))
         return x, stats, (M, eta)
 
     flat, stats, (M, eta_last) = implicit_root(F_flat, flat0, loop, matrix.tangent_solve)

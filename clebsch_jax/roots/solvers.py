@@ -89,27 +89,36 @@ class FixedNewton(Newton):
       general loop (default 4), while the predictor has too few earlier steps to be accurate.
     - `refresh`: form a fresh Jacobian at every update (full Newton updates, which converge
       quadratically from a poorer guess) instead of once per solve (default False).
+    - `warmup_rounds`: 0 (default) solves the warm-up steps with the general loop; r > 0 solves
+      them by r rounds of a fresh matrix and `updates` chord updates, the later steps by one
+      round, in one loop over the rounds (`fixed_newton_solve`'s `rounds`): the solve is
+      compiled once instead of twice, for a longer running step (a loop around every solve).
+      The sweep's lean chunk uses it (`clebsch_jax.batching.lean.WARMUP_ROUNDS`).
     """
 
     updates: int = 3
     warmup: int = 4
     refresh: bool = False
+    warmup_rounds: int = 0
 
     def __post_init__(self):
         super().__post_init__()
         object.__setattr__(self, "updates", positive_int(self.updates, "updates"))
         object.__setattr__(self, "warmup", positive_int(self.warmup, "warmup", minimum=0))
+        object.__setattr__(self, "warmup_rounds", positive_int(self.warmup_rounds, "warmup_rounds", minimum=0))
 
     def solve_reusing(self, F, guess, H, reuse, finish=None, step=None):
         """`updates` chord updates and a check; the general loop for steps before `warmup`
         (`step`: the step's number, None: treated as past the warm-up).
         **Returns:** `(z, NewtonStats, H, extra)` as `Newton.solve_reusing`."""
-        def fixed(_):
+        def fixed(_, rounds=1):
             return fixed_newton_solve(F, guess, updates=self.updates, rtol=self.rtol, atol=self.atol, finish=finish,
-                                      refresh=self.refresh)
+                                      refresh=self.refresh, rounds=rounds)
 
         if step is None or self.warmup == 0:
             return fixed(None)
+        if self.warmup_rounds:
+            return fixed(None, jnp.where(step < self.warmup, self.warmup_rounds, 1))
 
         def general(_):
             return newton_solve_reusing(F, guess, H, reuse, finish=finish, **self._options)
