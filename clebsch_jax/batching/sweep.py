@@ -102,13 +102,14 @@ AUTO_LEAN_MIN_MEMBERS = 1000
 rows its steps gain too little over the general chunk's to repay its compile
 (`benchmarks/README.md`, "Measurements behind the engine's choices")."""
 
-AUTO_LEAN_MIN_MEMBER_STEPS = 10**7
+AUTO_LEAN_MIN_MEMBER_STEPS = 2_500_000
 """... and of at least this many member-steps (members × `n_steps`): the lean chunk takes
-longer to compile than the general one, and a sweep with members that fail its check compiles
-the general one too for their reruns; its faster steps repay that only over a long enough
-sweep (the break-even follows from the first-call times and rates measured in
-`benchmarks/README.md`). A stored sweep resumes on the path it was written with, whatever
-these thresholds are now (`_resumed_path`)."""
+longer to compile than the general one, which its faster steps repay from here on (the largest
+break-even of the first calls measured in `benchmarks/README.md`; every later call of the same
+shapes is faster from the first step). A sweep with members that fail its check compiles the
+general chunk too, for their reruns, which the first call of a sweep this short does not repay.
+A stored sweep resumes on the path it was written with, whatever these thresholds are now
+(`_resumed_path`)."""
 
 
 def _auto_lean(B: int, n_steps: int) -> bool:
