@@ -47,7 +47,7 @@ case sampled in turn, load average recorded):
 
 4. **Sweep** (`--sweep-only`, written to `throughput_sweep.json`/`.png`; issue 20): the
    documented `cj.sweep(rigid_body, …, reconstruct=False)` call with default options
-   (`fast="auto"`: the general Newton loop below 2.5·10⁶ member-steps or 1000 members, the
+   (`fast="auto"`: the general Newton loop below 10⁶ member-steps or 1000 members, the
    lean chunk from there, so at B = 10⁵ × 200 steps) and with `fast=True` (the lean chunk, `clebsch_jax.batching.lean`,
    in batches of up to 16384 members), `jax.jit(cj.batch(integrate → final momentum, energy
    error))`, the hand-written rows kernel `hand_rows_march` (the yardstick: each component a

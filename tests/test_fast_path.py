@@ -115,6 +115,42 @@ def test_only_the_members_whose_check_failed_run_again(monkeypatch):
     assert np.all(res.newton_iterations[easy] != ref.newton_iterations[easy])
 
 
+class _Probed(Exception):
+    pass
+
+
+@pytest.mark.parametrize("case", ["reduced", "reconstructed", "composition", "potential"])
+def test_the_lean_probe_gives_the_shapes_of_a_traced_march(monkeypatch, case):
+    # the lean path checks a member without tracing its march (_check_member); the shapes and
+    # facts it finds are those the traced march gives. The sweep stops after the probes: no compile.
+    import clebsch_jax.batching.sweep as sw
+
+    real, seen = sw._probe, []
+
+    def spy(cfg, members, lean=False, configurations=True):
+        shapes = real(cfg, members, lean=lean, configurations=configurations)
+        if lean:
+            seen.append(shapes)
+            traced = real(cfg, members, configurations=False)
+            assert shapes._replace(invariants=None) == traced._replace(invariants=None)
+            assert list(shapes.invariants) == list(traced.invariants) == ["energy"]
+            for a, b in zip(shapes.invariants.values(), traced.invariants.values()):
+                assert (a.shape, a.dtype) == (b.shape, b.dtype)
+            raise _Probed
+        return shapes
+
+    monkeypatch.setattr(sw, "_probe", spy)
+    if case == "potential":
+        args = (_top, np.array([[1.0, 1.0, 0.4, 1.5]]), np.eye(3)[None], np.array([[0.1, 0.2, 5.0]]))
+        options = {}
+    else:
+        args = (rigid_body, INERTIAS, EYES, OMEGAS)
+        options = {"reduced": dict(reconstruct=False), "reconstructed": {}, "composition": dict(order=4)}[case]
+    with pytest.raises(_Probed):
+        cj.sweep(*args, dt=0.05, n_steps=N_STEPS, chunk_steps=20, fast=True, **options)
+    assert seen[0].has_Q == (case != "reduced") and seen[0].facts["order"] == (4 if case == "composition" else 2)
+
+
 def _top(params):
     return heavy_top(params[:3], params[3])
 

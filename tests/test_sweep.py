@@ -235,6 +235,13 @@ def test_bad_input_is_rejected_before_compiling(monkeypatch):
     for change, message in cases:
         with pytest.raises((ValueError, TypeError), match=message):
             cj.sweep(**{**good, **change})
+    # the same on the fast path, whose lean chunk checks the member without tracing its march
+    monkeypatch.setattr(sw, "_lean_program", compiled)
+    monkeypatch.setattr(sw, "_fast_program", compiled)
+    for change, message in cases:
+        if "fast" not in change:
+            with pytest.raises((ValueError, TypeError), match=message):
+                cj.sweep(**{**good, **change, "fast": True})
 
 
 SHARDED = r"""

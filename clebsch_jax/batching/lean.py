@@ -48,7 +48,7 @@ from ..roots.status import Status
 from ..steppers.base import AbstractWrapper
 from ..steppers.reduced import ReducedStep
 
-__all__ = ["lean_chunk", "supports", "LEAN_UPDATES", "NODAL_UPDATES", "WARMUP_ROUNDS"]
+__all__ = ["lean_chunk", "supports", "carries_Q", "LEAN_UPDATES", "NODAL_UPDATES", "WARMUP_ROUNDS"]
 
 NODAL_UPDATES = 2
 """Chord updates of a node's velocity solve: the relation is linear for a Lagrangian quadratic
@@ -92,6 +92,14 @@ def supports(stepper, system) -> bool:
     return isinstance(base, ReducedStep) and isinstance(base.root_finder, FixedNewton) and not system.degenerate
 
 
+def carries_Q(stepper, system) -> bool:
+    """Whether the lean chunk carries the configuration Q from step to step: not for a reduced
+    step that does not reconstruct it (`ReducedStep.reconstruct=False` and an l without
+    potential), whose Q stays the chunk's start — and whose sweep then reports no final Q."""
+    base = _base(stepper)
+    return base._carry_Q(system) if isinstance(base, ReducedStep) else True
+
+
 def _nodal_velocity(system, finder: FixedNewton, Q, mu, guess):
     """ξ at a node from its momentum μ, by `NODAL_UPDATES` chord updates and the check."""
     xi, stats, _, _ = fixed_newton_solve(lambda x: nodal_residual(system, Q, mu, x), guess, updates=NODAL_UPDATES,
@@ -133,11 +141,11 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
     memory0 = stepper.init_memory(system, state0)
     E0, size0 = node_energy(system, Q0, xin0)
     ref = jnp.where(first, E0, carry.initial["energy"])
-    carries_Q = _base(stepper)._carry_Q(system)  # else Q stays the chunk's start (reconstruct=False)
+    carries = carries_Q(stepper, system)  # else Q stays the chunk's start (reconstruct=False)
     reductions = dict(
         ok=ok, iterations=jnp.asarray(0, carry.iterations.dtype), residual=jnp.zeros((), dt.dtype),
         change=carry.energy_change, size=jnp.maximum(carry.energy_size, zero_nan(size0)), E=E0,
-        drift=jnp.abs(E0 - ref), xin=xin0, mu=mu0, xstep=xin0, **({"Q": Q0} if carries_Q else {}),
+        drift=jnp.abs(E0 - ref), xin=xin0, mu=mu0, xstep=xin0, **({"Q": Q0} if carries else {}),
     )
 
     # warm-up steps by WARMUP_ROUNDS rounds, the others by one round of LEAN_UPDATES (module docstring)
@@ -162,7 +170,7 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
             ok=red["ok"] & good, iterations=red["iterations"] + stats.iterations,
             residual=jnp.maximum(red["residual"], stats.residual_norm), change=change, size=size_max, E=E,
             drift=jnp.maximum(red["drift"], jnp.abs(E - ref)), xin=xin, mu=mun, xstep=xi_step,
-            **({"Q": nodes.Q[1]} if carries_Q else {}),
+            **({"Q": nodes.Q[1]} if carries else {}),
         )
         return state, memory, red
 

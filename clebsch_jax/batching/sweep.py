@@ -52,8 +52,8 @@ from ..core.validation import positive_int as _positive_int_checked
 from ..core.validation import runnable_check as _runnable_check
 from ..discrete.legendre import initial_multiplier
 from ..march.continuation import continue_from
-from ..march.integrate import integrate
-from ..march.scan import energy_jump, node_energies
+from ..march.integrate import integrate, prepared_method
+from ..march.scan import energy_jump, node_energies, node_energy
 from ..march.solution import IntegrationError
 from ..roots.solvers import Newton
 from ..roots.status import Status
@@ -62,7 +62,7 @@ from ..steppers.choose import choose_method as _choose_method
 from ..steppers.full import FullStep
 from .batch_last import batch
 from .fast import fast_method as _fast_method
-from .lean import lean_chunk, supports as _lean_supports
+from .lean import carries_Q as _lean_carries_Q, lean_chunk, supports as _lean_supports
 from .scalarise import scalarise
 
 __all__ = ["sweep", "SweepResult", "SweepProgress"]
@@ -102,7 +102,7 @@ AUTO_LEAN_MIN_MEMBERS = 1000
 rows its steps gain too little over the general chunk's to repay its compile
 (`benchmarks/README.md`, "Measurements behind the engine's choices")."""
 
-AUTO_LEAN_MIN_MEMBER_STEPS = 2_500_000
+AUTO_LEAN_MIN_MEMBER_STEPS = 1_000_000
 """... and of at least this many member-steps (members × `n_steps`): the lean chunk takes
 longer to compile than the general one, which its faster steps repay from here on (the largest
 break-even of the first calls measured in `benchmarks/README.md`; every later call of the same
@@ -787,10 +787,15 @@ def _trace_member(cfg: _Config, *args):
         sol = _integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, cfg.n)
         return sol, {name: jnp.asarray(fn(system, sol)) for name, fn in cfg.invariants}
 
+    return memo(_TRACES, _trace_key(cfg, args), lambda: jax.eval_shape(probe, *args), _TRACES_MAX)
+
+
+def _trace_key(cfg: _Config, args) -> tuple:
+    """The cache key of a trace of one member's `args`: the configuration, the arguments' tree,
+    shapes and dtypes (a trace reads nothing else)."""
     leaves, tree = jax.tree_util.tree_flatten(args)
     dtype = lambda x: x.dtype if hasattr(x, "dtype") else np.result_type(x)  # not an array as a dtype (deprecated)
-    key = (cfg, tree, tuple((np.shape(x), dtype(x), getattr(x, "weak_type", False)) for x in leaves))
-    return memo(_TRACES, key, lambda: jax.eval_shape(probe, *args), _TRACES_MAX)
+    return (cfg, tree, tuple((np.shape(x), dtype(x), getattr(x, "weak_type", False)) for x in leaves))
 
 
 _TRACES: dict = {}
@@ -798,22 +803,56 @@ _TRACES_MAX = 64
 """`_trace_member`'s cache (`clebsch_jax.core.jit.memo`): cleared when it holds this many."""
 
 
-def _probe(cfg: _Config, members: _Members) -> _Shapes:
+def _check_member(cfg: _Config, *args):
+    """`integrate`'s checks of one member's arguments and its choice of method, traced
+    (`prepared_method` under `jax.eval_shape`: no march is traced, nothing compiled):
+    (the prepared method's facts, whether the lean chunk carries Q, the energy's dtype)."""
+    found = {}
+
+    def check(p, s, q, x, d):
+        system = _system_of(cfg, p, s)
+        stepper, _, _ = prepared_method(system, q, x, dt=d, n_steps=cfg.n, P0=jnp.zeros_like(q),
+                                        t0=jnp.zeros((), q.dtype), **dict(cfg.options))
+        found["facts"], found["has_Q"] = stepper.facts(system), _lean_carries_Q(stepper, system)
+        return node_energy(system, q, x)[0]
+
+    def run():
+        energy = jax.eval_shape(check, *args)
+        return found["facts"], found["has_Q"], energy.dtype
+
+    return memo(_TRACES, ("check",) + _trace_key(cfg, args), run, _TRACES_MAX)
+
+
+def _probe(cfg: _Config, members: _Members, lean: bool = False, configurations: bool = True) -> _Shapes:
     """One member's shapes, by tracing integrate (its own checks name Q0, xi0, ...): no compile.
-    Then the system's own check of its configurations on every concrete Q0[j]."""
+    Then the system's own check of its configurations on every concrete Q0[j].
+
+    With `lean` (the sweep runs the lean chunk, `clebsch_jax.batching.lean`, which keeps the
+    energy only): the same checks and shapes without tracing the march, which nothing else
+    of such a sweep would reuse (`_check_member`). `configurations=False` leaves out the check
+    of the configurations (made by an earlier probe)."""
     p_row = _first_row(members)
     j = members.ic_index[0]
     q_row, x_row = jnp.asarray(members.Q0[j]), jnp.asarray(members.xi0[j])
 
+    args = (p_row, members.shared, q_row, x_row, jnp.asarray(members.dt[0]))
     try:
-        sol_shape, inv_shape = _trace_member(cfg, p_row, members.shared, q_row, x_row, jnp.asarray(members.dt[0]))
+        if lean:
+            facts, has_Q, energy_dtype = _check_member(cfg, *args)
+        else:
+            sol_shape, inv_shape = _trace_member(cfg, *args)
     except (ValueError, TypeError) as err:
         where = ("make_system(params[i]), " if members.builder is not None else "") + \
                 f"Q0[j] of shape {q_row.shape}, xi0[j] of shape {x_row.shape}"
         kind = ValueError if isinstance(err, ValueError) else TypeError
         raise kind(f"sweep: one member ({where}) is rejected: {err}") from err
     # e.g. rotations for SO(3) models: the probe above traces Q0, which skips the check
-    _check_configurations(_system_of(cfg, p_row, members.shared), members.Q0, members.n_ic)
+    if configurations:
+        _check_configurations(_system_of(cfg, p_row, members.shared), members.Q0, members.n_ic)
+    if lean:  # a regular system (nodal velocities), the energy its only invariant (`_lean_applies`)
+        invariants = {"energy": jax.ShapeDtypeStruct((cfg.n + 1,), energy_dtype)}
+        facts = dict(form=facts.form, scheme=facts.scheme, order=int(facts.order), method=str(facts.name))
+        return _Shapes(q_row.shape, x_row.shape, has_Q, True, invariants, facts)
     for name, v in inv_shape.items():
         if v.ndim < 1 or v.shape[0] != cfg.n + 1:
             raise ValueError(f"invariants: {name!r} must return one value per node (leading axis n+1 = "
@@ -1255,13 +1294,16 @@ def sweep(
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
     B, n_dev = members.B, len(run.devices)
     cfg = _particle_defaults(_chunk_config(run, members, options), members)
-    shapes = _probe(cfg, members)
     fast = _resumed_path(fast, store, overwrite)
+    shapes = None
     if fast is True or (fast == "auto" and _auto_lean(B, run.n_steps)):
+        shapes = _probe(cfg, members, lean=True)  # the member checked before a method is chosen on it
         method = _fast_method_of(cfg, members)
         lean = _lean_applies(cfg, members, method)
         if fast is True or lean:  # "auto" takes the fast path only as the lean chunk
             cfg = dataclasses.replace(cfg, fast_method=method, lean=lean)
+    if not cfg.lean:  # the general chunk's shapes, from a trace of its march
+        shapes = _probe(cfg, members, configurations=shapes is None)
     if batch_size is None:  # every device gets a batch
         per_device = -(-B // n_dev)
         if cfg.lean:  # batches of equal size (no padded members), at most _DEFAULT_BATCH_LEAN

@@ -280,23 +280,10 @@ def integrate(
     Derivatives (forward and reverse mode) flow through the root finders by implicit
     differentiation (`clebsch_jax.roots.implicit`).
     """
-    _check_options(system, n_steps, rtol, atol, max_newton_iterations)
-    if not isinstance(check_energy, bool):
-        raise TypeError(f"check_energy: expected True or False, got {check_energy!r}.")
-    n_steps = int(n_steps)  # a NumPy integer is accepted and becomes the static Python int
-    if method is None:
-        check_scheme(system, scheme)
-    else:
-        _check_method(method, locals())
-    Q0, xi0, P0, dt, t0, closes = _check_arrays(system, Q0, xi0, P0, dt, t0)
-    _check_size(Q0, xi0, n_steps)
-    if method is None:
-        if jacobian == "blocks":
-            check_particle_axis(Q0, xi0)
-        method = choose_method(system, Q0, xi0, scheme=scheme, reduce=reduce, need_P=need_P, reconstruct=reconstruct,
-                               rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian,
-                               order=order, composition=composition)
-    stepper = method.prepare(system, Q0, xi0)
+    stepper, (Q0, xi0, P0, dt, t0, closes), n_steps = prepared_method(
+        system, Q0, xi0, dt=dt, n_steps=n_steps, P0=P0, t0=t0, method=method, scheme=scheme, reduce=reduce,
+        need_P=need_P, reconstruct=reconstruct, rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations,
+        jacobian=jacobian, order=order, composition=composition, check_energy=check_energy)
     if closes or any_traced(system, Q0, xi0, P0, dt, t0):
         # one scan, in the caller's program (differentiable by it); values unknown until now
         # are checked per member
@@ -313,6 +300,32 @@ def integrate(
         else:
             sol.raise_if_failed()
     return sol
+
+
+def prepared_method(system, Q0, xi0, *, dt, n_steps, P0=None, t0=0.0, method=None, scheme=None, reduce="auto",
+                    need_P=False, reconstruct=True, rtol=0.0, atol=0.0, max_newton_iterations=20, jacobian="dense",
+                    order=None, composition=None, check_energy=True):
+    """`integrate`'s checks of its arguments and its choice of method, without the march:
+    `(stepper prepared for the system, (Q0, xi0, P0, dt, t0, closes) as arrays, n_steps)`.
+    Raises what `integrate` raises for bad arguments; works on traced arguments
+    (`clebsch_jax.sweep` checks one member this way, under `jax.eval_shape`)."""
+    _check_options(system, n_steps, rtol, atol, max_newton_iterations)
+    if not isinstance(check_energy, bool):
+        raise TypeError(f"check_energy: expected True or False, got {check_energy!r}.")
+    n_steps = int(n_steps)  # a NumPy integer is accepted and becomes the static Python int
+    if method is None:
+        check_scheme(system, scheme)
+    else:
+        _check_method(method, locals())
+    Q0, xi0, P0, dt, t0, closes = _check_arrays(system, Q0, xi0, P0, dt, t0)
+    _check_size(Q0, xi0, n_steps)
+    if method is None:
+        if jacobian == "blocks":
+            check_particle_axis(Q0, xi0)
+        method = choose_method(system, Q0, xi0, scheme=scheme, reduce=reduce, need_P=need_P, reconstruct=reconstruct,
+                               rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian,
+                               order=order, composition=composition)
+    return method.prepare(system, Q0, xi0), (Q0, xi0, P0, dt, t0, closes), n_steps
 
 
 def _check_method(method, options):
