@@ -52,7 +52,10 @@ case sampled in turn, load average recorded):
    in batches of up to 16384 members), `jax.jit(cj.batch(integrate → final momentum, energy
    error))`, the hand-written rows kernel `hand_rows_march` (the yardstick: each component a
    (B,) row, closed-form Jacobian and cofactor inverse, fixed chord updates,
-   `fori_loop(unroll=4)`, final state and energy error only) and NumPy RK4 of Euler's equations on (3, B) arrays; M body-steps/s,
+   `fori_loop(unroll=4)`, final state and energy error only), NumPy RK4 of Euler's equations on
+   (3, B) arrays and, when a C compiler is present, `c_simd`: the hand kernel's step in C
+   (`benchmarks/c/rigid_body_cay.c`, bodies in SIMD lanes, one thread; built at run time,
+   skipped with the reason otherwise), the hardware reference; M body-steps/s,
    ratios, compile times (first call − second call), energy errors, fallback counts. With
    `--sweep-only` the script asks XLA for two host devices (`XLA_FLAGS`, set before JAX
    starts, unless the caller set a device count) and adds `sweep_fast_2dev`: `fast=True,
@@ -298,6 +301,52 @@ def hand_rows_march(inertia, dt, n_steps, updates=ROWS_UPDATES, unroll=ROWS_UNRO
     return march
 
 
+C_SOURCE = Path(__file__).with_name("c") / "rigid_body_cay.c"
+C_FLAGS = (["-O3", "-march=native", "-mprefer-vector-width=512"], ["-O3", "-march=native"], ["-O3"])
+"""Tried in order until one compiles: AVX-512 lanes where the CPU has them, else the widest the
+compiler picks, else portable code."""
+
+_C_KERNEL: dict = {}
+
+
+def c_kernel():
+    """The C kernel `c/rigid_body_cay.c` (`hand_rows_march`'s step, bodies in SIMD lanes, one
+    thread), built once per process with the system's C compiler (`cc`, or `$CC`) into a
+    temporary directory: `(march, flags)` with `march(inertia, dt, n_steps, xi0 (B, 3)) -> (final
+    μ (B, 3), max |E − E⁰| (B,))`, or `(None, reason)` when there is no compiler or no build."""
+    if "kernel" in _C_KERNEL:
+        return _C_KERNEL["kernel"]
+    import ctypes
+    import shutil
+
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+    result = (None, "no C compiler (cc, gcc, clang or $CC) found")
+    if cc:
+        out = Path(tempfile.mkdtemp(prefix="clebsch_c_")) / "rigid_body_cay.so"
+        for flags in C_FLAGS:
+            cmd = [cc, *flags, f"-DUPDATES={ROWS_UPDATES}", "-shared", "-fPIC", "-o", str(out), str(C_SOURCE), "-lm"]
+            if subprocess.run(cmd, capture_output=True).returncode == 0:
+                lib = ctypes.CDLL(str(out))
+                fn = lib.rigid_body_cay_march
+                dp = ctypes.POINTER(ctypes.c_double)
+                fn.argtypes = [ctypes.c_long, ctypes.c_long, ctypes.c_double, dp, dp, dp, dp]
+                fn.restype = None
+
+                def march(inertia, dt, n_steps, xi0, fn=fn, dp=dp):
+                    I = np.ascontiguousarray(inertia, dtype=np.float64)
+                    x = np.ascontiguousarray(xi0, dtype=np.float64)
+                    mu, err = np.empty_like(x), np.empty(x.shape[0])
+                    fn(x.shape[0], n_steps, float(dt), *(a.ctypes.data_as(dp) for a in (I, x, mu, err)))
+                    return mu, err
+
+                result = (march, " ".join([os.path.basename(cc), *flags]))
+                break
+        else:
+            result = (None, f"{cc} could not build {C_SOURCE.name}")
+    _C_KERNEL["kernel"] = result
+    return result
+
+
 def hand_call(batch: int, n_steps: int, Q0, omega0):
     march = hand_march(rigid.INERTIA, rigid.DT, n_steps)
     Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
@@ -368,6 +417,7 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
 SWEEP_RESULTS_NAME = "throughput_sweep"
 TWO_DEVICES = "sweep_fast_2dev"  # sweep(fast=True, devices=2), with --sweep-only (two host devices)
 HAND_ROWS = "jax_by_hand_rows"  # hand_rows_march: the yardstick of issue 20, not a library path
+C_SIMD = "c_simd"  # c/rigid_body_cay.c: the hardware reference of issue 20, when a C compiler is present
 SWEEP_DEFAULT = ((1_000, 200), (10_000, 200), (100_000, 200))  # the last at fast="auto"'s threshold: lean chunk
 SWEEP_QUICK = ((8, 10),)
 SWEEP_MIXED_DEFAULT = ((10_000, 800),)  # mixed_momenta: a few members per batch rerun on the general path
@@ -436,6 +486,9 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) 
              "cj_batch": lambda: jax.block_until_ready(batched(Q0_j, xi0_j)),
              HAND_ROWS: lambda: jax.block_until_ready(hand(xi0_j)),
              RK4: lambda: rk4_euler_final(inertia, omega0, rigid.DT, n_steps)}
+    c_march, c_flags = c_kernel()
+    if c_march is not None and not mixed:
+        calls[C_SIMD] = lambda: c_march(inertia, rigid.DT, n_steps, omega0)
     if mixed:
         del calls["cj_batch"]
         calls["sweep_general"] = sweep_call(fast=False)
@@ -464,9 +517,17 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) 
     if "cj_batch" in calls:
         row["cj_batch"]["max_energy_error"] = float(np.max(np.asarray(outs["cj_batch"][1])))
     row[RK4]["max_energy_error"] = float(np.max(outs[RK4][1]))
+    if C_SIMD in calls:
+        row[C_SIMD]["flags"] = c_flags
+        row[C_SIMD]["max_energy_error"] = float(np.max(outs[C_SIMD][1]))
+        row[C_SIMD]["max_abs_final_momentum_diff_vs_hand"] = float(np.max(np.abs(outs[C_SIMD][0] - mu_hand)))
+    else:
+        row["c_simd_skipped"] = c_flags
     rate = {m: row[m]["body_steps_per_second"] for m in calls}
     row["ratios"] = {**{f"{m}_over_hand": rate[m] / rate[HAND_ROWS] for m in calls if m != HAND_ROWS},
-                     **{f"{m}_over_numpy_rk4": rate[m] / rate[RK4] for m in calls if m != RK4}}
+                     **{f"{m}_over_numpy_rk4": rate[m] / rate[RK4] for m in calls if m != RK4},
+                     **({f"{m}_over_c": rate[m] / rate[C_SIMD] for m in calls if m != C_SIMD} if C_SIMD in calls
+                        else {})}
     return row
 
 
@@ -500,6 +561,7 @@ def print_sweep_report(summary: dict) -> None:
     print("\nM body-steps/s (compile s) and ratios:")
     names = ("sweep", "sweep_fast", "cj_batch", HAND_ROWS, RK4)
     names += (TWO_DEVICES,) if all(TWO_DEVICES in r for r in rows) else ()
+    names += (C_SIMD,) if rows and all(C_SIMD in r for r in rows) else ()
     harness.print_table(
         f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>20}" for m in names) + " |"
         f"{'sweep/hand':>11}{'fast/hand':>10}{'sweep/RK4':>10}{'fast/RK4':>9} | sweep's path | fallbacks",
@@ -514,6 +576,12 @@ def print_sweep_report(summary: dict) -> None:
         print("sweep_fast_2dev (both cores) over hand / over NumPy RK4: " + "; ".join(
             f"B={r['batch']}: {r['ratios'][TWO_DEVICES + '_over_hand']:.3g} / "
             f"{r['ratios'][TWO_DEVICES + '_over_numpy_rk4']:.3g}" for r in rows))
+    if C_SIMD in names:
+        print(f"C kernel ({rows[0][C_SIMD]['flags']}, one thread): sweep / C, fast / C, hand / C: " + "; ".join(
+            f"B={r['batch']}: {r['ratios']['sweep_over_c']:.3g}, {r['ratios']['sweep_fast_over_c']:.3g}, "
+            f"{r['ratios'][HAND_ROWS + '_over_c']:.3g}" for r in rows))
+    elif rows:
+        print(f"C kernel skipped: {rows[0].get('c_simd_skipped')}")
     print("max energy error: " + "; ".join(
         f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows))
     mixed = [r for r in summary["results"] if r["part"] == "sweep_mixed"]
@@ -548,7 +616,7 @@ def print_sweep_report(summary: dict) -> None:
 def plot_sweep(summary: dict, path: Path) -> None:
     fig, ax = harness.figure((1,), size=(7, 4.6))
     styles = {"sweep": ("o", "C2"), "sweep_fast": ("*", "C3"), "cj_batch": ("D", "C0"), HAND_ROWS: ("^", "C7"),
-              RK4: ("s", "C1"), TWO_DEVICES: ("P", "C4")}
+              RK4: ("s", "C1"), TWO_DEVICES: ("P", "C4"), C_SIMD: ("x", "k")}
     for m, (marker, color) in styles.items():
         pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"]
                if r["part"] == "sweep" and m in r]

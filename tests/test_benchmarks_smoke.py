@@ -352,3 +352,34 @@ def test_benchmark_quick(name, tmp_path):
     assert _positive_finite(summary["machine"]["load_average_1min_at_start"] + 1)  # >= 0, recorded
     assert summary["results"]
     CHECKS[name](summary)
+
+
+C_KERNEL_CHECK = r"""
+import sys, numpy as np, jax.numpy as jnp
+sys.path.insert(0, sys.argv[1])
+import throughput
+march, how = throughput.c_kernel()
+if march is None:
+    print("SKIP", how)
+    raise SystemExit(0)
+rng = np.random.default_rng(1)
+xi0 = rng.normal(size=(37, 3))  # not a multiple of the kernel's lanes
+inertia = np.array([0.5, 0.6, 1.0])
+mu, err = march(inertia, 0.05, 50, xi0)
+mu_h, err_h = (np.asarray(a) for a in throughput.hand_rows_march(inertia, 0.05, 50)(jnp.asarray(xi0)))
+print("DIFF", float(np.max(np.abs(mu - mu_h))), float(np.max(np.abs(err - err_h))), float(np.max(err_h)))
+"""
+
+
+def test_the_c_kernel_marches_as_the_hand_kernel():
+    # throughput.py's hardware reference (benchmarks/c/rigid_body_cay.c): the same step as
+    # hand_rows_march, so the same final momenta and energy errors up to the rounding of a
+    # different compiler (contracted multiply-adds); skipped where no C compiler builds it
+    out = subprocess.run([sys.executable, "-c", C_KERNEL_CHECK, str(BENCHMARKS)], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    line = out.stdout.strip().splitlines()[-1]
+    if line.startswith("SKIP"):
+        pytest.skip(line)
+    d_mu, d_err, err = (float(v) for v in line.split()[1:])
+    assert d_mu < 1e-13 and d_err < 1e-13 and err > 1e-8  # the energy error is O(dt²), far above both
