@@ -115,6 +115,52 @@ def test_only_the_members_whose_check_failed_run_again(monkeypatch):
     assert np.all(res.newton_iterations[easy] != ref.newton_iterations[easy])
 
 
+def _assert_same_table(a, b):
+    for key in ("status", "failed_step", "newton_iterations", "max_residual", "final_t", "final_momentum", "final_xi",
+                "final_p", "energy_error", "fast_chunks", "fallback_chunks", "fallback_member_chunks"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+    for name in a.drift:
+        np.testing.assert_array_equal(a.drift[name], b.drift[name], err_msg=name)
+    for key in ("t", "momentum", "xi"):
+        np.testing.assert_array_equal(a.saved[key], b.saved[key], err_msg=key)
+
+
+def test_threads_run_batches_side_by_side_with_the_same_table(monkeypatch):
+    # batches of 2 members, three at a time from host threads (sweep's threads), with hard
+    # members rerun on the general path and saved nodes written from those threads: the table
+    # is threads=1's to the bit
+    import clebsch_jax.batching.sweep as sw
+
+    monkeypatch.setattr(sw, "FALLBACK_BATCH", 2)
+    inertias, eyes = np.concatenate([INERTIAS, INERTIAS]), np.concatenate([EYES, EYES])
+    omegas, dts = np.concatenate([OMEGAS, OMEGAS]), np.full(8, 0.05)
+    omegas[[1, 4, 6]] *= 3.0
+    dts[[1, 4, 6]] = 0.6
+    run = {**RB, "batch_size": 2, "save_every": 10}
+    one = cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **run, threads=1)
+    three = cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **run, threads=3)
+    assert one.fallback_member_chunks == 6 and one.batch_size == three.batch_size == 2
+    _assert_same_table(one, three)
+    general = {**run, "fast": False}
+    _assert_same_table(cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **general, threads=1),
+                       cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **general, threads=4))
+
+
+def test_default_threads_follow_the_cores_and_the_batch(monkeypatch):
+    import clebsch_jax.batching.sweep as sw
+
+    cpu = jax.devices("cpu")[0]
+    monkeypatch.setattr(sw.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    assert sw._threads(None, [None], 10**4) == sw.THREADS_MAX == 2  # at most THREADS_MAX
+    assert sw._threads(None, [cpu, cpu], 10**4) == 1  # the cores shared by the devices
+    assert sw._threads(None, [None], 2 * sw.THREAD_MIN_MEMBERS - 1) == 1  # each thread a batch of 256
+    assert sw._threads(3, [None], 10) == 3  # the caller's choice
+    monkeypatch.setattr(sw.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    assert sw._threads(None, [None], 10**4) == 1  # one core
+    with pytest.raises(ValueError, match="threads"):
+        sw._threads(0, [None], 10)
+
+
 class _Probed(Exception):
     pass
 

@@ -223,6 +223,7 @@ def test_bad_input_is_rejected_before_compiling(monkeypatch):
         (dict(t0=1.0), "t0: set by sweep itself"),
         (dict(devices=0), "devices"),
         (dict(fast="yes"), "fast: expected True, False or 'auto'"),
+        (dict(threads=0), "threads"),
         (dict(invariants={"scalar": lambda s, sol: jnp.sum(sol.momentum)}), "invariants: 'scalar'"),
         (dict(invariants={"short": lambda s, sol: sol.momentum[1:]}),
          "invariants: 'short' must return one value per node"),

@@ -97,21 +97,23 @@ def test_a_store_of_another_configuration_is_refused(reference, tmp_path):
 
 
 def test_fast_auto_resumes_on_the_path_a_store_was_written_with(reference, tmp_path):
-    # "auto" picks its path from B and n_steps; a stored sweep keeps the path it was written
-    # with (the store refuses the other), so thresholds can change without stranding stores
+    # "auto" picks its path from B and n_steps, the default batch size follows the threads; a
+    # stored sweep keeps the path and batch size it was written with (the store refuses
+    # others), so defaults can change without stranding stores
     from clebsch_jax.batching.store import ATTR, stored_fast
-    from clebsch_jax.batching.sweep import _resumed_path
+    from clebsch_jax.batching.sweep import _resumed
 
     path = tmp_path / "sweep.zarr"
-    assert stored_fast(path) is None and _resumed_path("auto", path, False) == "auto"  # nothing there yet
+    assert stored_fast(path) is None and _resumed("auto", None, path, False) == ("auto", None)  # nothing yet
     stored(path, fast=False)
     assert stored_fast(path) is False
-    assert _resumed_path("auto", path, False) is False
-    assert _resumed_path("auto", path, True) == "auto"  # overwrite: a new sweep
-    assert _resumed_path(True, path, False) is True  # an explicit choice stays (and is refused)
+    written = zarr.open_group(str(path), mode="r").attrs[ATTR]["batch_size"]
+    assert _resumed("auto", None, path, False) == (False, written)
+    assert _resumed("auto", None, path, True) == ("auto", None)  # overwrite: a new sweep
+    assert _resumed(True, 3, path, False) == (True, 3)  # explicit choices stay (and are refused)
     fast_store = zarr.open_group(str(tmp_path / "fast.zarr"), mode="w")
     fast_store.attrs[ATTR] = {"fast": True}
-    assert _resumed_path("auto", tmp_path / "fast.zarr", False) is True
+    assert _resumed("auto", None, tmp_path / "fast.zarr", False) == (True, None)
     zarr.open_group(str(tmp_path / "other.zarr"), mode="w").attrs["x"] = 1  # not a sweep's store
     assert stored_fast(tmp_path / "other.zarr") is None
     assert_same_table(stored(path), reference)  # the default, "auto", reads the stored table back

@@ -251,14 +251,21 @@ def _open_group(zarr, store, mode: str):
                               f"{err}).") from err
 
 
-def stored_fast(store) -> bool | None:
-    """Whether the sweep stored in `store` ran the fast path (its configuration's "fast"); None
-    where no sweep configuration is stored there (nothing yet, or not a sweep's store)."""
+def stored_configuration(store) -> dict | None:
+    """The configuration of the sweep stored in `store` (`configuration`, as read back); None
+    where there is none (nothing yet, or not a sweep's store)."""
     try:
         stored = _zarr().open_group(_plain(store), mode="r").attrs.get(ATTR)
     except Exception:  # nothing there: the sweep creates it (open_for_run reports other problems)
         return None
-    return bool(stored["fast"]) if isinstance(stored, dict) and "fast" in stored else None
+    return stored if isinstance(stored, dict) else None
+
+
+def stored_fast(store) -> bool | None:
+    """Whether the sweep stored in `store` ran the fast path (its configuration's "fast"); None
+    where no sweep configuration is stored there (nothing yet, or not a sweep's store)."""
+    stored = stored_configuration(store)
+    return bool(stored["fast"]) if stored is not None and "fast" in stored else None
 
 
 def open_for_run(store, plan, overwrite: bool):
@@ -474,11 +481,11 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
         return open_sweep(store)
     # Each group's rows go to the store from a writer thread while the next group computes; the
     # table is kept in memory too. Leaving the `with` (also on Ctrl-C) waits for the writes under way.
-    n_dev, used, chunks = len(run.devices), set(), np.zeros(3, int)
+    slots, used, chunks = run.slots, set(), np.zeros(3, int)
     with ThreadPoolExecutor(1, thread_name_prefix="clebsch-jax-sweep-store") as writer:
         writes = []
-        for g in range(0, len(pending), n_dev):
-            rows = _run_batches(plan, pending[g:g + n_dev], run.devices, report)
+        for g in range(0, len(pending), len(slots)):
+            rows = _run_batches(plan, pending[g:g + len(slots)], slots, report)
             used.update(rows.devices)
             chunks += rows.fast_chunks
             _place(tables, rows.tables, rows.rows)

@@ -34,8 +34,10 @@ from __future__ import annotations
 import dataclasses
 import functools
 import numbers
+import os
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, NamedTuple
 
 import jax
@@ -97,6 +99,14 @@ LEAN_CHUNKS = 4
 end (the momentum map, node 0's velocity, the warm-up steps, the cotangent P of the last node)
 are then paid once per that many chunks."""
 
+THREADS_MAX = 2
+"""`sweep`'s default `threads`: the CPU cores the process may use, at most this many (measured
+on a 2-core host, `benchmarks/README.md`; more threads on more cores are the caller's choice)."""
+
+THREAD_MIN_MEMBERS = 256
+"""... and only as many threads as give each a batch of at least this many members (a smaller
+sweep runs as before: its batches gain little from running side by side)."""
+
 AUTO_LEAN_MIN_MEMBERS = 1000
 """`fast="auto"` runs the lean chunk only for sweeps of at least this many members: on shorter
 rows its steps gain too little over the general chunk's to repay its compile
@@ -109,7 +119,7 @@ break-even of the first calls measured in `benchmarks/README.md`; every later ca
 shapes is faster from the first step). A sweep with members that fail its check compiles the
 general chunk too, for their reruns, which the first call of a sweep this short does not repay.
 A stored sweep resumes on the path it was written with, whatever these thresholds are now
-(`_resumed_path`)."""
+(`_resumed`)."""
 
 
 def _auto_lean(B: int, n_steps: int) -> bool:
@@ -117,14 +127,20 @@ def _auto_lean(B: int, n_steps: int) -> bool:
     return B >= AUTO_LEAN_MIN_MEMBERS and B * n_steps >= AUTO_LEAN_MIN_MEMBER_STEPS
 
 
-def _resumed_path(fast, store, overwrite: bool):
-    """`fast`, except that "auto" with a `store` that holds a sweep (and no `overwrite`) is the
-    path that sweep ran: True or False, so that it resumes (the store refuses the other path)."""
-    if fast != "auto" or store is None or overwrite:
-        return fast
-    from .store import stored_fast
+def _resumed(fast, batch_size, store, overwrite: bool):
+    """`(fast, batch_size)`, except that with a `store` that holds a sweep (and no `overwrite`)
+    "auto" is the path that sweep ran and None the batch size it ran with, so that it resumes
+    (the store refuses another path or batch size) whatever the defaults are now."""
+    if store is None or overwrite or (fast != "auto" and batch_size is not None):
+        return fast, batch_size
+    from .store import stored_configuration
 
-    return {None: "auto", True: True, False: False}[stored_fast(store)]
+    stored = stored_configuration(store) or {}
+    if fast == "auto" and "fast" in stored:
+        fast = bool(stored["fast"])
+    if batch_size is None and isinstance(stored.get("batch_size"), int):
+        batch_size = stored["batch_size"]
+    return fast, batch_size
 
 
 # --------------------------------------------------------------------------------------------
@@ -524,6 +540,24 @@ def _devices(devices) -> list:
     return devs
 
 
+def _threads(threads, devices: list, B: int) -> int:
+    """Host threads per device (`sweep`'s `threads`): the given number, or by default the CPU
+    cores this process may use, at most `THREADS_MAX`, shared by the devices, for CPU devices
+    (1 for others: an accelerator runs its queue in order) — and never more than give each
+    thread a batch of `THREAD_MIN_MEMBERS` members."""
+    if threads is not None:
+        return _positive_int(threads, "threads")
+    if any(d is not None and d.platform != "cpu" for d in devices) or \
+            (devices == [None] and jax.default_backend() != "cpu"):
+        return 1
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        cores = os.cpu_count() or 1
+    per_device = max(1, min(THREADS_MAX, cores) // len(devices))
+    return max(1, min(per_device, B // (len(devices) * THREAD_MIN_MEMBERS)))
+
+
 def _check_configurations(system, Q0, n_ic):
     """The system's `check_Q` of every concrete Q0[j]: at once when the check has a vectorised
     form (`check_Q.batched(stack) -> None | (j, sentence)`, as the SO(n) models' rotation check
@@ -565,6 +599,12 @@ class _Run(NamedTuple):
     invariants: dict  # {"energy": diagnostics.energy, **the caller's}
     progress: bool | Callable
     devices: list  # the devices batches are dealt to ([None]: JAX's default placement)
+    threads: int = 1  # batches run side by side on each device, each from a host thread of its own
+
+    @property
+    def slots(self) -> list:
+        """The device of each batch of a group: every device `threads` times."""
+        return list(self.devices) * self.threads
 
     @property
     def chunks(self) -> list:
@@ -992,35 +1032,51 @@ def _save(saved: dict | None, run: _Run, one: _Batch, st: int, n: int, chunk_sav
 
 
 def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report: Callable, fell_back: list):
-    """March a group of batches (one per device, side by side) through every chunk: each batch's
-    carry moves on, the chunks' saved nodes go to `saved`, each fast-path call's (chunks,
-    members rerun) to `fell_back`, `report(group, step)` follows each call.
+    """March a group of batches (one per device and thread, side by side) through every chunk:
+    each batch's carry moves on, the chunks' saved nodes go to `saved`, each fast-path call's
+    (chunks, members rerun) to `fell_back`, `report(group, step)` follows each call.
 
     A call of the fast path covers one chunk, or `LEAN_CHUNKS` for the lean chunk (which
     records nothing, so its length costs no memory, and its work at the start and end of a call
     is then shared by more steps); the members whose check failed in it are run again by the
-    general path, chunk by chunk from the call's start (`_rerun`)."""
-    for chunks in _calls(run, cfg.lean):
-        st, n = chunks[0][0], sum(k for _, k in chunks)
-        c = _steps(cfg, run, n)
-        # dispatched asynchronously: the devices march side by side
-        # the fast calls, then the general path for the members whose check failed; a batch in
-        # which most members failed FAST_GIVE_UP times in a row runs the general chunks directly
-        trying = [cfg.fast_method is not None and one.fallbacks_in_a_row < FAST_GIVE_UP for one in group]
-        fast = [_run_fast_chunk(c, one.params, one.carry, one.dt, one.shared, *_at(st)) if t else None
-                for one, t in zip(group, trying)]
-        oks = iter(jax.device_get([f[2] for f in fast if f is not None]))
-        for one, f in zip(group, fast):
-            if f is None:  # the general path: for every batch without a fast method, or given up
-                one.carry = (_general_chunks(cfg, run, one, chunks, saved) if cfg.fast_method is None
-                             else _rerun(cfg, run, one, chunks, saved, np.arange(one.n_real), one.carry))
-                continue
-            failed = np.flatnonzero(~np.asarray(next(oks))[:one.n_real])
-            _save(saved, run, one, st, n, f[1])  # a rerun member's rows are written again by `_rerun`
-            one.carry = _rerun(cfg, run, one, chunks, saved, failed, f[0]) if failed.size else f[0]
-            fell_back.append((len(chunks), failed.size))
-            one.fallbacks_in_a_row = one.fallbacks_in_a_row + 1 if 2 * failed.size >= one.n_real else 0
-        report(group, st + n)
+    general path, chunk by chunk from the call's start (`_rerun`). Each batch of a group is
+    called from a host thread of its own (`sweep`'s `threads`): one thread would run the
+    programs it gives one device one after the other."""
+    pool = ThreadPoolExecutor(len(group), thread_name_prefix="clebsch-jax-sweep") if len(group) > 1 else None
+    try:
+        for chunks in _calls(run, cfg.lean):
+            st, n = chunks[0][0], sum(k for _, k in chunks)
+            c = _steps(cfg, run, n)
+            call = functools.partial(_call, cfg, c, run, chunks, st, n, saved, pool is not None)
+            done = list(pool.map(call, group)) if pool is not None else [call(group[0])]
+            fell_back.extend(d for d in done if d is not None)
+            report(group, st + n)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+
+
+def _call(cfg: _Config, c: _Config, run: _Run, chunks: list, st: int, n: int, saved: dict | None, wait: bool,
+          one: _Batch):
+    """One call of `_run_chunks` for one batch: the fast call (`c`: its chunk's configuration),
+    then the general path for the members whose check failed; a batch in which most members
+    failed `FAST_GIVE_UP` times in a row runs the general chunks directly. `wait`: return only
+    when the general path's programs have run (called from a thread of a group: the group's
+    batches then run side by side; a batch alone dispatches them and goes on). Returns the
+    fast call's (chunks, members rerun), or None without one."""
+    if cfg.fast_method is None or one.fallbacks_in_a_row >= FAST_GIVE_UP:
+        # the general path: for every batch without a fast method, or given up
+        one.carry = (_general_chunks(cfg, run, one, chunks, saved) if cfg.fast_method is None
+                     else _rerun(cfg, run, one, chunks, saved, np.arange(one.n_real), one.carry))
+        if wait:
+            jax.block_until_ready(one.carry)
+        return None
+    f = _run_fast_chunk(c, one.params, one.carry, one.dt, one.shared, *_at(st))
+    failed = np.flatnonzero(~np.asarray(jax.device_get(f[2]))[:one.n_real])
+    _save(saved, run, one, st, n, f[1])  # a rerun member's rows are written again by `_rerun`
+    one.carry = _rerun(cfg, run, one, chunks, saved, failed, f[0]) if failed.size else f[0]
+    one.fallbacks_in_a_row = one.fallbacks_in_a_row + 1 if 2 * failed.size >= one.n_real else 0
+    return len(chunks), failed.size
 
 
 def _reporter(progress, n_batches: int, n_steps: int, B: int, batch_size: int) -> Callable:
@@ -1151,7 +1207,8 @@ def sweep(
     make_system, params, Q0, xi0, *, dt, n_steps: int, P0=None, grid: bool = False,
     invariants: dict | None = None, chunk_steps: int | None = None, batch_size: int | None = None,
     save_every: int | None = None, member_chunk: int | None = None, devices=None, progress=False,
-    store=None, client=None, overwrite: bool = False, fast: bool | str = "auto", **options,
+    store=None, client=None, overwrite: bool = False, fast: bool | str = "auto", threads: int | None = None,
+    **options,
 ) -> SweepResult:
     r"""Run many members — parameters × initial conditions — through `integrate`; keep a table.
 
@@ -1206,9 +1263,10 @@ def sweep(
       tens of steps cost little over one unchunked run (see `clebsch_jax.batching.sweep`).
       The lean chunk of `fast` records nothing and runs up to `LEAN_CHUNKS` chunks per call
       (as many as divide the number of chunks); a rerun is made chunk by chunk.
-    - `batch_size`: members per compiled call (default min(⌈B / number of devices⌉, 1024); for
+    - `batch_size`: members per compiled call (default min(⌈B / (devices × threads)⌉, 1024); for
       the lean chunk of `fast=True`, batches of equal size up to 16384); the last batch is
-      padded with copies of the last member.
+      padded with copies of the last member. A sweep resumed from a `store` keeps the stored
+      batch size.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
       k when the run has more than one chunk.
     - `member_chunk`: a batch runs through `clebsch_jax.batch` (batch-last, the batch's members
@@ -1223,6 +1281,14 @@ def sweep(
       unsharded sweep runs (same shapes), compiled once per device, so the table is identical
       to the bit (why not one SPMD program: `clebsch_jax.batching.sweep`). The default
       `batch_size` gives every device a batch.
+    - `threads`: batches run side by side on each device, each called from a host thread of
+      its own (JAX runs the programs one device is given from one thread one after the other;
+      from several threads they run at once, and XLA's CPU programs of a sweep — many small
+      operations — leave cores idle when run alone). Default: the CPU cores this process may
+      use, at most `THREADS_MAX`, shared by the devices, and no more than give each thread
+      `THREAD_MIN_MEMBERS` members; 1 on accelerators and for a Dask `client`'s tasks (whose
+      workers are the parallelism). The same program per batch: the table is the same to the
+      bit for any number of threads (for the same `batch_size`).
     - `progress`: False (default); True prints one updating line per chunk to stderr; or a
       callable receiving a `SweepProgress` after every chunk. Progress waits for each chunk to
       finish (otherwise chunks are dispatched asynchronously).
@@ -1291,10 +1357,13 @@ def sweep(
         check_arguments(store, client, overwrite)
     if not (isinstance(fast, bool) or (isinstance(fast, str) and fast == "auto")):
         raise ValueError(f"fast: expected True, False or 'auto', got {fast!r}.")
+    if threads is not None:
+        _positive_int(threads, "threads")
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
     B, n_dev = members.B, len(run.devices)
+    run = run._replace(threads=_threads(threads, run.devices, B) if client is None else 1)
     cfg = _particle_defaults(_chunk_config(run, members, options), members)
-    fast = _resumed_path(fast, store, overwrite)
+    fast, batch_size = _resumed(fast, batch_size, store, overwrite)
     shapes = None
     if fast is True or (fast == "auto" and _auto_lean(B, run.n_steps)):
         shapes = _probe(cfg, members, lean=True)  # the member checked before a method is chosen on it
@@ -1304,16 +1373,16 @@ def sweep(
             cfg = dataclasses.replace(cfg, fast_method=method, lean=lean)
     if not cfg.lean:  # the general chunk's shapes, from a trace of its march
         shapes = _probe(cfg, members, configurations=shapes is None)
-    if batch_size is None:  # every device gets a batch
-        per_device = -(-B // n_dev)
+    if batch_size is None:  # every device, and every thread of each, gets a batch
+        per_slot = -(-B // (n_dev * run.threads))
         if cfg.lean:  # batches of equal size (no padded members), at most _DEFAULT_BATCH_LEAN
-            batch_size = -(-per_device // -(-per_device // _DEFAULT_BATCH_LEAN))
+            batch_size = -(-per_slot // -(-per_slot // _DEFAULT_BATCH_LEAN))
         else:
-            batch_size = min(per_device, _DEFAULT_BATCH)
+            batch_size = min(per_slot, _DEFAULT_BATCH)
     batch_size = _positive_int(batch_size, "batch_size")
     tables = _allocate_tables(B, shapes, run)
 
-    # groups of batches (one batch per device) × chunks
+    # groups of batches (one batch per device and thread) × chunks
     n_batches = -(-B // batch_size)
     report = _reporter(run.progress, n_batches, run.n_steps, B, batch_size)
     plan = _Plan(cfg, members, shapes, run._replace(progress=False, devices=[None]), batch_size)
@@ -1322,9 +1391,9 @@ def sweep(
 
         return _store.run_stored(plan, run, tables, store=store, client=client, overwrite=overwrite,
                                  report=report, make_result=_result)
-    used, chunks = set(), np.zeros(3, int)
-    for g in range(0, n_batches, n_dev):
-        rows = _run_batches(plan, list(range(g, min(g + n_dev, n_batches))), run.devices, report)
+    used, chunks, slots = set(), np.zeros(3, int), run.slots
+    for g in range(0, n_batches, len(slots)):
+        rows = _run_batches(plan, list(range(g, min(g + len(slots), n_batches))), slots, report)
         used.update(rows.devices)
         chunks += rows.fast_chunks
         _place(tables, rows.tables, rows.rows)
