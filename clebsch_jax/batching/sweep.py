@@ -1357,11 +1357,10 @@ def sweep(
         check_arguments(store, client, overwrite)
     if not (isinstance(fast, bool) or (isinstance(fast, str) and fast == "auto")):
         raise ValueError(f"fast: expected True, False or 'auto', got {fast!r}.")
-    if threads is not None:
-        _positive_int(threads, "threads")
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
     B, n_dev = members.B, len(run.devices)
-    run = run._replace(threads=_threads(threads, run.devices, B) if client is None else 1)
+    n_threads = _threads(threads, run.devices, B)  # checked also where a Dask client's tasks take 1
+    run = run._replace(threads=n_threads if client is None else 1)
     cfg = _particle_defaults(_chunk_config(run, members, options), members)
     fast, batch_size = _resumed(fast, batch_size, store, overwrite)
     shapes = None
