@@ -753,7 +753,7 @@ def _first_row(members: _Members):
     return None if members.builder is None else _member_slices(members.params, int(members.param_index[0]))
 
 
-_PARTICLE_MEMBER_CHUNK = 32
+_PARTICLE_MEMBER_CHUNK = 16
 """`member_chunk` of a sweep of degenerate particle systems (`_particle_defaults`): small
 chunks of block Newton loops, each running until its slowest member stops
 (`benchmarks/throughput.py` measures clusters of point vortices)."""
@@ -1335,7 +1335,7 @@ def sweep(
       `rtol`, `atol`, `max_newton_iterations`, `jacobian`, …); `P0`, `t0`, `throw` are the
       sweep's own. One default differs from `integrate`'s: members that are degenerate
       particle systems (point vortices: `Q0` and `xi0` of shape (N, d), N >= 2) marched by the
-      full step get `jacobian="blocks"` and, unless given, `member_chunk=32`. A dense Jacobian of
+      full step get `jacobian="blocks"` and, unless given, `member_chunk=16`. A dense Jacobian of
       3·N·d unknowns factored per member and step costs tens of times a batch's RK4 step; the
       block Newton loop solves to the same round-off. Pass `jacobian="dense"` for the dense
       one. `check_energy` (default True) is `integrate`'s energy check made over the
