@@ -146,6 +146,35 @@ def test_threads_run_batches_side_by_side_with_the_same_table(monkeypatch):
                        cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **general, threads=4))
 
 
+def test_an_undifferentiated_trace_is_its_own_threads():
+    # the lean chunk traces its solves without derivative rules (undifferentiated); a sweep's
+    # threads trace at once, and another thread's trace keeps its rules
+    import threading
+
+    from clebsch_jax.roots.implicit import in_undifferentiated, undifferentiated
+
+    inside, release, seen = threading.Event(), threading.Event(), []
+
+    def lean_trace():
+        with undifferentiated():
+            seen.append(in_undifferentiated())
+            inside.set()
+            release.wait(10)
+
+    t = threading.Thread(target=lean_trace)
+    t.start()
+    assert inside.wait(10)
+    seen.append(in_undifferentiated())  # this thread, while the other is inside
+    release.set()
+    t.join()
+    assert seen == [True, False] and not in_undifferentiated()
+    with undifferentiated():
+        with undifferentiated():
+            assert in_undifferentiated()
+        assert in_undifferentiated()
+    assert not in_undifferentiated()
+
+
 def test_default_threads_follow_the_cores_and_the_batch(monkeypatch):
     import clebsch_jax.batching.sweep as sw
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import threading
 from typing import Callable
 
 import jax
@@ -36,7 +37,7 @@ def implicit_root(F: Callable, x0: jax.Array, loop: Callable, tangent_solve: Cal
     differentiated. F and the loop are closure-converted (`_closure_convert`), so the values
     they close over pass the custom-derivative boundary as arguments.
     Returns `(x, NewtonStats, extra)`."""
-    if _UNDIFFERENTIATED[-1]:  # the caller's program is never differentiated (`undifferentiated`)
+    if in_undifferentiated():  # the caller's program is never differentiated (`undifferentiated`)
         return loop(F, x0)
     F_conv, F_consts = _closure_convert(F, x0)
     solve = lambda x, *consts: loop(lambda z: F_conv(z, *consts), x)
@@ -44,7 +45,12 @@ def implicit_root(F: Callable, x0: jax.Array, loop: Callable, tangent_solve: Cal
     return _root(F_conv, solve_conv, tangent_solve, x0, tuple(F_consts), tuple(loop_consts))
 
 
-_UNDIFFERENTIATED = [False]
+_UNDIFFERENTIATED = threading.local()  # .depth: the open `undifferentiated` contexts of this thread
+
+
+def in_undifferentiated() -> bool:
+    """Whether this thread is inside `undifferentiated`."""
+    return getattr(_UNDIFFERENTIATED, "depth", 0) > 0
 
 
 @contextlib.contextmanager
@@ -53,12 +59,14 @@ def undifferentiated():
     for tracing a program that no derivative is ever taken of (the sweep's lean chunk), where
     the closure conversion would trace every solve twice. Only for code that traces no
     module-level `jax.jit` function with a root inside it: JAX caches such a trace and would
-    reuse it, without the rule, in a later differentiated call."""
-    _UNDIFFERENTIATED.append(True)
+    reuse it, without the rule, in a later differentiated call. The context is the calling
+    thread's own: a sweep traces its batches' programs from several threads at once
+    (`clebsch_jax.sweep`'s `threads`), and another thread's trace keeps its rules."""
+    _UNDIFFERENTIATED.depth = getattr(_UNDIFFERENTIATED, "depth", 0) + 1
     try:
         yield
     finally:
-        _UNDIFFERENTIATED.pop()
+        _UNDIFFERENTIATED.depth -= 1
 
 
 def _closure_convert(fun: Callable, *example_args):
