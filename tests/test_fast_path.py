@@ -146,7 +146,7 @@ def test_threads_run_batches_side_by_side_with_the_same_table(monkeypatch):
                        cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **general, threads=4))
 
 
-def test_an_undifferentiated_trace_is_its_own_threads():
+def test_trace_contexts_are_each_threads_own():
     # the lean chunk traces its solves without derivative rules (undifferentiated); a sweep's
     # threads trace at once, and another thread's trace keeps its rules
     import threading
@@ -173,6 +173,20 @@ def test_an_undifferentiated_trace_is_its_own_threads():
             assert in_undifferentiated()
         assert in_undifferentiated()
     assert not in_undifferentiated()
+    # the same for scalarise's state while it traces (loop depth, rows or stacked)
+    from clebsch_jax.batching import scalarise as sc
+
+    state = []
+    t = threading.Thread(target=lambda: state.append((sc._TRACE.depth, list(sc._TRACE.in_loop))))
+    sc._TRACE.depth += 1
+    sc._TRACE.in_loop.append(True)
+    try:
+        t.start()
+        t.join()
+    finally:
+        sc._TRACE.depth -= 1
+        sc._TRACE.in_loop.pop()
+    assert state == [(0, [False])]
 
 
 def test_default_threads_follow_the_cores_and_the_batch(monkeypatch):

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from typing import Callable
 
 import jax
@@ -59,16 +60,26 @@ body is): their copies cost nothing worth saving, while XLA compiles every unrol
 their body (the lean chunk's minimum-norm cotangent, a loop of three, unrolled: about a third
 of its compile time)."""
 
-_LOOP_DEPTH = [0]
-"""How many `scan` or `while` bodies the evaluator is inside."""
+class _TraceState(threading.local):
+    """The evaluator's state while it traces, the calling thread's own (a sweep traces its
+    batches' programs from several threads at once, `clebsch_jax.sweep`'s `threads`):
+
+    - `depth`: how many `scan` or `while` bodies the evaluator is inside;
+    - `in_loop`: whether small values are held as rows here (the last entry): inside a `scan`
+      body, and everywhere under `scalarise(..., loops_only=False)`; elsewhere every value
+      stays stacked as `batch_last` holds it (a scan's trajectory outputs and what is computed
+      from them are large)."""
+
+    def __init__(self):
+        self.depth = 0
+        self.in_loop = [False]
+
+
+_TRACE = _TraceState()
 
 MAX_PRODUCTS = 512
 """A `dot_general` (or reduction) of rows with more products than this is stacked instead."""
 
-_IN_LOOP = [False]
-"""Whether small values are held as rows here (the last entry): inside a `scan` body, and
-everywhere under `scalarise(..., loops_only=False)`; elsewhere every value stays stacked as
-`batch_last` holds it (a scan's trajectory outputs and what is computed from them are large)."""
 
 # A value in the evaluator is (kind, x): U unbatched (an array of the member's shape), S stacked
 # batch-last (member shape + (B,)), R rows (a NumPy object array of the member's shape with
@@ -82,7 +93,7 @@ def scalarise(fun: Callable, in_axes=0, *, loops_only: bool = True) -> Callable:
 
     **Arguments:** `fun`, a function of arrays that `jax.vmap` could batch; `in_axes`, 0 or None
     per positional argument (as `clebsch_jax.batch`); `loops_only`: hold values as rows only
-    inside loop bodies (`_IN_LOOP`), or, False, wherever they are small — for a program whose
+    inside loop bodies (`_TraceState.in_loop`), or, False, wherever they are small — for a program whose
     work outside its loops is on small values too (the lean chunk's start and end: a momentum
     map, a minimum-norm cotangent, whose small products would otherwise be stacked
     `dot_general`s).
@@ -105,11 +116,11 @@ def scalarise(fun: Callable, in_axes=0, *, loops_only: bool = True) -> Callable:
 
         closed, out_shapes = jax.make_jaxpr(flat_fun, return_shape=True)(*member)
         ins = [(S, jnp.moveaxis(x, 0, -1)) if a == 0 else (U, x) for x, a in zip(leaves, axes)]
-        _IN_LOOP.append(not loops_only)
+        _TRACE.in_loop.append(not loops_only)
         try:
             outs = _eval(closed.jaxpr, closed.consts, ins, B)
         finally:
-            _IN_LOOP.pop()
+            _TRACE.in_loop.pop()
         flat_out = [_to_batch_first(o, v.aval.shape, B) for o, v in zip(outs, closed.jaxpr.outvars)]
         return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out_shapes), flat_out)
 
@@ -371,7 +382,7 @@ def _apply(eqn, vals, B):
             return _eval(inner.jaxpr, inner.consts, vals, B)
         return _eval(inner, (), vals, B)
     rule = _RULES.get(name)
-    if not _IN_LOOP[-1] and name != "scan":
+    if not _TRACE.in_loop[-1] and name != "scan":
         return _stacked_rule(eqn, vals, B)
     shapes_small = all(_small(v.aval.shape) for v in list(eqn.invars) + list(eqn.outvars)
                        if not isinstance(v, jex.Literal) and hasattr(v.aval, "shape"))
@@ -646,13 +657,13 @@ def _scan(eqn, vals, B):
     def step(carry, x):
         c = _unpack(carry, carry_kinds, carry_avals)
         xv = [(k, xi) for k, xi in zip(x_kinds, x)]
-        _IN_LOOP.append(True)
-        _LOOP_DEPTH[0] += 1
+        _TRACE.in_loop.append(True)
+        _TRACE.depth += 1
         try:
             outs = _eval(body.jaxpr, body.consts, list(consts) + c + xv, B)
         finally:
-            _IN_LOOP.pop()
-            _LOOP_DEPTH[0] -= 1
+            _TRACE.in_loop.pop()
+            _TRACE.depth -= 1
         new = _pack(_canon(outs[:nk], carry_kinds, carry_avals, B), B)
         # each row of an output its own stacked series: XLA writes them in place
         return new, _pack(_canon(outs[nk:], ys_kinds, ys_avals, B), B)
@@ -661,7 +672,7 @@ def _scan(eqn, vals, B):
     # scan outside every loop
     if int(p["unroll"]) > 1:
         unroll = int(p["unroll"])
-    elif p["length"] <= SHORT_SCAN and _LOOP_DEPTH[0] == 0:
+    elif p["length"] <= SHORT_SCAN and _TRACE.depth == 0:
         unroll = 1
     else:
         unroll = min(SCAN_UNROLL, p["length"])
@@ -695,11 +706,11 @@ def _while(eqn, vals, B):
         return _eval(cond_j.jaxpr, cond_j.consts, list(cc) + _unpack(carry, kinds, carry_avals), B)[0]
 
     def body(carry):
-        _LOOP_DEPTH[0] += 1
+        _TRACE.depth += 1
         try:
             outs = _eval(body_j.jaxpr, body_j.consts, list(bc) + _unpack(carry, kinds, carry_avals), B)
         finally:
-            _LOOP_DEPTH[0] -= 1
+            _TRACE.depth -= 1
         return _pack(_canon(outs, kinds, carry_avals, B), B)
 
     if not pred_batched:
