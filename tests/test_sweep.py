@@ -266,6 +266,17 @@ for a, b in zip(la, lb):
     assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), (a, b)
 assert list(one.failed_members) == [5] and np.any(one.drift["casimir"][:5] > 0)
 print("identical", len(la))
+# two batches side by side from two threads under the caller's default device: they run there
+import clebsch_jax.batching.sweep as sw
+seen, collect = set(), sw._collect
+sw._collect = lambda tables, one, run: (seen.update(one.carry.status.devices()), collect(tables, one, run))[1]
+with jax.default_device(jax.devices()[1]):
+    there = cj.sweep(*args, threads=2, **RB)
+sw._collect = collect
+assert seen == {jax.devices()[1]}, seen
+for a, b in zip(la, jax.tree_util.tree_leaves(there)):
+    assert np.array_equal(a, b, equal_nan=True)
+print("default device", seen)
 # many members, chunks handing over (Q, p), the lean chunk too, each sweep made twice: batched
 # LAPACK kernels (the least squares of the hand-over) deadlocked here on the second sweep
 B = 2048

@@ -1043,12 +1043,23 @@ def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report
     called from a host thread of its own (`sweep`'s `threads`): one thread would run the
     programs it gives one device one after the other."""
     pool = ThreadPoolExecutor(len(group), thread_name_prefix="clebsch-jax-sweep") if len(group) > 1 else None
+    # the caller's default device (`jax.default_device`, a context of the calling thread) holds
+    # in the pool's threads too: the batches were placed there
+    default = jax.config.jax_default_device
+
+    def in_context(call, one):
+        if default is None:
+            return call(one)
+        with jax.default_device(default):
+            return call(one)
+
     try:
         for chunks in _calls(run, cfg.lean):
             st, n = chunks[0][0], sum(k for _, k in chunks)
             c = _steps(cfg, run, n)
             call = functools.partial(_call, cfg, c, run, chunks, st, n, saved, pool is not None)
-            done = list(pool.map(call, group)) if pool is not None else [call(group[0])]
+            done = (list(pool.map(functools.partial(in_context, call), group)) if pool is not None
+                    else [call(group[0])])
             fell_back.extend(d for d in done if d is not None)
             report(group, st + n)
     finally:
