@@ -1299,7 +1299,9 @@ def sweep(
       use, at most `THREADS_MAX`, shared by the devices, and no more than give each thread
       `THREAD_MIN_MEMBERS` members; 1 on accelerators and for a Dask `client`'s tasks (whose
       workers are the parallelism). The same program per batch: the table is the same to the
-      bit for any number of threads (for the same `batch_size`).
+      bit for any number of threads (for the same `batch_size`). The caller's
+      `jax.default_device` holds in the threads; JAX's other contexts of the calling thread
+      (`jax.disable_jit`, `jax.debug_nans`, …) do not reach them: pass `threads=1` under those.
     - `progress`: False (default); True prints one updating line per chunk to stderr; or a
       callable receiving a `SweepProgress` after every chunk. Progress waits for each chunk to
       finish (otherwise chunks are dispatched asynchronously).
