@@ -96,6 +96,15 @@ def test_a_store_of_another_configuration_is_refused(reference, tmp_path):
     assert xarray.open_zarr(path, consolidated=False).attrs["dt"] == 0.04
 
 
+def test_a_stored_sweep_from_three_threads_is_the_same_table(reference, tmp_path):
+    # the store's groups are devices × threads batches, run side by side while the writer
+    # thread stores the group before; the table and the store are the in-memory table's
+    path = tmp_path / "threads.zarr"
+    assert_same_table(stored(path, threads=3), reference)
+    assert_same_table(cj.open_sweep(path), reference)
+    assert xarray.open_zarr(path, consolidated=False)["batch_done"].values.all()
+
+
 def test_fast_auto_resumes_on_the_path_a_store_was_written_with(reference, tmp_path):
     # "auto" picks its path from B and n_steps, the default batch size follows the threads; a
     # stored sweep keeps the path and batch size it was written with (the store refuses
