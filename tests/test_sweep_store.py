@@ -109,13 +109,13 @@ def test_fast_auto_resumes_on_the_path_a_store_was_written_with(reference, tmp_p
     # "auto" picks its path from B and n_steps, the default batch size follows the threads; a
     # stored sweep keeps the path and batch size it was written with (the store refuses
     # others), so defaults can change without stranding stores
-    from clebsch_jax.batching.store import ATTR, stored_fast
+    from clebsch_jax.batching.store import ATTR, stored_configuration
     from clebsch_jax.batching.sweep import _resumed
 
     path = tmp_path / "sweep.zarr"
-    assert stored_fast(path) is None and _resumed("auto", None, path, False) == ("auto", None)  # nothing yet
+    assert stored_configuration(path) is None and _resumed("auto", None, path, False) == ("auto", None)  # nothing yet
     stored(path, fast=False)
-    assert stored_fast(path) is False
+    assert stored_configuration(path)["fast"] is False
     written = zarr.open_group(str(path), mode="r").attrs[ATTR]["batch_size"]
     assert _resumed("auto", None, path, False) == (False, written)
     assert _resumed("auto", None, path, True) == ("auto", None)  # overwrite: a new sweep
@@ -124,7 +124,7 @@ def test_fast_auto_resumes_on_the_path_a_store_was_written_with(reference, tmp_p
     fast_store.attrs[ATTR] = {"fast": True}
     assert _resumed("auto", None, tmp_path / "fast.zarr", False) == (True, None)
     zarr.open_group(str(tmp_path / "other.zarr"), mode="w").attrs["x"] = 1  # not a sweep's store
-    assert stored_fast(tmp_path / "other.zarr") is None
+    assert stored_configuration(tmp_path / "other.zarr") is None
     assert_same_table(stored(path), reference)  # the default, "auto", reads the stored table back
 
 

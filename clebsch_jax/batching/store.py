@@ -261,13 +261,6 @@ def stored_configuration(store) -> dict | None:
     return stored if isinstance(stored, dict) else None
 
 
-def stored_fast(store) -> bool | None:
-    """Whether the sweep stored in `store` ran the fast path (its configuration's "fast"); None
-    where no sweep configuration is stored there (nothing yet, or not a sweep's store)."""
-    stored = stored_configuration(store)
-    return bool(stored["fast"]) if stored is not None and "fast" in stored else None
-
-
 def open_for_run(store, plan, overwrite: bool):
     """The store of this sweep: created, or reopened after checking its configuration."""
     zarr = _zarr()

@@ -1376,15 +1376,15 @@ def sweep(
     run = run._replace(threads=n_threads if client is None else 1)
     cfg = _particle_defaults(_chunk_config(run, members, options), members)
     fast, batch_size = _resumed(fast, batch_size, store, overwrite)
-    shapes = None
+    shapes, general = None, cfg
     if fast is True or (fast == "auto" and _auto_lean(B, run.n_steps)):
         shapes = _probe(cfg, members, lean=True)  # the member checked before a method is chosen on it
         method = _fast_method_of(cfg, members)
         lean = _lean_applies(cfg, members, method)
         if fast is True or lean:  # "auto" takes the fast path only as the lean chunk
             cfg = dataclasses.replace(cfg, fast_method=method, lean=lean)
-    if not cfg.lean:  # the general chunk's shapes, from a trace of its march
-        shapes = _probe(cfg, members, configurations=shapes is None)
+    if not cfg.lean:  # the general chunk's shapes, from a trace of its march (cached by `general`)
+        shapes = _probe(general, members, configurations=shapes is None)
     if batch_size is None:  # every device, and every thread of each, gets a batch
         per_slot = -(-B // (n_dev * run.threads))
         if cfg.lean:  # batches of equal size (no padded members), at most _DEFAULT_BATCH_LEAN

@@ -45,12 +45,19 @@ def implicit_root(F: Callable, x0: jax.Array, loop: Callable, tangent_solve: Cal
     return _root(F_conv, solve_conv, tangent_solve, x0, tuple(F_consts), tuple(loop_consts))
 
 
-_UNDIFFERENTIATED = threading.local()  # .depth: the open `undifferentiated` contexts of this thread
+class _Contexts(threading.local):
+    """The open `undifferentiated` contexts of the calling thread (`depth`)."""
+
+    def __init__(self):
+        self.depth = 0
+
+
+_UNDIFFERENTIATED = _Contexts()
 
 
 def in_undifferentiated() -> bool:
     """Whether this thread is inside `undifferentiated`."""
-    return getattr(_UNDIFFERENTIATED, "depth", 0) > 0
+    return _UNDIFFERENTIATED.depth > 0
 
 
 @contextlib.contextmanager
@@ -62,7 +69,7 @@ def undifferentiated():
     reuse it, without the rule, in a later differentiated call. The context is the calling
     thread's own: a sweep traces its batches' programs from several threads at once
     (`clebsch_jax.sweep`'s `threads`), and another thread's trace keeps its rules."""
-    _UNDIFFERENTIATED.depth = getattr(_UNDIFFERENTIATED, "depth", 0) + 1
+    _UNDIFFERENTIATED.depth += 1
     try:
         yield
     finally:
