@@ -506,3 +506,47 @@ def test_exp_and_phi1_match_the_block_exponential():
             tol = 1e-14 if norm <= 3 else 1e-10
             for got, want in ((E, X[:m, :m]), (P, X[:m, m:])):
                 assert np.max(np.abs(np.asarray(got) - want)) <= tol * np.max(np.abs(want)), (m, norm)
+
+
+# ------------------------------------------------------------------------------------------
+# The reduction's inspection: right multiplication, linear, closed (commutators of the basis)
+
+
+def _sym2(x):
+    """X(ξ) symmetric 2×2: its commutators are antisymmetric, outside the span."""
+    return jnp.array([[x[0], x[2]], [x[2], x[1]]])
+
+
+def _upper2(x):
+    """X(ξ) upper triangular 2×2: the algebra of the affine group of the line times scalings."""
+    return jnp.array([[x[0], x[2]], [0.0 * x[0], x[1]]])
+
+
+@pytest.mark.parametrize("name, velocity_map, Q0, m, reason", [
+    ("symmetric", lambda x, Q: Q @ _sym2(x), np.eye(2), 3, "not closed"),
+    ("upper triangular", lambda x, Q: Q @ _upper2(x), np.eye(2), 3, None),
+    ("so(3), written by hand", lambda x, Q: Q @ cj.lie.hat(x), np.eye(3), 3, None),
+    ("left multiplication", lambda x, Q: cj.lie.hat(x) @ Q, np.eye(3), 3, "not right multiplication"),
+    ("quadratic in xi", lambda x, Q: Q @ cj.lie.hat(x + x ** 2), np.eye(3), 3, "not linear in xi"),
+    ("a plane of so(3)", lambda x, Q: Q @ cj.lie.hat(jnp.stack([x[0], x[1], x[0] + x[1]])), np.eye(3), 2, "not closed"),
+    ("not injective", lambda x, Q: Q @ cj.lie.hat(jnp.stack([x[0] + x[1], 0 * x[0], 0 * x[0]])), np.eye(3), 2,
+     "not injective"),
+])
+def test_the_reduction_applies_exactly_to_right_multiplication_on_a_matrix_lie_algebra(name, velocity_map, Q0, m,
+                                                                                      reason):
+    """`find_reduction` decides closure from the commutators of the basis X(e_k) (the bracket
+    of the left-invariant fields Q ↦ Q X); `check_closure`, which fits the brackets of the
+    vector fields by jvps at points along their flows, gives the same verdict."""
+    from clebsch_jax.discrete import reduction as R
+
+    system = _system(velocity_map, m=m)
+    red, why = R.find_reduction(system, Q0, jnp.zeros(m))
+    if reason is None:
+        assert red is not None, why
+        assert cj.check_closure(system, Q0, np.zeros(m)).closed
+    else:
+        assert red is None and reason in why, why
+    if reason == "not closed":
+        assert not cj.check_closure(system, Q0, np.zeros(m)).closed
+        with pytest.raises(ValueError, match="^reduce: the reduced march does not apply.*not closed"):
+            cj.integrate(system, Q0, np.linspace(0.1, 0.3, m), dt=0.1, n_steps=2, reduce=True)
