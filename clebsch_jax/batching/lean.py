@@ -107,13 +107,16 @@ def _nodal_velocity(system, finder: FixedNewton, Q, mu, guess):
     return xi, stats
 
 
-def lean_chunk(stepper, system, carry, dt, n: int, first):
+def lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum=False):
     r"""`n` steps of one member from the sweep's carry, with the reductions made in the loop.
 
     **Arguments:** `stepper`, the fast method prepared for `system` (`supports`); `carry`, the
     sweep's carry (`clebsch_jax.batching.sweep._Carry`: the canonical state (Q, P), the nodal
     velocity ξ, t and the running reductions); `dt`; `n` the chunk's steps; `first` whether
-    this is the run's first chunk (the energy drift's reference is then this chunk's node 0).
+    this is the run's first chunk (the energy drift's reference is then this chunk's node 0);
+    `derive_momentum` (a traced bool, or False) whether the carry's multiplier P is a
+    placeholder and node 0's momentum is $\mu^0 = \delta l/\delta\xi(\xi^0, Q^0)$ (Lemma 7: the
+    momentum of the minimum-norm multiplier, without forming it) instead of $-P\diamond Q$.
 
     **Returns:** `(new carry, ok)`: `ok` False when anything failed in the chunk for a member
     that was alive at its start (the caller reruns the chunk with the general path; the new
@@ -122,10 +125,10 @@ def lean_chunk(stepper, system, carry, dt, n: int, first):
     Not differentiable: its solves are traced without their implicit derivative rules
     (`clebsch_jax.roots.implicit.undifferentiated`), which would trace each one twice."""
     with undifferentiated():
-        return _lean_chunk(stepper, system, carry, dt, n, first)
+        return _lean_chunk(stepper, system, carry, dt, n, first, derive_momentum)
 
 
-def _lean_chunk(stepper, system, carry, dt, n: int, first):
+def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
     alive0 = carry.status == Status.SUCCESS
     nan_unless = lambda a: jnp.where(alive0, a, jnp.nan)
     Q0, P0, xi0 = nan_unless(carry.Q), nan_unless(carry.P), nan_unless(carry.xi)
@@ -134,6 +137,8 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first):
 
     # node 0: its momentum and velocity (what the general path's start and nodal solve give)
     mu0 = momentum_map(system, P0, Q0, xi0)
+    if derive_momentum is not False:
+        mu0 = jnp.where(derive_momentum, jax.grad(lambda x: system.l(x, Q0))(xi0), mu0)
     xin0, st0 = _nodal_velocity(system, finder, Q0, mu0, xi0)
     ok = ok & (st0.status == Status.SUCCESS)
     state0, _ = stepper.init(system, Q0, xin0, None, dt)

@@ -338,6 +338,7 @@ class _Config:
     fast_method: object = None  # the fast path's stepper (clebsch_jax.batching.fast), None: none
     check_energy: bool = True  # the energy check, made by the sweep over the whole run (`_energy_check`)
     lean: bool = False  # the fast path runs the lean chunk (`clebsch_jax.batching.lean`)
+    derive_P: bool = False  # the run's first chunk derives the initial multiplier (`_with_start_P`)
 
 
 def _integrate(cfg: _Config, system, Q, xi, P, t, dt, n):
@@ -386,8 +387,19 @@ def _energy_check(cfg: _Config, system, sol, carry: _Carry):
     return (*energy_jump(jnp, E, size, sol.stats.status, carry.energy_change, carry.energy_size), E)
 
 
+def _with_start_P(cfg: _Config, system, carry: _Carry, first) -> _Carry:
+    """`carry` with the minimum-norm initial multiplier P⁰ from (Q⁰, ξ⁰) (Lemma 7,
+    `initial_multiplier`) in the run's first chunk, when the sweep was given no P0: the batch
+    starts with a placeholder there, and every chunk program derives it (the lean chunk its
+    momentum, `lean_chunk`'s `derive_momentum`), instead of a program of its own compiled for it."""
+    if not cfg.derive_P:
+        return carry
+    return carry._replace(P=jnp.where(first, initial_multiplier(system, carry.Q, carry.xi), carry.P))
+
+
 def _member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset):
     system = _system_of(cfg, params, shared)
+    carry = _with_start_P(cfg, system, carry, first)
     # A member that failed before starts the chunk failed (a NaN state): a failed step made its
     # state NaN already, a jump found by the energy check did not. (Masking the state handed on
     # by the chunk that found the jump instead, on a value computed in that chunk, makes XLA's
@@ -437,7 +449,8 @@ def _lean_member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, o
     with the sweep's reductions in the loop, no records."""
     system = _system_of(cfg, params, shared)
     stepper = dict(cfg.options)["method"].prepare(system, carry.Q, carry.xi)  # the fast method: `_run_fast_chunk`
-    new, _ = lean_chunk(stepper, system, carry, dt, cfg.n, first)
+    # the lean chunk uses P⁰ only for its momentum μ⁰ = δl/δξ(ξ⁰, Q⁰) (Lemma 7): derived directly
+    new, _ = lean_chunk(stepper, system, carry, dt, cfg.n, first, derive_momentum=first if cfg.derive_P else False)
     return new, None
 
 
@@ -496,14 +509,6 @@ def _take_members(tree, idx):
 def _put_members(tree, idx, rows):
     """`tree` with its rows `idx` replaced by `rows`; an index past the end (padding) is dropped."""
     return jax.tree_util.tree_map(lambda a, r: a.at[idx].set(r, mode="drop"), tree, rows)
-
-
-@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE, static_argnums=0)
-def _initial_multipliers(cfg: _Config, params, Q0, xi0, shared):
-    def one(p, q, x, s):
-        return initial_multiplier(_system_of(cfg, p, s), q, x)
-
-    return jax.vmap(one, in_axes=(0, 0, 0, None))(params, Q0, xi0, shared)
 
 
 # --------------------------------------------------------------------------------------------
@@ -738,7 +743,8 @@ def _chunk_config(run: _Run, members: _Members, options: dict) -> _Config:
         raise TypeError(f"check_energy: expected True or False, got {check_energy!r}.")
     options = {**options, "check_energy": False}
     cfg = _Config(members.builder, tuple(run.invariants.items()), tuple(sorted(options.items())), run.chunk_steps,
-                  run.save_every, members.shared_def, run.member_chunk, check_energy=check_energy)
+                  run.save_every, members.shared_def, run.member_chunk, check_energy=check_energy,
+                  derive_P=members.P0 is None)
     try:
         hash(cfg)
     except TypeError as err:
@@ -956,7 +962,8 @@ def _start_batch(cfg: _Config, members: _Members, shapes: _Shapes, b: int, batch
     params = None if members.builder is None else put(_member_slices(members.params, members.param_index[member]))
     Q, xi = put(members.Q0[ic]), put(members.xi0[ic])
     shared = None if members.shared is None else put(members.shared)
-    P = _initial_multipliers(cfg, params, Q, xi, shared) if members.P0 is None else put(members.P0[ic])
+    # without P0, a placeholder that the first chunk's program replaces (`_with_start_P`)
+    P = put(np.zeros((len(ic),) + members.Q0.shape[1:], members.Q0.dtype) if members.P0 is None else members.P0[ic])
     zeros = lambda shape, dtype=np.float64: put(np.zeros((batch_size,) + shape, dtype))
     carry = _Carry(
         Q=Q, P=P, xi=xi, t=zeros(()), status=zeros((), np.int32),
