@@ -389,7 +389,7 @@ class Vortices:
         return call, facts
 
     def _march(self, order: int, scheme, impulse_per_node: bool = False):
-        """(march(Q0, dt, n_chunks) of one system, facts): see `ours_program`. With
+        r"""(march(Q0, dt, n_chunks) of one system, facts): see `ours_program`. With
         `impulse_per_node`, the angular impulse's change at a node is divided by
         $\sum_a|\Gamma_a||Q_a|^2$ at that node (`VortexClusters`)."""
         G, chunk, jacobian = jnp.asarray(self.gamma), self.cfg["chunk"], self.jacobian
@@ -468,7 +468,7 @@ class VortexClusters(Vortices):
         return vortex.biot_savart(np.broadcast_to(self.gamma, y.shape[:-1]), y)
 
     def diagnostics(self, ys) -> dict:
-        """Energy and impulse errors over samples ys (n, B, 4, 2): max over samples and clusters.
+        r"""Energy and impulse errors over samples ys (n, B, 4, 2): max over samples and clusters.
         The angular impulse's change is relative to $\sum_a|\Gamma_a||Q_a|^2$ at the same time:
         the clusters travel far from the origin (that sum grows ~10⁵-fold by T = 1e3), where
         evaluating the impulse alone loses that much to round-off."""
