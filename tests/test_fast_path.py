@@ -146,6 +146,25 @@ def test_threads_run_batches_side_by_side_with_the_same_table(monkeypatch):
                        cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **general, threads=4))
 
 
+def test_integrate_traced_without_derivative_rules_is_still_differentiable():
+    # a sweep traces integrate's march without the solves' derivative rules (undifferentiated);
+    # integrate's programs are keyed by that context, so the same call outside it is traced
+    # again with its rules (reusing the first trace, grad would meet the Newton while loop)
+    from clebsch_jax.roots.implicit import undifferentiated
+
+    system, w0 = rigid_body(INERTIAS[0]), jnp.asarray(OMEGAS[0])
+
+    def final(w):
+        return cj.integrate(system, jnp.eye(3), w, dt=0.05, n_steps=7, reconstruct=False).momentum[-1, 0]
+
+    with undifferentiated():
+        jax.eval_shape(final, w0)
+    g = np.asarray(jax.grad(final)(w0))
+    h = 1e-6
+    fd = [(final(w0.at[k].add(h)) - final(w0.at[k].add(-h))) / (2 * h) for k in range(3)]
+    np.testing.assert_allclose(g, fd, rtol=0, atol=1e-8)  # central differences: O(h²) + round-off/h
+
+
 def test_trace_contexts_are_each_threads_own():
     # the lean chunk traces its solves without derivative rules (undifferentiated); a sweep's
     # threads trace at once, and another thread's trace keeps its rules

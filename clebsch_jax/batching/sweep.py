@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import diagnostics as _diagnostics
-from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, jit_with_options, memo
+from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, jit_with_options, memo, undifferentiated
 from ..core.system import ClebschSystem
 from ..core.validation import check_configuration as _check_configuration
 from ..core.validation import host_float_array as _float_array
@@ -463,11 +463,14 @@ def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows:
         return _member_chunk(cfg, p, s, c, d, f, o)
 
     axes = (0, 0, 0, None, None, None)
+    # a sweep is never differentiated: its solves are traced without their derivative rules
+    # (`undifferentiated`: `integrate`'s programs are keyed by it, so this is safe for them)
     if rows:  # the lean chunk's start and end compute on small values only (one node each)
         run = scalarise(one, in_axes=axes, loops_only=not cfg.lean)
     else:
         run = batch(one, in_axes=axes, chunk=cfg.member_chunk)
-    return run(params, carry, dt, shared, first, offset)
+    with undifferentiated():
+        return run(params, carry, dt, shared, first, offset)
 
 
 @functools.partial(jit_with_options, compiler_options=QUICK_COMPILE, static_argnums=0)
@@ -833,7 +836,11 @@ def _trace_member(cfg: _Config, *args):
         sol = _integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, cfg.n)
         return sol, {name: jnp.asarray(fn(system, sol)) for name, fn in cfg.invariants}
 
-    return memo(_TRACES, _trace_key(cfg, args), lambda: jax.eval_shape(probe, *args), _TRACES_MAX)
+    def trace():  # as the chunk programs trace the march (`_batched_chunk`), whose traces it shares
+        with undifferentiated():
+            return jax.eval_shape(probe, *args)
+
+    return memo(_TRACES, _trace_key(cfg, args), trace, _TRACES_MAX)
 
 
 def _trace_key(cfg: _Config, args) -> tuple:

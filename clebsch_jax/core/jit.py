@@ -3,13 +3,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
 
 import jax
 
 from .validation import is_array
 
-__all__ = ["filter_jit", "jit_with_options", "memo", "QUICK_COMPILE", "LEAN_COMPILE"]
+__all__ = ["filter_jit", "jit_with_options", "memo", "undifferentiated", "in_undifferentiated", "QUICK_COMPILE",
+           "LEAN_COMPILE"]
 
 QUICK_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 """XLA options (`jit_with_options(fun, QUICK_COMPILE)`) for programs whose compile time
@@ -65,25 +68,63 @@ def jit_with_options(fun, compiler_options: dict | None, **jit_kwargs):
     return call
 
 
+class _Contexts(threading.local):
+    """The open `undifferentiated` contexts of the calling thread (`depth`)."""
+
+    def __init__(self):
+        self.depth = 0
+
+
+_UNDIFFERENTIATED = _Contexts()
+
+
+def in_undifferentiated() -> bool:
+    """Whether this thread is inside `undifferentiated`."""
+    return _UNDIFFERENTIATED.depth > 0
+
+
+@contextlib.contextmanager
+def undifferentiated():
+    """Within this context the roots of the engine's solves are traced without their implicit
+    derivative rules (`clebsch_jax.roots.implicit.implicit_root` calls its loop directly), for
+    a program that no derivative is ever taken of (a sweep's chunks): the rule's closure
+    conversion traces every solve a second time.
+
+    `filter_jit` keys its programs by this context, so a function it compiles (`integrate`'s
+    march) traced inside the context is traced again, with its rules, outside it. A plain
+    `jax.jit` function with a root inside must not be traced inside the context: JAX would
+    reuse that trace, without the rule, in a later differentiated call. The context is the
+    calling thread's own: a sweep traces its batches' programs from several threads at once
+    (`clebsch_jax.sweep`'s `threads`), and another thread's trace keeps its rules."""
+    _UNDIFFERENTIATED.depth += 1
+    try:
+        yield
+    finally:
+        _UNDIFFERENTIATED.depth -= 1
+
+
 def filter_jit(fun, compiler_options: dict | None = None):
     """`fun` compiled with its array leaves traced and its other leaves static (hashed); one
-    program per distinct static part and array shapes; `compiler_options` as in
-    `jit_with_options`."""
+    program per distinct static part and array shapes, and per `undifferentiated` context;
+    `compiler_options` as in `jit_with_options`."""
 
-    def jitted(treedef, static, dynamic):
+    def jitted(treedef, static, plain, dynamic):
         leaves = [d if s is _DYNAMIC else s for s, d in zip(static, dynamic)]
         args, kwargs = jax.tree_util.tree_unflatten(treedef, leaves)
-        return fun(*args, **kwargs)
+        if not plain:
+            return fun(*args, **kwargs)
+        with undifferentiated():
+            return fun(*args, **kwargs)
 
     jitted.__name__ = jitted.__qualname__ = getattr(fun, "__name__", "jitted")  # names the program in JAX's logs
-    jitted = jit_with_options(jitted, compiler_options, static_argnums=(0, 1))
+    jitted = jit_with_options(jitted, compiler_options, static_argnums=(0, 1, 2))
 
     @functools.wraps(fun)
     def wrapper(*args, **kwargs):
         leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
         static = tuple(_DYNAMIC if is_array(x) else x for x in leaves)
         dynamic = [x if is_array(x) else None for x in leaves]
-        return jitted(treedef, static, dynamic)
+        return jitted(treedef, static, in_undifferentiated(), dynamic)
 
     return wrapper
 

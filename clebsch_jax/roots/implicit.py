@@ -4,9 +4,7 @@ parameters) never differentiate the iterations."""
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import threading
 from typing import Callable
 
 import jax
@@ -14,9 +12,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core import linalg
+from ..core.jit import in_undifferentiated, undifferentiated
 from ..core.validation import is_traced
 
-__all__ = ["implicit_root", "dense_tangent_solve", "undifferentiated"]
+__all__ = ["implicit_root", "dense_tangent_solve", "undifferentiated", "in_undifferentiated"]
 
 
 def dense_tangent_solve(g, y):
@@ -43,37 +42,6 @@ def implicit_root(F: Callable, x0: jax.Array, loop: Callable, tangent_solve: Cal
     solve = lambda x, *consts: loop(lambda z: F_conv(z, *consts), x)
     solve_conv, loop_consts = _closure_convert(solve, x0, *F_consts)  # their tangents are not used
     return _root(F_conv, solve_conv, tangent_solve, x0, tuple(F_consts), tuple(loop_consts))
-
-
-class _Contexts(threading.local):
-    """The open `undifferentiated` contexts of the calling thread (`depth`)."""
-
-    def __init__(self):
-        self.depth = 0
-
-
-_UNDIFFERENTIATED = _Contexts()
-
-
-def in_undifferentiated() -> bool:
-    """Whether this thread is inside `undifferentiated`."""
-    return _UNDIFFERENTIATED.depth > 0
-
-
-@contextlib.contextmanager
-def undifferentiated():
-    """Within this context `implicit_root` calls its loop directly, with no derivative rule:
-    for tracing a program that no derivative is ever taken of (the sweep's lean chunk), where
-    the closure conversion would trace every solve twice. Only for code that traces no
-    module-level `jax.jit` function with a root inside it: JAX caches such a trace and would
-    reuse it, without the rule, in a later differentiated call. The context is the calling
-    thread's own: a sweep traces its batches' programs from several threads at once
-    (`clebsch_jax.sweep`'s `threads`), and another thread's trace keeps its rules."""
-    _UNDIFFERENTIATED.depth += 1
-    try:
-        yield
-    finally:
-        _UNDIFFERENTIATED.depth -= 1
 
 
 def _closure_convert(fun: Callable, *example_args):
