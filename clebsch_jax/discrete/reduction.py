@@ -128,10 +128,10 @@ def _inspect(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | Non
     r"""Decide whether the reduced march applies; returns `(reduction or None, reason)`.
 
     It applies when (1) the derivative map is a `MatrixGroupDifference` (Definition 25),
-    (2) Q is a square matrix and the velocity map is right multiplication,
-    $\mathcal L_\xi G = G\,\mathcal L_\xi I$ (checked at a fixed random G), and (3) the velocity
-    map is closed (Theorem 12: the commutators of its basis in its span), so that $X(V)$ is a Lie
-    algebra.
+    (2) Q is a square matrix and the velocity map is right multiplication, linear in ξ,
+    $\mathcal L_\xi G = G\,\mathcal L_\xi I$ (checked at fixed random matrices G and a random ξ,
+    `_group_basis`), and (3) the velocity map is closed (Theorem 12: the commutators of its
+    basis in its span), so that $X(V)$ is a Lie algebra.
     """
     if not isinstance(system.derivative_map, MatrixGroupDifference):
         return None, "the derivative map is not a matrix-group map (Definition 25)"
