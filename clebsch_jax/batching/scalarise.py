@@ -332,7 +332,8 @@ def _split_np(x, p):
 
 
 _NUMPY_FOLD = {  # exactly rounded IEEE operations (and pure re-indexing), which NumPy and XLA agree on
-    "add": lambda p, a, b: [a + b], "add_any": lambda p, a, b: [a + b], "sub": lambda p, a, b: [a - b], "mul": lambda p, a, b: [a * b],
+    "add": lambda p, a, b: [a + b], "add_any": lambda p, a, b: [a + b], "sub": lambda p, a, b: [a - b],
+    "mul": lambda p, a, b: [a * b],
     "neg": lambda p, a: [-a], "max": lambda p, a, b: [np.maximum(a, b)], "min": lambda p, a, b: [np.minimum(a, b)],
     "eq": lambda p, a, b: [a == b], "ne": lambda p, a, b: [a != b], "lt": lambda p, a, b: [a < b],
     "le": lambda p, a, b: [a <= b], "gt": lambda p, a, b: [a > b], "ge": lambda p, a, b: [a >= b],

@@ -135,6 +135,12 @@ _flow_jit = jit_with_options(_flow, QUICK_COMPILE, static_argnums=0)
 _bracket_data_jit = jit_with_options(_bracket_data, QUICK_COMPILE, static_argnums=0)
 
 
+CLOSURE_TOLERANCE = 1e-9
+"""`check_closure`'s default tolerance on the relative residual of a bracket's fit (and the
+reduction's, `clebsch_jax.discrete.reduction`): far above round-off of exact derivatives
+(~1e-15), far below any genuine Q-dependence of the structure constants."""
+
+
 def check_closure(
     system: ClebschSystem,
     Q: jax.Array,
@@ -143,7 +149,7 @@ def check_closure(
     points: jax.Array | None = None,
     n_points: int = 6,
     spread: float = 0.5,
-    tolerance: float = 1e-9,
+    tolerance: float = CLOSURE_TOLERANCE,
     seed: int = 0,
 ) -> ClosureResult:
     r"""Decide numerically whether the velocity map is closed (Definition 10, Theorem 12).

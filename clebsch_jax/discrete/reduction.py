@@ -42,6 +42,7 @@ from .. import lie
 from ..core import linalg as _linalg
 from ..core.jit import QUICK_COMPILE, jit_with_options, memo
 from ..core.derivative_maps import CayleyDifference, MatrixGroupDifference
+from ..discrete.closure import CLOSURE_TOLERANCE
 from ..core.system import ClebschSystem
 from ..core.validation import any_traced, is_traced
 
@@ -206,9 +207,6 @@ def _group_basis(system: ClebschSystem, Q0, xi0) -> tuple[np.ndarray | None, str
 
 RIGHT_POINTS = 3
 """Random matrices at which `_group_basis` checks that the velocity map is right multiplication."""
-
-CLOSURE_TOLERANCE = 1e-9
-"""`check_closure`'s default tolerance on the relative residual of a bracket's fit."""
 
 
 def _commutator_residual(basis: np.ndarray, B: np.ndarray) -> float:
