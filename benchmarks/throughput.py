@@ -52,7 +52,11 @@ case sampled in turn, load average recorded):
    in batches of up to 16384 members), `jax.jit(cj.batch(integrate → final momentum, energy
    error))`, the hand-written rows kernel `hand_rows_march` (the yardstick: each component a
    (B,) row, closed-form Jacobian and cofactor inverse, fixed chord updates,
-   `fori_loop(unroll=4)`, final state and energy error only), NumPy RK4 of Euler's equations on
+   `fori_loop(unroll=4)`, final state and energy error only), `jax_by_hand_rows_verified`: the
+   same kernel with the lean chunk's per-step checks written by hand (the solve's check, the
+   node's velocity and its check, the energy at the node and `integrate`'s jump rule, finite
+   values; `hand_rows_march(verified=True)`, the yardstick of a step that keeps the sweep's
+   promises, with the share of members whose every step passed), NumPy RK4 of Euler's equations on
    (3, B) arrays and, when a C compiler is present, `c_simd`: the hand kernel's step in C
    (`benchmarks/c/rigid_body_cay.c`, bodies in SIMD lanes, one thread; built at run time,
    skipped with the reason otherwise), the hardware reference; M body-steps/s,
@@ -98,6 +102,7 @@ import numpy as np
 
 import _timing as harness
 import clebsch_jax as cj
+from clebsch_jax.march.scan import JUMP_FACTOR, JUMP_FLOOR
 import rigid_body_step_cost as rigid
 import vortex_step_cost as vortex
 from clebsch_jax import models
@@ -238,14 +243,22 @@ def hand_march(inertia, dt, n_steps, updates=HAND_UPDATES):
 ROWS_UPDATES, ROWS_UNROLL = 3, 4
 
 
-def hand_rows_march(inertia, dt, n_steps, updates=ROWS_UPDATES, unroll=ROWS_UNROLL):
+def hand_rows_march(inertia, dt, n_steps, updates=ROWS_UPDATES, unroll=ROWS_UNROLL, verified=False):
     """The reduced CAY rigid-body step by hand in the fastest shape found for XLA on the CPU (the
     yardstick of the sweep's fast path, not a library path): each component of ξ and μ its own
     (B,) row, the linear predictor 2ξⁿ⁻¹ − ξⁿ⁻², the Jacobian of D(Δt ξ, 𝕀ξ) in closed form at
     the prediction and inverted by cofactors with one division, `updates` chord updates with no
     test, `fori_loop(unroll=unroll)` over the steps, no trajectory: returns the final μ (3, B)
     and the largest |E - E⁰| over the steps (B,), E = ½ Σ μᵢ²/Iᵢ evaluated at each node.
-    Same discrete equations as `hand_march` and `integrate` (μⁿ⁺¹ = D(−Δt ξ, 𝕀ξ))."""
+    Same discrete equations as `hand_march` and `integrate` (μⁿ⁺¹ = D(−Δt ξ, 𝕀ξ)).
+
+    `verified=True` adds, by hand, what the sweep's lean chunk promises at every step
+    (`clebsch_jax.batching.lean`): the solve's check (the update the residual at the result
+    would make, at most `VERIFY_TOLERANCE` times max(1, |ξ|)), the node's velocity from μⁿ⁺¹
+    (one update of 𝕀ξ = μ from the step's ξ, and its residual), the energy ⟨μ, ξ⟩ − l(ξ) at
+    the node from it, `integrate`'s energy-jump rule and finite values; it returns a third
+    output, whether every step of a member passed (a sweep would rerun the others). The
+    yardstick of a step that keeps the sweep's promises, written the fast way."""
     I = [float(v) for v in np.asarray(inertia)]
     h = float(dt)
 
@@ -280,25 +293,55 @@ def hand_rows_march(inertia, dt, n_steps, updates=ROWS_UPDATES, unroll=ROWS_UNRO
         r = 1.0 / (A[0][0] * c[0][0] + A[0][1] * c[0][1] + A[0][2] * c[0][2])
         return [[c[j][i] * r for j in range(3)] for i in range(3)]
 
+    def residual(x, mu):
+        return tuple(a - b for a, b in zip(D(tuple(h * v for v in x), tuple(I[i] * x[i] for i in range(3))), mu))
+
+    def largest(v):
+        return jnp.maximum(jnp.maximum(jnp.abs(v[0]), jnp.abs(v[1])), jnp.abs(v[2]))
+
+    def check(x, H, mu, mu1, E_prev, change_max, size_max):
+        """The lean chunk's per-step verification: (passed, E, largest change, largest size)."""
+        r = residual(x, mu)
+        update = [H[i][0] * r[0] + H[i][1] * r[1] + H[i][2] * r[2] for i in range(3)]
+        passed = largest(update) <= VERIFY_TOLERANCE * jnp.maximum(largest(x), 1.0)
+        xn = tuple(x[i] - (I[i] * x[i] - mu1[i]) / I[i] for i in range(3))  # the node's velocity
+        passed = passed & (largest([I[i] * xn[i] - mu1[i] for i in range(3)])
+                           <= VERIFY_TOLERANCE * jnp.maximum(largest(mu1), 1.0))
+        pairing = mu1[0] * xn[0] + mu1[1] * xn[1] + mu1[2] * xn[2]
+        lagrangian = 0.5 * (I[0] * xn[0] * xn[0] + I[1] * xn[1] * xn[1] + I[2] * xn[2] * xn[2])
+        E = pairing - lagrangian
+        change = jnp.abs(E - E_prev)  # `integrate`'s rule, against the nodes before this one
+        passed = passed & ~(change > jnp.maximum(JUMP_FACTOR * change_max, JUMP_FLOOR * size_max)) & jnp.isfinite(E)
+        return passed, E, jnp.maximum(change_max, change), jnp.maximum(size_max, jnp.abs(pairing) + jnp.abs(lagrangian))
+
     def step(_, carry):
-        mu, x1, x2, E0, err = carry
+        mu, x1, x2, E0, err, ok, E_prev, change_max, size_max = carry
         x = tuple(2.0 * a - b for a, b in zip(x1, x2))
         H = inv3(jac(x))
         for _ in range(updates):
-            r = tuple(a - b for a, b in zip(D(tuple(h * v for v in x), tuple(I[i] * x[i] for i in range(3))), mu))
+            r = residual(x, mu)
             x = tuple(x[i] - (H[i][0] * r[0] + H[i][1] * r[1] + H[i][2] * r[2]) for i in range(3))
         mu1 = D(tuple(-h * v for v in x), tuple(I[i] * x[i] for i in range(3)))
-        return mu1, x, x1, E0, jnp.maximum(err, jnp.abs(energy(mu1) - E0))
+        if verified:
+            passed, E, change_max, size_max = check(x, H, mu, mu1, E_prev, change_max, size_max)
+            return mu1, x, x1, E0, jnp.maximum(err, jnp.abs(E - E0)), ok & passed, E, change_max, size_max
+        return mu1, x, x1, E0, jnp.maximum(err, jnp.abs(energy(mu1) - E0)), ok, E_prev, change_max, size_max
 
     @jax.jit
-    def march(xi0):  # (B, 3) in; final μ (B, 3) and energy error (B,) out
+    def march(xi0):  # (B, 3) in; final μ (B, 3) and energy error (B,) out (and passed (B,) if verified)
         x0 = tuple(xi0[:, i] for i in range(3))
         mu0 = tuple(I[i] * x0[i] for i in range(3))
         E0 = energy(mu0)
-        carry = (mu0, x0, x0, E0, jnp.zeros_like(E0))
-        mu, _, _, _, err = jax.lax.fori_loop(0, n_steps, step, carry, unroll=unroll)
-        return jnp.stack(mu, axis=1), err
+        zero = jnp.zeros_like(E0)
+        carry = (mu0, x0, x0, E0, zero, jnp.ones_like(E0, dtype=bool), E0, zero, 3.0 * E0)  # |⟨μ,ξ⟩| + |l| = 3E
+        mu, _, _, _, err, ok, _, _, _ = jax.lax.fori_loop(0, n_steps, step, carry, unroll=unroll)
+        return (jnp.stack(mu, axis=1), err) + ((ok,) if verified else ())
     return march
+
+
+VERIFY_TOLERANCE = 64 * float(np.finfo(np.float64).eps)
+"""`hand_rows_march(verified=True)`'s bound on its checks, relative to max(1, the value's size):
+a fixed bound instead of the engine's stopping rule, the same cost."""
 
 
 C_SOURCE = Path(__file__).with_name("c") / "rigid_body_cay.c"
@@ -417,6 +460,7 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
 SWEEP_RESULTS_NAME = "throughput_sweep"
 TWO_DEVICES = "sweep_fast_2dev"  # sweep(fast=True, devices=2), with --sweep-only (two host devices)
 HAND_ROWS = "jax_by_hand_rows"  # hand_rows_march: the yardstick of issue 20, not a library path
+HAND_VERIFIED = "jax_by_hand_rows_verified"  # hand_rows_march(verified=True): the same, with the sweep's checks
 C_SIMD = "c_simd"  # c/rigid_body_cay.c: the hardware reference of issue 20, when a C compiler is present
 SWEEP_DEFAULT = ((1_000, 200), (10_000, 200), (100_000, 200))  # the last at fast="auto"'s threshold: lean chunk
 SWEEP_QUICK = ((8, 10),)
@@ -482,9 +526,11 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) 
     batched = jax.jit(cj.batch(member, chunk=min(batch, 1024)))
     Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
     hand = hand_rows_march(inertia, rigid.DT, n_steps)
+    hand_verified = hand_rows_march(inertia, rigid.DT, n_steps, verified=True)
     calls = {"sweep": sweep_call(), "sweep_fast": sweep_call(fast=True),
              "cj_batch": lambda: jax.block_until_ready(batched(Q0_j, xi0_j)),
              HAND_ROWS: lambda: jax.block_until_ready(hand(xi0_j)),
+             HAND_VERIFIED: lambda: jax.block_until_ready(hand_verified(xi0_j)),
              RK4: lambda: rk4_euler_final(inertia, omega0, rigid.DT, n_steps)}
     c_march, c_flags = c_kernel()
     if c_march is not None and not mixed:
@@ -514,6 +560,9 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) 
         row["sweep_fast"]["max_abs_final_momentum_diff_vs_general"] = float(
             np.max(np.abs(fast.final_momentum - general.final_momentum)))
     row[HAND_ROWS]["max_energy_error"] = float(np.max(err_hand))
+    mu_v, err_v, passed = (np.asarray(a) for a in outs[HAND_VERIFIED])
+    row[HAND_VERIFIED].update(max_energy_error=float(np.max(err_v)), verified_share=float(np.mean(passed)),
+                              max_abs_final_momentum_diff_vs_hand=float(np.max(np.abs(mu_v - mu_hand))))
     if "cj_batch" in calls:
         row["cj_batch"]["max_energy_error"] = float(np.max(np.asarray(outs["cj_batch"][1])))
     row[RK4]["max_energy_error"] = float(np.max(outs[RK4][1]))
@@ -525,6 +574,7 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) 
         row["c_simd_skipped"] = c_flags
     rate = {m: row[m]["body_steps_per_second"] for m in calls}
     row["ratios"] = {**{f"{m}_over_hand": rate[m] / rate[HAND_ROWS] for m in calls if m != HAND_ROWS},
+                     **{f"{m}_over_hand_verified": rate[m] / rate[HAND_VERIFIED] for m in calls if m != HAND_VERIFIED},
                      **{f"{m}_over_numpy_rk4": rate[m] / rate[RK4] for m in calls if m != RK4},
                      **({f"{m}_over_c": rate[m] / rate[C_SIMD] for m in calls if m != C_SIMD} if C_SIMD in calls
                         else {})}
@@ -559,7 +609,7 @@ def print_sweep_report(summary: dict) -> None:
                          "final state and energy error per body, no trajectories kept.")
     rows = [r for r in summary["results"] if r["part"] == "sweep"]
     print("\nM body-steps/s (compile s) and ratios:")
-    names = ("sweep", "sweep_fast", "cj_batch", HAND_ROWS, RK4)
+    names = ("sweep", "sweep_fast", "cj_batch", HAND_ROWS, HAND_VERIFIED, RK4)
     names += (TWO_DEVICES,) if all(TWO_DEVICES in r for r in rows) else ()
     names += (C_SIMD,) if rows and all(C_SIMD in r for r in rows) else ()
     harness.print_table(
@@ -572,6 +622,11 @@ def print_sweep_report(summary: dict) -> None:
          f"{'lean' if r['sweep']['fast_chunks'] else 'general':>12} | "
          f"{r['sweep_fast']['fallback_chunks']}/{r['sweep_fast']['fast_chunks']}"
          for r in rows))
+    print("Against the hand kernel with the sweep's per-step checks (hand_rows_march(verified=True); the share of "
+          "members whose every step passed): sweep / verified, fast / verified, hand / verified: " + "; ".join(
+              f"B={r['batch']}: {r['ratios']['sweep_over_hand_verified']:.3g}, "
+              f"{r['ratios']['sweep_fast_over_hand_verified']:.3g}, {r['ratios'][HAND_ROWS + '_over_hand_verified']:.3g} "
+              f"(passed {r[HAND_VERIFIED]['verified_share']:.1%})" for r in rows))
     if TWO_DEVICES in names:
         print("sweep_fast_2dev (both cores) over hand / over NumPy RK4: " + "; ".join(
             f"B={r['batch']}: {r['ratios'][TWO_DEVICES + '_over_hand']:.3g} / "
@@ -616,6 +671,7 @@ def print_sweep_report(summary: dict) -> None:
 def plot_sweep(summary: dict, path: Path) -> None:
     fig, ax = harness.figure((1,), size=(7, 4.6))
     styles = {"sweep": ("o", "C2"), "sweep_fast": ("*", "C3"), "cj_batch": ("D", "C0"), HAND_ROWS: ("^", "C7"),
+              HAND_VERIFIED: ("v", "C8"),
               RK4: ("s", "C1"), TWO_DEVICES: ("P", "C4"), C_SIMD: ("x", "k")}
     for m, (marker, color) in styles.items():
         pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"]
