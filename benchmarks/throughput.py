@@ -612,11 +612,13 @@ def print_sweep_report(summary: dict) -> None:
     names = ("sweep", "sweep_fast", "cj_batch", HAND_ROWS, HAND_VERIFIED, RK4)
     names += (TWO_DEVICES,) if all(TWO_DEVICES in r for r in rows) else ()
     names += (C_SIMD,) if rows and all(C_SIMD in r for r in rows) else ()
+    width = {m: max(20, len(m) + 1) for m in names}
     harness.print_table(
-        f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>20}" for m in names) + " |"
+        f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>{width[m]}}" for m in names) + " |"
         f"{'sweep/hand':>11}{'fast/hand':>10}{'sweep/RK4':>10}{'fast/RK4':>9} | sweep's path | fallbacks",
         (f"{r['batch']:>8}{r['n_steps']:>6} |"
-         + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>11.3g} ({r[m]['compile_s']:5.1f})" for m in names)
+         + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>{width[m] - 9}.3g} ({r[m]['compile_s']:5.1f})"
+                   for m in names)
          + f" |{r['ratios']['sweep_over_hand']:>11.3g}{r['ratios']['sweep_fast_over_hand']:>10.3g}"
          f"{r['ratios']['sweep_over_numpy_rk4']:>10.3g}{r['ratios']['sweep_fast_over_numpy_rk4']:>9.3g} | "
          f"{'lean' if r['sweep']['fast_chunks'] else 'general':>12} | "
