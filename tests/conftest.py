@@ -26,4 +26,12 @@ if not os.environ.get(_CACHE_VARIABLE):
     os.environ[_CACHE_VARIABLE] = tempfile.mkdtemp(prefix="clebsch-jax-test-xla-")
     atexit.register(shutil.rmtree, os.environ[_CACHE_VARIABLE], ignore_errors=True)
 jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE_VARIABLE])
+
+# Native kernels (clebsch_jax.native) are kept on disk too: in a directory of this run, shared
+# by the workers, never the user's cache.
+_NATIVE_VARIABLE = "CLEBSCH_JAX_NATIVE_CACHE"
+if not os.environ.get("CLEBSCH_JAX_TEST_RUN_NATIVE_CACHE"):
+    os.environ["CLEBSCH_JAX_TEST_RUN_NATIVE_CACHE"] = tempfile.mkdtemp(prefix="clebsch-jax-test-native-")
+    atexit.register(shutil.rmtree, os.environ["CLEBSCH_JAX_TEST_RUN_NATIVE_CACHE"], ignore_errors=True)
+os.environ[_NATIVE_VARIABLE] = os.environ["CLEBSCH_JAX_TEST_RUN_NATIVE_CACHE"]
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

@@ -1,0 +1,245 @@
+"""Loops and branches of the native translation, with the lanes masked as under `jax.vmap`.
+
+- `while`: a loop that runs while any lane of the current mask still satisfies its condition.
+  A lane whose condition is false keeps its carry (a select per entry), as `vmap` of a while
+  loop does; its body is emitted under the mask of the lanes still iterating, so that loops
+  nested in it stop when those lanes are done.
+- `scan`: a counted loop (the count is the same in every lane); the carry lives in allocas
+  (promoted to registers by LLVM), the per-iteration inputs and outputs in arrays indexed by
+  the counter. Short scans are unrolled.
+- `cond`: a known index picks its branch; otherwise every branch is emitted under the mask of
+  its lanes and the outputs are selected lane by lane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from llvmlite import ir
+
+from .lower import RULES, eval_closed
+from .values import Emitter, Unsupported, is_known
+
+__all__ = ["SHORT_SCAN"]
+
+SHORT_SCAN = 4
+"""Scans of at most this many iterations are unrolled (no loop, no arrays in memory) ..."""
+
+UNROLL_BUDGET = 4000
+"""... and longer ones whose body, counted in equations (nested ones included), times their
+length stays within this budget: their counter is then known in each copy, so that indexing
+by it (the column loops of small matrix factorisations) costs no code."""
+
+
+def _size(jaxpr) -> int:
+    """Equations of a jaxpr, those of the jaxprs in its parameters included."""
+    from jax.extend import core as jcore
+
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += 1
+        for v in eqn.params.values():
+            for x in (v if isinstance(v, (tuple, list)) else [v]):
+                if isinstance(x, jcore.ClosedJaxpr):
+                    n += _size(x.jaxpr)
+                elif isinstance(x, jcore.Jaxpr):
+                    n += _size(x)
+    return n
+
+
+def _slots(em: Emitter, values, dtypes, fixed):
+    """Allocas holding each entry of the carries that change (None for those that do not)."""
+    slots = []
+    for x, dtype, keep in zip(values, dtypes, fixed):
+        if keep:
+            slots.append(None)
+            continue
+        arr = np.empty(x.shape, object)
+        for idx in np.ndindex(x.shape):
+            arr[idx] = em.alloca(em.vtype(dtype))
+            em.b.store(em.vec(x[idx], dtype), arr[idx])
+        slots.append(arr)
+    return slots
+
+
+def _load(em: Emitter, slots, values, dtypes):
+    out = []
+    for s, x, dtype in zip(slots, values, dtypes):
+        if s is None:
+            out.append(x)
+            continue
+        arr = np.empty(s.shape, object)
+        for idx in np.ndindex(s.shape):
+            arr[idx] = em.b.load(s[idx], typ=em.vtype(dtype))
+        out.append(arr)
+    return out
+
+
+def _store(em: Emitter, slots, new, old, dtypes, where):
+    for s, n, o, dtype in zip(slots, new, old, dtypes):
+        if s is None:
+            continue
+        for idx in np.ndindex(s.shape):
+            value = n[idx] if where is None else em.select(where, n[idx], o[idx], dtype)
+            em.b.store(em.vec(value, dtype), s[idx])
+
+
+def _while(em: Emitter, eqn, args):
+    p = eqn.params
+    cc, bc = p["cond_nconsts"], p["body_nconsts"]
+    cconsts, bconsts, init = args[:cc], args[cc:cc + bc], args[cc + bc:]
+    cond_j, body_j = p["cond_jaxpr"], p["body_jaxpr"]
+    body_in = body_j.jaxpr.invars[bc:]
+    fixed = [o is i for o, i in zip(body_j.jaxpr.outvars, body_in)]
+    dtypes = [np.dtype(v.aval.dtype) for v in body_in]
+    slots = _slots(em, init, dtypes, fixed)
+    b = em.b
+    fn = b.function
+    head, body, done = fn.append_basic_block("while.head"), fn.append_basic_block("while.body"), \
+        fn.append_basic_block("while.done")
+    b.branch(head)
+    b.position_at_end(head)
+    cur = _load(em, slots, init, dtypes)
+    (pred,) = eval_closed(em, cond_j, list(cconsts) + cur)
+    pred = pred[()]
+    if is_known(pred):
+        if bool(pred):
+            raise Unsupported("a while loop whose condition is always true")
+        b.branch(done)
+        b.position_at_end(done)
+        return list(init)
+    active = em.mask_and(pred)
+    b.cbranch(em.any_lane(active), body, done)
+    b.position_at_end(body)
+    outer, em.mask = em.mask, active
+    new = eval_closed(em, body_j, list(bconsts) + cur)
+    em.mask = outer
+    _store(em, slots, new, cur, dtypes, active)
+    b.branch(head)
+    b.position_at_end(done)
+    return _load(em, slots, init, dtypes)
+
+
+def _array_slots(em: Emitter, length: int, shape, dtype):
+    """An alloca of `length` vectors per entry of `shape` (a scan's inputs or outputs)."""
+    arr = np.empty(shape, object)
+    t = ir.ArrayType(em.vtype(dtype), length)
+    for idx in np.ndindex(shape):
+        arr[idx] = (em.alloca(t), t)
+    return arr
+
+
+def _at(em: Emitter, slot, i):
+    ptr, t = slot
+    zero = ir.Constant(ir.IntType(64), 0)
+    return em.b.gep(ptr, [zero, i], source_etype=t)
+
+
+def _scan(em: Emitter, eqn, args):
+    p = eqn.params
+    length, nc, ncar, reverse = p["length"], p["num_consts"], p["num_carry"], p["reverse"]
+    closed = p["jaxpr"]
+    consts, init, xs = list(args[:nc]), list(args[nc:nc + ncar]), list(args[nc + ncar:])
+    order = range(length - 1, -1, -1) if reverse else range(length)
+    if length <= SHORT_SCAN or length * _size(closed.jaxpr) <= UNROLL_BUDGET:
+        carry, ys = init, []
+        for i in order:
+            outs = eval_closed(em, closed, consts + carry + [x[i, ...] for x in xs])
+            carry, y = outs[:ncar], outs[ncar:]
+            ys.append(y)
+        if reverse:
+            ys = ys[::-1]
+        stacked = [np.stack([y[k] for y in ys]) if ys else None for k in range(len(closed.jaxpr.outvars) - ncar)]
+        return carry + stacked
+
+    jaxpr = closed.jaxpr
+    body_in = jaxpr.invars[nc:nc + ncar]
+    fixed = [o is i for o, i in zip(jaxpr.outvars[:ncar], body_in)]
+    dtypes = [np.dtype(v.aval.dtype) for v in body_in]
+    slots = _slots(em, init, dtypes, fixed)
+    b = em.b
+    i64 = ir.IntType(64)
+    # the inputs, stored in arrays indexed by the counter (known entries stay known when all
+    # iterations share them)
+    x_dtypes = [np.dtype(v.aval.dtype) for v in jaxpr.invars[nc + ncar:]]
+    x_slots = []
+    for x, dtype in zip(xs, x_dtypes):
+        arr = _array_slots(em, length, x.shape[1:], dtype)
+        for idx in np.ndindex(x.shape[1:]):
+            for i in range(length):
+                b.store(em.vec(x[(i,) + idx], dtype), _at(em, arr[idx], ir.Constant(i64, i)))
+        x_slots.append(arr)
+    y_avals = [v.aval for v in jaxpr.outvars[ncar:]]
+    y_slots = [_array_slots(em, length, a.shape, a.dtype) for a in y_avals]
+
+    counter = em.alloca(i64)
+    b.store(ir.Constant(i64, 0), counter)
+    fn = b.function
+    head, body, done = fn.append_basic_block("scan.head"), fn.append_basic_block("scan.body"), \
+        fn.append_basic_block("scan.done")
+    b.branch(head)
+    b.position_at_end(head)
+    k = b.load(counter, typ=i64)
+    b.cbranch(b.icmp_signed("<", k, ir.Constant(i64, length)), body, done)
+    b.position_at_end(body)
+    i = b.sub(ir.Constant(i64, length - 1), k) if reverse else k
+    cur = _load(em, slots, init, dtypes)
+    x_now = []
+    for arr, dtype in zip(x_slots, x_dtypes):
+        v = np.empty(arr.shape, object)
+        for idx in np.ndindex(arr.shape):
+            v[idx] = b.load(_at(em, arr[idx], i), typ=em.vtype(dtype))
+        x_now.append(v)
+    outs = eval_closed(em, closed, consts + cur + x_now)
+    _store(em, slots, outs[:ncar], cur, dtypes, None)
+    for arr, y, a in zip(y_slots, outs[ncar:], y_avals):
+        for idx in np.ndindex(arr.shape):
+            b.store(em.vec(y[idx], a.dtype), _at(em, arr[idx], i))
+    b.store(b.add(b.load(counter, typ=i64), ir.Constant(i64, 1)), counter)
+    b.branch(head)
+    b.position_at_end(done)
+    carry = _load(em, slots, init, dtypes)
+    ys = []
+    for arr, a in zip(y_slots, y_avals):
+        out = np.empty((length,) + tuple(a.shape), object)
+        for idx in np.ndindex(arr.shape):
+            for n in range(length):
+                out[(n,) + idx] = b.load(_at(em, arr[idx], ir.Constant(i64, n)), typ=em.vtype(a.dtype))
+        ys.append(out)
+    return carry + ys
+
+
+def _cond(em: Emitter, eqn, args):
+    branches = eqn.params["branches"]
+    index, ops = args[0][()], list(args[1:])
+    n = len(branches)
+    if is_known(index):
+        return eval_closed(em, branches[int(np.clip(int(index), 0, n - 1))], ops)
+    b = em.b
+    idx_dtype = np.dtype(eqn.invars[0].aval.dtype)
+    conds, results = [], []
+    outer = em.mask
+    for k, branch in enumerate(branches):
+        c = b.icmp_signed("==", index, em.const(k, idx_dtype))
+        if k == 0:
+            c = b.or_(c, b.icmp_signed("<", index, em.const(0, idx_dtype)))
+        if k == n - 1:
+            c = b.or_(c, b.icmp_signed(">", index, em.const(n - 1, idx_dtype)))
+        conds.append(c)
+        em.mask = em.mask_and(c) if outer is not None else c
+        results.append(eval_closed(em, branch, ops))
+        em.mask = outer
+    out = []
+    for j, v in enumerate(eqn.outvars):
+        dtype = np.dtype(v.aval.dtype)
+        r = results[-1][j]
+        merged = np.empty(r.shape, object)
+        for idx in np.ndindex(r.shape):
+            e = r[idx]
+            for k in range(n - 2, -1, -1):
+                e = em.select(conds[k], results[k][j][idx], e, dtype)
+            merged[idx] = e
+        out.append(merged)
+    return out
+
+
+RULES.update({"while": _while, "scan": _scan, "cond": _cond})

@@ -1,0 +1,350 @@
+"""Indexing by values in the native translation: dynamic slices, gathers and scatters.
+
+Indices known while translating (constants, unrolled loop counters) are resolved then: a
+gather or scatter with known indices is the index map of the same primitive applied to
+positions, computed once, and costs no code. Indices computed at run time differ from lane to
+lane; two forms, by the number of places an index vector can reach:
+
+- a few places (`SELECT_STARTS`): each place's value, selected lane by lane;
+- more: the operand is stored to a lane-major array on the stack and each lane loads its own
+  entry (`_lane_load`).
+
+Indices are clamped (`CLIP`, `PROMISE_IN_BOUNDS`, dynamic slices) or out-of-range entries
+filled (`FILL_OR_DROP`) as XLA does.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from llvmlite import ir
+
+from .lower import RULES, _copy, _emit_float, _emit_int, _out_dtype
+from .values import Emitter, Unsupported, is_known
+
+__all__ = ["SELECT_STARTS"]
+
+SELECT_STARTS = 8
+"""Index vectors that can reach at most this many places are resolved by selects; beyond,
+each lane loads its entry from memory."""
+
+_MAX_STARTS = 4096
+
+
+def _ivec(em: Emitter, t, v):
+    return ir.Constant(ir.VectorType(t, em.W), [ir.Constant(t, int(v))] * em.W)
+
+
+def _i64(em: Emitter, x):
+    """An index entry as an i64 vector."""
+    t = ir.VectorType(ir.IntType(64), em.W)
+    if is_known(x):
+        return _ivec(em, ir.IntType(64), int(x))
+    if x.type.element.width == 64:
+        return x
+    return em.b.sext(x, t) if x.type.element.width > 1 else em.b.zext(x, t)
+
+
+def _clamp(em: Emitter, x, lo: int, hi: int):
+    """An i64 index vector clamped to [lo, hi]."""
+    b = em.b
+    x = b.select(b.icmp_signed("<", x, _ivec(em, ir.IntType(64), lo)), _ivec(em, ir.IntType(64), lo), x)
+    return b.select(b.icmp_signed(">", x, _ivec(em, ir.IntType(64), hi)), _ivec(em, ir.IntType(64), hi), x)
+
+
+class _Stored:
+    """An entry array stored lane-major on the stack ([size · W] scalars), for lane loads."""
+
+    def __init__(self, em: Emitter, a: np.ndarray, dtype):
+        self.em, self.dtype, self.flat = em, np.dtype(dtype), a.reshape(-1)
+        self.scalar = em.vtype(dtype).element
+        self.type = ir.ArrayType(self.scalar, self.flat.size * em.W)
+        self.ptr = em.alloca(self.type)
+        zero = ir.Constant(ir.IntType(64), 0)
+        for k, e in enumerate(self.flat):
+            at = em.b.gep(self.ptr, [zero, ir.Constant(ir.IntType(64), k * em.W)], source_etype=self.type)
+            at = em.b.bitcast(at, em.vtype(dtype).as_pointer())
+            em.b.store(em.vec(e, dtype), at, align=self.dtype.itemsize)
+
+    def load(self, flat_index):
+        """Each lane's entry at its own flat index (an i64 vector, in range)."""
+        em, b = self.em, self.em.b
+        zero = ir.Constant(ir.IntType(64), 0)
+        out = ir.Constant(em.vtype(self.dtype), ir.Undefined)
+        for lane in range(em.W):
+            i = b.extract_element(flat_index, ir.Constant(ir.IntType(32), lane))
+            at = b.add(b.mul(i, ir.Constant(ir.IntType(64), em.W)), ir.Constant(ir.IntType(64), lane))
+            x = b.load(b.gep(self.ptr, [zero, at], source_etype=self.type), typ=self.scalar)
+            out = b.insert_element(out, x, ir.Constant(ir.IntType(32), lane))
+        return out
+
+
+def _strides(shape) -> list:
+    return [int(np.prod(shape[d + 1:], dtype=int)) for d in range(len(shape))]
+
+
+def _offset(em: Emitter, starts, dims, strides):
+    """Σ start_j · stride(dim_j) as an i64 vector (the starts already clamped)."""
+    b = em.b
+    total = None
+    for s, d in zip(starts, dims):
+        term = b.mul(s, _ivec(em, ir.IntType(64), strides[d]))
+        total = term if total is None else b.add(total, term)
+    return total
+
+
+def _conds(em: Emitter, starts, combo, his):
+    """Lane condition that the (clamped) starts equal `combo`."""
+    cond = None
+    for s, v, hi in zip(starts, combo, his):
+        if is_known(s):
+            continue
+        t = s.type.element
+        eq = em.b.icmp_signed("==", s, _ivec(em, t, v))
+        if v == 0:
+            eq = em.b.or_(eq, em.b.icmp_signed("<", s, _ivec(em, t, 0)))
+        if v == hi:
+            eq = em.b.or_(eq, em.b.icmp_signed(">", s, _ivec(em, t, hi)))
+        cond = eq if cond is None else em.b.and_(cond, eq)
+    return cond
+
+
+def _ranges(starts, his, clip=True):
+    out = []
+    for s, hi in zip(starts, his):
+        if is_known(s):
+            v = int(s)
+            out.append([int(np.clip(v, 0, hi))] if clip else ([v] if 0 <= v <= hi else []))
+        else:
+            out.append(list(range(hi + 1)))
+    return out
+
+
+def _n_combos(ranges) -> int:
+    return int(np.prod([len(r) for r in ranges], dtype=np.int64))
+
+
+# ---------------------------------------------------------------------------------------------
+# Dynamic slices.
+
+
+def _dynamic_slice(em: Emitter, eqn, args):
+    a, *starts = args
+    starts = [s[()] for s in starts]
+    sizes = eqn.params["slice_sizes"]
+    dtype = _out_dtype(eqn)
+    his = [n - k for n, k in zip(a.shape, sizes)]
+    ranges = _ranges(starts, his)
+    if _n_combos(ranges) <= SELECT_STARTS:
+        out = None
+        for combo in itertools.product(*ranges):
+            cond = _conds(em, starts, combo, his)
+            piece = a[tuple(slice(c, c + k) for c, k in zip(combo, sizes))]
+            if out is None:
+                out = _copy(piece)
+            else:
+                for idx in np.ndindex(piece.shape):
+                    out[idx] = em.select(cond, piece[idx], out[idx], dtype)
+        return out
+    stored = _Stored(em, a, dtype)
+    strides = _strides(a.shape)
+    clamped = [_clamp(em, _i64(em, s), 0, hi) for s, hi in zip(starts, his)]
+    base = _offset(em, clamped, range(a.ndim), strides)
+    out = np.empty(tuple(sizes), object)
+    for idx in np.ndindex(tuple(sizes)):
+        at = em.b.add(base, _ivec(em, ir.IntType(64), sum(i * st for i, st in zip(idx, strides))))
+        out[idx] = stored.load(at)
+    return out
+
+
+def _dynamic_update_slice(em: Emitter, eqn, args):
+    a, update, *starts = args
+    starts = [s[()] for s in starts]
+    dtype = _out_dtype(eqn)
+    his = [n - k for n, k in zip(a.shape, update.shape)]
+    ranges = _ranges(starts, his)
+    out = _copy(a)
+    if _n_combos(ranges) <= SELECT_STARTS:
+        for combo in itertools.product(*ranges):
+            cond = _conds(em, starts, combo, his)
+            region = tuple(slice(c, c + k) for c, k in zip(combo, update.shape))
+            sub = out[region]
+            for idx in np.ndindex(update.shape):
+                sub[idx] = update[idx] if cond is None else em.select(cond, update[idx], sub[idx], dtype)
+            out[region] = sub
+        return out
+    # each operand entry: the update's entry at (its position − start) where that is inside
+    stored = _Stored(em, update, dtype)
+    ustrides = _strides(update.shape)
+    b = em.b
+    i64 = ir.IntType(64)
+    clamped = [_clamp(em, _i64(em, s), 0, hi) for s, hi in zip(starts, his)]
+    for pos in np.ndindex(a.shape):
+        inside, at = None, None
+        for d, (p, s, k) in enumerate(zip(pos, clamped, update.shape)):
+            rel = b.sub(_ivec(em, i64, p), s)
+            ok = b.and_(b.icmp_signed(">=", rel, _ivec(em, i64, 0)), b.icmp_signed("<", rel, _ivec(em, i64, k)))
+            inside = ok if inside is None else b.and_(inside, ok)
+            rel = _clamp(em, rel, 0, k - 1)
+            term = b.mul(rel, _ivec(em, i64, ustrides[d]))
+            at = term if at is None else b.add(at, term)
+        out[pos] = em.select(inside, stored.load(at), a[pos], dtype)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Gathers.
+
+
+def _apply_to_positions(eqn, operand_shape, idx, primitive=None, **changes):
+    """The primitive of `eqn` (or `primitive`) applied to the operand's flat positions with the
+    concrete indices `idx`: where each output entry comes from."""
+    import jax
+
+    positions = np.arange(int(np.prod(operand_shape, dtype=int)), dtype=np.int64).reshape(operand_shape)
+    params = {**eqn.params, **changes}
+    with jax.ensure_compile_time_eval():
+        return np.asarray((primitive or eqn.primitive).bind(jax.numpy.asarray(positions), jax.numpy.asarray(idx),
+                                                            **params))
+
+
+def _fill_value(eqn):
+    dtype = _out_dtype(eqn)
+    value = eqn.params.get("fill_value")
+    if value is None:
+        value = np.nan if dtype.kind == "f" else np.iinfo(dtype).min if dtype.kind == "i" else \
+            np.iinfo(dtype).max if dtype.kind == "u" else True
+    return np.asarray(value).astype(dtype)[()]
+
+
+def _gather(em: Emitter, eqn, args):
+    a, indices = args
+    flat = a.reshape(-1)
+    idx_dtype = np.dtype(eqn.invars[1].aval.dtype)
+    dtype = _out_dtype(eqn)
+    fill = _fill_value(eqn)
+    dnums = eqn.params["dimension_numbers"]
+    # batching dimensions need nothing of their own: the index maps of the primitive itself
+    # place each index vector's window, and its starts move it along `start_index_map` only
+    if all(is_known(x) for x in indices.flat):
+        idx = np.asarray([x for x in indices.flat], idx_dtype).reshape(indices.shape)
+        where = _apply_to_positions(eqn, a.shape, idx, fill_value=-1)
+        out = np.empty(where.shape, object)
+        for i in np.ndindex(where.shape):
+            out[i] = flat[where[i]] if where[i] >= 0 else fill
+        return out
+    sizes = eqn.params["slice_sizes"]
+    clip = "FILL" not in str(eqn.params["mode"])
+    out_shape = eqn.outvars[0].aval.shape
+    batch_dims = [d for d in range(len(out_shape)) if d not in dnums.offset_dims]
+    out = np.empty(out_shape, object)
+    out[...] = fill
+    dims = list(dnums.start_index_map)
+    his = [a.shape[d] - sizes[d] for d in dims]
+    strides = _strides(a.shape)
+    stored = None
+    # where each output entry comes from when every start is 0; a start c_j moves the window
+    # by c_j along operand dimension start_index_map[j] (windows are contiguous)
+    zero = np.zeros(indices.shape, idx_dtype)
+    where0 = _apply_to_positions(eqn, a.shape, zero, fill_value=-1)
+    for bpos in np.ndindex(indices.shape[:-1]):
+        comps = [indices[bpos + (j,)] for j in range(indices.shape[-1])]
+        mine = [o for o in np.ndindex(out_shape) if tuple(o[d] for d in batch_dims) == bpos]
+        ranges = _ranges(comps, his, clip)
+        if _n_combos(ranges) <= SELECT_STARTS:
+            for n_combo, combo in enumerate(itertools.product(*ranges)):
+                shift = sum(c * strides[d] for c, d in zip(combo, dims))
+                cond = _conds(em, comps, combo, his)
+                for o in mine:
+                    value = flat[where0[o] + shift]
+                    out[o] = value if (cond is None or (clip and n_combo == 0)) else \
+                        em.select(cond, value, out[o], dtype)
+            continue
+        # memory: the entry at the window's position plus the (clamped) start's offset
+        if stored is None:
+            stored = _Stored(em, a, dtype)
+        starts = [_i64(em, c) for c in comps]
+        inside = None
+        if not clip:
+            b, i64 = em.b, ir.IntType(64)
+            for s, hi in zip(starts, his):
+                ok = b.and_(b.icmp_signed(">=", s, _ivec(em, i64, 0)), b.icmp_signed("<=", s, _ivec(em, i64, hi)))
+                inside = ok if inside is None else b.and_(inside, ok)
+        clamped = [_clamp(em, s, 0, hi) for s, hi in zip(starts, his)]
+        base = _offset(em, clamped, dims, strides)
+        for o in mine:
+            value = stored.load(em.b.add(base, _ivec(em, ir.IntType(64), int(where0[o]))))
+            out[o] = value if inside is None else em.select(inside, value, fill, dtype)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Scatters (known indices, or a few places).
+
+
+def _scatter_targets(eqn, operand_shape, updates_shape, idx):
+    """For each update entry, the flat operand position it lands on (-1: dropped)."""
+    import jax
+    from jax import lax
+
+    ids = np.arange(int(np.prod(updates_shape, dtype=int)), dtype=np.int64).reshape(updates_shape)
+    params = {k: v for k, v in eqn.params.items() if k in ("dimension_numbers", "indices_are_sorted",
+                                                             "unique_indices", "mode")}
+    with jax.ensure_compile_time_eval():
+        landed = np.asarray(lax.scatter_p.bind(jax.numpy.full(operand_shape, -1, np.int64), jax.numpy.asarray(idx),
+                                               jax.numpy.asarray(ids), update_jaxpr=None, update_consts=(),
+                                               **params))
+    target = np.full(ids.size, -1, np.int64)
+    for pos, u in enumerate(landed.reshape(-1)):
+        if u >= 0:
+            target[u] = pos
+    return target
+
+
+def _scatter(combine: str | None):
+    def rule(em: Emitter, eqn, args):
+        a, indices, updates = args
+        dtype = _out_dtype(eqn)
+        dnums = eqn.params["dimension_numbers"]
+        if dnums.operand_batching_dims:
+            raise Unsupported("scatter with batching dimensions")
+        idx_dtype = np.dtype(eqn.invars[1].aval.dtype)
+        emit = _emit_float if dtype.kind == "f" else _emit_int
+        flat_u = updates.reshape(-1)
+        comps = list(indices.reshape(-1))
+        ranges = [[int(c)] if is_known(c) else None for c in comps]
+        if any(r is None for r in ranges):
+            # every place a lane's indices can reach: small index spaces only
+            his = [a.shape[d] for d in dnums.scatter_dims_to_operand_dims] * (len(comps) // max(
+                1, len(dnums.scatter_dims_to_operand_dims)))
+            ranges = [[int(c)] if is_known(c) else list(range(hi)) for c, hi in zip(comps, his)]
+            if _n_combos(ranges) > SELECT_STARTS:
+                raise Unsupported(f"scatter with indices computed at run time ({_n_combos(ranges)} places)")
+        out = _copy(a)
+        base = _copy(a)
+        combos = list(itertools.product(*ranges))
+        for combo in combos:
+            idx = np.asarray(combo, idx_dtype).reshape(indices.shape)
+            target = _scatter_targets(eqn, a.shape, updates.shape, idx)
+            if combine == "add" and len(set(t for t in target if t >= 0)) < int(np.sum(target >= 0)):
+                raise Unsupported("scatter-add of several updates onto one entry")
+            cond = None
+            for c, v in zip(comps, combo):
+                if not is_known(c):
+                    eq = em.b.icmp_signed("==", c, em.const(v, idx_dtype))
+                    cond = eq if cond is None else em.b.and_(cond, eq)
+            flat_out, flat_base = out.reshape(-1), base.reshape(-1)
+            for u, t in enumerate(target):
+                if t < 0:
+                    continue
+                value = flat_u[u] if combine is None else emit(em, combine, dtype, [flat_base[t], flat_u[u]], None)
+                flat_out[t] = value if cond is None else em.select(cond, value, flat_out[t], dtype)
+            out = flat_out.reshape(a.shape)
+        return out
+    return rule
+
+
+RULES.update({"dynamic_slice": _dynamic_slice, "dynamic_update_slice": _dynamic_update_slice, "gather": _gather,
+              "scatter": _scatter(None), "scatter-add": _scatter("add"), "scatter_add": _scatter("add"),
+              "scatter-mul": _scatter("mul"), "scatter_mul": _scatter("mul")})

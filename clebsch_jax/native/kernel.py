@@ -1,0 +1,304 @@
+r"""A jaxpr of one member compiled to a SIMD kernel over a batch, with LLVM (llvmlite).
+
+The kernel is one function
+
+    void kernel(void **arrays, int64 stride, int64 first_block, int64 end_block)
+
+that runs the member's program for the lane blocks `first_block … end_block - 1`: block `k`
+holds members `k·W … k·W + W - 1` in the `W` lanes of each vector. Every array (inputs, then
+outputs) is stored batch-last, one row of `stride` members per entry of the member's shape,
+so that an entry of a block is one vector load or store. Booleans are stored as bytes.
+
+The IR is optimised by LLVM's default pipeline (O2, no fast-math: every floating-point
+operation is the one the jaxpr names, in its order) for the host's CPU and features, and the
+object code is cached on disk under the hash of the jaxpr (its text and constants), the
+lanes, the CPU, its features, the llvmlite version and the translation's own source
+(`cache_dir`): a program found there is neither translated nor compiled again. A call of the kernel from ctypes releases the GIL, so threads
+run blocks side by side.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+from llvmlite import ir
+
+from . import control as _control  # noqa: F401  (registers the loop and branch rules)
+from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
+from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
+from .lower import eval_closed
+from .values import Emitter, llvm_type
+
+__all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir"]
+
+_LOCK = threading.Lock()
+_LLVM: dict = {}
+
+
+def _binding():
+    """llvmlite's binding, initialised once for the host."""
+    with _LOCK:
+        if not _LLVM:
+            import llvmlite
+            import llvmlite.binding as llvm
+
+            llvm.initialize_native_target()
+            llvm.initialize_native_asmprinter()
+            cpu, features = llvm.get_host_cpu_name(), llvm.get_host_cpu_features().flatten()
+            target = llvm.Target.from_triple(llvm.get_process_triple())
+            tm = target.create_target_machine(cpu=cpu, features=features, opt=2, codemodel="jitdefault", jit=True)
+            _LLVM.update(llvm=llvm, tm=tm, cpu=cpu, features=features, version=llvmlite.__version__,
+                         triple=llvm.get_process_triple())
+        return _LLVM
+
+
+def host_lanes(dtype=np.float64) -> int:
+    """Members per vector on this CPU for `dtype`: the widest vector register's lanes."""
+    features = _binding()["features"]
+    bits = 512 if "+avx512f" in features else 256 if "+avx" in features else 128
+    return max(2, bits // (8 * np.dtype(dtype).itemsize))
+
+
+def cache_dir() -> str:
+    """Where compiled kernels are kept: `$CLEBSCH_JAX_NATIVE_CACHE`, else
+    `~/.cache/clebsch-jax/native` (`$XDG_CACHE_HOME` honoured)."""
+    path = os.environ.get("CLEBSCH_JAX_NATIVE_CACHE")
+    if path:
+        return path
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "clebsch-jax", "native")
+
+
+def _storage(dtype) -> np.dtype:
+    dtype = np.dtype(dtype)
+    return np.dtype(np.uint8) if dtype == np.bool_ else dtype
+
+
+def build_ir(closed, width: int, batched=None) -> str:
+    """The LLVM IR (text) of the kernel of `closed` (a closed jaxpr of one member). `batched`
+    (one flag per input, default all True): an input that is not batched is one value shared
+    by every member, stored as its entries alone and broadcast to the lanes."""
+    module = ir.Module(name="clebsch_jax_native")
+    module.triple = _binding()["triple"]
+    ptr, i64 = ir.PointerType(), ir.IntType(64)
+    fn = ir.Function(module, ir.FunctionType(ir.VoidType(), [ptr, i64, i64, i64]), "kernel")
+    arrays, stride, first, end = fn.args
+    entry = fn.append_basic_block("entry")
+    b = ir.IRBuilder(entry)
+    em = Emitter(module, b, width, entry)
+    counter = b.alloca(i64)
+    b.store(first, counter)
+    head, body, done = fn.append_basic_block("block.head"), fn.append_basic_block("block.body"), \
+        fn.append_basic_block("block.done")
+    b.branch(head)
+    b.position_at_end(head)
+    k = b.load(counter, typ=i64)
+    b.cbranch(b.icmp_signed("<", k, end), body, done)
+    b.position_at_end(body)
+    offset = b.mul(k, ir.Constant(i64, width))
+
+    def row(j: int, e: int, dtype):
+        base = b.load(b.gep(arrays, [ir.Constant(i64, j)], source_etype=ptr), typ=ptr)
+        at = b.add(b.mul(ir.Constant(i64, e), stride), offset)
+        return b.gep(base, [at], source_etype=llvm_type(_storage(dtype)) if dtype != np.bool_ else ir.IntType(8))
+
+    def shared(j: int, e: int, dtype):
+        base = b.load(b.gep(arrays, [ir.Constant(i64, j)], source_etype=ptr), typ=ptr)
+        st = llvm_type(_storage(dtype)) if dtype != np.bool_ else ir.IntType(8)
+        x = b.load(b.gep(base, [ir.Constant(i64, e)], source_etype=st), typ=st)
+        if dtype == np.bool_:
+            x = b.icmp_unsigned("!=", x, ir.Constant(st, 0))
+        vt = ir.VectorType(x.type, width)
+        one = b.insert_element(ir.Constant(vt, ir.Undefined), x, ir.Constant(ir.IntType(32), 0))
+        return b.shuffle_vector(one, ir.Constant(vt, ir.Undefined),
+                                ir.Constant(ir.VectorType(ir.IntType(32), width), [0] * width))
+
+    batched = [True] * len(closed.jaxpr.invars) if batched is None else list(batched)
+    args = []
+    for j, v in enumerate(closed.jaxpr.invars):
+        dtype = np.dtype(v.aval.dtype)
+        arr = np.empty(v.aval.shape, object)
+        for e, idx in enumerate(np.ndindex(v.aval.shape)):
+            if not batched[j]:
+                arr[idx] = shared(j, e, dtype)
+            elif dtype == np.bool_:
+                raw = b.load(row(j, e, dtype), typ=ir.VectorType(ir.IntType(8), width), align=1)
+                arr[idx] = b.icmp_unsigned("!=", raw, ir.Constant(raw.type, [ir.Constant(ir.IntType(8), 0)] * width))
+            else:
+                arr[idx] = b.load(row(j, e, dtype), typ=em.vtype(dtype), align=np.dtype(dtype).itemsize)
+        args.append(arr)
+    outs = eval_closed(em, closed, args)
+    n_in = len(closed.jaxpr.invars)
+    for j, (v, out) in enumerate(zip(closed.jaxpr.outvars, outs)):
+        dtype = np.dtype(v.aval.dtype)
+        for e, idx in enumerate(np.ndindex(v.aval.shape)):
+            value = em.vec(out[idx], dtype)
+            if dtype == np.bool_:
+                value = b.zext(value, ir.VectorType(ir.IntType(8), width))
+            b.store(value, row(n_in + j, e, dtype), align=_storage(dtype).itemsize)
+    b.store(b.add(b.load(counter, typ=i64), ir.Constant(i64, 1)), counter)
+    b.branch(head)
+    b.position_at_end(done)
+    b.ret_void()
+    return str(module)
+
+
+_SOURCE: list = []
+
+
+def _translator_digest() -> str:
+    """A hash of the translation's own source: a change of it invalidates the cached kernels."""
+    if not _SOURCE:
+        h = hashlib.sha256()
+        folder = os.path.dirname(__file__)
+        for name in sorted(os.listdir(folder)):
+            if name.endswith(".py"):
+                with open(os.path.join(folder, name), "rb") as f:
+                    h.update(f.read())
+        _SOURCE.append(h.hexdigest())
+    return _SOURCE[0]
+
+
+def _program_text(closed, width: int, batched) -> str:
+    """What determines a kernel: the jaxpr (its text and its constants' bytes), the lanes and
+    which inputs are batched."""
+    consts = hashlib.sha256()
+    for c in closed.consts:
+        c = np.asarray(c)
+        consts.update(f"{c.dtype}{c.shape}".encode())
+        consts.update(np.ascontiguousarray(c).tobytes())
+    return f"{closed.jaxpr}\n{consts.hexdigest()}\n{width}\n{list(batched)}"
+
+
+def _key(text: str) -> str:
+    L = _binding()
+    h = hashlib.sha256()
+    for part in (L["version"], L["triple"], L["cpu"], L["features"], _translator_digest(), text):
+        h.update(part.encode())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def _path(key: str) -> str:
+    return os.path.join(cache_dir(), key[:2], key + ".o")
+
+
+def _cached(key: str):
+    """The cached object code of `key`, or None."""
+    try:
+        with open(_path(key), "rb") as f:
+            return f.read()
+    except OSError:
+        return None
+
+
+def _store(key: str, obj: bytes) -> None:
+    path = _path(key)
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.tmp"
+        with open(tmp, "wb") as f:
+            f.write(obj)
+        os.replace(tmp, path)  # atomic: a reader sees the whole object or none
+    except OSError:
+        pass  # a cache that cannot be written only costs the next compile
+
+
+def compile_ir(text: str) -> bytes:
+    """Object code of the IR `text` for the host, optimised by LLVM's O2 pipeline."""
+    L = _binding()
+    llvm = L["llvm"]
+    mod = llvm.parse_assembly(text)
+    mod.verify()
+    pb = llvm.create_pass_builder(L["tm"], llvm.create_pipeline_tuning_options(speed_level=2))
+    pb.getModulePassManager().run(mod, pb)
+    return L["tm"].emit_object(mod)
+
+
+_ENGINES: list = []
+
+
+def _load(obj: bytes) -> int:
+    """The address of `kernel` in the object code `obj`, loaded by an MCJIT engine of its own.
+    The engine and the object are kept for the life of the process and never disposed by
+    llvmlite (`detach`): an engine given an object file owns it, and disposing both (as their
+    finalisers would, in either order) frees it twice. A process compiles a kernel once per
+    program (the callers keep them), so what is kept is bounded by the programs it runs."""
+    L = _binding()
+    llvm = L["llvm"]
+    with _LOCK:
+        engine = llvm.create_mcjit_compiler(llvm.parse_assembly(""), L["tm"])
+        ref = llvm.ObjectFileRef.from_data(obj)
+        engine.add_object_file(ref)
+        engine.finalize_object()
+        address = engine.get_function_address("kernel")
+        ref.detach()
+        engine.detach()
+        _ENGINES.append((engine, ref, obj))
+    return address
+
+
+_SIGNATURE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
+
+
+class Kernel:
+    """The compiled kernel of a closed jaxpr of one member. Call it with the batch's arrays,
+    each of shape (B, *the member's shape), in the order of the jaxpr's inputs; it returns the
+    outputs, each (B, *shape)."""
+
+    def __init__(self, closed, width: int | None = None, use_cache: bool = True, batched=None):
+        self.width = width or host_lanes()
+        self.in_avals = [v.aval for v in closed.jaxpr.invars]
+        self.out_avals = [v.aval for v in closed.jaxpr.outvars]
+        self.batched = [True] * len(self.in_avals) if batched is None else [bool(x) for x in batched]
+        key = _key(_program_text(closed, self.width, self.batched))
+        obj = _cached(key) if use_cache else None
+        self.from_cache = obj is not None
+        if obj is None:
+            obj = compile_ir(build_ir(closed, self.width, self.batched))
+            if use_cache:
+                _store(key, obj)
+        self._fn = _SIGNATURE(_load(obj))
+
+    def __call__(self, *arrays, threads: int = 1):
+        if len(arrays) != len(self.in_avals):
+            raise TypeError(f"expected {len(self.in_avals)} arrays, got {len(arrays)}")
+        B = next(int(np.shape(a)[0]) for a, bat in zip(arrays, self.batched) if bat)
+        W = self.width
+        blocks = -(-B // W)
+        stride = blocks * W
+        buffers = []
+        for a, aval, bat in zip(arrays, self.in_avals, self.batched):
+            a = np.asarray(a)
+            if not bat:
+                if a.shape != tuple(aval.shape):
+                    raise ValueError(f"expected a shared array of shape {tuple(aval.shape)}, got {a.shape}")
+                buffers.append(np.ascontiguousarray(a.reshape(-1), _storage(aval.dtype)))
+                continue
+            if a.shape != (B,) + tuple(aval.shape):
+                raise ValueError(f"expected an array of shape {(B,) + tuple(aval.shape)}, got {a.shape}")
+            rows = np.empty((int(np.prod(aval.shape, dtype=int)), stride), _storage(aval.dtype))
+            rows[:, :B] = a.reshape(B, -1).T
+            rows[:, B:] = rows[:, B - 1:B] if B else 0  # padding lanes repeat the last member
+            buffers.append(rows)
+        outs = [np.empty((int(np.prod(a.shape, dtype=int)), stride), _storage(a.dtype)) for a in self.out_avals]
+        pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[x.ctypes.data for x in buffers + outs])
+        address = ctypes.addressof(pointers)
+        threads = max(1, min(int(threads), blocks))
+        if threads == 1:
+            self._fn(address, stride, 0, blocks)
+        else:
+            cuts = np.linspace(0, blocks, threads + 1).astype(int)
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(lambda i: self._fn(address, stride, int(cuts[i]), int(cuts[i + 1])), range(threads)))
+        result = []
+        for rows, aval in zip(outs, self.out_avals):
+            r = rows[:, :B].T.reshape((B,) + tuple(aval.shape))
+            result.append(r.astype(np.bool_) if aval.dtype == np.bool_ else np.ascontiguousarray(r))
+        return result
+

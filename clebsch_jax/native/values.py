@@ -1,0 +1,149 @@
+"""Values of the native translation: one member's arrays as NumPy arrays of lane vectors.
+
+The translation (`clebsch_jax.native.lower`) evaluates a jaxpr of one batch member with every
+array entry held separately: an array of shape `s` is a NumPy object array of shape `s` whose
+entries are either an LLVM value of type `<W x T>` (the entry in the `W` members of the SIMD
+lanes) or a NumPy scalar, the same in every lane (known while translating: constants, shapes,
+loop trip counts). Known entries are folded in NumPy where the operation is exactly rounded;
+every other operation is emitted as one vector instruction per entry. Shapes are static, so
+re-indexing (reshape, transpose, slices, broadcasts) costs nothing in the machine code.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from llvmlite import ir
+
+__all__ = ["Unsupported", "Emitter", "llvm_type", "is_known", "known_array", "FLOATS", "INTS"]
+
+
+class Unsupported(NotImplementedError):
+    """The program uses a primitive (or a form of one) that the native translation does not
+    cover; its message names it. The callers then run the program with XLA."""
+
+
+FLOATS = {np.dtype(np.float64): ir.DoubleType(), np.dtype(np.float32): ir.FloatType()}
+INTS = {np.dtype(t): ir.IntType(8 * np.dtype(t).itemsize) for t in
+        (np.int8, np.int16, np.int32, np.int64, np.uint8, np.uint16, np.uint32, np.uint64)}
+BOOL = ir.IntType(1)
+
+
+def llvm_type(dtype) -> ir.Type:
+    """The LLVM scalar type of a NumPy dtype (bool is i1)."""
+    dtype = np.dtype(dtype)
+    if dtype == np.bool_:
+        return BOOL
+    if dtype in FLOATS:
+        return FLOATS[dtype]
+    if dtype in INTS:
+        return INTS[dtype]
+    raise Unsupported(f"dtype {dtype}")
+
+
+def is_known(e) -> bool:
+    """Whether an entry is known while translating (a NumPy scalar, the same in every lane)."""
+    return not isinstance(e, ir.Value)
+
+
+def known_array(a) -> np.ndarray:
+    """A concrete array as an array of known entries."""
+    a = np.asarray(a)
+    out = np.empty(a.shape, object)
+    for idx in np.ndindex(a.shape):
+        out[idx] = a[idx]
+    return out
+
+
+class Emitter:
+    """The IR builder of one kernel with its lane width `W`: constants as vectors, selects,
+    allocas in the entry block, intrinsics and libm calls, and the mask of the lanes that the
+    code being emitted computes for (`mask`: None for every lane; a while loop's body is
+    emitted under the mask of the lanes still iterating, so that loops nested in it stop when
+    those lanes have stopped)."""
+
+    def __init__(self, module: ir.Module, builder: ir.IRBuilder, width: int, entry: ir.Block):
+        self.module, self.b, self.W, self.entry = module, builder, width, entry
+        self.mask = None
+        self._decls: dict = {}
+
+    # -- types and constants -------------------------------------------------------------
+    def vtype(self, dtype) -> ir.VectorType:
+        return ir.VectorType(llvm_type(dtype), self.W)
+
+    def const(self, value, dtype) -> ir.Constant:
+        dtype = np.dtype(dtype)
+        t = llvm_type(dtype)
+        if dtype == np.bool_:
+            c = ir.Constant(t, int(bool(value)))
+        elif dtype in FLOATS:
+            c = ir.Constant(t, float(value))
+        else:
+            c = ir.Constant(t, int(value))
+        return ir.Constant(ir.VectorType(t, self.W), [c] * self.W)
+
+    def vec(self, e, dtype):
+        """An entry as a vector value of `dtype` (a known entry becomes a constant vector)."""
+        return self.const(e, dtype) if is_known(e) else e
+
+    # -- memory ---------------------------------------------------------------------------
+    def alloca(self, ty: ir.Type, name: str = ""):
+        """An alloca in the entry block (where LLVM's mem2reg turns it into registers)."""
+        b = self.b
+        block = b.block
+        b.position_at_start(self.entry)
+        ptr = b.alloca(ty, name=name)
+        b.position_at_end(block)
+        return ptr
+
+    # -- lane operations --------------------------------------------------------------------
+    def select(self, cond, a, b, dtype):
+        """Entry-wise `cond ? a : b` (cond an i1 entry); folded when cond is known."""
+        if is_known(cond):
+            return a if bool(cond) else b
+        if is_known(a) and is_known(b) and np.asarray(a) == np.asarray(b) and np.dtype(dtype).kind != "f":
+            return a
+        return self.b.select(cond, self.vec(a, dtype), self.vec(b, dtype))
+
+    def any_lane(self, cond) -> ir.Value:
+        """An i1 scalar: whether any lane of the i1 vector `cond` is set."""
+        bits = self.b.bitcast(cond, ir.IntType(self.W))
+        return self.b.icmp_unsigned("!=", bits, ir.Constant(ir.IntType(self.W), 0))
+
+    def mask_and(self, cond):
+        """`cond` restricted to the lanes of the current mask."""
+        if self.mask is None:
+            return cond
+        if is_known(cond):
+            return self.mask if bool(cond) else cond
+        return self.b.and_(cond, self.mask)
+
+    # -- functions ----------------------------------------------------------------------------
+    def intrinsic(self, name: str, dtype, n_args: int = 1):
+        """The vector form of an LLVM intrinsic (e.g. "llvm.sqrt")."""
+        vt = self.vtype(dtype)
+        key = (name, vt)
+        if key not in self._decls:
+            fname = f"{name}.v{self.W}{'f64' if np.dtype(dtype) == np.float64 else 'f32'}"
+            self._decls[key] = ir.Function(self.module, ir.FunctionType(vt, [vt] * n_args), fname)
+        return self._decls[key]
+
+    def call_intrinsic(self, name: str, dtype, *args):
+        return self.b.call(self.intrinsic(name, dtype, len(args)), [self.vec(a, dtype) for a in args])
+
+    def libm(self, name: str, dtype, *args):
+        """A scalar libm function (`sin`, `atan2`, …) applied lane by lane."""
+        dtype = np.dtype(dtype)
+        t = llvm_type(dtype)
+        fname = name if dtype == np.float64 else name + "f"
+        key = ("libm", fname)
+        if key not in self._decls:
+            fn = self.module.globals.get(fname) or ir.Function(self.module, ir.FunctionType(t, [t] * len(args)), fname)
+            self._decls[key] = fn
+        fn = self._decls[key]
+        vecs = [self.vec(a, dtype) for a in args]
+        out = ir.Constant(self.vtype(dtype), ir.Undefined)
+        for lane in range(self.W):
+            i = ir.Constant(ir.IntType(32), lane)
+            r = self.b.call(fn, [self.b.extract_element(v, i) for v in vecs])
+            out = self.b.insert_element(out, r, i)
+        return out
