@@ -222,6 +222,7 @@ def test_bad_input_is_rejected_before_compiling(monkeypatch):
 
     monkeypatch.setattr(sw, "_run_chunk", compiled)
     monkeypatch.setattr(sw, "_run_fast_chunk", compiled)
+    monkeypatch.setattr(sw, "_native_program", compiled)
     good = dict(make_system=rigid_body, params=INERTIAS, Q0=eyes(4), xi0=OMEGAS, dt=0.05, n_steps=10)
     cases = [
         (dict(chunk_steps=0), "chunk_steps"),

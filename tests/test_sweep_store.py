@@ -113,16 +113,21 @@ def test_fast_auto_resumes_on_the_path_a_store_was_written_with(reference, tmp_p
     from clebsch_jax.batching.sweep import _resumed
 
     path = tmp_path / "sweep.zarr"
-    assert stored_configuration(path) is None and _resumed("auto", None, path, False) == ("auto", None)  # nothing yet
+    nothing = _resumed("auto", None, path, False, "auto")
+    assert stored_configuration(path) is None and nothing == ("auto", None, "auto")  # nothing yet
     stored(path, fast=False)
     assert stored_configuration(path)["fast"] is False
     written = zarr.open_group(str(path), mode="r").attrs[ATTR]["batch_size"]
-    assert _resumed("auto", None, path, False) == (False, written)
-    assert _resumed("auto", None, path, True) == ("auto", None)  # overwrite: a new sweep
-    assert _resumed(True, 3, path, False) == (True, 3)  # explicit choices stay (and are refused)
+    # a store written before the native backend (no "backend" recorded) resumes on XLA
+    assert _resumed("auto", None, path, False, "auto") == (False, written, "xla")
+    assert _resumed("auto", None, path, True, "auto") == ("auto", None, "auto")  # overwrite: a new sweep
+    assert _resumed(True, 3, path, False, "xla") == (True, 3, "xla")  # explicit choices stay (and are refused)
     fast_store = zarr.open_group(str(tmp_path / "fast.zarr"), mode="w")
     fast_store.attrs[ATTR] = {"fast": True}
-    assert _resumed("auto", None, tmp_path / "fast.zarr", False) == (True, None)
+    assert _resumed("auto", None, tmp_path / "fast.zarr", False, "auto") == (True, None, "xla")
+    native_store = zarr.open_group(str(tmp_path / "native.zarr"), mode="w")
+    native_store.attrs[ATTR] = {"fast": False, "backend": "native", "batch_size": 8}
+    assert _resumed("auto", None, tmp_path / "native.zarr", False, "auto") == (False, 8, "native")
     zarr.open_group(str(tmp_path / "other.zarr"), mode="w").attrs["x"] = 1  # not a sweep's store
     assert stored_configuration(tmp_path / "other.zarr") is None
     assert_same_table(stored(path), reference)  # the default, "auto", reads the stored table back

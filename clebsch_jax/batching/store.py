@@ -124,6 +124,7 @@ def configuration(plan) -> dict:
         "order": shapes.facts["order"],
         "options": {k: _describe(v) for k, v in cfg.options},
         "fast": cfg.fast_method is not None,  # the fast path agrees with the general one to round-off only
+        **({"backend": "native"} if getattr(cfg, "native", False) else {}),  # stores before it ran XLA
         "dt": float(dts[0]) if len(dts) == 1 else "one per member",
         "n_steps": run.n_steps,
         "chunk_steps": run.chunk_steps,

@@ -37,6 +37,7 @@ import numbers
 import os
 import sys
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, NamedTuple
 
@@ -62,9 +63,12 @@ from ..roots.status import Status
 from ..steppers.base import AbstractWrapper
 from ..steppers.choose import choose_method as _choose_method
 from ..steppers.full import FullStep
+from .backends import NativeProgram, check_backend as _check_backend, native_unavailable as _native_unavailable
+from .backends import warn_once as _warn_once
 from .batch_last import batch
 from .fast import fast_method as _fast_method
 from .lean import carries_Q as _lean_carries_Q, lean_chunk, supports as _lean_supports
+from .member import MemberCarry, member_chunk
 from .scalarise import scalarise
 
 __all__ = ["sweep", "SweepResult", "SweepProgress"]
@@ -127,20 +131,23 @@ def _auto_lean(B: int, n_steps: int) -> bool:
     return B >= AUTO_LEAN_MIN_MEMBERS and B * n_steps >= AUTO_LEAN_MIN_MEMBER_STEPS
 
 
-def _resumed(fast, batch_size, store, overwrite: bool):
-    """`(fast, batch_size)`, except that with a `store` that holds a sweep (and no `overwrite`)
-    "auto" is the path that sweep ran and None the batch size it ran with, so that it resumes
-    (the store refuses another path or batch size) whatever the defaults are now."""
-    if store is None or overwrite or (fast != "auto" and batch_size is not None):
-        return fast, batch_size
+def _resumed(fast, batch_size, store, overwrite: bool, backend: str = "xla"):
+    """`(fast, batch_size, backend)`, except that with a `store` that holds a sweep (and no
+    `overwrite`) "auto" is the path and the backend that sweep ran (a store written before the
+    native backend ran XLA) and None the batch size it ran with, so that it resumes (the store
+    refuses another path, backend or batch size) whatever the defaults are now."""
+    if store is None or overwrite or (fast != "auto" and batch_size is not None and backend != "auto"):
+        return fast, batch_size, backend
     from .store import stored_configuration
 
     stored = stored_configuration(store) or {}
+    if stored and backend == "auto":
+        backend = stored.get("backend", "xla")
     if fast == "auto" and "fast" in stored:
         fast = bool(stored["fast"])
     if batch_size is None and isinstance(stored.get("batch_size"), int):
         batch_size = stored["batch_size"]
-    return fast, batch_size
+    return fast, batch_size, backend
 
 
 # --------------------------------------------------------------------------------------------
@@ -339,6 +346,7 @@ class _Config:
     check_energy: bool = True  # the energy check, made by the sweep over the whole run (`_energy_check`)
     lean: bool = False  # the fast path runs the lean chunk (`clebsch_jax.batching.lean`)
     derive_P: bool = False  # the run's first chunk derives the initial multiplier (`_with_start_P`)
+    native: bool = False  # the batches run the per-member program as native kernels (`_native_call`)
 
 
 def _integrate(cfg: _Config, system, Q, xi, P, t, dt, n):
@@ -500,6 +508,61 @@ def _fast_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
 
 _fast_program = jax.jit(_fast_chunk, static_argnums=0)
 _lean_program = jit_with_options(_fast_chunk, LEAN_COMPILE, static_argnums=0)
+
+
+def _native_member(cfg: _Config, params, shared, carry: MemberCarry, dt, first, offset) -> MemberCarry:
+    """One member's chunk as the per-member program (`clebsch_jax.batching.member`): the method
+    `integrate` chooses for it, its solves to their own stopping rule, the reductions in the loop."""
+    system = _system_of(cfg, params, shared)
+    stepper, _, _ = prepared_method(system, carry.Q, carry.xi, dt=dt, n_steps=cfg.n, P0=carry.P, t0=carry.t,
+                                    **dict(cfg.options))
+    return member_chunk(stepper, system, carry, dt, cfg.n, first, offset, check_energy=cfg.check_energy,
+                        derive_P=cfg.derive_P)
+
+
+def _as_member(carry: _Carry) -> MemberCarry:
+    """The sweep's carry (energy the only invariant) as the per-member program's, on the host."""
+    h = lambda a: np.asarray(a)
+    return MemberCarry(Q=h(carry.Q), P=h(carry.P), xi=h(carry.xi), t=h(carry.t), status=h(carry.status),
+                       failed_step=h(carry.failed_step), iterations=h(carry.iterations),
+                       max_residual=h(carry.max_residual), energy0=h(carry.initial["energy"]),
+                       drift=h(carry.drift["energy"]), momentum=h(carry.momentum),
+                       energy_change=h(carry.energy_change), energy_size=h(carry.energy_size))
+
+
+def _from_member(m: MemberCarry, has_xi: bool) -> _Carry:
+    return _Carry(Q=m.Q, P=m.P, xi=m.xi, t=m.t, status=m.status, failed_step=m.failed_step, iterations=m.iterations,
+                  max_residual=m.max_residual, initial={"energy": m.energy0}, drift={"energy": m.drift},
+                  momentum=m.momentum, final_xi=m.xi if has_xi else None, energy_change=m.energy_change,
+                  energy_size=m.energy_size)
+
+
+_NATIVE_AXES = (0, None, 0, 0, None, None)
+
+
+def _native_program(cfg: _Config, params, shared, carry: MemberCarry, dt):
+    """The native kernel of `_native_member` for this configuration and these shapes (compiled
+    once per process; from the disk cache when another process compiled it)."""
+    row = lambda tree: jax.tree_util.tree_map(lambda a: np.asarray(a)[0], tree)
+    args = (row(params), None if shared is None else [np.asarray(x) for x in shared], row(carry), row(dt),
+            np.asarray(True), np.asarray(0, np.int32))
+    fun = functools.partial(_native_member, cfg)
+
+    def traced(*a):
+        with undifferentiated():  # a sweep is never differentiated: no derivative rules traced
+            return fun(*a)
+
+    return NativeProgram.get(("sweep", _trace_key(cfg, args)), traced, args, _NATIVE_AXES)
+
+
+def _native_call(c: _Config, one: "_Batch", st: int) -> _Carry:
+    """One chunk of a batch by its native kernel: the batch's carry after it (host arrays)."""
+    carry = _as_member(one.carry)
+    program = _native_program(c, one.params, one.shared, carry, one.dt)
+    shared = None if one.shared is None else [np.asarray(x) for x in one.shared]
+    params = jax.tree_util.tree_map(np.asarray, one.params)
+    new = program(params, shared, carry, np.asarray(one.dt), np.asarray(st == 0), np.asarray(st, np.int32))
+    return _from_member(new, one.carry.final_xi is not None)
 
 
 @functools.partial(jit_with_options, compiler_options=QUICK_COMPILE)
@@ -816,6 +879,42 @@ def _lean_applies(cfg: _Config, members: _Members, method) -> bool:
     return _lean_supports(method, _system_of(cfg, _first_row(members), members.shared))
 
 
+def _native_why(cfg: _Config, run: _Run) -> str | None:
+    """Why the per-member program cannot run this sweep natively (None: it can)."""
+    why = _native_unavailable(run.devices)
+    if why is not None:
+        return why
+    if run.save_every is not None:
+        return "the sweep saves nodes (save_every), which the per-member program does not record"
+    if [name for name, _ in cfg.invariants] != ["energy"] or cfg.invariants[0][1] is not _diagnostics.energy:
+        return "the sweep has invariants besides the energy (functions of a chunk's Solution)"
+    return None
+
+
+def _native_config(cfg: _Config, run: _Run, members: _Members, backend: str):
+    """`(cfg, shapes)` for the native backend where it applies: the member checked as
+    `integrate` checks it, and the program of a chunk compiled (from the disk cache when it is
+    there). Where it does not apply: `backend="native"` is refused with the reason, "auto"
+    says the reason once and keeps XLA (`(cfg, None)`)."""
+    why = _native_why(cfg, run)
+    shapes = None
+    if why is None:
+        from ..native import Unsupported
+
+        shapes = _probe(cfg, members, lean=True)  # integrate's checks of a member, no march traced
+        native = dataclasses.replace(cfg, native=True)
+        one = _start_batch(native, members, shapes, 0, 1, None)
+        try:
+            _native_program(native, one.params, one.shared, _as_member(one.carry), one.dt)
+            return native, shapes
+        except Unsupported as err:
+            why = f"the per-member program uses {err}, which the native translation does not cover"
+    if backend == "native":
+        raise ValueError(f"backend='native': {why}.")
+    _warn_once(why)
+    return cfg, shapes
+
+
 class _Shapes(NamedTuple):
     """One member's shapes and the facts of its march."""
 
@@ -1089,6 +1188,9 @@ def _call(cfg: _Config, c: _Config, run: _Run, chunks: list, st: int, n: int, sa
     when the general path's programs have run (called from a thread of a group: the group's
     batches then run side by side; a batch alone dispatches them and goes on). Returns the
     fast call's (chunks, members rerun), or None without one."""
+    if cfg.native:
+        one.carry = _native_call(c, one, st)
+        return None
     if cfg.fast_method is None or one.fallbacks_in_a_row >= FAST_GIVE_UP:
         # the general path: for every batch without a fast method, or given up
         one.carry = (_general_chunks(cfg, run, one, chunks, saved) if cfg.fast_method is None
@@ -1197,7 +1299,7 @@ def _run_batches(plan: _Plan, batches: list, devices: list, report: Callable) ->
     _run_chunks(cfg, group, run, tables.saved, report, fell_back)
     used = set()
     for one in group:
-        used.update(one.carry.status.devices())
+        used.update(one.carry.status.devices() if hasattr(one.carry.status, "devices") else ["native"])
         _collect(tables, one, run)
     fast = (sum(k for k, _ in fell_back), sum(k for k, m in fell_back if m), sum(k * m for k, m in fell_back))
     return _Rows(list(batches), rows, tables, used, fast)
@@ -1233,7 +1335,7 @@ def sweep(
     invariants: dict | None = None, chunk_steps: int | None = None, batch_size: int | None = None,
     save_every: int | None = None, member_chunk: int | None = None, devices=None, progress=False,
     store=None, client=None, overwrite: bool = False, fast: bool | str = "auto", threads: int | None = None,
-    **options,
+    backend: str = "auto", **options,
 ) -> SweepResult:
     r"""Run many members — parameters × initial conditions — through `integrate`; keep a table.
 
@@ -1384,24 +1486,36 @@ def sweep(
         check_arguments(store, client, overwrite)
     if not (isinstance(fast, bool) or (isinstance(fast, str) and fast == "auto")):
         raise ValueError(f"fast: expected True, False or 'auto', got {fast!r}.")
+    backend = _check_backend(backend)
+    if fast != "auto":
+        warnings.warn("sweep: fast= is deprecated; it chooses among XLA's paths, and implies backend='xla' "
+                      "(the default backend='auto' runs native kernels where they apply).", DeprecationWarning,
+                      stacklevel=2)
+        if backend == "native":
+            raise ValueError("fast: chooses among XLA's paths; it cannot be combined with backend='native'.")
+        backend = "xla"
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
     B, n_dev = members.B, len(run.devices)
     n_threads = _threads(threads, run.devices, B)  # checked also where a Dask client's tasks take 1
     run = run._replace(threads=n_threads if client is None else 1)
     cfg = _particle_defaults(_chunk_config(run, members, options), members)
-    fast, batch_size = _resumed(fast, batch_size, store, overwrite)
+    fast, batch_size, backend = _resumed(fast, batch_size, store, overwrite, backend)
+    if batch_size is not None:
+        batch_size = _positive_int(batch_size, "batch_size")
     shapes, general = None, cfg
-    if fast is True or (fast == "auto" and _auto_lean(B, run.n_steps)):
+    if backend != "xla":
+        cfg, shapes = _native_config(cfg, run, members, backend)
+    if not cfg.native and (fast is True or (fast == "auto" and _auto_lean(B, run.n_steps))):
         shapes = _probe(cfg, members, lean=True)  # the member checked before a method is chosen on it
         method = _fast_method_of(cfg, members)
         lean = _lean_applies(cfg, members, method)
         if fast is True or lean:  # "auto" takes the fast path only as the lean chunk
             cfg = dataclasses.replace(cfg, fast_method=method, lean=lean)
-    if not cfg.lean:  # the general chunk's shapes, from a trace of its march (cached by `general`)
+    if not (cfg.lean or cfg.native):  # the general chunk's shapes, from a trace of its march (cached by `general`)
         shapes = _probe(general, members, configurations=shapes is None)
     if batch_size is None:  # every device, and every thread of each, gets a batch
         per_slot = -(-B // (n_dev * run.threads))
-        if cfg.lean:  # batches of equal size (no padded members), at most _DEFAULT_BATCH_LEAN
+        if cfg.lean or cfg.native:  # batches of equal size (no padded members), at most _DEFAULT_BATCH_LEAN
             batch_size = -(-per_slot // -(-per_slot // _DEFAULT_BATCH_LEAN))
         else:
             batch_size = min(per_slot, _DEFAULT_BATCH)

@@ -11,7 +11,11 @@ from __future__ import annotations
 
 __all__ = ["available", "compile_member", "Unsupported", "NativeFunction"]
 
-from .values import Unsupported
+
+class Unsupported(NotImplementedError):
+    """The program uses a primitive (or a form of one) that the native translation does not
+    cover; its message names it. The callers then run the program with XLA. (Defined here, not
+    beside the translation, so that it can be named where llvmlite cannot be imported.)"""
 
 
 def available() -> bool:

@@ -24,19 +24,19 @@ __all__ = ["SHORT_SCAN"]
 SHORT_SCAN = 4
 """Scans of at most this many iterations are unrolled (no loop, no arrays in memory) ..."""
 
-UNROLL_BUDGET = 4000
-"""... and longer ones whose body, counted in equations (nested ones included), times their
-length stays within this budget: their counter is then known in each copy, so that indexing
-by it (the column loops of small matrix factorisations) costs no code."""
+UNROLL_BUDGET = 20_000
+"""... and longer ones whose body, counted in entries computed (`_size`), times their length
+stays within this budget: their counter is then known in each copy, so that indexing by it
+(the column loops of small matrix factorisations) costs no code."""
 
 
 def _size(jaxpr) -> int:
-    """Equations of a jaxpr, those of the jaxprs in its parameters included."""
+    """Entries a jaxpr computes (each equation's outputs; nested jaxprs counted once)."""
     from jax.extend import core as jcore
 
     n = 0
     for eqn in jaxpr.eqns:
-        n += 1
+        n += sum(int(np.prod(v.aval.shape, dtype=int)) for v in eqn.outvars if hasattr(v.aval, "shape")) or 1
         for v in eqn.params.values():
             for x in (v if isinstance(v, (tuple, list)) else [v]):
                 if isinstance(x, jcore.ClosedJaxpr):

@@ -197,16 +197,43 @@ def _dynamic_update_slice(em: Emitter, eqn, args):
 # Gathers.
 
 
-def _apply_to_positions(eqn, operand_shape, idx, primitive=None, **changes):
-    """The primitive of `eqn` (or `primitive`) applied to the operand's flat positions with the
-    concrete indices `idx`: where each output entry comes from."""
-    import jax
+def _gather_map(eqn, operand_shape, idx) -> np.ndarray:
+    """Where each output entry of the gather `eqn` comes from with the concrete indices `idx`:
+    the operand's flat position, or -1 where the gather fills (XLA's gather semantics, with
+    the index vector on the last axis of the indices)."""
+    p = eqn.params
+    dn, sizes = p["dimension_numbers"], p["slice_sizes"]
+    fill = "FILL" in str(p["mode"])
+    rank = len(operand_shape)
+    window_dims = [d for d in range(rank) if d not in dn.collapsed_slice_dims and d not in dn.operand_batching_dims]
+    out_shape = eqn.outvars[0].aval.shape
+    batch_out = [d for d in range(len(out_shape)) if d not in dn.offset_dims]
+    strides = _strides(operand_shape)
+    his = [operand_shape[d] - sizes[d] for d in range(rank)]
+    where = np.full(out_shape, -1, np.int64)
+    for o in np.ndindex(out_shape):
+        bpos = tuple(o[d] for d in batch_out)
+        where[o] = _place(idx[bpos], dn.start_index_map, bpos, dn.operand_batching_dims, dn.start_indices_batching_dims,
+                          his, fill, [o[d] for d in dn.offset_dims], window_dims, strides)
+    return where
 
-    positions = np.arange(int(np.prod(operand_shape, dtype=int)), dtype=np.int64).reshape(operand_shape)
-    params = {**eqn.params, **changes}
-    with jax.ensure_compile_time_eval():
-        return np.asarray((primitive or eqn.primitive).bind(jax.numpy.asarray(positions), jax.numpy.asarray(idx),
-                                                            **params))
+
+def _place(vector, index_dims, bpos, batching_dims, index_batching_dims, his, drop, window, window_dims, strides):
+    """The flat operand position of one window entry: the start from the index `vector` (along
+    `index_dims`) and the batch position (along `batching_dims`), then the window's
+    coordinates; -1 where `drop` and the start is out of range, else the start clamped."""
+    rank = len(his)
+    start = [0] * rank
+    for j, d in enumerate(index_dims):
+        start[d] = int(vector[j])
+    for k, d in enumerate(batching_dims):
+        start[d] = bpos[index_batching_dims[k]]
+    if drop and not all(0 <= start[d] <= his[d] for d in range(rank)):
+        return -1
+    start = [min(max(v, 0), hi) for v, hi in zip(start, his)]
+    for w, d in zip(window, window_dims):
+        start[d] += w
+    return sum(v * st for v, st in zip(start, strides))
 
 
 def _fill_value(eqn):
@@ -229,7 +256,7 @@ def _gather(em: Emitter, eqn, args):
     # place each index vector's window, and its starts move it along `start_index_map` only
     if all(is_known(x) for x in indices.flat):
         idx = np.asarray([x for x in indices.flat], idx_dtype).reshape(indices.shape)
-        where = _apply_to_positions(eqn, a.shape, idx, fill_value=-1)
+        where = _gather_map(eqn, a.shape, idx)
         out = np.empty(where.shape, object)
         for i in np.ndindex(where.shape):
             out[i] = flat[where[i]] if where[i] >= 0 else fill
@@ -247,7 +274,7 @@ def _gather(em: Emitter, eqn, args):
     # where each output entry comes from when every start is 0; a start c_j moves the window
     # by c_j along operand dimension start_index_map[j] (windows are contiguous)
     zero = np.zeros(indices.shape, idx_dtype)
-    where0 = _apply_to_positions(eqn, a.shape, zero, fill_value=-1)
+    where0 = _gather_map(eqn, a.shape, zero)
     for bpos in np.ndindex(indices.shape[:-1]):
         comps = [indices[bpos + (j,)] for j in range(indices.shape[-1])]
         mine = [o for o in np.ndindex(out_shape) if tuple(o[d] for d in batch_dims) == bpos]
@@ -283,22 +310,24 @@ def _gather(em: Emitter, eqn, args):
 # Scatters (known indices, or a few places).
 
 
-def _scatter_targets(eqn, operand_shape, updates_shape, idx):
-    """For each update entry, the flat operand position it lands on (-1: dropped)."""
-    import jax
-    from jax import lax
-
-    ids = np.arange(int(np.prod(updates_shape, dtype=int)), dtype=np.int64).reshape(updates_shape)
-    params = {k: v for k, v in eqn.params.items() if k in ("dimension_numbers", "indices_are_sorted",
-                                                             "unique_indices", "mode")}
-    with jax.ensure_compile_time_eval():
-        landed = np.asarray(lax.scatter_p.bind(jax.numpy.full(operand_shape, -1, np.int64), jax.numpy.asarray(idx),
-                                               jax.numpy.asarray(ids), update_jaxpr=None, update_consts=(),
-                                               **params))
-    target = np.full(ids.size, -1, np.int64)
-    for pos, u in enumerate(landed.reshape(-1)):
-        if u >= 0:
-            target[u] = pos
+def _scatter_targets(eqn, operand_shape, updates_shape, idx) -> np.ndarray:
+    """For each update entry (flat), the flat operand position it lands on, or -1 where XLA
+    drops it (`FILL_OR_DROP` and a window outside the operand); starts clamped otherwise."""
+    p = eqn.params
+    dn = p["dimension_numbers"]
+    drop = "FILL" in str(p["mode"])
+    rank = len(operand_shape)
+    scatter_dims = [d for d in range(len(updates_shape)) if d not in dn.update_window_dims]
+    window_dims = [d for d in range(rank) if d not in dn.inserted_window_dims and d not in dn.operand_batching_dims]
+    window_size = dict(zip(window_dims, (updates_shape[d] for d in dn.update_window_dims)))
+    strides = _strides(operand_shape)
+    his = [operand_shape[d] - window_size.get(d, 1) for d in range(rank)]
+    target = np.full(int(np.prod(updates_shape, dtype=int)), -1, np.int64)
+    for n, u in enumerate(np.ndindex(tuple(updates_shape))):
+        spos = tuple(u[d] for d in scatter_dims)
+        target[n] = _place(idx[spos], dn.scatter_dims_to_operand_dims, spos, dn.operand_batching_dims,
+                           dn.scatter_indices_batching_dims, his, drop, [u[d] for d in dn.update_window_dims],
+                           window_dims, strides)
     return target
 
 

@@ -13,8 +13,8 @@ The IR is optimised by LLVM's default pipeline (O2, no fast-math: every floating
 operation is the one the jaxpr names, in its order) for the host's CPU and features, and the
 object code is cached on disk under the hash of the jaxpr (its text and constants), the
 lanes, the CPU, its features, the llvmlite version and the translation's own source
-(`cache_dir`): a program found there is neither translated nor compiled again. A call of the kernel from ctypes releases the GIL, so threads
-run blocks side by side.
+(`cache_dir`): a program found there is neither translated nor compiled again. A call of
+the kernel from ctypes releases the GIL, so threads run blocks side by side.
 """
 
 from __future__ import annotations

@@ -35,6 +35,7 @@ def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
         rule = RULES.get(eqn.primitive.name)
         if rule is None:
             raise Unsupported(f"primitive {eqn.primitive.name!r}")
+        em.count(sum(int(np.prod(v.aval.shape, dtype=int)) for v in eqn.outvars if hasattr(v.aval, "shape")))
         outs = rule(em, eqn, [read(v) for v in eqn.invars])
         if not eqn.primitive.multiple_results:
             outs = [outs]
@@ -251,7 +252,8 @@ def _elementwise(em: Emitter, eqn, args):
 
 _ALIASES = {"add_any": "add"}
 
-_ELEMENTWISE = """add add_any sub mul div rem neg max min abs sqrt rsqrt floor ceil round square sign is_finite eq ne lt le
+_ELEMENTWISE = """add add_any sub mul div rem neg max min abs sqrt rsqrt floor ceil round square sign is_finite eq ne
+lt le
 gt ge integer_pow exp log sin cos tan tanh atan asin acos sinh cosh asinh acosh atanh expm1 log1p cbrt erf erfc exp2
 atan2 pow logistic and or xor not shift_left shift_right_arithmetic shift_right_logical copy copy_p
 stop_gradient""".split()
@@ -617,7 +619,8 @@ RULES = {name: _elementwise for name in _ELEMENTWISE}
 RULES.update(
     select_n=_select_n, convert_element_type=_convert, clamp=_clamp, broadcast_in_dim=_broadcast_in_dim,
     reshape=_reshape, squeeze=_squeeze, expand_dims=_expand_dims, transpose=_transpose, slice=_slice,
-    concatenate=_concatenate, stack=_stack, unstack=_unstack, rev=_rev, split=_split, pad=_pad, iota=_iota, optimization_barrier=_identity,
+    concatenate=_concatenate, stack=_stack, unstack=_unstack, rev=_rev, split=_split, pad=_pad, iota=_iota,
+    optimization_barrier=_identity,
     reduce_precision=_identity, dot_general=_dot_general, reduce_sum=_reduce("add"), reduce_prod=_reduce("mul"),
     reduce_max=_reduce("max"), reduce_min=_reduce("min"), reduce_and=_reduce("and"), reduce_or=_reduce("or"),
     argmax=_argminmax(True), argmin=_argminmax(False), cumsum=_cumulative("add"), cumprod=_cumulative("mul"),

@@ -14,18 +14,30 @@ from __future__ import annotations
 import numpy as np
 from llvmlite import ir
 
+from . import Unsupported
+
 __all__ = ["Unsupported", "Emitter", "llvm_type", "is_known", "known_array", "FLOATS", "INTS"]
-
-
-class Unsupported(NotImplementedError):
-    """The program uses a primitive (or a form of one) that the native translation does not
-    cover; its message names it. The callers then run the program with XLA."""
 
 
 FLOATS = {np.dtype(np.float64): ir.DoubleType(), np.dtype(np.float32): ir.FloatType()}
 INTS = {np.dtype(t): ir.IntType(8 * np.dtype(t).itemsize) for t in
         (np.int8, np.int16, np.int32, np.int64, np.uint8, np.uint16, np.uint32, np.uint64)}
 BOOL = ir.IntType(1)
+
+
+class _Splat(ir.Constant):
+    """A vector constant with every lane equal, written `splat (T c)`: one scalar in the IR
+    text instead of one per lane (the text's size and its printing time follow)."""
+
+    def __init__(self, vector_type: ir.VectorType, scalar: ir.Constant):
+        super().__init__(vector_type, [scalar] * vector_type.count)
+        self._ref = f"splat ({scalar.type} {scalar.get_reference()})"
+
+    def get_reference(self):
+        return self._ref
+
+    def _to_string(self):
+        return self._ref
 
 
 def llvm_type(dtype) -> ir.Type:
@@ -54,6 +66,11 @@ def known_array(a) -> np.ndarray:
     return out
 
 
+MAX_ENTRIES = 200_000
+"""The most entries (values of one member, each an instruction or a known number) a program
+may translate to: beyond it the code, unrolled entry by entry, compiles too slowly to pay."""
+
+
 class Emitter:
     """The IR builder of one kernel with its lane width `W`: constants as vectors, selects,
     allocas in the entry block, intrinsics and libm calls, and the mask of the lanes that the
@@ -65,6 +82,15 @@ class Emitter:
         self.module, self.b, self.W, self.entry = module, builder, width, entry
         self.mask = None
         self._decls: dict = {}
+        self._consts: dict = {}
+        self.entries = 0
+
+    def count(self, entries: int) -> None:
+        """Entries translated so far: a program past `MAX_ENTRIES` is refused (`Unsupported`)."""
+        self.entries += entries
+        if self.entries > MAX_ENTRIES:
+            raise Unsupported(f"a program of more than {MAX_ENTRIES} entries (members with many components: "
+                              "their matrices unrolled entry by entry outgrow a kernel)")
 
     # -- types and constants -------------------------------------------------------------
     def vtype(self, dtype) -> ir.VectorType:
@@ -72,14 +98,20 @@ class Emitter:
 
     def const(self, value, dtype) -> ir.Constant:
         dtype = np.dtype(dtype)
-        t = llvm_type(dtype)
         if dtype == np.bool_:
-            c = ir.Constant(t, int(bool(value)))
+            value = bool(value)
         elif dtype in FLOATS:
-            c = ir.Constant(t, float(value))
+            value = float(value)
         else:
-            c = ir.Constant(t, int(value))
-        return ir.Constant(ir.VectorType(t, self.W), [c] * self.W)
+            value = int(value)
+        key = (dtype, value if not (dtype in FLOATS and value != value) else "nan",
+               np.copysign(1.0, value) if dtype in FLOATS else 0)
+        found = self._consts.get(key)
+        if found is None:
+            t = llvm_type(dtype)
+            found = self._consts[key] = _Splat(ir.VectorType(t, self.W), ir.Constant(t, int(value) if dtype == np.bool_
+                                                                                     else value))
+        return found
 
     def vec(self, e, dtype):
         """An entry as a vector value of `dtype` (a known entry becomes a constant vector)."""

@@ -1,0 +1,189 @@
+r"""The per-member program of a sweep: one member's chunk of steps with its reductions in the loop.
+
+A sweep keeps per-member reductions, not trajectories. `member_chunk` makes `n` steps of one
+member from the sweep's carry with the stepper `integrate` chooses — its solves iterate to
+their own stopping rule, as in `integrate` — and at each new node, in the same loop body:
+
+- the nodal velocity (Lemma 7: $\delta l/\delta\xi(\xi, Q) = \mu$), solved by the stepper's
+  nodal solver from the velocity of the step arriving at the node;
+- the energy $E = \langle\delta l/\delta\xi, \xi\rangle - l$, its drift from the run's first
+  node, and `integrate`'s energy check (`clebsch_jax.march.scan.jump_step`);
+- the member's status: the status and step of its first failure (a step's solve, a node's
+  velocity, an energy jump, an invalid input), after which its values are NaN.
+
+Nothing is stored per step, so the program of a chunk is one loop whose body is a step: its
+size does not grow with the chunk's length. It is the program both batch backends evaluate
+(`clebsch_jax.batching.backends`): XLA under `jax.vmap`, or the native kernel
+(`clebsch_jax.native`) with members in SIMD lanes. Its statuses and reductions are those of
+`integrate` over the same steps (the sweep's tests compare them): the only differences are
+round-off, from the nodal solves' seeds and the hand-over between chunks.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..core.system import momentum_map
+from ..discrete.legendre import cotangent_from_momentum, initial_multiplier
+from ..discrete.residual import nodal_residual
+from ..march.scan import input_ok, jump_step, node_energy, zero_nan
+from ..roots.status import Status
+from ..steppers.base import AbstractWrapper
+from ..steppers.reduced import ReducedStep
+
+__all__ = ["MemberCarry", "member_chunk"]
+
+
+class MemberCarry(NamedTuple):
+    """What a member hands from one chunk to the next (and, at the end, the sweep's table)."""
+
+    Q: jax.Array
+    P: jax.Array
+    xi: jax.Array
+    t: jax.Array
+    status: jax.Array  # int32: the first failure's status (Status.SUCCESS while none)
+    failed_step: jax.Array  # int32: its step (-1 while none)
+    iterations: jax.Array  # int64: Newton iterations of the steps made
+    max_residual: jax.Array
+    energy0: jax.Array  # the energy at the run's first node
+    drift: jax.Array  # max |E - E⁰| over the nodes made
+    momentum: jax.Array  # the momentum map at the last node
+    energy_change: jax.Array  # the energy check's running maxima (`clebsch_jax.march.scan.jump_step`)
+    energy_size: jax.Array
+
+
+def _base(stepper):
+    while isinstance(stepper, AbstractWrapper):
+        stepper = stepper.base
+    return stepper
+
+
+def _one(tree):
+    return jax.tree_util.tree_map(lambda a: a[None], tree)
+
+
+def _nan_unless(ok, tree):
+    return jax.tree_util.tree_map(
+        lambda a: jnp.where(ok, a, jnp.nan) if jnp.issubdtype(a.dtype, jnp.inexact) else a, tree)
+
+
+def _node(system, finder, Q, mu, seed, ok):
+    """A node's velocity, whether it is known, its energy and the energy's size: the velocity
+    solved from Lemma 7's relation from `seed` (NaN where not `ok`); for a degenerate system
+    the seed itself, and the energy read at ξ = 0 (`clebsch_jax.diagnostics.energy`)."""
+    if system.degenerate:
+        E, size = node_energy(system, Q, jnp.zeros_like(seed))
+        return seed, ok, E, size
+    xi, st = finder.solve(lambda x: nodal_residual(system, Q, mu, x), jnp.where(ok, seed, jnp.nan))
+    known = ok & (st.status == Status.SUCCESS)
+    xi = jnp.where(known, xi, jnp.nan)
+    E, size = node_energy(system, Q, xi)
+    return xi, known, E, size
+
+
+def member_chunk(stepper, system, carry: MemberCarry, dt, n: int, first, offset, *, check_energy: bool = True,
+                 derive_P: bool = False) -> MemberCarry:
+    r"""`n` steps of one member from `carry`, with the sweep's reductions made in the loop.
+
+    **Arguments:** `stepper`, prepared for `system` (`integrate`'s choice: `prepared_method`);
+    `carry` the member's `MemberCarry`; `dt`; `n` the chunk's steps (static); `first` (bool)
+    whether this is the run's first chunk; `offset` (int) the run's step number of the chunk's
+    first step; `check_energy` `integrate`'s energy check; `derive_P` whether the carry's P is
+    a placeholder to be replaced, in the first chunk, by the minimum-norm multiplier of
+    $(Q^0, \xi^0)$ (Lemma 7, `initial_multiplier`).
+
+    **Returns:** the carry after the chunk. A member that had failed before keeps its status
+    and step; one that fails in the chunk gets the status and the run's step of its first
+    failure, and NaN state."""
+    alive0 = carry.status == Status.SUCCESS
+    Q0, xi0 = jnp.where(alive0, carry.Q, jnp.nan), jnp.where(alive0, carry.xi, jnp.nan)
+    P0 = carry.P
+    if derive_P:
+        P0 = jnp.where(first, initial_multiplier(system, Q0, xi0), P0)
+    P0 = jnp.where(alive0, P0, jnp.nan)
+    degenerate = system.degenerate
+    energy_on = check_energy and not degenerate  # as integrate: no energy check without nodal velocities
+    ok_in = input_ok(system, Q0, xi0, P0, dt)
+    state0, startup = stepper.init(system, Q0, xi0, P0, dt)
+    memory0 = stepper.init_memory(system, state0)
+    mu0 = momentum_map(system, P0, Q0, xi0)
+    finder = stepper.nodal_solver
+    xin0, ok0, E0, size0 = _node(system, finder, Q0, mu0, xi0, ok_in)
+    ref = jnp.where(first, E0, carry.energy0)
+    # the status of the chunk's start: an invalid input fails step 0, a node 0 whose velocity
+    # is not recovered is a LEGENDRE failure at step 0
+    status0 = jnp.where(ok_in, jnp.where(ok0, Status.SUCCESS, Status.LEGENDRE), Status.INVALID_INPUT)
+    status0 = status0.astype(jnp.int32)
+    int_dtype = carry.iterations.dtype
+    size_max0 = jnp.maximum(carry.energy_size, zero_nan(size0)) if energy_on else carry.energy_size
+    red0 = dict(
+        alive=ok_in, status=status0, step=jnp.where(ok_in & ok0, -1, 0).astype(jnp.int32),
+        iterations=jnp.where(ok_in, jnp.asarray(startup, int_dtype), 0), residual=jnp.zeros((), dt.dtype),
+        change=carry.energy_change, size=size_max0 if energy_on else carry.energy_size, E=E0,
+        drift=jnp.where(ok0, jnp.abs(E0 - ref), 0.0), Q=Q0, mu=mu0, xin=xin0, xstep=xi0, jumped=jnp.asarray(False),
+        p=jnp.full_like(Q0, jnp.nan),
+    )
+
+    def body(k, c):
+        state_prev, memory, red = c
+        alive = red["alive"]
+        state, memory, out, stats = stepper.step(system, state_prev, memory, dt, k, alive)
+        ok = alive & (stats.status == Status.SUCCESS)
+        state, out = _nan_unless(ok, (state, out))
+        nodes = stepper.nodes(system, state_prev, _one(state), _one(out))
+        Qn = nodes.nodal_Q[1]
+        mun, xi_step = nodes.momentum[1], nodes.xi_step[0]
+        xin, nodal_ok, E, size = _node(system, finder, Qn, mun, xi_step, ok)
+        counted = alive & ~red["jumped"]  # the steps up to the first failure or jump
+        iterations = red["iterations"] + jnp.where(counted, stats.iterations, 0).astype(int_dtype)
+        if energy_on:
+            # the step leaves the node whose size red["size"] already holds (`jump_step`)
+            change, size_max, jump = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
+            size_max = jnp.maximum(size_max, zero_nan(size))
+            jumped = red["jumped"] | (jump & ok & (red["status"] == Status.SUCCESS))
+            new_jump = jumped & ~red["jumped"]
+        else:
+            change, size_max, jumped, new_jump = red["change"], red["size"], red["jumped"], jnp.asarray(False)
+        still = red["status"] == Status.SUCCESS
+        step_failed = alive & ~ok
+        code = jnp.where(new_jump, Status.ENERGY_JUMP,
+                         jnp.where(step_failed, stats.status, jnp.where(ok & ~nodal_ok, Status.LEGENDRE,
+                                                                        Status.SUCCESS)))
+        fails = still & (code != Status.SUCCESS)
+        # a jump found after a node failure still names the jump (as `integrate` does)
+        fails = fails | (new_jump & (red["status"] == Status.LEGENDRE))
+        status = jnp.where(fails, code, red["status"]).astype(jnp.int32)
+        step = jnp.where(fails, k, red["step"]).astype(jnp.int32)
+        good = ok & ~jumped
+        residual = jnp.maximum(red["residual"], jnp.where(good, stats.residual_norm, 0.0))
+        known = good & nodal_ok
+        drift = jnp.maximum(red["drift"], jnp.where(known, jnp.abs(E - ref), 0.0))
+        keep = ok & ~jumped  # the state handed on: NaN after a failure or a jump
+        Qh = jnp.where(keep, nodes.Q[1] if nodes.Q is not None else red["Q"], jnp.nan)
+        p = nodes.p[1] if nodes.p is not None else red["p"]
+        red = dict(alive=ok & ~jumped, status=status, step=step, iterations=iterations, residual=residual,
+                   change=change, size=size_max, E=E, drift=drift, Q=Qh, mu=jnp.where(keep, mun, jnp.nan),
+                   xin=jnp.where(keep, xin, jnp.nan), xstep=xi_step, jumped=jumped, p=jnp.where(keep, p, jnp.nan))
+        return state, memory, red
+
+    _, _, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
+    Qn, mun = red["Q"], red["mu"]
+    # the reduced march carries μ, not p: the minimum-norm cotangent with that momentum map
+    # (as `continue_from` hands it over)
+    reduced = isinstance(_base(stepper), ReducedStep)
+    Pn = cotangent_from_momentum(system, Qn, mun, unroll=True) if reduced else red["p"]
+    xin = red["xstep"] if degenerate else red["xin"]
+    newly = alive0 & (red["status"] != Status.SUCCESS)
+    status = jnp.where(newly, red["status"], carry.status).astype(jnp.int32)
+    failed_step = jnp.where(newly, offset + red["step"], carry.failed_step).astype(jnp.int32)
+    drift = jnp.where(jnp.isfinite(ref), jnp.maximum(carry.drift, red["drift"]), jnp.nan)
+    return MemberCarry(
+        Q=jnp.where(alive0, Qn, jnp.nan), P=jnp.where(alive0, Pn, jnp.nan), xi=jnp.where(alive0, xin, jnp.nan),
+        t=carry.t + dt * n, status=status, failed_step=failed_step,
+        iterations=carry.iterations + jnp.where(alive0, red["iterations"], 0),
+        max_residual=jnp.maximum(carry.max_residual, red["residual"]), energy0=ref, drift=drift,
+        momentum=jnp.where(alive0, mun, jnp.nan), energy_change=red["change"], energy_size=red["size"],
+    )

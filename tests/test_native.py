@@ -1,0 +1,300 @@
+"""The native translation (`clebsch_jax.native`): jaxprs of one member compiled to SIMD kernels
+with LLVM, checked against XLA's `jax.vmap` of the same function — random programs of the
+covered primitives, masked loops whose lanes stop at different iterations, branches, shared
+inputs, the disk cache, threads — and the sweep's native backend against its XLA backend on
+healthy and failing members."""
+
+from __future__ import annotations
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import clebsch_jax as cj
+from clebsch_jax.batching.backends import NativeFallbackWarning
+from clebsch_jax.models import peakon_velocity, peakons
+from clebsch_jax.native import Unsupported, compile_member
+from clebsch_jax.roots.status import Status
+
+from .test_epdiff import COLLISION, OVERTAKE, peakon_antipeakon_exact, two_peakons_exact
+
+pytest.importorskip("llvmlite")
+
+B = 21  # not a multiple of the lanes: the last block is padded
+
+
+def _agree(native, xla, rtol=1e-13, atol=1e-13):
+    for a, b in zip(jax.tree_util.tree_leaves(native), jax.tree_util.tree_leaves(xla)):
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.shape == b.shape and a.dtype == b.dtype, (a.shape, b.shape, a.dtype, b.dtype)
+        if a.dtype.kind == "f":
+            np.testing.assert_allclose(a, b, rtol=rtol, atol=atol)
+        else:
+            np.testing.assert_array_equal(a, b)
+
+
+# ---------------------------------------------------------------------------------------------
+# Random programs of the covered primitives against XLA.
+
+_UNARY = [jnp.sin, jnp.cos, jnp.tanh, jnp.abs, jnp.negative, jnp.square, lambda x: jnp.sqrt(jnp.abs(x)),
+          lambda x: jnp.exp(-x * x), lambda x: jnp.log1p(jnp.abs(x)), jnp.arctan, lambda x: x ** 3, jnp.floor]
+_BINARY = [jnp.add, jnp.subtract, jnp.multiply, jnp.maximum, jnp.minimum, lambda a, b: a / (1.0 + b * b),
+           jnp.arctan2, lambda a, b: jnp.where(a > b, a, b - 1.0), lambda a, b: jnp.hypot(a, b)]
+
+
+def _structural(k, a, b):
+    """Operations that re-index, contract or reduce, on (3,) vectors."""
+    if k == 0:
+        return jnp.outer(a, b) @ a  # dot_general
+    if k == 1:
+        return jnp.cumsum(a) - jnp.max(b)  # cumulative, reduction
+    if k == 2:
+        return jnp.concatenate([a[1:], b[:1]])[::-1]  # slices, concatenation, rev
+    if k == 3:
+        return jnp.linalg.solve(jnp.eye(3) * 3.0 + jnp.outer(a, a) * 0.1, b)  # LU with pivoting
+    if k == 4:
+        return jnp.roll(a, 1) * jnp.sum(b)  # gather/slices
+    if k == 5:
+        return jnp.full(3, jnp.argmax(a)).astype(a.dtype) + b  # argmax, conversion
+    if k == 6:
+        return jnp.cross(a, b)
+    return jnp.where(jnp.all(jnp.isfinite(a)), a, 0.0) + jnp.linalg.norm(b)
+
+
+def _program(ops):
+    def f(x, y, s):
+        pool = [x, y, x * s]
+        for kind, i, j, k in ops:
+            a, b = pool[i % len(pool)], pool[j % len(pool)]
+            if kind == 0:
+                out = _UNARY[k % len(_UNARY)](a)
+            elif kind == 1:
+                out = _BINARY[k % len(_BINARY)](a, b)
+            elif kind == 2:
+                out = _structural(k % 8, a, b)
+            elif kind == 3:  # a loop whose trip count differs from lane to lane
+                def cond(c):
+                    return (c[1] < 30) & (jnp.max(jnp.abs(c[0] - jnp.cos(c[0]))) > 1e-13)
+
+                out = jax.lax.while_loop(cond, lambda c: (jnp.cos(c[0]), c[1] + 1), (jnp.tanh(a), 0))[0]
+            elif kind == 4:  # a branch taken per lane
+                out = jax.lax.cond(jnp.sum(a) > jnp.sum(b), lambda u, v: u * v, lambda u, v: u - v, a, b)
+            else:  # a counted loop
+                out = jax.lax.fori_loop(0, 6, lambda n, c: 0.5 * c + jnp.sin(b) / (n + 1.0), a)
+            pool.append(jnp.clip(out, -1e3, 1e3))
+        return pool[-1], jnp.sum(pool[-1]) > 0, jnp.argmin(pool[-1])
+    return f
+
+
+_OPS = st.lists(st.tuples(st.integers(0, 5), st.integers(0, 9), st.integers(0, 9), st.integers(0, 20)),
+                min_size=1, max_size=6)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(ops=_OPS, seed=st.integers(0, 2**31 - 1))
+def test_random_programs_agree_with_xla(ops, seed):
+    """Every program of the covered primitives gives XLA's values to round-off (libm and XLA's
+    own transcendental functions differ in the last bits; 1e-12 leaves room for their
+    propagation through a few operations), the same booleans and indices, in each lane."""
+    f = _program(ops)
+    rng = np.random.default_rng(seed)
+    x, y, s = rng.standard_normal((B, 3)), rng.standard_normal((B, 3)), rng.standard_normal(B)
+    native = compile_member(f, x[0], y[0], s[0], use_cache=False)(x, y, s)
+    xla = jax.vmap(f)(x, y, s)
+    np.testing.assert_allclose(native[0], xla[0], rtol=1e-12, atol=1e-12)
+    # a boolean or an index read off a value within round-off of a tie may differ: compare
+    # only where the value is not at such a tie
+    far = np.abs(np.asarray(jnp.sum(xla[0], axis=1))) > 1e-9
+    np.testing.assert_array_equal(native[1][far], np.asarray(xla[1])[far])
+
+
+def test_lanes_stop_their_loops_independently_and_inactive_lanes_keep_their_values():
+    """A Newton iteration for x = cos(a x) per member: the members converge after different
+    numbers of iterations; each keeps its own count and value, as under `jax.vmap`."""
+    def newton(a):
+        def cond(c):
+            x, n = c
+            return (n < 50) & (jnp.abs(x - jnp.cos(a * x)) > 1e-15)
+
+        def body(c):
+            x, n = c
+            g = x - jnp.cos(a * x)
+            return x - g / (1.0 + a * jnp.sin(a * x)), n + 1
+
+        return jax.lax.while_loop(cond, body, (jnp.asarray(1.0), 0))
+
+    a = np.linspace(0.1, 3.0, B)
+    native = compile_member(newton, a[0], use_cache=False)(a)
+    xla = jax.vmap(newton)(a)
+    _agree(native, xla, rtol=0, atol=1e-15)
+    assert len(set(np.asarray(native[1]).tolist())) > 2  # the lanes did stop at different counts
+
+
+def test_shared_inputs_threads_and_the_disk_cache(tmp_path, monkeypatch):
+    """An input shared by all members (in_axes None) is broadcast to the lanes; two threads
+    give the table of one, bit for bit; a second compile of the same program comes from the
+    disk cache and gives the same bits."""
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+
+    def f(x, M):
+        return jnp.tanh(M @ x), jnp.sum(x * x)
+
+    M = np.array([[1.0, 2.0, 0.5], [0.0, -1.0, 3.0], [0.2, 0.1, 0.3]])
+    x = np.random.default_rng(0).standard_normal((1000, 3))
+    first = compile_member(f, x[0], M, in_axes=(0, None))
+    assert not first.kernel.from_cache
+    again = compile_member(f, x[0], M, in_axes=(0, None))
+    assert again.kernel.from_cache and any(tmp_path.rglob("*.o"))
+    one, two, cached = first(x, M), first(x, M, threads=2), again(x, M)
+    for a, b, c in zip(one, two, cached):
+        assert np.array_equal(a, b) and np.array_equal(a, c)
+    _agree(one, jax.vmap(f, in_axes=(0, None))(x, M))
+
+
+def test_indexing_by_values_agrees_with_xla():
+    """Indices known while translating and indices that differ from lane to lane, in range and
+    out of it (clamped or filled as XLA does), by selects (few places) and by lane loads
+    (many places): slices, updates, gathers and scatters."""
+    big = np.arange(120.0).reshape(12, 10)
+
+    def f(x, i, j, M):
+        return (x[i % 3], jnp.take(M, jnp.array([2, 0, 1]), axis=0), M[i % 3, j % 3], x.at[j % 3].set(7.0),
+                x.at[jnp.array([0, 2])].add(jnp.array([1.0, 2.0])), jax.lax.dynamic_slice(M, (i, j), (2, 2)),
+                jax.lax.dynamic_update_slice(M, x[:2, None] * jnp.ones((2, 2)), (j, i)),
+                jax.lax.dynamic_slice(big * x[0], (3 * i, j), (3, 2)),
+                jax.lax.dynamic_update_slice(big, M, (4 * j, i)) * x[1],
+                jnp.take(big[0] * x[2], i + 6, mode="fill", fill_value=-1.0),
+                jnp.take_along_axis(M, jnp.argmax(M, axis=0, keepdims=True), axis=0))
+
+    rng = np.random.default_rng(4)
+    x, M = rng.standard_normal((B, 3)), rng.standard_normal((B, 3, 3))
+    i, j = rng.integers(-4, 6, B).astype(np.int32), rng.integers(-2, 5, B).astype(np.int32)
+    native = compile_member(f, x[0], i[0], j[0], M[0], use_cache=False)(x, i, j, M)
+    _agree(native, jax.vmap(f)(x, i, j, M), rtol=0, atol=0)
+
+
+def test_a_primitive_without_a_rule_is_named():
+    with pytest.raises(Unsupported, match="sort"):
+        compile_member(lambda x: jnp.sort(x), np.zeros(3), use_cache=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# The sweep's native backend against its XLA backend.
+
+RB = dict(dt=0.05, n_steps=60, chunk_steps=20)
+
+
+def _rigid_body_members(n=6):
+    rng = np.random.default_rng(7)
+    inertias = rng.uniform(0.5, 3.0, size=(n, 3))
+    omegas = rng.standard_normal((n, 3))
+    return inertias, np.broadcast_to(np.eye(3), (n, 3, 3)), omegas
+
+
+def _compare(native, xla, atol=1e-12):
+    np.testing.assert_array_equal(native.status, xla.status)
+    np.testing.assert_array_equal(native.failed_step, xla.failed_step)
+    for key in ("final_Q", "final_p", "final_xi", "final_momentum", "energy_error", "final_t"):
+        a, b = getattr(native, key), getattr(xla, key)
+        if a is None:
+            assert b is None
+            continue
+        # a chunked run's round-off: the nodal solves start from other seeds (measured 1e-14)
+        np.testing.assert_allclose(a, b, rtol=0, atol=atol, err_msg=key)
+    assert (native.form, native.scheme, native.order, native.method) == (xla.form, xla.scheme, xla.order, xla.method)
+
+
+def test_native_sweep_of_rigid_bodies_equals_the_xla_sweep_with_failures_reported():
+    """Healthy members, a NaN initial velocity (INVALID_INPUT at step 0) and a negative inertia
+    (an invalid parameter row): the same statuses, steps and finals on both backends; the
+    native table is the same bit for bit from run to run."""
+    inertias, Q0, omegas = _rigid_body_members()
+    omegas = omegas.copy()
+    omegas[2, 0] = np.nan
+    inertias = inertias.copy()
+    inertias[4, 1] = -1.0
+    native = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
+    xla = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="xla", **RB)
+    _compare(native, xla)
+    assert list(native.failed_members) == [2, 4]
+    assert np.all(native.status[[2, 4]] == Status.INVALID_INPUT)
+    again = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
+    for a, b in zip(jax.tree_util.tree_leaves(native), jax.tree_util.tree_leaves(again)):
+        assert np.array_equal(a, b, equal_nan=True)
+
+
+def test_native_sweep_reports_a_failure_in_a_later_chunk_at_the_step_xla_reports():
+    """Peakons (the full march, midpoint scheme): a peakon–antipeakon pair collides at t* = 3,
+    where the step fails in the third chunk; an overtaking pair runs through; a NaN member
+    fails at step 0. Statuses, the run's failing steps and the finals equal the XLA backend's."""
+    qc, pc = peakon_antipeakon_exact(0.0, **COLLISION)
+    qo, po = two_peakons_exact(0.0, **OVERTAKE)
+    q0s, p0s = np.array([qc, qo, [np.nan, 1.0]]), np.array([pc, po, [1.0, 1.0]])
+    xi0s = np.asarray(jax.vmap(peakon_velocity)(q0s, p0s))
+    kw = dict(dt=0.05, n_steps=80, chunk_steps=20, scheme="midpoint")
+    native = cj.sweep(peakons, np.ones(3), q0s, xi0s, backend="native", **kw)
+    xla = cj.sweep(peakons, np.ones(3), q0s, xi0s, backend="xla", **kw)
+    _compare(native, xla, atol=1e-11)  # round-off of 80 steps near a collision, both ways
+    assert list(native.failed_members) == [0, 2] and native.failed_step[0] >= 40
+    assert native.status[2] == Status.INVALID_INPUT
+
+
+def test_native_sweep_of_heavy_tops_equals_the_xla_sweep():
+    """A potential (the heavy top: the reduced march with Q reconstructed, composed as a
+    symmetric pair) on both backends."""
+    n = 4
+    rng = np.random.default_rng(2)
+    Q0 = np.stack([np.asarray(cj.lie.so3_exp(jnp.asarray(v))) for v in 0.5 * rng.standard_normal((n, 3))])
+    omegas = np.array([0.1, 0.2, 5.0]) + 0.3 * rng.standard_normal((n, 3))
+
+    def make(m):
+        return cj.models.heavy_top(jnp.array([1.0, 1.0, 0.4]), m)
+
+    masses = np.array([1.5, 1.0, 2.0, 0.5])
+    kw = dict(dt=0.01, n_steps=40, chunk_steps=20)
+    native = cj.sweep(make, masses, Q0, omegas, backend="native", **kw)
+    xla = cj.sweep(make, masses, Q0, omegas, backend="xla", **kw)
+    _compare(native, xla)
+    assert np.all(native.succeeded)
+
+
+def test_backend_choice_and_fallback():
+    """"auto" runs native where it applies and says once why not elsewhere (here: saved
+    nodes); "native" where it cannot apply is refused with the reason; a bad name is refused."""
+    inertias, Q0, omegas = _rigid_body_members(3)
+    with pytest.raises(ValueError, match="save_every"):
+        cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", save_every=10, **RB)
+    with pytest.raises(ValueError, match="backend"):
+        cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="llvm", **RB)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, save_every=10, **RB)
+    assert res.saved is not None
+    assert not any(issubclass(w.category, NativeFallbackWarning) for w in caught) or any(
+        "save_every" in str(w.message) for w in caught)
+    with pytest.warns(DeprecationWarning, match="fast="):
+        cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, fast=False, **RB)
+
+
+def test_without_llvmlite_the_sweep_runs_xla_and_says_so_once(monkeypatch):
+    """Where llvmlite cannot be imported, "auto" runs XLA and warns once, naming the reason;
+    "native" is refused with it."""
+    import clebsch_jax.batching.backends as backends
+    from clebsch_jax import native
+
+    monkeypatch.setattr(native, "available", lambda: False)
+    monkeypatch.setattr(backends, "_WARNED", set())
+    inertias, Q0, omegas = _rigid_body_members(3)
+    with pytest.warns(NativeFallbackWarning, match="llvmlite"):
+        res = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, **RB)
+    assert np.all(res.succeeded)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NativeFallbackWarning)  # said once
+        cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, **RB)
+    with pytest.raises(ValueError, match="llvmlite"):
+        cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
