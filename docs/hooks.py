@@ -1,0 +1,66 @@
+"""MkDocs hooks of the documentation site (mkdocs.yml, `hooks:`).
+
+- The notebooks of `notebooks/` become the Tutorials section (`notebooks/README.md` its index),
+  the benchmark plots of `benchmarks/results/` are published at the same paths, and
+  `benchmarks/README.md` (notes and history) as `benchmarks/notes.md`: the site shows the files
+  the repository keeps, not copies.
+- MathJax is served from the site itself (the `jupyter-server-mathjax` package of the docs
+  extra ships it), so neither the build nor a reader's browser fetches it from a CDN.
+- A public name without an API reference entry (`docs/api_coverage.py`) is a warning, which
+  `mkdocs build --strict` turns into an error.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import pathlib
+import sys
+
+from mkdocs.plugins import event_priority
+from mkdocs.structure.files import File
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+log = logging.getLogger("mkdocs.hooks.clebsch_jax")
+if str(ROOT) not in sys.path:  # the API check imports the package of this tree, as mkdocstrings reads it
+    sys.path.insert(0, str(ROOT))
+
+
+def _load_api_coverage():
+    spec = importlib.util.spec_from_file_location("api_coverage", ROOT / "docs" / "api_coverage.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _mathjax_dir() -> pathlib.Path:
+    try:
+        import jupyter_server_mathjax
+    except ImportError as err:  # the docs extra is incomplete
+        raise RuntimeError('MathJax for the site comes from jupyter-server-mathjax: pip install -e ".[docs]"') from err
+    return pathlib.Path(jupyter_server_mathjax.__file__).resolve().parent / "static"
+
+
+def _add_from_repository(files, config, pattern: str) -> None:
+    """Repository files matching `pattern` at their own paths (mkdocs-jupyter needs real files)."""
+    for path in sorted(ROOT.glob(pattern)):
+        src_uri = path.relative_to(ROOT).as_posix()
+        files.append(File(src_uri, str(ROOT), config["site_dir"], config["use_directory_urls"]))
+
+
+@event_priority(100)  # before mkdocs-jupyter turns .ipynb files into pages
+def on_files(files, config):
+    for pattern in ("notebooks/README.md", "notebooks/*.ipynb", "benchmarks/results/*.png"):
+        _add_from_repository(files, config, pattern)
+    # the benchmarks' notes and history, beside the Benchmarks page (benchmarks.md)
+    files.append(File.generated(config, "benchmarks/notes.md", abs_src_path=str(ROOT / "benchmarks" / "README.md")))
+    mathjax = _mathjax_dir()
+    for path in sorted(p for p in mathjax.rglob("*") if p.is_file()):
+        uri = f"assets/mathjax/{path.relative_to(mathjax).as_posix()}"
+        files.append(File.generated(config, uri, abs_src_path=str(path)))
+    return files
+
+
+def on_post_build(config):
+    for name in _load_api_coverage().missing():
+        log.warning(f"public name {name} has no entry in the API reference (docs/api/*.md): add '::: {name}'")
