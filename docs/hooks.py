@@ -4,8 +4,9 @@
   the benchmark plots of `benchmarks/results/` are published at the same paths, and
   `benchmarks/README.md` (notes and history) as `benchmarks/notes.md`: the site shows the files
   the repository keeps, not copies.
-- MathJax is served from the site itself (the `jupyter-server-mathjax` package of the docs
-  extra ships it), so neither the build nor a reader's browser fetches it from a CDN.
+- MathJax 3 is served from the site itself (the `django-static-mathjax` package of the docs
+  extra ships its files; docs/javascripts/mathjax.js configures and loads it), so neither the
+  build nor a reader's browser fetches anything from a CDN.
 - A public name without an API reference entry (`docs/api_coverage.py`) is a warning, which
   `mkdocs build --strict` turns into an error.
 """
@@ -33,12 +34,17 @@ def _load_api_coverage():
     return module
 
 
+MATHJAX_FILES = ("tex-mml-chtml.js", "input/**/*", "output/chtml/**/*", "ui/**/*", "a11y/**/*", "adaptors/**/*")
+"""What the site needs of MathJax's es5 distribution: the combined TeX/MathML → CommonHTML file and
+what it loads on demand (TeX extensions, fonts, the menu, accessibility); not the other bundles."""
+
+
 def _mathjax_dir() -> pathlib.Path:
     try:
-        import jupyter_server_mathjax
+        import mathjax  # the django-static-mathjax package; it does not need Django
     except ImportError as err:  # the docs extra is incomplete
-        raise RuntimeError('MathJax for the site comes from jupyter-server-mathjax: pip install -e ".[docs]"') from err
-    return pathlib.Path(jupyter_server_mathjax.__file__).resolve().parent / "static"
+        raise RuntimeError('MathJax for the site comes from django-static-mathjax: pip install -e ".[docs]"') from err
+    return pathlib.Path(mathjax.__file__).resolve().parent / "static" / "mathjax" / "es5"
 
 
 def _add_from_repository(files, config, pattern: str) -> None:
@@ -55,7 +61,7 @@ def on_files(files, config):
     # the benchmarks' notes and history, beside the Benchmarks page (benchmarks.md)
     files.append(File.generated(config, "benchmarks/notes.md", abs_src_path=str(ROOT / "benchmarks" / "README.md")))
     mathjax = _mathjax_dir()
-    for path in sorted(p for p in mathjax.rglob("*") if p.is_file()):
+    for path in sorted({p for pattern in MATHJAX_FILES for p in mathjax.glob(pattern) if p.is_file()}):
         uri = f"assets/mathjax/{path.relative_to(mathjax).as_posix()}"
         files.append(File.generated(config, uri, abs_src_path=str(path)))
     return files
