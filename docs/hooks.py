@@ -7,6 +7,8 @@
 - MathJax 3 is served from the site itself (the `django-static-mathjax` package of the docs
   extra ships its files; docs/javascripts/mathjax.js configures and loads it), so neither the
   build nor a reader's browser fetches anything from a CDN.
+- The CLI reference ends with the `--help` text of the command and of each subcommand, taken
+  from the command line itself at build time, so it cannot drift from it.
 - A public name without an API reference entry (`docs/api_coverage.py`) is a warning, which
   `mkdocs build --strict` turns into an error.
 """
@@ -15,7 +17,10 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 import pathlib
+import re
+import subprocess
 import sys
 
 from mkdocs.plugins import event_priority
@@ -65,6 +70,37 @@ def on_files(files, config):
         uri = f"assets/mathjax/{path.relative_to(mathjax).as_posix()}"
         files.append(File.generated(config, uri, abs_src_path=str(path)))
     return files
+
+
+CLI_HELP = "<!-- the --help of each command, inserted here by docs/hooks.py -->"
+
+
+def _cli_help(*command: str) -> str:
+    """`clebsch-jax COMMAND --help` of the package in this tree, 100 columns wide."""
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    env = dict(os.environ, COLUMNS="100", PYTHONPATH=path)
+    run = subprocess.run(
+        [sys.executable, "-m", "clebsch_jax", *command, "--help"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
+        check=True,
+    )
+    return run.stdout.rstrip()
+
+
+def on_page_markdown(markdown, page, config, files):
+    if CLI_HELP not in markdown:
+        return markdown
+    top = _cli_help()
+    commands = re.findall(r"^    (\w[\w-]*)  ", top.split("\ncommands:", 1)[1], re.MULTILINE)
+    if not commands:
+        log.warning("cli.md: no subcommands found in 'clebsch-jax --help'")
+    sections = [f"### `clebsch-jax --help`\n\n```text\n{top}\n```\n"]
+    for command in commands:
+        sections.append(f"### `clebsch-jax {command} --help`\n\n```text\n{_cli_help(command)}\n```\n")
+    return markdown.replace(CLI_HELP, "\n".join(sections))
 
 
 def on_post_build(config):
