@@ -463,7 +463,7 @@ def test_chunked_run_continues_the_march_with_a_progress_bar(demo, tmp_path, cap
 
 def test_scheme_and_order_lists_are_the_documented_ones():
     """`--scheme` and `--order` take the engine's public tables (`cj.SCHEMES`, `cj.COMPOSITIONS`,
-    `cj.GAUSS_ORDERS`); the help text and the README name these values."""
+    `cj.GAUSS_ORDERS`); the help text and the CLI reference (docs/cli.md) name these values."""
     assert _commands.SCHEMES == cj.SCHEMES + ("gauss",) == ("left", "right", "midpoint", "gauss")
     assert _commands.ORDERS == (2, 4, 6, 8)
     assert _commands.GAUSS_ORDERS == cj.GAUSS_ORDERS == tuple(range(2, 17, 2))
