@@ -145,6 +145,7 @@ def build_ir(closed, width: int, batched=None) -> str:
     b.branch(head)
     b.position_at_end(done)
     b.ret_void()
+    build_ir.entries = em.entries  # for measurements of the translation's size
     return str(module)
 
 
@@ -209,15 +210,27 @@ def _store(key: str, obj: bytes) -> None:
         pass  # a cache that cannot be written only costs the next compile
 
 
+LARGE_IR_LINES = 15_000
+"""IR of more lines than this is given LLVM's basic register allocator instead of the greedy
+one: the greedy allocator's time grows steeply with the long straight-line blocks of a large
+member (clusters of vortices) and dominated its compile, for a kernel only slightly faster
+(`benchmarks/README.md`)."""
+
+
 def compile_ir(text: str) -> bytes:
     """Object code of the IR `text` for the host, optimised by LLVM's O2 pipeline."""
     L = _binding()
     llvm = L["llvm"]
-    mod = llvm.parse_assembly(text)
-    mod.verify()
-    pb = llvm.create_pass_builder(L["tm"], llvm.create_pipeline_tuning_options(speed_level=2))
-    pb.getModulePassManager().run(mod, pb)
-    return L["tm"].emit_object(mod)
+    with _LOCK:  # the register allocator is a process-wide LLVM option
+        llvm.set_option("", "--regalloc=" + ("basic" if text.count("\n") > LARGE_IR_LINES else "greedy"))
+        try:
+            mod = llvm.parse_assembly(text)
+            mod.verify()
+            pb = llvm.create_pass_builder(L["tm"], llvm.create_pipeline_tuning_options(speed_level=2))
+            pb.getModulePassManager().run(mod, pb)
+            return L["tm"].emit_object(mod)
+        finally:
+            llvm.set_option("", "--regalloc=greedy")  # LLVM's default, which unoptimised code generation needs
 
 
 _ENGINES: list = []

@@ -66,7 +66,7 @@ def known_array(a) -> np.ndarray:
     return out
 
 
-MAX_ENTRIES = 200_000
+MAX_ENTRIES = 60_000
 """The most entries (values of one member, each an instruction or a known number) a program
 may translate to: beyond it the code, unrolled entry by entry, compiles too slowly to pay."""
 
