@@ -148,6 +148,71 @@ def test_a_truncated_or_corrupted_store_is_a_clear_error(reference, tmp_path):
         cj.open_sweep(path)
 
 
+def _tree(path):
+    """Every file under `path` with its bytes: what must survive a refused store."""
+    return {str(f.relative_to(path)): f.read_bytes() for f in sorted(path.rglob("*")) if f.is_file()}
+
+
+def test_a_path_that_is_not_our_store_is_refused_and_kept(tmp_path, monkeypatch):
+    # nothing we did not write is removed, with or without overwrite: a folder of other files
+    # (also the current folder, "."), a file, a Zarr group of other data, in memory too
+    folder = tmp_path / "results"
+    (folder / "runs").mkdir(parents=True)
+    (folder / "runs" / "a.csv").write_text("1,2\n")
+    (folder / "notes.txt").write_text("keep me")
+    a_file = tmp_path / "table.zarr"
+    a_file.write_bytes(b"not a folder")
+    other = tmp_path / "other.zarr"
+    zarr.open_group(str(other), mode="w", attributes={"source": "a simulation"}).create_array("x", shape=(3,),
+                                                                                             dtype="f8")
+    monkeypatch.chdir(folder)
+    cases = [(folder, "is a folder that is not a Zarr store \\(it holds notes.txt, runs\\)"),
+             (".", "is a folder that is not a Zarr store"), (a_file, "is a file, not a folder"),
+             (other, "is a Zarr group not written by clebsch_jax.sweep")]
+    before = _tree(tmp_path)
+    for path, message in cases:
+        for overwrite in (False, True):
+            with pytest.raises(cj.SweepStoreError, match=f"store '{path}': {message}.*Nothing was written or removed"):
+                stored(path, overwrite=overwrite)
+    assert _tree(tmp_path) == before
+    memory = zarr.storage.MemoryStore()
+    zarr.open_group(memory, mode="w", attributes={"source": "a simulation"})
+    with pytest.raises(cj.SweepStoreError, match="is a Zarr group not written by clebsch_jax.sweep"):
+        cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, store=memory, overwrite=True, **KW)
+    assert zarr.open_group(memory, mode="r").attrs["source"] == "a simulation"
+
+
+def test_a_damaged_store_is_an_error_never_wiped(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    meta = path / "zarr.json"
+    meta.write_bytes(meta.read_bytes()[:-40])  # the root metadata cut short
+    before = _tree(path)
+    for overwrite in (False, True):
+        with pytest.raises(cj.SweepStoreError, match=f"store '{path}': damaged.*root metadata \\(zarr.json\\) cannot "
+                                                     "be read.*Nothing was removed"):
+            stored(path, overwrite=overwrite)
+    assert _tree(path) == before
+
+
+def test_an_empty_folder_or_an_interrupted_creation_is_used(reference, tmp_path):
+    # nothing to keep: an empty folder becomes the store; a store of ours whose creation was
+    # interrupted (its owner attribute, no configuration: no batch can have been written) is
+    # created again without overwrite; a store of ours is replaced with overwrite
+    from clebsch_jax.batching.store import OWNER, OWNER_VALUE
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert_same_table(stored(empty), reference)
+    interrupted = tmp_path / "interrupted.zarr"
+    zarr.open_group(str(interrupted), mode="w", attributes={OWNER: OWNER_VALUE}).create_array("status", shape=(2,),
+                                                                                              dtype="i4")
+    assert_same_table(stored(interrupted), reference)
+    (empty / "status" / "c" / "0").unlink()  # ours, truncated: overwrite replaces it
+    assert_same_table(stored(empty, overwrite=True), reference)
+    assert_same_table(cj.open_sweep(empty), reference)
+
+
 def test_an_unfinished_store_is_not_read_as_a_result(reference, tmp_path):
     path = tmp_path / "sweep.zarr"
     stored(path)

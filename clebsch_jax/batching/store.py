@@ -27,7 +27,14 @@ its options, `n_steps`, `batch_size`, `chunk_steps`, `save_every`, the invariant
 model, the number of members and a SHA-256 of every input array (parameters, `Q0`, `xi0`,
 `P0`, `dt`), and the package version. Running a sweep with an existing store compares them:
 a difference is refused (`SweepStoreError` naming the store and the differing entries) unless
-`overwrite=True`, which starts the store afresh. With the same configuration, every batch whose
+`overwrite=True`, which starts the store afresh.
+
+**Nothing we did not write is removed.** A new store gets the attribute `written_by` first;
+a store is recognised as a sweep's by it or by its configuration. A path that exists and is not
+one — a file, a folder of other files (`.` included), a Zarr group of other data — is refused
+naming it, with or without `overwrite`; so is a store whose root metadata cannot be read (it is
+reported as damaged, and left as it is). An empty folder, an empty group, and a store of ours
+whose creation was interrupted (no configuration yet, hence no result) are (re)created. With the same configuration, every batch whose
 `batch_done` flag is set is skipped. The flag is written after the batch's data, so a process
 killed at any instant leaves either a batch marked done with all its data, or one not marked
 done, which the next run computes again.
@@ -47,6 +54,7 @@ import numpy as np
 __all__ = ["open_sweep", "SweepStoreError"]
 
 ATTR = "clebsch_jax_sweep"
+OWNER, OWNER_VALUE = "written_by", "clebsch_jax.sweep"  # the first attribute a new store gets: it is ours
 FORMAT = 1  # the layout's version, part of the configuration
 
 _EXTRA = 'pip install "clebsch-jax[sweep]"'
@@ -212,7 +220,8 @@ def _invariant_keys(shapes) -> dict:
 
 def _create(zarr, store, plan, config: dict):
     with zarr.config.set({"array.write_empty_chunks": True}):
-        return _fill(zarr.open_group(_plain(store), mode="w"), plan, config)
+        # the owner first, in the group's own metadata: a store whose creation is interrupted is ours
+        return _fill(zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE}), plan, config)
 
 
 def _fill(root, plan, config: dict):
@@ -261,24 +270,81 @@ def stored_configuration(store) -> dict | None:
     return stored if isinstance(stored, dict) else None
 
 
+def _local_path(store) -> str | None:
+    """The local directory of a path-like store; None for a `zarr` store object or a URL."""
+    if isinstance(store, os.PathLike) or (isinstance(store, str) and "://" not in store):
+        return os.fspath(store)
+    return None
+
+
+def _is_empty(zarr, store) -> bool:
+    """Whether a `zarr` store object (or URL) holds no key at all."""
+    from zarr.core.sync import sync
+
+    if isinstance(store, str):
+        store = zarr.storage.FsspecStore.from_url(store, read_only=True)
+    return sync(store.is_empty(""))
+
+
+def _inspect(zarr, store):
+    """What `store` holds: ("new", None) when there is nothing to keep (no such path, an empty
+    folder or store, an empty group), ("ours", root) for a sweep store, ("unfinished", root)
+    for one whose creation was interrupted (it holds no result yet). Anything else is refused
+    with a `SweepStoreError` naming it, and nothing is written or removed: a file, a folder or
+    store that is not a Zarr group, a Zarr group written by something else, a store whose root
+    metadata cannot be read."""
+    name = store_name(store)
+    path = _local_path(store)
+    keep = "Nothing was written or removed; give a new path (or an empty folder)."
+    if path is not None:
+        if os.path.lexists(path) and not os.path.isdir(path):
+            raise SweepStoreError(f"store {name!r}: is a file, not a folder: a sweep store is a Zarr folder. {keep}")
+        if not os.path.isdir(path):
+            return "new", None
+        entries = sorted(os.listdir(path))
+        if not entries:
+            return "new", None
+        if "zarr.json" not in entries:
+            shown = ", ".join(entries[:5]) + (f" and {len(entries) - 5} more" if len(entries) > 5 else "")
+            raise SweepStoreError(f"store {name!r}: is a folder that is not a Zarr store (it holds {shown}). {keep}")
+    else:
+        try:
+            empty = _is_empty(zarr, store)
+        except Exception:  # a store that cannot be listed: opening it below says what is wrong
+            empty = False
+        if empty:
+            return "new", None
+    try:
+        root = zarr.open_group(_plain(store), mode="r", use_consolidated=False)
+        attrs = root.attrs.asdict()
+    except Exception as err:  # zarr raises several kinds for unreadable metadata
+        raise SweepStoreError(
+            f"store {name!r}: damaged or not a Zarr group: its root metadata (zarr.json) cannot be read "
+            f"({type(err).__name__}: {err}). Nothing was removed, also not with overwrite=True (a store whose "
+            "metadata cannot be read is not recognised as a sweep's); move or delete it yourself, or give "
+            "another path.") from err
+    if ATTR in attrs:
+        if not isinstance(attrs[ATTR], dict):
+            raise SweepStoreError(f"store {name!r}: damaged: its attribute {ATTR!r} is not a configuration "
+                                  f"(got {type(attrs[ATTR]).__name__}). Nothing was removed.")
+        return "ours", root
+    if attrs.get(OWNER) == OWNER_VALUE:
+        return "unfinished", root
+    if not attrs and not list(root.keys()) and (path is None or entries == ["zarr.json"]):
+        return "new", None  # an empty group: nothing to keep
+    raise SweepStoreError(f"store {name!r}: is a Zarr group not written by clebsch_jax.sweep (no attribute "
+                          f"{ATTR!r}). {keep}")
+
+
 def open_for_run(store, plan, overwrite: bool):
-    """The store of this sweep: created, or reopened after checking its configuration."""
+    """The store of this sweep: created, or reopened after checking its configuration. Only a
+    store recognised as a sweep's (`_inspect`) is ever replaced, and only with `overwrite`."""
     zarr = _zarr()
     config = json.loads(json.dumps(configuration(plan)))  # as it reads back (tuples become lists)
     name = store_name(store)
-    try:
-        root = zarr.open_group(_plain(store), mode="r")
-        exists = True
-    except Exception:  # nothing there yet (or not a group: refused below unless overwrite)
-        exists = False
-    if exists and len(list(root.keys())) == 0 and not root.attrs.asdict():
-        exists = False  # an empty group: nothing to keep
-    if exists and not overwrite:
-        stored = root.attrs.get(ATTR)
-        if stored is None:
-            raise SweepStoreError(f"store {name!r}: holds no clebsch_jax sweep configuration (attribute {ATTR!r}): "
-                                  "another kind of data, or a store whose creation was interrupted; pass "
-                                  "overwrite=True to replace it.")
+    state, root = _inspect(zarr, store)
+    if state == "ours" and not overwrite:
+        stored = root.attrs[ATTR]
         diff = sorted(k for k in set(stored) | set(config) if stored.get(k) != config.get(k))
         if diff:
             shown = "; ".join(f"{k}: stored {stored.get(k)!r}, this sweep {config.get(k)!r}" for k in diff[:4])
@@ -287,7 +353,10 @@ def open_for_run(store, plan, overwrite: bool):
         root = _open_group(zarr, store, "r+")
         _check_layout(root, plan, name)
         return root
-    return _create(zarr, store, plan, config)
+    try:
+        return _create(zarr, store, plan, config)
+    except OSError as err:  # e.g. a read-only file system, no permission
+        raise SweepStoreError(f"store {name!r}: cannot be written ({err.strerror or err}).") from err
 
 
 def _check_layout(root, plan, name: str):
@@ -432,9 +501,10 @@ def check_arguments(store, client, overwrite) -> None:
     if overwrite and store is None:
         raise ValueError("overwrite: True replaces a store, but no store= was given.")
     if store is not None:
-        _zarr()
+        zarr = _zarr()
         if isinstance(store, (str, bytes)) and not store:
             raise ValueError("store: expected a path or a zarr store, got an empty string.")
+        _inspect(zarr, store)  # a path that is not a sweep store of ours is refused here already
     if client is not None:
         from .distributed import check_client
 
