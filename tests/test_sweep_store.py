@@ -96,6 +96,46 @@ def test_a_store_of_another_configuration_is_refused(reference, tmp_path):
     assert xarray.open_zarr(path, consolidated=False).attrs["dt"] == 0.04
 
 
+def quartic(system, sol):
+    """|μ|⁴ at every node: another body under the invariant's name."""
+    return jnp.sum(sol.momentum**2, axis=-1) ** 2
+
+
+def test_a_sweep_that_computes_something_else_under_the_same_names_is_refused(reference, tmp_path, monkeypatch):
+    # the store keeps a digest of one member's traced program: same names, other bodies are refused
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    quartic.__qualname__ = quartic.__name__ = "casimir"  # even a function that claims the same name
+    for change in ({"invariants": {"casimir": quartic}}, {"check_energy": False}):
+        with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*(program_sha256|check_energy)"):
+            cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, store=str(path), **{"invariants": {"casimir": casimir},
+                                                                                 **KW, **change})
+
+    # make_system: a lambda with another body, a module-level function edited in place
+    scaled = tmp_path / "scaled.zarr"
+    twice = (lambda inertia: rigid_body(inertia),), (lambda inertia: rigid_body(2.0 * inertia),)
+    cj.sweep(twice[0][0], INERTIAS, EYES, OMEGAS, store=str(scaled), **KW)
+    with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*program_sha256"):
+        cj.sweep(twice[1][0], INERTIAS, EYES, OMEGAS, store=str(scaled), **KW)
+    assert cj.sweep(twice[0][0], INERTIAS, EYES, OMEGAS, store=str(scaled), **KW).succeeded.all()  # the same: resumed
+
+    module = tmp_path / "edited_model.py"
+    module.write_text("from clebsch_jax.models import rigid_body\n\n"
+                      "def model(inertia):\n    return rigid_body(inertia)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import importlib
+
+    import edited_model
+
+    edited = tmp_path / "edited.zarr"
+    cj.sweep(edited_model.model, INERTIAS, EYES, OMEGAS, store=str(edited), **KW)
+    module.write_text("from clebsch_jax.models import rigid_body\n\n"
+                      "def model(inertia):\n    return rigid_body(inertia[::-1])\n")
+    importlib.reload(edited_model)
+    with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*program_sha256"):
+        cj.sweep(edited_model.model, INERTIAS, EYES, OMEGAS, store=str(edited), **KW)
+
+
 def test_a_stored_sweep_from_three_threads_is_the_same_table(reference, tmp_path):
     # the store's groups are devices × threads batches, run side by side while the writer
     # thread stores the group before; the table and the store are the in-memory table's

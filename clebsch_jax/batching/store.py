@@ -23,9 +23,11 @@ Per-member arrays are chunked by the sweep's `batch_size` along `member`, so eac
 whole chunks of its own and batches written at once by different processes never share one.
 
 **Resume.** The attribute `clebsch_jax_sweep` holds the sweep's configuration: the method and
-its options, `n_steps`, `batch_size`, `chunk_steps`, `save_every`, the invariants' names, the
-model, the number of members and a SHA-256 of every input array (parameters, `Q0`, `xi0`,
-`P0`, `dt`), and the package version. Running a sweep with an existing store compares them:
+its options (`check_energy` as asked), `n_steps`, `batch_size`, `chunk_steps`, `save_every`, the
+invariants' names, the model, the number of members, a SHA-256 of every input array
+(parameters, `Q0`, `xi0`, `P0`, `dt`), a SHA-256 of one member's traced program
+(`program_digest`: the bodies of the model and the invariants, every option), and the package
+and JAX versions. Running a sweep with an existing store compares them:
 a difference is refused (`SweepStoreError` naming the store and the differing entries) unless
 `overwrite=True`, which starts the store afresh.
 
@@ -55,7 +57,7 @@ __all__ = ["open_sweep", "SweepStoreError"]
 
 ATTR = "clebsch_jax_sweep"
 OWNER, OWNER_VALUE = "written_by", "clebsch_jax.sweep"  # the first attribute a new store gets: it is ours
-FORMAT = 1  # the layout's version, part of the configuration
+FORMAT = 2  # the layout's version, part of the configuration
 
 _EXTRA = 'pip install "clebsch-jax[sweep]"'
 _COLUMNS = ("status", "failed_step", "newton_iterations", "max_residual", "final_t", "final_Q", "final_p",
@@ -115,6 +117,39 @@ def _describe(obj) -> str:
     return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(obj))
 
 
+def program_digest(plan) -> str:
+    r"""A SHA-256 of what one member computes: the jaxpr of one chunk of its `integrate` run
+    and its invariants (`jax.make_jaxpr` on the first member's shapes, as the sweep traces it),
+    with the values of the constants the trace captured. The system's maps and Lagrangian,
+    `make_system`'s body, the invariants' bodies and every `integrate` option are in it, so a
+    store refuses a sweep that would compute something else under the same names (a lambda with
+    another body, a function edited in place); so do another version of the engine or of JAX
+    when they trace another program. Array inputs are traced, not in the jaxpr: they have
+    their own digest."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..core.jit import undifferentiated
+    from ..march.integrate import integrate
+    from .sweep import _first_row, _system_of
+
+    cfg, members = plan.cfg, plan.members
+    j = int(members.ic_index[0])
+    options = {k: v for k, v in cfg.options if k != "check_energy"}
+
+    def member(p, s, q, x, d):
+        system = _system_of(cfg, p, s)
+        sol = integrate(system, q, x, dt=d, n_steps=cfg.n, P0=jnp.zeros_like(q), t0=jnp.zeros((), q.dtype),
+                        throw=False, check_energy=False, **options)
+        return sol, [fn(system, sol) for _, fn in cfg.invariants]
+
+    with undifferentiated():  # as the sweep's chunks are traced
+        closed = jax.make_jaxpr(member)(_first_row(members), members.shared, jnp.asarray(members.Q0[j]),
+                                        jnp.asarray(members.xi0[j]), jnp.asarray(members.dt[0]))
+    text = re.sub(r" at 0x[0-9a-fA-F]+", "", str(closed.jaxpr))  # no memory addresses (they change)
+    return hashlib.sha256(text.encode() + _digest(closed.consts).encode()).hexdigest()
+
+
 def configuration(plan) -> dict:
     """The sweep's configuration, as stored in the attribute `clebsch_jax_sweep` (JSON)."""
     from .. import __version__
@@ -130,7 +165,10 @@ def configuration(plan) -> dict:
         "scheme": shapes.facts["scheme"],
         "form": shapes.facts["form"],
         "order": shapes.facts["order"],
-        "options": {k: _describe(v) for k, v in cfg.options},
+        # the energy check is the sweep's own (its chunks run without it): recorded as asked
+        "options": {**{k: _describe(v) for k, v in cfg.options}, "check_energy": cfg.check_energy},
+        "program_sha256": program_digest(plan),
+        "jax_version": jax.__version__,
         "fast": cfg.fast_method is not None,  # the fast path agrees with the general one to round-off only
         "dt": float(dts[0]) if len(dts) == 1 else "one per member",
         "n_steps": run.n_steps,
@@ -348,7 +386,9 @@ def open_for_run(store, plan, overwrite: bool):
         diff = sorted(k for k in set(stored) | set(config) if stored.get(k) != config.get(k))
         if diff:
             shown = "; ".join(f"{k}: stored {stored.get(k)!r}, this sweep {config.get(k)!r}" for k in diff[:4])
-            raise SweepStoreError(f"store {name!r} was written by another sweep configuration ({shown}). Use "
+            why = (" One member's traced program differs: the body of make_system, of the system's maps or of an "
+                   "invariant, an integrate option, or the engine or JAX version." if "program_sha256" in diff else "")
+            raise SweepStoreError(f"store {name!r} was written by another sweep configuration ({shown}).{why} Use "
                                   "another store, or overwrite=True to replace it.")
         root = _open_group(zarr, store, "r+")
         _check_layout(root, plan, name)
