@@ -68,7 +68,7 @@ def test_store_round_trip_with_xarray_and_open_sweep(reference, tmp_path):
     assert_same_table(res, reference)
     assert_same_table(cj.open_sweep(path), reference)
 
-    ds = xarray.open_zarr(path, consolidated=False)
+    ds = xarray.open_zarr(path)
     assert ds.sizes["member"] == N_MEMBERS and ds.sizes["batch"] == N_BATCHES
     assert ds["final_Q"].dims == ("member", "Q_axis0", "Q_axis1")
     assert ds["saved_momentum"].dims == ("member", "node", "component")
@@ -260,6 +260,40 @@ def test_an_unfinished_store_is_not_read_as_a_result(reference, tmp_path):
     root["batch_done"][3] = False
     with pytest.raises(cj.SweepStoreError, match=f"store '{path}': 1 of {N_BATCHES} batches are not written"):
         cj.open_sweep(path)
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_an_interrupted_store_reads_its_unwritten_members_as_not_run(reference, tmp_path):
+    # xarray on a store whose sweep stopped after two batches: the unwritten members' status is
+    # Status.NOT_RUN (never SUCCESS, the integer fill 0), their numbers NaN; the store opens
+    # without xarray's warning about consolidated metadata, before and after the sweep finishes
+    import warnings
+
+    path = tmp_path / "sweep.zarr"
+
+    def stop_at_batch_2(info):
+        if info.batch == 2:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        stored(path, progress=stop_at_batch_2)
+    written = np.arange(N_MEMBERS) < 2 * KW["batch_size"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = xarray.open_zarr(path)
+    np.testing.assert_array_equal(ds["batch_done"].values, np.arange(N_BATCHES) < 2)
+    status = ds["status"].values
+    np.testing.assert_array_equal(status[written], reference.status[written])
+    assert (status[~written] == cj.Status.NOT_RUN).all() and cj.Status.NOT_RUN != cj.Status.SUCCESS
+    assert np.isnan(ds["energy_error"].values[~written]).all() and np.isnan(ds["final_p"].values[~written]).all()
+    assert "not run yet" in cj.Status.NOT_RUN.message
+    assert_same_table(stored(path), reference)  # finished by a rerun
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert (xarray.open_zarr(path)["status"].values == reference.status).all()
 
 
 def test_store_needs_the_optional_extra(monkeypatch, tmp_path):

@@ -19,6 +19,11 @@ as soon as the batch is finished. `xarray.open_zarr(path)` is the analysis entry
 - `batch_done` (batch,) and `batch_run` (batch,): whether batch b is written, and by which run
   of the sweep (1 for the first, 2 for the first resume, …).
 
+A member not written yet (an interrupted sweep) reads `status` = `Status.NOT_RUN` (-1), never
+a success, and NaN in its float arrays; `status` is the last of a batch's arrays written, so a
+member with another status has all its data. The metadata are consolidated at the start of
+every run, so `xarray.open_zarr(store)` opens it without a warning.
+
 Per-member arrays are chunked by the sweep's `batch_size` along `member`, so each batch writes
 whole chunks of its own and batches written at once by different processes never share one.
 
@@ -49,9 +54,12 @@ import json
 import os
 import re
 import sys
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+
+from ..roots.status import Status
 
 __all__ = ["open_sweep", "SweepStoreError"]
 
@@ -259,7 +267,8 @@ def _invariant_keys(shapes) -> dict:
 def _create(zarr, store, plan, config: dict):
     with zarr.config.set({"array.write_empty_chunks": True}):
         # the owner first, in the group's own metadata: a store whose creation is interrupted is ours
-        return _fill(zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE}), plan, config)
+        root = _fill(zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE}), plan, config)
+    return root
 
 
 def _fill(root, plan, config: dict):
@@ -269,6 +278,7 @@ def _fill(root, plan, config: dict):
     for name, (dims, shape, dtype, chunk) in _variables(plan).items():
         chunks = (max(1, min(chunk, shape[0])),) + tuple(shape[1:]) if shape else ()
         fill = False if dtype == np.bool_ else (0 if np.issubdtype(dtype, np.integer) else np.nan)
+        fill = int(Status.NOT_RUN) if name == "status" else fill  # an unwritten member is no success
         root.create_array(name, shape=shape, dtype=dtype, chunks=chunks, dimension_names=dims, fill_value=fill)
     root["member"][:] = np.arange(members.B)
     root["param_index"][:] = members.param_index
@@ -292,7 +302,8 @@ def _fill(root, plan, config: dict):
 
 def _open_group(zarr, store, mode: str):
     try:
-        return zarr.open_group(_plain(store), mode=mode)
+        # the arrays as they are (a consolidated copy of their metadata would hide a missing one)
+        return zarr.open_group(_plain(store), mode=mode, use_consolidated=False)
     except Exception as err:  # zarr raises several kinds for a missing or unreadable group
         raise SweepStoreError(f"store {store_name(store)!r}: not a readable Zarr group ({type(err).__name__}: "
                               f"{err}).") from err
@@ -424,7 +435,7 @@ def write_rows(root, plan, rows, run_id: int):
     shapes = plan.shapes
     keys = _invariant_keys(shapes)
     part = rows.tables
-    arrays = {k: part.columns[k] for k in _COLUMNS if part.columns[k] is not None}
+    arrays = {k: part.columns[k] for k in _COLUMNS if part.columns[k] is not None and k != "status"}
     for name, key in keys.items():
         arrays[f"initial_{key}"] = part.initial[name]
         if name != "energy":
@@ -432,6 +443,7 @@ def write_rows(root, plan, rows, run_id: int):
     arrays["energy_error"] = part.drift["energy"]
     if part.saved is not None:
         arrays.update({f"saved_{k}": part.saved[k] for k in _SAVED if part.saved[k] is not None})
+    arrays["status"] = part.columns["status"]  # the last data: a member with a status has all its data
     start = 0
     spans = []
     for r in rows.rows:
@@ -449,10 +461,16 @@ def write_rows(root, plan, rows, run_id: int):
         root["batch_done"][b] = True  # last: the batch counts as done only with all its data written
 
 
-def start_run(root) -> int:
-    """The number of this run of the sweep on the store (1, 2, …), recorded in its attributes."""
+def start_run(root, store) -> int:
+    """The number of this run of the sweep on the store (1, 2, …), recorded in its attributes.
+    Then the metadata are consolidated (every array's in the root's), so that `xarray.open_zarr`
+    opens the store without a warning, interrupted or not: nothing changes them later in the run
+    (the arrays' metadata never change, the root's attributes only here)."""
     run_id = int(root.attrs.get("runs", 0)) + 1
     root.attrs["runs"] = run_id
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
+        _zarr().consolidate_metadata(_plain(store))
     return run_id
 
 
@@ -575,7 +593,7 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
         print(f"sweep: store {name!r}: skipped {skipped} of {B} members already written "
               f"({n_batches - len(pending)} of {n_batches} batches); computing the other {len(pending)} batches.",
               file=sys.stderr, flush=True)
-    run_id = start_run(root)
+    run_id = start_run(root, store)
     if client is not None:
         from .distributed import run_on_client
 
