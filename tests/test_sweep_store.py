@@ -463,8 +463,19 @@ def test_the_command_line_help_documents_the_toml_format(capsys):
 @pytest.mark.parametrize("edit, message", [
     (lambda c: c.replace('"rigid_body"', '"no_such_model"'), "model: clebsch_jax.models has no function 'no_such_model'"),
     (lambda c: "n_step = 3\n" + c, "unknown entry n_step"),
-    (lambda c: c.replace("[params]\nvalues", "[params]\nvalue"), "[params]: give exactly one of values"),
+    (lambda c: c.replace("[params]\nvalues", "[params]\nlinspace = [[1, 2, 3]]\nvalues"),
+     "[params]: give exactly one of values"),
+    (lambda c: c.replace("[params]\nvalues", "[params]\nvalue"), "[params]: unknown entry value"),
     (lambda c: c + "[options]\nscheme = 3\n", "sweep.toml: sweep: one member"),  # refused by cj.sweep
+    # misspelled keys inside tables are refused, not ignored
+    (lambda c: c.replace("[params]\nvalues", "[params]\nvalues = [[1.0, 2.0, 3.0]]\nvaluess"),
+     "[params]: unknown entry valuess"),
+    (lambda c: c.replace("xi0 = [", "xi0 = {normal = [4, 3], seedd = 1}\nunused = ["),
+     "[initial]: unknown entry unused"),
+    (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], sede = 1}\n# [["), "[initial] xi0: unknown entry sede"),
+    (lambda c: c.replace("Q0 = {identity = 3}", "Q0 = {identity = 3, valu = 1}"), "[initial] Q0: expected"),
+    (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], seed = -7}\n# [["), "seed must be a whole number >= 0"),
+    (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], scale = 'big'}\n# [["), "scale must be a finite"),
 ])
 def test_the_command_line_names_a_bad_config_entry(tmp_path, capsys, edit, message):
     from clebsch_jax.cli import main
@@ -472,8 +483,38 @@ def test_the_command_line_names_a_bad_config_entry(tmp_path, capsys, edit, messa
     config = tmp_path / "sweep.toml"
     config.write_text(edit(CONFIG))
     assert main(["sweep", str(config), "--store", str(tmp_path / "s.zarr"), "--quiet"]) == 2
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and err.count("\n") == 1, err
     assert not (tmp_path / "s.zarr").exists()
+
+
+def test_the_command_line_refuses_a_store_it_cannot_use_in_one_line(tmp_path, capsys, monkeypatch):
+    # a file, a folder of other files, a place where nothing can be created: exit code 2, one
+    # line, nothing changed
+    import errno
+
+    from clebsch_jax.cli import main
+
+    config, a_file, folder = tmp_path / "sweep.toml", tmp_path / "table.csv", tmp_path / "data"
+    config.write_text(CONFIG)
+    a_file.write_text("1,2")
+    folder.mkdir()
+    (folder / "x.npy").write_bytes(b"x")
+    cases = [(a_file, "is a file, not a folder"), (folder, "is a folder that is not a Zarr store")]
+    for store, message in cases:
+        for extra in ([], ["--overwrite"]):
+            assert main(["sweep", str(config), "--store", str(store), "--quiet", *extra]) == 2
+            err = capsys.readouterr().err
+            assert f"store '{store}': {message}" in err and err.count("\n") == 1, err
+    assert a_file.read_text() == "1,2" and (folder / "x.npy").read_bytes() == b"x"
+
+    def read_only(self, *args, **kwargs):  # as on a read-only file system (root may write anywhere else)
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(self))
+
+    monkeypatch.setattr("pathlib.Path.mkdir", read_only)
+    assert main(["sweep", str(config), "--store", str(tmp_path / "new.zarr"), "--quiet"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1].endswith(f"store '{tmp_path / 'new.zarr'}': cannot be written (Read-only file system).")
 
 
 @pytest.mark.slow
