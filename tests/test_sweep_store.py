@@ -253,6 +253,41 @@ def test_an_empty_folder_or_an_interrupted_creation_is_used(reference, tmp_path)
     assert_same_table(cj.open_sweep(empty), reference)
 
 
+def _flip_a_bit(chunk):
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    chunk.write_bytes(bytes(data))
+
+
+def test_a_flipped_bit_is_found_and_only_its_batch_is_computed_again(reference, tmp_path, capsys):
+    # every chunk carries a CRC-32C: a flipped bit in a finished batch's data is an error naming
+    # the batch, and a rerun marks that batch not done and computes it alone; a flipped bit in an
+    # input array (written at creation) is written again, in a done flag the batch is recomputed
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    _flip_a_bit(path / "saved_momentum" / "c" / "3" / "0" / "0")  # batch 3's saved nodes
+    _flip_a_bit(path / "final_t" / "c" / "1")  # batch 1
+    _flip_a_bit(path / "xi0" / "c" / "0" / "0")  # an input
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': cannot read 'final_t' .*checksum.*: batch 1; run "
+                                                 "the same sweep with this store: it computes only the damaged"):
+        cj.open_sweep(path)
+    capsys.readouterr()
+    assert_same_table(stored(path), reference)
+    err = capsys.readouterr().err
+    assert "batch 1 (members 2-3) is damaged ('final_t'" in err and "batch 3 (members 6-7) is damaged" in err
+    assert "the input arrays xi0 are damaged: written again" in err
+    assert "skipped 5 of 9 members" in err  # batches 0, 2, 4
+    runs = np.asarray(zarr.open_group(str(path), mode="r")["batch_run"][:])
+    np.testing.assert_array_equal(runs, [1, 2, 1, 2, 1])
+    assert_same_table(cj.open_sweep(path), reference)
+    np.testing.assert_array_equal(xarray.open_zarr(path)["xi0"].values, OMEGAS)
+
+    _flip_a_bit(path / "batch_done" / "c" / "4")
+    assert_same_table(stored(path), reference)
+    assert "the done flag of batch 4 is damaged" in capsys.readouterr().err
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(path), mode="r")["batch_run"][:]), [1, 2, 1, 2, 3])
+
+
 def test_an_unfinished_store_is_not_read_as_a_result(reference, tmp_path):
     path = tmp_path / "sweep.zarr"
     stored(path)

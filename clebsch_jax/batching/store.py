@@ -24,6 +24,12 @@ a success, and NaN in its float arrays; `status` is the last of a batch's arrays
 member with another status has all its data. The metadata are consolidated at the start of
 every run, so `xarray.open_zarr(store)` opens it without a warning.
 
+**Checksums.** Every chunk is compressed (zstd), then carries a CRC-32C of its stored bytes
+(Zarr's `crc32c` codec): a flipped bit is an error when the chunk is read, never a changed
+number. A reopened store is read back chunk by chunk (`repair`): a finished batch with a damaged
+or missing chunk is marked not done, with a message, and computed again by this run alone; a
+damaged chunk of the inputs is written again. `open_sweep` names the damaged batches.
+
 Per-member arrays are chunked by the sweep's `batch_size` along `member`, so each batch writes
 whole chunks of its own and batches written at once by different processes never share one.
 
@@ -272,32 +278,46 @@ def _create(zarr, store, plan, config: dict):
 
 
 def _fill(root, plan, config: dict):
-    import jax
+    from zarr.codecs import Crc32cCodec, ZstdCodec
 
-    cfg, members, shapes, run, bs = plan
     for name, (dims, shape, dtype, chunk) in _variables(plan).items():
         chunks = (max(1, min(chunk, shape[0])),) + tuple(shape[1:]) if shape else ()
         fill = False if dtype == np.bool_ else (0 if np.issubdtype(dtype, np.integer) else np.nan)
         fill = int(Status.NOT_RUN) if name == "status" else fill  # an unwritten member is no success
-        root.create_array(name, shape=shape, dtype=dtype, chunks=chunks, dimension_names=dims, fill_value=fill)
-    root["member"][:] = np.arange(members.B)
-    root["param_index"][:] = members.param_index
-    root["ic_index"][:] = members.ic_index
-    root["dt"][:] = members.dt
-    root["Q0"][:] = members.Q0
-    root["xi0"][:] = members.xi0
-    if members.P0 is not None:
-        root["P0"][:] = members.P0
-    if members.builder is not None:
-        for i, leaf in enumerate(jax.tree_util.tree_leaves(members.params)):
-            root[f"params_{i}"][:] = np.asarray(leaf)
-    if run.save_every is not None:
-        root["saved_step"][:] = np.arange(0, run.n_steps + 1, run.save_every)
-    keys = _invariant_keys(shapes)
+        # every chunk compressed, then checksummed (CRC-32C of the stored bytes): a flipped bit is
+        # an error when the chunk is read, never a changed number
+        root.create_array(name, shape=shape, dtype=dtype, chunks=chunks, dimension_names=dims, fill_value=fill,
+                          compressors=[ZstdCodec(), Crc32cCodec()])
+    _write_inputs(root, plan)
+    keys = _invariant_keys(plan.shapes)
     # the configuration last: a store without it was not finished being created
     root.attrs.update({"invariant_arrays": keys, "runs": 0, "description": "clebsch_jax.sweep table",
                        **{k: config[k] for k in ("method", "dt", "n_steps", "package_version")}, ATTR: config})
     return root
+
+
+def _inputs(plan) -> dict:
+    """{array: its data} of the arrays written when the store is created (the inputs, the
+    members' rows of them, the saved steps): every other array is written batch by batch."""
+    import jax
+
+    members, run = plan.members, plan.run
+    out = {"member": np.arange(members.B), "param_index": members.param_index, "ic_index": members.ic_index,
+           "dt": members.dt, "Q0": members.Q0, "xi0": members.xi0}
+    if members.P0 is not None:
+        out["P0"] = members.P0
+    if members.builder is not None:
+        for i, leaf in enumerate(jax.tree_util.tree_leaves(members.params)):
+            out[f"params_{i}"] = np.asarray(leaf)
+    if run.save_every is not None:
+        out["saved_step"] = np.arange(0, run.n_steps + 1, run.save_every)
+    return out
+
+
+def _write_inputs(root, plan, names=None):
+    for name, data in _inputs(plan).items():
+        if names is None or name in names:
+            root[name][:] = data
 
 
 def _open_group(zarr, store, mode: str):
@@ -423,11 +443,81 @@ def _check_layout(root, plan, name: str):
 
 
 def done_batches(root, name: str) -> np.ndarray:
+    """Which batches the store marks done; a flag that cannot be read (a damaged chunk) counts
+    as not done, so its batch is computed again."""
+    flags = root["batch_done"]
     try:
-        return np.asarray(root["batch_done"][:], bool)
-    except Exception as err:
-        raise SweepStoreError(f"store {name!r}: cannot read 'batch_done' ({type(err).__name__}: {err}): a corrupted "
-                              "store; pass overwrite=True to start it afresh.") from err
+        return np.asarray(flags[:], bool)
+    except Exception:  # a damaged flag: read them one by one (each is a chunk of its own)
+        done = np.zeros(flags.shape, bool)
+        for b in range(flags.shape[0]):
+            try:
+                done[b] = bool(flags[b])
+            except Exception:  # codecs raise many kinds
+                print(f"sweep: store {name!r}: the done flag of batch {b} is damaged: computing the batch again.",
+                      file=sys.stderr, flush=True)
+        return done
+
+
+def _written_by_batches(root) -> list:
+    """The arrays written batch by batch (`write_rows`): those over `member`, less the inputs'
+    rows written when the store was created."""
+    created = {"member", "param_index", "ic_index", "dt"}
+    return [k for k in sorted(root.array_keys())
+            if k not in created and (root[k].metadata.dimension_names or (None,))[0] == "member"]
+
+
+def _chunk_problem(root, var: str, b: int, bs: int):
+    """None if batch b's rows of `var` (exactly one chunk: per-member arrays are chunked by the
+    batch size) are there and read back; else what is wrong with them."""
+    from zarr.core.sync import sync
+
+    arr = root[var]
+    key = f"{arr.path}/{arr.metadata.encode_chunk_key((b,) + (0,) * (arr.ndim - 1))}"
+    try:
+        if not sync(root.store.exists(key)):
+            return "a missing chunk"
+        arr[b * bs:(b + 1) * bs]
+    except Exception as err:  # a checksum mismatch, a truncated chunk: codecs raise many kinds
+        return f"{type(err).__name__}: {err}"
+    return None
+
+
+def damaged_batches(root, batches, bs: int) -> dict:
+    """{batch: (array, what is wrong)} of the given batches whose data cannot be read back."""
+    found = {}
+    for var in _written_by_batches(root):
+        for b in batches:
+            if b not in found:
+                problem = _chunk_problem(root, var, b, bs)
+                if problem is not None:
+                    found[b] = (var, problem)
+    return found
+
+
+def repair(root, plan, done: np.ndarray, name: str) -> np.ndarray:
+    """A reopened store checked chunk by chunk: a batch marked done whose data cannot be read
+    back (a checksum mismatch, a missing or truncated chunk) is marked not done, with a message,
+    so this run computes it again; a damaged chunk of the inputs written at creation is written
+    again (the configuration check has shown they are the same). Returns the batches done."""
+    bs = plan.batch_size
+    damaged = damaged_batches(root, np.flatnonzero(done).tolist(), bs)
+    for b, (var, problem) in sorted(damaged.items()):
+        print(f"sweep: store {name!r}: batch {b} (members {b * bs}-{min((b + 1) * bs, plan.members.B) - 1}) is "
+              f"damaged ({var!r}: {problem}): computing it again.", file=sys.stderr, flush=True)
+        root["batch_done"][b] = False
+        done[b] = False
+    broken = []
+    for var in _inputs(plan):
+        try:
+            root[var][...]
+        except Exception:  # codecs raise many kinds
+            broken.append(var)
+    if broken:
+        print(f"sweep: store {name!r}: the input arrays {', '.join(broken)} are damaged: written again.",
+              file=sys.stderr, flush=True)
+        _write_inputs(root, plan, broken)
+    return done
 
 
 def write_rows(root, plan, rows, run_id: int):
@@ -520,14 +610,22 @@ def open_sweep(store):
             arr = root[var]
             if var in per_member and arr.nchunks_initialized < arr.nchunks:
                 raise SweepStoreError(f"store {name!r}: {arr.nchunks - arr.nchunks_initialized} of {arr.nchunks} "
-                                      f"chunks of {var!r} are missing (a truncated store); rerun the sweep with "
-                                      "overwrite=True.")
+                                      f"chunks of {var!r} are missing (a truncated store){_which(var)}")
             return np.asarray(arr[...])
         except SweepStoreError:
             raise
-        except Exception as err:  # a truncated or garbled chunk: codecs raise many kinds
+        except Exception as err:  # a checksum mismatch, a truncated chunk: codecs raise many kinds
             raise SweepStoreError(f"store {name!r}: cannot read {var!r} ({type(err).__name__}: {err}): a "
-                                  "truncated or corrupted store; rerun the sweep with overwrite=True.") from err
+                                  f"damaged store{_which(var)}") from err
+
+    def _which(var):
+        """Which batches of `var` are damaged, and what a rerun does about them."""
+        if var not in _written_by_batches(root):
+            return "; run the same sweep with this store: it writes the inputs again."
+        bs = config["batch_size"]
+        bad = sorted(b for b in range(len(done)) if _chunk_problem(root, var, b, bs) is not None)
+        return (f": batch{'es' if len(bad) > 1 else ''} {', '.join(map(str, bad))}; run the same sweep with this "
+                "store: it computes only the damaged batches again.")
 
     columns = {k: read(k, required=k not in ("final_Q", "final_xi")) for k in _COLUMNS}
     drift = {"energy": read("energy_error")}
@@ -587,6 +685,8 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
     name = store_name(store)
     root = open_for_run(store, plan, overwrite)
     done = done_batches(root, name)
+    if done.any():  # reopened: every chunk of the finished batches is read back (checksums)
+        done = repair(root, plan, done, name)
     pending = [b for b in range(n_batches) if not done[b]]
     if len(pending) < n_batches:
         skipped = B - sum(min(bs, B - b * bs) for b in pending)
