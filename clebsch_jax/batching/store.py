@@ -40,17 +40,17 @@ invariants' names, the model, the number of members, a SHA-256 of every input ar
 (`program_digest`: the bodies of the model and the invariants, every option), and the package
 and JAX versions. Running a sweep with an existing store compares them:
 a difference is refused (`SweepStoreError` naming the store and the differing entries) unless
-`overwrite=True`, which starts the store afresh.
+`overwrite=True`, which starts the store afresh. With the same configuration, every batch whose
+`batch_done` flag is set is skipped. The flag is written after the batch's data, so a process
+killed at any instant leaves either a batch marked done with all its data, or one not marked
+done, which the next run computes again.
 
 **Nothing we did not write is removed.** A new store gets the attribute `written_by` first;
 a store is recognised as a sweep's by it or by its configuration. A path that exists and is not
 one — a file, a folder of other files (`.` included), a Zarr group of other data — is refused
 naming it, with or without `overwrite`; so is a store whose root metadata cannot be read (it is
 reported as damaged, and left as it is). An empty folder, an empty group, and a store of ours
-whose creation was interrupted (no configuration yet, hence no result) are (re)created. With the same configuration, every batch whose
-`batch_done` flag is set is skipped. The flag is written after the batch's data, so a process
-killed at any instant leaves either a batch marked done with all its data, or one not marked
-done, which the next run computes again.
+whose creation was interrupted (no configuration yet, hence no result) are (re)created.
 """
 
 from __future__ import annotations
@@ -273,8 +273,7 @@ def _invariant_keys(shapes) -> dict:
 def _create(zarr, store, plan, config: dict):
     with zarr.config.set({"array.write_empty_chunks": True}):
         # the owner first, in the group's own metadata: a store whose creation is interrupted is ours
-        root = _fill(zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE}), plan, config)
-    return root
+        return _fill(zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE}), plan, config)
 
 
 def _fill(root, plan, config: dict):
