@@ -288,6 +288,33 @@ def test_a_flipped_bit_is_found_and_only_its_batch_is_computed_again(reference, 
     np.testing.assert_array_equal(np.asarray(zarr.open_group(str(path), mode="r")["batch_run"][:]), [1, 2, 1, 2, 3])
 
 
+def test_a_store_another_process_is_creating_is_refused_naming_it(reference, tmp_path):
+    # a store of ours without its configuration yet is recreated only when the process that
+    # began creating it is gone: recreating it under a live process would wipe its work
+    import socket
+    import subprocess
+
+    from clebsch_jax.batching.store import OWNER, OWNER_VALUE
+
+    path = tmp_path / "sweep.zarr"
+    host = socket.gethostname()
+    with subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"]) as alive:
+        try:
+            zarr.open_group(str(path), mode="w", attributes={OWNER: OWNER_VALUE,
+                                                             "created_by": {"host": host, "pid": alive.pid}})
+            with pytest.raises(cj.SweepStoreError, match=f"is being created by process {alive.pid} on host {host}"):
+                stored(path)
+        finally:
+            alive.kill()
+    # now gone (reaped): the store is created again
+    assert_same_table(stored(path), reference)
+    elsewhere = tmp_path / "elsewhere.zarr"  # a creator on another host cannot be checked: refused
+    zarr.open_group(str(elsewhere), mode="w", attributes={OWNER: OWNER_VALUE,
+                                                          "created_by": {"host": "node-17", "pid": 4242}})
+    with pytest.raises(cj.SweepStoreError, match="process 4242 on host node-17.*delete the store yourself"):
+        stored(elsewhere, overwrite=True)
+
+
 def test_an_unfinished_store_is_not_read_as_a_result(reference, tmp_path):
     path = tmp_path / "sweep.zarr"
     stored(path)

@@ -50,7 +50,11 @@ a store is recognised as a sweep's by it or by its configuration. A path that ex
 one — a file, a folder of other files (`.` included), a Zarr group of other data — is refused
 naming it, with or without `overwrite`; so is a store whose root metadata cannot be read (it is
 reported as damaged, and left as it is). An empty folder, an empty group, and a store of ours
-whose creation was interrupted (no configuration yet, hence no result) are (re)created.
+whose creation was interrupted (no configuration yet, hence no result) are (re)created — unless
+the process creating it (`created_by`: host and process id) may still be running, which is
+refused naming it. Two processes running the same sweep on one store share its batches: each
+skips the batches written when it starts; a batch both compute holds one run's rows (a chunk
+garbled by two writers at once fails its checksum, and is computed again by the next run).
 """
 
 from __future__ import annotations
@@ -273,7 +277,8 @@ def _invariant_keys(shapes) -> dict:
 def _create(zarr, store, plan, config: dict):
     with zarr.config.set({"array.write_empty_chunks": True}):
         # the owner first, in the group's own metadata: a store whose creation is interrupted is ours
-        return _fill(zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE}), plan, config)
+        return _fill(zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE,
+                                                                           "created_by": _creator()}), plan, config)
 
 
 def _fill(root, plan, config: dict):
@@ -397,11 +402,43 @@ def _inspect(zarr, store):
                                   f"(got {type(attrs[ATTR]).__name__}). Nothing was removed.")
         return "ours", root
     if attrs.get(OWNER) == OWNER_VALUE:
+        creator = _live_creator(attrs.get("created_by"))
+        if creator is not None:  # another process is creating it now: recreating it would wipe its work
+            raise SweepStoreError(f"store {name!r}: is being created by {creator}. Wait for it to start its "
+                                  "batches and run the same sweep again to share them, or give another path. "
+                                  "If that process is gone, delete the store yourself.")
         return "unfinished", root
     if not attrs and not list(root.keys()) and (path is None or entries == ["zarr.json"]):
         return "new", None  # an empty group: nothing to keep
     raise SweepStoreError(f"store {name!r}: is a Zarr group not written by clebsch_jax.sweep (no attribute "
                           f"{ATTR!r}). {keep}")
+
+
+def _creator() -> dict:
+    """Who creates a store (its attribute `created_by`): host and process."""
+    import socket
+
+    return {"host": socket.gethostname(), "pid": os.getpid()}
+
+
+def _live_creator(created_by) -> str | None:
+    """'process N on host H' when the process that began creating a store may still be running
+    (alive on this host, or on another host, where that cannot be checked); None when it is
+    this process or gone."""
+    if not isinstance(created_by, dict):
+        return None
+    me = _creator()
+    host, pid = created_by.get("host"), created_by.get("pid")
+    if host == me["host"]:
+        if pid == me["pid"] or not isinstance(pid, int):
+            return None
+        try:
+            os.kill(pid, 0)  # signal 0: only whether the process exists
+        except ProcessLookupError:
+            return None
+        except PermissionError:  # it exists, under another user
+            pass
+    return f"process {pid} on host {host}"
 
 
 def open_for_run(store, plan, overwrite: bool):
