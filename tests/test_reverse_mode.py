@@ -99,11 +99,11 @@ def check_reverse_mode(system, Q0, xi0, options):
 
 def test_the_tangent_solve_is_transposable_for_every_size():
     # the tangent solve of a root's implicit derivative (`dense_tangent_solve`: the Jacobian of
-    # the linear map g, then a solve) for the closed forms (n ≤ 3), the unrolled elimination
+    # the linear map g, then a solve) for the closed form (n ≤ 3), the unrolled elimination
     # (4 ≤ n ≤ 8) and the LU loop (n > 8): reverse mode transposes it, y ↦ J⁻¹y into
     # w ↦ J⁻ᵀw, which NumPy computes here
     rng = np.random.default_rng(0)
-    for n in (1, 2, 3, 4, 6, 9):
+    for n in (2, 4, 9):  # one of each: the closed form, the elimination, the LU loop
         J, w = rng.normal(size=(n, n)) + n * np.eye(n), rng.normal(size=n)
         solve = lambda y, J=jnp.asarray(J): dense_tangent_solve(lambda v: J @ v, y)
         (transposed,) = jax.jit(jax.linear_transpose(solve, jnp.zeros(n)))(jnp.asarray(w))
