@@ -171,6 +171,22 @@ def test_the_gradient_of_a_failed_march_is_nan_not_zero(reduce):
     assert np.all(np.isnan(grad))
 
 
+def test_the_gradient_of_a_member_with_invalid_input_is_nan():
+    # a model parameter out of range (zero circulation of a point vortex, made NaN by the model
+    # under tracing) gives a NaN value and a NaN gradient, never a zero one; the valid
+    # circulations' gradient is finite
+    Q0 = jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+
+    def final_x(gamma):
+        sol = cj.integrate(cj.models.point_vortices(gamma), Q0, jnp.zeros((3, 2)), dt=0.01, n_steps=2, throw=False)
+        return sol.Q[-1, :, 0].sum(), sol.result
+
+    (value, result), grad = jax.value_and_grad(final_x, has_aux=True)(jnp.array([1.0, 0.0, 1.0]))
+    assert int(result) == cj.Status.INVALID_INPUT and np.isnan(value) and np.all(np.isnan(grad))
+    (value, result), grad = jax.value_and_grad(final_x, has_aux=True)(jnp.array([1.0, 0.5, 1.0]))
+    assert int(result) == cj.Status.SUCCESS and np.all(np.isfinite(grad))
+
+
 @pytest.mark.slow  # a second compiled gradient program (vmapped)
 def test_a_failed_member_does_not_poison_the_others_gradients():
     """Variant: a vmapped batch with one failing member: its gradient is NaN, the healthy

@@ -149,6 +149,16 @@ def test_rigid_body_grid_conserves_the_casimir_for_every_member_and_reports_fail
         res.raise_if_failed()
 
 
+def test_a_batch_size_above_the_member_count_is_clamped_to_it():
+    # 4 members in a batch of 10⁹ would run 10⁹ − 4 padded copies: the batch is 4 members, the
+    # program and the table those of batch_size=4 (RB's)
+    res = cj.sweep(rigid_body, INERTIAS, eyes(4), OMEGAS, **{**RB, "batch_size": 10**9})
+    assert res.batch_size == 4 and len(res) == 4
+    four = cj.sweep(rigid_body, INERTIAS, eyes(4), OMEGAS, **RB)
+    np.testing.assert_array_equal(res.final_momentum, four.final_momentum)
+    np.testing.assert_array_equal(res.drift["casimir"], four.drift["casimir"])
+
+
 def test_member_chunks_give_the_same_table():
     """`member_chunk` splits a batch into chunks of `cj.batch`: each member's run does not
     depend on the others, so the table is the same, to the bit, for chunks of 3 (the last

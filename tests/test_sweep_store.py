@@ -68,7 +68,7 @@ def test_store_round_trip_with_xarray_and_open_sweep(reference, tmp_path):
     assert_same_table(res, reference)
     assert_same_table(cj.open_sweep(path), reference)
 
-    ds = xarray.open_zarr(path, consolidated=False)
+    ds = xarray.open_zarr(path)
     assert ds.sizes["member"] == N_MEMBERS and ds.sizes["batch"] == N_BATCHES
     assert ds["final_Q"].dims == ("member", "Q_axis0", "Q_axis1")
     assert ds["saved_momentum"].dims == ("member", "node", "component")
@@ -94,6 +94,46 @@ def test_a_store_of_another_configuration_is_refused(reference, tmp_path):
     assert_same_table(res, cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir},
                                     **{**KW, "dt": 0.04}))
     assert xarray.open_zarr(path, consolidated=False).attrs["dt"] == 0.04
+
+
+def quartic(system, sol):
+    """|μ|⁴ at every node: another body under the invariant's name."""
+    return jnp.sum(sol.momentum**2, axis=-1) ** 2
+
+
+def test_a_sweep_that_computes_something_else_under_the_same_names_is_refused(reference, tmp_path, monkeypatch):
+    # the store keeps a digest of one member's traced program: same names, other bodies are refused
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    for change, differs in (({"invariants": {"casimir": quartic}}, r"\(program_sha256: stored"),
+                            ({"check_energy": False}, r"\(options: stored .*'check_energy': True")):
+        with pytest.raises(cj.SweepStoreError, match=f"another sweep configuration {differs}"):
+            cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, store=str(path), **{"invariants": {"casimir": casimir},
+                                                                                 **KW, **change})
+
+    # make_system: a lambda with another body, a module-level function edited in place
+    scaled = tmp_path / "scaled.zarr"
+    twice = (lambda inertia: rigid_body(inertia),), (lambda inertia: rigid_body(2.0 * inertia),)
+    cj.sweep(twice[0][0], INERTIAS, EYES, OMEGAS, store=str(scaled), **KW)
+    with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*program_sha256"):
+        cj.sweep(twice[1][0], INERTIAS, EYES, OMEGAS, store=str(scaled), **KW)
+    assert cj.sweep(twice[0][0], INERTIAS, EYES, OMEGAS, store=str(scaled), **KW).succeeded.all()  # the same: resumed
+
+    module = tmp_path / "edited_model.py"
+    module.write_text("from clebsch_jax.models import rigid_body\n\n"
+                      "def model(inertia):\n    return rigid_body(inertia)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import importlib
+
+    import edited_model
+
+    edited = tmp_path / "edited.zarr"
+    cj.sweep(edited_model.model, INERTIAS, EYES, OMEGAS, store=str(edited), **KW)
+    module.write_text("from clebsch_jax.models import rigid_body\n\n"
+                      "def model(inertia):\n    return rigid_body(inertia[::-1])\n")
+    importlib.reload(edited_model)
+    with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*program_sha256"):
+        cj.sweep(edited_model.model, INERTIAS, EYES, OMEGAS, store=str(edited), **KW)
 
 
 def test_a_stored_sweep_from_three_threads_is_the_same_table(reference, tmp_path):
@@ -153,6 +193,133 @@ def test_a_truncated_or_corrupted_store_is_a_clear_error(reference, tmp_path):
         cj.open_sweep(path)
 
 
+def _tree(path):
+    """Every file under `path` with its bytes: what must survive a refused store."""
+    return {str(f.relative_to(path)): f.read_bytes() for f in sorted(path.rglob("*")) if f.is_file()}
+
+
+def test_a_path_that_is_not_our_store_is_refused_and_kept(tmp_path, monkeypatch):
+    # nothing we did not write is removed, with or without overwrite: a folder of other files
+    # (also the current folder, "."), a file, a Zarr group of other data, in memory too
+    folder = tmp_path / "results"
+    (folder / "runs").mkdir(parents=True)
+    (folder / "runs" / "a.csv").write_text("1,2\n")
+    (folder / "notes.txt").write_text("keep me")
+    a_file = tmp_path / "table.zarr"
+    a_file.write_bytes(b"not a folder")
+    other = tmp_path / "other.zarr"
+    zarr.open_group(str(other), mode="w", attributes={"source": "a simulation"}).create_array("x", shape=(3,),
+                                                                                             dtype="f8")
+    monkeypatch.chdir(folder)
+    cases = [(folder, "is a folder that is not a Zarr store \\(it holds notes.txt, runs\\)"),
+             (".", "is a folder that is not a Zarr store"), (a_file, "is a file, not a folder"),
+             (other, "is a Zarr group not written by clebsch_jax.sweep")]
+    before = _tree(tmp_path)
+    for path, message in cases:
+        for overwrite in (False, True):
+            with pytest.raises(cj.SweepStoreError, match=f"store '{path}': {message}.*Nothing was written or removed"):
+                stored(path, overwrite=overwrite)
+    assert _tree(tmp_path) == before
+    memory = zarr.storage.MemoryStore()
+    zarr.open_group(memory, mode="w", attributes={"source": "a simulation"})
+    with pytest.raises(cj.SweepStoreError, match="is a Zarr group not written by clebsch_jax.sweep"):
+        cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, store=memory, overwrite=True, **KW)
+    assert zarr.open_group(memory, mode="r").attrs["source"] == "a simulation"
+
+
+def test_a_damaged_store_is_an_error_never_wiped(reference, tmp_path):
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    meta = path / "zarr.json"
+    meta.write_bytes(meta.read_bytes()[:-40])  # the root metadata cut short
+    before = _tree(path)
+    for overwrite in (False, True):
+        with pytest.raises(cj.SweepStoreError, match=f"store '{path}': damaged.*root metadata \\(zarr.json\\) cannot "
+                                                     "be read.*Nothing was removed"):
+            stored(path, overwrite=overwrite)
+    assert _tree(path) == before
+
+
+def test_an_empty_folder_or_an_interrupted_creation_is_used(reference, tmp_path):
+    # nothing to keep: an empty folder becomes the store; a store of ours whose creation was
+    # interrupted (its owner attribute, no configuration: no batch can have been written) is
+    # created again without overwrite; a store of ours is replaced with overwrite
+    from clebsch_jax.batching.store import OWNER, OWNER_VALUE
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert_same_table(stored(empty), reference)
+    interrupted = tmp_path / "interrupted.zarr"
+    zarr.open_group(str(interrupted), mode="w", attributes={OWNER: OWNER_VALUE}).create_array("status", shape=(2,),
+                                                                                              dtype="i4")
+    assert_same_table(stored(interrupted), reference)
+    (empty / "status" / "c" / "0").unlink()  # ours, truncated: overwrite replaces it
+    assert_same_table(stored(empty, overwrite=True), reference)
+    assert_same_table(cj.open_sweep(empty), reference)
+
+
+def _flip_a_bit(chunk):
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    chunk.write_bytes(bytes(data))
+
+
+def test_a_flipped_bit_is_found_and_only_its_batch_is_computed_again(reference, tmp_path, capsys):
+    # every chunk carries a CRC-32C: a flipped bit in a finished batch's data is an error naming
+    # the batch, and a rerun marks that batch not done and computes it alone; a flipped bit in an
+    # input array (written at creation) is written again, in a done flag the batch is recomputed
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    _flip_a_bit(path / "saved_momentum" / "c" / "3" / "0" / "0")  # batch 3's saved nodes
+    _flip_a_bit(path / "final_t" / "c" / "1")  # batch 1
+    _flip_a_bit(path / "xi0" / "c" / "0" / "0")  # an input
+    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': cannot read 'final_t' .*checksum.*: batch 1; run "
+                                                 "the same sweep with this store: it computes only the damaged"):
+        cj.open_sweep(path)
+    capsys.readouterr()
+    assert_same_table(stored(path), reference)
+    err = capsys.readouterr().err
+    assert "batch 1 (members 2-3) is damaged ('final_t'" in err and "batch 3 (members 6-7) is damaged" in err
+    assert "the input arrays xi0 are damaged: written again" in err
+    assert "skipped 5 of 9 members" in err  # batches 0, 2, 4
+    runs = np.asarray(zarr.open_group(str(path), mode="r")["batch_run"][:])
+    np.testing.assert_array_equal(runs, [1, 2, 1, 2, 1])
+    assert_same_table(cj.open_sweep(path), reference)
+    np.testing.assert_array_equal(xarray.open_zarr(path)["xi0"].values, OMEGAS)
+
+    _flip_a_bit(path / "batch_done" / "c" / "4")
+    assert_same_table(stored(path), reference)
+    assert "the done flag of batch 4 is damaged" in capsys.readouterr().err
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(path), mode="r")["batch_run"][:]), [1, 2, 1, 2, 3])
+
+
+def test_a_store_another_process_is_creating_is_refused_naming_it(reference, tmp_path):
+    # a store of ours without its configuration yet is recreated only when the process that
+    # began creating it is gone: recreating it under a live process would wipe its work
+    import socket
+    import subprocess
+
+    from clebsch_jax.batching.store import OWNER, OWNER_VALUE
+
+    path = tmp_path / "sweep.zarr"
+    host = socket.gethostname()
+    with subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"]) as alive:
+        try:
+            zarr.open_group(str(path), mode="w", attributes={OWNER: OWNER_VALUE,
+                                                             "created_by": {"host": host, "pid": alive.pid}})
+            with pytest.raises(cj.SweepStoreError, match=f"is being created by process {alive.pid} on host {host}"):
+                stored(path)
+        finally:
+            alive.kill()
+    # now gone (reaped): the store is created again
+    assert_same_table(stored(path), reference)
+    elsewhere = tmp_path / "elsewhere.zarr"  # a creator on another host cannot be checked: refused
+    zarr.open_group(str(elsewhere), mode="w", attributes={OWNER: OWNER_VALUE,
+                                                          "created_by": {"host": "node-17", "pid": 4242}})
+    with pytest.raises(cj.SweepStoreError, match="process 4242 on host node-17.*delete the store yourself"):
+        stored(elsewhere, overwrite=True)
+
+
 def test_an_unfinished_store_is_not_read_as_a_result(reference, tmp_path):
     path = tmp_path / "sweep.zarr"
     stored(path)
@@ -160,6 +327,40 @@ def test_an_unfinished_store_is_not_read_as_a_result(reference, tmp_path):
     root["batch_done"][3] = False
     with pytest.raises(cj.SweepStoreError, match=f"store '{path}': 1 of {N_BATCHES} batches are not written"):
         cj.open_sweep(path)
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_an_interrupted_store_reads_its_unwritten_members_as_not_run(reference, tmp_path):
+    # xarray on a store whose sweep stopped after two batches: the unwritten members' status is
+    # Status.NOT_RUN (never SUCCESS, the integer fill 0), their numbers NaN; the store opens
+    # without xarray's warning about consolidated metadata, before and after the sweep finishes
+    import warnings
+
+    path = tmp_path / "sweep.zarr"
+
+    def stop_at_batch_2(info):
+        if info.batch == 2:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        stored(path, progress=stop_at_batch_2)
+    written = np.arange(N_MEMBERS) < 2 * KW["batch_size"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = xarray.open_zarr(path)
+    np.testing.assert_array_equal(ds["batch_done"].values, np.arange(N_BATCHES) < 2)
+    status = ds["status"].values
+    np.testing.assert_array_equal(status[written], reference.status[written])
+    assert (status[~written] == cj.Status.NOT_RUN).all() and cj.Status.NOT_RUN != cj.Status.SUCCESS
+    assert np.isnan(ds["energy_error"].values[~written]).all() and np.isnan(ds["final_p"].values[~written]).all()
+    assert "not run yet" in cj.Status.NOT_RUN.message
+    assert_same_table(stored(path), reference)  # finished by a rerun
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert (xarray.open_zarr(path)["status"].values == reference.status).all()
 
 
 def test_store_needs_the_optional_extra(monkeypatch, tmp_path):
@@ -329,8 +530,19 @@ def test_the_command_line_help_documents_the_toml_format(capsys):
 @pytest.mark.parametrize("edit, message", [
     (lambda c: c.replace('"rigid_body"', '"no_such_model"'), "model: clebsch_jax.models has no function 'no_such_model'"),
     (lambda c: "n_step = 3\n" + c, "unknown entry n_step"),
-    (lambda c: c.replace("[params]\nvalues", "[params]\nvalue"), "[params]: give exactly one of values"),
+    (lambda c: c.replace("[params]\nvalues", "[params]\nlinspace = [[1, 2, 3]]\nvalues"),
+     "[params]: give exactly one of values"),
+    (lambda c: c.replace("[params]\nvalues", "[params]\nvalue"), "[params]: unknown entry value"),
     (lambda c: c + "[options]\nscheme = 3\n", "sweep.toml: sweep: one member"),  # refused by cj.sweep
+    # misspelled keys inside tables are refused, not ignored
+    (lambda c: c.replace("[params]\nvalues", "[params]\nvalues = [[1.0, 2.0, 3.0]]\nvaluess"),
+     "[params]: unknown entry valuess"),
+    (lambda c: c.replace("xi0 = [", "xi0 = {normal = [4, 3], seedd = 1}\nunused = ["),
+     "[initial]: unknown entry unused"),
+    (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], sede = 1}\n# [["), "[initial] xi0: unknown entry sede"),
+    (lambda c: c.replace("Q0 = {identity = 3}", "Q0 = {identity = 3, valu = 1}"), "[initial] Q0: expected"),
+    (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], seed = -7}\n# [["), "seed must be a whole number >= 0"),
+    (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], scale = 'big'}\n# [["), "scale must be a finite"),
 ])
 def test_the_command_line_names_a_bad_config_entry(tmp_path, capsys, edit, message):
     from clebsch_jax.cli import main
@@ -338,8 +550,38 @@ def test_the_command_line_names_a_bad_config_entry(tmp_path, capsys, edit, messa
     config = tmp_path / "sweep.toml"
     config.write_text(edit(CONFIG))
     assert main(["sweep", str(config), "--store", str(tmp_path / "s.zarr"), "--quiet"]) == 2
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and err.count("\n") == 1, err
     assert not (tmp_path / "s.zarr").exists()
+
+
+def test_the_command_line_refuses_a_store_it_cannot_use_in_one_line(tmp_path, capsys, monkeypatch):
+    # a file, a folder of other files, a place where nothing can be created: exit code 2, one
+    # line, nothing changed
+    import errno
+
+    from clebsch_jax.cli import main
+
+    config, a_file, folder = tmp_path / "sweep.toml", tmp_path / "table.csv", tmp_path / "data"
+    config.write_text(CONFIG)
+    a_file.write_text("1,2")
+    folder.mkdir()
+    (folder / "x.npy").write_bytes(b"x")
+    cases = [(a_file, "is a file, not a folder"), (folder, "is a folder that is not a Zarr store")]
+    for store, message in cases:
+        for extra in ([], ["--overwrite"]):
+            assert main(["sweep", str(config), "--store", str(store), "--quiet", *extra]) == 2
+            err = capsys.readouterr().err
+            assert f"store '{store}': {message}" in err and err.count("\n") == 1, err
+    assert a_file.read_text() == "1,2" and (folder / "x.npy").read_bytes() == b"x"
+
+    def read_only(self, *args, **kwargs):  # as on a read-only file system (root may write anywhere else)
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(self))
+
+    monkeypatch.setattr("pathlib.Path.mkdir", read_only)
+    assert main(["sweep", str(config), "--store", str(tmp_path / "new.zarr"), "--quiet"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1].endswith(f"store '{tmp_path / 'new.zarr'}': cannot be written (Read-only file system).")
 
 
 @pytest.mark.slow

@@ -19,18 +19,42 @@ as soon as the batch is finished. `xarray.open_zarr(path)` is the analysis entry
 - `batch_done` (batch,) and `batch_run` (batch,): whether batch b is written, and by which run
   of the sweep (1 for the first, 2 for the first resume, …).
 
+A member not written yet (an interrupted sweep) reads `status` = `Status.NOT_RUN` (-1), never
+a success, and NaN in its float arrays; `status` is the last of a batch's arrays written, so a
+member with another status has all its data. The metadata are consolidated at the start of
+every run, so `xarray.open_zarr(store)` opens it without a warning.
+
+**Checksums.** Every chunk is compressed (zstd), then carries a CRC-32C of its stored bytes
+(Zarr's `crc32c` codec): a flipped bit is an error when the chunk is read, never a changed
+number. A reopened store is read back chunk by chunk (`repair`): a finished batch with a damaged
+or missing chunk is marked not done, with a message, and computed again by this run alone; a
+damaged chunk of the inputs is written again. `open_sweep` names the damaged batches.
+
 Per-member arrays are chunked by the sweep's `batch_size` along `member`, so each batch writes
 whole chunks of its own and batches written at once by different processes never share one.
 
 **Resume.** The attribute `clebsch_jax_sweep` holds the sweep's configuration: the method and
-its options, `n_steps`, `batch_size`, `chunk_steps`, `save_every`, the invariants' names, the
-model, the number of members and a SHA-256 of every input array (parameters, `Q0`, `xi0`,
-`P0`, `dt`), and the package version. Running a sweep with an existing store compares them:
+its options (`check_energy` as asked), `n_steps`, `batch_size`, `chunk_steps`, `save_every`, the
+invariants' names, the model, the number of members, a SHA-256 of every input array
+(parameters, `Q0`, `xi0`, `P0`, `dt`), a SHA-256 of one member's traced program
+(`program_digest`: the bodies of the model and the invariants, every option), and the package
+and JAX versions. Running a sweep with an existing store compares them:
 a difference is refused (`SweepStoreError` naming the store and the differing entries) unless
 `overwrite=True`, which starts the store afresh. With the same configuration, every batch whose
 `batch_done` flag is set is skipped. The flag is written after the batch's data, so a process
 killed at any instant leaves either a batch marked done with all its data, or one not marked
 done, which the next run computes again.
+
+**Nothing we did not write is removed.** A new store gets the attribute `written_by` first;
+a store is recognised as a sweep's by it or by its configuration. A path that exists and is not
+one — a file, a folder of other files (`.` included), a Zarr group of other data — is refused
+naming it, with or without `overwrite`; so is a store whose root metadata cannot be read (it is
+reported as damaged, and left as it is). An empty folder, an empty group, and a store of ours
+whose creation was interrupted (no configuration yet, hence no result) are (re)created — unless
+the process creating it (`created_by`: host and process id) may still be running, which is
+refused naming it. Two processes running the same sweep on one store share its batches: each
+skips the batches written when it starts; a batch both compute holds one run's rows (a chunk
+garbled by two writers at once fails its checksum, and is computed again by the next run).
 """
 
 from __future__ import annotations
@@ -40,14 +64,18 @@ import json
 import os
 import re
 import sys
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ..roots.status import Status
+
 __all__ = ["open_sweep", "SweepStoreError"]
 
 ATTR = "clebsch_jax_sweep"
-FORMAT = 1  # the layout's version, part of the configuration
+OWNER, OWNER_VALUE = "written_by", "clebsch_jax.sweep"  # the first attribute a new store gets: it is ours
+FORMAT = 2  # the layout's version, part of the configuration
 
 _EXTRA = 'pip install "clebsch-jax[sweep]"'
 _COLUMNS = ("status", "failed_step", "newton_iterations", "max_residual", "final_t", "final_Q", "final_p",
@@ -107,6 +135,39 @@ def _describe(obj) -> str:
     return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(obj))
 
 
+def program_digest(plan) -> str:
+    r"""A SHA-256 of what one member computes: the jaxpr of one chunk of its `integrate` run
+    and its invariants (`jax.make_jaxpr` on the first member's shapes, as the sweep traces it),
+    with the values of the constants the trace captured. The system's maps and Lagrangian,
+    `make_system`'s body, the invariants' bodies and every `integrate` option are in it, so a
+    store refuses a sweep that would compute something else under the same names (a lambda with
+    another body, a function edited in place); so do another version of the engine or of JAX
+    when they trace another program. Array inputs are traced, not in the jaxpr: they have
+    their own digest."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..core.jit import undifferentiated
+    from ..march.integrate import integrate
+    from .sweep import _first_row, _system_of
+
+    cfg, members = plan.cfg, plan.members
+    j = int(members.ic_index[0])
+    options = {k: v for k, v in cfg.options if k != "check_energy"}
+
+    def member(p, s, q, x, d):
+        system = _system_of(cfg, p, s)
+        sol = integrate(system, q, x, dt=d, n_steps=cfg.n, P0=jnp.zeros_like(q), t0=jnp.zeros((), q.dtype),
+                        throw=False, check_energy=False, **options)
+        return sol, [fn(system, sol) for _, fn in cfg.invariants]
+
+    with undifferentiated():  # as the sweep's chunks are traced
+        closed = jax.make_jaxpr(member)(_first_row(members), members.shared, jnp.asarray(members.Q0[j]),
+                                        jnp.asarray(members.xi0[j]), jnp.asarray(members.dt[0]))
+    text = re.sub(r" at 0x[0-9a-fA-F]+", "", str(closed.jaxpr))  # no memory addresses (they change)
+    return hashlib.sha256(text.encode() + _digest(closed.consts).encode()).hexdigest()
+
+
 def configuration(plan) -> dict:
     """The sweep's configuration, as stored in the attribute `clebsch_jax_sweep` (JSON)."""
     from .. import __version__
@@ -122,7 +183,10 @@ def configuration(plan) -> dict:
         "scheme": shapes.facts["scheme"],
         "form": shapes.facts["form"],
         "order": shapes.facts["order"],
-        "options": {k: _describe(v) for k, v in cfg.options},
+        # the energy check is the sweep's own (its chunks run without it): recorded as asked
+        "options": {**{k: _describe(v) for k, v in cfg.options}, "check_energy": cfg.check_energy},
+        "program_sha256": program_digest(plan),
+        "jax_version": jax.__version__,
         "fast": cfg.fast_method is not None,  # the fast path agrees with the general one to round-off only
         **({"backend": "native"} if getattr(cfg, "native", False) else {}),  # stores before it ran XLA
         "dt": float(dts[0]) if len(dts) == 1 else "one per member",
@@ -213,40 +277,58 @@ def _invariant_keys(shapes) -> dict:
 
 def _create(zarr, store, plan, config: dict):
     with zarr.config.set({"array.write_empty_chunks": True}):
-        return _fill(zarr.open_group(_plain(store), mode="w"), plan, config)
+        # the owner first, in the group's own metadata: a store whose creation is interrupted is ours
+        return _fill(zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE,
+                                                                           "created_by": _creator()}), plan, config)
 
 
 def _fill(root, plan, config: dict):
-    import jax
+    from zarr.codecs import Crc32cCodec, ZstdCodec
 
-    cfg, members, shapes, run, bs = plan
     for name, (dims, shape, dtype, chunk) in _variables(plan).items():
         chunks = (max(1, min(chunk, shape[0])),) + tuple(shape[1:]) if shape else ()
         fill = False if dtype == np.bool_ else (0 if np.issubdtype(dtype, np.integer) else np.nan)
-        root.create_array(name, shape=shape, dtype=dtype, chunks=chunks, dimension_names=dims, fill_value=fill)
-    root["member"][:] = np.arange(members.B)
-    root["param_index"][:] = members.param_index
-    root["ic_index"][:] = members.ic_index
-    root["dt"][:] = members.dt
-    root["Q0"][:] = members.Q0
-    root["xi0"][:] = members.xi0
-    if members.P0 is not None:
-        root["P0"][:] = members.P0
-    if members.builder is not None:
-        for i, leaf in enumerate(jax.tree_util.tree_leaves(members.params)):
-            root[f"params_{i}"][:] = np.asarray(leaf)
-    if run.save_every is not None:
-        root["saved_step"][:] = np.arange(0, run.n_steps + 1, run.save_every)
-    keys = _invariant_keys(shapes)
+        fill = int(Status.NOT_RUN) if name == "status" else fill  # an unwritten member is no success
+        # every chunk compressed, then checksummed (CRC-32C of the stored bytes): a flipped bit is
+        # an error when the chunk is read, never a changed number
+        root.create_array(name, shape=shape, dtype=dtype, chunks=chunks, dimension_names=dims, fill_value=fill,
+                          compressors=[ZstdCodec(), Crc32cCodec()])
+    _write_inputs(root, plan)
+    keys = _invariant_keys(plan.shapes)
     # the configuration last: a store without it was not finished being created
     root.attrs.update({"invariant_arrays": keys, "runs": 0, "description": "clebsch_jax.sweep table",
                        **{k: config[k] for k in ("method", "dt", "n_steps", "package_version")}, ATTR: config})
     return root
 
 
+def _inputs(plan) -> dict:
+    """{array: its data} of the arrays written when the store is created (the inputs, the
+    members' rows of them, the saved steps): every other array is written batch by batch."""
+    import jax
+
+    members, run = plan.members, plan.run
+    out = {"member": np.arange(members.B), "param_index": members.param_index, "ic_index": members.ic_index,
+           "dt": members.dt, "Q0": members.Q0, "xi0": members.xi0}
+    if members.P0 is not None:
+        out["P0"] = members.P0
+    if members.builder is not None:
+        for i, leaf in enumerate(jax.tree_util.tree_leaves(members.params)):
+            out[f"params_{i}"] = np.asarray(leaf)
+    if run.save_every is not None:
+        out["saved_step"] = np.arange(0, run.n_steps + 1, run.save_every)
+    return out
+
+
+def _write_inputs(root, plan, names=None):
+    for name, data in _inputs(plan).items():
+        if names is None or name in names:
+            root[name][:] = data
+
+
 def _open_group(zarr, store, mode: str):
     try:
-        return zarr.open_group(_plain(store), mode=mode)
+        # the arrays as they are (a consolidated copy of their metadata would hide a missing one)
+        return zarr.open_group(_plain(store), mode=mode, use_consolidated=False)
     except Exception as err:  # zarr raises several kinds for a missing or unreadable group
         raise SweepStoreError(f"store {store_name(store)!r}: not a readable Zarr group ({type(err).__name__}: "
                               f"{err}).") from err
@@ -262,33 +344,127 @@ def stored_configuration(store) -> dict | None:
     return stored if isinstance(stored, dict) else None
 
 
+def _local_path(store) -> str | None:
+    """The local directory of a path-like store; None for a `zarr` store object or a URL."""
+    if isinstance(store, os.PathLike) or (isinstance(store, str) and "://" not in store):
+        return os.fspath(store)
+    return None
+
+
+def _is_empty(zarr, store) -> bool:
+    """Whether a `zarr` store object (or URL) holds no key at all."""
+    from zarr.core.sync import sync
+
+    if isinstance(store, str):
+        store = zarr.storage.FsspecStore.from_url(store, read_only=True)
+    return sync(store.is_empty(""))
+
+
+def _inspect(zarr, store):
+    """What `store` holds: ("new", None) when there is nothing to keep (no such path, an empty
+    folder or store, an empty group), ("ours", root) for a sweep store, ("unfinished", root)
+    for one whose creation was interrupted (it holds no result yet). Anything else is refused
+    with a `SweepStoreError` naming it, and nothing is written or removed: a file, a folder or
+    store that is not a Zarr group, a Zarr group written by something else, a store whose root
+    metadata cannot be read."""
+    name = store_name(store)
+    path = _local_path(store)
+    keep = "Nothing was written or removed; give a new path (or an empty folder)."
+    if path is not None:
+        if os.path.lexists(path) and not os.path.isdir(path):
+            raise SweepStoreError(f"store {name!r}: is a file, not a folder: a sweep store is a Zarr folder. {keep}")
+        if not os.path.isdir(path):
+            return "new", None
+        entries = sorted(os.listdir(path))
+        if not entries:
+            return "new", None
+        if "zarr.json" not in entries:
+            shown = ", ".join(entries[:5]) + (f" and {len(entries) - 5} more" if len(entries) > 5 else "")
+            raise SweepStoreError(f"store {name!r}: is a folder that is not a Zarr store (it holds {shown}). {keep}")
+    else:
+        try:
+            empty = _is_empty(zarr, store)
+        except Exception:  # a store that cannot be listed: opening it below says what is wrong
+            empty = False
+        if empty:
+            return "new", None
+    try:
+        root = zarr.open_group(_plain(store), mode="r", use_consolidated=False)
+        attrs = root.attrs.asdict()
+    except Exception as err:  # zarr raises several kinds for unreadable metadata
+        raise SweepStoreError(
+            f"store {name!r}: damaged or not a Zarr group: its root metadata (zarr.json) cannot be read "
+            f"({type(err).__name__}: {err}). Nothing was removed, also not with overwrite=True (a store whose "
+            "metadata cannot be read is not recognised as a sweep's); move or delete it yourself, or give "
+            "another path.") from err
+    if ATTR in attrs:
+        if not isinstance(attrs[ATTR], dict):
+            raise SweepStoreError(f"store {name!r}: damaged: its attribute {ATTR!r} is not a configuration "
+                                  f"(got {type(attrs[ATTR]).__name__}). Nothing was removed.")
+        return "ours", root
+    if attrs.get(OWNER) == OWNER_VALUE:
+        creator = _live_creator(attrs.get("created_by"))
+        if creator is not None:  # another process is creating it now: recreating it would wipe its work
+            raise SweepStoreError(f"store {name!r}: is being created by {creator}. Wait for it to start its "
+                                  "batches and run the same sweep again to share them, or give another path. "
+                                  "If that process is gone, delete the store yourself.")
+        return "unfinished", root
+    if not attrs and not list(root.keys()) and (path is None or entries == ["zarr.json"]):
+        return "new", None  # an empty group: nothing to keep
+    raise SweepStoreError(f"store {name!r}: is a Zarr group not written by clebsch_jax.sweep (no attribute "
+                          f"{ATTR!r}). {keep}")
+
+
+def _creator() -> dict:
+    """Who creates a store (its attribute `created_by`): host and process."""
+    import socket
+
+    return {"host": socket.gethostname(), "pid": os.getpid()}
+
+
+def _live_creator(created_by) -> str | None:
+    """'process N on host H' when the process that began creating a store may still be running
+    (alive on this host, or on another host, where that cannot be checked); None when it is
+    this process or gone."""
+    if not isinstance(created_by, dict):
+        return None
+    me = _creator()
+    host, pid = created_by.get("host"), created_by.get("pid")
+    if host == me["host"]:
+        if pid == me["pid"] or not isinstance(pid, int):
+            return None
+        try:
+            os.kill(pid, 0)  # signal 0: only whether the process exists
+        except ProcessLookupError:
+            return None
+        except PermissionError:  # it exists, under another user
+            pass
+    return f"process {pid} on host {host}"
+
+
 def open_for_run(store, plan, overwrite: bool):
-    """The store of this sweep: created, or reopened after checking its configuration."""
+    """The store of this sweep: created, or reopened after checking its configuration. Only a
+    store recognised as a sweep's (`_inspect`) is ever replaced, and only with `overwrite`."""
     zarr = _zarr()
     config = json.loads(json.dumps(configuration(plan)))  # as it reads back (tuples become lists)
     name = store_name(store)
-    try:
-        root = zarr.open_group(_plain(store), mode="r")
-        exists = True
-    except Exception:  # nothing there yet (or not a group: refused below unless overwrite)
-        exists = False
-    if exists and len(list(root.keys())) == 0 and not root.attrs.asdict():
-        exists = False  # an empty group: nothing to keep
-    if exists and not overwrite:
-        stored = root.attrs.get(ATTR)
-        if stored is None:
-            raise SweepStoreError(f"store {name!r}: holds no clebsch_jax sweep configuration (attribute {ATTR!r}): "
-                                  "another kind of data, or a store whose creation was interrupted; pass "
-                                  "overwrite=True to replace it.")
+    state, root = _inspect(zarr, store)
+    if state == "ours" and not overwrite:
+        stored = root.attrs[ATTR]
         diff = sorted(k for k in set(stored) | set(config) if stored.get(k) != config.get(k))
         if diff:
             shown = "; ".join(f"{k}: stored {stored.get(k)!r}, this sweep {config.get(k)!r}" for k in diff[:4])
-            raise SweepStoreError(f"store {name!r} was written by another sweep configuration ({shown}). Use "
+            why = (" One member's traced program differs: the body of make_system, of the system's maps or of an "
+                   "invariant, an integrate option, or the engine or JAX version." if "program_sha256" in diff else "")
+            raise SweepStoreError(f"store {name!r} was written by another sweep configuration ({shown}).{why} Use "
                                   "another store, or overwrite=True to replace it.")
         root = _open_group(zarr, store, "r+")
         _check_layout(root, plan, name)
         return root
-    return _create(zarr, store, plan, config)
+    try:
+        return _create(zarr, store, plan, config)
+    except OSError as err:  # e.g. a read-only file system, no permission
+        raise SweepStoreError(f"store {name!r}: cannot be written ({err.strerror or err}).") from err
 
 
 def _check_layout(root, plan, name: str):
@@ -304,11 +480,81 @@ def _check_layout(root, plan, name: str):
 
 
 def done_batches(root, name: str) -> np.ndarray:
+    """Which batches the store marks done; a flag that cannot be read (a damaged chunk) counts
+    as not done, so its batch is computed again."""
+    flags = root["batch_done"]
     try:
-        return np.asarray(root["batch_done"][:], bool)
-    except Exception as err:
-        raise SweepStoreError(f"store {name!r}: cannot read 'batch_done' ({type(err).__name__}: {err}): a corrupted "
-                              "store; pass overwrite=True to start it afresh.") from err
+        return np.asarray(flags[:], bool)
+    except Exception:  # a damaged flag: read them one by one (each is a chunk of its own)
+        done = np.zeros(flags.shape, bool)
+        for b in range(flags.shape[0]):
+            try:
+                done[b] = bool(flags[b])
+            except Exception:  # codecs raise many kinds
+                print(f"sweep: store {name!r}: the done flag of batch {b} is damaged: computing the batch again.",
+                      file=sys.stderr, flush=True)
+        return done
+
+
+def _written_by_batches(root) -> list:
+    """The arrays written batch by batch (`write_rows`): those over `member`, less the inputs'
+    rows written when the store was created."""
+    created = {"member", "param_index", "ic_index", "dt"}
+    return [k for k in sorted(root.array_keys())
+            if k not in created and (root[k].metadata.dimension_names or (None,))[0] == "member"]
+
+
+def _chunk_problem(root, var: str, b: int, bs: int):
+    """None if batch b's rows of `var` (exactly one chunk: per-member arrays are chunked by the
+    batch size) are there and read back; else what is wrong with them."""
+    from zarr.core.sync import sync
+
+    arr = root[var]
+    key = f"{arr.path}/{arr.metadata.encode_chunk_key((b,) + (0,) * (arr.ndim - 1))}"
+    try:
+        if not sync(root.store.exists(key)):
+            return "a missing chunk"
+        arr[b * bs:(b + 1) * bs]
+    except Exception as err:  # a checksum mismatch, a truncated chunk: codecs raise many kinds
+        return f"{type(err).__name__}: {err}"
+    return None
+
+
+def damaged_batches(root, batches, bs: int) -> dict:
+    """{batch: (array, what is wrong)} of the given batches whose data cannot be read back."""
+    found = {}
+    for var in _written_by_batches(root):
+        for b in batches:
+            if b not in found:
+                problem = _chunk_problem(root, var, b, bs)
+                if problem is not None:
+                    found[b] = (var, problem)
+    return found
+
+
+def repair(root, plan, done: np.ndarray, name: str) -> np.ndarray:
+    """A reopened store checked chunk by chunk: a batch marked done whose data cannot be read
+    back (a checksum mismatch, a missing or truncated chunk) is marked not done, with a message,
+    so this run computes it again; a damaged chunk of the inputs written at creation is written
+    again (the configuration check has shown they are the same). Returns the batches done."""
+    bs = plan.batch_size
+    damaged = damaged_batches(root, np.flatnonzero(done).tolist(), bs)
+    for b, (var, problem) in sorted(damaged.items()):
+        print(f"sweep: store {name!r}: batch {b} (members {b * bs}-{min((b + 1) * bs, plan.members.B) - 1}) is "
+              f"damaged ({var!r}: {problem}): computing it again.", file=sys.stderr, flush=True)
+        root["batch_done"][b] = False
+        done[b] = False
+    broken = []
+    for var in _inputs(plan):
+        try:
+            root[var][...]
+        except Exception:  # codecs raise many kinds
+            broken.append(var)
+    if broken:
+        print(f"sweep: store {name!r}: the input arrays {', '.join(broken)} are damaged: written again.",
+              file=sys.stderr, flush=True)
+        _write_inputs(root, plan, broken)
+    return done
 
 
 def write_rows(root, plan, rows, run_id: int):
@@ -316,7 +562,7 @@ def write_rows(root, plan, rows, run_id: int):
     shapes = plan.shapes
     keys = _invariant_keys(shapes)
     part = rows.tables
-    arrays = {k: part.columns[k] for k in _COLUMNS if part.columns[k] is not None}
+    arrays = {k: part.columns[k] for k in _COLUMNS if part.columns[k] is not None and k != "status"}
     for name, key in keys.items():
         arrays[f"initial_{key}"] = part.initial[name]
         if name != "energy":
@@ -324,6 +570,7 @@ def write_rows(root, plan, rows, run_id: int):
     arrays["energy_error"] = part.drift["energy"]
     if part.saved is not None:
         arrays.update({f"saved_{k}": part.saved[k] for k in _SAVED if part.saved[k] is not None})
+    arrays["status"] = part.columns["status"]  # the last data: a member with a status has all its data
     start = 0
     spans = []
     for r in rows.rows:
@@ -341,10 +588,16 @@ def write_rows(root, plan, rows, run_id: int):
         root["batch_done"][b] = True  # last: the batch counts as done only with all its data written
 
 
-def start_run(root) -> int:
-    """The number of this run of the sweep on the store (1, 2, …), recorded in its attributes."""
+def start_run(root, store) -> int:
+    """The number of this run of the sweep on the store (1, 2, …), recorded in its attributes.
+    Then the metadata are consolidated (every array's in the root's), so that `xarray.open_zarr`
+    opens the store without a warning, interrupted or not: nothing changes them later in the run
+    (the arrays' metadata never change, the root's attributes only here)."""
     run_id = int(root.attrs.get("runs", 0)) + 1
     root.attrs["runs"] = run_id
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
+        _zarr().consolidate_metadata(_plain(store))
     return run_id
 
 
@@ -394,14 +647,22 @@ def open_sweep(store):
             arr = root[var]
             if var in per_member and arr.nchunks_initialized < arr.nchunks:
                 raise SweepStoreError(f"store {name!r}: {arr.nchunks - arr.nchunks_initialized} of {arr.nchunks} "
-                                      f"chunks of {var!r} are missing (a truncated store); rerun the sweep with "
-                                      "overwrite=True.")
+                                      f"chunks of {var!r} are missing (a truncated store){_which(var)}")
             return np.asarray(arr[...])
         except SweepStoreError:
             raise
-        except Exception as err:  # a truncated or garbled chunk: codecs raise many kinds
+        except Exception as err:  # a checksum mismatch, a truncated chunk: codecs raise many kinds
             raise SweepStoreError(f"store {name!r}: cannot read {var!r} ({type(err).__name__}: {err}): a "
-                                  "truncated or corrupted store; rerun the sweep with overwrite=True.") from err
+                                  f"damaged store{_which(var)}") from err
+
+    def _which(var):
+        """Which batches of `var` are damaged, and what a rerun does about them."""
+        if var not in _written_by_batches(root):
+            return "; run the same sweep with this store: it writes the inputs again."
+        bs = config["batch_size"]
+        bad = sorted(b for b in range(len(done)) if _chunk_problem(root, var, b, bs) is not None)
+        return (f": batch{'es' if len(bad) > 1 else ''} {', '.join(map(str, bad))}; run the same sweep with this "
+                "store: it computes only the damaged batches again.")
 
     columns = {k: read(k, required=k not in ("final_Q", "final_xi")) for k in _COLUMNS}
     drift = {"energy": read("energy_error")}
@@ -433,9 +694,10 @@ def check_arguments(store, client, overwrite) -> None:
     if overwrite and store is None:
         raise ValueError("overwrite: True replaces a store, but no store= was given.")
     if store is not None:
-        _zarr()
+        zarr = _zarr()
         if isinstance(store, (str, bytes)) and not store:
             raise ValueError("store: expected a path or a zarr store, got an empty string.")
+        _inspect(zarr, store)  # a path that is not a sweep store of ours is refused here already
     if client is not None:
         from .distributed import check_client
 
@@ -460,13 +722,15 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
     name = store_name(store)
     root = open_for_run(store, plan, overwrite)
     done = done_batches(root, name)
+    if done.any():  # reopened: every chunk of the finished batches is read back (checksums)
+        done = repair(root, plan, done, name)
     pending = [b for b in range(n_batches) if not done[b]]
     if len(pending) < n_batches:
         skipped = B - sum(min(bs, B - b * bs) for b in pending)
         print(f"sweep: store {name!r}: skipped {skipped} of {B} members already written "
               f"({n_batches - len(pending)} of {n_batches} batches); computing the other {len(pending)} batches.",
               file=sys.stderr, flush=True)
-    run_id = start_run(root)
+    run_id = start_run(root, store)
     if client is not None:
         from .distributed import run_on_client
 

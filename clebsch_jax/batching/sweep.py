@@ -1391,8 +1391,9 @@ def sweep(
       The lean chunk of `fast` records nothing and runs up to `LEAN_CHUNKS` chunks per call
       (as many as divide the number of chunks); a rerun is made chunk by chunk.
     - `batch_size`: members per compiled call (default min(⌈B / (devices × threads)⌉, 1024); for
-      the lean chunk of `fast=True`, batches of equal size up to 16384); the last batch is
-      padded with copies of the last member. A sweep resumed from a `store` keeps the stored
+      the lean chunk of `fast=True`, batches of equal size up to 16384); at most the number of
+      members (a larger one is clamped to it); the last batch is padded with copies of the last
+      member. A sweep resumed from a `store` keeps the stored
       batch size.
     - `save_every`: keep every k-th node (`SweepResult.saved`); `chunk_steps` must be a multiple of
       k when the run has more than one chunk.
@@ -1519,7 +1520,7 @@ def sweep(
             batch_size = -(-per_slot // -(-per_slot // _DEFAULT_BATCH_LEAN))
         else:
             batch_size = min(per_slot, _DEFAULT_BATCH)
-    batch_size = _positive_int(batch_size, "batch_size")
+    batch_size = min(_positive_int(batch_size, "batch_size"), B)  # more would only run padding
     tables = _allocate_tables(B, shapes, run)
 
     # groups of batches (one batch per device and thread) × chunks

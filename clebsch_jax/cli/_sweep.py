@@ -102,7 +102,17 @@ def _array(value, where: str) -> np.ndarray:
     return arr
 
 
+def _known(table: dict, known: set, where: str) -> None:
+    """Refuse a key of `table` outside `known` (a misspelled one would be ignored silently)."""
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise ConfigError(f"{where}: unknown entr{'ies' if len(unknown) > 1 else 'y'} {', '.join(unknown)} "
+                          f"(known: {', '.join(sorted(known))})")
+
+
 def _params(table) -> np.ndarray:
+    if isinstance(table, dict):
+        _known(table, {"values", "linspace"}, "[params]")
     if not isinstance(table, dict) or len(table.keys() & {"values", "linspace"}) != 1:
         raise ConfigError("[params]: give exactly one of values = [[...], ...] or linspace = [[start, stop, num], ...]")
     if "values" in table:
@@ -119,17 +129,24 @@ def _params(table) -> np.ndarray:
 def _initial(table) -> tuple:
     if not isinstance(table, dict) or "xi0" not in table or "Q0" not in table:
         raise ConfigError("[initial]: needs Q0 and xi0")
+    _known(table, {"Q0", "xi0"}, "[initial]")
     xi = table["xi0"]
     if isinstance(xi, dict):
-        shape = xi.get("normal")
+        _known(xi, {"normal", "seed", "scale"}, "[initial] xi0")
+        shape, seed, scale = xi.get("normal"), xi.get("seed", 0), xi.get("scale", 1.0)
         if not (isinstance(shape, list) and shape and all(isinstance(n, int) and n >= 1 for n in shape)):
             raise ConfigError(f"[initial] xi0: expected {{normal = [n, d, ...], seed = 0, scale = 1.0}}, got {xi!r}")
-        rng = np.random.default_rng(int(xi.get("seed", 0)))
-        xi0 = float(xi.get("scale", 1.0)) * rng.standard_normal(tuple(shape))
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ConfigError(f"[initial] xi0: seed must be a whole number >= 0, got {seed!r}")
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not np.isfinite(scale):
+            raise ConfigError(f"[initial] xi0: scale must be a finite number, got {scale!r}")
+        xi0 = float(scale) * np.random.default_rng(seed).standard_normal(tuple(shape))
     else:
         xi0 = _array(xi, "[initial] xi0")
     q = table["Q0"]
     n = xi0.shape[0]
+    if isinstance(q, dict) and len(q) != 1:
+        raise ConfigError(f"[initial] Q0: expected {{identity = d}} or {{value = [...]}}, got {q!r}")
     if isinstance(q, dict) and "identity" in q:
         d = q["identity"]
         if not (isinstance(d, int) and d >= 1):
@@ -216,8 +233,8 @@ def run(args) -> int:
     prog = f"{PROG} sweep"
     try:
         kwargs = load(args.config)
-    except ConfigError as err:
-        return _fail(str(err), code=2, prog=prog)
+    except (ValueError, TypeError) as err:  # ConfigError names the entry; anything else, the file
+        return _fail(str(err) if isinstance(err, ConfigError) else f"{args.config}: {err}", code=2, prog=prog)
     try:
         from tqdm import tqdm
     except ImportError:
@@ -262,10 +279,13 @@ def run(args) -> int:
         print(f"{prog}: stopped; the finished batches are in {args.store}: run the same command to resume",
               file=sys.stderr)
         return 130
-    except cj.SweepStoreError as err:
-        return _fail(str(err), prog=prog)
+    except cj.SweepStoreError as err:  # the store cannot be used (a file, another's data, read-only, ...)
+        return _fail(str(err), code=2, prog=prog)
     except (ValueError, TypeError) as err:  # the sweep refused its arguments, before compiling
         return _fail(f"{args.config}: {err}", code=2, prog=prog)
+    except OSError as err:  # writing failed under way (a full disk, a lost mount)
+        return _fail(f"store {args.store!r}: {err}; the batches written before are kept: run the same command "
+                     "to resume", prog=prog)
     finally:
         if client is not None:
             client.close()

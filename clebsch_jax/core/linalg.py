@@ -122,20 +122,26 @@ ELIMINATION_MAX = 8
 def _eliminate(a: jax.Array, b: jax.Array) -> jax.Array:
     """a⁻¹b for one small a (n, n) and b (n, k): Gaussian elimination with partial pivoting,
     unrolled over the n columns, the row swaps written as arithmetic with one-hot rows (no
-    gather), then back substitution."""
+    gather), then back substitution.
+
+    The pivots and the elimination factors are computed from a alone and applied to b, so the
+    result is linear in b as JAX sees it: reverse mode can transpose it when b is a tangent (the
+    implicit derivative's tangent solve, `clebsch_jax.roots.implicit`), which the elimination of
+    the augmented matrix [a | b] could not (its divisions read rows that held b)."""
     n = a.shape[-1]
-    M = jnp.concatenate([a, b], axis=-1)
+    U, X = a, b
     rows = jnp.arange(n)
     for k in range(n):
-        col = jnp.where(rows >= k, jnp.abs(M[:, k]), -1.0)
-        hot = (rows == jnp.argmax(col)).astype(M.dtype)  # the pivot's row
-        top = (rows == k).astype(M.dtype)
-        row_p, row_k = hot @ M, M[k]
-        M = M + (top - hot)[:, None] * (row_p - row_k)[None, :]  # swap rows k and p (none if p = k)
-        pivot = M[k, k]
-        factors = jnp.where(rows > k, M[:, k] / jnp.where(pivot == 0.0, 1.0, pivot), 0.0)
-        M = M - factors[:, None] * M[k][None, :]
-    U, X = M[:, :n], M[:, n:]
+        col = jnp.where(rows >= k, jnp.abs(U[:, k]), -1.0)
+        hot = (rows == jnp.argmax(col)).astype(U.dtype)  # the pivot's row
+        swap = (rows == k).astype(U.dtype) - hot
+        # swap rows k and p (none if p = k)
+        U = U + swap[:, None] * (hot @ U - U[k])[None, :]
+        X = X + swap[:, None] * (hot @ X - X[k])[None, :]
+        pivot = U[k, k]
+        factors = jnp.where(rows > k, U[:, k] / jnp.where(pivot == 0.0, 1.0, pivot), 0.0)
+        U = U - factors[:, None] * U[k][None, :]
+        X = X - factors[:, None] * X[k][None, :]
     out = [None] * n
     for i in reversed(range(n)):
         acc = X[i]

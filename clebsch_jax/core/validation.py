@@ -25,12 +25,23 @@ def any_traced(*trees) -> bool:
     return any(is_traced(x) for x in jax.tree_util.tree_leaves(trees))
 
 
+@jax.custom_jvp
 def nan_unless(x, ok) -> jax.Array:
     """A traced model parameter `x` made NaN where the traced condition `ok` fails: the value
     check a model makes on concrete parameters, for parameters known only inside jit/vmap.
     The Lagrangian is then NaN at the initial point, and `integrate` reports the member with
-    `Status.INVALID_INPUT` at step 0 instead of marching a meaningless model."""
+    `Status.INVALID_INPUT` at step 0 instead of marching a meaningless model.
+
+    Its derivative is NaN where `ok` fails too (a plain `where` would give the NaN a zero
+    derivative): the gradient of a member with invalid input is NaN, never zero, so an optimiser
+    sees that its step left the model's domain."""
     return jnp.where(ok, x, jnp.nan)
+
+
+@nan_unless.defjvp
+def _nan_unless_jvp(primals, tangents):
+    x, ok = primals
+    return nan_unless(x, ok), tangents[0] * jnp.where(ok, 1.0, jnp.nan).astype(jnp.result_type(x))
 
 
 def is_array(x) -> bool:

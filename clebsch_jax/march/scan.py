@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.jit import QUICK_COMPILE, filter_jit
-from ..core.validation import any_traced
+from ..core.validation import any_traced, nan_unless
 from ..discrete.residual import nodal_residual
 from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper, Nodes
@@ -87,18 +87,11 @@ class Chunk(NamedTuple):
     energy: Any = None  # (E, size) at the nodes, when the energy check is on (`node_energies`)
 
 
-@jax.custom_jvp
 def failed_to_nan(a, ok):
-    """`a` where `ok`, NaN elsewhere — and NaN derivatives there too: a value computed from a
-    failed step's state has a NaN gradient, never a zero one (a plain `where` would give the
-    NaN a zero derivative, and an optimiser would stall with no clue)."""
-    return jnp.where(ok, a, jnp.nan)
-
-
-@failed_to_nan.defjvp
-def _failed_to_nan_jvp(primals, tangents):
-    a, ok = primals
-    return failed_to_nan(a, ok), tangents[0] * jnp.where(ok, 1.0, jnp.nan).astype(a.dtype)
+    """`a` where `ok`, NaN elsewhere — and NaN derivatives there too (`nan_unless`): a value
+    computed from a failed step's state has a NaN gradient, never a zero one (a plain `where`
+    would give the NaN a zero derivative, and an optimiser would stall with no clue)."""
+    return nan_unless(a, ok)
 
 
 def gate(alive, stats: NewtonStats, values):

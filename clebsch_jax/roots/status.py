@@ -32,6 +32,7 @@ class Status(enum.IntEnum):
     DIVERGED = 6  # a fixed-point iteration (Gauss-Legendre step) stopped contracting
     ENERGY_JUMP = 7  # the step's energy change is orders of magnitude beyond the run's so far
     INVALID_INPUT = 8  # under jit/vmap: this member's arguments or model parameters are invalid
+    NOT_RUN = -1  # a sweep store's member whose batch is not written yet (never produced by a march)
 
     @property
     def message(self) -> str:
@@ -56,6 +57,8 @@ _MESSAGES = {
     "before compiling: dt not finite and positive, Q0/xi0/P0 not finite, Q0 off the configuration manifold "
     "(check_Q), or the Lagrangian or velocity map not finite at (xi0, Q0) (a model parameter out of range, "
     "e.g. a non-positive inertia, makes the built-in models' Lagrangian NaN)",
+    Status.NOT_RUN: "not run yet: this member's batch is not written in the sweep's store (an interrupted "
+    "sweep; run it again with the same store to finish it)",
 }
 Status.MESSAGES = _MESSAGES
 """`Status.MESSAGES`: code → sentence (integer codes look up the same entries)."""
