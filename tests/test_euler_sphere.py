@@ -295,3 +295,17 @@ def test_order_two_against_a_tight_reference():
     order = cj.diagnostics.fit_order(dts, errors)
     assert order == pytest.approx(2.0, abs=0.1)
     assert run(W, 0.1, 1)[0].order == 2  # the order the default method records
+
+
+def test_orthographic_image_of_the_height_function():
+    """ω = z seen from colatitude t: the image's value at screen (x, y) is the height of the
+    visible point, y sin t + √(1 − x² − y²) cos t (nearest grid point: to 1/180 of π)."""
+    c = np.zeros((N, N), complex)
+    c[1, 0] = np.sqrt(4 * np.pi / 3)
+    t = 0.9
+    image = models.euler_sphere_orthographic(models.euler_sphere_quantise(c), colatitude=t, resolution=41)
+    x, y = np.meshgrid(np.linspace(-1, 1, 41), np.linspace(-1, 1, 41))
+    inside = x**2 + y**2 <= 1
+    height = y * np.sin(t) + np.sqrt(np.clip(1 - x**2 - y**2, 0, None)) * np.cos(t)
+    assert np.all(np.isnan(image[~inside]))
+    assert np.max(np.abs(image[inside] - height[inside])) < 2 * np.pi / 180

@@ -34,6 +34,7 @@ from ._euler_sphere import euler_sphere_basis as euler_sphere_basis
 from ._euler_sphere import euler_sphere_casimirs as euler_sphere_casimirs
 from ._euler_sphere import euler_sphere_energy as euler_sphere_energy
 from ._euler_sphere import euler_sphere_angular_momentum as euler_sphere_angular_momentum
+from ._euler_sphere import euler_sphere_orthographic as euler_sphere_orthographic
 from ._heavy_top import heavy_top as heavy_top
 from ._point_vortices import point_vortices as point_vortices
 from ._point_vortices import vortex_angular_impulse as vortex_angular_impulse
@@ -88,4 +89,5 @@ __all__ = [
     "euler_sphere_casimirs",
     "euler_sphere_energy",
     "euler_sphere_angular_momentum",
+    "euler_sphere_orthographic",
 ]

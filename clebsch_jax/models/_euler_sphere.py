@@ -68,7 +68,8 @@ from ..core.system import ClebschSystem
 __all__ = ["euler_sphere", "euler_sphere_hbar", "euler_sphere_laplacian", "euler_sphere_inverse_laplacian",
            "euler_sphere_real_form", "euler_sphere_complex_form", "euler_sphere_start", "euler_sphere_vorticity",
            "euler_sphere_quantise", "euler_sphere_coefficients", "euler_sphere_field", "euler_sphere_basis",
-           "euler_sphere_casimirs", "euler_sphere_energy", "euler_sphere_angular_momentum"]
+           "euler_sphere_casimirs", "euler_sphere_energy", "euler_sphere_angular_momentum",
+           "euler_sphere_orthographic"]
 
 
 def euler_sphere_hbar(N: int) -> float:
@@ -482,3 +483,24 @@ def euler_sphere_field(W, theta, phi) -> np.ndarray:
     phase = np.exp(1j * np.outer(np.arange(N), np.asarray(phi, float)))  # (m, φ)
     weight = np.where(np.arange(N) == 0, 1.0, 2.0)[:, None]
     return np.real(np.einsum("mt,mp->tp", weight * g, phase))
+
+
+def euler_sphere_orthographic(W, *, colatitude: float = 0.9, longitude: float = 0.4, resolution: int = 181,
+                              grid: int = 181) -> np.ndarray:
+    r"""The field of W on the hemisphere seen from the direction (`colatitude`, `longitude`)
+    (radians), in orthographic projection: a (resolution, resolution) image over the square
+    $[-1, 1]^2$ (x to the right, y up; NaN outside the disc), for `imshow(..., origin="lower",
+    extent=(-1, 1, -1, 1))`. The field is evaluated on a `grid` × 2`grid` grid in (θ, φ)
+    (`euler_sphere_field`) and read at the nearest grid point. NumPy (concrete W)."""
+    x, y = np.meshgrid(np.linspace(-1, 1, resolution), np.linspace(-1, 1, resolution))
+    z = np.sqrt(np.clip(1 - x**2 - y**2, 0, None))
+    out = np.array([np.sin(colatitude) * np.cos(longitude), np.sin(colatitude) * np.sin(longitude),
+                    np.cos(colatitude)])
+    right = np.array([-np.sin(longitude), np.cos(longitude), 0.0])
+    up = np.cross(out, right)
+    p = x[..., None] * right + y[..., None] * up + z[..., None] * out
+    theta, phi = np.arccos(np.clip(p[..., 2], -1, 1)), np.arctan2(p[..., 1], p[..., 0])
+    n_theta, n_phi = grid, 2 * grid - 1
+    f = euler_sphere_field(W, np.linspace(0, np.pi, n_theta), np.linspace(-np.pi, np.pi, n_phi))
+    values = f[np.rint(theta / np.pi * (n_theta - 1)).astype(int), np.rint((phi + np.pi) / (2 * np.pi) * (n_phi - 1)).astype(int)]
+    return np.where(x**2 + y**2 <= 1, values, np.nan)
