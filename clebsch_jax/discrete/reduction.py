@@ -315,7 +315,7 @@ def outgoing_body_momentum(system, red, scheme, dt, Q0, xi):
     return jax.grad(perturbed)(jnp.zeros_like(xi)), Q1
 
 
-def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
+def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True, need_Q1: bool = True):
     r"""`reduced_residual` and `outgoing_body_momentum` of one step, sharing their work.
 
     Both are derivatives of $\ell_d(F, Q^a)$ at $F = \overline{\exp}(\Delta t X(\xi))$ along
@@ -332,9 +332,10 @@ def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
     explicit (`_cayley_step`); for the exponential pair it is $\varphi_1(\mathrm{ad})^{-1}$
     (`_exponential_step`), not traced through the logarithm's algorithm. Returns
     `(r, mu1, Q1)`; `mu1` is None unless `outgoing`, and `Q1` may be None when `outgoing` is
-    False."""
+    False, or (for the Cayley map) when `need_Q1` is False: a march that does not carry Q skips
+    its solve."""
     if isinstance(system.derivative_map, CayleyDifference):
-        return _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing)
+        return _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1)
     if getattr(system.derivative_map, "exponential_pair", False) and isinstance(red, MatrixGroupReduction):
         return _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing)
     F = system.derivative_map.exp(dt * red.X(xi))
@@ -355,7 +356,7 @@ def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
     return r, mu1, Q1
 
 
-def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
+def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True):
     r"""`reduced_step` for the Cayley pair $\overline{\exp}(Y) = (I - Y/2)^{-1}(I + Y/2)$,
     $\overline{\log}(A) = 2(A + I)^{-1}(A - I)$ (Example 30), in closed form.
 
@@ -389,7 +390,7 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
     eye = jnp.eye(n, dtype=Y.dtype)
     Fm = eye - 0.5 * Y
     mm = _linalg.matmul
-    need_F = outgoing or (system.has_potential and scheme == "right")
+    need_F = (outgoing and need_Q1) or (system.has_potential and scheme == "right")
     # F = lie.cayley_exp(Y), with its products written out for XLA to fuse
     # Q¹ = Q⁰F as Q⁰ + Q⁰(F − I), F − I = (I − Y/2)⁻¹Y: an O(Δt) increment (see the docstring)
     Q1 = Q0 + mm(Q0, _linalg.solve(Fm, Y, unroll=True)) if need_F else None

@@ -130,12 +130,13 @@ class ReducedStep(PrincipleStep):
         mu, Q, xi_last = state
         history, H, deg = memory
         red, principle = self.reduction, self.principle
+        carry_Q = self._carry_Q(system)
 
         def residual(x):
             return reduced_step(system, red, principle, h, mu, Q, x, outgoing=False)[0]
 
         def finish(x):  # the residual at the solution and the outgoing μⁿ⁺¹, Qⁿ⁺¹, sharing work
-            r, mu1, Q1 = reduced_step(system, red, principle, h, mu, Q, x)
+            r, mu1, Q1 = reduced_step(system, red, principle, h, mu, Q, x, need_Q1=carry_Q)
             return r, (mu1, Q1)
 
         # A fresh Jacobian at the guess, or the inverse Jacobian of this slot's last solve
@@ -150,7 +151,6 @@ class ReducedStep(PrincipleStep):
             reuse = False if self._fresh(system) else (n > 0) | ~alive
             xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish,
                                                                          step=n)
-        carry_Q = self._carry_Q(system)
         # a fresh Jacobian every solve: the carried matrix is never read, so it is handed on
         # unchanged (a loop-invariant placeholder rather than a new value per step)
         H = H if reuse is False else H_new
