@@ -8,6 +8,7 @@ import traceback
 import jax
 import numpy as np
 from scipy.integrate import solve_ivp
+from scipy.special import sph_legendre_p_all
 
 
 def hat(w):
@@ -144,25 +145,11 @@ def compiles_recorded(where: str | None = None):
 
 
 def _sphere_legendre(L, x):
-    """P̄_lm(x), orthonormal on the sphere with e^{imφ} (Condon–Shortley phase), and
-    sin θ dP̄_lm/dθ, shapes (L+1, L+1, len(x)), by the standard recursions in l."""
-    sin = np.sqrt(1 - x * x)
-    P = np.zeros((L + 1, L + 1, len(x)))
-    P[0, 0] = np.sqrt(1 / (4 * np.pi))
-    for m in range(1, L + 1):
-        P[m, m] = -np.sqrt((2 * m + 1) / (2.0 * m)) * sin * P[m - 1, m - 1]
-    for m in range(L):
-        P[m + 1, m] = np.sqrt(2 * m + 3.0) * x * P[m, m]
-        for l in range(m + 2, L + 1):
-            P[l, m] = np.sqrt((4.0 * l * l - 1) / (l * l - m * m)) * (
-                x * P[l - 1, m] - np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1) ** 2 - 1)) * P[l - 2, m])
-    D = np.zeros_like(P)  # sin θ dP_lm/dθ = l cos θ P_lm − sqrt((2l+1)(l²−m²)/(2l−1)) P_{l−1,m}
-    for l in range(L + 1):
-        for m in range(l + 1):
-            D[l, m] = l * x * P[l, m]
-            if l > m:
-                D[l, m] -= np.sqrt((2 * l + 1) * (l * l - m * m) / (2 * l - 1.0)) * P[l - 1, m]
-    return P, D
+    """Y_lm(θ, 0) (SciPy's `sph_legendre_p_all`, Condon–Shortley phase) at cos θ = x and
+    sin θ ∂θ of it, shapes (L+1, L+1, len(x)) for 0 ≤ m ≤ l."""
+    theta = np.arccos(x)
+    values = sph_legendre_p_all(L, L, theta, diff_n=1)[:, :, :L + 1]
+    return values[0], np.sin(theta) * values[1]
 
 
 def sphere_euler_spectral(c0, T, L, rtol=1e-12):
