@@ -314,6 +314,17 @@ def check_sweep_scaling(summary: dict) -> None:
         assert t["met"] in (True, False) and math.isfinite(t["value"])
 
 
+def check_euler_sphere(summary: dict) -> None:
+    for row in summary["results"]:
+        for m in ("ours", "numpy"):
+            _check_timed(row["timings"][m], ("per_call_s",), m)
+            assert _positive_finite(row["seconds_per_step"][m]) and row["sweeps_per_step"][m] >= 1
+        # the same scheme but for the weight of the centre of u(N): far below the method's error
+        assert row["max_difference_of_final_W"] < 1e-10 * row["max_abs_W"]
+        assert row["spectrum_change_ours"] < 1e-12 * row["max_abs_W"]  # isospectral
+    assert math.isfinite(summary["slopes"]["ours"]) and math.isfinite(summary["slopes"]["numpy"])
+
+
 CHECKS = {
     "rigid_body_step_cost": check_rigid_body_step_cost,
     "vortex_step_cost": check_vortex_step_cost,
@@ -323,6 +334,7 @@ CHECKS = {
     "soak": check_soak,
     "defaults": check_defaults,
     "sweep_scaling": check_sweep_scaling,
+    "euler_sphere": check_euler_sphere,
 }
 
 

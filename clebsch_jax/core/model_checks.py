@@ -50,6 +50,15 @@ at every probe ξ (round-off of a linear map is far below it, any genuine nonlin
 SQRT_TOL = 0.25
 r"""`_log` takes square roots of $g$ until $|g - I| \le$ this, then sums 60 terms of the series."""
 
+DENSE_CHECK_MAX = 400
+r"""Above this many unknowns ξ, `check_model` forms no Hessian and no Jacobian (their size grows
+like $(\dim V)^2$, their factorisation like $(\dim V)^3$): `_check_matrix_free` checks the
+velocity map's linearity on the probes alone and the Legendre map through the system's
+`inverse_legendre`, when it has one (else that check is skipped)."""
+
+INVERSE_RTOL = 1e-8
+r"""`inverse_legendre` passes when $|\nabla l(G(\mu)) - \mu| \le$ this $\times|\mu|$ at the probes."""
+
 GROUP_RTOL = 1e-8
 r"""A step leaves the group when the component of $\log((Q^0)^{-1}Q^1)$ outside the algebra $X(V)$
 is more than this fraction of it (round-off for a step that stays on the group; of the order of
@@ -88,6 +97,8 @@ def check_model(system, Q0, xi0, dt) -> None:
     if any_traced(Q0, xi0, dt, system):
         return
     direction = _direction(xi0)
+    if np.size(xi0) > DENSE_CHECK_MAX:
+        return _check_matrix_free(system, Q0, xi0, direction)
     found = _derivatives(system, Q0, xi0, direction)
     if any(is_traced(x) for x in found.values()):
         return  # the user's functions close over traced values
@@ -100,6 +111,50 @@ def check_model(system, Q0, xi0, dt) -> None:
         _check_linear(xi0, found)
     except _Traced:
         return
+
+
+def _evaluate_matrix_free(system, Q0, xi0, direction):
+    """The values `_check_matrix_free` needs, in one program: the velocity map at ξ⁰, d and
+    2ξ⁰ + d; l's gradient μ at ξ⁰ and d and, with an inverse Legendre map G, ∇l(G(μ))."""
+    grad = jax.grad(lambda x: system.l(x, Q0))
+    mus = jnp.stack([grad(xi0), grad(direction)])
+    found = dict(velocities=jnp.stack([system.velocity_map(x, Q0) for x in (xi0, direction, 2.0 * xi0 + direction)]),
+                 momenta=mus)
+    if system.inverse_legendre is not None:
+        found["recovered"] = jnp.stack([grad(system.inverse_legendre(mu, Q0)) for mu in mus])
+    return found
+
+
+_matrix_free_values = filter_jit(_evaluate_matrix_free, compiler_options=QUICK_COMPILE)
+
+
+def _check_matrix_free(system, Q0, xi0, direction) -> None:
+    r"""`check_model` for a large ξ (`DENSE_CHECK_MAX`): the velocity map finite and additive on
+    the probes, $\mathcal L_{2\xi^0 + d} = 2\mathcal L_{\xi^0} + \mathcal L_d$ to `LINEAR_RTOL`
+    (an affine or nonlinear map fails it); and, when the system gives `inverse_legendre` G, G
+    inverts the Legendre map at the momenta μ of ξ⁰ and d, $\nabla l(G(\mu)) = \mu$ to
+    `INVERSE_RTOL` (the Legendre map is then invertible, Lemma 8)."""
+    found = _matrix_free_values(system, Q0, xi0, direction)
+    if any(is_traced(x) for x in found.values()):
+        return
+    found = {key: np.asarray(value) for key, value in found.items()}
+    v0, vd, v2 = found["velocities"]
+    if not np.all(np.isfinite(found["velocities"])):
+        raise ValueError("velocity_map: not finite at the initial configuration Q0 (at xi0 or at a random "
+                         "direction); start from a Q0 where the map is defined.")
+    defect = np.linalg.norm(v2 - 2.0 * v0 - vd)
+    scale = 2.0 * np.linalg.norm(v0) + np.linalg.norm(vd) + np.linalg.norm(v2)
+    if defect > LINEAR_RTOL * scale:
+        raise ValueError(f"velocity_map: must be linear in xi (Definition 1), but L(2 xi0 + d, Q0) differs from "
+                         f"2 L(xi0, Q0) + L(d, Q0) by {defect / scale:.1e} of their size (d a random direction): "
+                         "every term must be linear in xi, with no constant term.")
+    if "recovered" in found:
+        mus, back = found["momenta"], found["recovered"]
+        error = max(np.linalg.norm(b - m) / max(np.linalg.norm(m), np.finfo(float).tiny) for m, b in zip(mus, back))
+        if not error <= INVERSE_RTOL:
+            raise ValueError(f"inverse_legendre: G(mu, Q0) does not invert the Legendre map xi -> dl/dxi at Q0: "
+                             f"dl/dxi(G(mu)) differs from mu by {error:.1e} of its size at the momentum of xi0 or "
+                             "of a random velocity. It must return the xi whose momentum dl/dxi(xi, Q) is mu.")
 
 
 class _Traced(Exception):

@@ -79,6 +79,12 @@ class ClebschSystem:
       $\det Q = +1$). `cj.sweep` calls it on every row of its `Q0`; a check with an attribute
       `batched(stack) -> None | (row, sentence)` is called once on the whole stack instead
       (`models.check_rotation` has one: 10⁶ rotations in about a second).
+    - `inverse_legendre` (default None): Lemma 8's inverse Legendre map, `G(mu, Q)` → the ξ
+      with $\delta l/\delta\xi(\xi, Q) = \mu$, when the model knows it in closed form or by a
+      structured solve (the Euler–Zeitlin fluid: tridiagonal solves). Nodal velocities are then
+      evaluated rather than solved for, the reduced march can solve its steps by fixed-point
+      sweeps preconditioned with it (`ReducedStep(root_finder=FixedPoint())`, no Jacobian), and
+      `integrate`'s model checks use it instead of a dense Hessian on large systems.
 
     `xi` and `Q` are arrays of any shape. The system is a pytree: array leaves inside the
     three callables (for instance model parameters held by a `jax.tree_util.Partial`) are
@@ -92,9 +98,11 @@ class ClebschSystem:
     has_potential: bool
     degenerate: bool
     check_Q: Callable | None
+    inverse_legendre: Callable | None
 
     def __init__(self, *, lagrangian: Callable, velocity_map: Callable, derivative_map: Callable,
-                 degenerate: bool = False, check_Q: Callable | None = None):
+                 degenerate: bool = False, check_Q: Callable | None = None,
+                 inverse_legendre: Callable | None = None):
         for name, fn in (
             ("lagrangian", lagrangian),
             ("velocity_map", velocity_map),
@@ -118,6 +126,12 @@ class ClebschSystem:
         if check_Q is not None and not callable(check_Q):
             raise TypeError(f"check_Q: expected None or a callable Q -> None | str, got {type(check_Q).__name__}.")
         self.check_Q = check_Q
+        if inverse_legendre is not None and not callable(inverse_legendre):
+            raise TypeError(f"inverse_legendre: expected None or a callable (mu, Q) -> xi, got "
+                            f"{type(inverse_legendre).__name__}.")
+        if inverse_legendre is not None and degenerate:
+            raise ValueError("inverse_legendre: a degenerate Lagrangian has no inverse Legendre map.")
+        self.inverse_legendre = inverse_legendre
 
     def l(self, xi: jax.Array, Q: jax.Array) -> jax.Array:
         """The reduced Lagrangian l(ξ, Q), whichever form the user wrote."""
@@ -127,6 +141,7 @@ class ClebschSystem:
         form = "l(xi, Q)" if self.has_potential else "l(xi)"
         extra = ", degenerate=True" if self.degenerate else ""
         extra += f", check_Q={self.check_Q!r}" if self.check_Q is not None else ""
+        extra += f", inverse_legendre={self.inverse_legendre!r}" if self.inverse_legendre is not None else ""
         return (
             f"ClebschSystem(lagrangian={form}, velocity_map={self.velocity_map!r}, "
             f"derivative_map={self.derivative_map!r}{extra})"
@@ -136,13 +151,13 @@ class ClebschSystem:
 def _flatten(sys: ClebschSystem):
     # check_Q is a child like the three maps: a plain function is a static leaf, array leaves
     # of a `Partial` are traced; None is an empty subtree.
-    children = (sys.lagrangian, sys.velocity_map, sys.derivative_map, sys.check_Q)
+    children = (sys.lagrangian, sys.velocity_map, sys.derivative_map, sys.check_Q, sys.inverse_legendre)
     return children, (sys.has_potential, sys.degenerate)
 
 
 def _unflatten(aux: tuple, children: Any) -> ClebschSystem:
     obj = object.__new__(ClebschSystem)
-    obj.lagrangian, obj.velocity_map, obj.derivative_map, obj.check_Q = children
+    obj.lagrangian, obj.velocity_map, obj.derivative_map, obj.check_Q, obj.inverse_legendre = children
     obj.has_potential, obj.degenerate = aux
     return obj
 

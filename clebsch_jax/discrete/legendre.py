@@ -14,9 +14,11 @@ import jax.numpy as jnp
 
 from ..core.system import ClebschSystem, momentum_map
 from ..roots.newton import newton_solve
+from ..roots.status import NewtonStats, Status
 from .residual import nodal_residual
 
-__all__ = ["initial_multiplier", "cotangent_from_momentum", "min_norm_transpose_solve", "nodal_velocity"]
+__all__ = ["initial_multiplier", "cotangent_from_momentum", "min_norm_transpose_solve", "nodal_velocity",
+           "explicit_nodal_velocity"]
 
 
 def initial_multiplier(system: ClebschSystem, Q0: jax.Array, xi0: jax.Array) -> jax.Array:
@@ -167,3 +169,15 @@ def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax
     solver = newton_solve if solver is None else solver
     return solver(lambda x: nodal_residual(system, Q, mu, x), guess,
                   rtol=rtol, atol=atol, max_iterations=max_iterations)
+
+
+def explicit_nodal_velocity(system: ClebschSystem, Q: jax.Array, mu: jax.Array) -> tuple[jax.Array, NewtonStats]:
+    r"""The nodal velocity $\xi = G(\mu, Q)$ from the system's inverse Legendre map
+    (`ClebschSystem(inverse_legendre=G)`), with the statistics of a solve that needed no update:
+    `residual_norm` is $\max|\delta l/\delta\xi(\xi, Q) - \mu|$, the status `NONFINITE` when ξ
+    or that residual is not finite. **Returns:** `(xi, NewtonStats)`."""
+    xi = system.inverse_legendre(mu, Q)
+    r = jnp.max(jnp.abs(nodal_residual(system, Q, mu, xi)))
+    zero = jnp.asarray(0, jnp.int32)
+    status = jnp.where(jnp.isfinite(r), Status.SUCCESS, Status.NONFINITE).astype(jnp.int32)
+    return xi, NewtonStats(iterations=zero, residual_norm=r, status=status, jacobians=zero)

@@ -46,7 +46,7 @@ from ..discrete.closure import CLOSURE_TOLERANCE
 from ..core.system import ClebschSystem
 from ..core.validation import any_traced, is_traced
 
-__all__ = ["MatrixGroupReduction", "find_reduction", "matrix_group_basis", "reduced_residual", "outgoing_body_momentum",
+__all__ = ["MatrixGroupReduction", "MatrixAlgebraReduction", "find_reduction", "matrix_group_basis", "reduced_residual", "outgoing_body_momentum",
            "reduced_step"]
 
 
@@ -82,6 +82,53 @@ class MatrixGroupReduction:
                 and np.array_equal(self.basis, other.basis))
 
 
+@dataclasses.dataclass(frozen=True)
+class MatrixAlgebraReduction:
+    r"""The reduction when ξ *is* the matrix: $\mathcal L_\xi Q = Q\xi$ with ξ of Q's shape
+    (n, n), so $X$ is the identity and the algebra is all of $\mathfrak{gl}(n)$ — closed with
+    no check (Theorem 12). Nothing of size $(\dim V)^2$ is formed: $X$, $X^{-1}$ and their
+    adjoints are the identity, and the Cayley step is written with n×n products
+    (`_cayley_step`). A system whose data lie in a subalgebra (the Euler–Zeitlin fluid on
+    $\mathfrak u(N)$) stays in it when its Lagrangian's gradient maps the subalgebra to itself."""
+
+    n: int
+
+    @property
+    def xi_shape(self):
+        return (self.n, self.n)
+
+    def X(self, xi):
+        return xi
+
+    X_inv = X_adjoint = X_inv_adjoint = X
+
+
+MATRIX_ALGEBRA_POINTS = 2
+r"""Random (ξ, G) pairs at which `_matrix_algebra` checks $\mathcal L_\xi G = G\xi$."""
+
+
+def _matrix_algebra(system: ClebschSystem, Q0, xi0) -> MatrixAlgebraReduction | None:
+    r"""A `MatrixAlgebraReduction` when ξ and Q are n×n and the velocity map is $Q\xi$ at
+    `MATRIX_ALGEBRA_POINTS` random pairs (ξ, G) (a map linear in ξ that is right
+    multiplication by ξ itself there is so everywhere but on a set of measure zero, and
+    `integrate`'s model checks test the linearity); None otherwise. O(n³) work: no basis."""
+    shape = tuple(np.shape(Q0))
+    if len(shape) != 2 or shape[0] != shape[1] or tuple(np.shape(xi0)) != shape:
+        return None
+    n = shape[0]
+    rng = np.random.default_rng(11)
+    xis = rng.normal(size=(MATRIX_ALGEBRA_POINTS, n, n))
+    Gs = np.eye(n) + 0.3 * rng.normal(size=(MATRIX_ALGEBRA_POINTS, n, n))
+    values = jit_with_options(jax.vmap(system.velocity_map), QUICK_COMPILE)(xis, Gs)
+    if not _concrete(values):
+        return None
+    values = np.asarray(values)
+    expected = Gs @ xis
+    if np.max(np.abs(values - expected)) > 1e-12 * max(float(np.max(np.abs(expected))), 1.0):
+        return None
+    return MatrixAlgebraReduction(n=n)
+
+
 def _constant_map(C: np.ndarray, x, shape):
     """C @ ravel(x) reshaped to `shape`, for a constant (NumPy) matrix C.
 
@@ -111,7 +158,8 @@ def _memo(key, compute):
     return memo(_CACHE, key, compute, 256)
 
 
-def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | None, str]:
+def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | MatrixAlgebraReduction | None,
+                                                            str]:
     """`_find_reduction`, cached: the verdict depends only on the two maps and the shapes."""
     if any_traced(system.velocity_map):
         return _find_reduction(system, Q0, xi0)
@@ -132,10 +180,16 @@ def _inspect(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | Non
     (2) Q is a square matrix and the velocity map is right multiplication, linear in ξ,
     $\mathcal L_\xi G = G\,\mathcal L_\xi I$ (checked at fixed random matrices G and a random ξ,
     `_group_basis`), and (3) the velocity map is closed (Theorem 12: the commutators of its
-    basis in its span), so that $X(V)$ is a Lie algebra.
+    basis in its span), so that $X(V)$ is a Lie algebra. When ξ is itself the n×n matrix
+    ($\mathcal L_\xi Q = Q\xi$, `_matrix_algebra`) (2) and (3) hold with $X$ the identity and no
+    basis is formed: a `MatrixAlgebraReduction`, which scales to $\dim V = n^2$ in the
+    thousands.
     """
     if not isinstance(system.derivative_map, MatrixGroupDifference):
         return None, "the derivative map is not a matrix-group map (Definition 25)"
+    algebra = _matrix_algebra(system, Q0, xi0)
+    if algebra is not None:
+        return algebra, "applies"
     basis, reason = _cached_group_basis(system, Q0, xi0)
     if basis is None:
         return None, reason
@@ -261,7 +315,7 @@ def outgoing_body_momentum(system, red, scheme, dt, Q0, xi):
     return jax.grad(perturbed)(jnp.zeros_like(xi)), Q1
 
 
-def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
+def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True, need_Q1: bool = True):
     r"""`reduced_residual` and `outgoing_body_momentum` of one step, sharing their work.
 
     Both are derivatives of $\ell_d(F, Q^a)$ at $F = \overline{\exp}(\Delta t X(\xi))$ along
@@ -278,10 +332,11 @@ def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
     explicit (`_cayley_step`); for the exponential pair it is $\varphi_1(\mathrm{ad})^{-1}$
     (`_exponential_step`), not traced through the logarithm's algorithm. Returns
     `(r, mu1, Q1)`; `mu1` is None unless `outgoing`, and `Q1` may be None when `outgoing` is
-    False."""
+    False, or (for the Cayley map) when `need_Q1` is False: a march that does not carry Q skips
+    its solve."""
     if isinstance(system.derivative_map, CayleyDifference):
-        return _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing)
-    if getattr(system.derivative_map, "exponential_pair", False):
+        return _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1)
+    if getattr(system.derivative_map, "exponential_pair", False) and isinstance(red, MatrixGroupReduction):
         return _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing)
     F = system.derivative_map.exp(dt * red.X(xi))
     Q1 = Q0 @ F
@@ -301,7 +356,7 @@ def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True):
     return r, mu1, Q1
 
 
-def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
+def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True):
     r"""`reduced_step` for the Cayley pair $\overline{\exp}(Y) = (I - Y/2)^{-1}(I + Y/2)$,
     $\overline{\log}(A) = 2(A + I)^{-1}(A - I)$ (Example 30), in closed form.
 
@@ -330,12 +385,12 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
     McLachlan & Razakarivony 2008): over 2·10⁵ rigid-body steps the Casimir and the spatial
     momentum drift 0.40 and 0.28 √n·ε (log-log slopes 0.48, 0.54) instead of 5.5 and 9.2
     (slopes 0.69, 0.84) with the products."""
-    n = red.basis.shape[-1]
     Y = dt * red.X(xi)
+    n = Y.shape[-1]
     eye = jnp.eye(n, dtype=Y.dtype)
     Fm = eye - 0.5 * Y
     mm = _linalg.matmul
-    need_F = outgoing or (system.has_potential and scheme == "right")
+    need_F = (outgoing and need_Q1) or (system.has_potential and scheme == "right")
     # F = lie.cayley_exp(Y), with its products written out for XLA to fuse
     # Q¹ = Q⁰F as Q⁰ + Q⁰(F − I), F − I = (I − Y/2)⁻¹Y: an O(Δt) increment (see the docstring)
     Q1 = Q0 + mm(Q0, _linalg.solve(Fm, Y, unroll=True)) if need_F else None
@@ -486,6 +541,8 @@ def cayley_polynomial(red: MatrixGroupReduction) -> CayleyPolynomial | None:
     `POLYNOMIAL_MAX_TERMS` nonzero coefficients (large algebras: the matrix form is cheaper).
     Coefficients below 1e-14 of the largest, the round-off of the pseudo-inverse, count as zero
     (as in `_constant_map`)."""
+    if not isinstance(red, MatrixGroupReduction):
+        return None  # ξ is the matrix: the products are the cheap form
     basis = red.basis
     m, n = basis.shape[0], basis.shape[1]
     P = red.pinv.reshape(m, n, n)  # P[l] = X^{-T} e_l

@@ -28,6 +28,7 @@ import numpy as np
 
 from ..core.jit import QUICK_COMPILE, filter_jit
 from ..core.validation import any_traced, nan_unless
+from ..discrete.legendre import explicit_nodal_velocity
 from ..discrete.residual import nodal_residual
 from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper, Nodes
@@ -246,7 +247,10 @@ def nodal_velocities(system, finder, Qs, mus, guesses, valid):
     a node that is not valid starts from a NaN seed, and its solve stops at the first update."""
     expand = lambda v, a: v.reshape(v.shape + (1,) * (a.ndim - 1))
     seeds = jnp.where(expand(valid, guesses), guesses, jnp.nan)
-    solve = jax.vmap(lambda q, mu, g: finder.solve(lambda x: nodal_residual(system, q, mu, x), g))
+    if system.inverse_legendre is not None:  # Lemma 8's G is given: evaluated, not solved for
+        solve = jax.vmap(lambda q, mu, g: explicit_nodal_velocity(system, q, jnp.where(jnp.isnan(g), jnp.nan, mu)))
+    else:
+        solve = jax.vmap(lambda q, mu, g: finder.solve(lambda x: nodal_residual(system, q, mu, x), g))
     xin, st = solve(Qs, mus, seeds)
     ok = valid & (st.status == Status.SUCCESS)  # a failed nodal solve leaves no plausible-looking ξ
     return jnp.where(expand(ok, xin), xin, jnp.nan), skip_stats(st, valid)

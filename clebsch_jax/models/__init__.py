@@ -19,6 +19,22 @@ from ._epdiff import landmark_velocity as landmark_velocity
 from ._epdiff import landmark_momenta as landmark_momenta
 from ._epdiff import landmark_field as landmark_field
 from ._epdiff import landmark_angular_momentum as landmark_angular_momentum
+from ._euler_sphere import euler_sphere as euler_sphere
+from ._euler_sphere import euler_sphere_hbar as euler_sphere_hbar
+from ._euler_sphere import euler_sphere_laplacian as euler_sphere_laplacian
+from ._euler_sphere import euler_sphere_inverse_laplacian as euler_sphere_inverse_laplacian
+from ._euler_sphere import euler_sphere_real_form as euler_sphere_real_form
+from ._euler_sphere import euler_sphere_complex_form as euler_sphere_complex_form
+from ._euler_sphere import euler_sphere_start as euler_sphere_start
+from ._euler_sphere import euler_sphere_vorticity as euler_sphere_vorticity
+from ._euler_sphere import euler_sphere_quantise as euler_sphere_quantise
+from ._euler_sphere import euler_sphere_coefficients as euler_sphere_coefficients
+from ._euler_sphere import euler_sphere_field as euler_sphere_field
+from ._euler_sphere import euler_sphere_basis as euler_sphere_basis
+from ._euler_sphere import euler_sphere_casimirs as euler_sphere_casimirs
+from ._euler_sphere import euler_sphere_energy as euler_sphere_energy
+from ._euler_sphere import euler_sphere_angular_momentum as euler_sphere_angular_momentum
+from ._euler_sphere import euler_sphere_orthographic as euler_sphere_orthographic
 from ._heavy_top import heavy_top as heavy_top
 from ._point_vortices import point_vortices as point_vortices
 from ._point_vortices import vortex_angular_impulse as vortex_angular_impulse
@@ -58,4 +74,20 @@ __all__ = [
     "landmark_momenta",
     "landmark_field",
     "landmark_angular_momentum",
+    "euler_sphere",
+    "euler_sphere_hbar",
+    "euler_sphere_laplacian",
+    "euler_sphere_inverse_laplacian",
+    "euler_sphere_real_form",
+    "euler_sphere_complex_form",
+    "euler_sphere_start",
+    "euler_sphere_vorticity",
+    "euler_sphere_quantise",
+    "euler_sphere_coefficients",
+    "euler_sphere_field",
+    "euler_sphere_basis",
+    "euler_sphere_casimirs",
+    "euler_sphere_energy",
+    "euler_sphere_angular_momentum",
+    "euler_sphere_orthographic",
 ]

@@ -12,6 +12,10 @@ The rules, in order:
 1. `scheme` (default: "midpoint" for a degenerate system, else "left") picks the principle, or
    "gauss" the Gauss–Legendre method of `order` (default 2), solved by fixed-point sweeps.
 2. `jacobian` picks the root finder: "dense" `Newton`, "blocks" `BlockNewton` (N particles).
+   The reduced march of a system that gives its inverse Legendre map
+   (`ClebschSystem(inverse_legendre=...)`) with more than `DENSE_NEWTON_MAX` unknowns solves
+   by matrix-free sweeps preconditioned with it (`FixedPoint`) instead: a dense Jacobian of
+   dim V = n² unknowns (the Euler–Zeitlin fluid) costs n⁶.
 3. The reduced march (`ReducedStep`) runs when `reduce=True`, or with `reduce="auto"` when the
    caller does not need the multipliers and the velocity map is right multiplication on a
    matrix group with a Definition 25 derivative map (`find_reduction`); else `FullStep`.
@@ -24,6 +28,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 from ..discrete.collocation import GAUSS_ORDERS
 from ..discrete.reduction import find_reduction
 from ..roots.solvers import BlockNewton, FixedPoint, Newton
@@ -34,7 +40,11 @@ from .gauss import SWEEPS_PER_NEWTON_ITERATION, GaussLegendre
 from .principles import check_principle, principle_facts
 from .reduced import ReducedStep
 
-__all__ = ["default_scheme", "default_method", "choose_method", "check_scheme", "COMPOSITION_ORDERS"]
+__all__ = ["DENSE_NEWTON_MAX", "default_scheme", "default_method", "choose_method", "check_scheme", "COMPOSITION_ORDERS"]
+
+DENSE_NEWTON_MAX = 64
+"""Above this many unknowns per step, the reduced march of a system with an inverse Legendre map
+solves by sweeps (rule 2): forming and factorising a dense Jacobian costs more than the sweeps."""
 
 COMPOSITION_ORDERS = (2, 4, 6, 8)
 """The orders `integrate(..., order=k)` reaches by composing a principle."""
@@ -104,6 +114,11 @@ def symmetric_step(system, base, order, composition):
     return base if order == 2 else Composed(base, composition)
 
 
+def _size(x) -> int:
+    """The number of entries of an array, or of an array of shape `x` (a tuple)."""
+    return int(np.prod(x)) if isinstance(x, tuple) else int(np.size(x))
+
+
 def choose_method(system, Q0, xi0, *, scheme=None, reduce="auto", need_P=False, reconstruct=True, rtol=0.0,
                   atol=0.0, max_newton_iterations=20, jacobian="dense", order=None, composition=None):
     """The stepper `integrate` runs for these options (the rules of the module docstring).
@@ -125,7 +140,11 @@ def choose_method(system, Q0, xi0, *, scheme=None, reduce="auto", need_P=False, 
     principle = Principle(scheme)
     base = FullStep(principle=principle, root_finder=finder)
     if Q0 is not None and (reduce is True or (reduce == "auto" and not need_P)):
-        reduced = ReducedStep(principle=principle, root_finder=newton, reconstruct=bool(reconstruct),
+        reduced_finder = newton
+        if system.inverse_legendre is not None and _size(xi0) > DENSE_NEWTON_MAX and jacobian == "dense":
+            reduced_finder = FixedPoint(rtol=rtol, atol=atol,
+                                        max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations)
+        reduced = ReducedStep(principle=principle, root_finder=reduced_finder, reconstruct=bool(reconstruct),
                               need_P=bool(need_P))
         if reduce is True:
             base = reduced.prepare(system, Q0, xi0)  # says why, when it does not apply

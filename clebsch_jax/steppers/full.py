@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from ..core.system import momentum_map
-from ..discrete.legendre import initial_multiplier
+from ..discrete.legendre import explicit_nodal_velocity, initial_multiplier
 from ..discrete.residual import StepUnknowns, nodal_residual, outgoing_momentum, step_residual
 from ..roots.solvers import BlockNewton, Newton
 from .base import Nodes
@@ -32,6 +32,8 @@ def seed_velocity(system, finder, Q0, P0, xi0):
     if system.degenerate:
         return xi0
     mu = momentum_map(system, P0, Q0, xi0)
+    if system.inverse_legendre is not None:
+        return explicit_nodal_velocity(system, Q0, mu)[0]
     return finder.solve(lambda x: nodal_residual(system, Q0, mu, x), xi0)[0]
 
 

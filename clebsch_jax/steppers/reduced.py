@@ -29,8 +29,8 @@ import jax.numpy as jnp
 from ..core.derivative_maps import CayleyDifference
 from ..core.system import momentum_map
 from ..discrete.legendre import initial_multiplier
-from ..discrete.reduction import MatrixGroupReduction, find_reduction, reduced_step
-from ..roots.solvers import FixedNewton, Newton
+from ..discrete.reduction import MatrixAlgebraReduction, MatrixGroupReduction, find_reduction, reduced_step
+from ..roots.solvers import FixedNewton, FixedPoint, Newton
 from .base import Nodes, Principle
 from .full import seed_velocity
 from .predictor import degree, empty_history, predict, push
@@ -50,7 +50,14 @@ class ReducedStep(PrincipleStep):
     **Arguments:**
 
     - `principle`: `Principle.LEFT` (default) or `RIGHT`.
-    - `root_finder`: a `Newton()` (or a `FixedNewton()`, which `clebsch_jax.sweep` uses).
+    - `root_finder`: a `Newton()` (or a `FixedNewton()`, which `clebsch_jax.sweep` uses), or
+      `FixedPoint()` for a system that gives its inverse Legendre map G
+      (`ClebschSystem(inverse_legendre=...)`): matrix-free sweeps
+      $\xi \leftarrow G(\nabla l(\xi) + r(\xi))$ (made on $\nabla l(\xi)$: `_sweep`), r the
+      step's residual, whose leading part is
+      $\mu^n - \nabla l(\xi)$ — Newton's update with the Jacobian $-\nabla^2 l$ of $\Delta t = 0$,
+      contracting like $O(\Delta t\,|\xi|)$. For the Euler–Zeitlin fluid this is the isospectral
+      midpoint method's own iteration, with O(n³) work per sweep and no Jacobian.
     - `reconstruct`: carry and return $Q^n$ (default True). With False and an l without
       potential, `Solution.Q` is None and Q is never computed.
     - `need_P`: also return the minimum-norm multiplier $P^n$ of each step.
@@ -65,25 +72,34 @@ class ReducedStep(PrincipleStep):
     reconstruct: bool = True
     need_P: bool = False
     fresh_jacobian: bool | None = None
-    reduction: MatrixGroupReduction | None = None
+    reduction: MatrixGroupReduction | MatrixAlgebraReduction | None = None
 
     form = "reduced"
 
     def __post_init__(self):
         super().__post_init__()
-        if type(self.root_finder) not in (Newton, FixedNewton):
+        if type(self.root_finder) not in (Newton, FixedNewton, FixedPoint):
             raise TypeError(f"root_finder: the reduced step solves dim V equations with clebsch_jax.Newton() (or "
-                            f"its fixed-update form, clebsch_jax.roots.solvers.FixedNewton), got "
+                            f"its fixed-update form, clebsch_jax.roots.solvers.FixedNewton), or by sweeps with "
+                            f"clebsch_jax.FixedPoint() for a system with an inverse_legendre map, got "
                             f"{self.root_finder!r}.")
 
     def prepare(self, system, Q0, xi0) -> "ReducedStep":
         if self.principle == Principle.MIDPOINT:
             raise ValueError("reduce: the reduced march does not apply to this system: the reduced march "
                              "implements the left and right principles only.")
+        if self._sweeps and system.inverse_legendre is None:
+            raise ValueError("root_finder: FixedPoint() sweeps of the reduced step are preconditioned with the "
+                             "system's inverse Legendre map; build the system with ClebschSystem(..., "
+                             "inverse_legendre=...) or use clebsch_jax.Newton().")
         red, reason = find_reduction(system, Q0, xi0)
         if red is None:
             raise ValueError(f"reduce: the reduced march does not apply to this system: {reason}.")
         return dataclasses.replace(self, reduction=red)
+
+    @property
+    def _sweeps(self) -> bool:
+        return isinstance(self.root_finder, FixedPoint)
 
     def _carry_Q(self, system) -> bool:
         return bool(self.reconstruct or system.has_potential or self.need_P)
@@ -106,34 +122,53 @@ class ReducedStep(PrincipleStep):
     def init_memory(self, system, state):
         _, _, xi = state
         history = empty_history(xi.shape, xi.dtype)
-        return history, jnp.eye(xi.size, dtype=xi.dtype), degree(0, history)
+        # sweeps carry no matrix (a placeholder scalar): dim V may be in the thousands
+        H = jnp.zeros((), xi.dtype) if self._sweeps else jnp.eye(xi.size, dtype=xi.dtype)
+        return history, H, degree(0, history)
 
     def step(self, system, state, memory, h, n, alive):
         mu, Q, xi_last = state
         history, H, deg = memory
         red, principle = self.reduction, self.principle
+        carry_Q = self._carry_Q(system)
 
         def residual(x):
             return reduced_step(system, red, principle, h, mu, Q, x, outgoing=False)[0]
 
         def finish(x):  # the residual at the solution and the outgoing μⁿ⁺¹, Qⁿ⁺¹, sharing work
-            r, mu1, Q1 = reduced_step(system, red, principle, h, mu, Q, x)
+            r, mu1, Q1 = reduced_step(system, red, principle, h, mu, Q, x, need_Q1=carry_Q)
             return r, (mu1, Q1)
 
         # A fresh Jacobian at the guess, or the inverse Jacobian of this slot's last solve
         # (refreshed when it stops contracting, formed at step 0); a member that has failed
         # iterates on NaNs without forming any.
         guess = xi_last + predict(n, jnp.zeros_like(xi_last), history, deg)
-        reuse = False if self._fresh(system) else (n > 0) | ~alive
-        xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish,
-                                                                     step=n)
-        carry_Q = self._carry_Q(system)
+        if self._sweeps:
+            reuse = False
+            xi, stats = self._sweep(system, residual, guess, Q)
+            _, (mu1, Q1) = finish(xi)
+        else:
+            reuse = False if self._fresh(system) else (n > 0) | ~alive
+            xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish,
+                                                                         step=n)
         # a fresh Jacobian every solve: the carried matrix is never read, so it is handed on
         # unchanged (a loop-invariant placeholder rather than a new value per step)
         H = H if reuse is False else H_new
         history = push(history, xi - xi_last)
         # the next step's choice of differences, carried (`degree`)
         return (mu1, Q1 if carry_Q else Q, xi), (history, H, degree(n + 1, history)), (xi, Q1), stats
+
+    def _sweep(self, system, residual, guess, Q):
+        r"""The step's root by sweeps (`FixedPoint`'s stopping rule and statuses), made on the
+        momentum $g = \nabla l(\xi)$ rather than on ξ: $g \leftarrow g + r(G(g))$, then
+        $\xi = G(g)$. The same iterates as $\xi \leftarrow G(\nabla l(\xi) + r(\xi))$, but the
+        sizes the stopping rule judges are those of the momentum, whose round-off is that of
+        the residual's terms; G (a solve with $\nabla^2 l$, e.g. an inverse Laplacian) would
+        amplify it unevenly across the components of ξ."""
+        G = system.inverse_legendre
+        g0 = jax.grad(lambda y: system.l(y, Q))(guess)
+        g, stats = self.root_finder.solve(lambda g: g + residual(G(g, Q)), g0)
+        return G(g, Q), stats
 
     def nodes(self, system, state0, states, outs) -> Nodes:
         mu0, Qc0, xi0 = state0

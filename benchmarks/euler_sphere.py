@@ -1,0 +1,239 @@
+r"""Time per step of the Euler–Zeitlin fluid (`cj.models.euler_sphere(N)`) at N = 64, 128, 256.
+
+Run from the repository root:
+
+    python benchmarks/euler_sphere.py            # default run (N = 64, 128, 256)
+    python benchmarks/euler_sphere.py --quick    # smoke test, small N (not a measurement)
+
+Timed with the shared harness (`_timing.py`: the first call compiles and is timed alone, then
+the median of `--repeats` samples, the methods of a case sampled in turn, every call ending in
+`jax.block_until_ready`), in one process and one run. Per N, from one random vorticity with
+its energy near degree 10 and a root-mean-square vorticity of 1, `STEPS[N]` steps of Δt = 0.01:
+
+- **ours**: `integrate(euler_sphere(N), ..., reconstruct=False)` under `jax.jit` — the default
+  method (the reduced Cayley march, solved by matrix-free sweeps preconditioned with the
+  model's tridiagonal inverse Laplacian);
+- **numpy**: the isospectral midpoint method written directly in NumPy with complex N×N
+  matrices (BLAS `zgemm`), its Poisson solves by a vectorised Thomas algorithm along the
+  diagonals, its fixed-point iteration stopped at round-off like ours. An independent
+  implementation of the same scheme, written for this benchmark: the anchor code of the issue
+  (Modin & Viviani's `quflow`, numba-compiled) is not installed here, so it is not run; the
+  JSON says so.
+
+NumPy's BLAS threads compete for the cores with XLA's and with other users: on a loaded
+machine run with `OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1` (the JSON records these variables),
+or the NumPy peer's small products slow down by an order of magnitude.
+
+Reported per N: seconds per step of each, their ratio, sweeps per step, and the largest
+difference between the two final vorticities (they are not the same map to round-off: the
+centre of u(N) is weighted N² in ours, ∞ in the NumPy method: a difference far below the
+method's error, near round-off). The
+growth of the cost with N is fitted (log-log slope; the matrix products are O(N³)).
+Outputs (in `--out`, default `benchmarks/results`): `euler_sphere.json` and `euler_sphere.png`.
+Nothing here asserts a time.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _timing as harness  # noqa: E402
+
+import clebsch_jax as cj  # noqa: E402
+
+RESULTS_NAME = "euler_sphere"
+DT = 0.01
+PEAK = 10
+DEFAULT_CASES = ((64, 40), (128, 20), (256, 10))
+QUICK_CASES = ((12, 5), (16, 5))
+
+
+def initial_vorticity(N: int, seed: int = 0) -> np.ndarray:
+    """W of a random field, energy spectrum peaked near degree `PEAK`, rms vorticity 1."""
+    rng = np.random.default_rng(seed)
+    l = np.arange(N, dtype=float)
+    amplitude = np.sqrt(l * (l + 1) * l**3 * np.exp(-2 * (l / PEAK) ** 2) / (2 * l + 1))
+    c = np.tril(rng.normal(size=(N, N)) + 1j * rng.normal(size=(N, N))) * amplitude[:, None]
+    c[:, 0] = c[:, 0].real * np.sqrt(2)
+    c[0, 0] = 0.0
+    c *= np.sqrt(4 * np.pi / (np.sum(np.abs(c[:, 0]) ** 2) + 2 * np.sum(np.abs(c[:, 1:]) ** 2)))
+    return np.asarray(cj.models.euler_sphere_quantise(c))
+
+
+# --- the NumPy peer ------------------------------------------------------------------------
+
+
+class NumpyIsospectralMidpoint:
+    r"""The isospectral midpoint step $W^n = (I + A)\tilde W(I - A)$, $W^{n+1} = (I - A)\tilde
+    W(I + A)$, $A = -\tfrac{\Delta t}{2\hbar}\tilde P$, $\Delta_N\tilde P = \tilde W$ (trace-free),
+    solved for $\tilde W$ by the iteration $\tilde W \leftarrow W^n - [A, \tilde W] + A\tilde WA$
+    until its update is at round-off. Complex NumPy; the Poisson solve by a Thomas algorithm
+    along every diagonal at once (diagonal 0, singular, in its eigenbasis)."""
+
+    def __init__(self, N: int, dt: float):
+        s = 0.5 * (N - 1)
+        m = s - np.arange(N)
+        c = np.sqrt(np.maximum(s * (s + 1) - m * (m + 1), 0.0))
+        c_next = np.append(c[1:], 0.0)
+        centre = -2 * s * (s + 1) + 2 * np.outer(m, m)
+        up = np.outer(c_next, c_next)
+        k, i = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+        self.valid = i < N - k
+        self.rows, self.cols = np.where(self.valid, i, 0), np.where(self.valid, i + k, 0)
+        self.d = np.where(self.valid, centre[self.rows, self.cols], 1.0)
+        self.e = np.where(self.valid & (i + 1 < N - k), up[self.rows, self.cols], 0.0)
+        T0 = np.diag(self.d[0]) + np.diag(self.e[0, :-1], 1) + np.diag(self.e[0, :-1], -1)
+        lam, V = np.linalg.eigh(T0)
+        lam[np.argmin(np.abs(lam))] = np.inf  # the kernel (the identity): dropped
+        self.inv0 = (V / lam) @ V.T
+        jj, ii = np.meshgrid(np.arange(N), np.arange(N))
+        self.upper_index = (np.clip(jj - ii, 0, None), ii)
+        self.lower_index = (np.clip(ii - jj, 0, None), jj)
+        self.upper = jj >= ii
+        self.N, self.dt, self.hbar = N, dt, 2.0 / np.sqrt(N * N - 1.0)
+        # the Thomas factorisation of diagonals 1..N-1 (all at once): modified upper diagonal
+        d, e = self.d[1:], self.e[1:]
+        self.cp = np.zeros_like(d)
+        self.denominator = np.zeros_like(d)
+        self.denominator[:, 0] = d[:, 0]
+        self.cp[:, 0] = e[:, 0] / d[:, 0]
+        for j in range(1, N):
+            self.denominator[:, j] = d[:, j] - e[:, j - 1] * self.cp[:, j - 1]
+            self.cp[:, j] = e[:, j] / self.denominator[:, j]
+        self.e_lower = e
+
+    def _solve_skewed(self, B):
+        """Δ X = B along diagonals 1..N−1 of the skewed arrays (rows: diagonals)."""
+        N = self.N
+        y = np.empty_like(B)
+        y[:, 0] = B[:, 0] / self.denominator[:, 0]
+        for j in range(1, N):
+            y[:, j] = (B[:, j] - self.e_lower[:, j - 1] * y[:, j - 1]) / self.denominator[:, j]
+        for j in range(N - 2, -1, -1):
+            y[:, j] -= self.cp[:, j] * y[:, j + 1]
+        return y
+
+    def poisson(self, W):
+        """P with Δ_N P = W − tr(W)/N·I and tr P = 0 (complex N×N)."""
+        skew = [np.where(self.valid, M[self.rows, self.cols], 0.0) for M in (W, W.T)]
+        solved = []
+        for S in skew:
+            X = np.empty_like(S)
+            X[0] = self.inv0 @ S[0]
+            X[1:] = self._solve_skewed(S[1:])
+            solved.append(X)
+        return np.where(self.upper, solved[0][self.upper_index], solved[1][self.lower_index])
+
+    def step(self, W):
+        eps = np.finfo(float).eps
+        M = W.copy()
+        scale = max(1.0, np.max(np.abs(W)))
+        sweeps = 0
+        for sweeps in range(1, 200):
+            A = -(self.dt / (2 * self.hbar)) * self.poisson(M)
+            AM = A @ M
+            M_new = W - AM + M @ A + AM @ A
+            update = np.max(np.abs(M_new - M))
+            M = M_new
+            if update <= 8 * eps * scale:
+                break
+        A = -(self.dt / (2 * self.hbar)) * self.poisson(M)
+        AM = A @ M
+        return M - AM + M @ A - AM @ A, sweeps  # (I − A) W̃ (I + A)
+
+    def march(self, W, n_steps):
+        sweeps = []
+        for _ in range(n_steps):
+            W, k = self.step(W)
+            sweeps.append(k)
+        return W, float(np.mean(sweeps))
+
+
+# --- the cases -----------------------------------------------------------------------------
+
+
+def run_case(N: int, n_steps: int, run: harness.Run) -> dict:
+    W0 = initial_vorticity(N)
+    system = cj.models.euler_sphere(N)
+    Q0, xi0 = cj.models.euler_sphere_start(W0)
+    march = jax.jit(lambda x: cj.integrate(system, Q0, x, dt=DT, n_steps=n_steps, reconstruct=False, throw=False))
+    peer = NumpyIsospectralMidpoint(N, DT)
+    calls = {"ours": lambda: jax.block_until_ready(march(xi0)), "numpy": lambda: peer.march(W0, n_steps)}
+    timings, outs = run.time(calls, what=f"N={N}")
+    sol = outs["ours"]
+    if not np.all(np.asarray(sol.result) == cj.Status.SUCCESS):
+        raise RuntimeError(f"N={N}: the march did not succeed")
+    W_ours = np.asarray(cj.models.euler_sphere_vorticity(sol.momentum[-1]))
+    W_numpy, numpy_sweeps = outs["numpy"]
+    per_step = {name: t["per_call_s"] / n_steps for name, t in timings.items()}
+    spectra = np.linalg.eigvalsh(1j * np.stack([W0, W_ours]))
+    return {"N": N, "n_steps": n_steps, "timings": timings, "seconds_per_step": per_step,
+            "ours_over_numpy": per_step["ours"] / per_step["numpy"],
+            "sweeps_per_step": {"ours": float(np.mean(np.asarray(sol.stats.iterations))), "numpy": numpy_sweeps},
+            "max_difference_of_final_W": float(np.max(np.abs(W_ours - W_numpy))),
+            "max_abs_W": float(np.max(np.abs(W0))),
+            "spectrum_change_ours": float(np.max(np.abs(spectra[1] - spectra[0])))}
+
+
+def _slope(rows, key):
+    N = np.array([r["N"] for r in rows], float)
+    t = np.array([r["seconds_per_step"][key] for r in rows])
+    return float(np.polyfit(np.log(N), np.log(t), 1)[0]) if len(rows) > 1 else None
+
+
+def print_report(summary: dict) -> None:
+    harness.print_header(summary, "Euler-Zeitlin: seconds per step",
+                         "ours: integrate(euler_sphere(N)) under jit; numpy: the isospectral midpoint in NumPy "
+                         "(complex BLAS), an independent implementation (quflow is not installed here).")
+    head = (f"{'N':>5}{'steps':>7}{'ours s/step':>14}{'numpy s/step':>14}{'ratio':>8}{'sweeps':>8}"
+            f"{'numpy sw.':>10}{'|dW|':>10}")
+    lines = [f"{r['N']:>5}{r['n_steps']:>7}{r['seconds_per_step']['ours']:>14.4g}"
+             f"{r['seconds_per_step']['numpy']:>14.4g}{r['ours_over_numpy']:>8.3f}"
+             f"{r['sweeps_per_step']['ours']:>8.2f}{r['sweeps_per_step']['numpy']:>10.2f}"
+             f"{r['max_difference_of_final_W']:>10.1e}" for r in summary["results"]]
+    harness.print_table(head, lines)
+    print(f"cost growth (log-log slope in N): ours {summary['slopes']['ours']}, numpy {summary['slopes']['numpy']}")
+
+
+def plot(summary: dict, path: Path) -> None:
+    fig, ax = harness.figure([1], size=(6.5, 4.4))
+    rows = summary["results"]
+    N = np.array([r["N"] for r in rows])
+    for key, marker in (("ours", "o-"), ("numpy", "s--")):
+        ax.loglog(N, [r["seconds_per_step"][key] for r in rows], marker, label=f"{key} (slope {summary['slopes'][key]:.2f})"
+                  if summary["slopes"][key] is not None else key)
+    ref = rows[-1]["seconds_per_step"]["ours"] * (N / N[-1]) ** 3.0
+    ax.loglog(N, ref, ":", color="0.5", label="N^3")
+    ax.set_xlabel("N")
+    ax.set_ylabel("seconds per step")
+    ax.legend(fontsize=8)
+    ax.set_title(harness.plot_title(summary, "Euler-Zeitlin, time per step"), fontsize=8)
+    fig.savefig(path, dpi=120)
+
+
+def _describe(N, n_steps) -> str:
+    return f"N={N} n_steps={n_steps}"
+
+
+def main(argv=None) -> dict:
+    """Run the benchmark: the cases, the report, the JSON and the PNG; returns the summary."""
+    with harness.Run(RESULTS_NAME, argv, description="Time per step of the Euler-Zeitlin fluid (see module "
+                     "docstring).") as run:
+        results = run.measure(DEFAULT_CASES, QUICK_CASES, _describe, lambda *case: run_case(*case, run))
+    threads = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    summary = run.summary(config={"dt": DT, "peak_degree": PEAK, "blas_thread_variables": threads,
+                                  "cases": [{"N": N, "n_steps": n} for N, n in run.cases],
+                                  "anchor_code": "quflow (Modin & Viviani) is not installed here: not run; the "
+                                                 "peer is an independent NumPy implementation of the same scheme"},
+                          results=results, slopes={"ours": _slope(results, "ours"), "numpy": _slope(results, "numpy")})
+    return run.finish(summary, print_report, plot)
+
+
+if __name__ == "__main__":
+    main()
