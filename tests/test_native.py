@@ -135,6 +135,20 @@ def test_lanes_stop_their_loops_independently_and_inactive_lanes_keep_their_valu
     assert len(set(np.asarray(native[1]).tolist())) > 2  # the lanes did stop at different counts
 
 
+def test_a_long_scan_with_inputs_and_outputs_agrees_with_xla():
+    """A scan too long to unroll, with per-iteration inputs and outputs (held in arrays on the
+    stack, indexed by the counter), forwards and in reverse."""
+    def f(x, y):
+        xs = jnp.outer(jnp.linspace(0.0, 1.0, 700), y)
+        c, ys = jax.lax.scan(lambda c, v: (jnp.tanh(0.5 * c + v), c * v[0]), x, xs)
+        d, zs = jax.lax.scan(lambda c, v: (c * 0.9 + v, c), x, xs, reverse=True)
+        return c, ys[::97], d, zs[-3:]
+
+    rng = np.random.default_rng(5)
+    x, y = rng.standard_normal((B, 3)), rng.standard_normal((B, 3))
+    _agree(compile_member(f, x[0], y[0], use_cache=False)(x, y), jax.vmap(f)(x, y), rtol=1e-12, atol=1e-12)
+
+
 def test_shared_inputs_threads_and_the_disk_cache(tmp_path, monkeypatch):
     """An input shared by all members (in_axes None) is broadcast to the lanes; two threads
     give the table of one, bit for bit; a second compile of the same program comes from the

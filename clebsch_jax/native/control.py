@@ -129,9 +129,10 @@ def _array_slots(em: Emitter, length: int, shape, dtype):
 
 
 def _at(em: Emitter, slot, i):
+    """A pointer to entry `i` (an i64) of an array slot, typed as its element."""
     ptr, t = slot
     zero = ir.Constant(ir.IntType(64), 0)
-    return em.b.gep(ptr, [zero, i], source_etype=t)
+    return em.b.bitcast(em.b.gep(ptr, [zero, i], source_etype=t), t.element.as_pointer())
 
 
 def _scan(em: Emitter, eqn, args):
