@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..core.isotropy import isotropy_dimension
 from ..core.jit import QUICK_COMPILE, filter_jit
 from ..core.validation import any_traced
 from ..discrete.residual import nodal_residual
@@ -445,5 +446,5 @@ def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, d
         P=P, momentum=nodes.momentum, stats=stats, nodal_stats=nodal, result=result, failed_step=failed_step,
         valid=valid, scheme=facts.scheme, form=facts.form, order=facts.order, method=facts.name,
         derivative_map=derivative_map, q_ndim=Q0.ndim, xi_ndim=xi0.ndim,
-        solves_per_step=facts.solves_per_step,
+        solves_per_step=facts.solves_per_step, isotropy=isotropy_dimension(system),
     )

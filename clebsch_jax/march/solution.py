@@ -55,7 +55,10 @@ class Solution:
     - Static facts: `scheme`, `form` ("full" or "reduced"), `order` (nominal order of the method),
       `method` (what a step is made of, e.g. "Kahan-Li p8s17 of left principle"),
       `derivative_map` (its name; "none (collocation)" for `scheme="gauss"`, which does not use
-      it), `q_ndim` and `xi_ndim` (ranks of one Q and one ξ).
+      it), `q_ndim` and `xi_ndim` (ranks of one Q and one ξ), `isotropy` (the dimension of the
+      isotropy of $Q^0$ whose gauge the engine fixed because l does not see it — a Lagrangian
+      written with the physical velocities $\mathcal L_\xi Q$, `clebsch_jax.core.isotropy`; 0 when
+      the system ran as written).
 
     With a composition (`integrate(..., order=k)`) the nodes are those of the whole steps;
     `xi_step` and `P` are those of each step's first sub-step, and `stats` combine the
@@ -82,6 +85,7 @@ class Solution:
     q_ndim: int = 0
     xi_ndim: int = 0
     solves_per_step: int = 1
+    isotropy: int = 0
 
     @property
     def batch_ndim(self) -> int:
@@ -126,7 +130,8 @@ jax.tree_util.register_dataclass(
         "ts", "Q", "p", "xi", "xi_step", "P", "momentum", "stats", "nodal_stats", "result", "failed_step",
         "valid",
     ],
-    meta_fields=["scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim", "solves_per_step"],
+    meta_fields=["scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim", "solves_per_step",
+                 "isotropy"],
 )
 
 
