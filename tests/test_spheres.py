@@ -147,3 +147,52 @@ def test_the_conical_pendulum_keeps_its_physical_initial_velocity(natural):
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
         cj.integrate(system, Q0_CONICAL, physical, dt=dt, n_steps=2)
+
+
+# --------------------------------------------------------------------------------------------
+# the first step is checked like every other (Kepler in the plane)
+
+
+def _kepler_lagrangian(xi, q):
+    return 0.5 * jnp.sum(xi**2) + 1.0 / jnp.sqrt(jnp.sum(q**2))
+
+
+KEPLER = cj.ClebschSystem(lagrangian=_kepler_lagrangian, velocity_map=lambda xi, q: xi,
+                          derivative_map=cj.forward_difference)
+
+
+def _perihelion(e):
+    """Perihelion of the orbit of eccentricity e and semi-major axis 1 (energy -1/2)."""
+    return np.array([1.0 - e, 0.0]), np.array([0.0, np.sqrt((1.0 + e) / (1.0 - e))])
+
+
+@pytest.mark.parametrize("dt", [0.05, 0.1], ids=["half steps fail", "half steps elsewhere"])
+def test_a_spurious_first_step_is_reported(dt):
+    """e = 0.95 at perihelion (r = 0.05, |v| ≈ 6.2) with steps far longer than the passage: step 0
+    converges to a root with a positive energy (the body would escape). With dt = 0.05 the two
+    half steps do not converge; with dt = 0.1 they do, to a node far from step 0's."""
+    q0, v0 = _perihelion(0.95)
+    unchecked = cj.integrate(KEPLER, q0, v0, dt=dt, n_steps=3, check_energy=False)
+    energy = 0.5 * np.sum(np.asarray(unchecked.xi) ** 2, -1) - 1.0 / np.linalg.norm(np.asarray(unchecked.Q), axis=-1)
+    assert energy[1] > 0  # the spurious root: the orbit was bound (energy -1/2)
+    sol = cj.integrate(KEPLER, q0, v0, dt=dt, n_steps=3, throw=False)
+    assert int(sol.result) == cj.Status.FIRST_STEP and int(sol.failed_step) == 0
+    assert np.all(np.isnan(np.asarray(sol.Q)[1:]))
+    with pytest.raises(cj.IntegrationError, match="step 0 of 3.*two half steps.*smaller dt"):
+        cj.integrate(KEPLER, q0, v0, dt=dt, n_steps=3)
+
+
+def test_kepler_in_the_plane_is_second_order_with_its_angular_momentum_to_round_off():
+    """A resolved run passes the first-step check; against the exact Kepler orbit (e = 0.5, one
+    period from perihelion), order 2, and the angular momentum q × ξ to round-off."""
+    q0, v0 = _perihelion(0.5)
+    T = 2 * np.pi
+    errors, dts = [], [T / 400, T / 800, T / 1600]
+    for dt in dts:
+        sol = cj.integrate(KEPLER, q0, v0, dt=dt, n_steps=round(T / dt))
+        Q, xi = np.asarray(sol.Q), np.asarray(sol.xi)
+        errors.append(np.max(np.abs(Q[-1] - q0)))  # periodic: back at perihelion
+        L = Q[:, 0] * xi[:, 1] - Q[:, 1] * xi[:, 0]
+        assert np.ptp(L) < 1e-12
+    slope = np.polyfit(np.log(dts), np.log(errors), 1)[0]
+    assert abs(slope - sol.order) < 0.15, (errors, slope)

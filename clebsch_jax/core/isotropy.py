@@ -47,9 +47,12 @@ $A = \partial_\xi \mathcal L_\xi Q$ has a singular value at most this times its 
 
 
 def velocity_jacobian(velocity_map, Q, xi_shape) -> jax.Array:
-    r"""$A = \partial_\xi \mathcal L_\xi Q$ flattened to (Q.size, prod(xi_shape)), by forward mode."""
+    r"""$A = \partial_\xi \mathcal L_\xi Q$ flattened to (Q.size, prod(xi_shape)): the velocity map on
+    the basis of V."""
     n = int(np.prod(xi_shape)) if xi_shape else 1
-    return jax.jacfwd(lambda x: velocity_map(x.reshape(xi_shape), Q).reshape(-1))(jnp.zeros(n, Q.dtype))
+    # the map is linear in ξ (Definition 1): its columns are its values on the basis, no derivative
+    basis = jnp.eye(n, dtype=Q.dtype).reshape((n,) + tuple(xi_shape))
+    return jax.vmap(lambda e: velocity_map(e, Q).reshape(-1), out_axes=1)(basis)
 
 
 def kernel_basis(A, rtol: float = ISOTROPY_RTOL) -> np.ndarray:

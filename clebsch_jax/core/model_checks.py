@@ -31,7 +31,7 @@ from .isotropy import kernel_basis
 from .jit import QUICK_COMPILE, filter_jit
 from .validation import any_traced, is_traced, runnable_check
 
-__all__ = ["check_model", "check_first_step", "ModelFacts"]
+__all__ = ["check_model", "check_first_step", "check_group_configuration", "ModelFacts"]
 
 SINGULAR_RTOL = 1e-14
 """A Hessian is singular when its smallest singular value is at most this times its largest.
@@ -368,6 +368,44 @@ def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
     warnings.warn(f"derivative_map: {where} on which velocity_map acts, a matrix group, so Q drifts off it at "
                   f"every step {how} {fix} Give the system a check_Q to make this an error.", UserWarning,
                   stacklevel=3)  # the caller of integrate
+
+
+def check_group_configuration(system, Q0, xi0) -> None:
+    r"""For a system without `check_Q` whose velocity map is right multiplication on a matrix
+    group, $\mathcal L_\xi Q = Q X(\xi)$: warn when $Q^0$ is not in the group the engine reads off
+    $X(V)$ (`clebsch_jax.discrete.reduction.matrix_group_basis`). Recognised: $X(V) \subset so(n)$
+    (the group is in SO(n): $Q^0$ must be a rotation) and $X(V) \subset se(n-1)$ (last row zero,
+    antisymmetric block: $Q^0$ a rigid motion, last row $(0, \dots, 0, 1)$). A `UserWarning`, not
+    an error: the march is well defined on the orbit $Q^0 G$ of any invertible $Q^0$, but a user
+    who wrote SO(3) meant a rotation. Skipped for traced values."""
+    if system.check_Q is not None or any_traced(Q0, xi0, system.velocity_map):
+        return
+    Q = np.asarray(Q0)
+    if Q.ndim != 2 or Q.shape[0] != Q.shape[1] or not np.all(np.isfinite(Q)):
+        return
+    basis = _group_basis(system, Q0, xi0)
+    if basis is None:
+        return
+    from ..models._rigid_body import check_rotation  # the models' rotation test (a layer above)
+
+    size = max(float(np.max(np.abs(basis))), np.finfo(float).tiny)
+    antisymmetric = lambda X: float(np.max(np.abs(X + np.swapaxes(X, -1, -2)))) <= 1e-12 * size
+    n = Q.shape[0]
+    if antisymmetric(basis):
+        group, problem = f"SO({n})", check_rotation(Q)
+    elif n > 1 and not np.any(basis[:, -1, :]) and antisymmetric(basis[:, :-1, :-1]):
+        group = f"SE({n - 1})"
+        last = np.zeros(n)
+        last[-1] = 1.0
+        problem = (f"its last row is {np.array2string(Q[-1], precision=4)}, not {np.array2string(last)}."
+                   if np.max(np.abs(Q[-1] - last)) > 1e-8 else check_rotation(Q[:-1, :-1]))
+    else:
+        return
+    if problem is None:
+        return
+    warnings.warn(f"Q0: velocity_map moves Q by right multiplication with the Lie algebra of {group}, but Q0 is "
+                  f"not in {group}: {problem} The march keeps Q in Q0 {group}. Give the system a check_Q (e.g. "
+                  "clebsch_jax.models.check_rotation) to make this an error.", UserWarning, stacklevel=5)
 
 
 def _name(fn) -> str:

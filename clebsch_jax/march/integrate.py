@@ -6,6 +6,8 @@ import collections
 import dataclasses
 import numbers
 import os
+import types
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +15,7 @@ import numpy as np
 
 from ..core.isotropy import gauge_isotropy, physical_velocity
 from ..core.jit import filter_jit
-from ..core.model_checks import check_first_step, check_model
+from ..core.model_checks import check_first_step, check_group_configuration, check_model
 from ..core.system import ClebschSystem
 from ..core.validation import (any_traced, check_configuration, float_array, is_array, is_traced, nonnegative, output_shape,
                                positive_int, positive_scalar)
@@ -75,6 +77,7 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     closes = _check_maps_once(system, Q0, xi0, dt)
     check_configuration(system, Q0)
     facts = check_model(system, Q0, xi0, dt)
+    check_group_configuration(system, Q0, xi0)  # after check_model: the velocity map is finite at Q0
     if facts is not None:
         if facts.gauge:
             system = gauge_isotropy(system, Q0, xi0)
@@ -136,6 +139,46 @@ def _check_maps_once(system, Q0, xi0, dt) -> bool:
     if len(_MAPS_CHECKED) > _MAPS_CHECKED_SIZE:
         _MAPS_CHECKED.popitem(last=False)
     return False
+
+
+_CLOSED_NUMBERS: dict = {}
+"""(role, code object) of a user's function → the Python numbers its closure held when last seen."""
+
+_REMADE_WARNED: set = set()
+
+
+def _warn_if_remade(system) -> None:
+    """Warn once per function when one of the system's maps is a function seen before with the
+    same code but other Python numbers in its closure (a function made anew for each value, as
+    `lambda xi, q: ... - g * q[2]` inside a loop over g): the march is compiled for every such
+    function (functions are static, compared by identity), which costs most of a short call.
+    Array leaves of a `jax.tree_util.Partial` are traced instead, and reuse one program."""
+    for role in ("lagrangian", "velocity_map", "derivative_map"):
+        fn = getattr(system, role)
+        if not isinstance(fn, types.FunctionType) or not fn.__closure__:
+            continue
+        values = []
+        for cell in fn.__closure__:
+            try:
+                value = cell.cell_contents
+            except ValueError:  # an empty cell
+                continue
+            if isinstance(value, numbers.Number) and not isinstance(value, bool):
+                values.append(value)
+        if not values:
+            continue
+        key = (role, fn.__code__)
+        seen = _CLOSED_NUMBERS.get(key)
+        _CLOSED_NUMBERS[key] = tuple(values)
+        if seen is None or seen == tuple(values) or key in _REMADE_WARNED:
+            continue
+        _REMADE_WARNED.add(key)
+        warnings.warn(
+            f"{role}: a function with the code of one integrated before but other Python numbers in its closure "
+            f"({', '.join(map(repr, values))}; before: {', '.join(map(repr, seen))}): the march is compiled again "
+            "for every new function. Hold such a parameter as an array leaf to compile once, e.g. "
+            "jax.tree_util.Partial(fn, jnp.asarray(value)) with fn taking it as its first argument (said once "
+            "per function).", UserWarning, stacklevel=3)
 
 
 def _memory_limit() -> int:
@@ -282,6 +325,11 @@ def integrate(
       $|E^{n+1} - E^n|$ exceeds both `JUMP_FACTOR` (100) times the largest change of the
       steps before it and `JUMP_FLOOR` (1) times the energy's size so far
       (`clebsch_jax.march.scan`). It costs one evaluation of l per node; False switches it off.
+      Step 0, which has no history, is checked against two half steps made once at the start
+      (by the march's own compiled program; on concrete runs, not under `jit`/`vmap`):
+      it fails with `Status.FIRST_STEP` when they do not converge, or when their node differs
+      from step 0's by more than `FIRST_STEP_RTOL` (0.5) of their own displacement in both Q and
+      the momentum map (a spurious root of the step equations).
       Not made for degenerate systems (no nodal velocities).
 
     **Returns:** a `Solution`, with the method's facts (`form`, `scheme`, `order`, `method`).
@@ -298,6 +346,7 @@ def integrate(
     Derivatives (forward and reverse mode) flow through the root finders by implicit
     differentiation (`clebsch_jax.roots.implicit`).
     """
+    user_system = system
     stepper, (Q0, xi0, P0, dt, t0, closes), n_steps, system = _prepared(
         system, Q0, xi0, dt=dt, n_steps=n_steps, P0=P0, t0=t0, method=method, scheme=scheme, reduce=reduce,
         need_P=need_P, reconstruct=reconstruct, rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations,
@@ -308,6 +357,7 @@ def integrate(
         sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy,
                          check_inputs=True)
     else:  # programs reused for any n_steps
+        _warn_if_remade(user_system)
         sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy)
         if sol.Q is not None and not any_traced(sol.Q):  # traced when the maps close over tracers
             # on the host: indexing the device array would compile a slice for each n_steps
