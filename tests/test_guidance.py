@@ -56,16 +56,19 @@ def test_newton_failures_are_counted_in_max_newton_iterations_unit():
 @pytest.mark.parametrize("Q0, problem", [(1.01 * np.eye(3), "max|Q^T Q - I|"),
                                          (np.diag([1.0, 1.0, -1.0]), "det Q = -1")],
                          ids=["scaled", "reflection"])
-def test_a_hand_written_so3_system_warns_about_a_q0_off_the_group(Q0, problem):
+def test_a_hand_written_so3_system_warns_about_a_q0_off_the_group(Q0, problem, monkeypatch):
     """No check_Q given: the engine reads SO(3) off the velocity map (right multiplication by
-    antisymmetric matrices) and names what is wrong with Q0."""
+    antisymmetric matrices) and names what is wrong with Q0, before marching (stubbed here)."""
+    monkeypatch.setattr(_integrate, "march_chunked", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("marched")))
     with pytest.warns(UserWarning, match=r"Q0: velocity_map moves Q by right multiplication with the Lie algebra "
                                          r"of SO\(3\), but Q0 is not in SO\(3\)") as record:
-        cj.integrate(SO3, Q0, XI0, dt=0.1, n_steps=2)
+        with pytest.raises(RuntimeError, match="marched"):
+            cj.integrate(SO3, Q0, XI0, dt=0.1, n_steps=2)
     assert any(problem in str(w.message) for w in record)
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
-        cj.integrate(SO3, np.eye(3), XI0, dt=0.1, n_steps=2)  # a rotation: silent
+        with pytest.raises(RuntimeError, match="marched"):
+            cj.integrate(SO3, np.eye(3), XI0, dt=0.1, n_steps=2)  # a rotation: silent
 
 
 def test_a_function_remade_for_each_value_of_a_python_number_is_said_to_recompile(monkeypatch):
