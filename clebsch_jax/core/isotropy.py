@@ -105,8 +105,12 @@ class IsotropyGauge:
         return self.lagrangian(xi, Q) if self.has_potential else self.lagrangian(xi)
 
     def gauge(self, xi, Q):
-        r"""$\frac{w}{2}|\Pi_{\ker}(Q)\xi|^2$."""
-        U = row_space_basis(velocity_jacobian(self.velocity_map, Q, xi.shape), self.rank)
+        r"""$\frac{w}{2}|\Pi_{\ker}(Q)\xi|^2$, with the projector's dependence on Q not differentiated
+        (`stop_gradient`): the term is quadratic in $\Pi_{\ker}\xi$, so what that leaves out of the
+        step equations is proportional to $\Pi_{\ker}\xi$, which their ξ-block makes zero. The
+        roots (and so the root's derivatives by the implicit function theorem) are the same, and
+        the residual and its Jacobian need no derivatives of the Gram–Schmidt basis."""
+        U = jax.lax.stop_gradient(row_space_basis(velocity_jacobian(self.velocity_map, Q, xi.shape), self.rank))
         flat = xi.reshape(-1)
         seen = U.T @ flat
         return 0.5 * self.weight * (jnp.sum(flat * flat) - jnp.sum(seen * seen))
