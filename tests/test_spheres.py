@@ -197,3 +197,17 @@ def test_kepler_in_the_plane_is_second_order_with_its_angular_momentum_to_round_
         assert np.ptp(L) < 1e-12
     slope = np.polyfit(np.log(dts), np.log(errors), 1)[0]
     assert abs(slope - sol.order) < 0.15, (errors, slope)
+
+
+@pytest.mark.slow  # compiles the gauged march once more, traced into a jit
+def test_a_hand_gauged_system_runs_under_jit_as_integrate_runs_it():
+    """Under jit the engine cannot inspect values: `cj.gauge_isotropy` builds the gauged system
+    once, from concrete values, and the traced march gives integrate's nodes."""
+    import jax
+
+    xi0 = np.cross(Q0_DOUBLE, np.cross(XI0_DOUBLE, Q0_DOUBLE))  # the physical velocity's xi, ⊥ q_a
+    gauged = cj.gauge_isotropy(DOUBLE, Q0_DOUBLE, xi0)
+    traced = jax.jit(lambda q, x: cj.integrate(gauged, q, x, dt=0.05, n_steps=5).Q)(Q0_DOUBLE, xi0)
+    concrete = cj.integrate(DOUBLE, Q0_DOUBLE, xi0, dt=0.05, n_steps=5)
+    assert concrete.isotropy == 2
+    np.testing.assert_allclose(np.asarray(traced), np.asarray(concrete.Q), atol=1e-13)

@@ -62,7 +62,7 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     concrete values, the configuration (`check_configuration`) and the model (`check_model`).
     Returns them, whether a map closes over a traced value (`_check_maps`) and the system to
     march: `system`, or, when l does not see the isotropy of Q0, `system` with that gauge fixed
-    (`clebsch_jax.core.isotropy.gauge_isotropy`). Without `P0`, ξ⁰ is taken as the physical
+    (`clebsch_jax.gauge_isotropy`). Without `P0`, ξ⁰ is taken as the physical
     velocity L_ξ⁰ Q⁰ (`physical_velocity`: its isotropy component dropped, with a
     warning)."""
     Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
@@ -275,7 +275,7 @@ def integrate(
       used (`clebsch_jax.core.isotropy.physical_velocity`). A Lagrangian that does not see the
       isotropy (written with the physical velocities $\mathcal L_\xi Q$) is accepted as written:
       the engine adds the gauge term $\frac w2|\Pi_{\ker}\xi|^2$, which vanishes along solutions
-      (`clebsch_jax.core.isotropy.gauge_isotropy`), and `Solution.isotropy` says so.
+      (`clebsch_jax.gauge_isotropy`), and `Solution.isotropy` says so.
     - `dt`: time step (> 0). `n_steps`: number of steps (a Python int >= 1).
     - `P0`: optional initial multiplier (the canonical momentum at $Q^0$), shape of `Q0`.
     - `t0`: initial time (only used for `Solution.ts`).

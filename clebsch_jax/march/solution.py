@@ -148,8 +148,10 @@ def failure_message(code, step, n_steps, t, iterations, residual, member=None, s
         return (
             f"clebsch_jax.integrate: {where}node {step} (t = {t:.6g}): {what} "
             f"(residual {residual:.3e} after {iterations} iterations). The step solves succeeded; "
-            "the Lagrangian may be degenerate in xi (if so, build the system with degenerate=True, which "
-            "uses the midpoint principle). Use throw=False to inspect the solution."
+            "the Lagrangian may be degenerate in xi: if it sees xi only through L_xi Q (physical velocities on "
+            "a sphere), build the system with clebsch_jax.gauge_isotropy (integrate does so itself outside "
+            "jit/vmap); if it is linear in xi, with degenerate=True, which uses the midpoint principle. Use "
+            "throw=False to inspect the solution."
         )
     if code == Status.INVALID_INPUT:
         return (
@@ -180,11 +182,14 @@ def failure_message(code, step, n_steps, t, iterations, residual, member=None, s
         over = f" in all over the step's {solves} sub-step solves" if solves > 1 else ""
         made = (f"{jacobians} Newton iterations{over} (max_newton_iterations counts these: Jacobians formed"
                 f"{', per solve' if solves > 1 else ''}), with {iterations} updates")
+    singular = (" A Jacobian singular from the start may be a Lagrangian degenerate in xi, which integrate refuses "
+                "or gauges before compiling but not under jit/vmap: for one that sees xi only through L_xi Q, build "
+                "the system with clebsch_jax.gauge_isotropy." if code == Status.SINGULAR else "")
     return (
         f"clebsch_jax.integrate: {where}step {step} of {n_steps} (t = {t:.6g}): {what} "
         f"(residual {residual:.3e} after {made}). Later states are "
         "marked invalid (NaN). Try a smaller dt, a larger max_newton_iterations, or "
-        "throw=False to inspect the partial solution."
+        f"throw=False to inspect the partial solution.{singular}"
     )
 
 
