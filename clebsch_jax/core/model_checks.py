@@ -79,7 +79,8 @@ def check_model(system, Q0, xi0, dt) -> ModelFacts | None:
        the **isotropy** K, the kernel of $\xi \mapsto \mathcal L_\xi Q^0$: when l does not see it
        ($HK = 0$ and $K^T\nabla_\xi l = 0$ to `ISOTROPY_LAG_RTOL`, as for a Lagrangian written with
        the physical velocities $\mathcal L_\xi Q$), at $Q^0$ and at a point moved from it along
-       the velocity map (where the isotropy has moved too) the answer says `gauge` and `integrate` fixes
+       the velocity map (where the isotropy has moved too; looked for up to `ISOTROPY_MAX_DIM`
+       components of ξ) the answer says `gauge` and `integrate` fixes
        the gauge (`clebsch_jax.core.isotropy`); then $H + wKK^T$ must be nonsingular. Skipped for
        `degenerate=True` (beyond the isotropy test). When $H = 0$ (to `ZERO_RTOL`) the message says
        l is linear in ξ (point vortices need `degenerate=True`); when l has a potential, ξ and Q
@@ -114,13 +115,14 @@ def check_model(system, Q0, xi0, dt) -> ModelFacts | None:
     xi = np.asarray(xi0)
     found["probes"] = np.stack([x.reshape(-1) for x in (xi, direction, 2.0 * xi + direction)])
     J = found["jacobian"]
-    K = kernel_basis(J) if np.all(np.isfinite(J)) else np.zeros((xi.size, 0))
-    moved_J = found["moved_jacobian"]
-    moved_K = kernel_basis(moved_J) if np.all(np.isfinite(moved_J)) else np.zeros((xi.size, 0))
+    K = _isotropy(J, xi.size)
     # blind to the isotropy at Q0 and at a second point of its orbit: a Lagrangian degenerate along
     # a fixed direction that happens to be the isotropy of Q0 is not blind to it elsewhere
-    gauge = (_blind_to(K, found["hessian"], found["gradient"], xi) and moved_K.shape[1] == K.shape[1]
-             and _blind_to(moved_K, found["moved_hessian"], found["moved_gradient"], xi))
+    gauge = _blind_to(K, found["hessian"], found["gradient"], xi)
+    if gauge:
+        moved = {key: np.asarray(value) for key, value in _moved_derivatives(system, Q0, xi0, direction).items()}
+        moved_K = _isotropy(moved["jacobian"], xi.size)
+        gauge = moved_K.shape[1] == K.shape[1] and _blind_to(moved_K, moved["hessian"], moved["gradient"], xi)
     try:
         if not system.degenerate:
             H = found["hessian"]
@@ -131,6 +133,19 @@ def check_model(system, Q0, xi0, dt) -> ModelFacts | None:
     except _Traced:
         return None
     return ModelFacts(K, gauge)
+
+
+ISOTROPY_MAX_DIM = 256
+"""The isotropy is looked for (a dense SVD of the velocity map's Jacobian) up to this dim V; above
+it, systems of many particles, it is not (`cj.gauge_isotropy` gauges one by hand)."""
+
+
+def _isotropy(J, n) -> np.ndarray:
+    """`kernel_basis` of the velocity map's Jacobian J (dim M, n), or an empty basis when J is not
+    finite or n > `ISOTROPY_MAX_DIM`."""
+    if n > ISOTROPY_MAX_DIM or not np.all(np.isfinite(J)):
+        return np.zeros((n, 0))
+    return kernel_basis(J)
 
 
 ISOTROPY_LAG_RTOL = 1e-8
@@ -184,25 +199,34 @@ def _hessian_in(fn, x):
 
 def _evaluate(system, Q0, xi0, direction):
     """The derivatives the checks need, in one program: l's Hessian and gradient in ξ at ξ⁰, the
-    velocity map's Jacobian in ξ there and its values at the probes ξ⁰, d, 2ξ⁰ + d; and the
-    same Hessian, gradient and Jacobian at a second point `Q_moved` = Q⁰ + s L_d Q⁰ (s: a tenth of
-    |Q⁰| along the tangent), for the isotropy test (`_blind_to`)."""
-    def velocity(x, Q=Q0):
-        return system.velocity_map(x.reshape(xi0.shape), Q).reshape(-1)
+    velocity map's Jacobian in ξ there and its values at the probes ξ⁰, d, 2ξ⁰ + d."""
+    def velocity(x):
+        return system.velocity_map(x.reshape(xi0.shape), Q0).reshape(-1)
 
     flat, d = xi0.reshape(-1), direction.reshape(-1)
+    return {
+        "hessian": _hessian_in(lambda x: system.l(x, Q0), xi0),
+        "gradient": jax.grad(lambda x: system.l(x, Q0))(xi0).reshape(-1),
+        "jacobian": jax.jacfwd(velocity)(flat),
+        "velocities": jnp.stack([velocity(flat), velocity(d), velocity(2.0 * flat + d)]),
+    }
+
+
+def _evaluate_moved(system, Q0, xi0, direction):
+    """The same Hessian, gradient and Jacobian at a second point Q⁰ + s L_d Q⁰ (s: a tenth of |Q⁰|
+    along the tangent), for the isotropy test (`_blind_to`); evaluated only when l is blind to
+    the isotropy at Q⁰."""
     tangent = system.velocity_map(direction, Q0)
     size = jnp.sqrt(jnp.sum(tangent * tangent))
     moved = Q0 + jnp.where(size > 0, 0.1 * jnp.sqrt(jnp.sum(Q0 * Q0)) / jnp.where(size > 0, size, 1.0), 0.0) * tangent
-    return dict(
-        hessian=_hessian_in(lambda x: system.l(x, Q0), xi0),
-        gradient=jax.grad(lambda x: system.l(x, Q0))(xi0).reshape(-1),
-        jacobian=jax.jacfwd(velocity)(flat),
-        velocities=jnp.stack([velocity(flat), velocity(d), velocity(2.0 * flat + d)]),
-        moved_hessian=_hessian_in(lambda x: system.l(x, moved), xi0),
-        moved_gradient=jax.grad(lambda x: system.l(x, moved))(xi0).reshape(-1),
-        moved_jacobian=jax.jacfwd(lambda x: velocity(x, moved))(flat),
-    )
+    return {
+        "hessian": _hessian_in(lambda x: system.l(x, moved), xi0),
+        "gradient": jax.grad(lambda x: system.l(x, moved))(xi0).reshape(-1),
+        "jacobian": jax.jacfwd(lambda x: system.velocity_map(x.reshape(xi0.shape), moved).reshape(-1))(xi0.reshape(-1)),
+    }
+
+
+_moved_derivatives = filter_jit(_evaluate_moved, compiler_options=QUICK_COMPILE)
 
 
 _derivatives = filter_jit(_evaluate, compiler_options=QUICK_COMPILE)  # run once per system: compile time counts
