@@ -33,6 +33,7 @@ from .core.derivative_maps import (  # noqa: E402
     forward_difference as forward_difference,
     so3_exponential as so3_exponential,
 )
+from .core.isotropy import gauge_isotropy as gauge_isotropy  # noqa: E402
 from .core.system import ClebschSystem as ClebschSystem, diamond as diamond, momentum_map as momentum_map  # noqa: E402
 from .discrete.action import (  # noqa: E402
     SCHEMES as SCHEMES,

@@ -62,10 +62,31 @@ def _on_r3(lagrangian, velocity_map=_cross, **kwargs):
 
 
 def test_a_degenerate_lagrangian_is_refused_with_its_rank_and_null_direction():
-    """l = ½|ξ×Q|² does not see the component of ξ along Q: rank 2 of 3, null direction Q0."""
-    system = _on_r3(lambda xi, Q: 0.5 * jnp.sum(jnp.cross(xi, Q) ** 2))
-    message = refused(system, E3, XI0, r"^lagrangian: degenerate in xi at \(xi0, Q0\)")
+    """l = ½(ξ₁² + ξ₂²) on R³ moved by ξ×Q, at Q0 = e₁: null direction e₃, which moves Q0 (the
+    isotropy is e₁), so degenerate=True is a way out and the message says so."""
+    system = _on_r3(lambda xi, Q: 0.5 * (xi[0] ** 2 + xi[1] ** 2))
+    message = refused(system, jnp.array([1.0, 0.0, 0.0]), XI0, r"^lagrangian: degenerate in xi at \(xi0, Q0\)")
     assert "rank 2 of 3" in message and "[0., 0., 1.]" in message and "degenerate=True" in message
+
+
+def test_a_lagrangian_of_the_physical_velocity_is_accepted_with_its_isotropy_gauged(monkeypatch):
+    """l = ½|ξ×Q|² does not see the component of ξ along Q (the isotropy of Q): accepted as written,
+    the gauge fixed by the engine."""
+    seen = {}
+    original = _integrate.gauge_isotropy
+    monkeypatch.setattr(_integrate, "gauge_isotropy", lambda *a, **k: seen.setdefault("gauged", original(*a, **k)))
+    system = _on_r3(lambda xi, Q: 0.5 * jnp.sum(jnp.cross(xi, Q) ** 2))
+    assert accepted(system, E3, jnp.array([1.3, 0.8, 0.0]))
+    assert seen["gauged"].lagrangian.kernel_dim == 1
+
+
+def test_a_lagrangian_degenerate_along_the_isotropy_of_q0_only_is_refused():
+    """l = ½(ξ₁² + ξ₂²) at Q0 = e₃: its null direction is the isotropy of Q0, but not of the points
+    Q0 moves to; the gauge would change the motion there. Refused, naming the isotropy, and
+    degenerate=True (no help for a direction that moves nothing) is not suggested."""
+    system = _on_r3(lambda xi, Q: 0.5 * (xi[0] ** 2 + xi[1] ** 2))
+    message = refused(system, E3, XI0, r"^lagrangian: degenerate in xi at \(xi0, Q0\)")
+    assert "1-dimensional isotropy" in message and "degenerate=True" not in message
 
 
 @pytest.mark.parametrize("lagrangian", [lambda xi: jnp.sum(xi), lambda xi, Q: jnp.dot(xi, Q) - Q[2]],

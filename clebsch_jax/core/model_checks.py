@@ -20,16 +20,18 @@ from __future__ import annotations
 
 import functools
 import warnings
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .derivative_maps import MatrixGroupDifference
+from .isotropy import kernel_basis
 from .jit import QUICK_COMPILE, filter_jit
 from .validation import any_traced, is_traced, runnable_check
 
-__all__ = ["check_model", "check_first_step"]
+__all__ = ["check_model", "check_first_step", "check_group_configuration", "ModelFacts"]
 
 SINGULAR_RTOL = 1e-14
 """A Hessian is singular when its smallest singular value is at most this times its largest.
@@ -64,19 +66,35 @@ r"""A step leaves the group when the component of $\log((Q^0)^{-1}Q^1)$ outside 
 is more than this fraction of it (round-off for a step that stays on the group; of the order of
 $\Delta t|\xi|$ for the forward difference with the left principle)."""
 
-def check_model(system, Q0, xi0, dt) -> None:
+class ModelFacts(NamedTuple):
+    r"""What `check_model` found at $(\xi^0, Q^0)$: `isotropy`, an orthonormal basis (dim V, k) of
+    the kernel of $\xi \mapsto \mathcal L_\xi Q^0$ (`clebsch_jax.core.isotropy`), and `gauge`,
+    whether l does not see that kernel (its Hessian and gradient in ξ vanish along it), so that
+    `integrate` fixes the gauge (`gauge_isotropy`) instead of refusing a singular Hessian."""
+
+    isotropy: np.ndarray
+    gauge: bool
+
+
+def check_model(system, Q0, xi0, dt) -> ModelFacts | None:
     r"""Refuse modelling errors of `system` at the initial point $(\xi^0, Q^0)$, before marching.
 
     Each refusal is a `ValueError` whose message starts with the argument at fault and says
     what is wrong and what to do:
 
-    1. `lagrangian` (skipped for `degenerate=True`): the Hessian $H$ of $\xi \mapsto l(\xi, Q^0)$
-       at $\xi^0$ must be nonsingular (smallest singular value above `SINGULAR_RTOL` times the
-       largest), or the Legendre map of Lemma 8 is not invertible and the step equations have
-       no unique solution. When $H = 0$ (to `ZERO_RTOL`) the message says l is linear in ξ
-       (point vortices need `degenerate=True`); when l has a potential, ξ and Q have the same
-       shape and l's Hessian in its *second* argument is nonsingular, it says l looks written
-       as `l(Q, xi)`; otherwise it gives the rank of $H$ and a null direction.
+    1. `lagrangian`: the Hessian $H$ of $\xi \mapsto l(\xi, Q^0)$ at $\xi^0$ must be nonsingular
+       (smallest singular value above `SINGULAR_RTOL` times the largest), or the Legendre map of
+       Lemma 8 is not invertible and the step equations have no unique solution — except along
+       the **isotropy** K, the kernel of $\xi \mapsto \mathcal L_\xi Q^0$: when l does not see it
+       ($HK = 0$ and $K^T\nabla_\xi l = 0$ to `ISOTROPY_LAG_RTOL`, as for a Lagrangian written with
+       the physical velocities $\mathcal L_\xi Q$), at $Q^0$ and at a point moved from it along
+       the velocity map (where the isotropy has moved too; looked for up to `ISOTROPY_MAX_DIM`
+       components of ξ) the answer says `gauge` and `integrate` fixes
+       the gauge (`clebsch_jax.core.isotropy`); then $H + wKK^T$ must be nonsingular. Skipped for
+       `degenerate=True` (beyond the isotropy test). When $H = 0$ (to `ZERO_RTOL`) the message says
+       l is linear in ξ (point vortices need `degenerate=True`); when l has a potential, ξ and Q
+       have the same shape and l's Hessian in its *second* argument is nonsingular, it says l looks
+       written as `l(Q, xi)`; otherwise it gives the rank of $H$ and a null direction.
     2. `velocity_map`: it must be finite at the probes below and its Jacobian at ξ⁰ too
        (NaN or inf there is refused); with $J$ the Jacobian of $\xi \mapsto \mathcal L_\xi Q^0$ at $\xi^0$,
        $\mathcal L_\xi Q^0 = J\xi$ to `LINEAR_RTOL` at $\xi^0$, at a fixed pseudo-random
@@ -93,24 +111,72 @@ def check_model(system, Q0, xi0, dt) -> None:
     **Arguments:** the system and the initial point as `integrate` validated them (`Q0`, `xi0`
     float arrays of shapes the maps accept, `dt` a positive scalar: only its being concrete
     matters).
+
+    **Returns:** `ModelFacts` (None when the checks were skipped).
     """
     if any_traced(Q0, xi0, dt, system):
-        return
+        return None
     direction = _direction(xi0)
     if np.size(xi0) > DENSE_CHECK_MAX:
         return _check_matrix_free(system, Q0, xi0, direction)
     found = _derivatives(system, Q0, xi0, direction)
     if any(is_traced(x) for x in found.values()):
-        return  # the user's functions close over traced values
+        return None  # the user's functions close over traced values
     found = {key: np.asarray(value) for key, value in found.items()}
     xi = np.asarray(xi0)
     found["probes"] = np.stack([x.reshape(-1) for x in (xi, direction, 2.0 * xi + direction)])
+    J = found["jacobian"]
+    K = _isotropy(J, xi.size)
+    # blind to the isotropy at Q0 and at a second point of its orbit: a Lagrangian degenerate along
+    # a fixed direction that happens to be the isotropy of Q0 is not blind to it elsewhere
+    gauge = _blind_to(K, found["hessian"], found["gradient"], xi)
+    if gauge:
+        moved = {key: np.asarray(value) for key, value in _moved_derivatives(system, Q0, xi0, direction).items()}
+        moved_K = _isotropy(moved["jacobian"], xi.size)
+        gauge = moved_K.shape[1] == K.shape[1] and _blind_to(moved_K, moved["hessian"], moved["gradient"], xi)
     try:
         if not system.degenerate:
-            _check_legendre_map(system, Q0, xi0, found["hessian"])
+            H = found["hessian"]
+            if gauge:
+                H = H + np.linalg.norm(H, 2) * K @ K.T
+            _check_legendre_map(system, Q0, xi0, H, K, J)
         _check_linear(xi0, found)
     except _Traced:
-        return
+        return None
+    return ModelFacts(K, gauge)
+
+
+ISOTROPY_MAX_DIM = 256
+"""The isotropy is looked for (a dense SVD of the velocity map's Jacobian) up to this dim V; above
+it, systems of many particles, it is not (`cj.gauge_isotropy` gauges one by hand)."""
+
+
+def _isotropy(J, n) -> np.ndarray:
+    """`kernel_basis` of the velocity map's Jacobian J (dim M, n), or an empty basis when J is not
+    finite or n > `ISOTROPY_MAX_DIM`."""
+    if n > ISOTROPY_MAX_DIM or not np.all(np.isfinite(J)):
+        return np.zeros((n, 0))
+    return kernel_basis(J)
+
+
+ISOTROPY_LAG_RTOL = 1e-8
+r"""l does not see the isotropy K when $|HK| \le$ this $\times |H|$ and
+$|K^T\nabla_\xi l| \le$ this $\times (|\nabla_\xi l| + |H||\xi^0|)$ (round-off for a Lagrangian of
+$\mathcal L_\xi Q$ alone)."""
+
+
+def _blind_to(K, H, g, xi) -> bool:
+    """Whether l's Hessian `H` and gradient `g` in ξ vanish along the isotropy `K` (and that is
+    not empty), to `ISOTROPY_LAG_RTOL`."""
+    if K.shape[1] == 0 or not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
+        return False
+    size = float(np.linalg.norm(H, 2)) if H.size else 0.0
+    if size == 0.0 and not np.any(g):
+        return True
+    hk = float(np.linalg.norm(H @ K))
+    gk = float(np.linalg.norm(K.T @ g.reshape(-1)))
+    return (hk <= ISOTROPY_LAG_RTOL * size
+            and gk <= ISOTROPY_LAG_RTOL * (np.linalg.norm(g) + size * np.linalg.norm(xi)))
 
 
 def _evaluate_matrix_free(system, Q0, xi0, direction):
@@ -187,17 +253,35 @@ def _hessian_in(fn, x):
 
 
 def _evaluate(system, Q0, xi0, direction):
-    """The derivatives the checks need, in one program: l's Hessian in ξ at ξ⁰, the velocity
-    map's Jacobian in ξ there and its values at the probes ξ⁰, d, 2ξ⁰ + d."""
+    """The derivatives the checks need, in one program: l's Hessian and gradient in ξ at ξ⁰, the
+    velocity map's Jacobian in ξ there and its values at the probes ξ⁰, d, 2ξ⁰ + d."""
     def velocity(x):
         return system.velocity_map(x.reshape(xi0.shape), Q0).reshape(-1)
 
     flat, d = xi0.reshape(-1), direction.reshape(-1)
-    return dict(
-        hessian=_hessian_in(lambda x: system.l(x, Q0), xi0),
-        jacobian=jax.jacfwd(velocity)(flat),
-        velocities=jnp.stack([velocity(flat), velocity(d), velocity(2.0 * flat + d)]),
-    )
+    return {
+        "hessian": _hessian_in(lambda x: system.l(x, Q0), xi0),
+        "gradient": jax.grad(lambda x: system.l(x, Q0))(xi0).reshape(-1),
+        "jacobian": jax.jacfwd(velocity)(flat),
+        "velocities": jnp.stack([velocity(flat), velocity(d), velocity(2.0 * flat + d)]),
+    }
+
+
+def _evaluate_moved(system, Q0, xi0, direction):
+    """The same Hessian, gradient and Jacobian at a second point Q⁰ + s L_d Q⁰ (s: a tenth of |Q⁰|
+    along the tangent), for the isotropy test (`_blind_to`); evaluated only when l is blind to
+    the isotropy at Q⁰."""
+    tangent = system.velocity_map(direction, Q0)
+    size = jnp.sqrt(jnp.sum(tangent * tangent))
+    moved = Q0 + jnp.where(size > 0, 0.1 * jnp.sqrt(jnp.sum(Q0 * Q0)) / jnp.where(size > 0, size, 1.0), 0.0) * tangent
+    return {
+        "hessian": _hessian_in(lambda x: system.l(x, moved), xi0),
+        "gradient": jax.grad(lambda x: system.l(x, moved))(xi0).reshape(-1),
+        "jacobian": jax.jacfwd(lambda x: system.velocity_map(x.reshape(xi0.shape), moved).reshape(-1))(xi0.reshape(-1)),
+    }
+
+
+_moved_derivatives = filter_jit(_evaluate_moved, compiler_options=QUICK_COMPILE)
 
 
 _derivatives = filter_jit(_evaluate, compiler_options=QUICK_COMPILE)  # run once per system: compile time counts
@@ -220,7 +304,7 @@ def _rounded(v: np.ndarray, shape) -> str:
     return np.array2string(np.round(v, 3).reshape(shape) + 0.0, separator=", ")
 
 
-def _check_legendre_map(system, Q0, xi0, H):
+def _check_legendre_map(system, Q0, xi0, H, K, J):
     singular, s = _singular(H)
     if not singular:
         return
@@ -242,13 +326,24 @@ def _check_legendre_map(system, Q0, xi0, H):
             "scheme=\"midpoint\" or \"gauss\"; otherwise make l quadratic in xi (a kinetic energy).")
     rank = int(np.sum(s > SINGULAR_RTOL * s[0]))
     null = np.linalg.svd(H)[2][-1]
+    # degenerate=True helps only where the constraint L_xi Q sees the null direction: a direction of
+    # the isotropy appears in no step equation
+    moves = float(np.linalg.norm(J @ null)) > 1e-8 * max(float(np.linalg.norm(J, 2)), np.finfo(float).tiny)
+    if K.shape[1]:
+        isotropy = (f" The velocity map has a {K.shape[1]}-dimensional isotropy at Q0 (directions of xi that move "
+                    "Q0 not at all); a Lagrangian that sees xi only through L_xi Q (physical velocities) is "
+                    "accepted as written, the engine fixing that gauge, but this one depends on the isotropy "
+                    "directions or is degenerate elsewhere too.")
+    else:
+        isotropy = ""
+    fix = ("Make l depend quadratically on every component of xi (e.g. a positive moment of inertia for each)"
+           + (", or, if the degeneracy is the model's, build it with ClebschSystem(..., degenerate=True)." if moves
+              else ", or write it with the physical velocity L_xi Q only."))
     raise ValueError(
         f"lagrangian: degenerate in xi at (xi0, Q0): its Hessian in xi has rank {rank} of {H.shape[0]} (smallest "
         f"singular value {s[-1] / s[0]:.1e} of the largest), with null direction {_rounded(null, xi0.shape)}, so "
         "the Legendre map xi -> dl/dxi (Lemma 8) is not invertible and Newton's Jacobian of every step would "
-        "be singular. Make l depend quadratically on every component of xi (e.g. a positive moment of "
-        "inertia for each), or, if the degeneracy is the model's, build it with "
-        "ClebschSystem(..., degenerate=True). (If l is regular but this ill-conditioned, e.g. landmarks much "
+        f"be singular.{isotropy} {fix} (If l is regular but this ill-conditioned, e.g. landmarks much "
         "closer together than the kernel width, the steps cannot be solved in float64 either.)")
 
 
@@ -352,6 +447,44 @@ def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
     warnings.warn(f"derivative_map: {where} on which velocity_map acts, a matrix group, so Q drifts off it at "
                   f"every step {how} {fix} Give the system a check_Q to make this an error.", UserWarning,
                   stacklevel=3)  # the caller of integrate
+
+
+def check_group_configuration(system, Q0, xi0) -> None:
+    r"""For a system without `check_Q` whose velocity map is right multiplication on a matrix
+    group, $\mathcal L_\xi Q = Q X(\xi)$: warn when $Q^0$ is not in the group the engine reads off
+    $X(V)$ (`clebsch_jax.discrete.reduction.matrix_group_basis`). Recognised: $X(V) \subset so(n)$
+    (the group is in SO(n): $Q^0$ must be a rotation) and $X(V) \subset se(n-1)$ (last row zero,
+    antisymmetric block: $Q^0$ a rigid motion, last row $(0, \dots, 0, 1)$). A `UserWarning`, not
+    an error: the march is well defined on the orbit $Q^0 G$ of any invertible $Q^0$, but a user
+    who wrote SO(3) meant a rotation. Skipped for traced values."""
+    if system.check_Q is not None or any_traced(Q0, xi0, system.velocity_map):
+        return
+    Q = np.asarray(Q0)
+    if Q.ndim != 2 or Q.shape[0] != Q.shape[1] or not np.all(np.isfinite(Q)):
+        return
+    basis = _group_basis(system, Q0, xi0)
+    if basis is None:
+        return
+    from ..models._rigid_body import check_rotation  # the models' rotation test (a layer above)
+
+    size = max(float(np.max(np.abs(basis))), np.finfo(float).tiny)
+    antisymmetric = lambda X: float(np.max(np.abs(X + np.swapaxes(X, -1, -2)))) <= 1e-12 * size
+    n = Q.shape[0]
+    if antisymmetric(basis):
+        group, problem = f"SO({n})", check_rotation(Q)
+    elif n > 1 and not np.any(basis[:, -1, :]) and antisymmetric(basis[:, :-1, :-1]):
+        group = f"SE({n - 1})"
+        last = np.zeros(n)
+        last[-1] = 1.0
+        problem = (f"its last row is {np.array2string(Q[-1], precision=4)}, not {np.array2string(last)}."
+                   if np.max(np.abs(Q[-1] - last)) > 1e-8 else check_rotation(Q[:-1, :-1]))
+    else:
+        return
+    if problem is None:
+        return
+    warnings.warn(f"Q0: velocity_map moves Q by right multiplication with the Lie algebra of {group}, but Q0 is "
+                  f"not in {group}: {problem} The march keeps Q in Q0 {group}. Give the system a check_Q (e.g. "
+                  "clebsch_jax.models.check_rotation) to make this an error.", UserWarning, stacklevel=5)
 
 
 def _name(fn) -> str:

@@ -6,13 +6,16 @@ import collections
 import dataclasses
 import numbers
 import os
+import types
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..core.isotropy import gauge_isotropy, physical_velocity
 from ..core.jit import filter_jit
-from ..core.model_checks import check_first_step, check_model
+from ..core.model_checks import check_first_step, check_group_configuration, check_model
 from ..core.system import ClebschSystem
 from ..core.validation import (any_traced, check_configuration, float_array, is_array, is_traced, nonnegative, output_shape,
                                positive_int, positive_scalar)
@@ -57,7 +60,11 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     """The arrays as float arrays, and the three maps called on their shapes (`ValueError`
     naming the map that cannot run on them or returns the wrong shape or dtype); then, on
     concrete values, the configuration (`check_configuration`) and the model (`check_model`).
-    Returns them and whether a map closes over a traced value (`_check_maps`)."""
+    Returns them, whether a map closes over a traced value (`_check_maps`) and the system to
+    march: `system`, or, when l does not see the isotropy of Q0, `system` with that gauge fixed
+    (`clebsch_jax.gauge_isotropy`). Without `P0`, ξ⁰ is taken as the physical
+    velocity L_ξ⁰ Q⁰ (`physical_velocity`: its isotropy component dropped, with a
+    warning)."""
     Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
     dt = positive_scalar(dt, "dt")
     if P0 is not None:
@@ -69,8 +76,14 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
         raise ValueError(f"t0: expected a scalar, got an array of shape {t0.shape}.")
     closes = _check_maps_once(system, Q0, xi0, dt)
     check_configuration(system, Q0)
-    check_model(system, Q0, xi0, dt)
-    return Q0, xi0, P0, dt, t0.astype(dt.dtype), closes
+    facts = check_model(system, Q0, xi0, dt)
+    check_group_configuration(system, Q0, xi0)  # after check_model: the velocity map is finite at Q0
+    if facts is not None:
+        if facts.gauge:
+            system = gauge_isotropy(system, Q0, xi0)
+        if P0 is None:
+            xi0 = physical_velocity(system, Q0, xi0, facts.isotropy, stacklevel=5)
+    return Q0, xi0, P0, dt, t0.astype(dt.dtype), closes, system
 
 
 def _check_maps(system, Q0, xi0, dt) -> bool:
@@ -126,6 +139,46 @@ def _check_maps_once(system, Q0, xi0, dt) -> bool:
     if len(_MAPS_CHECKED) > _MAPS_CHECKED_SIZE:
         _MAPS_CHECKED.popitem(last=False)
     return False
+
+
+_CLOSED_NUMBERS: dict = {}
+"""(role, code object) of a user's function → the Python numbers its closure held when last seen."""
+
+_REMADE_WARNED: set = set()
+
+
+def _warn_if_remade(system) -> None:
+    """Warn once per function when one of the system's maps is a function seen before with the
+    same code but other Python numbers in its closure (a function made anew for each value, as
+    `lambda xi, q: ... - g * q[2]` inside a loop over g): the march is compiled for every such
+    function (functions are static, compared by identity), which costs most of a short call.
+    Array leaves of a `jax.tree_util.Partial` are traced instead, and reuse one program."""
+    for role in ("lagrangian", "velocity_map", "derivative_map"):
+        fn = getattr(system, role)
+        if not isinstance(fn, types.FunctionType) or not fn.__closure__:
+            continue
+        values = []
+        for cell in fn.__closure__:
+            try:
+                value = cell.cell_contents
+            except ValueError:  # an empty cell
+                continue
+            if isinstance(value, numbers.Number) and not isinstance(value, bool):
+                values.append(value)
+        if not values:
+            continue
+        key = (role, fn.__code__)
+        seen = _CLOSED_NUMBERS.get(key)
+        _CLOSED_NUMBERS[key] = tuple(values)
+        if seen is None or seen == tuple(values) or key in _REMADE_WARNED:
+            continue
+        _REMADE_WARNED.add(key)
+        warnings.warn(
+            f"{role}: a function with the code of one integrated before but other Python numbers in its closure "
+            f"({', '.join(map(repr, values))}; before: {', '.join(map(repr, seen))}): the march is compiled again "
+            "for every new function. Hold such a parameter as an array leaf to compile once, e.g. "
+            "jax.tree_util.Partial(fn, jnp.asarray(value)) with fn taking it as its first argument (said once "
+            "per function).", UserWarning, stacklevel=3)
 
 
 def _memory_limit() -> int:
@@ -214,7 +267,15 @@ def integrate(
     - `xi0`: initial velocity $\xi^0$. Unless `P0` is given, the initial multiplier is the
       minimum-norm solution of $\delta l/\delta\xi(\xi^0, Q^0) = -P^0 \diamond Q^0$
       (`initial_multiplier`). With `P0`, `xi0` only fixes the shape of $V$ and seeds the
-      nodal-velocity solve.
+      nodal-velocity solve. Without it, `xi0` is taken as the physical velocity
+      $\mathcal L_{\xi^0}Q^0$: where the velocity map has an isotropy at $Q^0$ (directions k with
+      $\mathcal L_k Q^0 = 0$, as ξ ∥ q on a sphere moved by ξ × q), its component there is
+      replaced by the one whose momentum has a multiplier (dropped, for $l = \frac12|\xi|^2$ or a
+      Lagrangian of $\mathcal L_\xi Q$ alone), with a warning; `Solution.xi[0]` is the velocity
+      used (`clebsch_jax.core.isotropy.physical_velocity`). A Lagrangian that does not see the
+      isotropy (written with the physical velocities $\mathcal L_\xi Q$) is accepted as written:
+      the engine adds the gauge term $\frac w2|\Pi_{\ker}\xi|^2$, which vanishes along solutions
+      (`clebsch_jax.gauge_isotropy`), and `Solution.isotropy` says so.
     - `dt`: time step (> 0). `n_steps`: number of steps (a Python int >= 1).
     - `P0`: optional initial multiplier (the canonical momentum at $Q^0$), shape of `Q0`.
     - `t0`: initial time (only used for `Solution.ts`).
@@ -264,6 +325,11 @@ def integrate(
       $|E^{n+1} - E^n|$ exceeds both `JUMP_FACTOR` (100) times the largest change of the
       steps before it and `JUMP_FLOOR` (1) times the energy's size so far
       (`clebsch_jax.march.scan`). It costs one evaluation of l per node; False switches it off.
+      Step 0, which has no history, is checked against two half steps made once at the start
+      (by the march's own compiled program; on concrete runs, not under `jit`/`vmap`):
+      it fails with `Status.FIRST_STEP` when they do not converge, or when their node differs
+      from step 0's by more than `FIRST_STEP_RTOL` (0.5) of their own displacement in both Q and
+      the momentum map (a spurious root of the step equations).
       Not made for degenerate systems (no nodal velocities).
 
     **Returns:** a `Solution`, with the method's facts (`form`, `scheme`, `order`, `method`).
@@ -280,7 +346,8 @@ def integrate(
     Derivatives (forward and reverse mode) flow through the root finders by implicit
     differentiation (`clebsch_jax.roots.implicit`).
     """
-    stepper, (Q0, xi0, P0, dt, t0, closes), n_steps = prepared_method(
+    user_system = system
+    stepper, (Q0, xi0, P0, dt, t0, closes), n_steps, system = _prepared(
         system, Q0, xi0, dt=dt, n_steps=n_steps, P0=P0, t0=t0, method=method, scheme=scheme, reduce=reduce,
         need_P=need_P, reconstruct=reconstruct, rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations,
         jacobian=jacobian, order=order, composition=composition, check_energy=check_energy)
@@ -290,6 +357,7 @@ def integrate(
         sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy,
                          check_inputs=True)
     else:  # programs reused for any n_steps
+        _warn_if_remade(user_system)
         sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy)
         if sol.Q is not None and not any_traced(sol.Q):  # traced when the maps close over tracers
             # on the host: indexing the device array would compile a slice for each n_steps
@@ -302,13 +370,20 @@ def integrate(
     return sol
 
 
-def prepared_method(system, Q0, xi0, *, dt, n_steps, P0=None, t0=0.0, method=None, scheme=None, reduce="auto",
-                    need_P=False, reconstruct=True, rtol=0.0, atol=0.0, max_newton_iterations=20, jacobian="dense",
-                    order=None, composition=None, check_energy=True):
+def prepared_method(system, Q0, xi0, **options):
     """`integrate`'s checks of its arguments and its choice of method, without the march:
     `(stepper prepared for the system, (Q0, xi0, P0, dt, t0, closes) as arrays, n_steps)`.
     Raises what `integrate` raises for bad arguments; works on traced arguments
-    (`clebsch_jax.sweep` checks one member this way, under `jax.eval_shape`)."""
+    (`clebsch_jax.sweep` checks one member this way, under `jax.eval_shape`). The keyword
+    options are `integrate`'s."""
+    return _prepared(system, Q0, xi0, **options)[:3]
+
+
+def _prepared(system, Q0, xi0, *, dt, n_steps, P0=None, t0=0.0, method=None, scheme=None, reduce="auto",
+              need_P=False, reconstruct=True, rtol=0.0, atol=0.0, max_newton_iterations=20, jacobian="dense",
+              order=None, composition=None, check_energy=True):
+    """`prepared_method`, and the system to march (the gauged one, when `_check_arrays` fixed
+    the isotropy's gauge)."""
     _check_options(system, n_steps, rtol, atol, max_newton_iterations)
     if not isinstance(check_energy, bool):
         raise TypeError(f"check_energy: expected True or False, got {check_energy!r}.")
@@ -317,7 +392,7 @@ def prepared_method(system, Q0, xi0, *, dt, n_steps, P0=None, t0=0.0, method=Non
         check_scheme(system, scheme)
     else:
         _check_method(method, locals())
-    Q0, xi0, P0, dt, t0, closes = _check_arrays(system, Q0, xi0, P0, dt, t0)
+    Q0, xi0, P0, dt, t0, closes, system = _check_arrays(system, Q0, xi0, P0, dt, t0)
     _check_size(Q0, xi0, n_steps)
     if method is None:
         if jacobian == "blocks":
@@ -325,7 +400,7 @@ def prepared_method(system, Q0, xi0, *, dt, n_steps, P0=None, t0=0.0, method=Non
         method = choose_method(system, Q0, xi0, scheme=scheme, reduce=reduce, need_P=need_P, reconstruct=reconstruct,
                                rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian,
                                order=order, composition=composition)
-    return method.prepare(system, Q0, xi0), (Q0, xi0, P0, dt, t0, closes), n_steps
+    return method.prepare(system, Q0, xi0), (Q0, xi0, P0, dt, t0, closes), n_steps, system
 
 
 def _check_method(method, options):

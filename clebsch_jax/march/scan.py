@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..core.isotropy import isotropy_dimension
 from ..core.jit import QUICK_COMPILE, filter_jit
 from ..core.validation import any_traced, nan_unless
 from ..discrete.legendre import explicit_nodal_velocity
@@ -36,7 +37,8 @@ from .solution import Solution
 
 __all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "failed_to_nan", "nodal_velocities",
            "input_ok", "energy_terms", "node_energy", "node_energies", "energy_jump", "chunk_length", "CHUNK_STEPS",
-           "CHUNK_VALUES", "MIN_CHUNK_STEPS", "JUMP_FACTOR", "JUMP_FLOOR"]
+           "CHUNK_VALUES", "MIN_CHUNK_STEPS", "JUMP_FACTOR", "JUMP_FLOOR", "FIRST_STEP_RTOL", "FIRST_STEP_FLOOR",
+           "first_step_probe", "first_step_failed"]
 
 CHUNK_STEPS = 1024
 """The most steps per compiled chunk of `march_chunked` (`chunk_length`)."""
@@ -61,6 +63,31 @@ r"""... and `JUMP_FLOOR` times the energy's size so far, $\max_{k \le n}
 sizes of its kinetic and Lagrangian terms is not a small step of any convergent method, and
 the floor keeps round-off changes of an exactly conserved E (a free particle) from counting
 as a jump."""
+
+
+FIRST_STEP_RTOL = 0.5
+r"""The first-step check (with `check_energy`, on concrete runs — `march_chunked`; the energy-jump
+rule has no history at step 0):
+step 0 fails with `Status.FIRST_STEP` when it converged but two half steps from the start do
+not, or when the node it reaches differs from the node the half steps reach by more than this
+fraction of the half steps' own displacement, in the configuration and in the momentum map alike
+(each beyond a round-off floor, `FIRST_STEP_FLOOR`). A step of a method of order p differs from two half
+steps by $O(\Delta t^{p+1})$, a small fraction of its $O(\Delta t)$ displacement; a root of the
+step equations that is not the motion's step (a spurious root) differs by as much as it moves."""
+
+FIRST_STEP_FLOOR = 1e-10
+"""... the floor: differences below this times max(1, |x|) are round-off (a quantity that the
+step conserves, or hardly moves)."""
+
+
+class FirstStepProbe(NamedTuple):
+    """The node two half steps of size Δt/2 reach from the start (`first_step_probe`): its
+    configuration `Q` (the stepper's `nodal_Q`), momentum map `momentum`, and `ok` (both half
+    steps converged)."""
+
+    Q: jax.Array
+    momentum: jax.Array
+    ok: jax.Array
 
 
 class Carry(NamedTuple):
@@ -137,6 +164,32 @@ def start(stepper: AbstractStepper, system, Q0, xi0, P0, dt, check_inputs: bool 
     carry = Carry(state0, stepper.init_memory(system, state0), jnp.asarray(0, jnp.int32), alive,
                   jnp.zeros_like(xi0))
     return carry, jnp.asarray(startup_iterations, jnp.int32)
+
+
+def first_step_probe(chunk_program, stepper: AbstractStepper, system, carry: Carry, dt, chunk_steps: int,
+                     check_energy: bool) -> FirstStepProbe:
+    """Two steps of size dt/2 from the start (`carry`), each with the stepper's own guesses, made
+    by the march's own compiled chunk (`chunk_program`, `run_chunk`: dt is one of its arguments,
+    so nothing is compiled for them): the node they reach, to check the first step against
+    (`first_step_failed`)."""
+    half = jnp.asarray(np.asarray(dt) / 2)
+    _, chunk = chunk_program(stepper, system, carry, half, chunk_steps, np.asarray(2, np.int32), check_energy)
+    ok = np.all(np.asarray(chunk.stats.status)[:2] == Status.SUCCESS)
+    return FirstStepProbe(chunk.nodes.nodal_Q[2], chunk.nodes.momentum[2], ok)
+
+
+def first_step_failed(xp, probe: FirstStepProbe, Qs, momenta, status0):
+    """Whether step 0 (nodes `Qs[:2]`, `momenta[:2]`, its status `status0`) fails the first-step
+    check (`FIRST_STEP_RTOL`): it converged, and either the half steps did not (nothing confirms
+    a root that smaller steps cannot reach) or its node differs from theirs by more than
+    `FIRST_STEP_RTOL` of their displacement in both Q and the momentum."""
+    def far(x, half):
+        size = lambda a: xp.max(xp.abs(a))
+        floor = FIRST_STEP_FLOOR * xp.maximum(1.0, size(half))
+        return size(x[1] - half) > FIRST_STEP_RTOL * size(half - x[0]) + floor
+
+    converged = status0 == Status.SUCCESS
+    return converged & (~probe.ok | (far(Qs, probe.Q) & far(momenta, probe.momentum)))
 
 
 def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n_total,
@@ -293,17 +346,20 @@ def march_chunked(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps
         chunk_steps = chunk_length(Q0, xi0)
     start_jit, chunk_jit = _PROGRAMS[bool(stepper.quick_compile)]
     carry, startup = start_jit(stepper, system, Q0, xi0, P0, dt)
+    probe = None
+    if check_energy and n_steps > 0 and not any_traced(carry):
+        probe = first_step_probe(chunk_jit, stepper, system, carry, dt, chunk_steps, check_energy)
     total = np.asarray(n_steps, np.int32)  # a NumPy scalar: no conversion program
     chunks = []
     for _ in range(-(-n_steps // chunk_steps)):
         carry, chunk = chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
         chunks.append(chunk)
-    if any_traced(chunks, startup):
+    if any_traced(chunks, startup, probe):
         # a function the map checks do not call closed over a traced value (the caller is
         # inside jit/vmap; integrate sends maps that close over one to `march`)
-        return _assemble(jnp, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0)
-    chunks, startup, dt, t0 = jax.tree_util.tree_map(np.asarray, (chunks, startup, dt, t0))
-    return jax.device_put(_assemble(np, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0))
+        return _assemble(jnp, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe)
+    chunks, startup, dt, t0, probe = jax.tree_util.tree_map(np.asarray, (chunks, startup, dt, t0, probe))
+    return jax.device_put(_assemble(np, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe))
 
 
 def _join(xp, chunks, n_steps: int, node: bool):
@@ -399,9 +455,11 @@ def _np_skip(stats: NewtonStats, attempted) -> NewtonStats:
 
 
 def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, dt, t0, Q0, xi0,
-              input_ok=None) -> Solution:
+              input_ok=None, probe: FirstStepProbe | None = None) -> Solution:
     """The `Solution` from the chunks' records (`xp`: `numpy` or `jax.numpy`, as they are).
-    `input_ok` (traced runs with `check_inputs`): False makes step 0 `Status.INVALID_INPUT`."""
+    `input_ok` (traced runs with `check_inputs`): False makes step 0 `Status.INVALID_INPUT`.
+    `probe` (concrete runs with the energy check): step 0 checked against two half steps
+    (`first_step_failed`)."""
     def join(get, node):
         fields = [get(c) for c in chunks]
         if fields[0] is None:
@@ -417,13 +475,20 @@ def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, d
     if input_ok is not None:  # an invalid member made no step: its step 0 says why
         stats = stats._replace(status=xp.where((xp.arange(n_steps) == 0) & ~input_ok, Status.INVALID_INPUT,
                                                stats.status).astype(stats.status.dtype))
+    fields_of = lambda: [(nodes.Q, True), (nodes.p, True), (nodes.momentum, True), (xin, True), (xi_step, False),
+                         (P, False)]
+    if probe is not None:
+        first = first_step_failed(xp, probe, nodes.nodal_Q[:2], nodes.momentum[:2], stats.status[0])
+        if xp is jnp or bool(first):  # on the host, only a failure costs a pass
+            stats, nodal, valid, out = _fail_from(xp, xp.where(first, 0, n_steps), Status.FIRST_STEP, stats, nodal,
+                                                  valid, fields_of())
+            Qn, pn, mun, xin, xi_step, P = out
+            nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
     energy = join(lambda c: c.energy, True)
     jumped, step = energy_jump(xp, *energy, stats.status)[:2] if energy is not None else (False, None)
     if energy is not None and (xp is jnp or bool(jumped)):  # on the host, only a jump costs a pass
         step = xp.where(jumped, step, n_steps)
-        fields = [(nodes.Q, True), (nodes.p, True), (nodes.momentum, True), (xin, True), (xi_step, False),
-                  (P, False)]
-        stats, nodal, valid, out = _fail_from(xp, step, Status.ENERGY_JUMP, stats, nodal, valid, fields)
+        stats, nodal, valid, out = _fail_from(xp, step, Status.ENERGY_JUMP, stats, nodal, valid, fields_of())
         Qn, pn, mun, xin, xi_step, P = out
         nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
     facts = stepper.facts(system)
@@ -442,5 +507,5 @@ def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, d
         P=P, momentum=nodes.momentum, stats=stats, nodal_stats=nodal, result=result, failed_step=failed_step,
         valid=valid, scheme=facts.scheme, form=facts.form, order=facts.order, method=facts.name,
         derivative_map=derivative_map, q_ndim=Q0.ndim, xi_ndim=xi0.ndim,
-        solves_per_step=facts.solves_per_step,
+        solves_per_step=facts.solves_per_step, isotropy=isotropy_dimension(system),
     )

@@ -55,7 +55,10 @@ class Solution:
     - Static facts: `scheme`, `form` ("full" or "reduced"), `order` (nominal order of the method),
       `method` (what a step is made of, e.g. "Kahan-Li p8s17 of left principle"),
       `derivative_map` (its name; "none (collocation)" for `scheme="gauss"`, which does not use
-      it), `q_ndim` and `xi_ndim` (ranks of one Q and one ξ).
+      it), `q_ndim` and `xi_ndim` (ranks of one Q and one ξ), `isotropy` (the dimension of the
+      isotropy of $Q^0$ whose gauge the engine fixed because l does not see it — a Lagrangian
+      written with the physical velocities $\mathcal L_\xi Q$, `clebsch_jax.core.isotropy`; 0 when
+      the system ran as written).
 
     With a composition (`integrate(..., order=k)`) the nodes are those of the whole steps;
     `xi_step` and `P` are those of each step's first sub-step, and `stats` combine the
@@ -82,6 +85,7 @@ class Solution:
     q_ndim: int = 0
     xi_ndim: int = 0
     solves_per_step: int = 1
+    isotropy: int = 0
 
     @property
     def batch_ndim(self) -> int:
@@ -112,9 +116,10 @@ class Solution:
         stats = self.nodal_stats if code == Status.LEGENDRE else self.stats
         iters = pick(stats.iterations)[..., step]
         res = pick(stats.residual_norm)[..., step]
+        matrices = pick(stats.jacobians)[..., step]
         t = pick(self.ts)[..., step]
         msg = failure_message(code, step, n_steps, float(t), int(iters), float(res), member or None,
-                              self.scheme, 1 if code == Status.LEGENDRE else self.solves_per_step)
+                              self.scheme, 1 if code == Status.LEGENDRE else self.solves_per_step, int(matrices))
         if len(failed) > 1:
             msg += f" ({len(failed)} batch members failed in all.)"
         raise IntegrationError(msg)
@@ -126,21 +131,27 @@ jax.tree_util.register_dataclass(
         "ts", "Q", "p", "xi", "xi_step", "P", "momentum", "stats", "nodal_stats", "result", "failed_step",
         "valid",
     ],
-    meta_fields=["scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim", "solves_per_step"],
+    meta_fields=["scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim", "solves_per_step",
+                 "isotropy"],
 )
 
 
-def failure_message(code, step, n_steps, t, iterations, residual, member=None, scheme=None, solves=1) -> str:
+def failure_message(code, step, n_steps, t, iterations, residual, member=None, scheme=None, solves=1,
+                    jacobians=None) -> str:
     """A readable failure message: what failed, where, and what to try. `iterations` is what
-    the step's solves made in all (`solves` of them; `scheme="gauss"` counts fixed-point sweeps)."""
+    the step's solves made in all (`solves` of them; `scheme="gauss"` counts fixed-point sweeps);
+    `jacobians` the Newton matrices they formed, the unit of `max_newton_iterations` (None:
+    not known)."""
     where = f"batch member {member if len(member) > 1 else member[0]}, " if member else ""
     what = Status.MESSAGES.get(code, f"status {code}")
     if code == Status.LEGENDRE:
         return (
             f"clebsch_jax.integrate: {where}node {step} (t = {t:.6g}): {what} "
             f"(residual {residual:.3e} after {iterations} iterations). The step solves succeeded; "
-            "the Lagrangian may be degenerate in xi (if so, build the system with degenerate=True, which "
-            "uses the midpoint principle). Use throw=False to inspect the solution."
+            "the Lagrangian may be degenerate in xi: if it sees xi only through L_xi Q (physical velocities on "
+            "a sphere), build the system with clebsch_jax.gauge_isotropy (integrate does so itself outside "
+            "jit/vmap); if it is linear in xi, with degenerate=True, which uses the midpoint principle. Use "
+            "throw=False to inspect the solution."
         )
     if code == Status.INVALID_INPUT:
         return (
@@ -155,22 +166,34 @@ def failure_message(code, step, n_steps, t, iterations, residual, member=None, s
             "near the state before this step; a smaller dt may step around it, or integrate(..., "
             "check_energy=False) accepts the step."
         )
+    if code == Status.FIRST_STEP:
+        return (
+            f"clebsch_jax.integrate: {where}step 0 of {n_steps} (t = {t:.6g}): {what} (residual {residual:.3e}). "
+            "Later states are marked invalid (NaN). Try a smaller dt; integrate(..., check_energy=False) "
+            "accepts the step."
+        )
     if scheme == "gauss":
         made = f"{iterations} fixed-point sweeps; the cap is 5 x max_newton_iterations sweeps per step"
-    elif solves > 1:
-        made = (f"{iterations} Newton updates in all over the step's {solves} sub-step solves; the cap "
-                "max_newton_iterations applies to each solve")
+    elif jacobians is None:
+        made = f"{iterations} Newton updates" + (f" in all over the step's {solves} sub-step solves" if solves > 1 else "")
     else:
-        made = f"{iterations} Newton updates"
+        # max_newton_iterations counts Newton iterations with a fresh Jacobian; each is followed by
+        # chord updates with it, so the updates can be many more
+        over = f" in all over the step's {solves} sub-step solves" if solves > 1 else ""
+        made = (f"{jacobians} Newton iterations{over} (max_newton_iterations counts these: Jacobians formed"
+                f"{', per solve' if solves > 1 else ''}), with {iterations} updates")
+    singular = (" A Jacobian singular from the start may be a Lagrangian degenerate in xi, which integrate refuses "
+                "or gauges before compiling but not under jit/vmap: for one that sees xi only through L_xi Q, build "
+                "the system with clebsch_jax.gauge_isotropy." if code == Status.SINGULAR else "")
     return (
         f"clebsch_jax.integrate: {where}step {step} of {n_steps} (t = {t:.6g}): {what} "
         f"(residual {residual:.3e} after {made}). Later states are "
         "marked invalid (NaN). Try a smaller dt, a larger max_newton_iterations, or "
-        "throw=False to inspect the partial solution."
+        f"throw=False to inspect the partial solution.{singular}"
     )
 
 
-def _host_check(result, failed_step, iterations, residual, t, n_steps, batched, scheme=None, solves=1):
+def _host_check(result, failed_step, iterations, residual, t, n_steps, jacobians, batched, scheme=None, solves=1):
     result = np.asarray(result)
     if not np.any(result != Status.SUCCESS):
         return
@@ -183,7 +206,7 @@ def _host_check(result, failed_step, iterations, residual, t, n_steps, batched, 
         failure_message(
             int(pick(result)), int(pick(failed_step)), int(np.asarray(n_steps).ravel()[0]), float(pick(t)),
             int(pick(iterations)), float(pick(residual)), member or None, scheme,
-            1 if int(pick(result)) == Status.LEGENDRE else solves,
+            1 if int(pick(result)) == Status.LEGENDRE else solves, int(pick(jacobians)),
         )
     )
 
@@ -196,8 +219,9 @@ def _traced_checker(scheme, solves):
         _host_check(*args, batched=batched, scheme=scheme, solves=solves)
 
     @jax.custom_batching.custom_vmap
-    def check(result, failed_step, iterations, residual, t, n_steps):
-        jax.debug.callback(lambda *a: host(*a, batched=False), result, failed_step, iterations, residual, t, n_steps)
+    def check(result, failed_step, iterations, residual, t, n_steps, jacobians):
+        jax.debug.callback(lambda *a: host(*a, batched=False), result, failed_step, iterations, residual, t, n_steps,
+                           jacobians)
         return result
 
     @check.def_vmap
@@ -218,7 +242,8 @@ def check_traced(sol: Solution) -> jax.Array:
     is_nodal = sol.result == Status.LEGENDRE
     iters = jnp.where(is_nodal, stats_at(sol.nodal_stats.iterations), stats_at(sol.stats.iterations))
     res = jnp.where(is_nodal, stats_at(sol.nodal_stats.residual_norm), stats_at(sol.stats.residual_norm))
+    matrices = jnp.where(is_nodal, stats_at(sol.nodal_stats.jacobians), stats_at(sol.stats.jacobians))
     t = stats_at(sol.ts)
     n_steps = jnp.asarray(sol.ts.shape[-1] - 1)
-    args = jax.lax.stop_gradient((sol.result, sol.failed_step, iters, res, t, n_steps))
+    args = jax.lax.stop_gradient((sol.result, sol.failed_step, iters, res, t, n_steps, matrices))
     return _traced_checker(sol.scheme, sol.solves_per_step)(*args)

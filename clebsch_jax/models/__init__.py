@@ -41,6 +41,13 @@ from ._point_vortices import vortex_angular_impulse as vortex_angular_impulse
 from ._point_vortices import vortex_hamiltonian as vortex_hamiltonian
 from ._point_vortices import vortex_linear_impulse as vortex_linear_impulse
 from ._point_vortices import vortex_velocity as vortex_velocity
+from ._sphere_vortices import point_vortices_sphere as point_vortices_sphere
+from ._sphere_vortices import sphere_vortex_hamiltonian as sphere_vortex_hamiltonian
+from ._sphere_vortices import sphere_vortex_lift as sphere_vortex_lift
+from ._sphere_vortices import sphere_vortex_moment as sphere_vortex_moment
+from ._sphere_vortices import sphere_vortex_positions as sphere_vortex_positions
+from ._sphere_vortices import sphere_vortex_velocity as sphere_vortex_velocity
+from ._sphere_vortices import sphere_vortex_xi as sphere_vortex_xi
 from ._rigid_body import ROTATION_TOLERANCE as ROTATION_TOLERANCE
 from ._rigid_body import check_rotation as check_rotation
 from ._rigid_body import rigid_body as rigid_body
@@ -59,6 +66,13 @@ __all__ = [
     "vortex_velocity",
     "vortex_linear_impulse",
     "vortex_angular_impulse",
+    "point_vortices_sphere",
+    "sphere_vortex_lift",
+    "sphere_vortex_positions",
+    "sphere_vortex_hamiltonian",
+    "sphere_vortex_velocity",
+    "sphere_vortex_xi",
+    "sphere_vortex_moment",
     "peakons",
     "ordered_difference",
     "OrderedDifference",

@@ -111,11 +111,13 @@ def point_vortices(circulations, derivative_map: DerivativeMap = forward_differe
     )
 
 
-def _on_configurations(fn, circulations, Q):
+def _on_configurations(fn, circulations, Q, dim: int = 2, name: str = "Q"):
+    """`fn(circulations, q)` on every configuration q (N, `dim`) of `Q` (..., N, `dim`), vmapped."""
     gamma = _circulations(circulations)
     Q = jnp.asarray(Q, dtype=jnp.result_type(float))
-    if Q.ndim < 2 or Q.shape[-2:] != (gamma.shape[0], 2):
-        raise ValueError(f"Q: expected shape (..., {gamma.shape[0]}, 2) for {gamma.shape[0]} vortices, got {Q.shape}.")
+    if Q.ndim < 2 or Q.shape[-2:] != (gamma.shape[0], dim):
+        raise ValueError(f"{name}: expected shape (..., {gamma.shape[0]}, {dim}) for {gamma.shape[0]} vortices, "
+                         f"got {Q.shape}.")
     flat = Q.reshape((-1,) + Q.shape[-2:])
     out = jax.vmap(lambda q: fn(gamma, q))(flat)
     return out.reshape(Q.shape[:-2] + out.shape[1:])

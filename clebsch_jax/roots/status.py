@@ -33,6 +33,7 @@ class Status(enum.IntEnum):
     ENERGY_JUMP = 7  # the step's energy change is orders of magnitude beyond the run's so far
     INVALID_INPUT = 8  # under jit/vmap: this member's arguments or model parameters are invalid
     NOT_RUN = -1  # a sweep store's member whose batch is not written yet (never produced by a march)
+    FIRST_STEP = 9  # the first step converged far from where two half steps arrive (a spurious root)
 
     @property
     def message(self) -> str:
@@ -53,6 +54,9 @@ _MESSAGES = {
     Status.ENERGY_JUMP: "the step converged, but the energy changed in it by orders of magnitude more than in "
     "any earlier step and by more than the energy's own size (a step across a singularity of the model: "
     "the solve found a root on the far side)",
+    Status.FIRST_STEP: "the first step converged, but far from the node two half steps reach: a root of the "
+    "step equations that is not the step of the motion (a spurious root), or a step too large for the motion "
+    "at the start",
     Status.INVALID_INPUT: "this member's input is invalid, found under jit/vmap where it could not be refused "
     "before compiling: dt not finite and positive, Q0/xi0/P0 not finite, Q0 off the configuration manifold "
     "(check_Q), or the Lagrangian or velocity map not finite at (xi0, Q0) (a model parameter out of range, "

@@ -55,7 +55,8 @@ class Principle(str, enum.Enum):
 
 class Facts(NamedTuple):
     """What a method is, for a given system: `form` ("full": the march carries $(Q, p)$;
-    "reduced": the body momentum), `scheme` (the principle of its first sub-step, or
+    "reduced": the body momentum), `scheme` (its principle, "right o left" for a principle
+    paired with its adjoint — the order `name` writes them in, without the step fractions — or
     "gauss"), `order`, `symmetric`, `symplectic`, `name` (what a step is made of) and
     `solves_per_step` (root-finder solves per step)."""
 

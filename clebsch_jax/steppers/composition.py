@@ -161,7 +161,7 @@ class SymmetricPair(AbstractWrapper):
 
     def facts(self, system) -> Facts:
         first, second = (m.facts(system) for m in self.members)
-        return Facts(first.form, first.scheme, max(2, first.order), True, first.symplectic,
+        return Facts(first.form, f"{second.scheme} o {first.scheme}", max(2, first.order), True, first.symplectic,
                      f"{second.scheme}(h/2) o {first.scheme}(h/2)", first.solves_per_step + second.solves_per_step)
 
     def init_memory(self, system, state):

@@ -1,0 +1,210 @@
+r"""Isotropy: the directions of V that move nothing, $\ker(\xi \mapsto \mathcal L_\xi Q)$.
+
+On a sphere acted on by cross products, $\mathcal L_\xi q = \xi \times q$ vanishes for
+$\xi \parallel q$: the velocity map has a kernel (the Lie algebra of the isotropy group of q).
+Two consequences for a Clebsch system, both handled here and applied by `integrate`:
+
+- **Lagrangians written with physical velocities.** A Lagrangian that sees ξ only through the
+  tangent vector $\mathcal L_\xi Q$ (the double spherical pendulum with $v_a = \xi_a \times q_a$)
+  is degenerate exactly along the isotropy: its Hessian in ξ has that kernel as null space.
+  The step equations then leave the kernel component of ξ undetermined (it appears nowhere),
+  and Newton's matrix is singular. `IsotropyGauge` fixes the gauge by adding
+
+  $$ \tfrac{w}{2}\,|\Pi_{\ker}(Q)\,\xi|^2 , $$
+
+  $\Pi_{\ker}(Q)$ the orthogonal projector onto the kernel at Q (computed at every Q from the
+  velocity map's Jacobian, `row_space_basis`). Along solutions this term and its derivatives
+  vanish: Lemma 7 puts $\delta l/\delta\xi$ in the range of $A^T$, $A = \partial_\xi\mathcal L_\xi Q$,
+  which is orthogonal to the kernel, so the gauged Legendre relation forces $\Pi_{\ker}\xi = 0$,
+  and the term is quadratic in $\Pi_{\ker}\xi$. The motion is that of the Lagrangian as
+  written; the velocities have no kernel component.
+- **Initial velocities.** ξ⁰ and ξ⁰ + k (k in the kernel) are the same physical velocity
+  $\mathcal L_{\xi^0}Q^0$. `physical_velocity` replaces ξ⁰ by the ξ with that tangent vector
+  whose momentum $\delta l/\delta\xi$ has a multiplier (Lemma 7 needs it in the range of $A^T$).
+
+The kernel's dimension is constant along an orbit of the action (isotropy groups along an orbit
+are conjugate), and a Clebsch trajectory stays on the orbit of $Q^0$: the rank found at $Q^0$ is
+the rank everywhere the march goes.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .system import ClebschSystem
+
+__all__ = ["ISOTROPY_RTOL", "kernel_basis", "row_space_basis", "IsotropyGauge", "gauge_isotropy",
+           "physical_velocity", "isotropy_dimension"]
+
+ISOTROPY_RTOL = 1e-10
+r"""A direction of V is in the isotropy at Q when the velocity map's Jacobian
+$A = \partial_\xi \mathcal L_\xi Q$ has a singular value at most this times its largest along it
+(round-off for an exact kernel; far below any genuine motion)."""
+
+
+def velocity_jacobian(velocity_map, Q, xi_shape) -> jax.Array:
+    r"""$A = \partial_\xi \mathcal L_\xi Q$ flattened to (Q.size, prod(xi_shape)): the velocity map on
+    the basis of V."""
+    n = int(np.prod(xi_shape)) if xi_shape else 1
+    # the map is linear in ξ (Definition 1): its columns are its values on the basis, no derivative
+    basis = jnp.eye(n, dtype=Q.dtype).reshape((n,) + tuple(xi_shape))
+    return jax.vmap(lambda e: velocity_map(e, Q).reshape(-1), out_axes=1)(basis)
+
+
+def kernel_basis(A, rtol: float = ISOTROPY_RTOL) -> np.ndarray:
+    """An orthonormal basis (n, k) of the kernel of the (m, n) matrix `A` (NumPy, by SVD): the
+    right singular vectors whose singular values are at most `rtol` times the largest."""
+    A = np.asarray(A)
+    n = A.shape[1]
+    if A.size == 0:
+        return np.eye(n)
+    _, s, vt = np.linalg.svd(A)
+    if not s.size or not s[0] > 0:
+        return np.eye(n)
+    rank = int(np.sum(s > rtol * s[0]))
+    return vt[rank:].T.copy()
+
+
+def row_space_basis(A: jax.Array, rank: int) -> jax.Array:
+    r"""An orthonormal basis (n, rank) of the row space of the (m, n) matrix `A` of that rank:
+    Gram–Schmidt on the rows with column pivoting (the largest remaining row first, each
+    projection made twice), smooth in A where the rank is constant. Plain XLA operations,
+    jit-, vmap- and differentiable to any order."""
+    W = A.T  # (n, m): the rows of A as columns
+    basis = []
+    for _ in range(rank):
+        norms = jnp.sum(W * W, axis=0)
+        pick = jax.nn.one_hot(jnp.argmax(norms), W.shape[1], dtype=W.dtype)
+        u = (W @ pick) / jnp.sqrt(norms @ pick)
+        for _ in range(2):  # "twice is enough"
+            W = W - jnp.outer(u, u @ W)
+        basis.append(u)
+    return jnp.stack(basis, axis=1) if basis else jnp.zeros((A.shape[1], 0), A.dtype)
+
+
+class IsotropyGauge:
+    r"""A Lagrangian with its isotropy gauge fixed: $l(\xi, Q) + \frac{w}{2}|\Pi_{\ker}(Q)\xi|^2$
+    (module docstring), with $|\Pi_{\ker}\xi|^2 = |\xi|^2 - |U^T\xi|^2$, U the `row_space_basis`
+    of $A(Q)$.
+
+    **Arguments:** `lagrangian` (the user's, `l(xi)` or `l(xi, Q)`), `velocity_map`,
+    `has_potential` (which of the two forms `lagrangian` is), `rank` (of $A$ on the orbit of
+    $Q^0$, a Python int), `kernel_dim` (the isotropy's dimension, dim V − rank), `weight` (w, an array: the size of l's Hessian, so the gauged Hessian
+    is as well conditioned as the physical one). A pytree: the user's functions and the weight
+    are its children."""
+
+    def __init__(self, lagrangian, velocity_map, has_potential: bool, rank: int, kernel_dim: int, weight):
+        self.lagrangian, self.velocity_map, self.weight = lagrangian, velocity_map, weight
+        self.has_potential, self.rank, self.kernel_dim = bool(has_potential), int(rank), int(kernel_dim)
+
+    def user_l(self, xi, Q):
+        return self.lagrangian(xi, Q) if self.has_potential else self.lagrangian(xi)
+
+    def gauge(self, xi, Q):
+        r"""$\frac{w}{2}|\Pi_{\ker}(Q)\xi|^2$, with the projector's dependence on Q not differentiated
+        (`stop_gradient`): the term is quadratic in $\Pi_{\ker}\xi$, so what that leaves out of the
+        step equations is proportional to $\Pi_{\ker}\xi$, which their ξ-block makes zero. The
+        roots (and so the root's derivatives by the implicit function theorem) are the same, and
+        the residual and its Jacobian need no derivatives of the Gram–Schmidt basis."""
+        U = jax.lax.stop_gradient(row_space_basis(velocity_jacobian(self.velocity_map, Q, xi.shape), self.rank))
+        flat = xi.reshape(-1)
+        seen = U.T @ flat
+        return 0.5 * self.weight * (jnp.sum(flat * flat) - jnp.sum(seen * seen))
+
+    def __call__(self, xi, Q):
+        return self.user_l(xi, Q) + self.gauge(xi, Q)
+
+    def __repr__(self):
+        return f"IsotropyGauge({self.lagrangian!r}, rank={self.rank})"
+
+
+jax.tree_util.register_pytree_node(
+    IsotropyGauge,
+    lambda g: ((g.lagrangian, g.velocity_map, g.weight), (g.has_potential, g.rank, g.kernel_dim)),
+    lambda aux, ch: IsotropyGauge(ch[0], ch[1], *aux, ch[2]),
+)
+
+
+def isotropy_dimension(system) -> int:
+    """The dimension of the isotropy whose gauge `system` fixes (0: none, the system as written)."""
+    lag = system.lagrangian
+    return lag.kernel_dim if isinstance(lag, IsotropyGauge) else 0
+
+
+def gauge_isotropy(system: ClebschSystem, Q0, xi0, *, weight=None, regular=None) -> ClebschSystem:
+    r"""`system` with its isotropy gauge fixed (`IsotropyGauge`), for a Lagrangian that sees ξ
+    only through $\mathcal L_\xi Q$ (degenerate exactly along the isotropy).
+
+    `integrate` does this itself when it finds such a Lagrangian at a concrete $(\xi^0, Q^0)$
+    (and reports it in `Solution.isotropy`); call it to build the gauged system once, e.g.
+    to integrate under `jax.jit`/`jax.vmap` over `Q0`, where the engine cannot inspect values.
+
+    **Arguments:** `system`, a concrete `Q0` and `xi0` (the rank of the velocity map is read
+    there); `weight` (default: the largest singular value of l's Hessian in ξ at $(\xi^0, Q^0)$,
+    1 if it is zero); `regular` (default: True unless `system.degenerate` and the gauged Hessian
+    is still singular): whether the gauged system is regular in ξ — a system built with
+    `degenerate=True` whose only degeneracy was the isotropy becomes regular.
+
+    **Returns:** a `ClebschSystem` with `lagrangian` an `IsotropyGauge` (of the potential form).
+    """
+    if isinstance(system.lagrangian, IsotropyGauge):
+        return system
+    Q0, xi0 = jnp.asarray(Q0, float), jnp.asarray(xi0, float)
+    A = np.asarray(velocity_jacobian(system.velocity_map, Q0, xi0.shape))
+    K = kernel_basis(A)
+    H = np.asarray(jax.hessian(lambda x: system.l(x.reshape(xi0.shape), Q0))(xi0.reshape(-1)))
+    if weight is None:
+        top = float(np.linalg.norm(H, 2)) if np.all(np.isfinite(H)) and H.size else 0.0
+        weight = top if top > 0 else 1.0
+    if regular is None:
+        gauged = H + weight * K @ K.T
+        s = np.linalg.svd(gauged, compute_uv=False)
+        regular = (not system.degenerate) or bool(s.size and s[-1] > 1e-14 * s[0])
+    lag = IsotropyGauge(system.lagrangian, system.velocity_map, system.has_potential, xi0.size - K.shape[1],
+                        K.shape[1], jnp.asarray(weight, float))
+    return _rebuilt(system, lag, degenerate=system.degenerate and not regular)
+
+
+def _rebuilt(system, lagrangian, degenerate):
+    return ClebschSystem(lagrangian=lagrangian, velocity_map=system.velocity_map,
+                         derivative_map=system.derivative_map, degenerate=degenerate, check_Q=system.check_Q)
+
+
+def physical_velocity(system, Q0, xi0, K: np.ndarray, *, warn: bool = True, stacklevel: int = 2):
+    r"""ξ⁰ taken as the physical velocity $\mathcal L_{\xi^0}Q^0$: the ξ = ξ⁰ + Kc (the same tangent
+    vector, K an orthonormal basis of the isotropy at $Q^0$) whose momentum $\delta l/\delta\xi$
+    has no component along the isotropy, $K^T\nabla_\xi l(\xi, Q^0) = 0$, so that Lemma 7's
+    multiplier exists. Found by Newton's method on c from $c = -K^T\xi^0$ (the kernel component
+    dropped; that is the answer when l does not see the kernel, and one update more when l is
+    quadratic in it). With `warn`, a `UserWarning` says so once when ξ⁰ changed.
+
+    Returns ξ (an array of `xi0`'s shape)."""
+    if K.shape[1] == 0:
+        return xi0
+    x0 = np.asarray(xi0, float).reshape(-1)
+    shape = np.shape(xi0)
+    grad = jax.grad(lambda x: system.l(x.reshape(shape), Q0))
+    hess = jax.jacfwd(grad)
+    c = -K.T @ x0
+    for _ in range(3):
+        x = jnp.asarray(x0 + K @ c)
+        g = K.T @ np.asarray(grad(x))
+        Hk = K.T @ np.asarray(hess(x)) @ K
+        scale = max(1.0, float(np.linalg.norm(Hk)))
+        if not np.all(np.isfinite(g)) or not np.linalg.norm(g) > 1e-14 * scale:
+            break
+        c = c - np.linalg.lstsq(Hk, g, rcond=1e-12)[0]
+    x = x0 + K @ c
+    change = float(np.linalg.norm(x - x0))
+    if warn and change > 1e-12 * max(float(np.linalg.norm(x0)), np.finfo(float).tiny):
+        warnings.warn(
+            f"xi0: has a component along the isotropy of Q0 (the {K.shape[1]}-dimensional kernel of "
+            "xi -> L_xi Q0, directions that move Q0 not at all). The engine takes xi0 as the physical velocity "
+            f"L_xi0 Q0 and starts from the xi with that tangent vector whose momentum has a multiplier "
+            f"(Lemma 7): xi0 changed by {change:.3g} (Solution.xi[0] is the velocity used).",
+            UserWarning, stacklevel=stacklevel)
+    return jnp.asarray(x.reshape(shape))
