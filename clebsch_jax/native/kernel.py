@@ -269,6 +269,8 @@ class Kernel:
         self.in_avals = [v.aval for v in closed.jaxpr.invars]
         self.out_avals = [v.aval for v in closed.jaxpr.outvars]
         self.batched = [True] * len(self.in_avals) if batched is None else [bool(x) for x in batched]
+        layout = lambda a: (tuple(a.shape), int(np.prod(a.shape, dtype=int)), _storage(a.dtype))
+        self._ins, self._outs = [layout(a) for a in self.in_avals], [layout(a) for a in self.out_avals]
         key = _key(_program_text(closed, self.width, self.batched))
         obj = _cached(key) if use_cache else None
         self.from_cache = obj is not None
@@ -282,24 +284,23 @@ class Kernel:
         if len(arrays) != len(self.in_avals):
             raise TypeError(f"expected {len(self.in_avals)} arrays, got {len(arrays)}")
         B = next(int(np.shape(a)[0]) for a, bat in zip(arrays, self.batched) if bat)
-        W = self.width
-        blocks = -(-B // W)
-        stride = blocks * W
+        blocks = -(-B // self.width)
+        stride = blocks * self.width
         buffers = []
-        for a, aval, bat in zip(arrays, self.in_avals, self.batched):
+        for a, (shape, size, storage), bat in zip(arrays, self._ins, self.batched):
             a = np.asarray(a)
             if not bat:
-                if a.shape != tuple(aval.shape):
-                    raise ValueError(f"expected a shared array of shape {tuple(aval.shape)}, got {a.shape}")
-                buffers.append(np.ascontiguousarray(a.reshape(-1), _storage(aval.dtype)))
+                if a.shape != shape:
+                    raise ValueError(f"expected a shared array of shape {shape}, got {a.shape}")
+                buffers.append(np.ascontiguousarray(a.reshape(-1), storage))
                 continue
-            if a.shape != (B,) + tuple(aval.shape):
-                raise ValueError(f"expected an array of shape {(B,) + tuple(aval.shape)}, got {a.shape}")
-            rows = np.empty((int(np.prod(aval.shape, dtype=int)), stride), _storage(aval.dtype))
-            rows[:, :B] = a.reshape(B, -1).T
-            rows[:, B:] = rows[:, B - 1:B] if B else 0  # padding lanes repeat the last member
+            if a.shape != (B,) + shape:
+                raise ValueError(f"expected an array of shape {(B,) + shape}, got {a.shape}")
+            rows = np.empty((size, stride), storage)
+            rows[:, :B] = a.reshape(B, size).T
+            rows[:, B:] = rows[:, B - 1:B]  # padding lanes repeat the last member
             buffers.append(rows)
-        outs = [np.empty((int(np.prod(a.shape, dtype=int)), stride), _storage(a.dtype)) for a in self.out_avals]
+        outs = [np.empty((size, stride), storage) for _, size, storage in self._outs]
         pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[x.ctypes.data for x in buffers + outs])
         address = ctypes.addressof(pointers)
         threads = max(1, min(int(threads), blocks))
@@ -310,8 +311,7 @@ class Kernel:
             with ThreadPoolExecutor(threads) as pool:
                 list(pool.map(lambda i: self._fn(address, stride, int(cuts[i]), int(cuts[i + 1])), range(threads)))
         result = []
-        for rows, aval in zip(outs, self.out_avals):
-            r = rows[:, :B].T.reshape((B,) + tuple(aval.shape))
+        for rows, (shape, _, _), aval in zip(outs, self._outs, self.out_avals):
+            r = rows[:, :B].T.reshape((B,) + shape)
             result.append(r.astype(np.bool_) if aval.dtype == np.bool_ else np.ascontiguousarray(r))
         return result
-
