@@ -51,8 +51,10 @@ RESULTS_DIR = Path(__file__).resolve().parent / "results"
 # options for the scripts' own `jax.jit`s.
 QUICK_FLAG = "jax_disable_most_optimizations"
 QUICK_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
-STATISTIC = ("median over samples of (sample wall time / calls per sample); the methods of a case are "
-             "sampled in turn, the first one rotating")
+STATISTIC = (
+    "median over samples of (sample wall time / calls per sample); the methods of a case are "
+    "sampled in turn, the first one rotating"
+)
 
 
 # --------------------------------------------------------------------------------------------
@@ -69,9 +71,12 @@ class Watchdog:
         self._timer = None
 
     def _fire(self):
-        print(f"\n{self.prog}: '{self.what}' did not finish within {self.seconds:.0f} s; the JAX run is "
-              "probably wedged (benchmarks/README.md, 'Known problem'). Stacks follow.",
-              file=sys.stderr, flush=True)
+        print(
+            f"\n{self.prog}: '{self.what}' did not finish within {self.seconds:.0f} s; the JAX run is "
+            "probably wedged (benchmarks/README.md, 'Known problem'). Stacks follow.",
+            file=sys.stderr,
+            flush=True,
+        )
         faulthandler.dump_traceback(all_threads=True)
         os._exit(3)
 
@@ -100,8 +105,9 @@ def sample(call, number: int) -> tuple[float, float]:
     return (time.perf_counter() - tic) / number, (time.process_time() - cpu) / number
 
 
-def time_interleaved(calls: dict, *, repeats: int, min_sample_s: float,
-                     guard=lambda name: contextlib.nullcontext()) -> tuple[dict, dict]:
+def time_interleaved(
+    calls: dict, *, repeats: int, min_sample_s: float, guard=lambda name: contextlib.nullcontext()
+) -> tuple[dict, dict]:
     """Median wall time of each blocking `calls[name]()` (module docstring: first call alone,
     a second call to fix the calls per sample, then `repeats` rotating rounds).
 
@@ -162,10 +168,19 @@ def git_revision() -> dict:
     if not (root / ".git").exists():
         return {"git_commit": None, "git_dirty": None}
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
-                                text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10).stdout.strip() != ""
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10
+        ).stdout.strip()
+        dirty = (
+            subprocess.run(
+                ["git", "status", "--porcelain", "--untracked-files=no"],
+                cwd=root,
+                capture_output=True,
+                text=True,
+                timeout=10,
+            ).stdout.strip()
+            != ""
+        )
     except (OSError, subprocess.SubprocessError):
         return {"git_commit": None, "git_dirty": None}
     return {"git_commit": commit or None, "git_dirty": dirty if commit else None}
@@ -246,15 +261,28 @@ def parse_args(argv, *, prog: str, description: str, add_arguments=None) -> argp
     `--timeout`) plus any that `add_arguments(parser)` adds. `repeats` and `min_sample` come
     back resolved (5 and 0.2 s; 2 and 0.01 s with `--quick`)."""
     parser = argparse.ArgumentParser(prog=prog, description=description)
-    parser.add_argument("--quick", action="store_true",
-                        help="small sizes and few repeats, XLA optimisation off (a smoke test, not a measurement)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="small sizes and few repeats, XLA optimisation off (a smoke test, not a measurement)",
+    )
     parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="output directory (default: benchmarks/results)")
-    parser.add_argument("--repeats", type=int, default=None,
-                        help="timing samples per method and case (default 5; 2 with --quick)")
-    parser.add_argument("--min-sample", type=float, default=None, dest="min_sample",
-                        help="minimum seconds per timing sample (default 0.2; 0.01 with --quick)")
-    parser.add_argument("--timeout", type=float, default=600.0,
-                        help="exit with a message if one measurement takes longer (seconds, 0: never)")
+    parser.add_argument(
+        "--repeats", type=int, default=None, help="timing samples per method and case (default 5; 2 with --quick)"
+    )
+    parser.add_argument(
+        "--min-sample",
+        type=float,
+        default=None,
+        dest="min_sample",
+        help="minimum seconds per timing sample (default 0.2; 0.01 with --quick)",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=600.0,
+        help="exit with a message if one measurement takes longer (seconds, 0: never)",
+    )
     if add_arguments is not None:
         add_arguments(parser)
     args = parser.parse_args(argv)
@@ -307,8 +335,12 @@ class Run:
 
     def time(self, calls: dict, *, what: str, repeats: int | None = None) -> tuple[dict, dict]:
         """`time_interleaved` with this run's settings and the watchdog around every phase."""
-        return time_interleaved(calls, repeats=repeats or self.repeats, min_sample_s=self.min_sample_s,
-                                guard=lambda method: self.guard(f"{method}, {what}"))
+        return time_interleaved(
+            calls,
+            repeats=repeats or self.repeats,
+            min_sample_s=self.min_sample_s,
+            guard=lambda method: self.guard(f"{method}, {what}"),
+        )
 
     def measure(self, default_cases, quick_cases, describe, measure_case) -> list:
         """`measure_case(*case)` for each case of this run (`self.cases`: `quick_cases` with
@@ -341,8 +373,13 @@ class Run:
         }
 
     def summary(self, *, config: dict, results: list, **extra) -> dict:
-        return {"benchmark": self.name, "config": self.config(**config), **extra, "machine": self.machine,
-                "results": results}
+        return {
+            "benchmark": self.name,
+            "config": self.config(**config),
+            **extra,
+            "machine": self.machine,
+            "results": results,
+        }
 
     def finish(self, summary: dict, print_report, plot) -> dict:
         """Prints `print_report(summary)`, writes `<name>.json` (first, so the numbers survive a
@@ -356,8 +393,10 @@ class Run:
         with open(json_path, "w") as fh:
             json.dump(summary, fh, indent=2)
         plot(summary, png_path)
-        print(f"\ntotal {summary['total_runtime_s']:.0f} s (load {summary['load_average_1min_at_end']:.2f} at the "
-              f"end); wrote {json_path.name} and {png_path.name} in {display_path(out)}")
+        print(
+            f"\ntotal {summary['total_runtime_s']:.0f} s (load {summary['load_average_1min_at_end']:.2f} at the "
+            f"end); wrote {json_path.name} and {png_path.name} in {display_path(out)}"
+        )
         return summary
 
 
@@ -381,8 +420,10 @@ def fmt(x, spec: str, width: int, missing: str = "-") -> str:
 def print_header(summary: dict, what: str, legend: str) -> None:
     """The first lines of a report: `what`, the statistic, then `legend` (what the methods are)."""
     cfg = summary["config"]
-    print(f"\n{what}; median of {cfg['repeats']} samples, each >= {cfg['min_sample_s']} s, the methods of a "
-          f"case sampled in turn.\n{legend}")
+    print(
+        f"\n{what}; median of {cfg['repeats']} samples, each >= {cfg['min_sample_s']} s, the methods of a "
+        f"case sampled in turn.\n{legend}"
+    )
 
 
 def print_table(head: str, lines) -> None:
@@ -422,6 +463,8 @@ def plot_title(summary: dict, what: str) -> str:
     """`what`, the statistic, and the machine and its load at the start, for a plot title."""
     mach, cfg = summary["machine"], summary["config"]
     load = mach.get("load_average_1min_at_start")
-    return (f"{what}, median of {cfg['repeats']}{' (--quick: not a measurement)' if cfg['quick'] else ''}\n"
-            f"{mach['cpu_count']} CPUs, load {'?' if load is None else f'{load:.2f}'} at start, "
-            f"jax {mach['jax']}, numpy {mach['numpy']}")
+    return (
+        f"{what}, median of {cfg['repeats']}{' (--quick: not a measurement)' if cfg['quick'] else ''}\n"
+        f"{mach['cpu_count']} CPUs, load {'?' if load is None else f'{load:.2f}'} at start, "
+        f"jax {mach['jax']}, numpy {mach['numpy']}"
+    )

@@ -47,8 +47,12 @@ from clebsch_jax.steppers.choose import choose_method  # noqa: E402
 RESULTS_NAME = "check_cost"
 DT = 0.01
 INERTIA = (2.0, 1.0, 2 / 3)
-DEFAULT_CASES = (("rigid_body", 1, 4000), ("rigid_body", 256, 1000), ("plane_potential", 1, 4000),
-                 ("rigid_sweep", 1000, 200))
+DEFAULT_CASES = (
+    ("rigid_body", 1, 4000),
+    ("rigid_body", 256, 1000),
+    ("plane_potential", 1, 4000),
+    ("rigid_sweep", 1000, 200),
+)
 QUICK_CASES = (("rigid_body", 1, 50), ("rigid_body", 4, 50), ("plane_potential", 1, 50), ("rigid_sweep", 4, 20))
 
 
@@ -67,8 +71,11 @@ def _setup(model: str, batch: int):
         Q0 = jnp.eye(3)
         xi0 = jnp.asarray(rng.normal(size=(batch, 3)) if batch > 1 else [1.3, 0.8, -0.4])
     else:
-        system = cj.ClebschSystem(lagrangian=Partial(_plane_lagrangian, jnp.asarray(1.0)),
-                                  velocity_map=_translation, derivative_map=cj.forward_difference)
+        system = cj.ClebschSystem(
+            lagrangian=Partial(_plane_lagrangian, jnp.asarray(1.0)),
+            velocity_map=_translation,
+            derivative_map=cj.forward_difference,
+        )
         Q0, xi0 = jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0])
     return system, Q0, xi0
 
@@ -80,27 +87,56 @@ def _calls(model: str, batch: int, n_steps: int) -> dict:
         return lambda: cj.integrate(system, Q0, xi0, dt=DT, n_steps=n_steps, check_energy=check_energy)
 
     def batched(check_energy):
-        run = jax.jit(jax.vmap(lambda x: cj.integrate(system, Q0, x, dt=DT, n_steps=n_steps, throw=False,
-                                                      check_energy=check_energy)))
+        run = jax.jit(
+            jax.vmap(
+                lambda x: cj.integrate(system, Q0, x, dt=DT, n_steps=n_steps, throw=False, check_energy=check_energy)
+            )
+        )
         return lambda: run(xi0)
 
     def inputs(check_inputs):
         stepper = choose_method(system, Q0, xi0[0]).prepare(system, Q0, xi0[0])
-        run = jax.jit(jax.vmap(lambda x: march(stepper, system, Q0, x, None, jnp.asarray(DT), jnp.asarray(0.0),
-                                               n_steps, check_energy=False, check_inputs=check_inputs)))
+        run = jax.jit(
+            jax.vmap(
+                lambda x: march(
+                    stepper,
+                    system,
+                    Q0,
+                    x,
+                    None,
+                    jnp.asarray(DT),
+                    jnp.asarray(0.0),
+                    n_steps,
+                    check_energy=False,
+                    check_inputs=check_inputs,
+                )
+            )
+        )
         return lambda: run(xi0)
 
     def swept(check_energy):
         Qs = jnp.broadcast_to(Q0, (batch,) + Q0.shape)
-        return lambda: cj.sweep(cj.models.rigid_body, jnp.array(INERTIA)[None], Qs, xi0, dt=DT, n_steps=n_steps,
-                                grid=True, check_energy=check_energy)
+        return lambda: cj.sweep(
+            cj.models.rigid_body,
+            jnp.array(INERTIA)[None],
+            Qs,
+            xi0,
+            dt=DT,
+            n_steps=n_steps,
+            grid=True,
+            check_energy=check_energy,
+        )
 
     if model == "rigid_sweep":
         return {"energy_check": swept(True), "no_energy_check": swept(False)}
     if batch == 1:
         return {"energy_check": plain(True), "no_energy_check": plain(False)}
-    return {"energy_check": batched(True), "no_energy_check": batched(False),
-            "input_check": inputs(True), "no_input_check": inputs(False)}
+    return {
+        "energy_check": batched(True),
+        "no_energy_check": batched(False),
+        "input_check": inputs(True),
+        "no_input_check": inputs(False),
+    }
 
 
 def run_case(model, batch, n_steps, run: harness.Run) -> dict:
@@ -115,22 +151,33 @@ def run_case(model, batch, n_steps, run: harness.Run) -> dict:
     ratios = {"energy_check_over_none": seconds["energy_check"] / seconds["no_energy_check"]}
     if "input_check" in seconds:
         ratios["input_check_over_none"] = seconds["input_check"] / seconds["no_input_check"]
-    return {"case": model, "batch": batch, "n_steps": n_steps, "timings": timings, "seconds_per_call": seconds,
-            "ratios": ratios}
+    return {
+        "case": model,
+        "batch": batch,
+        "n_steps": n_steps,
+        "timings": timings,
+        "seconds_per_call": seconds,
+        "ratios": ratios,
+    }
 
 
 def print_report(summary: dict) -> None:
-    harness.print_header(summary, "What the checks cost (seconds per call)",
-                         "energy_check: integrate(..., check_energy=True), the default; input_check: the "
-                         "per-member input check under jit/vmap.")
+    harness.print_header(
+        summary,
+        "What the checks cost (seconds per call)",
+        "energy_check: integrate(..., check_energy=True), the default; input_check: the "
+        "per-member input check under jit/vmap.",
+    )
     head = f"{'case':<16}{'B':>5}{'steps':>7}{'energy on':>12}{'off':>11}{'ratio':>8}{'inputs on':>12}{'off':>11}{'ratio':>8}"
     lines = []
     for r in summary["results"]:
         s, q = r["seconds_per_call"], r["ratios"]
-        lines.append(f"{r['case']:<16}{r['batch']:>5}{r['n_steps']:>7}"
-                     f"{s['energy_check']:>12.4g}{s['no_energy_check']:>11.4g}{q['energy_check_over_none']:>8.3f}"
-                     f"{harness.fmt(s.get('input_check'), '.4g', 12)}{harness.fmt(s.get('no_input_check'), '.4g', 11)}"
-                     f"{harness.fmt(q.get('input_check_over_none'), '.3f', 8)}")
+        lines.append(
+            f"{r['case']:<16}{r['batch']:>5}{r['n_steps']:>7}"
+            f"{s['energy_check']:>12.4g}{s['no_energy_check']:>11.4g}{q['energy_check_over_none']:>8.3f}"
+            f"{harness.fmt(s.get('input_check'), '.4g', 12)}{harness.fmt(s.get('no_input_check'), '.4g', 11)}"
+            f"{harness.fmt(q.get('input_check_over_none'), '.3f', 8)}"
+        )
     harness.print_table(head, lines)
 
 
@@ -155,12 +202,16 @@ def _describe(model, batch, n_steps) -> str:
 
 def main(argv=None) -> dict:
     """Run the benchmark: the cases, the report, the JSON and the PNG; returns the summary."""
-    with harness.Run(RESULTS_NAME, argv, description="What the checks of issue 22 cost (see module "
-                     "docstring).") as run:
+    with harness.Run(RESULTS_NAME, argv, description="What the checks of issue 22 cost (see module docstring).") as run:
         results = run.measure(DEFAULT_CASES, QUICK_CASES, _describe, lambda *case: run_case(*case, run))
-    summary = run.summary(config={"dt": DT, "inertia": INERTIA,
-                                  "cases": [{"case": c, "batch": b, "n_steps": n} for c, b, n in run.cases]},
-                          results=results)
+    summary = run.summary(
+        config={
+            "dt": DT,
+            "inertia": INERTIA,
+            "cases": [{"case": c, "batch": b, "n_steps": n} for c, b, n in run.cases],
+        },
+        results=results,
+    )
     return run.finish(summary, print_report, plot)
 
 

@@ -86,10 +86,10 @@ GRAVITY = 9.81
 
 # The issue's targets (reported, never asserted).
 TARGETS = {
-    "new_n_steps_over_first": 0.2,      # a second call with a new n_steps, relative to the first call
-    "compilations_calls_2_to_5": 0,     # XLA compilations during calls 2-5
+    "new_n_steps_over_first": 0.2,  # a second call with a new n_steps, relative to the first call
+    "compilations_calls_2_to_5": 0,  # XLA compilations during calls 2-5
     "heavy_top_default_over_left": 2.5,  # time per step of the new default against the reduced left step
-    "min_order_slope": 1.9,             # the measured order of the default (as tests/test_defaults.py)
+    "min_order_slope": 1.9,  # the measured order of the default (as tests/test_defaults.py)
 }
 
 # --------------------------------------------------------------------------------------------
@@ -149,23 +149,49 @@ def order_cases(names) -> dict:
         "rigid_body": lambda: (cj.models.rigid_body(inertia), jnp.eye(3), xi0, None, 2.0, 0.1),
         "rigid_body_vector": lambda: rigid_body_vector(inertia, xi0),
         "heavy_top": lambda: (cj.models.heavy_top(jnp.array(TOP_INERTIA), TOP_MGL), top_Q0, top_xi0, None, 1.0, 0.05),
-        "point_vortices": lambda: (cj.models.point_vortices(G), vortex_Q0, cj.models.vortex_velocity(G, vortex_Q0),
-                                   None, 1.0, 0.05),
-        "peakons": lambda: (cj.models.peakons(1.0), peakon_Q0, cj.models.peakon_velocity(peakon_Q0, peakon_P0, 1.0),
-                            peakon_P0, 2.0, 0.1),
-        "landmarks": lambda: (cj.models.landmarks(1.0), landmark_Q0,
-                              cj.models.landmark_velocity(landmark_Q0, landmark_P0, 1.0), landmark_P0, 1.0, 0.05),
+        "point_vortices": lambda: (
+            cj.models.point_vortices(G),
+            vortex_Q0,
+            cj.models.vortex_velocity(G, vortex_Q0),
+            None,
+            1.0,
+            0.05,
+        ),
+        "peakons": lambda: (
+            cj.models.peakons(1.0),
+            peakon_Q0,
+            cj.models.peakon_velocity(peakon_Q0, peakon_P0, 1.0),
+            peakon_P0,
+            2.0,
+            0.1,
+        ),
+        "landmarks": lambda: (
+            cj.models.landmarks(1.0),
+            landmark_Q0,
+            cj.models.landmark_velocity(landmark_Q0, landmark_P0, 1.0),
+            landmark_P0,
+            1.0,
+            0.05,
+        ),
         "user_pendulum": lambda: (user_pendulum(), *pendulum_start(), None, 1.0, 0.05),
         "user_heavy_top": lambda: (user_heavy_top(), *top_start(), None, 1.0, 0.05),
     }
     return {name: make[name]() for name in names}
 
 
-ORDER_MODELS = ("rigid_body", "rigid_body_vector", "heavy_top", "point_vortices", "peakons", "landmarks",
-                "user_pendulum", "user_heavy_top")
+ORDER_MODELS = (
+    "rigid_body",
+    "rigid_body_vector",
+    "heavy_top",
+    "point_vortices",
+    "peakons",
+    "landmarks",
+    "user_pendulum",
+    "user_heavy_top",
+)
 ORDER_MODELS_QUICK = ("rigid_body", "heavy_top", "user_pendulum")
 ORDER_DIVISORS = (1, 2, 4, 8)  # the fitted step sizes h0 / k
-ORDER_REFERENCE = 64           # the reference run: step h0 / 64
+ORDER_REFERENCE = 64  # the reference run: step h0 / 64
 
 
 def final_state(sol) -> np.ndarray:
@@ -181,7 +207,8 @@ class CompileLog:
     def __init__(self):
         self.events = []
         jax.monitoring.register_event_duration_secs_listener(
-            lambda event, secs, **kw: self.events.append((event, secs, kw.get("fun_name"))))
+            lambda event, secs, **kw: self.events.append((event, secs, kw.get("fun_name")))
+        )
 
     def mark(self) -> int:
         return len(self.events)
@@ -219,12 +246,22 @@ CALL_NAMES = tuple(c[0] for c in CALLS)
 def scene(name: str):
     """(make(params) -> system, first params, new params or None, Q0, xi0, what the parameters are)."""
     if name == "rigid_body":
-        return (lambda p: cj.models.rigid_body(p[0]), (jnp.array(RIGID_INERTIA),), (jnp.array([1.5, 1.2, 0.7]),),
-                jnp.eye(3), jnp.array(RIGID_XI0), "inertia (2, 1, 2/3), then (1.5, 1.2, 0.7)")
+        return (
+            lambda p: cj.models.rigid_body(p[0]),
+            (jnp.array(RIGID_INERTIA),),
+            (jnp.array([1.5, 1.2, 0.7]),),
+            jnp.eye(3),
+            jnp.array(RIGID_XI0),
+            "inertia (2, 1, 2/3), then (1.5, 1.2, 0.7)",
+        )
     if name == "heavy_top":
-        return (lambda p: cj.models.heavy_top(p[0], p[1]), (jnp.array(TOP_INERTIA), TOP_MGL),
-                (jnp.array([1.2, 1.1, 0.5]), 2.0), *top_start(),
-                "inertia (1, 1, 0.4), m g l 1.5, then (1.2, 1.1, 0.5), 2.0")
+        return (
+            lambda p: cj.models.heavy_top(p[0], p[1]),
+            (jnp.array(TOP_INERTIA), TOP_MGL),
+            (jnp.array([1.2, 1.1, 0.5]), 2.0),
+            *top_start(),
+            "inertia (1, 1, 0.4), m g l 1.5, then (1.2, 1.1, 0.5), 2.0",
+        )
     if name == "user_pendulum":
         system = user_pendulum()  # written once, by the user; no parameters to change
         return (lambda p: system, (), None, *pendulum_start(), None)
@@ -242,8 +279,13 @@ def child_calls(name: str) -> dict:
     first_jit = time.perf_counter() - tic
     make, params, new_params, Q0, xi0, _ = scene(name)
     system = make(params)
-    out = {"scene": name, "process_first_jit_s": first_jit, "load_average_1min_at_start": harness.load_average(),
-           "source_sha256": harness.source_digest(), "calls": {}}
+    out = {
+        "scene": name,
+        "process_first_jit_s": first_jit,
+        "load_average_1min_at_start": harness.load_average(),
+        "source_sha256": harness.source_digest(),
+        "calls": {},
+    }
     first_state = None
     for call, n, dt, which in CALLS:
         entry = {"n_steps": n, "dt": dt}
@@ -285,8 +327,9 @@ def run_child(name: str, run: harness.Run) -> dict:
         raise RuntimeError(f"the child for scene {name} failed:\n{done.stderr[-3000:]}")
     out = json.loads(done.stdout.strip().splitlines()[-1])
     if out["source_sha256"] != harness.source_digest():
-        raise RuntimeError(f"the child for scene {name} imported other clebsch_jax sources than this process "
-                           "(check PYTHONPATH)")
+        raise RuntimeError(
+            f"the child for scene {name} imported other clebsch_jax sources than this process (check PYTHONPATH)"
+        )
     return out
 
 
@@ -310,8 +353,10 @@ def compile_once(run: harness.Run) -> list:
             walls = [e["wall_s"] for e in entries]
             compiled = sorted({p["program"] for e in entries for p in e["programs"]})
             calls[call] = {
-                "n_steps": entries[0]["n_steps"], "dt": entries[0]["dt"],
-                "wall_s_median": statistics.median(walls), "wall_s": walls,
+                "n_steps": entries[0]["n_steps"],
+                "dt": entries[0]["dt"],
+                "wall_s_median": statistics.median(walls),
+                "wall_s": walls,
                 "over_first": statistics.median(walls) / statistics.median(first),
                 "over_first_per_child": [w / f for w, f in zip(walls, first)],
                 "compilations": [e["compilations"] for e in entries],
@@ -319,21 +364,28 @@ def compile_once(run: harness.Run) -> list:
                 "programs_compiled": compiled,
                 "tracings": [e["tracings"] for e in entries],
                 "lowerings": [e["lowerings"] for e in entries],
-                "method": entries[0]["method"], "form": entries[0]["form"], "order": entries[0]["order"],
+                "method": entries[0]["method"],
+                "form": entries[0]["form"],
+                "order": entries[0]["order"],
             }
             if "construct" in entries[0]:
                 calls[call]["construct_compilations"] = [e["construct"]["compilations"] for e in entries]
             if call == "first_again":
                 calls[call]["max_abs_final_diff_vs_first"] = max(e["max_abs_final_diff_vs_first"] for e in entries)
         later = [c for c in CALL_NAMES[1:] if c in calls]
-        rows.append({
-            "part": "compile_once", "scene": name, "children": len(kids), "parameters": scene(name)[5],
-            "calls": calls,
-            "process_first_jit_s": [k["process_first_jit_s"] for k in kids],
-            "load_average_1min_at_child_start": [k["load_average_1min_at_start"] for k in kids],
-            "max_compilations_calls_2_to_5": max(max(calls[c]["compilations"]) for c in later),
-            "max_construct_compilations": max(calls.get("new_parameters", {}).get("construct_compilations", [0])),
-        })
+        rows.append(
+            {
+                "part": "compile_once",
+                "scene": name,
+                "children": len(kids),
+                "parameters": scene(name)[5],
+                "calls": calls,
+                "process_first_jit_s": [k["process_first_jit_s"] for k in kids],
+                "load_average_1min_at_child_start": [k["load_average_1min_at_start"] for k in kids],
+                "max_compilations_calls_2_to_5": max(max(calls[c]["compilations"]) for c in later),
+                "max_construct_compilations": max(calls.get("new_parameters", {}).get("construct_compilations", [0])),
+            }
+        )
     return rows
 
 
@@ -353,20 +405,30 @@ def heavy_top_cost(run: harness.Run) -> dict:
 
     def call(kwargs, dt=HT_DT, steps=n):
         return lambda: jax.block_until_ready(cj.integrate(system, Q0, xi0, dt=dt, n_steps=steps, **kwargs))
+
     timings, outs = run.time({name: call(kw) for name, kw in HT_METHODS}, what=f"heavy top, {n} steps")
     with run.guard("heavy top, reference runs"):
         reference = final_state(call({}, HT_DT / HT_REFINE, n * HT_REFINE)())
         half_reference = final_state(call({}, 2 * HT_DT / HT_REFINE, n * HT_REFINE // 2)())
-    row = {"part": "heavy_top_cost", "n_steps": n, "dt": HT_DT, "t_final": n * HT_DT,
-           "reference": f"default at dt/{HT_REFINE}",
-           "reference_check_default_dt_over_8": float(np.max(np.abs(half_reference - reference)))}
+    row = {
+        "part": "heavy_top_cost",
+        "n_steps": n,
+        "dt": HT_DT,
+        "t_final": n * HT_DT,
+        "reference": f"default at dt/{HT_REFINE}",
+        "reference_check_default_dt_over_8": float(np.max(np.abs(half_reference - reference))),
+    }
     for name, kwargs in HT_METHODS:
         sol = outs[name]
         row[name] = {
-            **timings[name], "keywords": kwargs,
+            **timings[name],
+            "keywords": kwargs,
             "seconds_per_step": timings[name]["per_call_s"] / n,
             "compile_s": timings[name]["first_call_s"] - timings[name]["per_call_s"],
-            "method": sol.method, "form": sol.form, "order": sol.order, "solves_per_step": sol.solves_per_step,
+            "method": sol.method,
+            "form": sol.form,
+            "order": sol.order,
+            "solves_per_step": sol.solves_per_step,
             "newton_updates_per_step_mean": float(np.mean(np.asarray(sol.stats.iterations))),
             "final_error_vs_reference": float(np.max(np.abs(final_state(sol) - reference))),
         }
@@ -397,16 +459,35 @@ def order_case(name: str, case, log: CompileLog) -> dict:
         wall = time.perf_counter() - tic
         compiled = log.since(mark)
         runs[k] = final_state(sol)
-        per_run.append({"divisor": k, "dt": h0 / k, "n_steps": n, "wall_s": wall,
-                        "compilations": compiled["compilations"], "method": sol.method, "order": sol.order})
+        per_run.append(
+            {
+                "divisor": k,
+                "dt": h0 / k,
+                "n_steps": n,
+                "wall_s": wall,
+                "compilations": compiled["compilations"],
+                "method": sol.method,
+                "order": sol.order,
+            }
+        )
     hs = np.array([h0 / k for k in ORDER_DIVISORS])
     errors = np.array([np.max(np.abs(runs[k] - runs[ORDER_REFERENCE])) for k in ORDER_DIVISORS])
     slope = float(np.polyfit(np.log(hs), np.log(errors), 1)[0])
     return {
-        "part": "order", "model": name, "t_final": T, "h0": h0, "reference_divisor": ORDER_REFERENCE,
-        "plan": plan.name, "plan_order": plan.order, "plan_symmetric": bool(plan.symmetric),
-        "method": per_run[0]["method"], "order": per_run[0]["order"], "form": sol.form,
-        "hs": hs.tolist(), "errors": errors.tolist(), "slope": slope,
+        "part": "order",
+        "model": name,
+        "t_final": T,
+        "h0": h0,
+        "reference_divisor": ORDER_REFERENCE,
+        "plan": plan.name,
+        "plan_order": plan.order,
+        "plan_symmetric": bool(plan.symmetric),
+        "method": per_run[0]["method"],
+        "order": per_run[0]["order"],
+        "form": sol.form,
+        "hs": hs.tolist(),
+        "errors": errors.tolist(),
+        "slope": slope,
         "local_slopes": (np.diff(np.log(errors)) / np.diff(np.log(hs))).tolist(),
         "runs": per_run,
         "compilations_after_first_step_size": sum(r["compilations"] for r in per_run[1:]),
@@ -435,22 +516,39 @@ def verdicts(scenes: list, top: dict, orders: list) -> dict:
     ratio = top["ratios"]["default_over_left"]
     slopes = {r["model"]: r["slope"] for r in orders}
     return {
-        "new_n_steps_over_first": {"max": t["new_n_steps_over_first"], "per_scene": new_n,
-                                   "met": all(v <= t["new_n_steps_over_first"] for v in new_n.values())},
-        "compilations_calls_2_to_5": {"max": t["compilations_calls_2_to_5"], "per_scene": compiles,
-                                      "met": all(v <= t["compilations_calls_2_to_5"] for v in compiles.values())},
-        "heavy_top_default_over_left": {"max": t["heavy_top_default_over_left"], "value": ratio,
-                                        "met": bool(ratio <= t["heavy_top_default_over_left"])},
-        "order": {"min_slope": t["min_order_slope"], "per_model": slopes,
-                  "met": all(s >= t["min_order_slope"] for s in slopes.values())},
+        "new_n_steps_over_first": {
+            "max": t["new_n_steps_over_first"],
+            "per_scene": new_n,
+            "met": all(v <= t["new_n_steps_over_first"] for v in new_n.values()),
+        },
+        "compilations_calls_2_to_5": {
+            "max": t["compilations_calls_2_to_5"],
+            "per_scene": compiles,
+            "met": all(v <= t["compilations_calls_2_to_5"] for v in compiles.values()),
+        },
+        "heavy_top_default_over_left": {
+            "max": t["heavy_top_default_over_left"],
+            "value": ratio,
+            "met": bool(ratio <= t["heavy_top_default_over_left"]),
+        },
+        "order": {
+            "min_slope": t["min_order_slope"],
+            "per_model": slopes,
+            "met": all(s >= t["min_order_slope"] for s in slopes.values()),
+        },
     }
 
 
 # --------------------------------------------------------------------------------------------
 # Printing and plotting.
 
-_CALL_LABEL = {"first": "1 first", "new_n_steps": "2 new n", "new_dt": "3 new dt",
-               "new_parameters": "4 new params", "first_again": "5 again"}
+_CALL_LABEL = {
+    "first": "1 first",
+    "new_n_steps": "2 new n",
+    "new_dt": "3 new dt",
+    "new_parameters": "4 new params",
+    "first_again": "5 again",
+}
 
 
 def _met(v: dict) -> str:
@@ -466,51 +564,81 @@ def print_report(summary: dict) -> None:
     cfg = summary["config"]
     quick = " (--quick: not a measurement)" if cfg["quick"] else ""
 
-    print(f"\n1. Compile once per system and shapes{quick}: five calls in a fresh process per scene, "
-          f"median over {scenes[0]['children']} children; wall time [s] (ratio to the first call) "
-          "[XLA compilations, max over children]")
+    print(
+        f"\n1. Compile once per system and shapes{quick}: five calls in a fresh process per scene, "
+        f"median over {scenes[0]['children']} children; wall time [s] (ratio to the first call) "
+        "[XLA compilations, max over children]"
+    )
     harness.print_table(
         f"{'scene':<15}{'method':<26}|" + "".join(f"{_CALL_LABEL[c]:>22}" for c in CALL_NAMES),
-        (f"{r['scene']:<15}{r['calls']['first']['method']:<26}|" + "".join(
-            f"{'-':>22}" if c not in r["calls"] else
-            f"{r['calls'][c]['wall_s_median']:>8.3f} ({r['calls'][c]['over_first']:6.4f}) "
-            f"[{max(r['calls'][c]['compilations'])}]" for c in CALL_NAMES) for r in scenes))
+        (
+            f"{r['scene']:<15}{r['calls']['first']['method']:<26}|"
+            + "".join(
+                f"{'-':>22}"
+                if c not in r["calls"]
+                else f"{r['calls'][c]['wall_s_median']:>8.3f} ({r['calls'][c]['over_first']:6.4f}) "
+                f"[{max(r['calls'][c]['compilations'])}]"
+                for c in CALL_NAMES
+            )
+            for r in scenes
+        ),
+    )
     for r in scenes:
         first = r["calls"]["first"]
         jit0 = statistics.median(r["process_first_jit_s"])
-        print(f"  {r['scene']}: first call compiles {statistics.median(first['compilations']):.0f} programs "
-              f"(XLA {statistics.median(first['compile_s']):.2f} s; backend start-up before it {jit0:.2f} s); "
-              f"rebuilt model compiled {r['max_construct_compilations']} programs; call 5 vs call 1: "
-              f"max |diff| {r['calls']['first_again']['max_abs_final_diff_vs_first']:.1e}")
+        print(
+            f"  {r['scene']}: first call compiles {statistics.median(first['compilations']):.0f} programs "
+            f"(XLA {statistics.median(first['compile_s']):.2f} s; backend start-up before it {jit0:.2f} s); "
+            f"rebuilt model compiled {r['max_construct_compilations']} programs; call 5 vs call 1: "
+            f"max |diff| {r['calls']['first_again']['max_abs_final_diff_vs_first']:.1e}"
+        )
         for c in CALL_NAMES[1:]:
             if c in r["calls"] and r["calls"][c]["programs_compiled"]:
                 print(f"  !! {r['scene']} call '{c}' compiled: {', '.join(r['calls'][c]['programs_compiled'])}")
-    print(f"Targets: new n_steps <= {TARGETS['new_n_steps_over_first']} of the first call: "
-          f"{_met(targets['new_n_steps_over_first'])}; no compilation in calls 2-5: "
-          f"{_met(targets['compilations_calls_2_to_5'])}.")
+    print(
+        f"Targets: new n_steps <= {TARGETS['new_n_steps_over_first']} of the first call: "
+        f"{_met(targets['new_n_steps_over_first'])}; no compilation in calls 2-5: "
+        f"{_met(targets['compilations_calls_2_to_5'])}."
+    )
 
-    print(f"\n2. Heavy top, {top['n_steps']} steps of dt = {top['dt']} (T = {top['t_final']:g}), one trajectory{quick}; "
-          f"error at T against {top['reference']} (the default at dt/8 is {top['reference_check_default_dt_over_8']:.1e} "
-          "from it):")
+    print(
+        f"\n2. Heavy top, {top['n_steps']} steps of dt = {top['dt']} (T = {top['t_final']:g}), one trajectory{quick}; "
+        f"error at T against {top['reference']} (the default at dt/8 is {top['reference_check_default_dt_over_8']:.1e} "
+        "from it):"
+    )
     harness.print_table(
         f"{'method':<10}{'Solution.method':<26}{'order':>6}{'form':>9}{'us/step':>10}{'compile s':>11}"
         f"{'updates/step':>14}{'error at T':>12}",
-        (f"{m:<10}{top[m]['method']:<26}{top[m]['order']:>6}{top[m]['form']:>9}{top[m]['seconds_per_step'] * 1e6:>10.2f}"
-         f"{top[m]['compile_s']:>11.2f}{top[m]['newton_updates_per_step_mean']:>14.2f}"
-         f"{top[m]['final_error_vs_reference']:>12.2e}" for m, _ in HT_METHODS))
+        (
+            f"{m:<10}{top[m]['method']:<26}{top[m]['order']:>6}{top[m]['form']:>9}{top[m]['seconds_per_step'] * 1e6:>10.2f}"
+            f"{top[m]['compile_s']:>11.2f}{top[m]['newton_updates_per_step_mean']:>14.2f}"
+            f"{top[m]['final_error_vs_reference']:>12.2e}"
+            for m, _ in HT_METHODS
+        ),
+    )
     q, p = top["ratios"], top["paired_ratios"]
-    print(f"default/left {q['default_over_left']:.2f} (paired rounds {p['default_over_left']['min']:.2f}-"
-          f"{p['default_over_left']['max']:.2f}; target <= {TARGETS['heavy_top_default_over_left']}: "
-          f"{_met(targets['heavy_top_default_over_left'])}); midpoint/default {q['midpoint_over_default']:.2f} "
-          f"(paired {p['midpoint_over_default']['min']:.2f}-{p['midpoint_over_default']['max']:.2f})")
+    print(
+        f"default/left {q['default_over_left']:.2f} (paired rounds {p['default_over_left']['min']:.2f}-"
+        f"{p['default_over_left']['max']:.2f}; target <= {TARGETS['heavy_top_default_over_left']}: "
+        f"{_met(targets['heavy_top_default_over_left'])}); midpoint/default {q['midpoint_over_default']:.2f} "
+        f"(paired {p['midpoint_over_default']['min']:.2f}-{p['midpoint_over_default']['max']:.2f})"
+    )
 
-    print(f"\n3. Measured order of the default{quick}: error at the final time against the h0/{ORDER_REFERENCE} run; "
-          "slope of the log-log least-squares fit")
+    print(
+        f"\n3. Measured order of the default{quick}: error at the final time against the h0/{ORDER_REFERENCE} run; "
+        "slope of the log-log least-squares fit"
+    )
     harness.print_table(
-        f"{'model':<19}{'method':<26}{'order':>6}{'h0':>6}" + "".join(f"{f'err h0/{k}':>11}" for k in ORDER_DIVISORS)
+        f"{'model':<19}{'method':<26}{'order':>6}{'h0':>6}"
+        + "".join(f"{f'err h0/{k}':>11}" for k in ORDER_DIVISORS)
         + f"{'slope':>7}{'compiles after 1st':>20}",
-        (f"{r['model']:<19}{r['method']:<26}{r['order']:>6}{r['h0']:>6g}" + "".join(f"{e:>11.2e}" for e in r["errors"])
-         + f"{r['slope']:>7.2f}{r['compilations_after_first_step_size']:>20}" for r in orders))
+        (
+            f"{r['model']:<19}{r['method']:<26}{r['order']:>6}{r['h0']:>6g}"
+            + "".join(f"{e:>11.2e}" for e in r["errors"])
+            + f"{r['slope']:>7.2f}{r['compilations_after_first_step_size']:>20}"
+            for r in orders
+        ),
+    )
     print(f"Target: slope >= {TARGETS['min_order_slope']} on every model: {_met(targets['order'])}.")
 
 
@@ -526,26 +654,46 @@ def plot(summary: dict, path: Path) -> None:
         med = [r["calls"][CALL_NAMES[k]]["wall_s_median"] for k in xs]
         lo = [med[j] - min(r["calls"][CALL_NAMES[k]]["wall_s"]) for j, k in enumerate(xs)]
         hi = [max(r["calls"][CALL_NAMES[k]]["wall_s"]) - med[j] for j, k in enumerate(xs)]
-        ax1.errorbar([x + 0.08 * (i - 1) for x in xs], med, yerr=[lo, hi], marker="os^"[i % 3], ls="-", capsize=3,
-                     label=f"{r['scene']} ({r['calls']['first']['method']})")
+        ax1.errorbar(
+            [x + 0.08 * (i - 1) for x in xs],
+            med,
+            yerr=[lo, hi],
+            marker="os^"[i % 3],
+            ls="-",
+            capsize=3,
+            label=f"{r['scene']} ({r['calls']['first']['method']})",
+        )
     ax1.set_yscale("log")
     ax1.set_xticks(range(len(CALL_NAMES)), [_CALL_LABEL[c] for c in CALL_NAMES], fontsize=8)
     ax1.set_ylabel("wall time of the call [s] (median, min-max over children)")
     ax1.grid(True, which="both", alpha=0.3)
     ax1.legend(fontsize=7)
     mach = summary["machine"]
-    ax1.set_title(f"A fresh process per scene: five calls, median of {scenes[0]['children']} children"
-                  f"{' (--quick: not a measurement)' if summary['config']['quick'] else ''}\n"
-                  f"{mach['cpu_count']} CPUs, load {mach['load_average_1min_at_start']:.2f} at start, "
-                  f"jax {mach['jax']}", fontsize=8)
+    ax1.set_title(
+        f"A fresh process per scene: five calls, median of {scenes[0]['children']} children"
+        f"{' (--quick: not a measurement)' if summary['config']['quick'] else ''}\n"
+        f"{mach['cpu_count']} CPUs, load {mach['load_average_1min_at_start']:.2f} at start, "
+        f"jax {mach['jax']}",
+        fontsize=8,
+    )
 
     for (m, _), marker in zip(HT_METHODS, "os^"):
         e = top[m]
-        ax2.loglog([e["seconds_per_step"] * 1e6], [e["final_error_vs_reference"]], marker=marker, ms=9, ls="none",
-                   label=f"{m}: {e['method']} (order {e['order']})")
-        ax2.annotate(f"{e['seconds_per_step'] * 1e6:.3g} µs, {e['final_error_vs_reference']:.2g}",
-                     (e["seconds_per_step"] * 1e6, e["final_error_vs_reference"]), textcoords="offset points",
-                     xytext=(8, 6), fontsize=8)
+        ax2.loglog(
+            [e["seconds_per_step"] * 1e6],
+            [e["final_error_vs_reference"]],
+            marker=marker,
+            ms=9,
+            ls="none",
+            label=f"{m}: {e['method']} (order {e['order']})",
+        )
+        ax2.annotate(
+            f"{e['seconds_per_step'] * 1e6:.3g} µs, {e['final_error_vs_reference']:.2g}",
+            (e["seconds_per_step"] * 1e6, e["final_error_vs_reference"]),
+            textcoords="offset points",
+            xytext=(8, 6),
+            fontsize=8,
+        )
     ax2.margins(0.25)
     from matplotlib.ticker import NullFormatter
 
@@ -555,13 +703,21 @@ def plot(summary: dict, path: Path) -> None:
     ax2.set_ylabel(f"error at T = {top['t_final']:g} ({top['reference']})")
     ax2.grid(True, which="both", alpha=0.3)
     ax2.legend(fontsize=7)
-    ax2.set_title(f"Heavy top, dt = {top['dt']}, {top['n_steps']} steps: default/left "
-                  f"{top['ratios']['default_over_left']:.2f}", fontsize=9)
+    ax2.set_title(
+        f"Heavy top, dt = {top['dt']}, {top['n_steps']} steps: default/left {top['ratios']['default_over_left']:.2f}",
+        fontsize=9,
+    )
 
     for i, r in enumerate(orders):  # markers and dashes tell apart curves that coincide
         hs, errs = np.array(r["hs"]) / r["h0"], np.array(r["errors"])
-        ax3.loglog(hs, errs, marker="os^vD<>p"[i % 8], ms=7 - (i % 2) * 3, ls="-" if i % 2 == 0 else "--",
-                   label=f"{r['model']} ({r['slope']:.2f})")
+        ax3.loglog(
+            hs,
+            errs,
+            marker="os^vD<>p"[i % 8],
+            ms=7 - (i % 2) * 3,
+            ls="-" if i % 2 == 0 else "--",
+            label=f"{r['model']} ({r['slope']:.2f})",
+        )
     guide = np.array([1 / 8, 1.0])
     top_err = max(max(r["errors"]) for r in orders)
     ax3.loglog(guide, 2 * top_err * guide**2, "k--", lw=1, label="slope 2")
@@ -584,9 +740,13 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(argv=None) -> dict | None:
     """Runs the three parts, prints the report, writes the JSON and the PNG; returns the summary."""
-    run = harness.Run(RESULTS_NAME, argv, description="Compile once per system and shapes, the heavy top's "
-                      "default against the left step, and the order of the default (see module docstring).",
-                      add_arguments=_add_arguments)
+    run = harness.Run(
+        RESULTS_NAME,
+        argv,
+        description="Compile once per system and shapes, the heavy top's "
+        "default against the left step, and the order of the default (see module docstring).",
+        add_arguments=_add_arguments,
+    )
     if run.args.scene:  # a child of part 1
         with harness.quick_mode(run.quick):
             print(json.dumps(child_calls(run.args.scene)))
@@ -598,15 +758,30 @@ def main(argv=None) -> dict | None:
         orders = measured_orders(run)
     summary = run.summary(
         config={
-            "part1": {"scenes": list(SCENES), "children_per_scene": len(scenes[0]["process_first_jit_s"]),
-                      "calls": [{"call": c, "n_steps": n, "dt": dt, "parameters": p} for c, n, dt, p in CALLS],
-                      "persistent_cache_in_children": False, "compile_event": BACKEND_COMPILE,
-                      "chunk_steps": CHUNK_STEPS},
-            "part2": {"inertia": list(TOP_INERTIA), "mass_gravity_length": TOP_MGL, "Q0": "so3_exp((0.5, 0, 0))",
-                      "xi0": [0.3, -0.2, 2.0], "dt": HT_DT, "n_steps": top["n_steps"],
-                      "methods": {m: kw for m, kw in HT_METHODS}, "reference": top["reference"]},
-            "part3": {"models": [r["model"] for r in orders], "divisors": list(ORDER_DIVISORS),
-                      "reference_divisor": ORDER_REFERENCE, "setups": "tests/test_defaults.py"},
+            "part1": {
+                "scenes": list(SCENES),
+                "children_per_scene": len(scenes[0]["process_first_jit_s"]),
+                "calls": [{"call": c, "n_steps": n, "dt": dt, "parameters": p} for c, n, dt, p in CALLS],
+                "persistent_cache_in_children": False,
+                "compile_event": BACKEND_COMPILE,
+                "chunk_steps": CHUNK_STEPS,
+            },
+            "part2": {
+                "inertia": list(TOP_INERTIA),
+                "mass_gravity_length": TOP_MGL,
+                "Q0": "so3_exp((0.5, 0, 0))",
+                "xi0": [0.3, -0.2, 2.0],
+                "dt": HT_DT,
+                "n_steps": top["n_steps"],
+                "methods": {m: kw for m, kw in HT_METHODS},
+                "reference": top["reference"],
+            },
+            "part3": {
+                "models": [r["model"] for r in orders],
+                "divisors": list(ORDER_DIVISORS),
+                "reference_divisor": ORDER_REFERENCE,
+                "setups": "tests/test_defaults.py",
+            },
         },
         results=scenes + [top] + orders,
         targets=verdicts(scenes, top, orders),

@@ -104,18 +104,27 @@ DT_TOP = 0.01
 SCENES = {
     "rigid_single": ("rigid body, reduced (Cayley), 1 plain call", {"n_steps": 1000}, {"n_steps": 10}),
     "rigid_vmap": ("rigid body, reduced, jit(vmap)", {"batch": 1000, "n_steps": 100}, {"batch": 4, "n_steps": 10}),
-    "rigid_batch": ("rigid body, reduced, jit(cj.batch), final state only", {"batch": 10_000, "n_steps": 100},
-                    {"batch": 6, "n_steps": 10, "chunk": 4}),
+    "rigid_batch": (
+        "rigid body, reduced, jit(cj.batch), final state only",
+        {"batch": 10_000, "n_steps": 100},
+        {"batch": 6, "n_steps": 10, "chunk": 4},
+    ),
     "rigid_full": ("rigid body, full march (reduce=False)", {"n_steps": 200}, {"n_steps": 10}),
     "rigid_order4": ("rigid body, order-4 composition, reduced", {"n_steps": 200}, {"n_steps": 5}),
     "top_midpoint": ("heavy top, midpoint (full)", {"n_steps": 200}, {"n_steps": 10}),
     "top_order2": ("heavy top, order=2 (reduced)", {"n_steps": 200}, {"n_steps": 10}),
     "vortices4_dense": ("4 vortices, midpoint, jacobian=dense", {"n_steps": 200}, {"n_steps": 10}),
     "vortices100_blocks": ("100 random vortices, jacobian=blocks", {"N": 100, "n_steps": 50}, {"N": 10, "n_steps": 5}),
-    "clusters_batch": ("4-vortex clusters, jit(cj.batch(chunk=64))", {"batch": 100, "n_steps": 100, "chunk": 64},
-                       {"batch": 6, "n_steps": 5, "chunk": 4}),
-    "gauss_rigid_vector": ("rigid_body_vector, Gauss order 8, dt 0.25, jit(vmap)", {"batch": 200, "n_steps": 200},
-                           {"batch": 3, "n_steps": 5}),
+    "clusters_batch": (
+        "4-vortex clusters, jit(cj.batch(chunk=64))",
+        {"batch": 100, "n_steps": 100, "chunk": 64},
+        {"batch": 6, "n_steps": 5, "chunk": 4},
+    ),
+    "gauss_rigid_vector": (
+        "rigid_body_vector, Gauss order 8, dt 0.25, jit(vmap)",
+        {"batch": 200, "n_steps": 200},
+        {"batch": 3, "n_steps": 5},
+    ),
     "gauss_vortices4": ("4 vortices, Gauss order 16, dt 0.5", {"n_steps": 100}, {"n_steps": 5}),
     "sweep": ("cj.sweep of rigid bodies", {"batch": 1000, "n_steps": 200}, {"batch": 4, "n_steps": 10}),
 }
@@ -149,10 +158,15 @@ def _solution_report(sol, batched: bool) -> tuple[dict, dict]:
     final = {k: _last(getattr(sol, k), batched) for k in ("Q", "p", "xi", "momentum") if getattr(sol, k) is not None}
     final["xi_step"] = _last(sol.xi_step, batched)
     iters = np.asarray(sol.stats.iterations, dtype=float)
-    facts = {"form": sol.form, "scheme": sol.scheme, "order": int(sol.order), "method": sol.method,
-             "all_valid": bool(np.all(np.asarray(sol.valid))),
-             "newton_updates_per_step": float(iters.mean()),
-             "newton_jacobians_per_step": float(np.mean(np.asarray(sol.stats.jacobians, dtype=float)))}
+    facts = {
+        "form": sol.form,
+        "scheme": sol.scheme,
+        "order": int(sol.order),
+        "method": sol.method,
+        "all_valid": bool(np.all(np.asarray(sol.valid))),
+        "newton_updates_per_step": float(iters.mean()),
+        "newton_jacobians_per_step": float(np.mean(np.asarray(sol.stats.jacobians, dtype=float))),
+    }
     return final, facts
 
 
@@ -169,8 +183,10 @@ def _build(name: str, compiler_options, *, n_steps, batch=None, chunk=None, N=No
     body = cj.models.rigid_body(inertia)
 
     def plain(system, Q0, xi0, dt, **kw):
-        return (lambda: jax.block_until_ready(cj.integrate(system, Q0, xi0, dt=dt, n_steps=n_steps, **kw)),
-                lambda sol: _solution_report(sol, batched=False))
+        return (
+            lambda: jax.block_until_ready(cj.integrate(system, Q0, xi0, dt=dt, n_steps=n_steps, **kw)),
+            lambda sol: _solution_report(sol, batched=False),
+        )
 
     if name in ("rigid_single", "rigid_full", "rigid_order4"):
         Q0, xi0 = rigid.initial_conditions(1)
@@ -185,15 +201,24 @@ def _build(name: str, compiler_options, *, n_steps, batch=None, chunk=None, N=No
 
         def final_only(q, x):
             sol = cj.integrate(body, q, x, dt=DT_RIGID, n_steps=n_steps, throw=False)
-            return {"Q": sol.Q[-1], "xi": sol.xi[-1], "momentum": sol.momentum[-1],
-                    "updates": jnp.mean(sol.stats.iterations.astype(float)), "valid": sol.valid[-1]}
+            return {
+                "Q": sol.Q[-1],
+                "xi": sol.xi[-1],
+                "momentum": sol.momentum[-1],
+                "updates": jnp.mean(sol.stats.iterations.astype(float)),
+                "valid": sol.valid[-1],
+            }
+
         kw = {} if chunk is None else {"chunk": chunk}
         march = jit(cj.batch(final_only, **kw))
 
         def report(out):
             out = {k: np.asarray(v) for k, v in out.items()}
-            return ({k: out[k] for k in ("Q", "xi", "momentum")},
-                    {"all_valid": bool(np.all(out["valid"])), "newton_updates_per_step": float(out["updates"].mean())})
+            return (
+                {k: out[k] for k in ("Q", "xi", "momentum")},
+                {"all_valid": bool(np.all(out["valid"])), "newton_updates_per_step": float(out["updates"].mean())},
+            )
+
         return lambda: jax.block_until_ready(march(Q0, xi0)), report
     if name in ("top_midpoint", "top_order2"):
         system = cj.models.heavy_top(jnp.array([1.0, 1.2, 0.5]), 1.7, (0.0, 0.6, 0.8))
@@ -209,17 +234,32 @@ def _build(name: str, compiler_options, *, n_steps, batch=None, chunk=None, N=No
         return plain(cj.models.point_vortices(G), Q0, cj.models.vortex_velocity(G, Q0), vortex.DT, jacobian="blocks")
     if name == "clusters_batch":
         G, Q0 = (jnp.asarray(a) for a in vortex.initial_conditions(4, batch))
-        march = jit(cj.batch(
-            lambda g, q: cj.integrate(cj.models.point_vortices(g), q, cj.models.vortex_velocity(g, q), dt=vortex.DT,
-                                      n_steps=n_steps, throw=False), chunk=chunk))
+        march = jit(
+            cj.batch(
+                lambda g, q: cj.integrate(
+                    cj.models.point_vortices(g),
+                    q,
+                    cj.models.vortex_velocity(g, q),
+                    dt=vortex.DT,
+                    n_steps=n_steps,
+                    throw=False,
+                ),
+                chunk=chunk,
+            )
+        )
         return lambda: jax.block_until_ready(march(G, Q0)), lambda sol: _solution_report(sol, batched=True)
     if name == "gauss_rigid_vector":
         system = cj.models.rigid_body_vector(inertia)
         _, xi0 = rigid.initial_conditions(batch)
         mu0 = jnp.asarray(xi0) * inertia  # unit body momenta
         Q0, P0 = jax.vmap(cj.models.rigid_body_vector_start)(mu0)
-        march = jit(jax.vmap(lambda q, p, m: cj.integrate(system, q, m / inertia, P0=p, dt=0.25, n_steps=n_steps,
-                                                          scheme="gauss", order=8, throw=False)))
+        march = jit(
+            jax.vmap(
+                lambda q, p, m: cj.integrate(
+                    system, q, m / inertia, P0=p, dt=0.25, n_steps=n_steps, scheme="gauss", order=8, throw=False
+                )
+            )
+        )
         return lambda: jax.block_until_ready(march(Q0, P0, mu0)), lambda sol: _solution_report(sol, batched=True)
     if name == "sweep":
         Q0, xi0 = (jnp.asarray(a) for a in rigid.initial_conditions(batch))
@@ -228,11 +268,19 @@ def _build(name: str, compiler_options, *, n_steps, batch=None, chunk=None, N=No
             return cj.sweep(cj.models.rigid_body, inertia[None], Q0, xi0, dt=DT_RIGID, n_steps=n_steps, grid=True)
 
         def report(res):
-            final = {k: np.asarray(getattr(res, f"final_{k}")) for k in ("Q", "xi", "momentum", "p")
-                     if getattr(res, f"final_{k}") is not None}
-            return final, {"form": res.form, "scheme": res.scheme, "all_valid": bool(np.all(res.status == 0)),
-                           "newton_updates_per_step": float(np.mean(res.newton_iterations)) / n_steps,
-                           "max_energy_error": float(np.max(res.energy_error))}
+            final = {
+                k: np.asarray(getattr(res, f"final_{k}"))
+                for k in ("Q", "xi", "momentum", "p")
+                if getattr(res, f"final_{k}") is not None
+            }
+            return final, {
+                "form": res.form,
+                "scheme": res.scheme,
+                "all_valid": bool(np.all(res.status == 0)),
+                "newton_updates_per_step": float(np.mean(res.newton_iterations)) / n_steps,
+                "max_energy_error": float(np.max(res.energy_error)),
+            }
+
         return call, report
     raise ValueError(f"unknown scene {name!r}")
 
@@ -241,7 +289,8 @@ def _compile_events() -> list:
     """JAX's durations of tracing, lowering and XLA compilation from now on (`jax.monitoring`)."""
     events = []
     jax.monitoring.register_event_duration_secs_listener(
-        lambda event, secs, **kw: events.append((event.rsplit("/", 1)[-1].removesuffix("_duration"), secs)))
+        lambda event, secs, **kw: events.append((event.rsplit("/", 1)[-1].removesuffix("_duration"), secs))
+    )
     return events
 
 
@@ -273,10 +322,18 @@ def worker_main(argv) -> None:
         jax.config.update(harness.QUICK_FLAG, True)
     compiler_options = harness.QUICK_COMPILER_OPTIONS if quick else None
     events = _compile_events()
-    reply({"engine": {**harness.git_revision(), "clebsch_jax_source_sha256": harness.source_digest(),
-                      "clebsch_jax": cj.__version__, "jax": jax.__version__,
-                      "jax_persistent_compilation_cache": bool(jax.config.values.get("jax_compilation_cache_dir")),
-                      "jax_disable_most_optimizations": bool(jax.config.values.get(harness.QUICK_FLAG))}})
+    reply(
+        {
+            "engine": {
+                **harness.git_revision(),
+                "clebsch_jax_source_sha256": harness.source_digest(),
+                "clebsch_jax": cj.__version__,
+                "jax": jax.__version__,
+                "jax_persistent_compilation_cache": bool(jax.config.values.get("jax_compilation_cache_dir")),
+                "jax_disable_most_optimizations": bool(jax.config.values.get(harness.QUICK_FLAG)),
+            }
+        }
+    )
     scenes = {}
     for line in sys.stdin:
         cmd = json.loads(line)
@@ -302,8 +359,14 @@ def worker_main(argv) -> None:
                     scenes[name] = call
                     final, facts = report(out)
                     np.savez(cmd["final_path"], **final)
-                    reply({"first_call_s": first, "second_call_s": second, "first_call_jax_events_s": first_events,
-                           "facts": facts})
+                    reply(
+                        {
+                            "first_call_s": first,
+                            "second_call_s": second,
+                            "first_call_jax_events_s": first_events,
+                            "facts": facts,
+                        }
+                    )
                 elif op == "sample":
                     wall, cpu = harness.sample(scenes[cmd["scene"]], cmd["number"])
                     reply({"wall_s": wall, "cpu_s": cpu})
@@ -335,8 +398,16 @@ class Worker:
         cmd = [sys.executable, str(Path(__file__).resolve()), WORKER_FLAG, "--timeout", str(run.timeout_s)]
         if run.quick:
             cmd.append("--quick")
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.log,
-                                     text=True, bufsize=1, env=env, cwd=str(REPO))
+        self.proc = subprocess.Popen(
+            cmd,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self.log,
+            text=True,
+            bufsize=1,
+            env=env,
+            cwd=str(REPO),
+        )
         self.engine = self._read()["engine"]
 
     def _read(self) -> dict:
@@ -347,8 +418,10 @@ class Worker:
         if not line:
             self.proc.kill()
             self.log.seek(0)
-            raise WorkerError(f"the {self.label} worker {'stopped' if ready else 'timed out'}; its log ends:\n"
-                              f"{self.log.read()[-4000:]}")
+            raise WorkerError(
+                f"the {self.label} worker {'stopped' if ready else 'timed out'}; its log ends:\n"
+                f"{self.log.read()[-4000:]}"
+            )
         msg = json.loads(line)
         if "error" in msg:
             raise WorkerError(f"the {self.label} worker: {msg['error']}")
@@ -378,8 +451,14 @@ def compare_final(old_path: Path, new_path: Path) -> dict:
     (NaN where both are NaN counts as equal)."""
     with np.load(old_path) as a, np.load(new_path) as b:
         if set(a.files) != set(b.files):
-            return {"same_arrays": False, "arrays_old": sorted(a.files), "arrays_new": sorted(b.files),
-                    "max_abs_diff": math.inf, "bit_identical": False, "per_array": {}}
+            return {
+                "same_arrays": False,
+                "arrays_old": sorted(a.files),
+                "arrays_new": sorted(b.files),
+                "max_abs_diff": math.inf,
+                "bit_identical": False,
+                "per_array": {},
+            }
         per, identical = {}, True
         for k in sorted(a.files):
             x, y = a[k], b[k]
@@ -392,8 +471,12 @@ def compare_final(old_path: Path, new_path: Path) -> dict:
             if np.isnan(per[k]):
                 per[k] = math.inf
             identical &= bool(np.array_equal(x, y, equal_nan=True))
-    return {"same_arrays": True, "max_abs_diff": max(per.values(), default=0.0), "bit_identical": identical,
-            "per_array": per}
+    return {
+        "same_arrays": True,
+        "max_abs_diff": max(per.values(), default=0.0),
+        "bit_identical": identical,
+        "per_array": per,
+    }
 
 
 def measure_scene(name: str, workers: dict, run: harness.Run, tmp: Path) -> dict:
@@ -401,8 +484,9 @@ def measure_scene(name: str, workers: dict, run: harness.Run, tmp: Path) -> dict
     description, sizes, quick_sizes = SCENES[name]
     sizes = quick_sizes if run.quick else sizes
     load_start = _load()
-    prepared = {e: workers[e].ask("prepare", scene=name, sizes=sizes, final_path=str(tmp / f"{name}-{e}.npz"))
-                for e in ENGINES}
+    prepared = {
+        e: workers[e].ask("prepare", scene=name, sizes=sizes, final_path=str(tmp / f"{name}-{e}.npz")) for e in ENGINES
+    }
     # one number of calls per sample for both engines, from the faster second call: a slow
     # warm-up call of one engine does not shrink its samples to a few calls that one slow
     # episode of the machine decides
@@ -422,10 +506,16 @@ def measure_scene(name: str, workers: dict, run: harness.Run, tmp: Path) -> dict
     row = {"scene": name, "description": description, "sizes": sizes}
     for e in ENGINES:
         p = prepared[e]
-        row[e] = {"per_call_s": statistics.median(wall[e]), "samples_s": wall[e], "calls_per_sample": number[e],
-                  "cpu_per_call_s": statistics.median(cpu[e]), "first_call_s": p["first_call_s"],
-                  "second_call_s": p["second_call_s"], "first_call_jax_events_s": p["first_call_jax_events_s"],
-                  **p["facts"]}
+        row[e] = {
+            "per_call_s": statistics.median(wall[e]),
+            "samples_s": wall[e],
+            "calls_per_sample": number[e],
+            "cpu_per_call_s": statistics.median(cpu[e]),
+            "first_call_s": p["first_call_s"],
+            "second_call_s": p["second_call_s"],
+            "first_call_jax_events_s": p["first_call_jax_events_s"],
+            **p["facts"],
+        }
     ratio = row["new"]["per_call_s"] / row["old"]["per_call_s"]
     row["ratio_new_over_old"] = ratio
     row["paired_ratio_new_over_old"] = harness.paired_ratios(wall["new"], wall["old"])
@@ -446,7 +536,7 @@ def measure_compile(roots: dict, run: harness.Run, tmp: Path) -> dict:
         sizes = SCENES[name][2] if run.quick else SCENES[name][1]
         samples = {e: [] for e in ENGINES}
         for r in range(1 if run.quick else run.repeats):
-            for e in (ENGINES if r % 2 == 0 else ENGINES[::-1]):
+            for e in ENGINES if r % 2 == 0 else ENGINES[::-1]:
                 w = Worker(e, roots[e], run, tmp)
                 try:
                     warm = w.ask("warmup")
@@ -454,18 +544,28 @@ def measure_compile(roots: dict, run: harness.Run, tmp: Path) -> dict:
                     p = w.ask("prepare", scene=name, sizes=sizes, final_path=str(tmp / f"compile-{name}-{e}.npz"))
                 finally:
                     w.close()
-                samples[e].append({"first_call_s": p["first_call_s"], "second_call_s": p["second_call_s"],
-                                   "compile_s": p["first_call_s"] - p["second_call_s"], "warmup_jit_s": warm["s"],
-                                   "jax_events_s": p["first_call_jax_events_s"], "load_average_1min": load,
-                                   "persistent_cache": w.engine["jax_persistent_compilation_cache"]})
+                samples[e].append(
+                    {
+                        "first_call_s": p["first_call_s"],
+                        "second_call_s": p["second_call_s"],
+                        "compile_s": p["first_call_s"] - p["second_call_s"],
+                        "warmup_jit_s": warm["s"],
+                        "jax_events_s": p["first_call_jax_events_s"],
+                        "load_average_1min": load,
+                        "persistent_cache": w.engine["jax_persistent_compilation_cache"],
+                    }
+                )
         entry = {"description": SCENES[name][0], "sizes": sizes}
         for e in ENGINES:
-            entry[e] = {"compile_s": statistics.median(s["compile_s"] for s in samples[e]),
-                        "first_call_s": statistics.median(s["first_call_s"] for s in samples[e]),
-                        "samples": samples[e]}
+            entry[e] = {
+                "compile_s": statistics.median(s["compile_s"] for s in samples[e]),
+                "first_call_s": statistics.median(s["first_call_s"] for s in samples[e]),
+                "samples": samples[e],
+            }
         entry["ratio_new_over_old"] = entry["new"]["compile_s"] / entry["old"]["compile_s"]
         entry["paired_ratio_new_over_old"] = harness.paired_ratios(
-            [s["compile_s"] for s in samples["new"]], [s["compile_s"] for s in samples["old"]])
+            [s["compile_s"] for s in samples["new"]], [s["compile_s"] for s in samples["old"]]
+        )
         entry["slower_than_threshold"] = entry["ratio_new_over_old"] > THRESHOLD
         out["programs"][name] = entry
     return out
@@ -491,13 +591,17 @@ def print_report(summary: dict) -> None:
     cfg, eng = summary["config"], summary["engines"]
     old, new = ((eng[e]["git_commit"] or "?")[:9] + ("+dirty" if eng[e]["git_dirty"] else "") for e in ENGINES)
     harness.print_header(
-        summary, f"Engine regression, old = {old}, new = {new}"
+        summary,
+        f"Engine regression, old = {old}, new = {new}"
         + (" (A/A: the same checkout twice; the ratios show the noise)" if cfg["baseline_is_this_checkout"] else ""),
         "old and new in separate worker processes, sampled in turn (the first alternating); time per call in ms;\n"
         f"new/old: ratio of the medians, flagged SLOWER above {THRESHOLD:.2f}; paired: median [min-max] of the "
-        "per-round ratios;\nsame result: max |new - old| of the final state; updates: Newton updates per step old/new.")
-    head = (f"{'scene':<20}{'old':>10}{'new':>10}{'new/old':>9}  {'paired [min-max]':<22}{'same result':<18}"
-            f"{'updates':<14}{'load':>10}")
+        "per-round ratios;\nsame result: max |new - old| of the final state; updates: Newton updates per step old/new.",
+    )
+    head = (
+        f"{'scene':<20}{'old':>10}{'new':>10}{'new/old':>9}  {'paired [min-max]':<22}{'same result':<18}"
+        f"{'updates':<14}{'load':>10}"
+    )
     lines = []
     for r in summary["results"]:
         p = r["paired_ratio_new_over_old"]
@@ -505,30 +609,42 @@ def print_report(summary: dict) -> None:
         upd = "-" if None in u else (f"{u[0]:.3g}" if r["same_newton_work"] else f"{u[0]:.3g}/{u[1]:.3g}")
         loads = r["load_average_1min_per_round"]
         flag = "  SLOWER" if r["slower_than_threshold"] else ""
-        lines.append(f"{r['scene']:<20}{_ms(r['old']['per_call_s']):>10}{_ms(r['new']['per_call_s']):>10}"
-                     f"{r['ratio_new_over_old']:>9.3f}  {p['median']:.3f} [{p['min']:.3f}-{p['max']:.3f}]".ljust(71)
-                     + f"{_same(r['same_result']):<18}{upd:<14}{min(loads):>4.1f}-{max(loads):<4.1f}{flag}")
+        lines.append(
+            f"{r['scene']:<20}{_ms(r['old']['per_call_s']):>10}{_ms(r['new']['per_call_s']):>10}"
+            f"{r['ratio_new_over_old']:>9.3f}  {p['median']:.3f} [{p['min']:.3f}-{p['max']:.3f}]".ljust(71)
+            + f"{_same(r['same_result']):<18}{upd:<14}{min(loads):>4.1f}-{max(loads):<4.1f}{flag}"
+        )
     print()
     harness.print_table(head, lines)
     comp = summary.get("compile")
     if comp:
-        print("\nCompile time [s], first call minus second call in a fresh worker (no persistent cache), median over "
-              "rounds:")
+        print(
+            "\nCompile time [s], first call minus second call in a fresh worker (no persistent cache), median over "
+            "rounds:"
+        )
         harness.print_table(
             f"{'program':<20}{'old':>8}{'new':>8}{'new/old':>9}  {'paired [min-max]':<22}{'first call old/new':>20}",
-            (f"{n:<20}{c['old']['compile_s']:>8.2f}{c['new']['compile_s']:>8.2f}{c['ratio_new_over_old']:>9.3f}  "
-             f"{c['paired_ratio_new_over_old']['median']:.3f} [{c['paired_ratio_new_over_old']['min']:.3f}-"
-             f"{c['paired_ratio_new_over_old']['max']:.3f}]".ljust(61)
-             + f"{c['old']['first_call_s']:>9.2f} / {c['new']['first_call_s']:.2f}"
-             + ("  SLOWER" if c["slower_than_threshold"] else "")
-             for n, c in comp["programs"].items()))
+            (
+                f"{n:<20}{c['old']['compile_s']:>8.2f}{c['new']['compile_s']:>8.2f}{c['ratio_new_over_old']:>9.3f}  "
+                f"{c['paired_ratio_new_over_old']['median']:.3f} [{c['paired_ratio_new_over_old']['min']:.3f}-"
+                f"{c['paired_ratio_new_over_old']['max']:.3f}]".ljust(61)
+                + f"{c['old']['first_call_s']:>9.2f} / {c['new']['first_call_s']:.2f}"
+                + ("  SLOWER" if c["slower_than_threshold"] else "")
+                for n, c in comp["programs"].items()
+            ),
+        )
     slower = [r["scene"] for r in summary["results"] if r["slower_than_threshold"]]
     if comp:
         slower += [f"compile {n}" for n, c in comp["programs"].items() if c["slower_than_threshold"]]
-    differ = [r["scene"] for r in summary["results"]
-              if not (r["same_result"]["same_arrays"] and r["same_result"]["max_abs_diff"] <= SAME_TOLERANCE)]
-    print(f"\nSlower than {THRESHOLD:.2f}x: {', '.join(slower) if slower else 'none'}. "
-          f"Results differing by more than {SAME_TOLERANCE:g}: {', '.join(differ) if differ else 'none'}.")
+    differ = [
+        r["scene"]
+        for r in summary["results"]
+        if not (r["same_result"]["same_arrays"] and r["same_result"]["max_abs_diff"] <= SAME_TOLERANCE)
+    ]
+    print(
+        f"\nSlower than {THRESHOLD:.2f}x: {', '.join(slower) if slower else 'none'}. "
+        f"Results differing by more than {SAME_TOLERANCE:g}: {', '.join(differ) if differ else 'none'}."
+    )
 
 
 def plot(summary: dict, path: Path) -> None:
@@ -541,8 +657,9 @@ def plot(summary: dict, path: Path) -> None:
     hi = np.array([r["paired_ratio_new_over_old"]["max"] for r in rows])
     colors = ["#d62728" if r["slower_than_threshold"] else "#1f77b4" for r in rows]
     ax.barh(y, ratio - 1.0, left=1.0, color=colors, alpha=0.7)
-    ax.errorbar(ratio, y, xerr=[np.maximum(ratio - lo, 0), np.maximum(hi - ratio, 0)], fmt="none", ecolor="0.2",
-                capsize=3)
+    ax.errorbar(
+        ratio, y, xerr=[np.maximum(ratio - lo, 0), np.maximum(hi - ratio, 0)], fmt="none", ecolor="0.2", capsize=3
+    )
     ax.axvline(1.0, color="0.3", lw=0.8)
     ax.axvline(THRESHOLD, color="#d62728", ls=":", label=f"limit {THRESHOLD:.2f}")
     ax.set_yticks(y, names)
@@ -559,8 +676,14 @@ def plot(summary: dict, path: Path) -> None:
     else:
         bx.set_axis_off()
     eng = summary["engines"]
-    fig.suptitle(harness.plot_title(summary, f"Engine regression, old {(eng['old']['git_commit'] or '?')[:9]} vs "
-                                             f"new {(eng['new']['git_commit'] or '?')[:9]}"), fontsize=10)
+    fig.suptitle(
+        harness.plot_title(
+            summary,
+            f"Engine regression, old {(eng['old']['git_commit'] or '?')[:9]} vs "
+            f"new {(eng['new']['git_commit'] or '?')[:9]}",
+        ),
+        fontsize=10,
+    )
     fig.savefig(path, dpi=110)
 
 
@@ -568,21 +691,32 @@ def plot(summary: dict, path: Path) -> None:
 
 
 def _add_arguments(parser) -> None:
-    parser.add_argument("--baseline", type=Path, default=None,
-                        help="checkout of the engine to compare against (e.g. made with git worktree add); "
-                             "default: this checkout (an A/A run, which measures the noise)")
-    parser.add_argument("--scenes", default=None,
-                        help=f"comma-separated scenes to run (default: all; '{COMPILE}' is the compile-time scene): "
-                             + ", ".join((*SCENES, COMPILE)))
+    parser.add_argument(
+        "--baseline",
+        type=Path,
+        default=None,
+        help="checkout of the engine to compare against (e.g. made with git worktree add); "
+        "default: this checkout (an A/A run, which measures the noise)",
+    )
+    parser.add_argument(
+        "--scenes",
+        default=None,
+        help=f"comma-separated scenes to run (default: all; '{COMPILE}' is the compile-time scene): "
+        + ", ".join((*SCENES, COMPILE)),
+    )
 
 
 def main(argv=None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--quick" not in argv and not any(a.startswith("--repeats") for a in argv):
         argv += ["--repeats", str(DEFAULT_REPEATS)]
-    run = harness.Run(RESULTS_NAME, argv, add_arguments=_add_arguments,
-                      description="Time the same public-API calls on two engines (old: --baseline, new: this "
-                                  "checkout), interleaved; flag any scene slower by more than 10 %.")
+    run = harness.Run(
+        RESULTS_NAME,
+        argv,
+        add_arguments=_add_arguments,
+        description="Time the same public-API calls on two engines (old: --baseline, new: this "
+        "checkout), interleaved; flag any scene slower by more than 10 %.",
+    )
     baseline = (run.args.baseline or REPO).resolve()
     if not (baseline / "clebsch_jax" / "__init__.py").is_file():
         raise SystemExit(f"--baseline: no clebsch_jax package in {run.args.baseline}")
@@ -599,8 +733,12 @@ def main(argv=None) -> dict:
         try:
             for e in ENGINES:
                 workers[e] = Worker(e, roots[e], run, tmp)
-            rows = run.measure([(s,) for s in names if s != COMPILE], [(s,) for s in names if s != COMPILE],
-                               lambda s: f"{s} ({SCENES[s][0]})", lambda s: measure_scene(s, workers, run, tmp))
+            rows = run.measure(
+                [(s,) for s in names if s != COMPILE],
+                [(s,) for s in names if s != COMPILE],
+                lambda s: f"{s} ({SCENES[s][0]})",
+                lambda s: measure_scene(s, workers, run, tmp),
+            )
         finally:
             for w in workers.values():
                 w.close()
@@ -610,11 +748,18 @@ def main(argv=None) -> dict:
                 compile_row = measure_compile(roots, run, tmp)
     engines = {e: workers[e].engine for e in ENGINES}
     summary = run.summary(
-        config={"threshold_new_over_old": THRESHOLD, "same_result_tolerance": SAME_TOLERANCE,
-                "baseline_is_this_checkout": baseline == REPO, "scenes": names,
-                "sizes": {s: SCENES[s][2 if run.quick else 1] for s in names if s != COMPILE},
-                "dt": {"rigid": DT_RIGID, "heavy_top": DT_TOP}},
-        results=rows, engines=engines, compile=compile_row)
+        config={
+            "threshold_new_over_old": THRESHOLD,
+            "same_result_tolerance": SAME_TOLERANCE,
+            "baseline_is_this_checkout": baseline == REPO,
+            "scenes": names,
+            "sizes": {s: SCENES[s][2 if run.quick else 1] for s in names if s != COMPILE},
+            "dt": {"rigid": DT_RIGID, "heavy_top": DT_TOP},
+        },
+        results=rows,
+        engines=engines,
+        compile=compile_row,
+    )
     return run.finish(summary, print_report, plot)
 
 

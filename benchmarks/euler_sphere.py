@@ -173,12 +173,17 @@ def run_case(N: int, n_steps: int, run: harness.Run) -> dict:
     W_numpy, numpy_sweeps = outs["numpy"]
     per_step = {name: t["per_call_s"] / n_steps for name, t in timings.items()}
     spectra = np.linalg.eigvalsh(1j * np.stack([W0, W_ours]))
-    return {"N": N, "n_steps": n_steps, "timings": timings, "seconds_per_step": per_step,
-            "ours_over_numpy": per_step["ours"] / per_step["numpy"],
-            "sweeps_per_step": {"ours": float(np.mean(np.asarray(sol.stats.iterations))), "numpy": numpy_sweeps},
-            "max_difference_of_final_W": float(np.max(np.abs(W_ours - W_numpy))),
-            "max_abs_W": float(np.max(np.abs(W0))),
-            "spectrum_change_ours": float(np.max(np.abs(spectra[1] - spectra[0])))}
+    return {
+        "N": N,
+        "n_steps": n_steps,
+        "timings": timings,
+        "seconds_per_step": per_step,
+        "ours_over_numpy": per_step["ours"] / per_step["numpy"],
+        "sweeps_per_step": {"ours": float(np.mean(np.asarray(sol.stats.iterations))), "numpy": numpy_sweeps},
+        "max_difference_of_final_W": float(np.max(np.abs(W_ours - W_numpy))),
+        "max_abs_W": float(np.max(np.abs(W0))),
+        "spectrum_change_ours": float(np.max(np.abs(spectra[1] - spectra[0]))),
+    }
 
 
 def _slope(rows, key):
@@ -188,15 +193,23 @@ def _slope(rows, key):
 
 
 def print_report(summary: dict) -> None:
-    harness.print_header(summary, "Euler-Zeitlin: seconds per step",
-                         "ours: integrate(euler_sphere(N)) under jit; numpy: the isospectral midpoint in NumPy "
-                         "(complex BLAS), an independent implementation (quflow is not installed here).")
-    head = (f"{'N':>5}{'steps':>7}{'ours s/step':>14}{'numpy s/step':>14}{'ratio':>8}{'sweeps':>8}"
-            f"{'numpy sw.':>10}{'|dW|':>10}")
-    lines = [f"{r['N']:>5}{r['n_steps']:>7}{r['seconds_per_step']['ours']:>14.4g}"
-             f"{r['seconds_per_step']['numpy']:>14.4g}{r['ours_over_numpy']:>8.3f}"
-             f"{r['sweeps_per_step']['ours']:>8.2f}{r['sweeps_per_step']['numpy']:>10.2f}"
-             f"{r['max_difference_of_final_W']:>10.1e}" for r in summary["results"]]
+    harness.print_header(
+        summary,
+        "Euler-Zeitlin: seconds per step",
+        "ours: integrate(euler_sphere(N)) under jit; numpy: the isospectral midpoint in NumPy "
+        "(complex BLAS), an independent implementation (quflow is not installed here).",
+    )
+    head = (
+        f"{'N':>5}{'steps':>7}{'ours s/step':>14}{'numpy s/step':>14}{'ratio':>8}{'sweeps':>8}"
+        f"{'numpy sw.':>10}{'|dW|':>10}"
+    )
+    lines = [
+        f"{r['N']:>5}{r['n_steps']:>7}{r['seconds_per_step']['ours']:>14.4g}"
+        f"{r['seconds_per_step']['numpy']:>14.4g}{r['ours_over_numpy']:>8.3f}"
+        f"{r['sweeps_per_step']['ours']:>8.2f}{r['sweeps_per_step']['numpy']:>10.2f}"
+        f"{r['max_difference_of_final_W']:>10.1e}"
+        for r in summary["results"]
+    ]
     harness.print_table(head, lines)
     print(f"cost growth (log-log slope in N): ours {summary['slopes']['ours']}, numpy {summary['slopes']['numpy']}")
 
@@ -206,8 +219,12 @@ def plot(summary: dict, path: Path) -> None:
     rows = summary["results"]
     N = np.array([r["N"] for r in rows])
     for key, marker in (("ours", "o-"), ("numpy", "s--")):
-        ax.loglog(N, [r["seconds_per_step"][key] for r in rows], marker, label=f"{key} (slope {summary['slopes'][key]:.2f})"
-                  if summary["slopes"][key] is not None else key)
+        ax.loglog(
+            N,
+            [r["seconds_per_step"][key] for r in rows],
+            marker,
+            label=f"{key} (slope {summary['slopes'][key]:.2f})" if summary["slopes"][key] is not None else key,
+        )
     ref = rows[-1]["seconds_per_step"]["ours"] * (N / N[-1]) ** 3.0
     ax.loglog(N, ref, ":", color="0.5", label="N^3")
     ax.set_xlabel("N")
@@ -223,15 +240,23 @@ def _describe(N, n_steps) -> str:
 
 def main(argv=None) -> dict:
     """Run the benchmark: the cases, the report, the JSON and the PNG; returns the summary."""
-    with harness.Run(RESULTS_NAME, argv, description="Time per step of the Euler-Zeitlin fluid (see module "
-                     "docstring).") as run:
+    with harness.Run(
+        RESULTS_NAME, argv, description="Time per step of the Euler-Zeitlin fluid (see module docstring)."
+    ) as run:
         results = run.measure(DEFAULT_CASES, QUICK_CASES, _describe, lambda *case: run_case(*case, run))
     threads = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-    summary = run.summary(config={"dt": DT, "peak_degree": PEAK, "blas_thread_variables": threads,
-                                  "cases": [{"N": N, "n_steps": n} for N, n in run.cases],
-                                  "anchor_code": "quflow (Modin & Viviani) is not installed here: not run; the "
-                                                 "peer is an independent NumPy implementation of the same scheme"},
-                          results=results, slopes={"ours": _slope(results, "ours"), "numpy": _slope(results, "numpy")})
+    summary = run.summary(
+        config={
+            "dt": DT,
+            "peak_degree": PEAK,
+            "blas_thread_variables": threads,
+            "cases": [{"N": N, "n_steps": n} for N, n in run.cases],
+            "anchor_code": "quflow (Modin & Viviani) is not installed here: not run; the "
+            "peer is an independent NumPy implementation of the same scheme",
+        },
+        results=results,
+        slopes={"ours": _slope(results, "ours"), "numpy": _slope(results, "numpy")},
+    )
     return run.finish(summary, print_report, plot)
 
 

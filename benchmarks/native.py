@@ -53,15 +53,23 @@ VORTEX_DEFAULT = ((4, 1000, 100), (10, 1000, 50))
 VORTEX_QUICK = ((4, 8, 5),)
 COMPILE_CASE = (10_000, 200)
 COMPILE_QUICK = (16, 10)
-TARGETS = {"sweep_over_c_from_1e4": 0.5, "sweep_over_c_at_1e3": 0.3, "sweep_over_hand": 1.5, "compile_cold_s": 1.5,
-           "compile_cached_s": 0.2, "two_threads_over_one": 1.8, "vortex_step_over_rk4_step": 0.5}
+TARGETS = {
+    "sweep_over_c_from_1e4": 0.5,
+    "sweep_over_c_at_1e3": 0.3,
+    "sweep_over_hand": 1.5,
+    "compile_cold_s": 1.5,
+    "compile_cached_s": 0.2,
+    "two_threads_over_one": 1.8,
+    "vortex_step_over_rk4_step": 0.5,
+}
 INERTIA = throughput.SWEEP_INERTIA
 C_SIMD, HAND, RK4 = throughput.C_SIMD, throughput.HAND_ROWS, throughput.RK4
 
 
 def _sweep(inertias, Q0, omega0, n_steps, **extra):
-    return lambda: cj.sweep(models.rigid_body, inertias, Q0, omega0, dt=rigid.DT, n_steps=n_steps,
-                            reconstruct=False, **extra)
+    return lambda: cj.sweep(
+        models.rigid_body, inertias, Q0, omega0, dt=rigid.DT, n_steps=n_steps, reconstruct=False, **extra
+    )
 
 
 def rigid_case(batch: int, n_steps: int, run: harness.Run) -> dict:
@@ -71,10 +79,12 @@ def rigid_case(batch: int, n_steps: int, run: harness.Run) -> dict:
     Q0 = np.broadcast_to(np.eye(3), (batch, 3, 3))
     hand = throughput.hand_rows_march(inertia, rigid.DT, n_steps)
     xi0 = jnp.asarray(omega0)
-    calls = {"sweep": _sweep(inertias, Q0, omega0, n_steps), "sweep_xla": _sweep(inertias, Q0, omega0, n_steps,
-                                                                                 backend="xla"),
-             HAND: lambda: jax.block_until_ready(hand(xi0)),
-             RK4: lambda: throughput.rk4_euler_final(inertia, omega0, rigid.DT, n_steps)}
+    calls = {
+        "sweep": _sweep(inertias, Q0, omega0, n_steps),
+        "sweep_xla": _sweep(inertias, Q0, omega0, n_steps, backend="xla"),
+        HAND: lambda: jax.block_until_ready(hand(xi0)),
+        RK4: lambda: throughput.rk4_euler_final(inertia, omega0, rigid.DT, n_steps),
+    }
     c_march, c_flags = throughput.c_kernel()
     if c_march is not None:
         calls[C_SIMD] = lambda: c_march(inertia, rigid.DT, n_steps, omega0)
@@ -89,14 +99,18 @@ def rigid_case(batch: int, n_steps: int, run: harness.Run) -> dict:
         row[m]["max_energy_error"] = float(np.max(res.energy_error))
         row[m]["max_abs_final_momentum_diff_vs_hand"] = float(np.max(np.abs(res.final_momentum - mu_hand)))
     row["sweep"]["max_abs_final_momentum_diff_vs_xla"] = float(
-        np.max(np.abs(outs["sweep"].final_momentum - outs["sweep_xla"].final_momentum)))
+        np.max(np.abs(outs["sweep"].final_momentum - outs["sweep_xla"].final_momentum))
+    )
     row[HAND]["max_energy_error"] = float(np.max(np.asarray(outs[HAND][1])))
     row[RK4]["max_energy_error"] = float(np.max(outs[RK4][1]))
     if C_SIMD in calls:
         row[C_SIMD]["max_energy_error"] = float(np.max(outs[C_SIMD][1]))
     rate = {m: row[m]["body_steps_per_second"] for m in calls}
-    row["ratios"] = {f"sweep_over_{k}": rate["sweep"] / rate[m] for k, m in
-                     (("xla", "sweep_xla"), ("hand", HAND), ("numpy_rk4", RK4), ("c", C_SIMD)) if m in rate}
+    row["ratios"] = {
+        f"sweep_over_{k}": rate["sweep"] / rate[m]
+        for k, m in (("xla", "sweep_xla"), ("hand", HAND), ("numpy_rk4", RK4), ("c", C_SIMD))
+        if m in rate
+    }
     return row
 
 
@@ -136,8 +150,13 @@ def compile_case(batch: int, n_steps: int, run: harness.Run) -> dict:
         env = {**os.environ, "CLEBSCH_JAX_NATIVE_CACHE": cache}
         for label in ("cold", "cached"):
             with run.guard(f"compile child ({label})"):
-                out = subprocess.run([sys.executable, "-c", _CHILD, str(batch), str(n_steps)], env=env,
-                                     capture_output=True, text=True, check=True)
+                out = subprocess.run(
+                    [sys.executable, "-c", _CHILD, str(batch), str(n_steps)],
+                    env=env,
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                )
             t = json.loads(out.stdout.strip().splitlines()[-1])
             row[label] = {**t, "compile_s": t["first_call_s"] - t["second_call_s"]}
     return row
@@ -146,10 +165,11 @@ def compile_case(batch: int, n_steps: int, run: harness.Run) -> dict:
 def vortex_case(N: int, batch: int, n_steps: int, run: harness.Run) -> dict:
     G, Q0 = vortex.initial_conditions(N, batch)
     xi0 = np.asarray(jax.vmap(models.vortex_velocity)(jnp.asarray(G), jnp.asarray(Q0)))
-    calls = {"sweep": lambda: cj.sweep(models.point_vortices, G, Q0, xi0, dt=vortex.DT, n_steps=n_steps),
-             "sweep_xla": lambda: cj.sweep(models.point_vortices, G, Q0, xi0, dt=vortex.DT, n_steps=n_steps,
-                                           backend="xla"),
-             RK4: lambda: vortex.rk4_march(G, Q0, vortex.DT, n_steps)}
+    calls = {
+        "sweep": lambda: cj.sweep(models.point_vortices, G, Q0, xi0, dt=vortex.DT, n_steps=n_steps),
+        "sweep_xla": lambda: cj.sweep(models.point_vortices, G, Q0, xi0, dt=vortex.DT, n_steps=n_steps, backend="xla"),
+        RK4: lambda: vortex.rk4_march(G, Q0, vortex.DT, n_steps),
+    }
     timings, outs = run.time(calls, what=f"vortex clusters N={N} B={batch}", repeats=run.repeats or 3)
     row = {"part": "vortices", "N": N, "batch": batch, "n_steps": n_steps}
     for m in calls:
@@ -159,60 +179,83 @@ def vortex_case(N: int, batch: int, n_steps: int, run: harness.Run) -> dict:
         res = outs[m]
         row[m]["failed_members"] = int(np.sum(res.status != 0))
         row[m]["max_energy_error"] = float(np.nanmax(res.energy_error))
-    row["step_over_rk4_step"] = {m: row[m]["seconds_per_step"] / row[RK4]["seconds_per_step"]
-                                 for m in ("sweep", "sweep_xla")}
+    row["step_over_rk4_step"] = {
+        m: row[m]["seconds_per_step"] / row[RK4]["seconds_per_step"] for m in ("sweep", "sweep_xla")
+    }
     return row
 
 
 def print_report(summary: dict) -> None:
-    harness.print_header(summary, "Native kernels",
-                         f"Free rigid body {INERTIA}, reduced CAY march (reconstruct=False), dt = {rigid.DT}; "
-                         "the sweep keeps final states and energy errors only.")
+    harness.print_header(
+        summary,
+        "Native kernels",
+        f"Free rigid body {INERTIA}, reduced CAY march (reconstruct=False), dt = {rigid.DT}; "
+        "the sweep keeps final states and energy errors only.",
+    )
     rows = [r for r in summary["results"] if r["part"] == "sweep"]
     names = [m for m in ("sweep", "sweep_xla", HAND, C_SIMD, RK4) if rows and m in rows[0]]
     print("\nM body-steps/s (compile s):")
     harness.print_table(
         f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>22}" for m in names) + " | sweep/C | sweep/hand | sweep/xla",
-        (f"{r['batch']:>8}{r['n_steps']:>6} |"
-         + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>14.3g} ({r[m]['compile_s']:5.2f})" for m in names)
-         + f" | {r['ratios'].get('sweep_over_c', float('nan')):7.3g} | {r['ratios']['sweep_over_hand']:10.3g}"
-         f" | {r['ratios']['sweep_over_xla']:9.3g}" for r in rows))
-    print("max energy error: " + "; ".join(
-        f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows))
-    print("native vs XLA sweep, max |final momentum difference|: " + "; ".join(
-        f"B={r['batch']}: {r['sweep']['max_abs_final_momentum_diff_vs_xla']:.1e}" for r in rows))
+        (
+            f"{r['batch']:>8}{r['n_steps']:>6} |"
+            + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>14.3g} ({r[m]['compile_s']:5.2f})" for m in names)
+            + f" | {r['ratios'].get('sweep_over_c', float('nan')):7.3g} | {r['ratios']['sweep_over_hand']:10.3g}"
+            f" | {r['ratios']['sweep_over_xla']:9.3g}"
+            for r in rows
+        ),
+    )
+    print(
+        "max energy error: "
+        + "; ".join(f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows)
+    )
+    print(
+        "native vs XLA sweep, max |final momentum difference|: "
+        + "; ".join(f"B={r['batch']}: {r['sweep']['max_abs_final_momentum_diff_vs_xla']:.1e}" for r in rows)
+    )
     for r in (r for r in summary["results"] if r["part"] == "threads"):
-        print(f"\nThreads (B={r['batch']}): 1 thread {r['threads=1']['body_steps_per_second'] / 1e6:.3g}, "
-              f"2 threads {r['threads=2']['body_steps_per_second'] / 1e6:.3g} M body-steps/s: "
-              f"2/1 = {r['two_over_one']:.3g}")
+        print(
+            f"\nThreads (B={r['batch']}): 1 thread {r['threads=1']['body_steps_per_second'] / 1e6:.3g}, "
+            f"2 threads {r['threads=2']['body_steps_per_second'] / 1e6:.3g} M body-steps/s: "
+            f"2/1 = {r['two_over_one']:.3g}"
+        )
     for r in (r for r in summary["results"] if r["part"] == "compile"):
-        print(f"\nCompile (fresh process, B={r['batch']} x {r['n_steps']}): cold {r['cold']['compile_s']:.2f} s, "
-              f"from the disk cache {r['cached']['compile_s']:.2f} s (first calls {r['cold']['first_call_s']:.2f} / "
-              f"{r['cached']['first_call_s']:.2f} s)")
+        print(
+            f"\nCompile (fresh process, B={r['batch']} x {r['n_steps']}): cold {r['cold']['compile_s']:.2f} s, "
+            f"from the disk cache {r['cached']['compile_s']:.2f} s (first calls {r['cold']['first_call_s']:.2f} / "
+            f"{r['cached']['first_call_s']:.2f} s)"
+        )
     vrows = [r for r in summary["results"] if r["part"] == "vortices"]
     if vrows:
         print("\nVortex clusters, ms per step of the batch (compile s):")
         harness.print_table(
             f"{'N':>4}{'B':>7}{'steps':>6} |{'sweep':>18}{'sweep_xla':>18}{'RK4':>9} | sweep/RK4 | xla/RK4",
-            (f"{r['N']:>4}{r['batch']:>7}{r['n_steps']:>6} |"
-             f"{r['sweep']['seconds_per_step'] * 1e3:>10.3g} ({r['sweep']['compile_s']:4.1f})"
-             f"{r['sweep_xla']['seconds_per_step'] * 1e3:>10.3g} ({r['sweep_xla']['compile_s']:4.1f})"
-             f"{r[RK4]['seconds_per_step'] * 1e3:>9.3g} | {r['step_over_rk4_step']['sweep']:9.3g} | "
-             f"{r['step_over_rk4_step']['sweep_xla']:7.3g}" for r in vrows))
+            (
+                f"{r['N']:>4}{r['batch']:>7}{r['n_steps']:>6} |"
+                f"{r['sweep']['seconds_per_step'] * 1e3:>10.3g} ({r['sweep']['compile_s']:4.1f})"
+                f"{r['sweep_xla']['seconds_per_step'] * 1e3:>10.3g} ({r['sweep_xla']['compile_s']:4.1f})"
+                f"{r[RK4]['seconds_per_step'] * 1e3:>9.3g} | {r['step_over_rk4_step']['sweep']:9.3g} | "
+                f"{r['step_over_rk4_step']['sweep_xla']:7.3g}"
+                for r in vrows
+            ),
+        )
     t = TARGETS
-    print(f"\nTargets (reported, never asserted): sweep >= {t['sweep_over_c_from_1e4']}x C from B=1e4, "
-          f">= {t['sweep_over_c_at_1e3']}x at 1e3, >= {t['sweep_over_hand']}x the hand JAX kernel; cold compile <= "
-          f"{t['compile_cold_s']} s, cached <= {t['compile_cached_s']} s; "
-          f"2 threads >= {t['two_threads_over_one']}x one; "
-          f"a vortex-cluster step <= {t['vortex_step_over_rk4_step']}x an RK4 step.")
+    print(
+        f"\nTargets (reported, never asserted): sweep >= {t['sweep_over_c_from_1e4']}x C from B=1e4, "
+        f">= {t['sweep_over_c_at_1e3']}x at 1e3, >= {t['sweep_over_hand']}x the hand JAX kernel; cold compile <= "
+        f"{t['compile_cold_s']} s, cached <= {t['compile_cached_s']} s; "
+        f"2 threads >= {t['two_threads_over_one']}x one; "
+        f"a vortex-cluster step <= {t['vortex_step_over_rk4_step']}x an RK4 step."
+    )
 
 
 def plot(summary: dict, path: Path) -> None:
     fig, (ax, bx) = harness.figure((1, 1), size=(11, 4.4))
     styles = {"sweep": ("o", "C2"), "sweep_xla": ("*", "C3"), HAND: ("^", "C7"), C_SIMD: ("x", "k"), RK4: ("s", "C1")}
     for m, (marker, color) in styles.items():
-        pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"]
-               if r["part"] == "sweep" and m in r]
+        pts = [
+            (r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"] if r["part"] == "sweep" and m in r
+        ]
         if pts:
             ax.loglog(*zip(*pts), marker=marker, color=color, label=m)
     ax.set_xlabel("batch size B (bodies)")
@@ -239,20 +282,32 @@ def _add_arguments(parser) -> None:
 
 def main(argv=None) -> dict:
     argv = sys.argv[1:] if argv is None else argv
-    run = harness.Run(RESULTS_NAME, argv, description="Native kernels against the hand JAX and C kernels, "
-                      "XLA's sweep and NumPy RK4 (see module docstring).", add_arguments=_add_arguments)
+    run = harness.Run(
+        RESULTS_NAME,
+        argv,
+        description="Native kernels against the hand JAX and C kernels, "
+        "XLA's sweep and NumPy RK4 (see module docstring).",
+        add_arguments=_add_arguments,
+    )
     default = SWEEP_DEFAULT + (SWEEP_LARGE if run.args.large else ())
     with run:
-        rows = run.measure(default, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}",
-                           lambda B, n: rigid_case(B, n, run))
+        rows = run.measure(
+            default, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}", lambda B, n: rigid_case(B, n, run)
+        )
         largest = (SWEEP_QUICK if run.quick else default)[-1]
         rows += run.measure((largest,), (largest,), lambda B, n: f"threads B={B}", lambda B, n: threads_case(B, n, run))
-        rows += run.measure((COMPILE_CASE,), (COMPILE_QUICK,), lambda B, n: f"compile B={B}",
-                            lambda B, n: compile_case(B, n, run))
-        rows += run.measure(VORTEX_DEFAULT, VORTEX_QUICK, lambda N, B, n: f"vortex clusters N={N} B={B}",
-                            lambda N, B, n: vortex_case(N, B, n, run))
-    summary = run.summary(config={"inertia": list(INERTIA), "dt": rigid.DT, "vortex_dt": vortex.DT}, results=rows,
-                          targets=TARGETS)
+        rows += run.measure(
+            (COMPILE_CASE,), (COMPILE_QUICK,), lambda B, n: f"compile B={B}", lambda B, n: compile_case(B, n, run)
+        )
+        rows += run.measure(
+            VORTEX_DEFAULT,
+            VORTEX_QUICK,
+            lambda N, B, n: f"vortex clusters N={N} B={B}",
+            lambda N, B, n: vortex_case(N, B, n, run),
+        )
+    summary = run.summary(
+        config={"inertia": list(INERTIA), "dt": rigid.DT, "vortex_dt": vortex.DT}, results=rows, targets=TARGETS
+    )
     return run.finish(summary, print_report, plot)
 
 

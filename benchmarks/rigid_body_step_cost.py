@@ -166,6 +166,7 @@ def ours_call(system, batch, n_steps, Q0, omega0, kwargs, compiler_options=None,
 
         def call():
             return jax.block_until_ready(cj.integrate(system, Q0_j, xi0_j, dt=DT, n_steps=n_steps, **kwargs))
+
         return call
 
     Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
@@ -176,6 +177,7 @@ def ours_call(system, batch, n_steps, Q0, omega0, kwargs, compiler_options=None,
 
     def call():
         return jax.block_until_ready(march(Q0_j, xi0_j))
+
     return call
 
 
@@ -197,15 +199,17 @@ def _variant_report(system, sol, timing: dict, B: int, n_steps: int, sol_full) -
         # None when Q is not computed (reduced_no_Q)
         "max_orthogonality_error": None if sol.Q is None else _max_orthogonality_error(sol.Q),
         # same trajectory as the full march? (nodal velocities; None for the full march itself)
-        "max_abs_xi_diff_vs_full":
-            None if sol is sol_full else float(np.max(np.abs(np.asarray(sol.xi) - np.asarray(sol_full.xi)))),
+        "max_abs_xi_diff_vs_full": None
+        if sol is sol_full
+        else float(np.max(np.abs(np.asarray(sol.xi) - np.asarray(sol_full.xi)))),
         "newton_iterations_per_step_mean": float(iters.mean()),
         "newton_iterations_per_step_max": float(iters.max()),
         # under vmap the Newton while_loop runs until the slowest member has converged
         "newton_iterations_per_step_slowest_member_mean": float(iters.max(axis=0).mean()),
         "newton_jacobians_per_step_mean": None if jacobians is None else float(jacobians.mean()),
-        "newton_jacobians_per_step_slowest_member_mean":
-            None if jacobians is None else float(jacobians.max(axis=0).mean()),
+        "newton_jacobians_per_step_slowest_member_mean": None
+        if jacobians is None
+        else float(jacobians.max(axis=0).mean()),
         "nodal_newton_iterations_per_node_mean": float(nodal.mean()),
     }
 
@@ -217,8 +221,9 @@ def run_case(label: str, batch: int | None, n_steps: int, run: harness.Run) -> d
     Q0, omega0 = initial_conditions(B)
     name = f"{label} B={B} n_steps={n_steps}"
 
-    calls = {v: ours_call(system, batch, n_steps, Q0, omega0, kwargs, run.compiler_options)
-             for v, kwargs, _, _ in VARIANTS}
+    calls = {
+        v: ours_call(system, batch, n_steps, Q0, omega0, kwargs, run.compiler_options) for v, kwargs, _, _ in VARIANTS
+    }
     calls[RK4] = lambda: rk4_march(inertia, Q0, omega0, DT, n_steps)
     timings, outs = run.time(calls, what=name)
 
@@ -236,8 +241,11 @@ def run_case(label: str, batch: int | None, n_steps: int, run: harness.Run) -> d
         "batch": B,
         "n_steps": n_steps,
         "t_final": n_steps * DT,
-        "call": ("integrate(system, Q0, xi0, dt=dt, n_steps=n, **variant)" if batch is None else
-                 "jax.jit(jax.vmap(lambda Q0, xi0: integrate(system, Q0, xi0, dt=dt, n_steps=n, throw=False, **variant)))"),
+        "call": (
+            "integrate(system, Q0, xi0, dt=dt, n_steps=n, **variant)"
+            if batch is None
+            else "jax.jit(jax.vmap(lambda Q0, xi0: integrate(system, Q0, xi0, dt=dt, n_steps=n, throw=False, **variant)))"
+        ),
     }
     # accuracy at this dt and Newton statistics, for context (outside the timings)
     with run.guard(f"diagnostics, {name}"):
@@ -272,67 +280,99 @@ def print_report(summary: dict) -> None:
     cfg, rows = summary["config"], summary["results"]
     fmt = harness.fmt
     harness.print_header(
-        summary, f"Rigid body, inertia {cfg['inertia_label']}, dt = {cfg['dt']}",
+        summary,
+        f"Rigid body, inertia {cfg['inertia_label']}, dt = {cfg['dt']}",
         "Variants of integrate: full = reduce=False (21 unknowns per step); reduced = reduce=True "
         "(3 unknowns, Q reconstructed);\n  reduced_no_Q = reduce=True, reconstruct=False (Q not computed). "
-        "'single' = one plain integrate(...) call;\n  'vmap' = jax.jit(jax.vmap(integrate)) over B bodies.")
+        "'single' = one plain integrate(...) call;\n  'vmap' = jax.jit(jax.vmap(integrate)) over B bodies.",
+    )
 
     print("\nWall time per body-step [s] (body-steps per second):")
     harness.print_table(
         f"{'case':<7}{'B':>5}{'steps':>7} |" + "".join(f"{_SHORT[m]:>21}" for m in METHODS),
-        (f"{r['case']:<7}{r['batch']:>5}{r['n_steps']:>7} |"
-         + "".join(f"{r[m]['seconds_per_body_step']:>10.3e} ({r[m]['body_steps_per_second']:8.2e})" for m in METHODS)
-         for r in rows))
+        (
+            f"{r['case']:<7}{r['batch']:>5}{r['n_steps']:>7} |"
+            + "".join(f"{r[m]['seconds_per_body_step']:>10.3e} ({r[m]['body_steps_per_second']:8.2e})" for m in METHODS)
+            for r in rows
+        ),
+    )
 
-    print("\nRatios of time per body-step (full/reduced = how many times cheaper the reduced step is; "
-          "X/RK4 > 1: X is slower than RK4):")
+    print(
+        "\nRatios of time per body-step (full/reduced = how many times cheaper the reduced step is; "
+        "X/RK4 > 1: X is slower than RK4):"
+    )
     cols = ("full/reduced", "full/reduced_no_Q", "full/RK4", "reduced/RK4", "reduced_no_Q/RK4")
 
     def ratio_cells(q):
-        return (f"{q['full_over_reduced']:.3g}x", f"{q['full_over_reduced_no_Q']:.3g}x",
-                *(f"{q[f'{v}_over_rk4_per_body_step']:.3g}" for v in VARIANT_NAMES))
+        return (
+            f"{q['full_over_reduced']:.3g}x",
+            f"{q['full_over_reduced_no_Q']:.3g}x",
+            *(f"{q[f'{v}_over_rk4_per_body_step']:.3g}" for v in VARIANT_NAMES),
+        )
+
     harness.print_table(
         f"{'case':<7}{'B':>5} |" + "".join(f"{c:>18}" for c in cols),
-        (f"{r['case']:<7}{r['batch']:>5} |" + "".join(f"{x:>18}" for x in ratio_cells(r["ratios"])) for r in rows))
+        (f"{r['case']:<7}{r['batch']:>5} |" + "".join(f"{x:>18}" for x in ratio_cells(r["ratios"])) for r in rows),
+    )
     target = summary["target_full_over_reduced"]
     met = [r for r in rows if r["ratios"]["full_over_reduced"] >= target]
     ratios = [r["ratios"]["full_over_reduced"] for r in rows]
-    print(f"Issue target, reduced step >= {target:g}x cheaper than the full step (full/reduced): met in "
-          f"{len(met)} of {len(rows)} cases (full/reduced from {min(ratios):.3g}x to {max(ratios):.3g}x).")
+    print(
+        f"Issue target, reduced step >= {target:g}x cheaper than the full step (full/reduced): met in "
+        f"{len(met)} of {len(rows)} cases (full/reduced from {min(ratios):.3g}x to {max(ratios):.3g}x)."
+    )
 
     print("\nCompile time [s] (first call minus a compiled call: tracing + XLA compilation):")
     harness.print_table(
         f"{'case':<7}{'B':>5}{'steps':>7} |" + "".join(f"{v:>14}" for v in VARIANT_NAMES),
-        (f"{r['case']:<7}{r['batch']:>5}{r['n_steps']:>7} |" + "".join(f"{r[v]['compile_s']:>14.1f}" for v in VARIANT_NAMES)
-         for r in rows))
+        (
+            f"{r['case']:<7}{r['batch']:>5}{r['n_steps']:>7} |"
+            + "".join(f"{r[v]['compile_s']:>14.1f}" for v in VARIANT_NAMES)
+            for r in rows
+        ),
+    )
 
-    print("\nAccuracy at this dt, for context (max over the run and the batch); "
-          "max|xi - xi_full|: nodal velocities against the full march:")
+    print(
+        "\nAccuracy at this dt, for context (max over the run and the batch); "
+        "max|xi - xi_full|: nodal velocities against the full march:"
+    )
 
     def accuracy_cells(r):
         e = "".join(fmt(r[m]["max_rel_energy_error"], ".2e", w, "n/a") for m, w in zip(METHODS, (12, 10, 10, 10)))
         o = "".join(fmt(r[m]["max_orthogonality_error"], ".2e", w, "n/a") for m, w in zip(METHODS, (13, 10, 10, 10)))
-        x = "".join(fmt(r[v]["max_abs_xi_diff_vs_full"], ".2e", w, "n/a") for v, w in (("reduced", 14), ("reduced_no_Q", 10)))
+        x = "".join(
+            fmt(r[v]["max_abs_xi_diff_vs_full"], ".2e", w, "n/a") for v, w in (("reduced", 14), ("reduced_no_Q", 10))
+        )
         return f"{r['case']:<7}{r['batch']:>5}{r['t_final']:>6.3g} | {e} | {o} | {x}"
+
     harness.print_table(
         f"{'case':<7}{'B':>5}{'T':>6} | {'rel dE: full':>12}{'reduced':>10}{'red_no_Q':>10}{'RK4':>10} | "
         f"{'|QtQ-I|: full':>13}{'reduced':>10}{'red_no_Q':>10}{'RK4':>10} | {'|dxi|: reduced':>14}{'red_no_Q':>10}",
-        map(accuracy_cells, rows))
+        map(accuracy_cells, rows),
+    )
 
-    print("\nNewton updates per step solve (mean, max; under vmap also the mean of the slowest member), "
-          "Jacobians formed per step, nodal-velocity updates per node:")
+    print(
+        "\nNewton updates per step solve (mean, max; under vmap also the mean of the slowest member), "
+        "Jacobians formed per step, nodal-velocity updates per node:"
+    )
     for r in rows:
         for v in VARIANT_NAMES:
             o = r[v]
-            slowest = (f", slowest member {o['newton_iterations_per_step_slowest_member_mean']:.2f}"
-                       if r["batch"] > 1 else "")
+            slowest = (
+                f", slowest member {o['newton_iterations_per_step_slowest_member_mean']:.2f}" if r["batch"] > 1 else ""
+            )
             jac = o.get("newton_jacobians_per_step_mean")
-            jac_slow = (f" (slowest member {o['newton_jacobians_per_step_slowest_member_mean']:.2f})"
-                        if r["batch"] > 1 and jac is not None else "")
+            jac_slow = (
+                f" (slowest member {o['newton_jacobians_per_step_slowest_member_mean']:.2f})"
+                if r["batch"] > 1 and jac is not None
+                else ""
+            )
             jac = "" if jac is None else f"; Jacobians: mean {jac:.2f}{jac_slow}"
-            print(f"  {r['case']:<6} B={r['batch']:<5} {v:<13} updates: mean "
-                  f"{o['newton_iterations_per_step_mean']:.2f}, max {o['newton_iterations_per_step_max']:.0f}"
-                  f"{slowest}{jac}; nodal: mean {o['nodal_newton_iterations_per_node_mean']:.2f}")
+            print(
+                f"  {r['case']:<6} B={r['batch']:<5} {v:<13} updates: mean "
+                f"{o['newton_iterations_per_step_mean']:.2f}, max {o['newton_iterations_per_step_max']:.0f}"
+                f"{slowest}{jac}; nodal: mean {o['nodal_newton_iterations_per_node_mean']:.2f}"
+            )
 
 
 _STYLE = {  # method -> (marker, line style, colour, legend label for the batched curve)
@@ -353,11 +393,9 @@ def plot(summary: dict, path: Path) -> None:
     B = [r["batch"] for r in vmap_rows]
     for m in METHODS:
         marker, ls, color, label = _STYLE[m]
-        ax.loglog(B, [r[m]["seconds_per_body_step"] for r in vmap_rows], marker=marker, ls=ls,
-                  color=color, label=label)
+        ax.loglog(B, [r[m]["seconds_per_body_step"] for r in vmap_rows], marker=marker, ls=ls, color=color, label=label)
         for r in single:
-            ax.loglog([1], [r[m]["seconds_per_body_step"]], marker=marker, mfc="none", ms=11, ls="none",
-                      color=color)
+            ax.loglog([1], [r[m]["seconds_per_body_step"]], marker=marker, mfc="none", ms=11, ls="none", color=color)
     ax.set_xlabel("batch size B (bodies); ours: jit(vmap(integrate))")
     ax.set_ylabel("wall time per body-step [s]")
     ax.grid(True, which="both", alpha=0.3)
@@ -368,8 +406,7 @@ def plot(summary: dict, path: Path) -> None:
     for v in ("reduced", "reduced_no_Q"):
         marker, ls, color, _ = _STYLE[v]
         key = f"full_over_{v}"
-        ax_r.semilogx(B, [r["ratios"][key] for r in vmap_rows], marker=marker, ls=ls, color=color,
-                      label=f"full / {v}")
+        ax_r.semilogx(B, [r["ratios"][key] for r in vmap_rows], marker=marker, ls=ls, color=color, label=f"full / {v}")
         for r in single:
             ax_r.semilogx([1], [r["ratios"][key]], marker=marker, mfc="none", ms=11, ls="none", color=color)
     ax_r.axhline(target, color="k", ls=":", lw=1.0, label=f"issue target {target:g}x")
@@ -389,11 +426,18 @@ def plot(summary: dict, path: Path) -> None:
 
 def main(argv=None) -> dict:
     """Runs the cases, prints the report, writes the JSON and the PNG; returns the summary."""
-    with harness.Run(RESULTS_NAME, argv, description="Per-step cost of the full and reduced rigid-body marches "
-                     "against a NumPy RK4 (see module docstring).") as run:
-        results = run.measure(DEFAULT_CASES, QUICK_CASES,
-                              lambda label, batch, n: f"{label} B={batch or 1} n_steps={n}: {', '.join(METHODS)}",
-                              lambda *case: run_case(*case, run))
+    with harness.Run(
+        RESULTS_NAME,
+        argv,
+        description="Per-step cost of the full and reduced rigid-body marches "
+        "against a NumPy RK4 (see module docstring).",
+    ) as run:
+        results = run.measure(
+            DEFAULT_CASES,
+            QUICK_CASES,
+            lambda label, batch, n: f"{label} B={batch or 1} n_steps={n}: {', '.join(METHODS)}",
+            lambda *case: run_case(*case, run),
+        )
     summary = run.summary(
         config={
             "inertia": list(INERTIA),

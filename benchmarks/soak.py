@@ -130,27 +130,37 @@ def rigid_body_case(order=None) -> Case:
     return Case(
         name="rigid_body" if order is None else f"rigid_body_order{order}",
         description=f"reduced rigid body, inertia (2, 1, 2/3), dt {RB_DT}"
-                    + ("" if order is None else f", order {order}"),
-        system=models.rigid_body(inertia), Q0=np.eye(3), xi0=m0 / inertia, dt=RB_DT, options=opts,
+        + ("" if order is None else f", order {order}"),
+        system=models.rigid_body(inertia),
+        Q0=np.eye(3),
+        xi0=m0 / inertia,
+        dt=RB_DT,
+        options=opts,
         monitors=_rigid_body_monitors,
-        kinds={"energy": "energy", "casimir": "momentum", "spatial_momentum": "momentum",
-               "orthogonality": "momentum"},
+        kinds={"energy": "energy", "casimir": "momentum", "spatial_momentum": "momentum", "orthogonality": "momentum"},
     )
 
 
 def vortex_case() -> Case:
     gamma, Q0 = np.array(LEAPFROG_GAMMA), np.array(LEAPFROG_Q0)
     return Case(
-        name="vortices_4", description=f"4 leapfrogging vortices, midpoint, blocks, dt {VORTEX_DT}",
-        system=models.point_vortices(gamma), Q0=Q0, xi0=np.asarray(models.vortex_velocity(gamma, Q0)),
-        dt=VORTEX_DT, options={"jacobian": "blocks"},
+        name="vortices_4",
+        description=f"4 leapfrogging vortices, midpoint, blocks, dt {VORTEX_DT}",
+        system=models.point_vortices(gamma),
+        Q0=Q0,
+        xi0=np.asarray(models.vortex_velocity(gamma, Q0)),
+        dt=VORTEX_DT,
+        options={"jacobian": "blocks"},
         monitors=functools.partial(_vortex_monitors, jnp.asarray(gamma)),
         kinds={"energy": "energy", "linear_impulse": "momentum", "angular_impulse": "momentum"},
     )
 
 
-CASES = {"rigid_body": rigid_body_case, "rigid_body_order4": lambda: rigid_body_case(order=4),
-         "vortices_4": vortex_case}
+CASES = {
+    "rigid_body": rigid_body_case,
+    "rigid_body_order4": lambda: rigid_body_case(order=4),
+    "vortices_4": vortex_case,
+}
 
 
 # --------------------------------------------------------------------------------------------
@@ -190,8 +200,7 @@ def make_chunk(case: Case, chunk_steps: int, blocks: int = BLOCKS, compiler_opti
     system = case.system
 
     def chunk(start, ref, first):
-        sol = cj.integrate(system, **start._asdict(), dt=case.dt, n_steps=chunk_steps, throw=False,
-                           **case.options)
+        sol = cj.integrate(system, **start._asdict(), dt=case.dt, n_steps=chunk_steps, throw=False, **case.options)
         mon = case.monitors(system, sol)
         ref = {k: jnp.where(first, v[0], ref[k]) for k, (v, _) in mon.items()}
         dev, scale = {}, {}
@@ -201,9 +210,12 @@ def make_chunk(case: Case, chunk_steps: int, blocks: int = BLOCKS, compiler_opti
             scale[k] = s[1:].reshape(blocks, -1).max(axis=1)
         attempted = sol.stats.status != cj.Status.SKIPPED
         good = sol.stats.status == cj.Status.SUCCESS
-        stats = {"status": sol.result, "failed_step": sol.failed_step,
-                 "iterations": jnp.sum(jnp.where(attempted, sol.stats.iterations, 0)),
-                 "max_residual": jnp.max(jnp.where(good, sol.stats.residual_norm, 0.0))}
+        stats = {
+            "status": sol.result,
+            "failed_step": sol.failed_step,
+            "iterations": jnp.sum(jnp.where(attempted, sol.stats.iterations, 0)),
+            "max_residual": jnp.max(jnp.where(good, sol.stats.residual_norm, 0.0)),
+        }
         return cj.continue_from(system, sol), ref, dev, scale, stats
 
     def probe():  # shapes only (traced, not compiled): the method's facts and the monitors' shapes
@@ -221,8 +233,11 @@ def make_chunk(case: Case, chunk_steps: int, blocks: int = BLOCKS, compiler_opti
 def log_points(n_total: int, every: int, per_decade: int = 10) -> np.ndarray:
     """Block ends (multiples of `every` up to `n_total`) nearest to `per_decade` log-spaced
     points per decade, without repeats."""
-    k = np.unique(np.round(np.logspace(0, math.log10(n_total / every), 1 + int(per_decade * math.log10(
-        max(n_total / every, 1.0)))))).astype(int)
+    k = np.unique(
+        np.round(
+            np.logspace(0, math.log10(n_total / every), 1 + int(per_decade * math.log10(max(n_total / every, 1.0))))
+        )
+    ).astype(int)
     return np.unique(np.clip(k, 1, n_total // every)) * every
 
 
@@ -230,19 +245,30 @@ def _fit_drift(t: np.ndarray, e: np.ndarray) -> dict:
     """Least-squares line through the chunk maxima e(t): slope, its standard error, and the
     change it implies over the run relative to the mean chunk maximum."""
     if len(t) < 3:
-        return {"slope_per_time": None, "slope_stderr": None, "drift_over_run": None,
-                "drift_over_run_relative": None}
+        return {"slope_per_time": None, "slope_stderr": None, "drift_over_run": None, "drift_over_run_relative": None}
     A = np.stack([t, np.ones_like(t)], 1)
     coef, *_ = np.linalg.lstsq(A, e, rcond=None)
     resid = e - A @ coef
     stderr = math.sqrt(float(resid @ resid) / (len(t) - 2) / float(np.sum((t - t.mean()) ** 2)))
     drift = float(coef[0]) * float(t[-1] - t[0])
-    return {"slope_per_time": float(coef[0]), "slope_stderr": stderr, "drift_over_run": drift,
-            "drift_over_run_relative": drift / float(np.mean(e)) if np.mean(e) > 0 else None}
+    return {
+        "slope_per_time": float(coef[0]),
+        "slope_stderr": stderr,
+        "drift_over_run": drift,
+        "drift_over_run_relative": drift / float(np.mean(e)) if np.mean(e) > 0 else None,
+    }
 
 
-def soak(case: Case | str, n_steps: int = DEFAULT_STEPS, chunk_steps: int = DEFAULT_CHUNK, *,
-         blocks: int = BLOCKS, compiler_options=None, guard=None, progress: Callable | None = None) -> dict:
+def soak(
+    case: Case | str,
+    n_steps: int = DEFAULT_STEPS,
+    chunk_steps: int = DEFAULT_CHUNK,
+    *,
+    blocks: int = BLOCKS,
+    compiler_options=None,
+    guard=None,
+    progress: Callable | None = None,
+) -> dict:
     """Run `case` (a `Case` or a name in `CASES`) for `n_steps` steps in chunks of `chunk_steps`
     without storing the trajectory (module docstring); return a JSON-able dict of the results.
 
@@ -263,12 +289,22 @@ def soak(case: Case | str, n_steps: int = DEFAULT_STEPS, chunk_steps: int = DEFA
     running_scale = {k: np.full(len(points), np.nan) for k in names}
     run_max = {k: 0.0 for k in names}
     run_scale = {k: 0.0 for k in names}
-    rows = {"step": [], "t": [], "wall_s": [], "rss_mb": [], "newton_updates_per_step": [],
-            **{f"{k}_max": [] for k in names}}
+    rows = {
+        "step": [],
+        "t": [],
+        "wall_s": [],
+        "rss_mb": [],
+        "newton_updates_per_step": [],
+        **{f"{k}_max": [] for k in names},
+    }
 
     Q, xi = jnp.asarray(case.Q0), jnp.asarray(case.xi0)
-    start = cj.Start(Q0=Q, xi0=xi, P0=cj.initial_multiplier(case.system, Q, xi),  # as integrate starts
-                     t0=jnp.zeros(()))
+    start = cj.Start(
+        Q0=Q,
+        xi0=xi,
+        P0=cj.initial_multiplier(case.system, Q, xi),  # as integrate starts
+        t0=jnp.zeros(()),
+    )
     ref = {k: jnp.zeros(v.shape, v.dtype) for k, v in ref_shapes.items()}  # replaced at chunk 0
     status, failed_step, iterations, max_residual, initial = 0, -1, 0, 0.0, None
     rss_start = rss_mb()
@@ -308,27 +344,45 @@ def soak(case: Case | str, n_steps: int = DEFAULT_STEPS, chunk_steps: int = DEFA
     stride = max(1, -(-n_chunks // MAX_ROWS))
     kept = sorted(set(range(0, n_chunks, stride)) | {n_chunks - 1})
     result = {
-        "case": case.name, "description": case.description, "n_steps": n_steps, "chunk_steps": chunk_steps,
-        "blocks_per_chunk": blocks, "dt": case.dt, "T": n_steps * case.dt, "options": case.options,
-        "form": facts.form, "scheme": facts.scheme, "order": int(facts.order), "method": facts.method,
-        "status": status, "failed_step": failed_step,
-        "newton_updates_per_step": iterations / n_steps, "max_residual": max_residual,
-        "wall_s": wall_total, "first_chunk_s": float(walls[0]),
+        "case": case.name,
+        "description": case.description,
+        "n_steps": n_steps,
+        "chunk_steps": chunk_steps,
+        "blocks_per_chunk": blocks,
+        "dt": case.dt,
+        "T": n_steps * case.dt,
+        "options": case.options,
+        "form": facts.form,
+        "scheme": facts.scheme,
+        "order": int(facts.order),
+        "method": facts.method,
+        "status": status,
+        "failed_step": failed_step,
+        "newton_updates_per_step": iterations / n_steps,
+        "max_residual": max_residual,
+        "wall_s": wall_total,
+        "first_chunk_s": float(walls[0]),
         "seconds_per_step": float(np.median(walls[steady])) / chunk_steps,
-        "memory": {"rss_mb_before": rss_start, "rss_mb_after_first_chunk": float(rss[0]),
-                   "rss_mb_end": float(rss[-1]), "growth_after_first_chunk_mb": float(rss[-1] - rss[0]),
-                   "max_growth_after_first_chunk_mb": float(np.max(rss) - rss[0]),
-                   "max_rss_mb": max_rss_mb()},
+        "memory": {
+            "rss_mb_before": rss_start,
+            "rss_mb_after_first_chunk": float(rss[0]),
+            "rss_mb_end": float(rss[-1]),
+            "growth_after_first_chunk_mb": float(rss[-1] - rss[0]),
+            "max_growth_after_first_chunk_mb": float(np.max(rss) - rss[0]),
+            "max_rss_mb": max_rss_mb(),
+        },
         "quantities": {},
         # at most MAX_ROWS chunks kept (every `stride`-th and the last); the fits use them all
         "chunks": {"stride": stride, **{k: [v[i] for i in kept] for k, v in rows.items()}},
-        "running_max": {"step": points.tolist(), **{k: running[k].tolist() for k in names},
-                        **{f"{k}_scale": running_scale[k].tolist() for k in names}},
+        "running_max": {
+            "step": points.tolist(),
+            **{k: running[k].tolist() for k in names},
+            **{f"{k}_scale": running_scale[k].tolist() for k in names},
+        },
     }
     for k in names:
         v0 = np.asarray(initial[k])
-        q = {"kind": case.kinds[k], "initial": v0.tolist(), "max_error": run_max[k],
-             "max_scale": run_scale[k]}
+        q = {"kind": case.kinds[k], "initial": v0.tolist(), "max_error": run_max[k], "max_scale": run_scale[k]}
         if case.kinds[k] == "energy":
             e = np.asarray(rows[f"{k}_max"])
             q["relative_max_error"] = run_max[k] / float(np.max(np.abs(v0)))
@@ -343,12 +397,14 @@ def soak(case: Case | str, n_steps: int = DEFAULT_STEPS, chunk_steps: int = DEFA
             if np.count_nonzero(pos & (points >= 100)) >= 3:  # of the drift relative to its scale
                 m = pos & (points >= 100)
                 slope = float(np.polyfit(np.log(points[m]), np.log(running[k][m] / running_scale[k][m]), 1)[0])
-            q.update({
-                "sqrt_n_eps_scale_at_end": float(bound[-1]),
-                "ratio_to_sqrt_n_eps_scale_at_end": float(ratio[-1]),
-                "max_ratio_to_sqrt_n_eps_scale": float(np.nanmax(ratio)),
-                "loglog_slope": slope,
-            })
+            q.update(
+                {
+                    "sqrt_n_eps_scale_at_end": float(bound[-1]),
+                    "ratio_to_sqrt_n_eps_scale_at_end": float(ratio[-1]),
+                    "max_ratio_to_sqrt_n_eps_scale": float(np.nanmax(ratio)),
+                    "loglog_slope": slope,
+                }
+            )
         result["quantities"][k] = q
     return result
 
@@ -360,27 +416,37 @@ def soak(case: Case | str, n_steps: int = DEFAULT_STEPS, chunk_steps: int = DEFA
 def print_report(summary: dict) -> None:
     for r in summary["results"]:
         mem = r["memory"]
-        print(f"\n{r['case']}: {r['description']}; {r['n_steps']} steps (T = {r['T']:g}), {r['form']} march, "
-              f"{r['method'] or r['scheme']}, order {r['order']}; status {r['status']}")
-        print(f"  wall {r['wall_s']:.1f} s (first chunk, compiling: {r['first_chunk_s']:.1f} s), "
-              f"{1e6 * r['seconds_per_step']:.1f} µs/step, {r['newton_updates_per_step']:.2f} Newton updates/step, "
-              f"worst residual {r['max_residual']:.1e}")
-        print(f"  memory: RSS {mem['rss_mb_after_first_chunk']:.0f} MB after the first chunk, "
-              f"{mem['rss_mb_end']:.0f} MB at the end (growth {mem['growth_after_first_chunk_mb']:+.2f} MB, "
-              f"at most {mem['max_growth_after_first_chunk_mb']:+.2f} MB)")
+        print(
+            f"\n{r['case']}: {r['description']}; {r['n_steps']} steps (T = {r['T']:g}), {r['form']} march, "
+            f"{r['method'] or r['scheme']}, order {r['order']}; status {r['status']}"
+        )
+        print(
+            f"  wall {r['wall_s']:.1f} s (first chunk, compiling: {r['first_chunk_s']:.1f} s), "
+            f"{1e6 * r['seconds_per_step']:.1f} µs/step, {r['newton_updates_per_step']:.2f} Newton updates/step, "
+            f"worst residual {r['max_residual']:.1e}"
+        )
+        print(
+            f"  memory: RSS {mem['rss_mb_after_first_chunk']:.0f} MB after the first chunk, "
+            f"{mem['rss_mb_end']:.0f} MB at the end (growth {mem['growth_after_first_chunk_mb']:+.2f} MB, "
+            f"at most {mem['max_growth_after_first_chunk_mb']:+.2f} MB)"
+        )
         for k, q in r["quantities"].items():
             if q["kind"] == "energy":
                 d = q["drift"]
                 rel = d["drift_over_run_relative"]
-                print(f"  {k:17s} max error {q['max_error']:.3e} (relative {q['relative_max_error']:.2e}); "
-                      f"fitted drift over the run {'-' if rel is None else f'{rel:+.2e}'} of the mean chunk max; "
-                      f"envelope last/first tenth {q['envelope_ratio_chunks']:.3f}")
+                print(
+                    f"  {k:17s} max error {q['max_error']:.3e} (relative {q['relative_max_error']:.2e}); "
+                    f"fitted drift over the run {'-' if rel is None else f'{rel:+.2e}'} of the mean chunk max; "
+                    f"envelope last/first tenth {q['envelope_ratio_chunks']:.3f}"
+                )
             else:
                 s = q["loglog_slope"]
-                print(f"  {k:17s} max drift {q['max_error']:.3e}; sqrt(n)·eps·scale at the end "
-                      f"{q['sqrt_n_eps_scale_at_end']:.3e} (ratio {q['ratio_to_sqrt_n_eps_scale_at_end']:.2f}, "
-                      f"max {q['max_ratio_to_sqrt_n_eps_scale']:.2f}); "
-                      f"log-log slope {'-' if s is None else f'{s:.2f}'}")
+                print(
+                    f"  {k:17s} max drift {q['max_error']:.3e}; sqrt(n)·eps·scale at the end "
+                    f"{q['sqrt_n_eps_scale_at_end']:.3e} (ratio {q['ratio_to_sqrt_n_eps_scale_at_end']:.2f}, "
+                    f"max {q['max_ratio_to_sqrt_n_eps_scale']:.2f}); "
+                    f"log-log slope {'-' if s is None else f'{s:.2f}'}"
+                )
 
 
 def plot(summary: dict, path: Path) -> None:
@@ -392,9 +458,12 @@ def plot(summary: dict, path: Path) -> None:
     FigureCanvasAgg(fig)
     axes = fig.subplots(len(rows), 3, squeeze=False, gridspec_kw={"width_ratios": [3, 2, 2]})
     mach = summary["machine"]
-    fig.suptitle(f"Soak: errors, energy and memory over {rows[0]['n_steps']:.0e} steps"
-                 f"{' (--quick: not a measurement)' if summary['config']['quick'] else ''}; "
-                 f"{mach['cpu_count']} CPUs, load {mach['load_average_1min_at_start']:.2f} at start", fontsize=10)
+    fig.suptitle(
+        f"Soak: errors, energy and memory over {rows[0]['n_steps']:.0e} steps"
+        f"{' (--quick: not a measurement)' if summary['config']['quick'] else ''}; "
+        f"{mach['cpu_count']} CPUs, load {mach['load_average_1min_at_start']:.2f} at start",
+        fontsize=10,
+    )
     for (ax, ax_e, ax_m), r in zip(axes, rows):
         rm = r["running_max"]
         n = np.asarray(rm["step"], float)
@@ -413,16 +482,18 @@ def plot(summary: dict, path: Path) -> None:
         ax_e.set_xlabel("t (end of chunk)")
         ax_e.set_ylabel("max |E - E0| over the chunk")
         rel = r["quantities"]["energy"]["drift"]["drift_over_run_relative"]
-        ax_e.set_title("energy error per chunk" + ("" if rel is None else f" (fitted drift {rel:+.1e} of it)"),
-                       fontsize=9)
+        ax_e.set_title(
+            "energy error per chunk" + ("" if rel is None else f" (fitted drift {rel:+.1e} of it)"), fontsize=9
+        )
         ax_e.grid(True, alpha=0.3)
         ax_m.plot(ch["step"], ch["rss_mb"], ".-", ms=3)
         lo, hi = min(ch["rss_mb"]), max(ch["rss_mb"])
         ax_m.set_ylim(lo - max(5, 0.1 * (hi - lo)), hi + max(5, 0.1 * (hi - lo)))
         ax_m.set_xlabel("steps")
         ax_m.set_ylabel("resident set size, MB")
-        ax_m.set_title(f"memory (growth after chunk 1: {r['memory']['growth_after_first_chunk_mb']:+.1f} MB)",
-                       fontsize=9)
+        ax_m.set_title(
+            f"memory (growth after chunk 1: {r['memory']['growth_after_first_chunk_mb']:+.1f} MB)", fontsize=9
+        )
         ax_m.grid(True, alpha=0.3)
     fig.savefig(path, dpi=110)
 
@@ -435,30 +506,58 @@ def main(argv=None) -> dict:
     import _timing as harness  # the benchmarks' shared harness (this script's folder is on sys.path)
 
     def add_arguments(parser):
-        parser.add_argument("--steps", type=int, default=None,
-                            help=f"steps per case (default {DEFAULT_STEPS:.0e}; {QUICK_STEPS:.0e} with --quick)")
-        parser.add_argument("--chunk", type=int, default=None,
-                            help=f"steps per chunk (default {DEFAULT_CHUNK}; {QUICK_CHUNK} with --quick)")
-        parser.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES),
-                            help="which cases to run (default: all)")
+        parser.add_argument(
+            "--steps",
+            type=int,
+            default=None,
+            help=f"steps per case (default {DEFAULT_STEPS:.0e}; {QUICK_STEPS:.0e} with --quick)",
+        )
+        parser.add_argument(
+            "--chunk",
+            type=int,
+            default=None,
+            help=f"steps per chunk (default {DEFAULT_CHUNK}; {QUICK_CHUNK} with --quick)",
+        )
+        parser.add_argument(
+            "--cases", nargs="+", choices=list(CASES), default=list(CASES), help="which cases to run (default: all)"
+        )
 
-    with harness.Run(RESULTS_NAME, argv, description="Soak: long runs without storing the trajectory "
-                     "(see module docstring).", add_arguments=add_arguments) as run:
+    with harness.Run(
+        RESULTS_NAME,
+        argv,
+        description="Soak: long runs without storing the trajectory (see module docstring).",
+        add_arguments=add_arguments,
+    ) as run:
         n_steps = run.args.steps or (QUICK_STEPS if run.quick else DEFAULT_STEPS)
         chunk = run.args.chunk or (QUICK_CHUNK if run.quick else DEFAULT_CHUNK)
         results = []
         for name in run.args.cases:
+
             def progress(c, n, row, name=name):
                 if (c + 1) % max(1, n // 10) == 0 or c == 0:
-                    print(f"  {name}: chunk {c + 1}/{n}, step {row['step']}, {row['wall_s']:.0f} s, "
-                          f"RSS {row['rss_mb']:.0f} MB, energy error {row['energy_max']:.2e}", flush=True)
+                    print(
+                        f"  {name}: chunk {c + 1}/{n}, step {row['step']}, {row['wall_s']:.0f} s, "
+                        f"RSS {row['rss_mb']:.0f} MB, energy error {row['energy_max']:.2e}",
+                        flush=True,
+                    )
 
             with run.case(f"{name}, {n_steps} steps in chunks of {chunk}"):
                 print()
-                results.append(soak(name, n_steps, chunk, compiler_options=run.compiler_options, guard=run.guard,
-                                    progress=progress))
-    summary = run.summary(config={"n_steps": n_steps, "chunk_steps": chunk, "blocks_per_chunk": BLOCKS,
-                                  "cases": run.args.cases, "eps": EPS}, results=results)
+                results.append(
+                    soak(
+                        name, n_steps, chunk, compiler_options=run.compiler_options, guard=run.guard, progress=progress
+                    )
+                )
+    summary = run.summary(
+        config={
+            "n_steps": n_steps,
+            "chunk_steps": chunk,
+            "blocks_per_chunk": BLOCKS,
+            "cases": run.args.cases,
+            "eps": EPS,
+        },
+        results=results,
+    )
     return run.finish(summary, print_report, plot)
 
 

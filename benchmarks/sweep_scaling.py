@@ -85,22 +85,31 @@ def run_case(n: int, steps: int, batch: int, chunk: int, run: harness.Run, clien
     calls = {
         "in_process": lambda: cj.sweep(cj.models.rigid_body, inertia, Q0, xi0, **kw),
         "in_process_zarr": lambda: cj.sweep(cj.models.rigid_body, inertia, Q0, xi0, store=fresh_store(), **kw),
-        "cluster_zarr": lambda: cj.sweep(cj.models.rigid_body, inertia, Q0, xi0, store=fresh_store(),
-                                         client=client, **kw),
+        "cluster_zarr": lambda: cj.sweep(
+            cj.models.rigid_body, inertia, Q0, xi0, store=fresh_store(), client=client, **kw
+        ),
         "cluster": lambda: cj.sweep(cj.models.rigid_body, inertia, Q0, xi0, client=client, **kw),
     }
     timings, outs = run.time(calls, what=f"{n} members x {steps} steps")
     ref = outs["in_process"]
     identical = {}
     for m in METHODS[1:]:  # each method's table against the in-process one, to the bit
-        same = [np.array_equal(a, b, equal_nan=True) for a, b in
-                zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(outs[m]))]
+        same = [
+            np.array_equal(a, b, equal_nan=True)
+            for a, b in zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(outs[m]))
+        ]
         identical[m] = bool(all(same))
     shutil.rmtree(scratch, ignore_errors=True)
     scratch.mkdir()
-    row = {"members": n, "n_steps": steps, "batch_size": batch, "chunk_steps": chunk,
-           "n_batches": -(-n // batch), "failed_members": int(len(ref.failed_members)),
-           "tables_identical_to_in_process": identical}
+    row = {
+        "members": n,
+        "n_steps": steps,
+        "batch_size": batch,
+        "chunk_steps": chunk,
+        "n_batches": -(-n // batch),
+        "failed_members": int(len(ref.failed_members)),
+        "tables_identical_to_in_process": identical,
+    }
     for m in METHODS:
         t = timings[m]
         row[m] = {**t, "member_steps_per_second": n * steps / t["per_call_s"]}
@@ -117,31 +126,41 @@ def run_case(n: int, steps: int, batch: int, chunk: int, run: harness.Run, clien
 def print_report(summary: dict) -> None:
     rows = summary["results"]
     harness.print_header(
-        summary, f"Rigid-body sweep, dt = {DT}, one process against a LocalCluster of {WORKERS} processes x "
-                 f"{THREADS} thread",
+        summary,
+        f"Rigid-body sweep, dt = {DT}, one process against a LocalCluster of {WORKERS} processes x {THREADS} thread",
         "in_process: cj.sweep, table in memory; in_process_zarr: store= a fresh Zarr store; cluster_zarr: "
-        "client= the LocalCluster, store=;\n  cluster: client=, no store.")
+        "client= the LocalCluster, store=;\n  cluster: client=, no store.",
+    )
     print("\nMember-steps per second (time per call [s]):")
     harness.print_table(
         f"{'members':>8}{'steps':>7}{'batch':>7} |" + "".join(f"{m:>26}" for m in METHODS),
-        (f"{r['members']:>8}{r['n_steps']:>7}{r['batch_size']:>7} |"
-         + "".join(f"{r[m]['member_steps_per_second']:>15.3e} ({r[m]['per_call_s']:7.2f})" for m in METHODS)
-         for r in rows))
+        (
+            f"{r['members']:>8}{r['n_steps']:>7}{r['batch_size']:>7} |"
+            + "".join(f"{r[m]['member_steps_per_second']:>15.3e} ({r[m]['per_call_s']:7.2f})" for m in METHODS)
+            for r in rows
+        ),
+    )
     print("\nRatios (paired per round: median [min, max]):")
     for r in rows:
         q = r["ratios"]
-        for key, what in (("scaling_zarr", f"scaling in_process_zarr / cluster_zarr (target >= {TARGET_SCALING})"),
-                          ("scaling_no_store", "scaling in_process / cluster"),
-                          ("zarr_over_memory_in_process",
-                           f"in_process_zarr / in_process (Zarr overhead target <= {1 + TARGET_ZARR_OVERHEAD:.2f})"),
-                          ("zarr_over_memory_cluster", "cluster_zarr / cluster")):
+        for key, what in (
+            ("scaling_zarr", f"scaling in_process_zarr / cluster_zarr (target >= {TARGET_SCALING})"),
+            ("scaling_no_store", "scaling in_process / cluster"),
+            (
+                "zarr_over_memory_in_process",
+                f"in_process_zarr / in_process (Zarr overhead target <= {1 + TARGET_ZARR_OVERHEAD:.2f})",
+            ),
+            ("zarr_over_memory_cluster", "cluster_zarr / cluster"),
+        ):
             print(f"  {what:<72} {q[key]['median']:.3f} [{q[key]['min']:.3f}, {q[key]['max']:.3f}]")
         print(f"  tables identical to the in-process one, to the bit: {r['tables_identical_to_in_process']}")
     t = summary["targets"]
-    print(f"\nIssue targets: scaling >= {TARGET_SCALING}: {'met' if t['scaling']['met'] else 'not met'}; "
-          f"Zarr overhead <= {TARGET_ZARR_OVERHEAD:.0%}: {'met' if t['zarr_overhead']['met'] else 'not met'} "
-          f"(load {summary['machine']['load_average_1min_at_start']:.2f} at the start on "
-          f"{summary['machine']['cpu_count']} CPUs).")
+    print(
+        f"\nIssue targets: scaling >= {TARGET_SCALING}: {'met' if t['scaling']['met'] else 'not met'}; "
+        f"Zarr overhead <= {TARGET_ZARR_OVERHEAD:.0%}: {'met' if t['zarr_overhead']['met'] else 'not met'} "
+        f"(load {summary['machine']['load_average_1min_at_start']:.2f} at the start on "
+        f"{summary['machine']['cpu_count']} CPUs)."
+    )
 
 
 def plot(summary: dict, path: Path) -> None:
@@ -160,8 +179,16 @@ def plot(summary: dict, path: Path) -> None:
     ax_r.bar(range(len(keys)), med, yerr=[lo, hi], color=["C2", "C2", "C1", "C1"], capsize=4)
     ax_r.axhline(TARGET_SCALING, color="C2", ls=":", label=f"scaling target {TARGET_SCALING}")
     ax_r.axhline(1 + TARGET_ZARR_OVERHEAD, color="C1", ls=":", label=f"Zarr target {1 + TARGET_ZARR_OVERHEAD}")
-    ax_r.set_xticks(range(len(keys)), ["1 proc / cluster\n(Zarr)", "1 proc / cluster\n(memory)",
-                                       "Zarr / memory\n(1 proc)", "Zarr / memory\n(cluster)"], fontsize=7)
+    ax_r.set_xticks(
+        range(len(keys)),
+        [
+            "1 proc / cluster\n(Zarr)",
+            "1 proc / cluster\n(memory)",
+            "Zarr / memory\n(1 proc)",
+            "Zarr / memory\n(cluster)",
+        ],
+        fontsize=7,
+    )
     ax_r.legend(fontsize=8)
     ax_r.grid(True, axis="y", alpha=0.3)
     ax_r.set_title("ratios of time per sweep (median, min-max)", fontsize=9)
@@ -179,39 +206,60 @@ def main(argv=None) -> dict:
         import distributed
     except ImportError:
         raise SystemExit('sweep_scaling needs the extra [sweep]: pip install -e ".[sweep]"') from None
-    with harness.Run(RESULTS_NAME, argv, description="One process against a 2-process LocalCluster, and "
-                     "the Zarr overhead, for a rigid-body cj.sweep (see module docstring).",
-                     add_arguments=add_arguments) as run:
+    with harness.Run(
+        RESULTS_NAME,
+        argv,
+        description="One process against a 2-process LocalCluster, and "
+        "the Zarr overhead, for a rigid-body cj.sweep (see module docstring).",
+        add_arguments=add_arguments,
+    ) as run:
         a = run.args
-        default = [(a.members or n, a.steps or s, a.batch_size or b, min(c, a.steps or s))
-                   for n, s, b, c in DEFAULT_CASES]
+        default = [
+            (a.members or n, a.steps or s, a.batch_size or b, min(c, a.steps or s)) for n, s, b, c in DEFAULT_CASES
+        ]
         # the workers' environment: one XLA thread each; with --quick, XLA optimisation off as here
         env = {"XLA_FLAGS": " ".join(filter(None, [os.environ.get("XLA_FLAGS"), WORKER_XLA_FLAGS]))}
         if run.quick:
             env[harness.QUICK_FLAG.upper()] = "1"
-        cluster = distributed.LocalCluster(n_workers=WORKERS, threads_per_worker=THREADS, processes=True,
-                                           dashboard_address=None, env=env)
+        cluster = distributed.LocalCluster(
+            n_workers=WORKERS, threads_per_worker=THREADS, processes=True, dashboard_address=None, env=env
+        )
         scratch = Path(tempfile.mkdtemp(prefix="sweep-scaling-"))
         try:
             with cluster, distributed.Client(cluster) as client:
-                results = run.measure(default, QUICK_CASES,
-                                      lambda n, s, b, c: f"{n} members x {s} steps (batches of {b}): "
-                                                         f"{', '.join(METHODS)}",
-                                      lambda *case: run_case(*case, run, client, scratch))
+                results = run.measure(
+                    default,
+                    QUICK_CASES,
+                    lambda n, s, b, c: f"{n} members x {s} steps (batches of {b}): {', '.join(METHODS)}",
+                    lambda *case: run_case(*case, run, client, scratch),
+                )
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
     r = results[-1]["ratios"]
     summary = run.summary(
-        config={"model": "rigid_body, inertias (2, 1, 2/3) x (1 + U(-0.1, 0.1))", "dt": DT, "seed": SEED,
-                "workers": WORKERS, "threads_per_worker": THREADS, "worker_xla_flags": WORKER_XLA_FLAGS,
-                "methods": list(METHODS),
-                "cases": [{"members": n, "n_steps": s, "batch_size": b, "chunk_steps": c} for n, s, b, c in run.cases]},
+        config={
+            "model": "rigid_body, inertias (2, 1, 2/3) x (1 + U(-0.1, 0.1))",
+            "dt": DT,
+            "seed": SEED,
+            "workers": WORKERS,
+            "threads_per_worker": THREADS,
+            "worker_xla_flags": WORKER_XLA_FLAGS,
+            "methods": list(METHODS),
+            "cases": [{"members": n, "n_steps": s, "batch_size": b, "chunk_steps": c} for n, s, b, c in run.cases],
+        },
         results=results,
-        targets={"scaling": {"target": TARGET_SCALING, "value": r["scaling_zarr"]["median"],
-                             "met": r["scaling_zarr"]["median"] >= TARGET_SCALING},
-                 "zarr_overhead": {"target": TARGET_ZARR_OVERHEAD,
-                                   "value": r["zarr_over_memory_in_process"]["median"] - 1,
-                                   "met": r["zarr_over_memory_in_process"]["median"] - 1 <= TARGET_ZARR_OVERHEAD}},
+        targets={
+            "scaling": {
+                "target": TARGET_SCALING,
+                "value": r["scaling_zarr"]["median"],
+                "met": r["scaling_zarr"]["median"] >= TARGET_SCALING,
+            },
+            "zarr_overhead": {
+                "target": TARGET_ZARR_OVERHEAD,
+                "value": r["zarr_over_memory_in_process"]["median"] - 1,
+                "met": r["zarr_over_memory_in_process"]["median"] - 1 <= TARGET_ZARR_OVERHEAD,
+            },
+        },
     )
     return run.finish(summary, print_report, plot)
 

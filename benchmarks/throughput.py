@@ -172,6 +172,7 @@ def chunked_call(system, chunk: int, n_steps: int, Q0, omega0, compiler_options=
 
     def call():
         return jax.block_until_ready(march(Q0_j, xi0_j))
+
     return call
 
 
@@ -237,6 +238,7 @@ def hand_march(inertia, dt, n_steps, updates=HAND_UPDATES):
         carry = (mu0, jnp.transpose(Q0, (1, 2, 0)), x0, x0)
         _, (mus, Qs, xs) = jax.lax.scan(step, carry, None, length=n_steps)
         return mus, Qs, xs
+
     return march
 
 
@@ -283,13 +285,22 @@ def hand_rows_march(inertia, dt, n_steps, updates=ROWS_UPDATES, unroll=ROWS_UNRO
                 k1, k2 = (i + 1) % 3, (i + 2) % 3
                 cross_xI = x[k1] * Ie[k2] - x[k2] * Ie[k1]
                 cross_Me = M[k1] * e[k2] - M[k2] * e[k1]
-                J[i][j] = (I[i] if i == j else 0.0) + 0.5 * h * (cross_xI - cross_Me) \
+                J[i][j] = (
+                    (I[i] if i == j else 0.0)
+                    + 0.5 * h * (cross_xI - cross_Me)
                     + 0.25 * h * h * ((xM if i == j else 0.0) + 2.0 * x[i] * M[j])
+                )
         return J
 
     def inv3(A):  # cofactors, one division
-        c = [[A[(i + 1) % 3][(j + 1) % 3] * A[(i + 2) % 3][(j + 2) % 3]
-              - A[(i + 1) % 3][(j + 2) % 3] * A[(i + 2) % 3][(j + 1) % 3] for j in range(3)] for i in range(3)]
+        c = [
+            [
+                A[(i + 1) % 3][(j + 1) % 3] * A[(i + 2) % 3][(j + 2) % 3]
+                - A[(i + 1) % 3][(j + 2) % 3] * A[(i + 2) % 3][(j + 1) % 3]
+                for j in range(3)
+            ]
+            for i in range(3)
+        ]
         r = 1.0 / (A[0][0] * c[0][0] + A[0][1] * c[0][1] + A[0][2] * c[0][2])
         return [[c[j][i] * r for j in range(3)] for i in range(3)]
 
@@ -305,8 +316,9 @@ def hand_rows_march(inertia, dt, n_steps, updates=ROWS_UPDATES, unroll=ROWS_UNRO
         update = [H[i][0] * r[0] + H[i][1] * r[1] + H[i][2] * r[2] for i in range(3)]
         passed = largest(update) <= VERIFY_TOLERANCE * jnp.maximum(largest(x), 1.0)
         xn = tuple(x[i] - (I[i] * x[i] - mu1[i]) / I[i] for i in range(3))  # the node's velocity
-        passed = passed & (largest([I[i] * xn[i] - mu1[i] for i in range(3)])
-                           <= VERIFY_TOLERANCE * jnp.maximum(largest(mu1), 1.0))
+        passed = passed & (
+            largest([I[i] * xn[i] - mu1[i] for i in range(3)]) <= VERIFY_TOLERANCE * jnp.maximum(largest(mu1), 1.0)
+        )
         pairing = mu1[0] * xn[0] + mu1[1] * xn[1] + mu1[2] * xn[2]
         lagrangian = 0.5 * (I[0] * xn[0] * xn[0] + I[1] * xn[1] * xn[1] + I[2] * xn[2] * xn[2])
         E = pairing - lagrangian
@@ -339,6 +351,7 @@ def hand_rows_march(inertia, dt, n_steps, updates=ROWS_UPDATES, unroll=ROWS_UNRO
             carry += (jnp.ones_like(E0, dtype=bool), E0, zero, 3.0 * E0)
         mu, _, _, _, err, *checks = jax.lax.fori_loop(0, n_steps, step, carry, unroll=unroll)
         return (jnp.stack(mu, axis=1), err) + ((checks[0],) if verified else ())
+
     return march
 
 
@@ -408,15 +421,29 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
     if batch > chunk:
         calls["chunked"] = chunked_call(system, chunk, n_steps, Q0, omega0, run.compiler_options)
     if batch > 1:
-        calls["batch_last"] = rigid.ours_call(system, batch, n_steps, Q0, omega0, {"reduce": True},
-                                              run.compiler_options, functools.partial(cj.batch, chunk=chunk))
+        calls["batch_last"] = rigid.ours_call(
+            system,
+            batch,
+            n_steps,
+            Q0,
+            omega0,
+            {"reduce": True},
+            run.compiler_options,
+            functools.partial(cj.batch, chunk=chunk),
+        )
     calls[HAND] = hand_call(batch, n_steps, Q0, omega0)
     calls[RK4] = lambda: rigid.rk4_march(inertia, Q0, omega0, rigid.DT, n_steps)
     long_calls = batch * n_steps >= LONG_CALL_BODY_STEPS
     timings, outs = run.time(calls, what=name, repeats=min(run.repeats, LONG_CALL_REPEATS) if long_calls else None)
 
-    row = {"part": "rigid_body", "case": "vmap", "batch": batch, "n_steps": n_steps,
-           "chunk": chunk if "chunked" in calls else None, "methods": list(calls)}
+    row = {
+        "part": "rigid_body",
+        "case": "vmap",
+        "batch": batch,
+        "n_steps": n_steps,
+        "chunk": chunk if "chunked" in calls else None,
+        "methods": list(calls),
+    }
     with run.guard(f"diagnostics, {name}"):
         omegas, _ = outs[RK4]
         for m in calls:
@@ -431,7 +458,9 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
             # the same equations: final velocities against RK4's (O(dt^2) apart)
             row[m]["max_abs_final_xi_diff_vs_rk4"] = float(np.max(np.abs(np.asarray(sol.xi)[:, -1] - omegas[-1])))
         mus = np.moveaxis(np.asarray(outs[HAND][0]), -1, 0)  # (B, n_steps, 3)
-        row[HAND]["max_abs_momentum_diff_vs_vmap"] = float(np.max(np.abs(mus - np.asarray(outs["vmap"].momentum)[:, 1:])))
+        row[HAND]["max_abs_momentum_diff_vs_vmap"] = float(
+            np.max(np.abs(mus - np.asarray(outs["vmap"].momentum)[:, 1:]))
+        )
         iters = np.asarray(outs["vmap"].stats.iterations, dtype=float)  # (B, n_steps)
         row["newton_updates_per_step"] = {
             "mean": float(iters.mean()),
@@ -440,9 +469,11 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
         }
         if "chunked" in calls:
             row["newton_updates_per_step"]["slowest_of_chunk_mean"] = float(
-                iters[: batch // chunk * chunk].reshape(batch // chunk, chunk, n_steps).max(axis=1).mean())
+                iters[: batch // chunk * chunk].reshape(batch // chunk, chunk, n_steps).max(axis=1).mean()
+            )
             row["max_abs_xi_diff_chunked_vs_vmap"] = float(
-                np.max(np.abs(np.asarray(outs["chunked"].xi) - np.asarray(outs["vmap"].xi))))
+                np.max(np.abs(np.asarray(outs["chunked"].xi) - np.asarray(outs["vmap"].xi)))
+            )
     rate = {m: row[m]["body_steps_per_second"] for m in calls}
     row["ratios"] = {f"{m}_over_rk4_rate": rate[m] / rate[RK4] for m in calls if m != RK4}
     if "chunked" in calls:
@@ -450,7 +481,8 @@ def rigid_case(batch: int, n_steps: int, chunk: int, run: harness.Run) -> dict:
     if "batch_last" in calls:
         row["ratios"]["batch_last_over_vmap_rate"] = rate["batch_last"] / rate["vmap"]
         row["max_abs_xi_diff_batch_last_vs_vmap"] = float(
-            np.max(np.abs(np.asarray(outs["batch_last"].xi) - np.asarray(outs["vmap"].xi))))
+            np.max(np.abs(np.asarray(outs["batch_last"].xi) - np.asarray(outs["vmap"].xi)))
+        )
     row["ratios"]["vmap_over_hand_rate"] = rate["vmap"] / rate[HAND]
     row["best"] = max((m for m in calls if m not in (RK4, HAND)), key=rate.get)
     return row
@@ -470,8 +502,13 @@ SWEEP_QUICK = ((8, 10),)
 SWEEP_MIXED_DEFAULT = ((10_000, 800),)  # mixed_momenta: a few members per batch rerun on the general path
 SWEEP_MIXED_QUICK = ((8, 10),)
 SWEEP_INERTIA = (0.5, 0.6, 1.0)  # issue 20's table
-SWEEP_TARGETS = {"over_hand_at_1e3": 0.5, "over_hand_from_1e4": 0.75, "over_rk4": 2.0, "compile_s": 2.0,
-                 "vortex_clusters_over_rk4_step": 1.0}
+SWEEP_TARGETS = {
+    "over_hand_at_1e3": 0.5,
+    "over_hand_from_1e4": 0.75,
+    "over_rk4": 2.0,
+    "compile_s": 2.0,
+    "vortex_clusters_over_rk4_step": 1.0,
+}
 SWEEP_VORTEX_DEFAULT = ((4, 1000, 100), (10, 1000, 50))  # (N vortices per cluster, clusters, steps)
 SWEEP_VORTEX_QUICK = ((4, 8, 5),)
 
@@ -518,8 +555,9 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) 
     system = models.rigid_body(jnp.asarray(inertia))
 
     def sweep_call(**extra):
-        return lambda: cj.sweep(models.rigid_body, inertias, Q0, omega0, dt=rigid.DT, n_steps=n_steps,
-                                reconstruct=False, **extra)
+        return lambda: cj.sweep(
+            models.rigid_body, inertias, Q0, omega0, dt=rigid.DT, n_steps=n_steps, reconstruct=False, **extra
+        )
 
     def member(q, x):
         sol = cj.integrate(system, q, x, dt=rigid.DT, n_steps=n_steps, reconstruct=False, throw=False)
@@ -530,11 +568,14 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) 
     Q0_j, xi0_j = jnp.asarray(Q0), jnp.asarray(omega0)
     hand = hand_rows_march(inertia, rigid.DT, n_steps)
     hand_verified = hand_rows_march(inertia, rigid.DT, n_steps, verified=True)
-    calls = {"sweep": sweep_call(), "sweep_fast": sweep_call(fast=True),
-             "cj_batch": lambda: jax.block_until_ready(batched(Q0_j, xi0_j)),
-             HAND_ROWS: lambda: jax.block_until_ready(hand(xi0_j)),
-             HAND_VERIFIED: lambda: jax.block_until_ready(hand_verified(xi0_j)),
-             RK4: lambda: rk4_euler_final(inertia, omega0, rigid.DT, n_steps)}
+    calls = {
+        "sweep": sweep_call(),
+        "sweep_fast": sweep_call(fast=True),
+        "cj_batch": lambda: jax.block_until_ready(batched(Q0_j, xi0_j)),
+        HAND_ROWS: lambda: jax.block_until_ready(hand(xi0_j)),
+        HAND_VERIFIED: lambda: jax.block_until_ready(hand_verified(xi0_j)),
+        RK4: lambda: rk4_euler_final(inertia, omega0, rigid.DT, n_steps),
+    }
     c_march, c_flags = c_kernel()
     if c_march is not None and not mixed:
         calls[C_SIMD] = lambda: c_march(inertia, rigid.DT, n_steps, omega0)
@@ -561,11 +602,15 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) 
     if mixed:
         fast, general = outs["sweep_fast"], outs["sweep_general"]
         row["sweep_fast"]["max_abs_final_momentum_diff_vs_general"] = float(
-            np.max(np.abs(fast.final_momentum - general.final_momentum)))
+            np.max(np.abs(fast.final_momentum - general.final_momentum))
+        )
     row[HAND_ROWS]["max_energy_error"] = float(np.max(err_hand))
     mu_v, err_v, passed = (np.asarray(a) for a in outs[HAND_VERIFIED])
-    row[HAND_VERIFIED].update(max_energy_error=float(np.max(err_v)), verified_share=float(np.mean(passed)),
-                              max_abs_final_momentum_diff_vs_hand=float(np.max(np.abs(mu_v - mu_hand))))
+    row[HAND_VERIFIED].update(
+        max_energy_error=float(np.max(err_v)),
+        verified_share=float(np.mean(passed)),
+        max_abs_final_momentum_diff_vs_hand=float(np.max(np.abs(mu_v - mu_hand))),
+    )
     if "cj_batch" in calls:
         row["cj_batch"]["max_energy_error"] = float(np.max(np.asarray(outs["cj_batch"][1])))
     row[RK4]["max_energy_error"] = float(np.max(outs[RK4][1]))
@@ -576,11 +621,12 @@ def sweep_case(batch: int, n_steps: int, run: harness.Run, mixed: bool = False) 
     else:
         row["c_simd_skipped"] = c_flags
     rate = {m: row[m]["body_steps_per_second"] for m in calls}
-    row["ratios"] = {**{f"{m}_over_hand": rate[m] / rate[HAND_ROWS] for m in calls if m != HAND_ROWS},
-                     **{f"{m}_over_hand_verified": rate[m] / rate[HAND_VERIFIED] for m in calls if m != HAND_VERIFIED},
-                     **{f"{m}_over_numpy_rk4": rate[m] / rate[RK4] for m in calls if m != RK4},
-                     **({f"{m}_over_c": rate[m] / rate[C_SIMD] for m in calls if m != C_SIMD} if C_SIMD in calls
-                        else {})}
+    row["ratios"] = {
+        **{f"{m}_over_hand": rate[m] / rate[HAND_ROWS] for m in calls if m != HAND_ROWS},
+        **{f"{m}_over_hand_verified": rate[m] / rate[HAND_VERIFIED] for m in calls if m != HAND_VERIFIED},
+        **{f"{m}_over_numpy_rk4": rate[m] / rate[RK4] for m in calls if m != RK4},
+        **({f"{m}_over_c": rate[m] / rate[C_SIMD] for m in calls if m != C_SIMD} if C_SIMD in calls else {}),
+    }
     return row
 
 
@@ -590,8 +636,10 @@ def sweep_vortex_case(N: int, batch: int, n_steps: int, run: harness.Run) -> dic
     NumPy RK4 of the same batch (`vortex_step_cost.rk4_march`), same initial conditions and dt."""
     G, Q0 = vortex.initial_conditions(N, batch)
     xi0 = np.asarray(jax.vmap(models.vortex_velocity)(jnp.asarray(G), jnp.asarray(Q0)))
-    calls = {"sweep": lambda: cj.sweep(models.point_vortices, G, Q0, xi0, dt=vortex.DT, n_steps=n_steps),
-             RK4: lambda: vortex.rk4_march(G, Q0, vortex.DT, n_steps)}
+    calls = {
+        "sweep": lambda: cj.sweep(models.point_vortices, G, Q0, xi0, dt=vortex.DT, n_steps=n_steps),
+        RK4: lambda: vortex.rk4_march(G, Q0, vortex.DT, n_steps),
+    }
     timings, outs = run.time(calls, what=f"vortex clusters N={N} B={batch}", repeats=run.repeats or 3)
     row = {"part": "sweep_vortices", "N": N, "batch": batch, "n_steps": n_steps, "methods": list(calls)}
     for m in calls:
@@ -600,16 +648,22 @@ def sweep_vortex_case(N: int, batch: int, n_steps: int, run: harness.Run) -> dic
     res = outs["sweep"]
     ok = res.status == 0
     rk4_final = outs[RK4][-1]
-    row["sweep"].update(failed_members=int(np.sum(~ok)), max_energy_error=float(np.nanmax(res.energy_error)),
-                        max_abs_final_Q_diff_vs_rk4=float(np.max(np.abs(res.final_Q[ok] - rk4_final[ok]))))
+    row["sweep"].update(
+        failed_members=int(np.sum(~ok)),
+        max_energy_error=float(np.nanmax(res.energy_error)),
+        max_abs_final_Q_diff_vs_rk4=float(np.max(np.abs(res.final_Q[ok] - rk4_final[ok]))),
+    )
     row["ratios"] = {"sweep_over_numpy_rk4_step": row["sweep"]["seconds_per_step"] / row[RK4]["seconds_per_step"]}
     return row
 
 
 def print_sweep_report(summary: dict) -> None:
-    harness.print_header(summary, "Sweep throughput (issue 20)",
-                         f"Free rigid body {SWEEP_INERTIA}, reduced CAY march (reconstruct=False), dt = {rigid.DT}; "
-                         "final state and energy error per body, no trajectories kept.")
+    harness.print_header(
+        summary,
+        "Sweep throughput (issue 20)",
+        f"Free rigid body {SWEEP_INERTIA}, reduced CAY march (reconstruct=False), dt = {rigid.DT}; "
+        "final state and energy error per body, no trajectories kept.",
+    )
     rows = [r for r in summary["results"] if r["part"] == "sweep"]
     print("\nM body-steps/s (compile s) and ratios:")
     names = ("sweep", "sweep_fast", "cj_batch", HAND_ROWS, HAND_VERIFIED, RK4)
@@ -619,68 +673,110 @@ def print_sweep_report(summary: dict) -> None:
     harness.print_table(
         f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>{width[m]}}" for m in names) + " |"
         f"{'sweep/hand':>11}{'fast/hand':>10}{'sweep/RK4':>10}{'fast/RK4':>9} | sweep's path | fallbacks",
-        (f"{r['batch']:>8}{r['n_steps']:>6} |"
-         + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>{width[m] - 9}.3g} ({r[m]['compile_s']:5.1f})"
-                   for m in names)
-         + f" |{r['ratios']['sweep_over_hand']:>11.3g}{r['ratios']['sweep_fast_over_hand']:>10.3g}"
-         f"{r['ratios']['sweep_over_numpy_rk4']:>10.3g}{r['ratios']['sweep_fast_over_numpy_rk4']:>9.3g} | "
-         f"{'lean' if r['sweep']['fast_chunks'] else 'general':>12} | "
-         f"{r['sweep_fast']['fallback_chunks']}/{r['sweep_fast']['fast_chunks']}"
-         for r in rows))
-    print("Against the hand kernel with the sweep's per-step checks (hand_rows_march(verified=True); the share of "
-          "members whose every step passed): sweep / verified, fast / verified, hand / verified: " + "; ".join(
-              f"B={r['batch']}: {r['ratios']['sweep_over_hand_verified']:.3g}, "
-              f"{r['ratios']['sweep_fast_over_hand_verified']:.3g}, {r['ratios'][HAND_ROWS + '_over_hand_verified']:.3g} "
-              f"(passed {r[HAND_VERIFIED]['verified_share']:.1%})" for r in rows))
+        (
+            f"{r['batch']:>8}{r['n_steps']:>6} |"
+            + "".join(
+                f"{r[m]['body_steps_per_second'] / 1e6:>{width[m] - 9}.3g} ({r[m]['compile_s']:5.1f})" for m in names
+            )
+            + f" |{r['ratios']['sweep_over_hand']:>11.3g}{r['ratios']['sweep_fast_over_hand']:>10.3g}"
+            f"{r['ratios']['sweep_over_numpy_rk4']:>10.3g}{r['ratios']['sweep_fast_over_numpy_rk4']:>9.3g} | "
+            f"{'lean' if r['sweep']['fast_chunks'] else 'general':>12} | "
+            f"{r['sweep_fast']['fallback_chunks']}/{r['sweep_fast']['fast_chunks']}"
+            for r in rows
+        ),
+    )
+    print(
+        "Against the hand kernel with the sweep's per-step checks (hand_rows_march(verified=True); the share of "
+        "members whose every step passed): sweep / verified, fast / verified, hand / verified: "
+        + "; ".join(
+            f"B={r['batch']}: {r['ratios']['sweep_over_hand_verified']:.3g}, "
+            f"{r['ratios']['sweep_fast_over_hand_verified']:.3g}, {r['ratios'][HAND_ROWS + '_over_hand_verified']:.3g} "
+            f"(passed {r[HAND_VERIFIED]['verified_share']:.1%})"
+            for r in rows
+        )
+    )
     if TWO_DEVICES in names:
-        print("sweep_fast_2dev (both cores) over hand / over NumPy RK4: " + "; ".join(
-            f"B={r['batch']}: {r['ratios'][TWO_DEVICES + '_over_hand']:.3g} / "
-            f"{r['ratios'][TWO_DEVICES + '_over_numpy_rk4']:.3g}" for r in rows))
+        print(
+            "sweep_fast_2dev (both cores) over hand / over NumPy RK4: "
+            + "; ".join(
+                f"B={r['batch']}: {r['ratios'][TWO_DEVICES + '_over_hand']:.3g} / "
+                f"{r['ratios'][TWO_DEVICES + '_over_numpy_rk4']:.3g}"
+                for r in rows
+            )
+        )
     if C_SIMD in names:
-        print(f"C kernel ({rows[0][C_SIMD]['flags']}, one thread): sweep / C, fast / C, hand / C: " + "; ".join(
-            f"B={r['batch']}: {r['ratios']['sweep_over_c']:.3g}, {r['ratios']['sweep_fast_over_c']:.3g}, "
-            f"{r['ratios'][HAND_ROWS + '_over_c']:.3g}" for r in rows))
+        print(
+            f"C kernel ({rows[0][C_SIMD]['flags']}, one thread): sweep / C, fast / C, hand / C: "
+            + "; ".join(
+                f"B={r['batch']}: {r['ratios']['sweep_over_c']:.3g}, {r['ratios']['sweep_fast_over_c']:.3g}, "
+                f"{r['ratios'][HAND_ROWS + '_over_c']:.3g}"
+                for r in rows
+            )
+        )
     elif rows:
         print(f"C kernel skipped: {rows[0].get('c_simd_skipped')}")
-    print("max energy error: " + "; ".join(
-        f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows))
+    print(
+        "max energy error: "
+        + "; ".join(f"B={r['batch']}: " + ", ".join(f"{m} {r[m]['max_energy_error']:.2e}" for m in names) for r in rows)
+    )
     mixed = [r for r in summary["results"] if r["part"] == "sweep_mixed"]
     if mixed:
-        print("\nMixed momenta (omega ~ N(0, 1)): M body-steps/s (compile s); the share of member-chunks rerun "
-              "on the general path:")
+        print(
+            "\nMixed momenta (omega ~ N(0, 1)): M body-steps/s (compile s); the share of member-chunks rerun "
+            "on the general path:"
+        )
         names = ("sweep", "sweep_fast", "sweep_general", HAND_ROWS, RK4)
         harness.print_table(
             f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>20}" for m in names) + " | fast/general | fast/hand | rerun",
-            (f"{r['batch']:>8}{r['n_steps']:>6} |"
-             + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>11.3g} ({r[m]['compile_s']:5.1f})" for m in names)
-             + f" | {r['sweep_fast']['body_steps_per_second'] / r['sweep_general']['body_steps_per_second']:>12.3g}"
-             f" | {r['ratios']['sweep_fast_over_hand']:>9.3g} | {r['sweep_fast']['fallback_share']:.2%}"
-             for r in mixed))
+            (
+                f"{r['batch']:>8}{r['n_steps']:>6} |"
+                + "".join(f"{r[m]['body_steps_per_second'] / 1e6:>11.3g} ({r[m]['compile_s']:5.1f})" for m in names)
+                + f" | {r['sweep_fast']['body_steps_per_second'] / r['sweep_general']['body_steps_per_second']:>12.3g}"
+                f" | {r['ratios']['sweep_fast_over_hand']:>9.3g} | {r['sweep_fast']['fallback_share']:.2%}"
+                for r in mixed
+            ),
+        )
     vortex_rows = [r for r in summary["results"] if r["part"] == "sweep_vortices"]
     if vortex_rows:
-        print("\nClusters of point vortices, documented sweep (default options) against NumPy RK4, ms per step "
-              "of the whole batch:")
+        print(
+            "\nClusters of point vortices, documented sweep (default options) against NumPy RK4, ms per step "
+            "of the whole batch:"
+        )
         harness.print_table(
             f"{'N':>4}{'B':>7}{'steps':>6} |{'sweep':>10}{'RK4':>9}{'sweep/RK4':>10} | compile s | failed | "
             "max |Q - Q_RK4|",
-            (f"{r['N']:>4}{r['batch']:>7}{r['n_steps']:>6} |{r['sweep']['seconds_per_step'] * 1e3:>10.3g}"
-             f"{r[RK4]['seconds_per_step'] * 1e3:>9.3g}{r['ratios']['sweep_over_numpy_rk4_step']:>10.3g} | "
-             f"{r['sweep']['compile_s']:9.1f} | {r['sweep']['failed_members']:>6} | "
-             f"{r['sweep']['max_abs_final_Q_diff_vs_rk4']:.1e}" for r in vortex_rows))
+            (
+                f"{r['N']:>4}{r['batch']:>7}{r['n_steps']:>6} |{r['sweep']['seconds_per_step'] * 1e3:>10.3g}"
+                f"{r[RK4]['seconds_per_step'] * 1e3:>9.3g}{r['ratios']['sweep_over_numpy_rk4_step']:>10.3g} | "
+                f"{r['sweep']['compile_s']:9.1f} | {r['sweep']['failed_members']:>6} | "
+                f"{r['sweep']['max_abs_final_Q_diff_vs_rk4']:.1e}"
+                for r in vortex_rows
+            ),
+        )
     t = SWEEP_TARGETS
-    print(f"Targets: sweep >= {t['over_hand_at_1e3']}x hand at B=1e3, >= {t['over_hand_from_1e4']}x from 1e4, "
-          f">= {t['over_rk4']}x NumPy RK4, compile <= {t['compile_s']} s; vortex clusters <= "
-          f"{t['vortex_clusters_over_rk4_step']}x an RK4 step (reported, never asserted).")
+    print(
+        f"Targets: sweep >= {t['over_hand_at_1e3']}x hand at B=1e3, >= {t['over_hand_from_1e4']}x from 1e4, "
+        f">= {t['over_rk4']}x NumPy RK4, compile <= {t['compile_s']} s; vortex clusters <= "
+        f"{t['vortex_clusters_over_rk4_step']}x an RK4 step (reported, never asserted)."
+    )
 
 
 def plot_sweep(summary: dict, path: Path) -> None:
     fig, ax = harness.figure((1,), size=(7, 4.6))
-    styles = {"sweep": ("o", "C2"), "sweep_fast": ("*", "C3"), "cj_batch": ("D", "C0"), HAND_ROWS: ("^", "C7"),
-              HAND_VERIFIED: ("v", "C8"),
-              RK4: ("s", "C1"), TWO_DEVICES: ("P", "C4"), C_SIMD: ("x", "k")}
+    styles = {
+        "sweep": ("o", "C2"),
+        "sweep_fast": ("*", "C3"),
+        "cj_batch": ("D", "C0"),
+        HAND_ROWS: ("^", "C7"),
+        HAND_VERIFIED: ("v", "C8"),
+        RK4: ("s", "C1"),
+        TWO_DEVICES: ("P", "C4"),
+        C_SIMD: ("x", "k"),
+    }
     for m, (marker, color) in styles.items():
-        pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"]
-               if r["part"] == "sweep" and m in r]
+        pts = [
+            (r["batch"], r[m]["body_steps_per_second"]) for r in summary["results"] if r["part"] == "sweep" and m in r
+        ]
         if not pts:
             continue
         ax.loglog(*zip(*pts), marker=marker, color=color, label=m)
@@ -705,14 +801,32 @@ def vortex_case(label: str, N: int, batch: int | None, n_steps: int, run: harnes
     B = 1 if batch is None else batch
     gamma, Q0 = vortex.initial_conditions(N, B)
     name = f"vortices {label} N={N} B={B} n_steps={n_steps}"
-    calls = {"ours": vortex.ours_call(N, batch, n_steps, gamma, Q0, "blocks", run.compiler_options),
-             RK4: lambda: vortex.rk4_march(gamma, Q0, vortex.DT, n_steps)}
+    calls = {
+        "ours": vortex.ours_call(N, batch, n_steps, gamma, Q0, "blocks", run.compiler_options),
+        RK4: lambda: vortex.rk4_march(gamma, Q0, vortex.DT, n_steps),
+    }
     if batch is not None:
-        calls["batch_last"] = vortex.ours_call(N, batch, n_steps, gamma, Q0, "blocks", run.compiler_options,
-                                               functools.partial(cj.batch, chunk=min(VORTEX_CHUNK, B)))
+        calls["batch_last"] = vortex.ours_call(
+            N,
+            batch,
+            n_steps,
+            gamma,
+            Q0,
+            "blocks",
+            run.compiler_options,
+            functools.partial(cj.batch, chunk=min(VORTEX_CHUNK, B)),
+        )
     timings, outs = run.time(calls, what=name)
-    row = {"part": "vortices", "case": label, "N": N, "batch": B, "n_steps": n_steps, "jacobian": "blocks",
-           "ours": _rates(timings["ours"], n_steps, N * B, "vortex"), RK4: _rates(timings[RK4], n_steps, N * B, "vortex")}
+    row = {
+        "part": "vortices",
+        "case": label,
+        "N": N,
+        "batch": B,
+        "n_steps": n_steps,
+        "jacobian": "blocks",
+        "ours": _rates(timings["ours"], n_steps, N * B, "vortex"),
+        RK4: _rates(timings[RK4], n_steps, N * B, "vortex"),
+    }
     with run.guard(f"diagnostics, {name}"):
         sol = outs["ours"].raise_if_failed()
         Q = np.asarray(sol.Q).reshape(B, n_steps + 1, N, 2)
@@ -728,15 +842,17 @@ def vortex_case(label: str, N: int, batch: int | None, n_steps: int, run: harnes
         if "batch_last" in calls:
             row["batch_last"] = _rates(timings["batch_last"], n_steps, N * B, "vortex")
             row["batch_last"]["chunk"] = min(VORTEX_CHUNK, B)
-            row["batch_last"]["max_abs_position_diff_vs_vmap"] = float(np.nanmax(np.abs(
-                np.asarray(outs["batch_last"].raise_if_failed().Q).reshape(Q.shape) - Q)))
+            row["batch_last"]["max_abs_position_diff_vs_vmap"] = float(
+                np.nanmax(np.abs(np.asarray(outs["batch_last"].raise_if_failed().Q).reshape(Q.shape) - Q))
+            )
     row["ratios"] = {
         "ours_over_rk4_time_per_step": row["ours"]["seconds_per_step"] / row[RK4]["seconds_per_step"],
         "ours_over_rk4_rate": row["ours"]["vortex_steps_per_second"] / row[RK4]["vortex_steps_per_second"],
     }
     if "batch_last" in calls:
-        row["ratios"]["batch_last_over_rk4_time_per_step"] = (row["batch_last"]["seconds_per_step"]
-                                                              / row[RK4]["seconds_per_step"])
+        row["ratios"]["batch_last_over_rk4_time_per_step"] = (
+            row["batch_last"]["seconds_per_step"] / row[RK4]["seconds_per_step"]
+        )
     return row
 
 
@@ -769,7 +885,8 @@ def _compile_events() -> list:
     (event, seconds, program name) from now on."""
     events = []
     jax.monitoring.register_event_duration_secs_listener(
-        lambda event, secs, **kw: events.append((event.rsplit("/", 1)[-1], secs, kw.get("fun_name"))))
+        lambda event, secs, **kw: events.append((event.rsplit("/", 1)[-1], secs, kw.get("fun_name")))
+    )
     return events
 
 
@@ -801,6 +918,7 @@ def first_call_cost(model_names, cache_dir=None) -> list:
         if event.startswith("/jax/compilation_cache/cache_"):
             key = event.rsplit("_", 1)[-1]
             cache_events[key] = cache_events.get(key, 0) + 1
+
     jax.monitoring.register_event_listener(count)
     events = _compile_events()
     tic = time.perf_counter()
@@ -812,6 +930,7 @@ def first_call_cost(model_names, cache_dir=None) -> list:
 
         def call():
             return jax.block_until_ready(cj.integrate(system, Q0, xi0, dt=dt, n_steps=COMPILE_N_STEPS, **kwargs))
+
         load = harness.load_average()
         events.clear()
         cache_events.update(hits=0, misses=0)
@@ -822,19 +941,37 @@ def first_call_cost(model_names, cache_dir=None) -> list:
         tic = time.perf_counter()
         call()
         second = time.perf_counter() - tic
-        rows.append({"part": "compile", "case": model, "form": sol.form, "scheme": sol.scheme,
-                     "n_steps": COMPILE_N_STEPS, "dt": dt, "keywords": kwargs, "first_call_s": first,
-                     "second_call_s": second, "compile_s": first - second, "process_first_jit_s": first_jit,
-                     "first_call_jax_events": _where_compile_time_goes(first_call_events),
-                     "persistent_cache": None if cache_dir is None else dict(cache_events),
-                     "load_average_1min_at_start": load})
+        rows.append(
+            {
+                "part": "compile",
+                "case": model,
+                "form": sol.form,
+                "scheme": sol.scheme,
+                "n_steps": COMPILE_N_STEPS,
+                "dt": dt,
+                "keywords": kwargs,
+                "first_call_s": first,
+                "second_call_s": second,
+                "compile_s": first - second,
+                "process_first_jit_s": first_jit,
+                "first_call_jax_events": _where_compile_time_goes(first_call_events),
+                "persistent_cache": None if cache_dir is None else dict(cache_events),
+                "load_average_1min_at_start": load,
+            }
+        )
     return rows
 
 
 def _child(model_names: tuple, run: harness.Run, cache_dir: str) -> list:
     """`first_call_cost(model_names, cache_dir)` in a child process (`--compile-model`)."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--compile-model", ",".join(model_names),
-           "--compile-cache", cache_dir]
+    cmd = [
+        sys.executable,
+        str(Path(__file__).resolve()),
+        "--compile-model",
+        ",".join(model_names),
+        "--compile-cache",
+        cache_dir,
+    ]
     if run.quick:
         cmd.append("--quick")
     with run.guard(f"compile time of {', '.join(model_names)}"):
@@ -850,8 +987,17 @@ def compile_case(model_names: tuple, run: harness.Run) -> list:
         cold = _child(model_names, run, cache_dir)
         warm = _child(model_names, run, cache_dir)
     for row, again in zip(cold, warm):
-        row["warm"] = {k: again[k] for k in ("first_call_s", "second_call_s", "compile_s", "first_call_jax_events",
-                                               "persistent_cache", "load_average_1min_at_start")}
+        row["warm"] = {
+            k: again[k]
+            for k in (
+                "first_call_s",
+                "second_call_s",
+                "compile_s",
+                "first_call_jax_events",
+                "persistent_cache",
+                "load_average_1min_at_start",
+            )
+        }
     return cold
 
 
@@ -868,28 +1014,46 @@ def _verdicts(rigid_rows: list, vortex_rows: list, compile_rows: list) -> dict:
 
     def flatness(rates: dict):
         return None if len(rates) < 2 else min(rates.values()) / max(rates.values())
-    flat = {m: flatness({r["batch"]: r[m]["body_steps_per_second"] for r in batched if m in r})
-            for m in ("vmap", "chunked", "batch_last")}
+
+    flat = {
+        m: flatness({r["batch"]: r[m]["body_steps_per_second"] for r in batched if m in r})
+        for m in ("vmap", "chunked", "batch_last")
+    }
     flat["best"] = flatness(best)
     at_N = [r for r in vortex_rows if r["case"] == "single" and r["N"] == t["vortex_N"]]
     vortex_ratio = at_N[0]["ratios"]["ours_over_rk4_time_per_step"] if at_N else None
     compile_s = {r["case"]: r["compile_s"] for r in compile_rows}
     warm_s = {r["case"]: r["warm"]["compile_s"] for r in compile_rows if "warm" in r}
     return {
-        "rigid_body_rate": {"min_body_steps_per_second": t["rigid_body_steps_per_second"], "best_per_batch": best,
-                            "met": bool(best) and all(v >= t["rigid_body_steps_per_second"] for v in best.values())},
-        "rigid_body_over_rk4": {"min_rate_ratio": t["rigid_body_over_rk4_rate"], "best_per_batch": over_rk4,
-                                "met": bool(over_rk4) and all(v >= t["rigid_body_over_rk4_rate"] for v in over_rk4.values())},
-        "rigid_body_flat": {"batches": sorted(best), "min_fraction_of_best": t["flat_fraction"],
-                            "min_over_max_rate": flat,
-                            "met": None if flat["best"] is None else bool(flat["best"] >= t["flat_fraction"])},
-        "vortex_step_cost": {"N": t["vortex_N"], "max_ours_over_rk4_time_per_step": t["vortex_ours_over_rk4_time_per_step"],
-                             "ours_over_rk4_time_per_step": vortex_ratio,
-                             "met": None if vortex_ratio is None else bool(vortex_ratio <= t["vortex_ours_over_rk4_time_per_step"])},
-        "compile": {"max_s": t["compile_s"], "per_model": compile_s,
-                    "met": bool(compile_s) and all(v <= t["compile_s"] for v in compile_s.values()),
-                    "warm_per_model": warm_s,
-                    "warm_met": bool(warm_s) and all(v <= t["compile_s"] for v in warm_s.values())},
+        "rigid_body_rate": {
+            "min_body_steps_per_second": t["rigid_body_steps_per_second"],
+            "best_per_batch": best,
+            "met": bool(best) and all(v >= t["rigid_body_steps_per_second"] for v in best.values()),
+        },
+        "rigid_body_over_rk4": {
+            "min_rate_ratio": t["rigid_body_over_rk4_rate"],
+            "best_per_batch": over_rk4,
+            "met": bool(over_rk4) and all(v >= t["rigid_body_over_rk4_rate"] for v in over_rk4.values()),
+        },
+        "rigid_body_flat": {
+            "batches": sorted(best),
+            "min_fraction_of_best": t["flat_fraction"],
+            "min_over_max_rate": flat,
+            "met": None if flat["best"] is None else bool(flat["best"] >= t["flat_fraction"]),
+        },
+        "vortex_step_cost": {
+            "N": t["vortex_N"],
+            "max_ours_over_rk4_time_per_step": t["vortex_ours_over_rk4_time_per_step"],
+            "ours_over_rk4_time_per_step": vortex_ratio,
+            "met": None if vortex_ratio is None else bool(vortex_ratio <= t["vortex_ours_over_rk4_time_per_step"]),
+        },
+        "compile": {
+            "max_s": t["compile_s"],
+            "per_model": compile_s,
+            "met": bool(compile_s) and all(v <= t["compile_s"] for v in compile_s.values()),
+            "warm_per_model": warm_s,
+            "warm_met": bool(warm_s) and all(v <= t["compile_s"] for v in warm_s.values()),
+        },
     }
 
 
@@ -904,6 +1068,7 @@ def _verdict(v: dict) -> str:
 def _jax_events(e: dict) -> str:
     def s(k):
         return e.get(k, {}).get("s", 0.0)
+
     xla = f"{s('backend_compile'):.2f} ({e.get('backend_compile', {}).get('count', 0)})"
     return f"{s('jaxpr_trace'):>6.2f}{s('jaxpr_to_mlir_module'):>6.2f}{xla:>16}{s('largest_backend_compile'):>8.2f}"
 
@@ -912,89 +1077,131 @@ def print_report(summary: dict) -> None:
     parts = harness.rows_by(summary["results"], "part")
     fmt, v = harness.fmt, summary["targets"]
     harness.print_header(
-        summary, "Throughput",
+        summary,
+        "Throughput",
         f"Rigid body (2, 1, 2/3), reduced march (Cayley), dt = {rigid.DT}: vmap = jit(vmap(integrate)) over B "
         f"bodies, chunked = jit(lax.map(..., batch_size={summary['config']['chunk']})), batch_last = jit(cj.batch(..., "
         f"chunk={summary['config']['chunk']}));\n  point vortices, "
         f"dt = {vortex.DT}, jacobian='blocks': single = one plain integrate call, vmap = jit(vmap) over B systems; "
-        "NumPy RK4s of the same equations.")
+        "NumPy RK4s of the same equations.",
+    )
 
-    print("\nRigid body: body-steps per second (rate ratios; Newton updates per step of the slowest member of the "
-          "batch / of a chunk):")
+    print(
+        "\nRigid body: body-steps per second (rate ratios; Newton updates per step of the slowest member of the "
+        "batch / of a chunk):"
+    )
     harness.print_table(
         f"{'B':>8}{'steps':>6} |{'vmap':>10}{'chunked':>10}{'batch':>10}{'NumPy RK4':>11}{'JAX hand':>10} |"
         f"{'vmap/RK4':>9}{'chunk/RK4':>10}{'batch/RK4':>10}{'chunk/vmap':>11}{'vmap/hand':>10} {'best':<8}|"
         f"{'upd/batch':>10}{'upd/chunk':>10}",
-        (f"{r['batch']:>8}{r['n_steps']:>6} |{r['vmap']['body_steps_per_second']:>10.3g}"
-         f"{fmt(r.get('chunked', {}).get('body_steps_per_second'), '.3g', 10)}"
-         f"{fmt(r.get('batch_last', {}).get('body_steps_per_second'), '.3g', 10)}"
-         f"{r[RK4]['body_steps_per_second']:>11.3g}{fmt(r.get(HAND, {}).get('body_steps_per_second'), '.3g', 10)} |"
-         f"{r['ratios']['vmap_over_rk4_rate']:>9.3g}"
-         f"{fmt(r['ratios'].get('chunked_over_rk4_rate'), '.3g', 10)}"
-         f"{fmt(r['ratios'].get('batch_last_over_rk4_rate'), '.3g', 10)}"
-         f"{fmt(r['ratios'].get('chunked_over_vmap_rate'), '.3g', 11)}"
-         f"{fmt(r['ratios'].get('vmap_over_hand_rate'), '.3g', 10)} {r['best']:<8}|"
-         f"{r['newton_updates_per_step']['slowest_of_batch_mean']:>10.2f}"
-         f"{fmt(r['newton_updates_per_step'].get('slowest_of_chunk_mean'), '.2f', 10)}"
-         for r in parts.get("rigid_body", [])))
+        (
+            f"{r['batch']:>8}{r['n_steps']:>6} |{r['vmap']['body_steps_per_second']:>10.3g}"
+            f"{fmt(r.get('chunked', {}).get('body_steps_per_second'), '.3g', 10)}"
+            f"{fmt(r.get('batch_last', {}).get('body_steps_per_second'), '.3g', 10)}"
+            f"{r[RK4]['body_steps_per_second']:>11.3g}{fmt(r.get(HAND, {}).get('body_steps_per_second'), '.3g', 10)} |"
+            f"{r['ratios']['vmap_over_rk4_rate']:>9.3g}"
+            f"{fmt(r['ratios'].get('chunked_over_rk4_rate'), '.3g', 10)}"
+            f"{fmt(r['ratios'].get('batch_last_over_rk4_rate'), '.3g', 10)}"
+            f"{fmt(r['ratios'].get('chunked_over_vmap_rate'), '.3g', 11)}"
+            f"{fmt(r['ratios'].get('vmap_over_hand_rate'), '.3g', 10)} {r['best']:<8}|"
+            f"{r['newton_updates_per_step']['slowest_of_batch_mean']:>10.2f}"
+            f"{fmt(r['newton_updates_per_step'].get('slowest_of_chunk_mean'), '.2f', 10)}"
+            for r in parts.get("rigid_body", [])
+        ),
+    )
     rate, over, flat = v["rigid_body_rate"], v["rigid_body_over_rk4"], v["rigid_body_flat"]
-    print(f"Target >= {rate['min_body_steps_per_second']:.3g} body-steps/s for B in {flat['batches']}: "
-          f"{_verdict(rate)} (best per B: {', '.join(f'{x:.3g}' for x in rate['best_per_batch'].values())}).")
-    print(f"Target >= {over['min_rate_ratio']:g}x the NumPy RK4 rate: {_verdict(over)} "
-          f"(best per B: {', '.join(f'{x:.3g}x' for x in over['best_per_batch'].values())}).")
-    print(f"Target flat over B in {flat['batches']} (min rate >= {flat['min_fraction_of_best']:g} x max rate): "
-          f"{_verdict(flat)} (min/max: " + ", ".join(
-              f"{m} {fmt(x, '.2f', 1, 'n/a')}" for m, x in flat["min_over_max_rate"].items()) + ").")
+    print(
+        f"Target >= {rate['min_body_steps_per_second']:.3g} body-steps/s for B in {flat['batches']}: "
+        f"{_verdict(rate)} (best per B: {', '.join(f'{x:.3g}' for x in rate['best_per_batch'].values())})."
+    )
+    print(
+        f"Target >= {over['min_rate_ratio']:g}x the NumPy RK4 rate: {_verdict(over)} "
+        f"(best per B: {', '.join(f'{x:.3g}x' for x in over['best_per_batch'].values())})."
+    )
+    print(
+        f"Target flat over B in {flat['batches']} (min rate >= {flat['min_fraction_of_best']:g} x max rate): "
+        f"{_verdict(flat)} (min/max: "
+        + ", ".join(f"{m} {fmt(x, '.2f', 1, 'n/a')}" for m, x in flat["min_over_max_rate"].items())
+        + ")."
+    )
     hand = [r for r in parts.get("rigid_body", []) if HAND in r]
     if hand:
-        print(f"Reference, the same step written by hand in JAX ({HAND_UPDATES} chord updates, no checks): "
-              + ", ".join(f"B={r['batch']} {r[HAND]['body_steps_per_second']:.3g}/s" for r in hand)
-              + f"; its momenta differ from ours by <= "
-              f"{max(r[HAND]['max_abs_momentum_diff_vs_vmap'] for r in hand):.1e}.")
+        print(
+            f"Reference, the same step written by hand in JAX ({HAND_UPDATES} chord updates, no checks): "
+            + ", ".join(f"B={r['batch']} {r[HAND]['body_steps_per_second']:.3g}/s" for r in hand)
+            + f"; its momenta differ from ours by <= "
+            f"{max(r[HAND]['max_abs_momentum_diff_vs_vmap'] for r in hand):.1e}."
+        )
 
-    print("\nPoint vortices: vortex-steps per second (seconds per step of the whole batch); Newton updates per "
-          "step (mean; slowest member of the batch):")
+    print(
+        "\nPoint vortices: vortex-steps per second (seconds per step of the whole batch); Newton updates per "
+        "step (mean; slowest member of the batch):"
+    )
     harness.print_table(
         f"{'case':<7}{'N':>5}{'B':>6}{'steps':>6} |{'ours':>22}{'NumPy RK4':>22} |{'ours/RK4 time per step':>23}"
         f"{'batch/RK4':>12}"
         f" |{'upd mean':>9}{'slowest':>8}",
-        (f"{r['case']:<7}{r['N']:>5}{r['batch']:>6}{r['n_steps']:>6} |"
-         + "".join(f"{r[m]['vortex_steps_per_second']:>10.3g} ({r[m]['seconds_per_step']:8.2e})" for m in ("ours", RK4))
-         + f" |{r['ratios']['ours_over_rk4_time_per_step']:>23.3g}"
-         f"{fmt(r['ratios'].get('batch_last_over_rk4_time_per_step'), '.3g', 12)} |{r['newton_updates_per_step']['mean']:>9.2f}"
-         f"{r['newton_updates_per_step']['slowest_of_batch_mean']:>8.2f}"
-         for r in parts.get("vortices", [])))
+        (
+            f"{r['case']:<7}{r['N']:>5}{r['batch']:>6}{r['n_steps']:>6} |"
+            + "".join(
+                f"{r[m]['vortex_steps_per_second']:>10.3g} ({r[m]['seconds_per_step']:8.2e})" for m in ("ours", RK4)
+            )
+            + f" |{r['ratios']['ours_over_rk4_time_per_step']:>23.3g}"
+            f"{fmt(r['ratios'].get('batch_last_over_rk4_time_per_step'), '.3g', 12)} |{r['newton_updates_per_step']['mean']:>9.2f}"
+            f"{r['newton_updates_per_step']['slowest_of_batch_mean']:>8.2f}"
+            for r in parts.get("vortices", [])
+        ),
+    )
     vx = v["vortex_step_cost"]
-    print(f"Target one step <= {vx['max_ours_over_rk4_time_per_step']:g}x one RK4 step at N = {vx['N']}: {_verdict(vx)}"
-          + ("" if vx["ours_over_rk4_time_per_step"] is None else f" ({vx['ours_over_rk4_time_per_step']:.3g}x)") + ".")
+    print(
+        f"Target one step <= {vx['max_ours_over_rk4_time_per_step']:g}x one RK4 step at N = {vx['N']}: {_verdict(vx)}"
+        + ("" if vx["ours_over_rk4_time_per_step"] is None else f" ({vx['ours_over_rk4_time_per_step']:.3g}x)")
+        + "."
+    )
 
-    print(f"\nCompile time of each model's first integrate call ({COMPILE_N_STEPS} steps), in a fresh process: "
-          "first call - second call [s]:")
-    rows = [(label, r, d) for r in parts.get("compile", [])
-            for label, d in (("cold", r), ("warm", r.get("warm"))) if d is not None]
+    print(
+        f"\nCompile time of each model's first integrate call ({COMPILE_N_STEPS} steps), in a fresh process: "
+        "first call - second call [s]:"
+    )
+    rows = [
+        (label, r, d)
+        for r in parts.get("compile", [])
+        for label, d in (("cold", r), ("warm", r.get("warm")))
+        if d is not None
+    ]
     harness.print_table(
         f"{'model':<16}{'form':<9}{'scheme':<10}{'cache':<6}{'first':>8}{'second':>8}{'compile':>9}{'load':>6} | "
         f"{'trace':>6}{'lower':>6}{'XLA (programs)':>16}{'largest':>8}{'hits':>6}",
-        (f"{r['case']:<16}{r['form']:<9}{r['scheme']:<10}{label:<6}{d['first_call_s']:>8.2f}{d['second_call_s']:>8.3f}"
-         f"{d['compile_s']:>9.2f}{d['load_average_1min_at_start']:>6.2f} | {_jax_events(d['first_call_jax_events'])}"
-         f"{fmt((d.get('persistent_cache') or {}).get('hits'), 'd', 6)}"
-         for label, r, d in rows))
-    print("  (JAX's own durations during the first call [s]: tracing to jaxprs, lowering to MLIR, XLA compilation "
-          "summed over all programs\n  compiled, with their number, and the largest program; every eager "
-          "operation outside a jit is a program of its own.)")
+        (
+            f"{r['case']:<16}{r['form']:<9}{r['scheme']:<10}{label:<6}{d['first_call_s']:>8.2f}{d['second_call_s']:>8.3f}"
+            f"{d['compile_s']:>9.2f}{d['load_average_1min_at_start']:>6.2f} | {_jax_events(d['first_call_jax_events'])}"
+            f"{fmt((d.get('persistent_cache') or {}).get('hits'), 'd', 6)}"
+            for label, r, d in rows
+        ),
+    )
+    print(
+        "  (JAX's own durations during the first call [s]: tracing to jaxprs, lowering to MLIR, XLA compilation "
+        "summed over all programs\n  compiled, with their number, and the largest program; every eager "
+        "operation outside a jit is a program of its own.)"
+    )
     c = v["compile"]
-    print(f"Target <= {c['max_s']:g} s per model: {_verdict(c)} (cold: a new cache); with the programs in "
-          f"the persistent cache (warm): {_verdict({'met': c.get('warm_met') if c.get('warm_per_model') else None})}.")
+    print(
+        f"Target <= {c['max_s']:g} s per model: {_verdict(c)} (cold: a new cache); with the programs in "
+        f"the persistent cache (warm): {_verdict({'met': c.get('warm_met') if c.get('warm_per_model') else None})}."
+    )
 
 
 def plot(summary: dict, path: Path) -> None:
     parts = harness.rows_by(summary["results"], "part")
     fig, (ax, ax_v, ax_c) = harness.figure((3, 2, 1.4), size=(14, 4.8))
     rows = parts.get("rigid_body", [])
-    styles = {"vmap": ("o", "C2", "ours, jit(vmap)"), "chunked": ("D", "C0", "ours, lax.map over chunks of vmap"),
-              "batch_last": ("*", "C3", "ours, jit(cj.batch): batch-last, in chunks"),
-              RK4: ("s", "C1", "NumPy RK4 (broadcast)"),
-              HAND: ("^", "C7", "reference: the same step in JAX by hand")}
+    styles = {
+        "vmap": ("o", "C2", "ours, jit(vmap)"),
+        "chunked": ("D", "C0", "ours, lax.map over chunks of vmap"),
+        "batch_last": ("*", "C3", "ours, jit(cj.batch): batch-last, in chunks"),
+        RK4: ("s", "C1", "NumPy RK4 (broadcast)"),
+        HAND: ("^", "C7", "reference: the same step in JAX by hand"),
+    }
     for m, (marker, color, label) in styles.items():
         pts = [(r["batch"], r[m]["body_steps_per_second"]) for r in rows if m in r]
         if pts:
@@ -1010,15 +1217,28 @@ def plot(summary: dict, path: Path) -> None:
     for r in parts.get("vortices", []):
         for m, (marker, color) in (("ours", ("o", "C0")), (RK4, ("s", "C1")), ("batch_last", ("*", "C3"))):
             if m in r:
-                ax_v.loglog([r["N"] * r["batch"]], [r[m]["vortex_steps_per_second"]], marker=marker, color=color,
-                            mfc=color if r["case"] == "single" else "none", ms=8, ls="none")
-        ax_v.annotate(f"{r['N']}x{r['batch']}", (r["N"] * r["batch"], r["ours"]["vortex_steps_per_second"]),
-                      textcoords="offset points", xytext=(5, 4), fontsize=7)
+                ax_v.loglog(
+                    [r["N"] * r["batch"]],
+                    [r[m]["vortex_steps_per_second"]],
+                    marker=marker,
+                    color=color,
+                    mfc=color if r["case"] == "single" else "none",
+                    ms=8,
+                    ls="none",
+                )
+        ax_v.annotate(
+            f"{r['N']}x{r['batch']}",
+            (r["N"] * r["batch"], r["ours"]["vortex_steps_per_second"]),
+            textcoords="offset points",
+            xytext=(5, 4),
+            fontsize=7,
+        )
     ax_v.plot([], [], "o", color="C0", label="ours, jacobian='blocks'")
     ax_v.plot([], [], "*", color="C3", mfc="none", label=f"ours, cj.batch (chunk {VORTEX_CHUNK})")
     ax_v.plot([], [], "s", color="C1", label="NumPy RK4")
-    ax_v.legend(handles=ax_v.get_legend_handles_labels()[0] + [harness.hollow_marker("hollow: jit(vmap) batch")],
-                fontsize=8)
+    ax_v.legend(
+        handles=ax_v.get_legend_handles_labels()[0] + [harness.hollow_marker("hollow: jit(vmap) batch")], fontsize=8
+    )
     ax_v.set_xlabel("vortices per step, N x B")
     ax_v.set_ylabel("vortex-steps per second")
     ax_v.grid(True, which="both", alpha=0.3)
@@ -1027,8 +1247,13 @@ def plot(summary: dict, path: Path) -> None:
     rows = parts.get("compile", [])
     y = np.arange(len(rows))
     ax_c.barh(y - 0.2, [r["compile_s"] for r in rows], height=0.4, color="C0", label="cold")
-    ax_c.barh(y + 0.2, [r["warm"]["compile_s"] if "warm" in r else np.nan for r in rows], height=0.4, color="C2",
-              label="warm (persistent cache)")
+    ax_c.barh(
+        y + 0.2,
+        [r["warm"]["compile_s"] if "warm" in r else np.nan for r in rows],
+        height=0.4,
+        color="C2",
+        label="warm (persistent cache)",
+    )
     ax_c.set_yticks(y, [r["case"] for r in rows])
     ax_c.axvline(TARGETS["compile_s"], color="k", ls=":", lw=1.0, label=f"target {TARGETS['compile_s']:g} s")
     ax_c.set_ylim(len(rows) + 1.0, -0.6)  # top to bottom, an empty row at the bottom for the legend
@@ -1045,35 +1270,58 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
     # the child process of part 3: measure these models (comma-separated) and print JSON
     parser.add_argument("--compile-model", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--compile-cache", default=None, help=argparse.SUPPRESS)
-    parser.add_argument("--sweep-only", action="store_true",
-                        help=f"only part 4, the sweep against the hand kernel ({SWEEP_RESULTS_NAME}.json/.png)")
+    parser.add_argument(
+        "--sweep-only",
+        action="store_true",
+        help=f"only part 4, the sweep against the hand kernel ({SWEEP_RESULTS_NAME}.json/.png)",
+    )
 
 
 def main(argv=None) -> dict | None:
     """Runs the three parts, prints the report, writes the JSON and the PNG; returns the summary."""
     argv = sys.argv[1:] if argv is None else argv
-    run = harness.Run(SWEEP_RESULTS_NAME if "--sweep-only" in argv else RESULTS_NAME, argv,
-                      description="Throughput of the built-in models against NumPy RK4s, "
-                      "and their compile times (see module docstring).", add_arguments=_add_arguments)
+    run = harness.Run(
+        SWEEP_RESULTS_NAME if "--sweep-only" in argv else RESULTS_NAME,
+        argv,
+        description="Throughput of the built-in models against NumPy RK4s, "
+        "and their compile times (see module docstring).",
+        add_arguments=_add_arguments,
+    )
     if run.args.sweep_only:
         with run:
-            rows = run.measure(SWEEP_DEFAULT, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}",
-                               lambda B, n: sweep_case(B, n, run))
+            rows = run.measure(
+                SWEEP_DEFAULT, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}", lambda B, n: sweep_case(B, n, run)
+            )
             rigid_cases = run.cases
-            rows += run.measure(SWEEP_MIXED_DEFAULT, SWEEP_MIXED_QUICK,
-                                lambda B, n: f"sweep (mixed momenta) B={B} n_steps={n}",
-                                lambda B, n: sweep_case(B, n, run, mixed=True))
+            rows += run.measure(
+                SWEEP_MIXED_DEFAULT,
+                SWEEP_MIXED_QUICK,
+                lambda B, n: f"sweep (mixed momenta) B={B} n_steps={n}",
+                lambda B, n: sweep_case(B, n, run, mixed=True),
+            )
             mixed_cases = run.cases
-            rows += run.measure(SWEEP_VORTEX_DEFAULT, SWEEP_VORTEX_QUICK,
-                                lambda N, B, n: f"sweep of {B} clusters of {N} vortices, n_steps={n}",
-                                lambda N, B, n: sweep_vortex_case(N, B, n, run))
-        summary = run.summary(config={"inertia": list(SWEEP_INERTIA), "dt": rigid.DT, "seed": rigid.SEED,
-                                      "cases": [{"batch": b, "n_steps": n} for b, n in rigid_cases],
-                                      "mixed_momenta_cases": [{"batch": b, "n_steps": n} for b, n in mixed_cases],
-                                      "vortex_clusters": {"dt": vortex.DT, "seed": vortex.SEED,
-                                                          "cases": [{"N": N, "batch": b, "n_steps": n}
-                                                                    for N, b, n in run.cases]}},
-                              results=rows, targets=SWEEP_TARGETS)
+            rows += run.measure(
+                SWEEP_VORTEX_DEFAULT,
+                SWEEP_VORTEX_QUICK,
+                lambda N, B, n: f"sweep of {B} clusters of {N} vortices, n_steps={n}",
+                lambda N, B, n: sweep_vortex_case(N, B, n, run),
+            )
+        summary = run.summary(
+            config={
+                "inertia": list(SWEEP_INERTIA),
+                "dt": rigid.DT,
+                "seed": rigid.SEED,
+                "cases": [{"batch": b, "n_steps": n} for b, n in rigid_cases],
+                "mixed_momenta_cases": [{"batch": b, "n_steps": n} for b, n in mixed_cases],
+                "vortex_clusters": {
+                    "dt": vortex.DT,
+                    "seed": vortex.SEED,
+                    "cases": [{"N": N, "batch": b, "n_steps": n} for N, b, n in run.cases],
+                },
+            },
+            results=rows,
+            targets=SWEEP_TARGETS,
+        )
         return run.finish(summary, print_sweep_report, plot_sweep)
     if run.args.compile_model:  # a child of part 3
         with harness.quick_mode(run.quick):
@@ -1083,26 +1331,48 @@ def main(argv=None) -> dict | None:
     # a fresh process for each model; --quick: one child for two models (a smoke test)
     compile_groups = ((MODELS_QUICK,),) if run.quick else tuple(((m,),) for m in MODELS)
     with run:
-        rigid_rows = run.measure(RIGID_DEFAULT, RIGID_QUICK, lambda B, n: f"rigid body B={B} n_steps={n}",
-                                 lambda B, n: rigid_case(B, n, chunk, run))
-        vortex_rows = run.measure(VORTEX_DEFAULT, VORTEX_QUICK,
-                                  lambda label, N, B, n: f"vortices {label} N={N} B={B or 1} n_steps={n}",
-                                  lambda *case: vortex_case(*case, run))
-        compile_rows = run.measure(compile_groups, compile_groups,
-                                   lambda names: f"compile time of {', '.join(names)} (child process)",
-                                   lambda names: compile_case(names, run))
+        rigid_rows = run.measure(
+            RIGID_DEFAULT,
+            RIGID_QUICK,
+            lambda B, n: f"rigid body B={B} n_steps={n}",
+            lambda B, n: rigid_case(B, n, chunk, run),
+        )
+        vortex_rows = run.measure(
+            VORTEX_DEFAULT,
+            VORTEX_QUICK,
+            lambda label, N, B, n: f"vortices {label} N={N} B={B or 1} n_steps={n}",
+            lambda *case: vortex_case(*case, run),
+        )
+        compile_rows = run.measure(
+            compile_groups,
+            compile_groups,
+            lambda names: f"compile time of {', '.join(names)} (child process)",
+            lambda names: compile_case(names, run),
+        )
     compile_rows = [r for rows in compile_rows for r in rows]
     summary = run.summary(
         config={
             "chunk": chunk,
-            "rigid_body": {"inertia": list(rigid.INERTIA), "dt": rigid.DT, "march": "reduce=True (Cayley)",
-                           "cases": [{"batch": b, "n_steps": n} for b, n in (RIGID_QUICK if run.quick else RIGID_DEFAULT)],
-                           "long_call": {"min_body_steps": LONG_CALL_BODY_STEPS, "repeats": LONG_CALL_REPEATS}},
-            "vortices": {"dt": vortex.DT, "jacobian": "blocks",
-                         "cases": [{"case": c, "N": N, "batch": b or 1, "n_steps": n}
-                                   for c, N, b, n in (VORTEX_QUICK if run.quick else VORTEX_DEFAULT)]},
-            "compile": {"models": list(MODELS_QUICK if run.quick else MODELS), "n_steps": COMPILE_N_STEPS,
-                        "child_processes": [list(g[0]) for g in compile_groups]},
+            "rigid_body": {
+                "inertia": list(rigid.INERTIA),
+                "dt": rigid.DT,
+                "march": "reduce=True (Cayley)",
+                "cases": [{"batch": b, "n_steps": n} for b, n in (RIGID_QUICK if run.quick else RIGID_DEFAULT)],
+                "long_call": {"min_body_steps": LONG_CALL_BODY_STEPS, "repeats": LONG_CALL_REPEATS},
+            },
+            "vortices": {
+                "dt": vortex.DT,
+                "jacobian": "blocks",
+                "cases": [
+                    {"case": c, "N": N, "batch": b or 1, "n_steps": n}
+                    for c, N, b, n in (VORTEX_QUICK if run.quick else VORTEX_DEFAULT)
+                ],
+            },
+            "compile": {
+                "models": list(MODELS_QUICK if run.quick else MODELS),
+                "n_steps": COMPILE_N_STEPS,
+                "child_processes": [list(g[0]) for g in compile_groups],
+            },
             "seed": rigid.SEED,
         },
         results=rigid_rows + vortex_rows + compile_rows,

@@ -154,19 +154,29 @@ def ours_call(N, batch, n_steps, gamma, Q0, jacobian, compiler_options=None, bat
         system, xi0 = models.point_vortices(G), models.vortex_velocity(G, Q)
 
         def call():
-            return jax.block_until_ready(
-                cj.integrate(system, Q, xi0, dt=DT, n_steps=n_steps, jacobian=jacobian))
+            return jax.block_until_ready(cj.integrate(system, Q, xi0, dt=DT, n_steps=n_steps, jacobian=jacobian))
+
         return call
 
     G, Q = jnp.asarray(gamma), jnp.asarray(Q0)
     march = jax.jit(
-        batching(lambda g, q: cj.integrate(models.point_vortices(g), q, models.vortex_velocity(g, q), dt=DT,
-                                           n_steps=n_steps, jacobian=jacobian, throw=False)),
+        batching(
+            lambda g, q: cj.integrate(
+                models.point_vortices(g),
+                q,
+                models.vortex_velocity(g, q),
+                dt=DT,
+                n_steps=n_steps,
+                jacobian=jacobian,
+                throw=False,
+            )
+        ),
         compiler_options=compiler_options,
     )
 
     def call():
         return jax.block_until_ready(march(G, Q))
+
     return call
 
 
@@ -208,17 +218,23 @@ def run_case(label, N, batch, n_steps, n_short, variants, run: harness.Run) -> d
     timings, outs = run.time(calls, what=name)
 
     row = {
-        "case": label, "N": N, "batch": B, "n_steps": n_steps, "n_steps_short": n_short, "t_final": n_steps * DT,
+        "case": label,
+        "N": N,
+        "batch": B,
+        "n_steps": n_steps,
+        "n_steps_short": n_short,
+        "t_final": n_steps * DT,
         "variants": list(variants),
-        "call": ("integrate(point_vortices(G), Q0, vortex_velocity(G, Q0), dt=dt, n_steps=n, jacobian=v)"
-                 if batch is None else
-                 "jax.jit(jax.vmap(lambda G, Q0: integrate(point_vortices(G), Q0, vortex_velocity(G, Q0), "
-                 "dt=dt, n_steps=n, jacobian=v, throw=False)))"),
+        "call": (
+            "integrate(point_vortices(G), Q0, vortex_velocity(G, Q0), dt=dt, n_steps=n, jacobian=v)"
+            if batch is None
+            else "jax.jit(jax.vmap(lambda G, Q0: integrate(point_vortices(G), Q0, vortex_velocity(G, Q0), "
+            "dt=dt, n_steps=n, jacobian=v, throw=False)))"
+        ),
     }
     with run.guard(f"diagnostics, {name}"):
         Qs_rk4 = np.moveaxis(outs[RK4], 0, 1)  # (B, n+1, N, 2)
-        row[RK4] = {**_per_step(timings[RK4], N, B, n_steps), **timings[RK4],
-                    **_trajectory_checks(gamma, Qs_rk4)}
+        row[RK4] = {**_per_step(timings[RK4], N, B, n_steps), **timings[RK4], **_trajectory_checks(gamma, Qs_rk4)}
         sols = {}
         for v in variants:
             sol = outs[v].raise_if_failed()
@@ -227,10 +243,12 @@ def run_case(label, N, batch, n_steps, n_short, variants, run: harness.Run) -> d
             iters = np.asarray(sol.stats.iterations, dtype=float).reshape(B, n_steps)
             jacs = np.asarray(sol.stats.jacobians, dtype=float).reshape(B, n_steps)
             row[v] = {
-                **_per_step(timings[v], N, B, n_steps), **timings[v],
+                **_per_step(timings[v], N, B, n_steps),
+                **timings[v],
                 # the second call runs right after the first, under the same machine load
                 "compile_s": timings[v]["first_call_s"] - timings[v]["second_call_s"],
-                "form": sol.form, "scheme": sol.scheme,
+                "form": sol.form,
+                "scheme": sol.scheme,
                 # Newton: updates and block (or dense) matrices per step; under vmap the while
                 # loops run until the slowest member has converged
                 "newton_iterations_per_step_mean": float(iters.mean()),
@@ -247,8 +265,11 @@ def run_case(label, N, batch, n_steps, n_short, variants, run: harness.Run) -> d
                 outs[_short(v)].raise_if_failed()
                 t_short = timings[_short(v)]
                 marginal = (timings[v]["per_call_s"] - t_short["per_call_s"]) / (n_steps - n_short)
-                row[v]["short_call"] = {**t_short, "n_steps": n_short,
-                                        "compile_s": t_short["first_call_s"] - t_short["second_call_s"]}
+                row[v]["short_call"] = {
+                    **t_short,
+                    "n_steps": n_short,
+                    "compile_s": t_short["first_call_s"] - t_short["second_call_s"],
+                }
                 # (t(n_steps) - t(n_short)) / (n_steps - n_short): the cost of one more step
                 row[v]["marginal_seconds_per_step"] = marginal
                 row[v]["marginal_vortex_steps_per_second"] = N * B / marginal if marginal > 0 else None
@@ -256,21 +277,27 @@ def run_case(label, N, batch, n_steps, n_short, variants, run: harness.Run) -> d
                 row[v]["fixed_cost_per_call_s"] = t_short["per_call_s"] - n_short * marginal
         if "dense" in sols and "blocks" in sols:  # the two Newton matrices reach the same root
             row["dense"]["max_abs_Q_diff_vs_blocks"] = float(
-                np.max(np.abs(np.asarray(sols["dense"].Q) - np.asarray(sols["blocks"].Q))))
+                np.max(np.abs(np.asarray(sols["dense"].Q) - np.asarray(sols["blocks"].Q)))
+            )
     row["position_scale"] = float(np.max(np.abs(Q0)))  # to read the position differences against
     rk4 = row[RK4]["seconds_per_step"]
     row["ratios"] = {f"{v}_over_rk4": row[v]["seconds_per_step"] / rk4 for v in variants}
     # The same ratios from the samples of one round (taken back to back, so under similar load):
     # median, min and max over the rounds; a check on the ratio of medians when the load drifts.
     per_step_samples = lambda m, n: [t / n for t in timings[m]["samples_s"]]  # noqa: E731
-    row["paired_ratios"] = {f"{v}_over_rk4": harness.paired_ratios(per_step_samples(v, n_steps), per_step_samples(RK4, n_steps))
-                            for v in variants}
+    row["paired_ratios"] = {
+        f"{v}_over_rk4": harness.paired_ratios(per_step_samples(v, n_steps), per_step_samples(RK4, n_steps))
+        for v in variants
+    }
     if n_short:
         for v in variants:
             row["ratios"][f"{v}_marginal_over_rk4"] = row[v]["marginal_seconds_per_step"] / rk4
-            marginal = [(a - b) / (n_steps - n_short)
-                        for a, b in zip(timings[v]["samples_s"], timings[_short(v)]["samples_s"])]
-            row["paired_ratios"][f"{v}_marginal_over_rk4"] = harness.paired_ratios(marginal, per_step_samples(RK4, n_steps))
+            marginal = [
+                (a - b) / (n_steps - n_short) for a, b in zip(timings[v]["samples_s"], timings[_short(v)]["samples_s"])
+            ]
+            row["paired_ratios"][f"{v}_marginal_over_rk4"] = harness.paired_ratios(
+                marginal, per_step_samples(RK4, n_steps)
+            )
     return row
 
 
@@ -281,10 +308,12 @@ def run_case(label, N, batch, n_steps, n_short, variants, run: harness.Run) -> d
 def print_report(summary: dict) -> None:
     rows, fmt = summary["results"], harness.fmt
     harness.print_header(
-        summary, f"Planar point vortices, dt = {summary['config']['dt']}",
+        summary,
+        f"Planar point vortices, dt = {summary['config']['dt']}",
         "ours = integrate(point_vortices(G), ...) (implicit midpoint, solved to round-off), "
         "jacobian='blocks' or 'dense'; 'single' = one plain call,\n  'vmap' = jax.jit(jax.vmap(integrate)) "
-        "over B systems. Per step = median call time / n_steps (one step of the whole batch).")
+        "over B systems. Per step = median call time / n_steps (one step of the whole batch).",
+    )
 
     def case_cells(r):
         return f"{r['case']:<7}{r['N']:>5}{r['batch']:>5}"
@@ -292,15 +321,21 @@ def print_report(summary: dict) -> None:
     print("\nWall time per step [s] (vortex-steps per second = N*B / time per step):")
 
     def step_cells(r):
-        cells = "".join(f"{'-':>21}" if m not in r
-                        else f"{r[m]['seconds_per_step']:>10.3e} ({r[m]['vortex_steps_per_second']:8.2e})"
-                        for m in METHODS)
+        cells = "".join(
+            f"{'-':>21}"
+            if m not in r
+            else f"{r[m]['seconds_per_step']:>10.3e} ({r[m]['vortex_steps_per_second']:8.2e})"
+            for m in METHODS
+        )
         ratios = "".join(fmt(r["ratios"].get(f"{v}_over_rk4"), ".3g", w) for v, w in (("blocks", 12), ("dense", 11)))
         return f"{case_cells(r)}{r['n_steps']:>6} |{cells}{ratios}"
+
     harness.print_table(
-        f"{'case':<7}{'N':>5}{'B':>5}{'steps':>6} |" + "".join(f"{m:>21}" for m in ("ours blocks", "ours dense", "NumPy RK4"))
+        f"{'case':<7}{'N':>5}{'B':>5}{'steps':>6} |"
+        + "".join(f"{m:>21}" for m in ("ours blocks", "ours dense", "NumPy RK4"))
         + f"{'blocks/RK4':>12}{'dense/RK4':>11}",
-        map(step_cells, rows))
+        map(step_cells, rows),
+    )
     t = summary["target"]
     if t["met"] is None:
         verdict = "not measured (no single N = 1000 case in this run)"
@@ -308,77 +343,119 @@ def print_report(summary: dict) -> None:
         verdict = f"{'met' if t['met'] else 'NOT met'}: blocks/RK4 = {t['ours_over_rk4']:.3g}"
         if t.get("marginal_ours_over_rk4") is not None:
             verdict += f" (marginal: {t['marginal_ours_over_rk4']:.3g})"
-    print(f"Issue target, one variational step <= {t['max_ours_over_rk4']:g}x one RK4 step at N = {t['N']}: "
-          f"{verdict}.")
+    print(f"Issue target, one variational step <= {t['max_ours_over_rk4']:g}x one RK4 step at N = {t['N']}: {verdict}.")
 
-    print("\nOurs, a call's fixed cost and the cost of one more step, from calls of n_short and n steps "
-          "(interleaved with the rest):\n  marginal = (t(n) - t(n_short)) / (n - n_short), fixed = t(n_short) - "
-          "n_short * marginal; marginal/RK4 against RK4's time per step:")
+    print(
+        "\nOurs, a call's fixed cost and the cost of one more step, from calls of n_short and n steps "
+        "(interleaved with the rest):\n  marginal = (t(n) - t(n_short)) / (n - n_short), fixed = t(n_short) - "
+        "n_short * marginal; marginal/RK4 against RK4's time per step:"
+    )
     harness.print_table(
         f"{'case':<7}{'N':>5}{'B':>5} {'variant':<7}{'n_short':>8}{'t(n_short)':>12}{'n':>6}{'t(n)':>11} |"
         f"{'marginal s/step':>16}{'fixed s':>10}{'marginal/RK4':>14}{'(per call)/RK4':>16}",
-        (f"{case_cells(r)} {v:<7}{r['n_steps_short']:>8}"
-         f"{r[v]['short_call']['per_call_s']:>12.3e}{r['n_steps']:>6}{r[v]['per_call_s']:>11.3e} |"
-         f"{r[v]['marginal_seconds_per_step']:>16.3e}{r[v]['fixed_cost_per_call_s']:>10.3f}"
-         f"{r['ratios'][f'{v}_marginal_over_rk4']:>14.3g}{r['ratios'][f'{v}_over_rk4']:>16.3g}"
-         for r in rows if r["n_steps_short"] for v in r["variants"]))
+        (
+            f"{case_cells(r)} {v:<7}{r['n_steps_short']:>8}"
+            f"{r[v]['short_call']['per_call_s']:>12.3e}{r['n_steps']:>6}{r[v]['per_call_s']:>11.3e} |"
+            f"{r[v]['marginal_seconds_per_step']:>16.3e}{r[v]['fixed_cost_per_call_s']:>10.3f}"
+            f"{r['ratios'][f'{v}_marginal_over_rk4']:>14.3g}{r['ratios'][f'{v}_over_rk4']:>16.3g}"
+            for r in rows
+            if r["n_steps_short"]
+            for v in r["variants"]
+        ),
+    )
 
     def members(r):
         return f"  {r['case']:<6} N={r['N']:<5} B={r['batch']:<4}"
 
-    print("\nNewton per step: updates (mean, max; under vmap also the mean of the slowest member) and "
-          "matrices formed (blocks: the N 2x2 lumped blocks; dense: one (2N)x(2N) Jacobian):")
+    print(
+        "\nNewton per step: updates (mean, max; under vmap also the mean of the slowest member) and "
+        "matrices formed (blocks: the N 2x2 lumped blocks; dense: one (2N)x(2N) Jacobian):"
+    )
     for r in rows:
         for v in r["variants"]:
             o = r[v]
-            slow = (f" (slowest member {o['newton_iterations_per_step_slowest_member_mean']:.2f})"
-                    if r["batch"] > 1 else "")
-            slow_j = (f" (slowest member {o['newton_jacobians_per_step_slowest_member_mean']:.2f})"
-                      if r["batch"] > 1 else "")
-            print(f"{members(r)} {v:<7} updates "
-                  f"{o['newton_iterations_per_step_mean']:.2f}{slow}, max {o['newton_iterations_per_step_max']:.0f}; "
-                  f"matrices {o['newton_jacobians_per_step_mean']:.2f}{slow_j}, first step "
-                  f"{o['newton_jacobians_first_step_mean']:.2f}; max residual {o['max_residual_norm']:.1e}")
+            slow = (
+                f" (slowest member {o['newton_iterations_per_step_slowest_member_mean']:.2f})" if r["batch"] > 1 else ""
+            )
+            slow_j = (
+                f" (slowest member {o['newton_jacobians_per_step_slowest_member_mean']:.2f})" if r["batch"] > 1 else ""
+            )
+            print(
+                f"{members(r)} {v:<7} updates "
+                f"{o['newton_iterations_per_step_mean']:.2f}{slow}, max {o['newton_iterations_per_step_max']:.0f}; "
+                f"matrices {o['newton_jacobians_per_step_mean']:.2f}{slow_j}, first step "
+                f"{o['newton_jacobians_first_step_mean']:.2f}; max residual {o['max_residual_norm']:.1e}"
+            )
 
-    print("\nPaired ratios ours/RK4 of time per step: per round of samples (taken back to back), "
-          "median [min, max] over rounds:")
+    print(
+        "\nPaired ratios ours/RK4 of time per step: per round of samples (taken back to back), "
+        "median [min, max] over rounds:"
+    )
     for r in rows:
-        print(members(r) + " " + ", ".join(
-            f"{k.replace('_over_rk4', '')}/RK4 {q['median']:.3g} [{q['min']:.3g}, {q['max']:.3g}]"
-            for k, q in r["paired_ratios"].items()))
+        print(
+            members(r)
+            + " "
+            + ", ".join(
+                f"{k.replace('_over_rk4', '')}/RK4 {q['median']:.3g} [{q['min']:.3g}, {q['max']:.3g}]"
+                for k, q in r["paired_ratios"].items()
+            )
+        )
 
     print("\nCPU time per step [s] of this process, all threads (CPU/wall > 1: more than one core used):")
     for r in rows:
-        print(members(r) + " " + ", ".join(
-            f"{m} {r[m]['cpu_seconds_per_step']:.3e} "
-            f"({r[m]['cpu_seconds_per_step'] / r[m]['seconds_per_step']:.2f})" for m in (*r["variants"], RK4)))
+        print(
+            members(r)
+            + " "
+            + ", ".join(
+                f"{m} {r[m]['cpu_seconds_per_step']:.3e} "
+                f"({r[m]['cpu_seconds_per_step'] / r[m]['seconds_per_step']:.2f})"
+                for m in (*r["variants"], RK4)
+            )
+        )
 
-    print("\nCompile time [s] (first call minus the second call: tracing + XLA compilation; "
-          "in brackets the program of n_short steps):")
+    print(
+        "\nCompile time [s] (first call minus the second call: tracing + XLA compilation; "
+        "in brackets the program of n_short steps):"
+    )
     for r in rows:
-        print(members(r) + " " + ", ".join(
-            f"{v} {r[v]['compile_s']:.1f}"
-            + (f" ({r[v]['short_call']['compile_s']:.1f})" if "short_call" in r[v] else "") for v in r["variants"]))
+        print(
+            members(r)
+            + " "
+            + ", ".join(
+                f"{v} {r[v]['compile_s']:.1f}"
+                + (f" ({r[v]['short_call']['compile_s']:.1f})" if "short_call" in r[v] else "")
+                for v in r["variants"]
+            )
+        )
 
-    print("\nAccuracy at this dt, for context (max over nodes and members): |Q - Q_RK4| at t_final "
-          "(ours order 2, RK4 order 4; positions of size ~|Q0|max), drift of the linear impulse "
-          "sum(G Q), relative drift of H:")
+    print(
+        "\nAccuracy at this dt, for context (max over nodes and members): |Q - Q_RK4| at t_final "
+        "(ours order 2, RK4 order 4; positions of size ~|Q0|max), drift of the linear impulse "
+        "sum(G Q), relative drift of H:"
+    )
 
     def accuracy_cells(r):
         def get(m, k):
             return r[m][k] if m in r else None
-        dq = "".join(fmt(get(v, "max_abs_final_position_diff_vs_rk4"), ".2e", w) for v, w in (("blocks", 11), ("dense", 10)))
+
+        dq = "".join(
+            fmt(get(v, "max_abs_final_position_diff_vs_rk4"), ".2e", w) for v, w in (("blocks", 11), ("dense", 10))
+        )
         dp = "".join(fmt(get(m, "max_linear_impulse_drift"), ".2e", w) for m, w in zip(METHODS, (10, 10, 10)))
         dh = "".join(fmt(get(m, "max_rel_hamiltonian_error"), ".2e", w) for m, w in zip(METHODS, (12, 10, 10)))
         return f"{case_cells(r)}{r['t_final']:>6.3g}{r['position_scale']:>8.3g} | {dq} | {dp} | {dh}"
+
     harness.print_table(
         f"{'case':<7}{'N':>5}{'B':>5}{'T':>6}{'|Q0|max':>8} | {'|dQ| blocks':>11}{'dense':>10} | "
         f"{'dP: blocks':>10}{'dense':>10}{'RK4':>10} | {'dH/H: blocks':>12}{'dense':>10}{'RK4':>10}",
-        map(accuracy_cells, rows))
+        map(accuracy_cells, rows),
+    )
     for r in rows:
         if "dense" in r and "max_abs_Q_diff_vs_blocks" in r["dense"]:
-            print(f"  {r['case']} N={r['N']} B={r['batch']}: max |Q_dense - Q_blocks| = "
-                  f"{r['dense']['max_abs_Q_diff_vs_blocks']:.1e} (same root)")
+            print(
+                f"  {r['case']} N={r['N']} B={r['batch']}: max |Q_dense - Q_blocks| = "
+                f"{r['dense']['max_abs_Q_diff_vs_blocks']:.1e} (same root)"
+            )
 
 
 _STYLE = {  # method -> (marker, colour, label)
@@ -399,14 +476,24 @@ def plot(summary: dict, path: Path) -> None:
         pts = [(r["N"], r[m]["seconds_per_step"]) for r in single if m in r]
         if pts:
             ax.loglog(*zip(*pts), marker=marker, color=color, ls="-" if len(pts) > 1 else "none", label=label)
-        pts = [(r["N"], r[m]["marginal_seconds_per_step"]) for r in single
-               if m in r and r[m].get("marginal_seconds_per_step", 0) > 0]
+        pts = [
+            (r["N"], r[m]["marginal_seconds_per_step"])
+            for r in single
+            if m in r and r[m].get("marginal_seconds_per_step", 0) > 0
+        ]
         if pts:
             ax.loglog(*zip(*pts), marker=marker, ms=4, color=color, ls=":", label=f"{label}, marginal")
         for r in batched:
             if m in r:
-                ax.loglog([r["N"]], [r[m]["seconds_per_step"] / r["batch"]], marker=marker, mfc="none", ms=10,
-                          ls="none", color=color)
+                ax.loglog(
+                    [r["N"]],
+                    [r[m]["seconds_per_step"] / r["batch"]],
+                    marker=marker,
+                    mfc="none",
+                    ms=10,
+                    ls="none",
+                    color=color,
+                )
     ax.set_xlabel("N vortices")
     ax.set_ylabel("wall time per step of one system [s]")
     ax.grid(True, which="both", alpha=0.3)
@@ -417,26 +504,40 @@ def plot(summary: dict, path: Path) -> None:
         marker, color, _ = _STYLE[v]
         pts = [(r["N"], r["ratios"][f"{v}_over_rk4"]) for r in single if v in r]
         if pts:
-            ax_r.semilogx(*zip(*pts), marker=marker, color=color, ls="-" if len(pts) > 1 else "none",
-                          label=f"{v} / RK4")
-        pts = [(r["N"], r["ratios"][f"{v}_marginal_over_rk4"]) for r in single
-               if r["ratios"].get(f"{v}_marginal_over_rk4", 0) > 0]
+            ax_r.semilogx(
+                *zip(*pts), marker=marker, color=color, ls="-" if len(pts) > 1 else "none", label=f"{v} / RK4"
+            )
+        pts = [
+            (r["N"], r["ratios"][f"{v}_marginal_over_rk4"])
+            for r in single
+            if r["ratios"].get(f"{v}_marginal_over_rk4", 0) > 0
+        ]
         if pts:
             ax_r.semilogx(*zip(*pts), marker=marker, ms=4, color=color, ls=":", label=f"{v} marginal / RK4")
         for r in batched:
             if v in r:
-                ax_r.semilogx([r["N"]], [r["ratios"][f"{v}_over_rk4"]], marker=marker, mfc="none", ms=10,
-                              ls="none", color=color)
+                ax_r.semilogx(
+                    [r["N"]], [r["ratios"][f"{v}_over_rk4"]], marker=marker, mfc="none", ms=10, ls="none", color=color
+                )
     t = summary["target"]
-    ax_r.plot([t["N"]], [t["max_ours_over_rk4"]], marker="_", ms=30, mew=2, color="k", ls="none",
-              label=f"issue target at N = {t['N']}: <= {t['max_ours_over_rk4']:g}x")
+    ax_r.plot(
+        [t["N"]],
+        [t["max_ours_over_rk4"]],
+        marker="_",
+        ms=30,
+        mew=2,
+        color="k",
+        ls="none",
+        label=f"issue target at N = {t['N']}: <= {t['max_ours_over_rk4']:g}x",
+    )
     ax_r.axhline(1.0, color="k", lw=0.8)
     ax_r.set_yscale("log")
     ax_r.set_xlabel("N vortices")
     ax_r.set_ylabel("ours / RK4 (time per step)")
     ax_r.grid(True, which="both", alpha=0.3)
-    ax_r.legend(handles=ax_r.get_legend_handles_labels()[0] + [harness.hollow_marker("hollow: jit(vmap) batch")],
-                fontsize=8)
+    ax_r.legend(
+        handles=ax_r.get_legend_handles_labels()[0] + [harness.hollow_marker("hollow: jit(vmap) batch")], fontsize=8
+    )
     ax_r.set_title("cost of one variational step in RK4 steps (> 1: ours slower)", fontsize=9)
     fig.savefig(path, dpi=120)
 
@@ -445,14 +546,19 @@ def plot(summary: dict, path: Path) -> None:
 
 
 def _describe(label, N, batch, n_steps, n_short, variants) -> str:
-    return (f"{label} N={N} B={batch or 1} n_steps={n_steps}{'' if n_short is None else f' (and {n_short})'}: "
-            f"{', '.join(variants + (RK4,))}")
+    return (
+        f"{label} N={N} B={batch or 1} n_steps={n_steps}{'' if n_short is None else f' (and {n_short})'}: "
+        f"{', '.join(variants + (RK4,))}"
+    )
 
 
 def main(argv=None) -> dict:
     """Run the benchmark: the cases, the report, the JSON and the PNG; returns the summary."""
-    with harness.Run(RESULTS_NAME, argv, description="Per-step cost of the variational point-vortex march "
-                     "against a NumPy RK4 (see module docstring).") as run:
+    with harness.Run(
+        RESULTS_NAME,
+        argv,
+        description="Per-step cost of the variational point-vortex march against a NumPy RK4 (see module docstring).",
+    ) as run:
         results = run.measure(DEFAULT_CASES, QUICK_CASES, _describe, lambda *case: run_case(*case, run))
     at_target = [r for r in results if r["case"] == "single" and r["N"] == TARGET_N]
     target_ratio = at_target[0]["ratios"]["blocks_over_rk4"] if at_target else None
@@ -462,16 +568,22 @@ def main(argv=None) -> dict:
             "dt": DT,
             "seed": SEED,
             "initial_conditions": "circulations uniform(0.5, 1.5) * random sign, positions normal * sqrt(N), "
-                                  "xi0 = vortex_velocity(G, Q0)",
+            "xi0 = vortex_velocity(G, Q0)",
             "per_step": "seconds_per_step = per-call time / n_steps",
             "methods": list(METHODS),
-            "cases": [{"case": c, "N": N, "batch": b or 1, "n_steps": n, "n_steps_short": ns, "variants": list(v)}
-                      for c, N, b, n, ns, v in run.cases],
+            "cases": [
+                {"case": c, "N": N, "batch": b or 1, "n_steps": n, "n_steps_short": ns, "variants": list(v)}
+                for c, N, b, n, ns, v in run.cases
+            ],
         },
         results=results,
-        target={"N": TARGET_N, "max_ours_over_rk4": TARGET_OURS_OVER_RK4, "ours_over_rk4": target_ratio,
-                "marginal_ours_over_rk4": target_marginal,
-                "met": None if target_ratio is None else bool(target_ratio <= TARGET_OURS_OVER_RK4)},
+        target={
+            "N": TARGET_N,
+            "max_ours_over_rk4": TARGET_OURS_OVER_RK4,
+            "ours_over_rk4": target_ratio,
+            "marginal_ours_over_rk4": target_marginal,
+            "met": None if target_ratio is None else bool(target_ratio <= TARGET_OURS_OVER_RK4),
+        },
     )
     return run.finish(summary, print_report, plot)
 

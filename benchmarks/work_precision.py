@@ -139,69 +139,126 @@ OURS, DIFFRAX, SCIPY, NUMPY = "ours", "diffrax", "scipy", "numpy"
 # at load 4-5).
 DEFAULT = {
     "rigid_body": {
-        "batch": 200, "T": 1e3, "n_samples": 100, "chunk": 500,
+        "batch": 200,
+        "T": 1e3,
+        "n_samples": 100,
+        "chunk": 500,
         "ours": {2: (0.2, 0.1, 0.05), 4: (0.4, 0.2, 0.1), 6: (0.5, 0.25), 8: (0.5, 0.25, 0.125)},
         "gauss": {4: (0.2, 0.1), 8: (0.5, 0.25, 0.125, 0.0625), 12: (1.0, 0.5), 16: (1.0,)},
-        "tsit5": (1e-6, 1e-8, 1e-10, 1e-12), "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
-        "dop853": (1e-7, 1e-9, 1e-11), "rk4": (0.1, 0.05, 0.025),
+        "tsit5": (1e-6, 1e-8, 1e-10, 1e-12),
+        "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
+        "dop853": (1e-7, 1e-9, 1e-11),
+        "rk4": (0.1, 0.05, 0.025),
     },
     "vortices_4": {
-        "T": 50.0, "n_samples": 100, "chunk": 50,
+        "T": 50.0,
+        "n_samples": 100,
+        "chunk": 50,
         "ours": {2: (0.02, 0.01, 0.005), 4: (0.1, 0.05, 0.025), 6: (0.1, 0.05), 8: (0.2, 0.1, 0.05)},
         "gauss": {8: (0.25, 0.125, 0.0625), 12: (0.5, 0.25), 16: (1.0, 0.5)},
-        "tsit5": (1e-6, 1e-8, 1e-10, 1e-12), "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
-        "dop853": (1e-7, 1e-9, 1e-11, 1e-13), "rk4": (0.05, 0.02, 0.01, 0.005),
+        "tsit5": (1e-6, 1e-8, 1e-10, 1e-12),
+        "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
+        "dop853": (1e-7, 1e-9, 1e-11, 1e-13),
+        "rk4": (0.05, 0.02, 0.01, 0.005),
     },
     "vortices_100": {
-        "N": 100, "T": 10.0, "n_samples": 100, "chunk": 10,
+        "N": 100,
+        "T": 10.0,
+        "n_samples": 100,
+        "chunk": 10,
         "ours": {2: (0.1, 0.05), 4: (0.2, 0.1), 6: (0.25, 0.125), 8: (0.5, 0.25)},
         "gauss": {8: (0.25, 0.125), 12: (0.5, 0.25), 16: (1.0, 0.5)},
-        "tsit5": (1e-6, 1e-8, 1e-10, 1e-12), "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
-        "dop853": (1e-7, 1e-9, 1e-11, 1e-13), "rk4": (0.1, 0.05, 0.025),
+        "tsit5": (1e-6, 1e-8, 1e-10, 1e-12),
+        "dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-13),
+        "dop853": (1e-7, 1e-9, 1e-11, 1e-13),
+        "rk4": (0.1, 0.05, 0.025),
     },
 }
 LONG = {
     "rigid_body": {
-        "batch": 200, "T": 1e4, "n_samples": 1000, "chunk": 500,
+        "batch": 200,
+        "T": 1e4,
+        "n_samples": 1000,
+        "chunk": 500,
         "ours": {2: (0.1,), 4: (0.4, 0.2), 6: (0.5,), 8: (0.5, 0.25)},
         "gauss": {8: (0.5, 0.25, 0.125, 0.0625), 12: (1.0, 0.5), 16: (1.0,)},
-        "tsit5": (1e-8, 1e-10, 1e-12), "dopri8": (1e-8, 1e-10, 1e-12, 1e-13),
-        "dop853": (1e-8, 1e-11), "rk4": (0.05,),
+        "tsit5": (1e-8, 1e-10, 1e-12),
+        "dopri8": (1e-8, 1e-10, 1e-12, 1e-13),
+        "dop853": (1e-8, 1e-11),
+        "rk4": (0.05,),
     },
 }
 CLUSTERS = {  # issue 20: batches of leapfrogging clusters over long times (`--clusters`)
     "vortex_clusters": {
-        "batch": 16, "T": 1e3, "n_samples": 200, "chunk": 100,
-        "ours": {}, "gauss": {4: (0.25, 0.125), 6: (0.5, 0.25), 8: (0.5, 0.25, 0.125), 12: (0.5, 0.25),
-                              16: (1.0, 0.5)},
-        "tsit5": (1e-8, 1e-10, 1e-12), "dopri8": (1e-8, 1e-10, 1e-12, 1e-13), "dop853": (), "rk4": (),
+        "batch": 16,
+        "T": 1e3,
+        "n_samples": 200,
+        "chunk": 100,
+        "ours": {},
+        "gauss": {4: (0.25, 0.125), 6: (0.5, 0.25), 8: (0.5, 0.25, 0.125), 12: (0.5, 0.25), 16: (1.0, 0.5)},
+        "tsit5": (1e-8, 1e-10, 1e-12),
+        "dopri8": (1e-8, 1e-10, 1e-12, 1e-13),
+        "dop853": (),
+        "rk4": (),
     },
 }
 QUICK = {
     "rigid_body": {
-        "batch": 4, "T": 20.0, "n_samples": 10, "chunk": 50,
-        "ours": {2: (0.1,), 8: (0.4,)}, "gauss": {8: (0.4,)}, "tsit5": (1e-8,), "dopri8": (1e-8, 1e-13),
-        "dop853": (1e-9,), "rk4": (0.1,),
+        "batch": 4,
+        "T": 20.0,
+        "n_samples": 10,
+        "chunk": 50,
+        "ours": {2: (0.1,), 8: (0.4,)},
+        "gauss": {8: (0.4,)},
+        "tsit5": (1e-8,),
+        "dopri8": (1e-8, 1e-13),
+        "dop853": (1e-9,),
+        "rk4": (0.1,),
     },
     "vortices_4": {
-        "T": 2.0, "n_samples": 10, "chunk": 10,
-        "ours": {2: (0.02,)}, "gauss": {8: (0.2,)}, "tsit5": (), "dopri8": (1e-8, 1e-13), "dop853": (1e-9,),
+        "T": 2.0,
+        "n_samples": 10,
+        "chunk": 10,
+        "ours": {2: (0.02,)},
+        "gauss": {8: (0.2,)},
+        "tsit5": (),
+        "dopri8": (1e-8, 1e-13),
+        "dop853": (1e-9,),
         "rk4": (0.02,),
     },
     "vortices_100": {
-        "N": 100, "T": 0.2, "n_samples": 2, "chunk": 2,
-        "ours": {2: (0.1,)}, "tsit5": (), "dopri8": (1e-8, 1e-13), "dop853": (1e-9,), "rk4": (0.1,),
+        "N": 100,
+        "T": 0.2,
+        "n_samples": 2,
+        "chunk": 2,
+        "ours": {2: (0.1,)},
+        "tsit5": (),
+        "dopri8": (1e-8, 1e-13),
+        "dop853": (1e-9,),
+        "rk4": (0.1,),
     },
 }
 QUICK_CLUSTERS = {
     "vortex_clusters": {
-        "batch": 2, "T": 2.0, "n_samples": 4, "chunk": 4,
-        "ours": {}, "gauss": {8: (0.25,)}, "tsit5": (1e-8,), "dopri8": (1e-8, 1e-13), "dop853": (), "rk4": (),
+        "batch": 2,
+        "T": 2.0,
+        "n_samples": 4,
+        "chunk": 4,
+        "ours": {},
+        "gauss": {8: (0.25,)},
+        "tsit5": (1e-8,),
+        "dopri8": (1e-8, 1e-13),
+        "dop853": (),
+        "rk4": (),
     },
 }
 MEASURES = ("global_error", "energy_error", "invariant_error")  # the three columns of the plot
-INVARIANT = {"rigid_body": "casimir_error", "vortices_4": "impulse_error", "vortices_100": "impulse_error",
-             "vortex_clusters": "impulse_error"}
+INVARIANT = {
+    "rigid_body": "casimir_error",
+    "vortices_4": "impulse_error",
+    "vortices_100": "impulse_error",
+    "vortex_clusters": "impulse_error",
+}
 CLUSTER_RTOLS = (1e-12, 1e-8)  # issue 20: at each diffrax tolerance in this range ...
 CLUSTER_ENERGY_RATIO = 100.0  # ... a point of ours no slower, no worse in global error, and this much
 CLUSTER_ENERGY_ROUND_OFF = 1e-13  # better in energy error, or at round-off (relative energy error below this)
@@ -243,8 +300,10 @@ class RigidBody:
         """Energy and Casimir errors over samples ys (n, B, 3)."""
         E = 0.5 * np.sum(ys**2 / self.inertia, -1)
         C = np.sum(ys**2, -1)
-        return {"energy_error": float(np.max(np.abs(E - E[:1]) / E[:1])),
-                "casimir_error": float(np.max(np.abs(C - C[:1]) / C[:1]))}
+        return {
+            "energy_error": float(np.max(np.abs(E - E[:1]) / E[:1])),
+            "casimir_error": float(np.max(np.abs(C - C[:1]) / C[:1])),
+        }
 
     def global_error(self, y, ref) -> dict:
         d = np.linalg.norm(np.asarray(y) - ref, axis=-1)
@@ -264,21 +323,35 @@ class RigidBody:
             start = jax.vmap(models.rigid_body_vector_start)  # carried state: (Q, P)
 
             def one(state, mu, dt):
-                return cj.integrate(system, state[0], mu / inertia, P0=state[1], dt=dt, n_steps=chunk,
-                                    scheme="gauss", order=order, throw=False)
+                return cj.integrate(
+                    system,
+                    state[0],
+                    mu / inertia,
+                    P0=state[1],
+                    dt=dt,
+                    n_steps=chunk,
+                    scheme="gauss",
+                    order=order,
+                    throw=False,
+                )
 
             def carried(sol):
                 return sol.Q[:, -1], sol.p[:, -1]
 
-            facts = {"system": "rigid_body_vector(inertia)", "form": "full (Q, P on R^3)", "reconstruct": True,
-                     "jacobian": "none (fixed-point sweeps)"}
+            facts = {
+                "system": "rigid_body_vector(inertia)",
+                "form": "full (Q, P on R^3)",
+                "reconstruct": True,
+                "jacobian": "none (fixed-point sweeps)",
+            }
         else:
             system = models.rigid_body(inertia)
             start = lambda m0: ()  # noqa: E731 -- nothing carried but μ
 
             def one(state, mu, dt):
-                return cj.integrate(system, jnp.eye(3), mu / inertia, dt=dt, n_steps=chunk, order=order,
-                                    reconstruct=False, throw=False)
+                return cj.integrate(
+                    system, jnp.eye(3), mu / inertia, dt=dt, n_steps=chunk, order=order, reconstruct=False, throw=False
+                )
 
             carried = lambda sol: ()  # noqa: E731
             facts = {"system": "rigid_body(inertia)", "form": "reduced", "reconstruct": False, "jacobian": "dense"}
@@ -297,9 +370,16 @@ class RigidBody:
                 e = jnp.max(jnp.abs(energy(M) - E0[:, None]), axis=1) / E0
                 c = jnp.max(jnp.abs(jnp.sum(M**2, -1) - C0[:, None]), axis=1) / C0
                 it = sol.stats.iterations.astype(float)  # (B, chunk)
-                return (carried(sol), M[:, -1], jnp.maximum(e_max, e), jnp.maximum(c_max, c), upd + jnp.sum(it),
-                        upd_slowest + jnp.sum(jnp.max(it, axis=0)), jac + jnp.sum(sol.stats.jacobians.astype(float)),
-                        ok & jnp.all(sol.valid))
+                return (
+                    carried(sol),
+                    M[:, -1],
+                    jnp.maximum(e_max, e),
+                    jnp.maximum(c_max, c),
+                    upd + jnp.sum(it),
+                    upd_slowest + jnp.sum(jnp.max(it, axis=0)),
+                    jac + jnp.sum(sol.stats.jacobians.astype(float)),
+                    ok & jnp.all(sol.valid),
+                )
 
             zero = jnp.zeros(m0.shape[0])
             init = (start(m0), m0, zero, zero, 0.0, 0.0, 0.0, jnp.array(True))
@@ -311,10 +391,15 @@ class RigidBody:
         def call(dt, n_chunks):
             _, mu, e, c, upd, upd_slowest, jac, ok = jax.block_until_ready(prog(y0, dt, n_chunks))
             B = self.y0.shape[0]
-            return {"y_T": np.asarray(mu), "energy_error": float(jnp.max(e)), "casimir_error": float(jnp.max(c)),
-                    "updates_per_step": float(upd) / (B * n_chunks * chunk),
-                    "updates_per_step_slowest_body": float(upd_slowest) / (n_chunks * chunk),
-                    "jacobians_per_step": float(jac) / (B * n_chunks * chunk), "valid": bool(ok)}
+            return {
+                "y_T": np.asarray(mu),
+                "energy_error": float(jnp.max(e)),
+                "casimir_error": float(jnp.max(c)),
+                "updates_per_step": float(upd) / (B * n_chunks * chunk),
+                "updates_per_step_slowest_body": float(upd_slowest) / (n_chunks * chunk),
+                "jacobians_per_step": float(jac) / (B * n_chunks * chunk),
+                "valid": bool(ok),
+            }
 
         return call, {**facts, "plan": cj.step_plan(system, scheme=scheme, order=order)}
 
@@ -356,15 +441,20 @@ class Vortices:
     def _invariants(self, ys):
         G = jnp.asarray(self.gamma)
         ys = jnp.asarray(ys)
-        return (models.vortex_hamiltonian(G, ys), models.vortex_linear_impulse(G, ys),
-                models.vortex_angular_impulse(G, ys))
+        return (
+            models.vortex_hamiltonian(G, ys),
+            models.vortex_linear_impulse(G, ys),
+            models.vortex_angular_impulse(G, ys),
+        )
 
     def diagnostics(self, ys) -> dict:
         """Energy and impulse errors over samples ys (n, N, 2)."""
         H, lin, ang = (np.asarray(a) for a in self._invariants(ys))
-        return {"energy_error": float(np.max(np.abs(H - H[0]) / abs(H[0]))),
-                "impulse_error": float(np.max(np.abs(ang - ang[0]))) / self.ang_norm,
-                "linear_impulse_error": float(np.max(np.abs(lin - lin[0]))) / self.lin_norm}
+        return {
+            "energy_error": float(np.max(np.abs(H - H[0]) / abs(H[0]))),
+            "impulse_error": float(np.max(np.abs(ang - ang[0]))) / self.ang_norm,
+            "linear_impulse_error": float(np.max(np.abs(lin - lin[0]))) / self.lin_norm,
+        }
 
     def global_error(self, y, ref) -> dict:
         return {"global_error": float(np.max(np.linalg.norm(np.asarray(y) - ref, axis=-1)))}
@@ -381,10 +471,16 @@ class Vortices:
         def call(dt, n_chunks):
             Q, _, _, h, lin, ang, upd, jac, ok = jax.block_until_ready(prog(y0, dt, n_chunks))
             n = n_chunks * self.cfg["chunk"]
-            return {"y_T": np.asarray(Q), "energy_error": float(h), "impulse_error": float(ang) / self.ang_norm,
-                    "linear_impulse_error": float(lin) / self.lin_norm, "updates_per_step": float(upd) / n,
-                    "updates_per_step_slowest_body": float(upd) / n, "jacobians_per_step": float(jac) / n,
-                    "valid": bool(ok)}
+            return {
+                "y_T": np.asarray(Q),
+                "energy_error": float(h),
+                "impulse_error": float(ang) / self.ang_norm,
+                "linear_impulse_error": float(lin) / self.lin_norm,
+                "updates_per_step": float(upd) / n,
+                "updates_per_step_slowest_body": float(upd) / n,
+                "jacobians_per_step": float(jac) / n,
+                "valid": bool(ok),
+            }
 
         return call, facts
 
@@ -398,13 +494,26 @@ class Vortices:
         def march(Q0, dt, n_chunks):
             xi0 = models.vortex_velocity(G, Q0)
             P0 = cj.initial_multiplier(system, Q0, xi0)
-            H0, lin0, ang0 = (models.vortex_hamiltonian(G, Q0), models.vortex_linear_impulse(G, Q0),
-                              models.vortex_angular_impulse(G, Q0))
+            H0, lin0, ang0 = (
+                models.vortex_hamiltonian(G, Q0),
+                models.vortex_linear_impulse(G, Q0),
+                models.vortex_angular_impulse(G, Q0),
+            )
 
             def body(_, carry):
                 Q, p, xi, h_max, lin_max, ang_max, upd, jac, ok = carry
-                sol = cj.integrate(system, Q, xi, P0=p, dt=dt, n_steps=chunk, scheme=scheme, order=order,
-                                   jacobian=jacobian, throw=False)
+                sol = cj.integrate(
+                    system,
+                    Q,
+                    xi,
+                    P0=p,
+                    dt=dt,
+                    n_steps=chunk,
+                    scheme=scheme,
+                    order=order,
+                    jacobian=jacobian,
+                    throw=False,
+                )
                 Qs = sol.Q  # (chunk + 1, N, 2), every node
                 h = jnp.max(jnp.abs(models.vortex_hamiltonian(G, Qs) - H0)) / jnp.abs(H0)
                 lin = jnp.max(jnp.abs(models.vortex_linear_impulse(G, Qs) - lin0))
@@ -412,16 +521,27 @@ class Vortices:
                 if impulse_per_node:
                     ang = ang / jnp.sum(jnp.abs(G) * jnp.sum(Qs**2, -1), -1)
                 ang = jnp.max(ang)
-                return (Qs[-1], sol.p[-1], sol.xi_step[-1], jnp.maximum(h_max, h), jnp.maximum(lin_max, lin),
-                        jnp.maximum(ang_max, ang), upd + jnp.sum(sol.stats.iterations.astype(float)),
-                        jac + jnp.sum(sol.stats.jacobians.astype(float)), ok & jnp.all(sol.valid))
+                return (
+                    Qs[-1],
+                    sol.p[-1],
+                    sol.xi_step[-1],
+                    jnp.maximum(h_max, h),
+                    jnp.maximum(lin_max, lin),
+                    jnp.maximum(ang_max, ang),
+                    upd + jnp.sum(sol.stats.iterations.astype(float)),
+                    jac + jnp.sum(sol.stats.jacobians.astype(float)),
+                    ok & jnp.all(sol.valid),
+                )
 
             init = (Q0, P0, xi0, 0.0, 0.0, 0.0, 0.0, 0.0, jnp.array(True))
             return jax.lax.fori_loop(0, n_chunks, body, init)
 
-        return march, {"system": "point_vortices(G)", "form": "full",
-                      "jacobian": jacobian + (" (constraint matrix; fixed-point sweeps)" if scheme == "gauss" else ""),
-                      "plan": cj.step_plan(system, scheme=scheme, order=order)}
+        return march, {
+            "system": "point_vortices(G)",
+            "form": "full",
+            "jacobian": jacobian + (" (constraint matrix; fixed-point sweeps)" if scheme == "gauss" else ""),
+            "plan": cj.step_plan(system, scheme=scheme, order=order),
+        }
 
 
 PERTURB = 0.01
@@ -474,9 +594,11 @@ class VortexClusters(Vortices):
         evaluating the impulse alone loses that much to round-off."""
         H, lin, ang = (np.asarray(a) for a in self._invariants(ys))
         here = np.sum(np.abs(self.gamma) * np.sum(np.asarray(ys) ** 2, -1), -1)  # (n, B)
-        return {"energy_error": float(np.max(np.abs(H - H[0]) / np.abs(H[0]))),
-                "impulse_error": float(np.max(np.abs(ang - ang[0]) / here)),
-                "linear_impulse_error": float(np.max(np.linalg.norm(lin - lin[0], axis=-1) / self.lin_norm))}
+        return {
+            "energy_error": float(np.max(np.abs(H - H[0]) / np.abs(H[0]))),
+            "impulse_error": float(np.max(np.abs(ang - ang[0]) / here)),
+            "linear_impulse_error": float(np.max(np.linalg.norm(lin - lin[0], axis=-1) / self.lin_norm)),
+        }
 
     def global_error(self, y, ref) -> dict:
         d = np.max(np.linalg.norm(np.asarray(y) - ref, axis=-1), axis=-1)  # per cluster
@@ -491,13 +613,17 @@ class VortexClusters(Vortices):
             Q, _, _, h, lin, ang, upd, jac, ok = jax.block_until_ready(prog(y0, dt, n_chunks))
             n, B = n_chunks * self.cfg["chunk"], self.members
             upd = np.asarray(upd)
-            return {"y_T": np.asarray(Q), "energy_error": float(jnp.max(h)),
-                    "impulse_error": float(np.max(ang)),  # relative to each node's sum |Γ||Q|²
-                    "linear_impulse_error": float(np.max(np.asarray(lin) / self.lin_norm)),
-                    "updates_per_step": float(np.sum(upd)) / (B * n),
-                    # the busiest cluster's mean (the per-step maximum is not recorded here)
-                    "updates_per_step_slowest_body": float(np.max(upd)) / n,
-                    "jacobians_per_step": float(np.sum(np.asarray(jac))) / (B * n), "valid": bool(np.all(ok))}
+            return {
+                "y_T": np.asarray(Q),
+                "energy_error": float(jnp.max(h)),
+                "impulse_error": float(np.max(ang)),  # relative to each node's sum |Γ||Q|²
+                "linear_impulse_error": float(np.max(np.asarray(lin) / self.lin_norm)),
+                "updates_per_step": float(np.sum(upd)) / (B * n),
+                # the busiest cluster's mean (the per-step maximum is not recorded here)
+                "updates_per_step_slowest_body": float(np.max(upd)) / n,
+                "jacobians_per_step": float(np.sum(np.asarray(jac))) / (B * n),
+                "valid": bool(np.all(ok)),
+            }
 
         return call, facts
 
@@ -511,28 +637,45 @@ def cluster_targets(scene_result: dict) -> dict:
     pts = [p for p in scene_result["points"] if p["valid"]]
     ours = [p for p in pts if p["family"] == OURS]
     rows = []
-    for peer in sorted((p for p in pts if p["family"] == DIFFRAX
-                        and CLUSTER_RTOLS[0] * (1 - 1e-9) <= p["param"] <= CLUSTER_RTOLS[1] * (1 + 1e-9)),
-                       key=lambda p: (p["method"], -p["param"])):
+    for peer in sorted(
+        (
+            p
+            for p in pts
+            if p["family"] == DIFFRAX and CLUSTER_RTOLS[0] * (1 - 1e-9) <= p["param"] <= CLUSTER_RTOLS[1] * (1 + 1e-9)
+        ),
+        key=lambda p: (p["method"], -p["param"]),
+    ):
+
         def accurate(o):
-            return (o["global_error"] <= peer["global_error"]
-                    and (o["energy_error"] * CLUSTER_ENERGY_RATIO <= peer["energy_error"]
-                         or o["energy_error"] <= CLUSTER_ENERGY_ROUND_OFF))
+            return o["global_error"] <= peer["global_error"] and (
+                o["energy_error"] * CLUSTER_ENERGY_RATIO <= peer["energy_error"]
+                or o["energy_error"] <= CLUSTER_ENERGY_ROUND_OFF
+            )
+
         good = sorted((o for o in ours if accurate(o)), key=lambda o: o["wall_s"])
         met = [o for o in good if o["wall_s"] <= peer["wall_s"]]
         best = met[0] if met else (good[0] if good else None)
-        rows.append({
-            "peer": f"{peer['method']} rtol {peer['param']:g}", "peer_wall_s": peer["wall_s"],
-            "peer_global": peer["global_error"], "peer_energy": peer["energy_error"], "met": bool(met),
-            "ours": None if best is None else f"{best['method']} dt {best['param']:g}",
-            "ours_wall_s": None if best is None else best["wall_s"],
-            "ours_global": None if best is None else best["global_error"],
-            "ours_energy": None if best is None else best["energy_error"],
-            "time_ratio_ours_over_peer": None if best is None else best["wall_s"] / peer["wall_s"],
-        })
-    return {"rtols": list(CLUSTER_RTOLS), "energy_ratio": CLUSTER_ENERGY_RATIO,
-            "energy_round_off": CLUSTER_ENERGY_ROUND_OFF, "rows": rows,
-            "met": bool(rows) and all(r["met"] for r in rows)}
+        rows.append(
+            {
+                "peer": f"{peer['method']} rtol {peer['param']:g}",
+                "peer_wall_s": peer["wall_s"],
+                "peer_global": peer["global_error"],
+                "peer_energy": peer["energy_error"],
+                "met": bool(met),
+                "ours": None if best is None else f"{best['method']} dt {best['param']:g}",
+                "ours_wall_s": None if best is None else best["wall_s"],
+                "ours_global": None if best is None else best["global_error"],
+                "ours_energy": None if best is None else best["energy_error"],
+                "time_ratio_ours_over_peer": None if best is None else best["wall_s"] / peer["wall_s"],
+            }
+        )
+    return {
+        "rtols": list(CLUSTER_RTOLS),
+        "energy_ratio": CLUSTER_ENERGY_RATIO,
+        "energy_round_off": CLUSTER_ENERGY_ROUND_OFF,
+        "rows": rows,
+        "met": bool(rows) and all(r["met"] for r in rows),
+    }
 
 
 # --------------------------------------------------------------------------------------------
@@ -549,9 +692,17 @@ def diffrax_program(scene, solver_name: str, compiler_options=None):
 
     def one(y0, rtol):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(scene.rhs_jax), solver, 0.0, scene.T, 0.01, y0, saveat=diffrax.SaveAt(ts=ts),
-            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol * scene.scale), max_steps=MAX_STEPS,
-            throw=False)
+            diffrax.ODETerm(scene.rhs_jax),
+            solver,
+            0.0,
+            scene.T,
+            0.01,
+            y0,
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=rtol * scene.scale),
+            max_steps=MAX_STEPS,
+            throw=False,
+        )
         return sol.ys, sol.stats["num_steps"], sol.result == diffrax.RESULTS.successful
 
     fn = jax.vmap(one, in_axes=(0, None)) if scene.batched else one
@@ -574,8 +725,15 @@ def scipy_dop853(scene, rtol: float) -> dict:
 
     shape = scene.y0.shape
     ts = np.linspace(0.0, scene.T, scene.cfg["n_samples"] + 1)
-    sol = solve_ivp(lambda t, y: scene.rhs_np(y.reshape(shape)).ravel(), (0.0, scene.T), scene.y0.ravel(),
-                    method="DOP853", t_eval=ts, rtol=rtol, atol=rtol * scene.scale)
+    sol = solve_ivp(
+        lambda t, y: scene.rhs_np(y.reshape(shape)).ravel(),
+        (0.0, scene.T),
+        scene.y0.ravel(),
+        method="DOP853",
+        t_eval=ts,
+        rtol=rtol,
+        atol=rtol * scene.scale,
+    )
     ys = sol.y.T.reshape((len(sol.t),) + shape)
     return {"ys": ys, "steps": int(sol.nfev // 12), "nfev": int(sol.nfev), "valid": bool(sol.success)}
 
@@ -626,8 +784,12 @@ def time_point(run: harness.Run, call, what: str, budget_s: float) -> tuple[dict
             w, c = harness.sample(call, 1)
             walls.append(w)
             cpus.append(c)
-    return {"wall_s": statistics.median(walls), "samples_s": walls, "cpu_s": statistics.median(cpus),
-            "load_1min": harness.load_average()}, out
+    return {
+        "wall_s": statistics.median(walls),
+        "samples_s": walls,
+        "cpu_s": statistics.median(cpus),
+        "load_1min": harness.load_average(),
+    }, out
 
 
 def warm_up(run: harness.Run, call, what: str) -> float:
@@ -646,33 +808,46 @@ def run_scene(scene, run: harness.Run) -> dict:
     cfg, T = scene.cfg, scene.T
     budget = run.args.point_budget
     points = []
-    out = {"scene": scene.name, "label": scene.label, "T": T, "n_samples": cfg["n_samples"], "chunk": cfg["chunk"],
-           "scale": scene.scale, "shape": list(scene.y0.shape)}
+    out = {
+        "scene": scene.name,
+        "label": scene.label,
+        "T": T,
+        "n_samples": cfg["n_samples"],
+        "chunk": cfg["chunk"],
+        "scale": scene.scale,
+        "shape": list(scene.y0.shape),
+    }
 
     # Peers first: Dopri8's program also gives the reference.
     with run.case(f"{scene.name}: diffrax Dopri8 reference (rtol {REFERENCE_RTOL:g}) and Tsit5/Dopri8 points"):
         # Dopri8 always (the reference); Tsit5 when it has points (--quick skips it for the vortices)
-        diffrax_calls = {s: diffrax_program(scene, s, run.compiler_options) for s in ("tsit5", "dopri8")
-                         if s == "dopri8" or cfg[s]}
-        compile_s = {s: warm_up(run, lambda s=s: diffrax_calls[s](cfg[s][0] if cfg[s] else REFERENCE_RTOL),
-                                f"{scene.name} {s}")
-                     for s in diffrax_calls}
+        diffrax_calls = {
+            s: diffrax_program(scene, s, run.compiler_options) for s in ("tsit5", "dopri8") if s == "dopri8" or cfg[s]
+        }
+        compile_s = {
+            s: warm_up(run, lambda s=s: diffrax_calls[s](cfg[s][0] if cfg[s] else REFERENCE_RTOL), f"{scene.name} {s}")
+            for s in diffrax_calls
+        }
         timing, ref = time_point(run, lambda: diffrax_calls["dopri8"](REFERENCE_RTOL), f"{scene.name} reference", 0.0)
         if not ref["valid"]:
             raise RuntimeError(f"{scene.name}: the reference solve failed")
         y_ref = ref["ys"][-1]
-        out["reference"] = {"method": f"diffrax Dopri8, rtol {REFERENCE_RTOL:g}, atol rtol * {scene.scale:.3g}",
-                            "wall_s": timing["wall_s"], "steps": ref["steps"], "load_1min": timing["load_1min"],
-                            **scene.diagnostics(ref["ys"])}
+        out["reference"] = {
+            "method": f"diffrax Dopri8, rtol {REFERENCE_RTOL:g}, atol rtol * {scene.scale:.3g}",
+            "wall_s": timing["wall_s"],
+            "steps": ref["steps"],
+            "load_1min": timing["load_1min"],
+            **scene.diagnostics(ref["ys"]),
+        }
         for s, call in diffrax_calls.items():
             for rtol in cfg[s]:
                 timing, res = time_point(run, lambda c=call, r=rtol: c(r), f"{scene.name} {s} rtol {rtol:g}", budget)
-                points.append(_peer_point(scene, DIFFRAX, s, "rtol", rtol, timing, res, y_ref,
-                                          compile_s=compile_s[s]))
+                points.append(_peer_point(scene, DIFFRAX, s, "rtol", rtol, timing, res, y_ref, compile_s=compile_s[s]))
     with run.case(f"{scene.name}: SciPy DOP853 {list(cfg['dop853'])} and NumPy RK4 {list(cfg['rk4'])}"):
         for rtol in cfg["dop853"]:
-            timing, res = time_point(run, lambda r=rtol: scipy_dop853(scene, r), f"{scene.name} dop853 {rtol:g}",
-                                     budget)
+            timing, res = time_point(
+                run, lambda r=rtol: scipy_dop853(scene, r), f"{scene.name} dop853 {rtol:g}", budget
+            )
             points.append(_peer_point(scene, SCIPY, "dop853", "rtol", rtol, timing, res, y_ref))
         for dt in cfg["rk4"]:
             timing, res = time_point(run, lambda d=dt: numpy_rk4(scene, d), f"{scene.name} rk4 {dt:g}", budget)
@@ -688,10 +863,24 @@ def run_scene(scene, run: harness.Run) -> dict:
             plan = facts.pop("plan")
             for dt in dts:
                 n_chunks = _steps(T, dt * cfg["chunk"])
-                timing, res = time_point(run, lambda d=dt, n=n_chunks: call(d, n),
-                                         f"{scene.name} {what} dt {dt:g}", budget)
-                points.append(_ours_point(scene, order, dt, n_chunks, timing, res, y_ref, plan, facts, compile_s,
-                                          method=f"{scheme or 'order'}{order}"))
+                timing, res = time_point(
+                    run, lambda d=dt, n=n_chunks: call(d, n), f"{scene.name} {what} dt {dt:g}", budget
+                )
+                points.append(
+                    _ours_point(
+                        scene,
+                        order,
+                        dt,
+                        n_chunks,
+                        timing,
+                        res,
+                        y_ref,
+                        plan,
+                        facts,
+                        compile_s,
+                        method=f"{scheme or 'order'}{order}",
+                    )
+                )
 
     # The reference's own error: its distance to the tightest Dopri8 and DOP853 points.
     check = {}
@@ -707,9 +896,18 @@ def run_scene(scene, run: harness.Run) -> dict:
 
 
 def _peer_point(scene, family, method, param_name, param, timing, res, y_ref, compile_s=None) -> dict:
-    point = {"family": family, "method": method, "param_name": param_name, "param": param, "valid": res["valid"],
-             "steps": res["steps"], **{k: res[k] for k in ("steps_mean", "nfev") if k in res},
-             "wall_s": timing["wall_s"], "load_1min": timing["load_1min"], "timing": timing}
+    point = {
+        "family": family,
+        "method": method,
+        "param_name": param_name,
+        "param": param,
+        "valid": res["valid"],
+        "steps": res["steps"],
+        **{k: res[k] for k in ("steps_mean", "nfev") if k in res},
+        "wall_s": timing["wall_s"],
+        "load_1min": timing["load_1min"],
+        "timing": timing,
+    }
     if compile_s is not None:
         point["warm_up_s"] = compile_s  # first call of the program: compile + one run at the loosest rtol
     if res["valid"]:
@@ -724,9 +922,19 @@ def _ours_point(scene, order, dt, n_chunks, timing, res, y_ref, plan, facts, com
     solves = plan.solves_per_step
     members = scene.members
     point = {
-        "family": OURS, "method": method, "order": plan.order, "composition": plan.name,
-        "solves_per_step": solves, "param_name": "dt", "param": dt, "steps": n_steps, "chunks": n_chunks,
-        "valid": res["valid"], "wall_s": timing["wall_s"], "load_1min": timing["load_1min"], "timing": timing,
+        "family": OURS,
+        "method": method,
+        "order": plan.order,
+        "composition": plan.name,
+        "solves_per_step": solves,
+        "param_name": "dt",
+        "param": dt,
+        "steps": n_steps,
+        "chunks": n_chunks,
+        "valid": res["valid"],
+        "wall_s": timing["wall_s"],
+        "load_1min": timing["load_1min"],
+        "timing": timing,
         "warm_up_s": compile_s,  # first call of the program: compile + one chunk
         **facts,
         "newton": {
@@ -743,8 +951,9 @@ def _ours_point(scene, order, dt, n_chunks, timing, res, y_ref, plan, facts, com
     point["us_per_member_update"] = point["us_per_member_step"] / max(res["updates_per_step"], 1e-300)
     if res["valid"]:
         point.update(scene.global_error(res["y_T"], y_ref))
-        point.update({k: res[k] for k in ("energy_error", "casimir_error", "impulse_error", "linear_impulse_error")
-                      if k in res})
+        point.update(
+            {k: res[k] for k in ("energy_error", "casimir_error", "impulse_error", "linear_impulse_error") if k in res}
+        )
     point["invariant_error"] = point.get(scene.invariant)
     return point
 
@@ -800,9 +1009,17 @@ def equal_time_comparison(points, measure, peers, ratio_target, floor=None) -> d
         o, p = _family_best(ours_fronts, t, hold=True), _family_best(peer_fronts, t, hold=True)
         if o is None or p is None:
             continue
-        row = {"time_s": float(t), "ours": o[0], "ours_method": o[1], "ours_held": o[2], "peer": p[0],
-               "peer_method": p[1],
-               "peer_held": p[2], "ratio": p[0] / o[0], "met": bool(p[0] / o[0] >= ratio_target)}
+        row = {
+            "time_s": float(t),
+            "ours": o[0],
+            "ours_method": o[1],
+            "ours_held": o[2],
+            "peer": p[0],
+            "peer_method": p[1],
+            "peer_held": p[2],
+            "ratio": p[0] / o[0],
+            "met": bool(p[0] / o[0] >= ratio_target),
+        }
         if floor is not None:
             row["below_reference_floor"] = bool(max(o[0], p[0]) < 3 * floor)
         rows.append(row)
@@ -815,14 +1032,24 @@ def equal_time_comparison(points, measure, peers, ratio_target, floor=None) -> d
         ok = [r["time_s"] for r in rows if r["met"]]
         verdict, flag = f"met only between {min(ok):.3g} s and {max(ok):.3g} s", False
         if all(r["peer_held"] for r in rows if r["met"]):
-            verdict += (" and only against the peers' most accurate point, which took less time than ours "
-                        "(no equal-time point there)")
+            verdict += (
+                " and only against the peers' most accurate point, which took less time than ours "
+                "(no equal-time point there)"
+            )
     else:
         verdict, flag = "not met at any compared time", False
     ratios = [r["ratio"] for r in rows]
-    return {"measure": measure, "peers": list(peers), "ratio": "peer error / our error", "target_ratio": ratio_target,
-            "compared": rows, "ratio_min": min(ratios, default=None), "ratio_max": max(ratios, default=None),
-            "met": flag, "verdict": verdict}
+    return {
+        "measure": measure,
+        "peers": list(peers),
+        "ratio": "peer error / our error",
+        "target_ratio": ratio_target,
+        "compared": rows,
+        "ratio_min": min(ratios, default=None),
+        "ratio_max": max(ratios, default=None),
+        "met": flag,
+        "verdict": verdict,
+    }
 
 
 def _time_at(front, e):
@@ -845,6 +1072,7 @@ def equal_accuracy_comparison(points, measure, peers) -> dict:
     at errors both reach (10 log-spaced errors over the common range). A method whose fastest
     point is already more accurate than an error is counted with that point's time (flagged
     `ours_bound` / `peer_bound`: an upper bound on the time it needs)."""
+
     def fronts(methods):
         return {m: _front([p for p in points if p["method"] == m], measure) for m in methods}
 
@@ -861,11 +1089,24 @@ def equal_accuracy_comparison(points, measure, peers) -> dict:
         for e in np.geomspace(max(min(eo), min(ep)), min(max(eo), max(ep)), 10):
             (to, ob), (tp, pb) = best_time(ours, e), best_time(peer, e)
             if to is not None and tp is not None:
-                rows.append({"error": float(e), "ours_s": to, "peer_s": tp, "time_ratio_ours_over_peer": to / tp,
-                             "ours_bound": ob, "peer_bound": pb})
+                rows.append(
+                    {
+                        "error": float(e),
+                        "ours_s": to,
+                        "peer_s": tp,
+                        "time_ratio_ours_over_peer": to / tp,
+                        "ours_bound": ob,
+                        "peer_bound": pb,
+                    }
+                )
     ratios = [r["time_ratio_ours_over_peer"] for r in rows]
-    return {"measure": measure, "peers": list(peers), "compared": rows,
-            "time_ratio_min": min(ratios, default=None), "time_ratio_max": max(ratios, default=None)}
+    return {
+        "measure": measure,
+        "peers": list(peers),
+        "compared": rows,
+        "time_ratio_min": min(ratios, default=None),
+        "time_ratio_max": max(ratios, default=None),
+    }
 
 
 def targets(scene_result: dict) -> dict:
@@ -892,59 +1133,80 @@ def _e(x, w=9):
 
 def print_report(summary: dict) -> None:
     cfg = summary["config"]
-    print(f"\nWork-precision, {'--quick (not a measurement)' if cfg['quick'] else 'measured'}: wall time = median "
-          f"of 1-{cfg['repeats']} calls (samples while their total < {cfg['point_budget_s']} s), compiled first;\n"
-          "errors: global at T vs the reference, energy and Casimir/impulse max over every node (ours) or "
-          "the sample times (peers).\n"
-          "Ours: upd/sub = Newton updates per sub-step (mean; 'slowest' = mean over steps of the slowest body's, "
-          "which a batched\nwhile loop pays), jac/step = Jacobians formed per step, us/sub and us/upd = wall "
-          "microseconds per sub-step and per\nNewton update of one body (rigid body) or of the system (vortices).")
+    print(
+        f"\nWork-precision, {'--quick (not a measurement)' if cfg['quick'] else 'measured'}: wall time = median "
+        f"of 1-{cfg['repeats']} calls (samples while their total < {cfg['point_budget_s']} s), compiled first;\n"
+        "errors: global at T vs the reference, energy and Casimir/impulse max over every node (ours) or "
+        "the sample times (peers).\n"
+        "Ours: upd/sub = Newton updates per sub-step (mean; 'slowest' = mean over steps of the slowest body's, "
+        "which a batched\nwhile loop pays), jac/step = Jacobians formed per step, us/sub and us/upd = wall "
+        "microseconds per sub-step and per\nNewton update of one body (rigid body) or of the system (vortices)."
+    )
     for sc in summary["results"]:
         ref = sc["reference"]
-        print(f"\n{sc['label']}: reference {ref['method']} ({ref['wall_s']:.2f} s, {ref['steps']} steps); "
-              f"its check: " + ", ".join(f"{k} {v:.1e}" for k, v in ref["check"].items()))
+        print(
+            f"\n{sc['label']}: reference {ref['method']} ({ref['wall_s']:.2f} s, {ref['steps']} steps); "
+            f"its check: " + ", ".join(f"{k} {v:.1e}" for k, v in ref["check"].items())
+        )
         inv = INVARIANT[sc["scene"]].replace("_error", "")
         harness.print_table(
             f"{'method':<8}{'param':>8} {'wall [s]':>9}{'load':>6} |{'global':>9}{'(median)':>9}{'energy':>9}{inv:>9} |"
             f"{'upd/sub':>8}{'slowest':>8}{'jac/step':>9}{'us/sub':>10}{'us/upd':>8}",
-            (f"{p['method']:<8}{p['param']:>8.3g} {p['wall_s']:>9.3g}{p['load_1min']:>6.2f} |"
-             f"{_e(p.get('global_error'))}{_e(p.get('global_error_median'))}{_e(p.get('energy_error'))}"
-             f"{_e(p.get('invariant_error'))} |"
-             + (f"{p['newton']['updates_per_substep']:>8.2f}{p['newton']['updates_per_substep_slowest_body']:>8.2f}"
-                f"{p['newton']['jacobians_per_step']:>9.2f}{p['us_per_member_substep']:>10.3g}"
-                f"{p['us_per_member_update']:>8.3g}"
-                if p["family"] == OURS else "")
-             + ("" if p["valid"] else "  FAILED")
-             for p in sc["points"]))
+            (
+                f"{p['method']:<8}{p['param']:>8.3g} {p['wall_s']:>9.3g}{p['load_1min']:>6.2f} |"
+                f"{_e(p.get('global_error'))}{_e(p.get('global_error_median'))}{_e(p.get('energy_error'))}"
+                f"{_e(p.get('invariant_error'))} |"
+                + (
+                    f"{p['newton']['updates_per_substep']:>8.2f}{p['newton']['updates_per_substep_slowest_body']:>8.2f}"
+                    f"{p['newton']['jacobians_per_step']:>9.2f}{p['us_per_member_substep']:>10.3g}"
+                    f"{p['us_per_member_update']:>8.3g}"
+                    if p["family"] == OURS
+                    else ""
+                )
+                + ("" if p["valid"] else "  FAILED")
+                for p in sc["points"]
+            ),
+        )
     for key, ct in summary.get("cluster_targets", {}).items():
-        print(f"\nIssue 20 target, {key}: at each diffrax tolerance from {ct['rtols'][1]:g} to {ct['rtols'][0]:g}, a "
-              f"point of ours no slower, no worse in global error, and >= {ct['energy_ratio']:g}x better in energy "
-              f"(or below {ct['energy_round_off']:g}): {'MET' if ct['met'] else 'NOT MET'}")
+        print(
+            f"\nIssue 20 target, {key}: at each diffrax tolerance from {ct['rtols'][1]:g} to {ct['rtols'][0]:g}, a "
+            f"point of ours no slower, no worse in global error, and >= {ct['energy_ratio']:g}x better in energy "
+            f"(or below {ct['energy_round_off']:g}): {'MET' if ct['met'] else 'NOT MET'}"
+        )
         for r in ct["rows"]:
-            ours = ("no point of ours is as accurate" if r["ours"] is None else
-                    f"{'met by' if r['met'] else 'closest:'} {r['ours']} {r['ours_wall_s']:.3g} s "
-                    f"({r['time_ratio_ours_over_peer']:.2f}x), global {r['ours_global']:.1e}, "
-                    f"energy {r['ours_energy']:.1e}")
-            print(f"  {r['peer']:<18} {r['peer_wall_s']:8.3g} s, global {r['peer_global']:.1e}, energy "
-                  f"{r['peer_energy']:.1e}: {ours}")
+            ours = (
+                "no point of ours is as accurate"
+                if r["ours"] is None
+                else f"{'met by' if r['met'] else 'closest:'} {r['ours']} {r['ours_wall_s']:.3g} s "
+                f"({r['time_ratio_ours_over_peer']:.2f}x), global {r['ours_global']:.1e}, "
+                f"energy {r['ours_energy']:.1e}"
+            )
+            print(
+                f"  {r['peer']:<18} {r['peer_wall_s']:8.3g} s, global {r['peer_global']:.1e}, energy "
+                f"{r['peer_energy']:.1e}: {ours}"
+            )
     for key, tg in summary["targets"].items():
         print(f"\nIssue 5 targets, {key} (rigid-body batch, T = {tg['T']:g}), at equal wall time:")
-        for name, what in (("energy", f"max energy error, best diffrax / ours >= {ENERGY_TARGET:g}"),
-                           ("global", f"global error, Dopri8 / ours >= {GLOBAL_TARGET:g}")):
+        for name, what in (
+            ("energy", f"max energy error, best diffrax / ours >= {ENERGY_TARGET:g}"),
+            ("global", f"global error, Dopri8 / ours >= {GLOBAL_TARGET:g}"),
+        ):
             c = tg[name]
-            print(f"  {what}: {'MET' if c['met'] else 'NOT MET' if c['met'] is False else 'n/a'} "
-                  f"({c['verdict']})")
+            print(f"  {what}: {'MET' if c['met'] else 'NOT MET' if c['met'] is False else 'n/a'} ({c['verdict']})")
             for r in c["compared"][:: max(1, len(c["compared"]) // 6)]:
-                print(f"    t = {r['time_s']:8.3g} s: ours {r['ours']:.2e} ({r['ours_method']}"
-                      f"{', held' if r.get('ours_held') else ''}), "
-                      f"{r['peer_method']} {r['peer']:.2e}{' (held at its tightest point)' if r['peer_held'] else ''}"
-                      f", ratio {r['ratio']:.3g}"
-                      + (" [below reference floor]" if r.get("below_reference_floor") else ""))
+                print(
+                    f"    t = {r['time_s']:8.3g} s: ours {r['ours']:.2e} ({r['ours_method']}"
+                    f"{', held' if r.get('ours_held') else ''}), "
+                    f"{r['peer_method']} {r['peer']:.2e}{' (held at its tightest point)' if r['peer_held'] else ''}"
+                    f", ratio {r['ratio']:.3g}" + (" [below reference floor]" if r.get("below_reference_floor") else "")
+                )
         for name, c in tg["equal_accuracy"].items():
             if c["compared"]:
-                print(f"  context, equal {name} error: ours needs {c['time_ratio_min']:.3g}-{c['time_ratio_max']:.3g}x "
-                      f"the time of the best of {'/'.join(c['peers'])} (errors {c['compared'][0]['error']:.1e}-"
-                      f"{c['compared'][-1]['error']:.1e})")
+                print(
+                    f"  context, equal {name} error: ours needs {c['time_ratio_min']:.3g}-{c['time_ratio_max']:.3g}x "
+                    f"the time of the best of {'/'.join(c['peers'])} (errors {c['compared'][0]['error']:.1e}-"
+                    f"{c['compared'][-1]['error']:.1e})"
+                )
             else:
                 print(f"  context, equal {name} error: no common error range")
 
@@ -964,8 +1226,12 @@ _STYLE = {  # method -> (marker, colour, label)
     "dop853": ("s", "C2", "SciPy DOP853"),
     "rk4": ("D", "C4", "NumPy RK4"),
 }
-_YLABEL = {"global_error": "global error at T", "energy_error": "max relative energy error",
-           "casimir_error": "max Casimir |Π|² error", "impulse_error": "max angular impulse error"}
+_YLABEL = {
+    "global_error": "global error at T",
+    "energy_error": "max relative energy error",
+    "casimir_error": "max Casimir |Π|² error",
+    "impulse_error": "max angular impulse error",
+}
 
 
 def plot(summary: dict, path: Path) -> None:
@@ -980,11 +1246,20 @@ def plot(summary: dict, path: Path) -> None:
     for row, sc in zip(axes, scenes):
         for ax, measure in zip(row, MEASURES):
             for method, (marker, color, label) in _STYLE.items():
-                pts = sorted((p["wall_s"], p[measure]) for p in sc["points"]
-                             if p["method"] == method and p["valid"] and p.get(measure) is not None)
+                pts = sorted(
+                    (p["wall_s"], p[measure])
+                    for p in sc["points"]
+                    if p["method"] == method and p["valid"] and p.get(measure) is not None
+                )
                 if pts:  # exact zeros (round-off) drawn at 1e-17
-                    ax.loglog([t for t, _ in pts], [max(e, 1e-17) for _, e in pts], marker=marker, color=color,
-                              label=label, ls="-")
+                    ax.loglog(
+                        [t for t, _ in pts],
+                        [max(e, 1e-17) for _, e in pts],
+                        marker=marker,
+                        color=color,
+                        label=label,
+                        ls="-",
+                    )
             if measure == "global_error" and sc["reference"]["floor"]:
                 ax.axhline(sc["reference"]["floor"], color="0.5", ls=":", lw=1, label="reference check")
             ax.set_xlabel("wall time [s]")
@@ -1007,7 +1282,9 @@ def plot(summary: dict, path: Path) -> None:
         f"{'; --quick: not a measurement' if cfg['quick'] else ''}); {mach['cpu_count']} CPUs, 1-min load "
         f"{min(loads):.1f}-{max(loads):.1f} during the points, jax {mach['jax']}, numpy {mach['numpy']}.\n"
         "Ours: errors of every node; peers: at sampled times. Rigid body: global error = max over bodies "
-        "of |Π(T) - Π_ref(T)|.", fontsize=10)
+        "of |Π(T) - Π_ref(T)|.",
+        fontsize=10,
+    )
     fig.savefig(path, dpi=110)
 
 
@@ -1015,25 +1292,51 @@ def plot(summary: dict, path: Path) -> None:
 
 
 def _add_arguments(parser) -> None:
-    parser.add_argument("--long", action="store_true",
-                        help="the rigid-body batch at T = 1e4 (written as work_precision_long.{json,png})")
-    parser.add_argument("--clusters", action="store_true",
-                        help="batches of leapfrogging 4-vortex clusters at T = 1e3 (issue 20; written as "
-                             "work_precision_clusters.{json,png})")
-    parser.add_argument("--scenes", nargs="+", choices=list(DEFAULT) + list(CLUSTERS), default=None,
-                        help="run only these scenes (default: all; with --long: rigid_body)")
-    parser.add_argument("--point-budget", type=float, default=None, dest="point_budget",
-                        help="seconds of samples per point (default 5; 0.05 with --quick)")
+    parser.add_argument(
+        "--long",
+        action="store_true",
+        help="the rigid-body batch at T = 1e4 (written as work_precision_long.{json,png})",
+    )
+    parser.add_argument(
+        "--clusters",
+        action="store_true",
+        help="batches of leapfrogging 4-vortex clusters at T = 1e3 (issue 20; written as "
+        "work_precision_clusters.{json,png})",
+    )
+    parser.add_argument(
+        "--scenes",
+        nargs="+",
+        choices=list(DEFAULT) + list(CLUSTERS),
+        default=None,
+        help="run only these scenes (default: all; with --long: rigid_body)",
+    )
+    parser.add_argument(
+        "--point-budget",
+        type=float,
+        default=None,
+        dest="point_budget",
+        help="seconds of samples per point (default 5; 0.05 with --quick)",
+    )
 
 
 def main(argv=None) -> dict:
     import sys
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    name = ("work_precision_long" if "--long" in argv else "work_precision_clusters" if "--clusters" in argv
-            else "work_precision")
-    with harness.Run(name, argv, description="Work-precision diagram: ours (orders 2-8) against diffrax, "
-                     "SciPy and NumPy (see module docstring).", add_arguments=_add_arguments) as run:
+    name = (
+        "work_precision_long"
+        if "--long" in argv
+        else "work_precision_clusters"
+        if "--clusters" in argv
+        else "work_precision"
+    )
+    with harness.Run(
+        name,
+        argv,
+        description="Work-precision diagram: ours (orders 2-8) against diffrax, "
+        "SciPy and NumPy (see module docstring).",
+        add_arguments=_add_arguments,
+    ) as run:
         args = run.args
         if args.point_budget is None:
             args.point_budget = 0.05 if run.quick else 5.0
@@ -1046,8 +1349,13 @@ def main(argv=None) -> dict:
         names = [s for s in (args.scenes or list(config)) if s in config]
         results = []
         for s in names:
-            scene = (RigidBody(config[s]) if s == "rigid_body" else VortexClusters(config[s])
-                     if s == "vortex_clusters" else Vortices(s, config[s]))
+            scene = (
+                RigidBody(config[s])
+                if s == "rigid_body"
+                else VortexClusters(config[s])
+                if s == "vortex_clusters"
+                else Vortices(s, config[s])
+            )
             results.append(run_scene(scene, run))
     tg = {f"rigid_body_T{r['T']:g}": targets(r) for r in results if r["scene"] == "rigid_body"}
     # the same comparisons on the vortex scenes, for context (the issue states no target there)
@@ -1055,17 +1363,35 @@ def main(argv=None) -> dict:
     clusters = {r["scene"]: cluster_targets(r) for r in results if r["scene"] == "vortex_clusters"}
     summary = run.summary(
         config={
-            "mode": ("quick clusters" if run.quick and args.clusters else "quick" if run.quick else "long"
-                     if args.long else "clusters" if args.clusters else "default"),
+            "mode": (
+                "quick clusters"
+                if run.quick and args.clusters
+                else "quick"
+                if run.quick
+                else "long"
+                if args.long
+                else "clusters"
+                if args.clusters
+                else "default"
+            ),
             "point_budget_s": args.point_budget,
             "timing": "first call of a compiled program is a sample; more while their total < point_budget_s "
-                      "(at most `repeats`); median. Points timed one after another, load recorded per point.",
-            "scenes": {s: {k: ({str(o): list(d) for o, d in v.items()} if k in ("ours", "gauss") else v)
-                           for k, v in config[s].items()} for s in names},
-            "inertia": list(INERTIA), "Pi0": list(PI0), "seed": SEED, "reference_rtol": REFERENCE_RTOL,
-            "atol": "rtol * scale (rigid body 1; vortices max |Q0|)", "max_steps": MAX_STEPS,
+            "(at most `repeats`); median. Points timed one after another, load recorded per point.",
+            "scenes": {
+                s: {
+                    k: ({str(o): list(d) for o, d in v.items()} if k in ("ours", "gauss") else v)
+                    for k, v in config[s].items()
+                }
+                for s in names
+            },
+            "inertia": list(INERTIA),
+            "Pi0": list(PI0),
+            "seed": SEED,
+            "reference_rtol": REFERENCE_RTOL,
+            "atol": "rtol * scale (rigid body 1; vortices max |Q0|)",
+            "max_steps": MAX_STEPS,
             "energy_sampling": "ours: every node (inside the timed call); peers: n_samples + 1 equally spaced "
-                               "times (diffrax/SciPy dense output, RK4 steps)",
+            "times (diffrax/SciPy dense output, RK4 steps)",
             "targets": {"energy_ratio": ENERGY_TARGET, "global_ratio": GLOBAL_TARGET, "n_compare": N_COMPARE},
         },
         results=results,

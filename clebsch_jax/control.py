@@ -202,8 +202,9 @@ def _shooting_terms(P0, system, Q0, target, xi0, dt, weight, *, n_steps, loss, r
 
 @filter_jit
 def _shooting_value_and_grad(P0, system, Q0, target, xi0, dt, weight, n_steps, loss, regularize, options):
-    terms = lambda P: _shooting_terms(P, system, Q0, target, xi0, dt, weight, n_steps=n_steps, loss=loss,
-                                      regularize=regularize, options=options)
+    terms = lambda P: _shooting_terms(
+        P, system, Q0, target, xi0, dt, weight, n_steps=n_steps, loss=loss, regularize=regularize, options=options
+    )
     return jax.value_and_grad(terms, has_aux=True)(P0)
 
 
@@ -223,8 +224,9 @@ def _fit_terms(params, make_system, Q0, xi0, observations, dt, *, n_steps, obser
 
 @filter_jit
 def _fit_value_and_grad(params, make_system, Q0, xi0, observations, dt, n_steps, observe, loss, options):
-    terms = lambda p: _fit_terms(p, make_system, Q0, xi0, observations, dt, n_steps=n_steps, observe=observe,
-                                 loss=loss, options=options)
+    terms = lambda p: _fit_terms(
+        p, make_system, Q0, xi0, observations, dt, n_steps=n_steps, observe=observe, loss=loss, options=options
+    )
     return jax.value_and_grad(terms, has_aux=True)(params)
 
 
@@ -272,8 +274,10 @@ def _minimize(value_and_grad, value_fn, params, optimizer, n_iterations, tol, gt
                 what_failed = f"the integration failed at step {failed} ({Status.MESSAGES.get(result, result)})"
             else:
                 what_failed = "the objective or its gradient is not finite"
-            message = (f"stopped at iteration {k}: {what_failed}; returning the iterate before. "
-                       "Try a smaller learning rate or time step.")
+            message = (
+                f"stopped at iteration {k}: {what_failed}; returning the iterate before. "
+                "Try a smaller learning rate or time step."
+            )
             break
         losses[k], datas[k] = value, data
         last = (params, aux, value, grad)
@@ -369,8 +373,10 @@ def shoot(
         raise ValueError(f"P0_init: expected Q0's shape {Q0.shape}, got {P0_init.shape}.")
     if xi0 is None:
         try:
-            fits = (jax.eval_shape(system.velocity_map, Q0, Q0).shape == Q0.shape
-                    and jax.eval_shape(system.l, Q0, Q0).shape == ())
+            fits = (
+                jax.eval_shape(system.velocity_map, Q0, Q0).shape == Q0.shape
+                and jax.eval_shape(system.l, Q0, Q0).shape == ()
+            )
         except Exception:
             fits = False
         if not fits:
@@ -387,26 +393,39 @@ def shoot(
     weight = nonnegative(regularization, "regularization")
     regularize = weight > 0
     if regularize and system.degenerate:
-        raise ValueError("regularization: needs the energy of the nodal velocity, which a degenerate system "
-                         "(degenerate=True) does not determine; use regularization=0.")
+        raise ValueError(
+            "regularization: needs the energy of the nodal velocity, which a degenerate system "
+            "(degenerate=True) does not determine; use regularization=0."
+        )
 
     options = dict(integrate_options)
     weight = jnp.asarray(weight, Q0.dtype)
 
     def value_and_grad(P):
-        return _shooting_value_and_grad(P, system, Q0, target, xi0, dt, weight, n_steps, loss, regularize,
-                                        options)
+        return _shooting_value_and_grad(P, system, Q0, target, xi0, dt, weight, n_steps, loss, regularize, options)
 
     def value_fn(P):  # for line searches, traced into the optimiser's update
-        return _shooting_terms(P, system, Q0, target, xi0, dt, weight, n_steps=n_steps, loss=loss,
-                               regularize=regularize, options=options)[0]
+        return _shooting_terms(
+            P, system, Q0, target, xi0, dt, weight, n_steps=n_steps, loss=loss, regularize=regularize, options=options
+        )[0]
 
-    last, losses, datas, k, converged, message = _minimize(value_and_grad, value_fn, P0_init, optimizer,
-                                                           n_iterations, tol, gtol, "mismatch")
+    last, losses, datas, k, converged, message = _minimize(
+        value_and_grad, value_fn, P0_init, optimizer, n_iterations, tol, gtol, "mismatch"
+    )
     P0, (data, (path, momentum), _, _), value, grad = last
-    return ShootingResult(P0=np.asarray(P0), path=np.asarray(path), momentum=np.asarray(momentum),
-                          mismatch=float(data), objective=float(value), gradient=np.asarray(grad), losses=losses,
-                          mismatches=datas, iterations=int(k), converged=bool(converged), message=message)
+    return ShootingResult(
+        P0=np.asarray(P0),
+        path=np.asarray(path),
+        momentum=np.asarray(momentum),
+        mismatch=float(data),
+        objective=float(value),
+        gradient=np.asarray(grad),
+        losses=losses,
+        mismatches=datas,
+        iterations=int(k),
+        converged=bool(converged),
+        message=message,
+    )
 
 
 def fit_parameters(
@@ -464,8 +483,9 @@ def fit_parameters(
     """
     if not callable(make_system):
         raise TypeError(f"make_system: expected a function params -> ClebschSystem, got {type(make_system).__name__}.")
-    dt, tol, gtol = _check_common(dt, n_steps, optimizer, n_iterations, tol, gtol,
-                                  {k: v for k, v in integrate_options.items() if k != "P0"})
+    dt, tol, gtol = _check_common(
+        dt, n_steps, optimizer, n_iterations, tol, gtol, {k: v for k, v in integrate_options.items() if k != "P0"}
+    )
     leaves, treedef = jax.tree_util.tree_flatten(params0)
     if not leaves:
         raise ValueError("params0: expected at least one array of parameters, got an empty pytree.")
@@ -491,16 +511,25 @@ def fit_parameters(
         return _fit_value_and_grad(p, make_system, Q0, xi0, observations, dt, n_steps, observe, loss, options)
 
     def value_fn(p):
-        return _fit_terms(p, make_system, Q0, xi0, observations, dt, n_steps=n_steps, observe=observe, loss=loss,
-                          options=options)[0]
+        return _fit_terms(
+            p, make_system, Q0, xi0, observations, dt, n_steps=n_steps, observe=observe, loss=loss, options=options
+        )[0]
 
-    last, losses, _, k, converged, message = _minimize(value_and_grad, value_fn, params0, optimizer, n_iterations,
-                                                       tol, gtol, "loss")
+    last, losses, _, k, converged, message = _minimize(
+        value_and_grad, value_fn, params0, optimizer, n_iterations, tol, gtol, "loss"
+    )
     params, (_, predicted, _, _), value, grad = last
     to_numpy = lambda tree: jax.tree_util.tree_map(np.asarray, tree)
-    return FitResult(params=to_numpy(params), loss=float(value), gradient=to_numpy(grad),
-                     predicted=np.asarray(predicted), losses=losses,
-                     iterations=int(k), converged=bool(converged), message=message)
+    return FitResult(
+        params=to_numpy(params),
+        loss=float(value),
+        gradient=to_numpy(grad),
+        predicted=np.asarray(predicted),
+        losses=losses,
+        iterations=int(k),
+        converged=bool(converged),
+        message=message,
+    )
 
 
 def _observe_Q(sol):

@@ -52,6 +52,7 @@ def energy(system: ClebschSystem, sol: Solution) -> jax.Array:
     $E = -l(0, Q)$: exact when $l$ is affine in $\xi$ (Lagrangians linear in the velocity,
     such as point vortices, where $E$ is the Hamiltonian $H(Q)$), and meaningless otherwise.
     """
+
     def one(q, x):
         return node_energy(system, q, x)
 
@@ -73,8 +74,9 @@ def body_momentum(system: ClebschSystem, sol: Solution) -> jax.Array:
     return sol.momentum
 
 
-def noether_momentum(sol: Solution, generators: Callable[[jax.Array], jax.Array],
-                     system: ClebschSystem | None = None) -> jax.Array:
+def noether_momentum(
+    sol: Solution, generators: Callable[[jax.Array], jax.Array], system: ClebschSystem | None = None
+) -> jax.Array:
     r"""Noether momenta $\langle p^n, Y_k(Q^n)\rangle$ of the discrete flow.
 
     `generators(Q)` returns shape (K, *Q.shape): K infinitesimal generators of a symmetry of
@@ -83,6 +85,7 @@ def noether_momentum(sol: Solution, generators: Callable[[jax.Array], jax.Array]
     discrete Lagrangian is invariant these are conserved exactly by the discrete flow (discrete
     Noether theorem). Shape: batch + (N+1, K).
     """
+
     def one(q, p):
         Y = generators(q)
         return jnp.sum(Y * p[None], axis=tuple(range(1, Y.ndim)))
@@ -131,11 +134,10 @@ def envelope_ratio(error, fraction: float = 0.1) -> float:
     """
     e = np.abs(np.asarray(error))
     k = max(1, int(len(e) * fraction))
-    return float(np.max(e[-k:]) / max(np.max(e[1:k + 1]), np.finfo(float).tiny))
+    return float(np.max(e[-k:]) / max(np.max(e[1 : k + 1]), np.finfo(float).tiny))
 
 
 def fit_order(dts, errors) -> float:
     """Slope of the least-squares fit of log(error) against log(dt): the measured order."""
     slope, _ = np.polyfit(np.log(np.asarray(dts, float)), np.log(np.asarray(errors, float)), 1)
     return float(slope)
-

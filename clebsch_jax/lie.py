@@ -99,9 +99,22 @@ def cayley_log(A: jax.Array) -> jax.Array:
     return 2.0 * _linalg.solve(A + eye, A - eye)
 
 
-_PADE13 = (64764752532480000.0, 32382376266240000.0, 7771770303897600.0, 1187353796428800.0,
-           129060195264000.0, 10559470521600.0, 670442572800.0, 33522128640.0, 1323241920.0, 40840800.0,
-           960960.0, 16380.0, 182.0, 1.0)
+_PADE13 = (
+    64764752532480000.0,
+    32382376266240000.0,
+    7771770303897600.0,
+    1187353796428800.0,
+    129060195264000.0,
+    10559470521600.0,
+    670442572800.0,
+    33522128640.0,
+    1323241920.0,
+    40840800.0,
+    960960.0,
+    16380.0,
+    182.0,
+    1.0,
+)
 _PADE13_THETA = 5.371920351148152  # largest 1-norm where the [13/13] Padé approximant is exact to ε (Higham 2005)
 EXPM_MAX_SQUARINGS = 16
 """`expm` scales its argument by at most 2⁻¹⁶ (1-norms up to about 3.5·10⁵ are exact)."""
@@ -117,7 +130,7 @@ def expm(X: jax.Array) -> jax.Array:
     X = jnp.asarray(X)
     eye = _eye_like(X)
     s = _halvings(X, _PADE13_THETA, EXPM_MAX_SQUARINGS)
-    A = X / (2.0 ** s)[..., None, None]
+    A = X / (2.0**s)[..., None, None]
     mm = _linalg.matmul
     A2 = mm(A, A)
     A4 = mm(A2, A2)
@@ -165,15 +178,14 @@ def exp_and_phi1(A: jax.Array):
     A = jnp.asarray(A)
     eye = jnp.eye(A.shape[-1], dtype=A.dtype)
     s = _halvings(A, 0.4, PHI1_MAX_SCALING)
-    B = A / 2.0 ** s  # exact: a power of two
+    B = A / 2.0**s  # exact: a power of two
     phi = eye / math.factorial(PHI1_DEGREE + 1)
     for k in range(PHI1_DEGREE, 0, -1):  # Σ_k B^k/(k+1)!, from the highest term
         phi = eye / math.factorial(k) + _linalg.matmul(B, phi)
     E = eye + _linalg.matmul(B, phi)
     for i in range(PHI1_MAX_SCALING):
         more = i < s
-        phi, E = (jnp.where(more, 0.5 * _linalg.matmul(phi, eye + E), phi),
-                  jnp.where(more, _linalg.matmul(E, E), E))
+        phi, E = (jnp.where(more, 0.5 * _linalg.matmul(phi, eye + E), phi), jnp.where(more, _linalg.matmul(E, E), E))
     return E, phi
 
 

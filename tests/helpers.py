@@ -60,8 +60,11 @@ def cay_velocity(inertia, h, rhs, w):
         m = inertia * w
         F = m + 0.5 * h * np.cross(w, m) + 0.25 * h * h * np.dot(w, m) * w - rhs
         # d/dw of w×(Iw) = -hat(Iw) + hat(w) I ; d/dw of (w·Iw) w = w (2Iw)^T + (w·Iw) Id
-        J = (np.diag(inertia) + 0.5 * h * (-hat(m) + hat(w) @ np.diag(inertia))
-             + 0.25 * h * h * (np.outer(w, 2 * m) + np.dot(w, m) * np.eye(3)))
+        J = (
+            np.diag(inertia)
+            + 0.5 * h * (-hat(m) + hat(w) @ np.diag(inertia))
+            + 0.25 * h * h * (np.outer(w, 2 * m) + np.dot(w, m) * np.eye(3))
+        )
         dw = np.linalg.solve(J, F)
         w = w - dw
         if np.max(np.abs(dw)) < 1e-16 * max(1.0, np.max(np.abs(w))):
@@ -137,6 +140,7 @@ def compiles_recorded(where: str | None = None):
             if not (frames and frames[-1].endswith(where)):
                 return
         names.append(fun_name)
+
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
         yield names
@@ -148,7 +152,7 @@ def _sphere_legendre(L, x):
     """Y_lm(θ, 0) (SciPy's `sph_legendre_p_all`, Condon–Shortley phase) at cos θ = x and
     sin θ ∂θ of it, shapes (L+1, L+1, len(x)) for 0 ≤ m ≤ l."""
     theta = np.arccos(x)
-    values = sph_legendre_p_all(L, L, theta, diff_n=1)[:, :, :L + 1]
+    values = sph_legendre_p_all(L, L, theta, diff_n=1)[:, :, : L + 1]
     return values[0], np.sin(theta) * values[1]
 
 
@@ -172,17 +176,17 @@ def sphere_euler_spectral(c0, T, L, rtol=1e-12):
     def synthesis(c, basis, factor=1.0):
         per_m = np.einsum("lm,lmt->mt", c, basis) * factor
         F = np.zeros((len(x), n_phi), complex)
-        F[:, :L + 1] = per_m.T
-        F[:, 1:L + 1] *= 2.0
+        F[:, : L + 1] = per_m.T
+        F[:, 1 : L + 1] *= 2.0
         return (np.fft.ifft(F, axis=1) * n_phi).real
 
     def analysis(f):
-        F = np.fft.fft(f, axis=1)[:, :L + 1] * (2 * np.pi / n_phi)  # ∫ f e^{-imφ} dφ
+        F = np.fft.fft(f, axis=1)[:, : L + 1] * (2 * np.pi / n_phi)  # ∫ f e^{-imφ} dφ
         return np.tril(np.einsum("t,lmt,tm->lm", w, P, F))
 
     def rhs(t, y):
         c = np.zeros((L + 1, L + 1), complex)
-        c[lower] = y[:len(lower[0])] + 1j * y[len(lower[0]):]
+        c[lower] = y[: len(lower[0])] + 1j * y[len(lower[0]) :]
         psi = c * inverse_laplacian
         bracket = (synthesis(psi, D) / sin * synthesis(c, P, im) - synthesis(psi, P, im) * synthesis(c, D) / sin) / sin
         d = analysis(bracket)[lower]
@@ -194,5 +198,5 @@ def sphere_euler_spectral(c0, T, L, rtol=1e-12):
     y0 = np.concatenate([c[lower].real, c[lower].imag])
     y = solve_ivp(rhs, (0.0, T), y0, method="DOP853", rtol=rtol, atol=rtol).y[:, -1]
     c = np.zeros((L + 1, L + 1), complex)
-    c[lower] = y[:len(lower[0])] + 1j * y[len(lower[0]):]
+    c[lower] = y[: len(lower[0])] + 1j * y[len(lower[0]) :]
     return c

@@ -23,6 +23,7 @@ Q0, XI0 = np.eye(3), np.array([0.3, 0.1, 1.0])
 @pytest.fixture(autouse=True)
 def no_compilation(monkeypatch):
     """Every error here must be raised before the march is traced or compiled."""
+
     def boom(*args, **kwargs):
         raise AssertionError("the march was compiled for invalid input")
 
@@ -80,7 +81,9 @@ def test_maps_returning_the_wrong_shape_are_named():
 
 def test_system_construction_errors():
     with pytest.raises(TypeError, match=r"^lagrangian: expected l\(xi\) or l\(xi, Q\)"):
-        cj.ClebschSystem(lagrangian=lambda a, b, c: 0.0, velocity_map=lambda x, Q: x, derivative_map=cj.forward_difference)
+        cj.ClebschSystem(
+            lagrangian=lambda a, b, c: 0.0, velocity_map=lambda x, Q: x, derivative_map=cj.forward_difference
+        )
     with pytest.raises(TypeError, match=r"^velocity_map: expected a callable"):
         cj.ClebschSystem(lagrangian=lambda x: 0.0, velocity_map=3, derivative_map=cj.forward_difference)
     with pytest.raises(TypeError, match=r"^system: expected a clebsch_jax.ClebschSystem"):
@@ -114,7 +117,6 @@ def test_shape_mismatch_between_Q0_and_xi0_is_caught(q_shape, xi_shape):
 def test_any_nonpositive_or_nonfinite_dt_is_rejected(dt):
     with pytest.raises(ValueError, match=r"^dt: "):
         cj.integrate(SYSTEM, Q0, XI0, dt=dt, n_steps=3)
-
 
 
 # --------------------------------------------------------------------------------------------
@@ -182,8 +184,9 @@ def test_the_rotation_check_tolerates_round_off_and_is_skipped_when_Q0_is_traced
 
 
 def _vector_system(**kwargs):
-    return cj.ClebschSystem(lagrangian=_oscillator, velocity_map=_translation, derivative_map=cj.forward_difference,
-                            **kwargs)
+    return cj.ClebschSystem(
+        lagrangian=_oscillator, velocity_map=_translation, derivative_map=cj.forward_difference, **kwargs
+    )
 
 
 def test_a_user_configuration_check_is_data_of_the_system():
@@ -207,14 +210,29 @@ def test_a_user_configuration_check_is_data_of_the_system():
     "make, match",
     [
         (lambda: cj.models.rigid_body([2.0, 0.0, 1.0]), r"^inertia: the principal moments must be finite and positive"),
-        (lambda: cj.models.rigid_body([2.0, 1.0, -0.5]), r"^inertia: the principal moments must be finite and positive"),
-        (lambda: cj.models.rigid_body([np.nan, 1.0, 1.0]), r"^inertia: the principal moments must be finite and positive"),
-        (lambda: cj.models.rigid_body([np.inf, 1.0, 1.0]), r"^inertia: the principal moments must be finite and positive"),
-        (lambda: cj.models.rigid_body(np.array([2.0, 1.0, 1.0]) + 0.5j), r"^inertia: the principal moments must be real"),
+        (
+            lambda: cj.models.rigid_body([2.0, 1.0, -0.5]),
+            r"^inertia: the principal moments must be finite and positive",
+        ),
+        (
+            lambda: cj.models.rigid_body([np.nan, 1.0, 1.0]),
+            r"^inertia: the principal moments must be finite and positive",
+        ),
+        (
+            lambda: cj.models.rigid_body([np.inf, 1.0, 1.0]),
+            r"^inertia: the principal moments must be finite and positive",
+        ),
+        (
+            lambda: cj.models.rigid_body(np.array([2.0, 1.0, 1.0]) + 0.5j),
+            r"^inertia: the principal moments must be real",
+        ),
         (lambda: cj.models.heavy_top([1.0, -1.0, 1.0], 1.0), r"^inertia: the principal moments must be finite"),
         (lambda: cj.models.heavy_top([1.0, 1.0, 1.0], np.nan), r"^mass_gravity_length: must be finite"),
         (lambda: cj.models.heavy_top([1.0, 1.0, 1.0], [1.0, 2.0]), r"^mass_gravity_length: expected a scalar"),
-        (lambda: cj.models.heavy_top([1.0, 1.0, 1.0], 1.0, (0.0, 0.0, 0.0)), r"^center_of_mass: must be a finite, nonzero"),
+        (
+            lambda: cj.models.heavy_top([1.0, 1.0, 1.0], 1.0, (0.0, 0.0, 0.0)),
+            r"^center_of_mass: must be a finite, nonzero",
+        ),
         (lambda: cj.models.heavy_top([1.0, 1.0, 1.0], 1.0, (0.0, np.inf, 1.0)), r"^center_of_mass: must be a finite"),
         (lambda: cj.models.point_vortices([1.0, 0.0, -1.0]), r"^circulations: must be nonzero: vortex 1"),
         (lambda: cj.models.point_vortices([1.0, np.nan]), r"^circulations: must be finite"),
@@ -240,9 +258,12 @@ def test_parameter_checks_are_skipped_when_traced_and_meaningful_signs_are_kept(
     bad_inertias = jnp.array([[1.0, 2.0, 3.0], [-1.0, 0.0, np.nan]])
     for make in (cj.models.rigid_body, lambda I: cj.models.heavy_top(I, 1.0)):  # traced, not compiled
         assert jax.eval_shape(jax.vmap(lambda I: make(I).l(xi, Q)), bad_inertias).shape == (2,)
-    assert jax.eval_shape(jax.vmap(lambda g: cj.models.point_vortices(g).l(jnp.ones((3, 2)), jnp.eye(3, 2))),
-                          jnp.zeros((2, 3))).shape == (2,)
-    assert jax.eval_shape(jax.jit(lambda w: cj.models.peakons(w).l(jnp.ones(2), jnp.array([0.0, 1.0]))), -1.0).shape == ()
+    assert jax.eval_shape(
+        jax.vmap(lambda g: cj.models.point_vortices(g).l(jnp.ones((3, 2)), jnp.eye(3, 2))), jnp.zeros((2, 3))
+    ).shape == (2,)
+    assert (
+        jax.eval_shape(jax.jit(lambda w: cj.models.peakons(w).l(jnp.ones(2), jnp.array([0.0, 1.0]))), -1.0).shape == ()
+    )
 
 
 # ---- hypothesis: random valid and invalid input
@@ -254,7 +275,8 @@ _shapes = st.lists(st.integers(min_value=1, max_value=4), min_size=1, max_size=3
 
 def _array(shape):
     return st.lists(_finite, min_size=int(np.prod(shape)), max_size=int(np.prod(shape))).map(
-        lambda v: np.array(v).reshape(shape))
+        lambda v: np.array(v).reshape(shape)
+    )
 
 
 def _spring(xi, Q):
@@ -282,8 +304,11 @@ def _random_rotation(entries):
     return q * np.array([1.0, 1.0, np.sign(np.linalg.det(q))])
 
 
-_rotations = st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9).filter(
-    lambda v: np.linalg.cond(np.reshape(v, (3, 3))) < 1e6).map(_random_rotation)
+_rotations = (
+    st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9)
+    .filter(lambda v: np.linalg.cond(np.reshape(v, (3, 3))) < 1e6)
+    .map(_random_rotation)
+)
 
 
 @settings(max_examples=30, deadline=None)
@@ -330,8 +355,11 @@ def test_random_meaningless_parameters_are_rejected(data, model):
 
 
 @settings(max_examples=12, deadline=None)
-@given(Q=_rotations, inertia=st.lists(st.floats(0.2, 5.0), min_size=3, max_size=3),
-       xi=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3))
+@given(
+    Q=_rotations,
+    inertia=st.lists(st.floats(0.2, 5.0), min_size=3, max_size=3),
+    xi=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3),
+)
 def test_random_valid_rigid_bodies_are_accepted_and_run(Q, inertia, xi):
     """Random rotations (QR), positive inertias and velocities: a finite, successful solution
     that stays on SO(3) (3 steps; one compiled march for every example)."""

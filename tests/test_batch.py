@@ -43,16 +43,27 @@ def newton_sqrt(a, x0):
         x, k = state
         return 0.5 * (x + a / x), k + 1
 
-    x, k = jax.lax.while_loop(lambda s: (jnp.max(jnp.abs(s[0] * s[0] - a)) > 1e-14 * jnp.max(a)) & (s[1] < 50),
-                              body, (x0, 0))
+    x, k = jax.lax.while_loop(
+        lambda s: (jnp.max(jnp.abs(s[0] * s[0] - a)) > 1e-14 * jnp.max(a)) & (s[1] < 50), body, (x0, 0)
+    )
     y = jax.lax.cond(k > 5, lambda v: jnp.sin(v), lambda v: jnp.cos(v), x)
     csum, ys = jax.lax.scan(lambda c, v: (c + v * v, c), jnp.zeros(()), x)
     M = jnp.outer(x, a) + jnp.eye(a.shape[0]) * 3.0
     z = M @ y + jnp.einsum("ij,jk,k->i", M, M, a)
     w = jnp.linalg.solve(M, z)
     pick = x[jnp.argmax(a)]
-    return {"x": x, "k": k, "y": y, "csum": csum, "ys": ys, "z": z, "w": w, "pick": pick,
-            "cum": jnp.cumsum(x), "stack": jnp.stack([x, a[::-1]], axis=1).reshape(-1)[1:5]}
+    return {
+        "x": x,
+        "k": k,
+        "y": y,
+        "csum": csum,
+        "ys": ys,
+        "z": z,
+        "w": w,
+        "pick": pick,
+        "cum": jnp.cumsum(x),
+        "stack": jnp.stack([x, a[::-1]], axis=1).reshape(-1)[1:5],
+    }
 
 
 def test_agrees_with_vmap_on_control_flow_and_fallbacks():
@@ -97,18 +108,19 @@ def test_chunks_and_padding_change_nothing(B, chunk):
 
 
 @settings(max_examples=8, deadline=None)  # each example compiles a program
-@given(st.integers(1, 40), st.integers(1, 16), st.integers(0, 2 ** 31 - 1))
+@given(st.integers(1, 40), st.integers(1, 16), st.integers(0, 2**31 - 1))
 def test_each_member_independent_of_batch_and_chunk(B, chunk, seed):
     """A member's result does not depend on the other members or on the chunking."""
     x = jnp.asarray(np.random.default_rng(seed).normal(size=(B, 2, 2)))
 
     def f(m):
-        return jax.lax.while_loop(lambda s: s[1] < 3 + (s[0][0, 0] > 0), lambda s: (s[0] @ s[0] * 0.5, s[1] + 1),
-                                  (m, 0))[0]
+        return jax.lax.while_loop(
+            lambda s: s[1] < 3 + (s[0][0, 0] > 0), lambda s: (s[0] @ s[0] * 0.5, s[1] + 1), (m, 0)
+        )[0]
 
     out = np.asarray(cj.batch(f, chunk=chunk)(x))
-    alone = np.stack([np.asarray(cj.batch(f)(x[i:i + 1]))[0] for i in range(min(B, 3))])
-    np.testing.assert_array_equal(out[:len(alone)], alone)
+    alone = np.stack([np.asarray(cj.batch(f)(x[i : i + 1]))[0] for i in range(min(B, 3))])
+    np.testing.assert_array_equal(out[: len(alone)], alone)
 
 
 def test_reduced_rigid_body_march_is_bit_identical_to_vmap():
@@ -131,10 +143,12 @@ def test_reduced_rigid_body_march_is_bit_identical_to_vmap():
     # bitwise equal.
     scale = float(np.max(np.abs(np.asarray(ref.momentum))))
     for field in ("stats", "nodal_stats"):
-        np.testing.assert_allclose(getattr(out, field).residual_norm, getattr(ref, field).residual_norm,
-                                   rtol=0, atol=4 * EPS * scale)
-    strip = lambda sol: dataclasses.replace(sol, stats=sol.stats._replace(residual_norm=None),
-                                            nodal_stats=sol.nodal_stats._replace(residual_norm=None))
+        np.testing.assert_allclose(
+            getattr(out, field).residual_norm, getattr(ref, field).residual_norm, rtol=0, atol=4 * EPS * scale
+        )
+    strip = lambda sol: dataclasses.replace(
+        sol, stats=sol.stats._replace(residual_norm=None), nodal_stats=sol.nodal_stats._replace(residual_norm=None)
+    )
     assert_trees_close(strip(out), strip(ref))
     # and the physics holds: Casimir at round-off
     C = np.sum(np.asarray(out.momentum) ** 2, axis=-1)
@@ -150,8 +164,15 @@ def test_point_vortex_batch_agrees_with_vmap():
     Q0 = jnp.asarray(rng.normal(size=(6, 4, 2)))
 
     def run(g, q):
-        return cj.integrate(models.point_vortices(g), q, models.vortex_velocity(g, q), dt=0.01, n_steps=20,
-                            jacobian="blocks", throw=False)
+        return cj.integrate(
+            models.point_vortices(g),
+            q,
+            models.vortex_velocity(g, q),
+            dt=0.01,
+            n_steps=20,
+            jacobian="blocks",
+            throw=False,
+        )
 
     ref = jax.jit(jax.vmap(run))(G, Q0)
     out = jax.jit(cj.batch(run, chunk=4))(G, Q0)
@@ -207,7 +228,8 @@ def test_rules_cover_the_reduced_march():
     gathers of the statistics (which fall back on vmap): the hot loop never leaves the layout."""
     system = models.rigid_body(jnp.array([2.0, 1.0, 2.0 / 3.0]))
     jaxpr = jax.make_jaxpr(lambda q, x: cj.integrate(system, q, x, dt=0.1, n_steps=5, order=4, throw=False))(
-        jnp.eye(3), jnp.ones(3))
+        jnp.eye(3), jnp.ones(3)
+    )
     import jax.extend.core as jex
 
     names = set()
@@ -217,6 +239,7 @@ def test_rules_cover_the_reduced_march():
             names.add(e.primitive.name)
             for sub in jex.jaxprs_in_params(e.params):
                 walk(sub)
+
     walk(jaxpr.jaxpr)
     missing = {n for n in names if n not in _RULES} - {"iota"}
     assert missing <= {"gather", "dynamic_slice"}, missing

@@ -70,13 +70,21 @@ def fields(sol):
 
 
 def rigid_body(inertia, Q0, omega0, **kw):
-    return cj.integrate(cj.models.rigid_body(inertia), Q0, omega0, dt=np.float64(0.1), n_steps=N_STEPS,
-                        throw=False, **kw)
+    return cj.integrate(
+        cj.models.rigid_body(inertia), Q0, omega0, dt=np.float64(0.1), n_steps=N_STEPS, throw=False, **kw
+    )
 
 
 def vortices(gamma, Q0):
-    return cj.integrate(models.point_vortices(gamma), Q0, models.vortex_velocity(gamma, Q0), dt=np.float64(0.02),
-                        n_steps=N_STEPS, jacobian="blocks", throw=False)
+    return cj.integrate(
+        models.point_vortices(gamma),
+        Q0,
+        models.vortex_velocity(gamma, Q0),
+        dt=np.float64(0.02),
+        n_steps=N_STEPS,
+        jacobian="blocks",
+        throw=False,
+    )
 
 
 def alone_and_placed(run, arrays):

@@ -51,8 +51,7 @@ RESIDUAL_BOUND = 1e-12
 RESIDUAL_FIELDS = ("stats.residual_norm", "nodal_stats.residual_norm", "max_residual")
 """Final residual norms left at each root: round-off sized, compared by size only."""
 
-STATE_FIELDS = ("Q", "p", "xi", "xi_step", "P", "momentum",
-                "final_Q", "final_p", "final_xi", "final_momentum")
+STATE_FIELDS = ("Q", "p", "xi", "xi_step", "P", "momentum", "final_Q", "final_p", "final_xi", "final_momentum")
 """Fields whose largest magnitude sets the scale of a case's residuals."""
 
 
@@ -67,8 +66,9 @@ RIGID = cj.models.rigid_body(INERTIA)
 # The rigid body with the forward difference, which does not keep Q on SO(3): `integrate` refuses
 # it for a system that checks its configurations (`check_Q`), so this case pins the same maps
 # without the rotation check (same arithmetic, same stored numbers).
-RIGID_FORWARD = cj.ClebschSystem(lagrangian=RIGID.lagrangian, velocity_map=RIGID.velocity_map,
-                                 derivative_map=cj.forward_difference)
+RIGID_FORWARD = cj.ClebschSystem(
+    lagrangian=RIGID.lagrangian, velocity_map=RIGID.velocity_map, derivative_map=cj.forward_difference
+)
 
 TOP = cj.models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5, (0.0, 0.0, 1.0))
 TOP_Q0 = cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))  # tilted 0.5 rad about e1
@@ -116,24 +116,79 @@ def _casimir(system, sol):
 # The cases: every keyword explicit, so a change of a default cannot pass unnoticed.
 
 
-def _integrate(system, Q0, xi0, *, dt, n_steps, P0=None, t0=0.0, scheme, reduce, need_P=False,
-               reconstruct=True, rtol=0.0, atol=0.0, max_newton_iterations=20, jacobian="dense",
-               order=None, composition=None):
+def _integrate(
+    system,
+    Q0,
+    xi0,
+    *,
+    dt,
+    n_steps,
+    P0=None,
+    t0=0.0,
+    scheme,
+    reduce,
+    need_P=False,
+    reconstruct=True,
+    rtol=0.0,
+    atol=0.0,
+    max_newton_iterations=20,
+    jacobian="dense",
+    order=None,
+    composition=None,
+):
     """`cj.integrate` with every keyword passed explicitly, so no case relies on `integrate`'s own
     defaults (a changed default must not change a pinned result unnoticed, nor hide behind one).
     The defaults here are today's defaults written out; `throw=True`: every case must succeed."""
-    return cj.integrate(system, Q0, xi0, dt=dt, n_steps=n_steps, P0=P0, t0=t0, scheme=scheme, reduce=reduce,
-                        need_P=need_P, reconstruct=reconstruct, rtol=rtol, atol=atol,
-                        max_newton_iterations=max_newton_iterations, jacobian=jacobian, order=order,
-                        composition=composition, throw=True)
+    return cj.integrate(
+        system,
+        Q0,
+        xi0,
+        dt=dt,
+        n_steps=n_steps,
+        P0=P0,
+        t0=t0,
+        scheme=scheme,
+        reduce=reduce,
+        need_P=need_P,
+        reconstruct=reconstruct,
+        rtol=rtol,
+        atol=atol,
+        max_newton_iterations=max_newton_iterations,
+        jacobian=jacobian,
+        order=order,
+        composition=composition,
+        throw=True,
+    )
 
 
 def _sweep():
-    return cj.sweep(cj.models.rigid_body, SWEEP_INERTIAS, SWEEP_Q0, SWEEP_OMEGAS, dt=0.05, n_steps=40, P0=None,
-                    grid=True, invariants={"casimir": _casimir}, chunk_steps=20, batch_size=4, save_every=10,
-                    member_chunk=None, devices=None, progress=False,
-                    scheme="left", reduce="auto", need_P=False, reconstruct=True, rtol=0.0, atol=0.0,
-                    max_newton_iterations=20, jacobian="dense", order=None, composition=None)
+    return cj.sweep(
+        cj.models.rigid_body,
+        SWEEP_INERTIAS,
+        SWEEP_Q0,
+        SWEEP_OMEGAS,
+        dt=0.05,
+        n_steps=40,
+        P0=None,
+        grid=True,
+        invariants={"casimir": _casimir},
+        chunk_steps=20,
+        batch_size=4,
+        save_every=10,
+        member_chunk=None,
+        devices=None,
+        progress=False,
+        scheme="left",
+        reduce="auto",
+        need_P=False,
+        reconstruct=True,
+        rtol=0.0,
+        atol=0.0,
+        max_newton_iterations=20,
+        jacobian="dense",
+        order=None,
+        composition=None,
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,59 +214,142 @@ class Case:
 
 CASES = (
     # 1. rigid body, reduced CAY march (Example 30)
-    Case("rigid_body_reduced", lambda: _integrate(
-        RIGID, EYE3, XI0, dt=0.1, n_steps=40, t0=0.0, scheme="left", reduce=True, order=None)),
+    Case(
+        "rigid_body_reduced",
+        lambda: _integrate(RIGID, EYE3, XI0, dt=0.1, n_steps=40, t0=0.0, scheme="left", reduce=True, order=None),
+    ),
     # 2. the same body, full march, order-4 composition
-    Case("rigid_body_full_order4", lambda: _integrate(
-        RIGID, EYE3, XI0, dt=0.1, n_steps=20, t0=0.5, scheme="left", reduce=False, order=4),
-        slow=True, counts_at_round_off=True),
+    Case(
+        "rigid_body_full_order4",
+        lambda: _integrate(RIGID, EYE3, XI0, dt=0.1, n_steps=20, t0=0.5, scheme="left", reduce=False, order=4),
+        slow=True,
+        counts_at_round_off=True,
+    ),
     # 3. reduced composition without Q; reduced march reconstructing the minimum-norm P
-    Case("rigid_body_reduced_order4", lambda: _integrate(
-        RIGID, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce=True, reconstruct=False, order=4),
-        slow=True),
-    Case("rigid_body_reduced_need_P", lambda: _integrate(
-        RIGID, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce=True, need_P=True), slow=True),
-    Case("rigid_body_reduced_p8s15", lambda: _integrate(
-        RIGID, EYE3, XI0, dt=0.2, n_steps=20, scheme="right", reduce=True, reconstruct=True, order=8,
-        composition="Suzuki-Umeno p8s15"), slow=True),
+    Case(
+        "rigid_body_reduced_order4",
+        lambda: _integrate(
+            RIGID, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce=True, reconstruct=False, order=4
+        ),
+        slow=True,
+    ),
+    Case(
+        "rigid_body_reduced_need_P",
+        lambda: _integrate(RIGID, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce=True, need_P=True),
+        slow=True,
+    ),
+    Case(
+        "rigid_body_reduced_p8s15",
+        lambda: _integrate(
+            RIGID,
+            EYE3,
+            XI0,
+            dt=0.2,
+            n_steps=20,
+            scheme="right",
+            reduce=True,
+            reconstruct=True,
+            order=8,
+            composition="Suzuki-Umeno p8s15",
+        ),
+        slow=True,
+    ),
     # 4. heavy top: the midpoint principle (full march, with a positive Newton tolerance),
     #    and left∘right over half steps (reduced)
-    Case("heavy_top_midpoint", lambda: _integrate(
-        TOP, TOP_Q0, TOP_XI0, dt=0.05, n_steps=40, scheme="midpoint", reduce=False,
-        rtol=1e-10, atol=1e-12, max_newton_iterations=30), slow=True, to_round_off=False, counts_at_round_off=True),
-    Case("heavy_top_reduced_order2", lambda: _integrate(
-        TOP, TOP_Q0, TOP_XI0, dt=0.05, n_steps=40, scheme="left", reduce=True, order=2), slow=True),
+    Case(
+        "heavy_top_midpoint",
+        lambda: _integrate(
+            TOP,
+            TOP_Q0,
+            TOP_XI0,
+            dt=0.05,
+            n_steps=40,
+            scheme="midpoint",
+            reduce=False,
+            rtol=1e-10,
+            atol=1e-12,
+            max_newton_iterations=30,
+        ),
+        slow=True,
+        to_round_off=False,
+        counts_at_round_off=True,
+    ),
+    Case(
+        "heavy_top_reduced_order2",
+        lambda: _integrate(TOP, TOP_Q0, TOP_XI0, dt=0.05, n_steps=40, scheme="left", reduce=True, order=2),
+        slow=True,
+    ),
     # 5. point vortices (degenerate): midpoint with the dense and the block Jacobian; Gauss order 4
-    Case("vortices_midpoint_dense", lambda: _integrate(
-        VORTICES, VORTEX_Q0, VORTEX_XI0, dt=0.05, n_steps=30, scheme="midpoint", reduce=False,
-        jacobian="dense"), counts_at_round_off=True),
-    Case("vortices_midpoint_blocks", lambda: _integrate(
-        VORTICES, VORTEX_Q0, VORTEX_XI0, dt=0.05, n_steps=30, scheme="midpoint", reduce=False,
-        jacobian="blocks"), slow=True, counts_at_round_off=True),
-    Case("vortices_gauss_order4", lambda: _integrate(
-        VORTICES, VORTEX_Q0, VORTEX_XI0, dt=0.1, n_steps=20, scheme="gauss", reduce=False,
-        jacobian="blocks", order=4), slow=True),
+    Case(
+        "vortices_midpoint_dense",
+        lambda: _integrate(
+            VORTICES, VORTEX_Q0, VORTEX_XI0, dt=0.05, n_steps=30, scheme="midpoint", reduce=False, jacobian="dense"
+        ),
+        counts_at_round_off=True,
+    ),
+    Case(
+        "vortices_midpoint_blocks",
+        lambda: _integrate(
+            VORTICES, VORTEX_Q0, VORTEX_XI0, dt=0.05, n_steps=30, scheme="midpoint", reduce=False, jacobian="blocks"
+        ),
+        slow=True,
+        counts_at_round_off=True,
+    ),
+    Case(
+        "vortices_gauss_order4",
+        lambda: _integrate(
+            VORTICES,
+            VORTEX_Q0,
+            VORTEX_XI0,
+            dt=0.1,
+            n_steps=20,
+            scheme="gauss",
+            reduce=False,
+            jacobian="blocks",
+            order=4,
+        ),
+        slow=True,
+    ),
     # 6. the rigid body in Clebsch variables on R³, Gauss order 8 from a given P0
-    Case("rigid_body_vector_gauss_order8", lambda: _integrate(
-        RIGID_VECTOR, VECTOR_Q0, XI0, dt=0.25, n_steps=20, P0=VECTOR_P0, scheme="gauss", reduce=False,
-        order=8)),
+    Case(
+        "rigid_body_vector_gauss_order8",
+        lambda: _integrate(
+            RIGID_VECTOR, VECTOR_Q0, XI0, dt=0.25, n_steps=20, P0=VECTOR_P0, scheme="gauss", reduce=False, order=8
+        ),
+    ),
     # 7. two overtaking peakons, midpoint, from given momenta
-    Case("peakons_midpoint", lambda: _integrate(
-        PEAKONS, PEAKON_Q0, PEAKON_XI0, dt=0.1, n_steps=40, P0=PEAKON_P0, scheme="midpoint", reduce=False),
-        slow=True, counts_at_round_off=True),
+    Case(
+        "peakons_midpoint",
+        lambda: _integrate(
+            PEAKONS, PEAKON_Q0, PEAKON_XI0, dt=0.1, n_steps=40, P0=PEAKON_P0, scheme="midpoint", reduce=False
+        ),
+        slow=True,
+        counts_at_round_off=True,
+    ),
     # 8. the README's SE(2) body: default ("auto") reduced march, need_P (full march), exponential
-    Case("se2_auto_reduced", lambda: _integrate(
-        SE2_CAYLEY, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto"), slow=True),
-    Case("se2_auto_need_P_full", lambda: _integrate(
-        SE2_CAYLEY, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto", need_P=True),
-        slow=True, counts_at_round_off=True),
-    Case("se2_exponential_auto", lambda: _integrate(
-        SE2_EXPONENTIAL, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto"), slow=True,
-        counts_at_round_off=True),
+    Case(
+        "se2_auto_reduced",
+        lambda: _integrate(SE2_CAYLEY, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto"),
+        slow=True,
+    ),
+    Case(
+        "se2_auto_need_P_full",
+        lambda: _integrate(SE2_CAYLEY, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto", need_P=True),
+        slow=True,
+        counts_at_round_off=True,
+    ),
+    Case(
+        "se2_exponential_auto",
+        lambda: _integrate(SE2_EXPONENTIAL, EYE3, XI0, dt=0.1, n_steps=40, scheme="left", reduce="auto"),
+        slow=True,
+        counts_at_round_off=True,
+    ),
     # 9. rigid body with the forward difference: symplectic Euler, full march, first order
-    Case("rigid_body_forward_difference", lambda: _integrate(
-        RIGID_FORWARD, EYE3, XI0, dt=0.05, n_steps=40, scheme="left", reduce=False, order=None),
-        counts_at_round_off=True),
+    Case(
+        "rigid_body_forward_difference",
+        lambda: _integrate(RIGID_FORWARD, EYE3, XI0, dt=0.05, n_steps=40, scheme="left", reduce=False, order=None),
+        counts_at_round_off=True,
+    ),
     # 10. a chunked, batched sweep: 3 inertias × 2 initial velocities, two batches (the last padded)
     Case("sweep_rigid_body", _sweep),
 )
@@ -238,22 +376,39 @@ def record(result) -> tuple[dict, dict]:
                 put(f"{group}.{name}", value)
         for name in ("result", "failed_step", "valid"):
             put(name, getattr(result, name))
-        facts = {name: getattr(result, name) for name in
-                 ("scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim")}
+        facts = {
+            name: getattr(result, name)
+            for name in ("scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim")
+        }
     elif isinstance(result, cj.SweepResult):
-        for name in ("param_index", "ic_index", "status", "failed_step", "energy_error", "newton_iterations",
-                     "max_residual", "final_t", "final_Q", "final_p", "final_xi", "final_momentum"):
+        for name in (
+            "param_index",
+            "ic_index",
+            "status",
+            "failed_step",
+            "energy_error",
+            "newton_iterations",
+            "max_residual",
+            "final_t",
+            "final_Q",
+            "final_p",
+            "final_xi",
+            "final_momentum",
+        ):
             put(name, getattr(result, name))
         for group in ("drift", "initial", "saved"):
             for name, value in (getattr(result, group) or {}).items():
                 put(f"{group}.{name}", value)
-        facts = {name: getattr(result, name) for name in
-                 ("n_steps", "chunk_steps", "batch_size", "n_devices", "form", "scheme", "order", "method")}
+        facts = {
+            name: getattr(result, name)
+            for name in ("n_steps", "chunk_steps", "batch_size", "n_devices", "form", "scheme", "order", "method")
+        }
         facts["columns"] = list(result.to_dict().keys())
     else:
         raise TypeError(f"expected a Solution or a SweepResult, got {type(result).__name__}")
-    facts = {k: (int(v) if isinstance(v, (int, np.integer)) and not isinstance(v, bool) else v)
-             for k, v in facts.items()}
+    facts = {
+        k: (int(v) if isinstance(v, (int, np.integer)) and not isinstance(v, bool) else v) for k, v in facts.items()
+    }
     facts["fields"] = sorted(arrays)
     return arrays, facts
 
@@ -295,8 +450,10 @@ def _check_array(key, new, old):
 
 def _stored():
     if not NPZ_PATH.exists() or not JSON_PATH.exists():
-        pytest.fail("tests/data/behaviour_identity.{npz,json} missing: they are committed data, "
-                    "written once by tests/data/make_behaviour_identity.py")
+        pytest.fail(
+            "tests/data/behaviour_identity.{npz,json} missing: they are committed data, "
+            "written once by tests/data/make_behaviour_identity.py"
+        )
     with np.load(NPZ_PATH) as npz:
         arrays = {key: npz[key] for key in npz.files}
     facts = json.loads(JSON_PATH.read_text())
@@ -313,7 +470,7 @@ def stored_case(name: str) -> tuple[dict, dict]:
         _STORED = _stored()
     arrays, facts = _STORED
     prefix = name + "/"
-    return {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}, facts["cases"].get(name)
+    return {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}, facts["cases"].get(name)
 
 
 def test_every_case_is_stored_and_every_stored_case_is_a_case():
@@ -323,8 +480,9 @@ def test_every_case_is_stored_and_every_stored_case_is_a_case():
     assert sorted(facts["cases"]) == sorted(case.name for case in CASES)
 
 
-@pytest.mark.parametrize("case", [pytest.param(c, id=c.name, marks=[pytest.mark.slow] if c.slow else [])
-                                  for c in CASES])
+@pytest.mark.parametrize(
+    "case", [pytest.param(c, id=c.name, marks=[pytest.mark.slow] if c.slow else []) for c in CASES]
+)
 def test_public_behaviour_is_unchanged(case):
     old_arrays, old_facts = stored_case(case.name)
     assert old_facts is not None, f"{case.name}: no stored data"

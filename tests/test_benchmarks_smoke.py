@@ -41,8 +41,13 @@ RIGID_VARIANTS = {  # variant -> (expected Solution.form, Q computed)
     "reduced": ("reduced", True),
     "reduced_no_Q": ("reduced", False),
 }
-RIGID_RATIOS = ("full_over_rk4_per_body_step", "reduced_over_rk4_per_body_step",
-                "reduced_no_Q_over_rk4_per_body_step", "full_over_reduced", "full_over_reduced_no_Q")
+RIGID_RATIOS = (
+    "full_over_rk4_per_body_step",
+    "reduced_over_rk4_per_body_step",
+    "reduced_no_Q_over_rk4_per_body_step",
+    "full_over_reduced",
+    "full_over_reduced_no_Q",
+)
 
 
 def check_rigid_body_step_cost(summary: dict) -> None:
@@ -57,8 +62,9 @@ def check_rigid_body_step_cost(summary: dict) -> None:
         assert row["batch"] >= 1 and row["n_steps"] >= 1
         for method in (*RIGID_VARIANTS, RK4):
             entry = row[method]
-            _check_timed(entry, ("seconds_per_step", "seconds_per_body_step", "body_steps_per_second"),
-                         (row["case"], method))
+            _check_timed(
+                entry, ("seconds_per_step", "seconds_per_body_step", "body_steps_per_second"), (row["case"], method)
+            )
             # accuracy at dt = 0.05 over a short run: small, finite (loose bounds, not a test
             # of either method)
             assert 0 <= entry["max_rel_energy_error"] < 1e-2, (row["case"], method)
@@ -81,8 +87,10 @@ def check_rigid_body_step_cost(summary: dict) -> None:
         assert 0 <= row[RK4]["max_orthogonality_error"] < 1e-4
         assert set(row["ratios"]) == set(RIGID_RATIOS)
         assert all(_positive_finite(row["ratios"][key]) for key in RIGID_RATIOS), row["ratios"]
-        assert math.isclose(row["ratios"]["full_over_reduced"],
-                            row["full"]["seconds_per_body_step"] / row["reduced"]["seconds_per_body_step"])
+        assert math.isclose(
+            row["ratios"]["full_over_reduced"],
+            row["full"]["seconds_per_body_step"] / row["reduced"]["seconds_per_body_step"],
+        )
 
 
 def check_vortex_step_cost(summary: dict) -> None:
@@ -95,8 +103,9 @@ def check_vortex_step_cost(summary: dict) -> None:
         assert row["N"] >= 2 and row["batch"] >= 1 and row["n_steps"] >= 1
         for method in (*row["variants"], RK4):
             entry = row[method]
-            _check_timed(entry, ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
-                         (row["case"], method))
+            _check_timed(
+                entry, ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"), (row["case"], method)
+            )
             # both conserve the linear impulse (ours to round-off; RK4 too, it is linear in the
             # velocities); loose bounds, not a test of either method
             assert 0 <= entry["max_linear_impulse_drift"] < 1e-9, (row["case"], method)
@@ -113,8 +122,9 @@ def check_vortex_step_cost(summary: dict) -> None:
             # midpoint (order 2) against RK4 (order 4) over a few steps of dt = 0.01: close
             assert 0 <= entry["max_abs_final_position_diff_vs_rk4"] < 1e-4, (row["case"], variant)
             assert _positive_finite(row["ratios"][f"{variant}_over_rk4"])
-            assert math.isclose(row["ratios"][f"{variant}_over_rk4"],
-                                entry["seconds_per_step"] / row[RK4]["seconds_per_step"])
+            assert math.isclose(
+                row["ratios"][f"{variant}_over_rk4"], entry["seconds_per_step"] / row[RK4]["seconds_per_step"]
+            )
         if "dense" in row["variants"] and "blocks" in row["variants"]:
             assert row["dense"]["max_abs_Q_diff_vs_blocks"] < 1e-10  # the same root
         expected_ratios = {f"{v}_over_rk4" for v in row["variants"]}
@@ -144,17 +154,24 @@ def check_throughput(summary: dict) -> None:
         assert ("batch_last" in ours) == (row["batch"] > 1)
         # the hand-written reference computes our momenta (3 chord updates from a linear predictor)
         assert "jax_by_hand" in row["methods"] and row["jax_by_hand"]["max_abs_momentum_diff_vs_vmap"] < 1e-12
-        assert math.isclose(row["ratios"]["vmap_over_hand_rate"],
-                            row["vmap"]["body_steps_per_second"] / row["jax_by_hand"]["body_steps_per_second"])
+        assert math.isclose(
+            row["ratios"]["vmap_over_hand_rate"],
+            row["vmap"]["body_steps_per_second"] / row["jax_by_hand"]["body_steps_per_second"],
+        )
         for method in row["methods"]:
-            _check_timed(row[method], ("seconds_per_step", "seconds_per_body_step", "body_steps_per_second"),
-                         (row["batch"], method))
+            _check_timed(
+                row[method],
+                ("seconds_per_step", "seconds_per_body_step", "body_steps_per_second"),
+                (row["batch"], method),
+            )
         for method in ours:
             assert math.isfinite(row[method]["compile_s"])
             # the same equations as the RK4 (order 2 against order 4, a few steps of dt = 0.05)
             assert 0 <= row[method]["max_abs_final_xi_diff_vs_rk4"] < 1e-2, (row["batch"], method)
-            assert math.isclose(row["ratios"][f"{method}_over_rk4_rate"],
-                                row[method]["body_steps_per_second"] / row[RK4]["body_steps_per_second"])
+            assert math.isclose(
+                row["ratios"][f"{method}_over_rk4_rate"],
+                row[method]["body_steps_per_second"] / row[RK4]["body_steps_per_second"],
+            )
         assert row["best"] in ours
         assert row["newton_updates_per_step"]["slowest_of_batch_mean"] >= row["newton_updates_per_step"]["mean"] >= 1
         if "chunked" in ours:
@@ -165,16 +182,23 @@ def check_throughput(summary: dict) -> None:
             assert _positive_finite(row["ratios"]["batch_last_over_vmap_rate"])
     for row in parts["vortices"]:
         for method in ("ours", RK4):
-            _check_timed(row[method], ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
-                         (row["case"], row["N"], method))
+            _check_timed(
+                row[method],
+                ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
+                (row["case"], row["N"], method),
+            )
         assert 0 <= row["ours"]["max_abs_final_position_diff_vs_rk4"] < 1e-4
         if row["case"] == "vmap":  # cj.batch runs the same program: positions to round-off
-            _check_timed(row["batch_last"], ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
-                         (row["case"], row["N"], "batch_last"))
+            _check_timed(
+                row["batch_last"],
+                ("seconds_per_step", "seconds_per_vortex_step", "vortex_steps_per_second"),
+                (row["case"], row["N"], "batch_last"),
+            )
             assert row["batch_last"]["max_abs_position_diff_vs_vmap"] < 1e-12
         assert row["newton_updates_per_step"]["slowest_of_batch_mean"] >= row["newton_updates_per_step"]["mean"] >= 1
-        assert math.isclose(row["ratios"]["ours_over_rk4_time_per_step"],
-                            row["ours"]["seconds_per_step"] / row[RK4]["seconds_per_step"])
+        assert math.isclose(
+            row["ratios"]["ours_over_rk4_time_per_step"], row["ours"]["seconds_per_step"] / row[RK4]["seconds_per_step"]
+        )
     assert [r["case"] for r in parts["compile"]] == summary["config"]["compile"]["models"]
     for row in parts["compile"]:
         assert row["form"] in ("full", "reduced")
@@ -249,8 +273,11 @@ def check_soak(summary: dict) -> None:
         assert r["running_max"]["step"][-1] == r["n_steps"] and r["chunks"]["step"]
 
 
-DEFAULT_METHODS = {"rigid_body": "left principle", "heavy_top": "right(h/2) o left(h/2)",
-                   "user_pendulum": "midpoint principle"}
+DEFAULT_METHODS = {
+    "rigid_body": "left principle",
+    "heavy_top": "right(h/2) o left(h/2)",
+    "user_pendulum": "midpoint principle",
+}
 
 
 def check_defaults(summary: dict) -> None:
@@ -276,9 +303,11 @@ def check_defaults(summary: dict) -> None:
         assert row["max_compilations_calls_2_to_5"] == 0, {n: c["programs_compiled"] for n, c in calls.items()}
         assert row["max_construct_compilations"] == 0
     (top,) = parts["heavy_top_cost"]
-    for method, (name, order, form) in {"default": ("right(h/2) o left(h/2)", 2, "reduced"),
-                                        "left": ("left principle", 1, "reduced"),
-                                        "midpoint": ("midpoint principle", 2, "full")}.items():
+    for method, (name, order, form) in {
+        "default": ("right(h/2) o left(h/2)", 2, "reduced"),
+        "left": ("left principle", 1, "reduced"),
+        "midpoint": ("midpoint principle", 2, "full"),
+    }.items():
         entry = top[method]
         _check_timed(entry, ("seconds_per_step",), method)
         assert (entry["method"], entry["order"], entry["form"]) == (name, order, form), method
@@ -294,8 +323,12 @@ def check_defaults(summary: dict) -> None:
         assert row["slope"] >= 1.8, (row["model"], row["slope"])
         assert row["compilations_after_first_step_size"] == 0, row["model"]
     targets = summary["targets"]
-    assert set(targets) == {"new_n_steps_over_first", "compilations_calls_2_to_5", "heavy_top_default_over_left",
-                            "order"}
+    assert set(targets) == {
+        "new_n_steps_over_first",
+        "compilations_calls_2_to_5",
+        "heavy_top_default_over_left",
+        "order",
+    }
     assert all(t["met"] in (True, False) for t in targets.values())
 
 
@@ -325,6 +358,22 @@ def check_euler_sphere(summary: dict) -> None:
     assert math.isfinite(summary["slopes"]["ours"]) and math.isfinite(summary["slopes"]["numpy"])
 
 
+def check_native(summary):
+    """The native benchmark: every part ran, rates positive, the native and XLA sweeps agree."""
+    parts = {r["part"] for r in summary["results"]}
+    assert parts == {"sweep", "threads", "compile", "vortices"}, parts
+    for r in summary["results"]:
+        if r["part"] == "sweep":
+            for m in ("sweep", "sweep_xla", "jax_by_hand_rows", "numpy_rk4"):
+                assert 0 < r[m]["body_steps_per_second"] < float("inf"), m
+            assert r["sweep"]["max_abs_final_momentum_diff_vs_xla"] < 1e-12
+            assert r["sweep"]["max_energy_error"] == pytest.approx(r["jax_by_hand_rows"]["max_energy_error"], rel=1e-6)
+        if r["part"] == "compile":
+            assert r["cold"]["first_call_s"] > 0 and r["cached"]["first_call_s"] > 0
+        if r["part"] == "vortices":
+            assert r["sweep"]["failed_members"] == 0 and r["step_over_rk4_step"]["sweep"] > 0
+
+
 CHECKS = {
     "rigid_body_step_cost": check_rigid_body_step_cost,
     "vortex_step_cost": check_vortex_step_cost,
@@ -335,6 +384,7 @@ CHECKS = {
     "defaults": check_defaults,
     "sweep_scaling": check_sweep_scaling,
     "euler_sphere": check_euler_sphere,
+    "native": check_native,
 }
 
 
@@ -350,8 +400,12 @@ def test_benchmark_quick(name, tmp_path):
     if name == "sweep_scaling":  # Dask and Zarr are the optional extra [sweep]
         pytest.importorskip("distributed", reason="sweep_scaling needs dask.distributed: pip install -e '.[sweep]'")
         pytest.importorskip("zarr", reason="sweep_scaling needs zarr: pip install -e '.[sweep]'")
-    subprocess.run([sys.executable, str(BENCHMARKS / f"{script}.py"), "--quick", *extra, "--out", str(tmp_path),
-                    "--timeout", "0"], check=True, capture_output=True, text=True)
+    subprocess.run(
+        [sys.executable, str(BENCHMARKS / f"{script}.py"), "--quick", *extra, "--out", str(tmp_path), "--timeout", "0"],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
 
     assert (tmp_path / f"{name}.png").stat().st_size > 0
     summary = json.loads((tmp_path / f"{name}.json").read_text())
@@ -387,8 +441,9 @@ def test_the_c_kernel_marches_as_the_hand_kernel():
     # throughput.py's hardware reference (benchmarks/c/rigid_body_cay.c): the same step as
     # hand_rows_march, so the same final momenta and energy errors up to the rounding of a
     # different compiler (contracted multiply-adds); skipped where no C compiler builds it
-    out = subprocess.run([sys.executable, "-c", C_KERNEL_CHECK, str(BENCHMARKS)], capture_output=True, text=True,
-                         timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", C_KERNEL_CHECK, str(BENCHMARKS)], capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     line = out.stdout.strip().splitlines()[-1]
     if line.startswith("SKIP"):
@@ -417,11 +472,11 @@ def test_the_verified_hand_kernel_marches_as_the_hand_kernel_and_flags_failures(
     # throughput.py's yardstick with the sweep's per-step checks written by hand: the same
     # momenta and energy errors as the hand kernel where every check passes, and a member
     # whose solve does not reach round-off or whose values are not finite is flagged
-    out = subprocess.run([sys.executable, "-c", VERIFIED_CHECK, str(BENCHMARKS)], capture_output=True, text=True,
-                         timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", VERIFIED_CHECK, str(BENCHMARKS)], capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     _, d_mu, d_err, *passed = out.stdout.strip().splitlines()[-1].split()
     # energies from the node's velocity (verified) and from mu alone (hand): round-off apart
     assert float(d_mu) < 1e-13 and float(d_err) < 1e-13
     assert passed == ["1"] * 6 + ["0", "0"], passed
-

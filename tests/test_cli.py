@@ -141,7 +141,9 @@ def test_missing_matplotlib_is_one_line(command, tmp_path, capsys, monkeypatch):
 def test_python_dash_m_bad_steps():
     proc = subprocess.run(
         [sys.executable, "-m", "clebsch_jax", "demo", "--steps", "-1"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 2
     assert "--steps" in _one_line_error(proc.stderr)
@@ -219,7 +221,8 @@ def test_bench_runs_scripts_with_this_python_passing_quick_and_out(tmp_path, cap
         (folder / f"{name}.py").write_text(
             f'"""{name} benchmark."""\nimport json, os, sys\nopen({str(record)!r}, "a").write(\n'
             f'    json.dumps([sys.executable, os.path.basename(__file__)] + sys.argv[1:]) + "\\n")\n'
-            f"sys.exit({code})\n")
+            f"sys.exit({code})\n"
+        )
     (folder / "_helper.py").write_text("raise SystemExit('not a benchmark')\n")
     monkeypatch.setattr(_commands, "_benchmarks_dir", lambda: folder)
     out_dir = tmp_path / "results"
@@ -248,8 +251,16 @@ def demo(tmp_path_factory):
 def test_quick_demo(demo):
     code, printed, err, out = demo
     assert code == 0, err
-    for row in ("energy error", "Casimir", "spatial momentum drift", "orthogonality error",
-                "Newton iterations/step", "steps/s", "compile + first call", str(out)):
+    for row in (
+        "energy error",
+        "Casimir",
+        "spatial momentum drift",
+        "orthogonality error",
+        "Newton iterations/step",
+        "steps/s",
+        "compile + first call",
+        str(out),
+    ):
         assert row in printed
 
     for name in ("figure1_orbits.png", "figure1_invariants.png"):
@@ -276,7 +287,7 @@ def test_quick_demo(demo):
 def test_quick_demo_runs_every_scene_into_a_subfolder(demo):
     code, printed, err, out = demo
     assert code == 0, err
-    table = printed[printed.index("Built-in scenes"):].splitlines()
+    table = printed[printed.index("Built-in scenes") :].splitlines()
     assert table[1].split()[:2] == ["scene", "method"]
     rows = {line.split()[0]: line for line in table[2:]}
     assert list(rows) == ["figure-1", *SCENES]
@@ -293,7 +304,7 @@ def test_demo_only_one_scene(demo, tmp_path, capsys):
     assert main(["demo", "--only", "peakons", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "Figure 1" not in printed and not (out / "summary.json").exists()
-    rows = printed[printed.index("Built-in scenes"):].splitlines()[2:]
+    rows = printed[printed.index("Built-in scenes") :].splitlines()[2:]
     assert [r.split()[0] for r in rows] == ["peakons"]
     assert sorted(p.name for p in out.iterdir()) == ["peakons"]
     assert _png_ok(out / "peakons" / "peakons.png")
@@ -333,15 +344,18 @@ def _independent_invariants(name, setup, sol):
         G = np.asarray(_scenes.VORTEX_CIRCULATIONS)
         lin = np.einsum("a,bnai->bni", G, Q)
         ang = np.einsum("a,bna->bn", G, np.sum(Q**2, -1))[..., None]
-        return {"linear_impulse": (lin, np.sum(np.abs(G) * np.linalg.norm(Q[:, 0], axis=-1), -1)),
-                "angular_impulse": (ang, np.sum(np.abs(G) * np.sum(Q[:, 0] ** 2, -1), -1))}
+        return {
+            "linear_impulse": (lin, np.sum(np.abs(G) * np.linalg.norm(Q[:, 0], axis=-1), -1)),
+            "angular_impulse": (ang, np.sum(np.abs(G) * np.sum(Q[:, 0] ** 2, -1), -1)),
+        }
     if name == "peakons":
         return {"total_momentum": (mu.sum(-1)[..., None], np.abs(mu[:, 0]).sum(-1))}
     if name == "landmarks":
         ang = np.sum(Q[..., 0] * mu[..., 1] - Q[..., 1] * mu[..., 0], -1)[..., None]
-        return {"linear_momentum": (mu.sum(-2), np.linalg.norm(mu[:, 0], axis=-1).sum(-1)),
-                "angular_momentum": (ang, np.sum(np.linalg.norm(Q[:, 0], axis=-1)
-                                                 * np.linalg.norm(mu[:, 0], axis=-1), -1))}
+        return {
+            "linear_momentum": (mu.sum(-2), np.linalg.norm(mu[:, 0], axis=-1).sum(-1)),
+            "angular_momentum": (ang, np.sum(np.linalg.norm(Q[:, 0], axis=-1) * np.linalg.norm(mu[:, 0], axis=-1), -1)),
+        }
     if name == "euler-sphere":  # the spectrum of the vorticity matrix W (isospectral march)
         n = mu.shape[-1] // 2
         W = 0.5 * (mu[..., :n, :n] + mu[..., n:, n:]) + 0.5j * (mu[..., n:, :n] - mu[..., :n, n:])
@@ -354,12 +368,33 @@ def _independent_invariants(name, setup, sol):
 def test_run_scene_writes_files_and_its_json_matches_the_solution(name, demo, tmp_path, capsys):
     scene = SCENES[name]
     out = tmp_path / name
-    assert main(["run", name, "--steps", str(scene.quick_steps), "--batch", str(scene.quick_batch),
-                 "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                name,
+                "--steps",
+                str(scene.quick_steps),
+                "--batch",
+                str(scene.quick_batch),
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     captured = capsys.readouterr()
     assert captured.err == ""  # --quiet: no bar, no status line
-    for row in ("method", "steps", "wall time", "energy error (max rel.)", "Newton iterations/step", "failures",
-                *(inv.label for inv in scene.invariants)):
+    for row in (
+        "method",
+        "steps",
+        "wall time",
+        "energy error (max rel.)",
+        "Newton iterations/step",
+        "failures",
+        *(inv.label for inv in scene.invariants),
+    ):
         assert row in captured.out, row
     assert _png_ok(out / f"{name}.png")
     summary = json.loads((out / "summary.json").read_text())
@@ -420,8 +455,21 @@ def test_failing_member_is_reported_with_its_step_and_exit_1(demo, tmp_path, cap
     2000; at dt = 100 member 1 reaches the iteration cap at step 1, the others converge.)"""
     scene = SCENES["rigid-body"]
     out = tmp_path / "fail"
-    code = main(["run", "rigid-body", "--dt", "100", "--steps", str(scene.quick_steps),
-                 "--batch", str(scene.quick_batch), "--out", str(out), "--quiet"])
+    code = main(
+        [
+            "run",
+            "rigid-body",
+            "--dt",
+            "100",
+            "--steps",
+            str(scene.quick_steps),
+            "--batch",
+            str(scene.quick_batch),
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
     captured = capsys.readouterr()
     _, _, sol = _solution("rigid-body", dt=100.0)
     result, failed_step = np.asarray(sol.result), np.asarray(sol.failed_step)
@@ -447,8 +495,24 @@ def test_chunked_run_continues_the_march_with_a_progress_bar(demo, tmp_path, cap
     angular momentum, a function of (Q, p), at the chunk boundaries."""
     scene = SCENES["rigid-body"]
     out = tmp_path / "chunks"
-    assert main(["run", "rigid-body", "--steps", "1000", "--chunk", str(scene.quick_steps),
-                 "--batch", str(scene.quick_batch), "--out", str(out), "--progress"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                "rigid-body",
+                "--steps",
+                "1000",
+                "--chunk",
+                str(scene.quick_steps),
+                "--batch",
+                str(scene.quick_batch),
+                "--out",
+                str(out),
+                "--progress",
+            ]
+        )
+        == 0
+    )
     captured = capsys.readouterr()
     bar = captured.err.strip().splitlines()
     assert bar[-1].startswith("rigid-body [" + "#" * 28 + "] 100% 1,000/1,000 steps")

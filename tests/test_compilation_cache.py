@@ -110,6 +110,7 @@ def test_command_line_switch(monkeypatch, capsys):
     _commands._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
     assert "compiling without the cache" in capsys.readouterr().err
     for command in ("run", "demo"):
-        args = _commands._build_parser().parse_args([command, "rigid-body", "--no-cache"] if command == "run"
-                                               else [command, "--no-cache"])
+        args = _commands._build_parser().parse_args(
+            [command, "rigid-body", "--no-cache"] if command == "run" else [command, "--no-cache"]
+        )
         assert args.no_cache

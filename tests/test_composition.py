@@ -39,12 +39,15 @@ def test_step_plans_carry_their_facts():
         assert p.symmetric and p.symplectic
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(order=3), "order"),
-    (dict(order=4, composition="Kahan-Li p6s9"), "order"),
-    (dict(composition="no such method"), "composition"),
-    (dict(composition=(0.5, 0.5)), "composition"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(order=3), "order"),
+        (dict(order=4, composition="Kahan-Li p6s9"), "order"),
+        (dict(composition="no such method"), "composition"),
+        (dict(composition=(0.5, 0.5)), "composition"),
+    ],
+)
 def test_bad_order_or_composition_is_refused_before_compiling(kwargs, match):
     with pytest.raises(ValueError, match=match):
         cj.integrate(cj.models.rigid_body(TEST_INERTIA), np.eye(3), np.ones(3), dt=0.1, n_steps=2, **kwargs)
@@ -107,8 +110,9 @@ def test_heavy_top_composes_first_order_principle_with_its_adjoint():
     Q0, w0 = np.asarray(cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))), np.array([0.3, -0.2, 6.0])
     system = cj.models.heavy_top(I, mgl, chi)
     T = 1.0
-    y = solve_ivp(heavy_top_rhs(I, mgl, chi), (0, T), np.concatenate([Q0.ravel(), w0]), method="DOP853",
-                  rtol=1e-13, atol=1e-13).y[:9, -1]
+    y = solve_ivp(
+        heavy_top_rhs(I, mgl, chi), (0, T), np.concatenate([Q0.ravel(), w0]), method="DOP853", rtol=1e-13, atol=1e-13
+    ).y[:9, -1]
     for order, dts in ((2, np.array([0.04, 0.02, 0.01])), (4, np.array([0.1, 0.05, 0.025]))):
         run = jax.jit(lambda dt: cj.integrate(system, Q0, w0, dt=dt, n_steps=int(round(T / dts[-1])), order=order))
         errs = []
@@ -139,8 +143,9 @@ def test_conservation_survives_composition_vortices_and_heavy_top(vortex_scene):
     of left/right on the heavy top (full march): the Noether momentum about the vertical to
     round-off, and the reduced march agrees with the full one."""
     gamma, Q0 = vortex_scene
-    sol = cj.integrate(cj.models.point_vortices(gamma), Q0, cj.models.vortex_velocity(gamma, Q0), dt=0.05,
-                       n_steps=2000, order=4)
+    sol = cj.integrate(
+        cj.models.point_vortices(gamma), Q0, cj.models.vortex_velocity(gamma, Q0), dt=0.05, n_steps=2000, order=4
+    )
     Q = np.asarray(sol.Q)
     lin = np.asarray(jax.vmap(lambda q: cj.models.vortex_linear_impulse(gamma, q))(Q))
     ang = np.asarray(jax.vmap(lambda q: cj.models.vortex_angular_impulse(gamma, q))(Q))

@@ -30,19 +30,31 @@ def _head(sol: cj.Solution, n: int) -> cj.Solution:
     node = lambda a: None if a is None else a[: n + 1]
     step = lambda a: None if a is None else a[:n]
     return dataclasses.replace(
-        sol, ts=node(sol.ts), Q=node(sol.Q), p=node(sol.p), xi=node(sol.xi), momentum=node(sol.momentum),
-        valid=node(sol.valid), nodal_stats=jax.tree.map(node, sol.nodal_stats), xi_step=step(sol.xi_step),
-        P=step(sol.P), stats=jax.tree.map(step, sol.stats))
+        sol,
+        ts=node(sol.ts),
+        Q=node(sol.Q),
+        p=node(sol.p),
+        xi=node(sol.xi),
+        momentum=node(sol.momentum),
+        valid=node(sol.valid),
+        nodal_stats=jax.tree.map(node, sol.nodal_stats),
+        xi_step=step(sol.xi_step),
+        P=step(sol.P),
+        stats=jax.tree.map(step, sol.stats),
+    )
 
 
 def _long_and_continued(system, Q0, xi0, dt, **options):
     """A run of 2N steps, and the same program's run continued (`continue_from`) from its node N.
     (The initial multiplier and the hand-over are jitted too: op by op their small linear
     algebra compiles slower.)"""
-    run = jax.jit(lambda start: cj.integrate(system, **start._asdict(), dt=dt, n_steps=2 * N, **options),
-                  compiler_options=QUICK)
-    initial = jax.jit(lambda Q, xi: cj.Start(Q0=Q, xi0=xi, P0=cj.initial_multiplier(system, Q, xi),
-                                             t0=jnp.zeros((), Q.dtype)), compiler_options=QUICK)
+    run = jax.jit(
+        lambda start: cj.integrate(system, **start._asdict(), dt=dt, n_steps=2 * N, **options), compiler_options=QUICK
+    )
+    initial = jax.jit(
+        lambda Q, xi: cj.Start(Q0=Q, xi0=xi, P0=cj.initial_multiplier(system, Q, xi), t0=jnp.zeros((), Q.dtype)),
+        compiler_options=QUICK,
+    )
     hand_over = jax.jit(lambda sol, Q: cj.continue_from(system, _head(sol, N), Q=Q), compiler_options=QUICK)
     Q0, xi0 = jnp.asarray(Q0, jnp.float64), jnp.asarray(xi0, jnp.float64)
     long = run(initial(Q0, xi0))
@@ -75,8 +87,9 @@ def test_reduced_rigid_body(reconstruct):
     depend on Q."""
     system = models.rigid_body(jnp.array([2.0, 1.0, 2.0 / 3.0]))
     m0 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
-    long, continued = _long_and_continued(system, np.eye(3), m0 / np.array([2.0, 1.0, 2.0 / 3.0]), 0.1,
-                                          reconstruct=reconstruct)
+    long, continued = _long_and_continued(
+        system, np.eye(3), m0 / np.array([2.0, 1.0, 2.0 / 3.0]), 0.1, reconstruct=reconstruct
+    )
     assert long.form == "reduced" and long.p is None and (long.Q is None) == (not reconstruct)
     _assert_continues(long, continued)
 

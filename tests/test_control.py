@@ -37,8 +37,17 @@ Y_FIXED = Q_SOURCE[::-1] + 0.3  # an arbitrary fixed target for the gradient che
 
 
 def _landmark_endpoint(P0, width, order=None):
-    sol = cj.integrate(landmarks(width), Q_SOURCE, jnp.zeros_like(P0), P0=P0, dt=DT, n_steps=N_STEPS,
-                       scheme="midpoint", order=order, throw=False)
+    sol = cj.integrate(
+        landmarks(width),
+        Q_SOURCE,
+        jnp.zeros_like(P0),
+        P0=P0,
+        dt=DT,
+        n_steps=N_STEPS,
+        scheme="midpoint",
+        order=order,
+        throw=False,
+    )
     return sol.Q[-1]
 
 
@@ -81,8 +90,10 @@ def test_landmark_gradients_wrt_momenta_and_width_match_central_differences():
     h = 1e-5
     fd_P = central_differences(loss_of_P, P0, h)
     fd_w = central_differences(loss_of_w, WIDTH, h)
-    print(f"loss {float(value):.6f}, |grad_P| {np.max(np.abs(g_P)):.3f}, grad_w {float(g_w):.6f}, "
-          f"fd errors {np.max(np.abs(np.asarray(g_P) - fd_P)):.1e}, {abs(float(g_w) - float(fd_w)):.1e}")
+    print(
+        f"loss {float(value):.6f}, |grad_P| {np.max(np.abs(g_P)):.3f}, grad_w {float(g_w):.6f}, "
+        f"fd errors {np.max(np.abs(np.asarray(g_P) - fd_P)):.1e}, {abs(float(g_w) - float(fd_w)):.1e}"
+    )
     # Central differences: truncation h²/6·|f'''| ~ 1e-10 and round-off ~ 1e-16·|f|/h ~ 1e-11
     # (each step is solved to round-off); the gradients are O(1).
     np.testing.assert_allclose(np.asarray(g_P), fd_P, rtol=0, atol=1e-7)
@@ -125,16 +136,29 @@ def test_reverse_mode_does_not_unroll_the_newton_iterations():
     cap = 97  # no array of this problem has an axis of this length
 
     def loss(P0, iterations):
-        sol = cj.integrate(landmarks(WIDTH), Q_SOURCE, jnp.zeros_like(P0), P0=P0, dt=DT, n_steps=N_STEPS,
-                           scheme="midpoint", max_newton_iterations=iterations, throw=False)
+        sol = cj.integrate(
+            landmarks(WIDTH),
+            Q_SOURCE,
+            jnp.zeros_like(P0),
+            P0=P0,
+            dt=DT,
+            n_steps=N_STEPS,
+            scheme="midpoint",
+            max_newton_iterations=iterations,
+            throw=False,
+        )
         return jnp.sum(sol.Q[-1] ** 2)
 
     programs = {k: jax.make_jaxpr(jax.grad(lambda P: loss(P, k)))(P_TRUE).jaxpr for k in (5, cap)}
     equations = {k: list(_all_equations(j)) for k, j in programs.items()}
     assert len(equations[5]) == len(equations[cap])
     assert [e.primitive.name for e in equations[5]] == [e.primitive.name for e in equations[cap]]
-    shapes = {tuple(v.aval.shape) for e in equations[cap] for v in (*e.invars, *e.outvars)
-              if hasattr(getattr(v, "aval", None), "shape")}
+    shapes = {
+        tuple(v.aval.shape)
+        for e in equations[cap]
+        for v in (*e.invars, *e.outvars)
+        if hasattr(getattr(v, "aval", None), "shape")
+    }
     assert not any(cap in s for s in shapes), sorted(s for s in shapes if cap in s)
 
 
@@ -160,9 +184,20 @@ def _observed_momenta(sigma, seed=1):
 
 
 def _rigid_body_fit(params0, observations, optimizer=None, n_iterations=0, **kwargs):
-    return control.fit_parameters(make_rigid_body, params0, observations, np.eye(3), OMEGA0, dt=RB_DT,
-                                  n_steps=RB_STEPS, observe=body_momentum, order=RB_ORDER,
-                                  optimizer=optimizer or optax.sgd(0.0), n_iterations=n_iterations, **kwargs)
+    return control.fit_parameters(
+        make_rigid_body,
+        params0,
+        observations,
+        np.eye(3),
+        OMEGA0,
+        dt=RB_DT,
+        n_steps=RB_STEPS,
+        observe=body_momentum,
+        order=RB_ORDER,
+        optimizer=optimizer or optax.sgd(0.0),
+        n_iterations=n_iterations,
+        **kwargs,
+    )
 
 
 def test_gradient_through_an_order_4_composition_matches_central_differences():
@@ -193,8 +228,18 @@ def test_landmark_matching_by_shooting_lbfgs_beats_the_best_gradient_descent():
     system, target, tol = landmarks(WIDTH), _landmark_target(), 1e-14
 
     def run(optimizer, n_iterations):
-        return control.shoot(system, Q_SOURCE, target, np.zeros_like(Q_SOURCE), dt=DT, n_steps=N_STEPS,
-                             optimizer=optimizer, n_iterations=n_iterations, tol=tol, scheme="midpoint")
+        return control.shoot(
+            system,
+            Q_SOURCE,
+            target,
+            np.zeros_like(Q_SOURCE),
+            dt=DT,
+            n_steps=N_STEPS,
+            optimizer=optimizer,
+            n_iterations=n_iterations,
+            tol=tol,
+            scheme="midpoint",
+        )
 
     lb = run(optax.lbfgs(learning_rate=1.0, linesearch=None), 60)
     print(lb.message)
@@ -238,14 +283,21 @@ def test_inertia_is_identified_from_noisy_body_momenta_within_the_statistical_er
     fit = _rigid_body_fit(np.zeros(3), observations, optax.adam(0.05), 300)
     theta = np.asarray(fit.params)
     m = observations.size
-    H = np.stack([(_rigid_body_fit(theta + e, observations).gradient
-                   - _rigid_body_fit(theta - e, observations).gradient) / 2e-5 for e in 1e-5 * np.eye(3)])
+    H = np.stack(
+        [
+            (_rigid_body_fit(theta + e, observations).gradient - _rigid_body_fit(theta - e, observations).gradient)
+            / 2e-5
+            for e in 1e-5 * np.eye(3)
+        ]
+    )
     H = 0.5 * (H + H.T)
     cov = sigma**2 * (2.0 / m) * np.linalg.inv(H)
     se = np.sqrt(np.diag(cov))
     error = theta - np.log(INERTIA)
-    print(f"{fit.message}; inertia {np.exp(theta)}, log-errors {error}, standard errors {se}, "
-          f"loss/σ² {fit.loss / sigma**2:.3f}")
+    print(
+        f"{fit.message}; inertia {np.exp(theta)}, log-errors {error}, standard errors {se}, "
+        f"loss/σ² {fit.loss / sigma**2:.3f}"
+    )
     assert np.all(se < 3e-3)  # the data pin the inertia down to ~0.1 %
     assert np.all(np.abs(error) < 4 * se), (error, se)
     # Adam ended at the minimum, well inside the statistical error: the Newton step left is tiny.
@@ -267,8 +319,16 @@ def no_compilation(monkeypatch):
     monkeypatch.setattr(control, "_fit_value_and_grad", boom)
 
 
-SHOOT_ARGS = dict(system=landmarks(WIDTH), Q0=Q_SOURCE, target=Q_SOURCE + 0.1, P0_init=np.zeros((5, 2)), dt=DT,
-                  n_steps=N_STEPS, optimizer=optax.adam(0.1), n_iterations=10)
+SHOOT_ARGS = dict(
+    system=landmarks(WIDTH),
+    Q0=Q_SOURCE,
+    target=Q_SOURCE + 0.1,
+    P0_init=np.zeros((5, 2)),
+    dt=DT,
+    n_steps=N_STEPS,
+    optimizer=optax.adam(0.1),
+    n_iterations=10,
+)
 
 
 @pytest.mark.parametrize(
@@ -288,8 +348,11 @@ SHOOT_ARGS = dict(system=landmarks(WIDTH), Q0=Q_SOURCE, target=Q_SOURCE + 0.1, P
         (ValueError, dict(loss=lambda q, y: q - y), r"^loss: must return a scalar"),
         (TypeError, dict(loss="l2"), r"^loss: expected a function"),
         (ValueError, dict(throw=True), r"^throw: set by this function"),
-        (ValueError, dict(system=rigid_body(INERTIA), Q0=np.eye(3), target=np.eye(3), P0_init=np.zeros((3, 3))),
-         r"^xi0: the system's maps do not accept a velocity of Q's shape"),
+        (
+            ValueError,
+            dict(system=rigid_body(INERTIA), Q0=np.eye(3), target=np.eye(3), P0_init=np.zeros((3, 3))),
+            r"^xi0: the system's maps do not accept a velocity of Q's shape",
+        ),
     ],
 )
 def test_shoot_rejects_bad_input_naming_the_argument(no_compilation, error, kwargs, match):
@@ -298,9 +361,18 @@ def test_shoot_rejects_bad_input_naming_the_argument(no_compilation, error, kwar
         control.shoot(args.pop("system"), args.pop("Q0"), args.pop("target"), args.pop("P0_init"), **args)
 
 
-FIT_ARGS = dict(make_system=make_rigid_body, params0=np.zeros(3), observations=np.zeros((RB_STEPS + 1, 3)),
-                Q0=np.eye(3), xi0=OMEGA0, dt=RB_DT, n_steps=RB_STEPS, observe=body_momentum,
-                optimizer=optax.adam(0.1), n_iterations=10)
+FIT_ARGS = dict(
+    make_system=make_rigid_body,
+    params0=np.zeros(3),
+    observations=np.zeros((RB_STEPS + 1, 3)),
+    Q0=np.eye(3),
+    xi0=OMEGA0,
+    dt=RB_DT,
+    n_steps=RB_STEPS,
+    observe=body_momentum,
+    optimizer=optax.adam(0.1),
+    n_iterations=10,
+)
 
 
 @pytest.mark.parametrize(
@@ -319,8 +391,14 @@ FIT_ARGS = dict(make_system=make_rigid_body, params0=np.zeros(3), observations=n
 def test_fit_parameters_rejects_bad_input_naming_the_argument(no_compilation, error, kwargs, match):
     args = dict(FIT_ARGS, **kwargs)
     with pytest.raises(error, match=match):
-        control.fit_parameters(args.pop("make_system"), args.pop("params0"), args.pop("observations"),
-                               args.pop("Q0"), args.pop("xi0"), **args)
+        control.fit_parameters(
+            args.pop("make_system"),
+            args.pop("params0"),
+            args.pop("observations"),
+            args.pop("Q0"),
+            args.pop("xi0"),
+            **args,
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -331,6 +409,7 @@ def test_fit_parameters_rejects_bad_input_naming_the_argument(no_compilation, er
 def test_landmark_gradient_through_an_order_4_composition_matches_central_differences():
     """The full march composed to order 4 (Suzuki p4s5 of the midpoint principle): reverse mode
     with respect to P0 and the width against central differences."""
+
     def loss(P0, width):
         return jnp.sum(jnp.sin(_landmark_endpoint(P0, width, order=4)) * Y_FIXED)
 
@@ -349,8 +428,18 @@ def test_lbfgs_with_its_zoom_line_search_matches_the_landmarks():
     """optax.lbfgs() with its default line search gets the objective as `value_fn` (a copy of the
     integration inside its update program) and matches as well as the unit-step variant."""
     target, tol = _landmark_target(), 1e-14
-    res = control.shoot(landmarks(WIDTH), Q_SOURCE, target, np.zeros_like(Q_SOURCE), dt=DT, n_steps=N_STEPS,
-                        optimizer=optax.lbfgs(), n_iterations=60, tol=tol, scheme="midpoint")
+    res = control.shoot(
+        landmarks(WIDTH),
+        Q_SOURCE,
+        target,
+        np.zeros_like(Q_SOURCE),
+        dt=DT,
+        n_steps=N_STEPS,
+        optimizer=optax.lbfgs(),
+        n_iterations=60,
+        tol=tol,
+        scheme="midpoint",
+    )
     print(res.message)
     assert res.converged and res.mismatch <= tol and res.iterations < 40
     np.testing.assert_allclose(res.P0, P_TRUE, rtol=0, atol=1e-5)
@@ -368,9 +457,19 @@ def test_regularised_shooting_satisfies_pontryagins_transversality_to_second_ord
     target = Q_SOURCE + 0.3 * np.array([[1, 0], [0, 1], [-1, 0], [0, -1], [1, 1.0]])
     defects = []
     for n in (10, 20):
-        res = control.shoot(landmarks(WIDTH), Q_SOURCE, target, np.zeros_like(Q_SOURCE), dt=T / n, n_steps=n,
-                            optimizer=optax.lbfgs(learning_rate=1.0, linesearch=None), n_iterations=200,
-                            regularization=lam, gtol=1e-12, scheme="midpoint")
+        res = control.shoot(
+            landmarks(WIDTH),
+            Q_SOURCE,
+            target,
+            np.zeros_like(Q_SOURCE),
+            dt=T / n,
+            n_steps=n,
+            optimizer=optax.lbfgs(learning_rate=1.0, linesearch=None),
+            n_iterations=200,
+            regularization=lam,
+            gtol=1e-12,
+            scheme="midpoint",
+        )
         assert res.converged, res.message
         p_T, predicted = res.momentum[-1], -(2 * T / lam) * (res.endpoint - target)
         defects.append(np.max(np.abs(p_T - predicted)) / np.max(np.abs(p_T)))
@@ -386,19 +485,42 @@ def test_a_failing_integration_stops_the_optimisation_with_a_message():
     """A model whose Lagrangian is NaN once ξ₁ exceeds a parameter c: gradient descent on c with a
     large step pushes c below what the trajectory reaches; the loop stops there, names the
     failure, and returns the last iterate whose integration succeeded."""
+
     def breaks_above(c):
         I = jnp.asarray(INERTIA)
-        return cj.ClebschSystem(lagrangian=lambda x: 0.5 * jnp.sum(I * x * x) + 1e-3 * jnp.sqrt(c[0] - x[0]),
-                                velocity_map=lambda x, Q: Q @ cj.lie.hat(x), derivative_map=cj.cayley)
+        return cj.ClebschSystem(
+            lagrangian=lambda x: 0.5 * jnp.sum(I * x * x) + 1e-3 * jnp.sqrt(c[0] - x[0]),
+            velocity_map=lambda x, Q: Q @ cj.lie.hat(x),
+            derivative_map=cj.cayley,
+        )
 
     observations = np.zeros((RB_STEPS + 1, 3))  # pulls the momenta, hence c, down
-    fit = control.fit_parameters(breaks_above, np.array([1.0]), observations, np.eye(3), OMEGA0, dt=RB_DT,
-                                 n_steps=RB_STEPS, observe=body_momentum, optimizer=optax.sgd(1e4),
-                                 n_iterations=50)
+    fit = control.fit_parameters(
+        breaks_above,
+        np.array([1.0]),
+        observations,
+        np.eye(3),
+        OMEGA0,
+        dt=RB_DT,
+        n_steps=RB_STEPS,
+        observe=body_momentum,
+        optimizer=optax.sgd(1e4),
+        n_iterations=50,
+    )
     print(fit.message)
     assert not fit.converged and "integration failed" in fit.message
     assert np.isfinite(fit.loss) and fit.iterations < 50
-    assert np.isnan(fit.losses[fit.iterations + 1:]).all()
+    assert np.isnan(fit.losses[fit.iterations + 1 :]).all()
     with pytest.raises(ValueError, match="the initial guess already fails"):
-        control.fit_parameters(breaks_above, np.array([0.1]), observations, np.eye(3), OMEGA0, dt=RB_DT,
-                               n_steps=RB_STEPS, observe=body_momentum, optimizer=optax.sgd(1.0), n_iterations=5)
+        control.fit_parameters(
+            breaks_above,
+            np.array([0.1]),
+            observations,
+            np.eye(3),
+            OMEGA0,
+            dt=RB_DT,
+            n_steps=RB_STEPS,
+            observe=body_momentum,
+            optimizer=optax.sgd(1.0),
+            n_iterations=5,
+        )

@@ -63,12 +63,30 @@ def _cases():
         "rigid_body": (cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, None, 2.0, 0.1),
         "rigid_body_vector": (cj.models.rigid_body_vector(INERTIA), vector_Q0, XI0, vector_P0, 2.0, 0.1),
         "heavy_top": (cj.models.heavy_top(TOP_INERTIA, 1.5), TOP_Q0, TOP_XI0, None, 1.0, 0.05),
-        "point_vortices": (cj.models.point_vortices(CIRCULATIONS), VORTEX_Q0,
-                           cj.models.vortex_velocity(CIRCULATIONS, VORTEX_Q0), None, 1.0, 0.05),
-        "peakons": (cj.models.peakons(1.0), PEAKON_Q0, cj.models.peakon_velocity(PEAKON_Q0, PEAKON_P0, 1.0),
-                    PEAKON_P0, 2.0, 0.1),
-        "landmarks": (cj.models.landmarks(1.0), LANDMARK_Q0,
-                      cj.models.landmark_velocity(LANDMARK_Q0, LANDMARK_P0, 1.0), LANDMARK_P0, 1.0, 0.05),
+        "point_vortices": (
+            cj.models.point_vortices(CIRCULATIONS),
+            VORTEX_Q0,
+            cj.models.vortex_velocity(CIRCULATIONS, VORTEX_Q0),
+            None,
+            1.0,
+            0.05,
+        ),
+        "peakons": (
+            cj.models.peakons(1.0),
+            PEAKON_Q0,
+            cj.models.peakon_velocity(PEAKON_Q0, PEAKON_P0, 1.0),
+            PEAKON_P0,
+            2.0,
+            0.1,
+        ),
+        "landmarks": (
+            cj.models.landmarks(1.0),
+            LANDMARK_Q0,
+            cj.models.landmark_velocity(LANDMARK_Q0, LANDMARK_P0, 1.0),
+            LANDMARK_P0,
+            1.0,
+            0.05,
+        ),
         "user_pendulum": (PENDULUM, PENDULUM_Q0, PENDULUM_XI0, None, 1.0, 0.05),
         "user_heavy_top": (user_heavy_top(), TOP_Q0, TOP_XI0, None, 1.0, 0.05),
     }
@@ -162,11 +180,13 @@ def test_a_new_run_length_step_or_parameter_value_compiles_nothing():
     first = cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05, n_steps=30)
     calls = {
         "new n_steps": lambda: cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05, n_steps=45),
-        "beyond one chunk": lambda: cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05,
-                                                 n_steps=CHUNK_STEPS + 3),
+        "beyond one chunk": lambda: cj.integrate(
+            cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05, n_steps=CHUNK_STEPS + 3
+        ),
         "new dt": lambda: cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.02, n_steps=30),
-        "new inertia": lambda: cj.integrate(cj.models.rigid_body(jnp.array([1.0, 2.0, 3.0])), jnp.eye(3), XI0,
-                                            dt=0.05, n_steps=30),
+        "new inertia": lambda: cj.integrate(
+            cj.models.rigid_body(jnp.array([1.0, 2.0, 3.0])), jnp.eye(3), XI0, dt=0.05, n_steps=30
+        ),
     }
     for what, call in calls.items():
         with _Compilations() as compiled:
@@ -185,6 +205,7 @@ def test_a_numpy_integer_run_length_is_accepted_plain_and_under_vmap():
     """`n_steps=np.int64(k)` is the static int k (it used to fail inside `lax.scan` under vmap)."""
     plain = cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.05, n_steps=np.int64(7))
     assert plain.xi.shape == (8, 3)
-    batched = jax.vmap(lambda xi: cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), xi, dt=0.05,
-                                               n_steps=np.int64(3)).momentum)(jnp.stack([XI0, -XI0]))
+    batched = jax.vmap(
+        lambda xi: cj.integrate(cj.models.rigid_body(INERTIA), jnp.eye(3), xi, dt=0.05, n_steps=np.int64(3)).momentum
+    )(jnp.stack([XI0, -XI0]))
     assert batched.shape == (2, 4, 3) and np.all(np.isfinite(np.asarray(batched)))

@@ -20,8 +20,7 @@ def test_trajectory_is_stationary_for_the_whole_discrete_action(scheme):
     with respect to every ξⁿ, every Pⁿ and every interior Qⁿ vanishes on the trajectory."""
     system = cj.models.rigid_body(INERTIA)
     dt = 0.1
-    sol = cj.integrate(system, jnp.eye(3), jnp.array([0.4, -1.0, 0.7]), dt=dt, n_steps=40, scheme=scheme,
-                       reduce=False)
+    sol = cj.integrate(system, jnp.eye(3), jnp.array([0.4, -1.0, 0.7]), dt=dt, n_steps=40, scheme=scheme, reduce=False)
     g_xi, g_P, g_Q = jax.grad(lambda x, P, Q: cj.discrete_action(system, scheme, dt, x, P, Q), argnums=(0, 1, 2))(
         sol.xi_step, sol.P, sol.Q
     )
@@ -44,8 +43,9 @@ def _translation(xi, Q):
 # A particle in a potential: V = ℝ, M = ℝ, L_ξQ = ξ, l(ξ, Q) = ξ²/2 - Q²/2 (Def. 14). Built once
 # from module-level functions, so the tests below that march it with the same scheme and shapes
 # reuse one compiled program (a system rebuilt from fresh lambdas compiles again).
-OSCILLATOR = cj.ClebschSystem(lagrangian=_oscillator_lagrangian, velocity_map=_translation,
-                              derivative_map=cj.forward_difference)
+OSCILLATOR = cj.ClebschSystem(
+    lagrangian=_oscillator_lagrangian, velocity_map=_translation, derivative_map=cj.forward_difference
+)
 
 
 def test_remarks_21_22_are_symplectic_euler_A_and_B():
@@ -58,10 +58,12 @@ def test_remarks_21_22_are_symplectic_euler_A_and_B():
     B = cj.integrate(system, q0, p0, dt=dt, n_steps=n, scheme="right")
     qa, pa, qb, pb = [q0.copy()], [p0.copy()], [q0.copy()], [p0.copy()]
     for _ in range(n):
-        p_new = pa[-1] - dt * qa[-1]          # Euler-A: p⁺ = p - Δt V'(q), q⁺ = q + Δt p⁺
-        qa.append(qa[-1] + dt * p_new); pa.append(p_new)
-        q_new = qb[-1] + dt * pb[-1]          # Euler-B: q⁺ = q + Δt p, p⁺ = p - Δt V'(q⁺)
-        qb.append(q_new); pb.append(pb[-1] - dt * q_new)
+        p_new = pa[-1] - dt * qa[-1]  # Euler-A: p⁺ = p - Δt V'(q), q⁺ = q + Δt p⁺
+        qa.append(qa[-1] + dt * p_new)
+        pa.append(p_new)
+        q_new = qb[-1] + dt * pb[-1]  # Euler-B: q⁺ = q + Δt p, p⁺ = p - Δt V'(q⁺)
+        qb.append(q_new)
+        pb.append(pb[-1] - dt * q_new)
     np.testing.assert_allclose(np.asarray(A.Q), np.array(qa), atol=1e-13)
     np.testing.assert_allclose(np.asarray(A.p), np.array(pa), atol=1e-13)
     np.testing.assert_allclose(np.asarray(B.Q), np.array(qb), atol=1e-13)
@@ -77,8 +79,9 @@ def test_schemes_converge_at_their_nominal_order(scheme):
     for dt in dts:
         # concrete calls: every dt and run length uses the compiled chunk program of this scheme,
         # the one the other tests of OSCILLATOR (left, right) compile as well
-        sol = cj.integrate(OSCILLATOR, jnp.array([1.0]), jnp.array([0.3]), dt=dt, n_steps=int(round(T / dt)),
-                           scheme=scheme)
+        sol = cj.integrate(
+            OSCILLATOR, jnp.array([1.0]), jnp.array([0.3]), dt=dt, n_steps=int(round(T / dt)), scheme=scheme
+        )
         assert float(sol.ts[-1]) == pytest.approx(T)
         errs.append(abs(float(sol.Q[-1, 0]) - (np.cos(T) + 0.3 * np.sin(T))))
     assert sol.order == (2 if scheme == "midpoint" else 1)
@@ -138,8 +141,7 @@ def test_expm_matches_scipy_and_jax_scipy_derivatives():
             np.testing.assert_allclose(g, ref, rtol=0, atol=1e-12 * np.max(np.abs(ref)))
     X = jnp.asarray(0.4 * rng.normal(size=(3, 3)))
     for d in (jax.jacfwd, jax.jacrev):
-        np.testing.assert_allclose(jax.jit(d(cj.lie.expm))(X), jax.jit(d(jax.scipy.linalg.expm))(X), rtol=0,
-                                   atol=1e-14)
+        np.testing.assert_allclose(jax.jit(d(cj.lie.expm))(X), jax.jit(d(jax.scipy.linalg.expm))(X), rtol=0, atol=1e-14)
 
 
 @pytest.mark.parametrize("reduce", [False, True])
@@ -160,6 +162,7 @@ def test_vmap_over_parameters_and_initial_data_matches_single_runs(reduce):
 
 def test_jit_and_closures():
     """A user closure over a traced parameter works under vmap; integrate works inside jit."""
+
     def with_closure(I):
         system = cj.ClebschSystem(
             lagrangian=lambda x: 0.5 * jnp.sum(I * x * x),
@@ -170,8 +173,13 @@ def test_jit_and_closures():
 
     I = jnp.array([[2.0, 1.0, 2 / 3], [1.0, 2.0, 3.0]])
     a = jax.vmap(with_closure)(I)
-    b = jax.jit(jax.vmap(lambda I: cj.integrate(cj.models.rigid_body(I), jnp.eye(3), jnp.array([0.2, 1.0, 0.3]),
-                                                dt=0.1, n_steps=20).Q[-1]))(I)
+    b = jax.jit(
+        jax.vmap(
+            lambda I: cj.integrate(
+                cj.models.rigid_body(I), jnp.eye(3), jnp.array([0.2, 1.0, 0.3]), dt=0.1, n_steps=20
+            ).Q[-1]
+        )
+    )(I)
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-14)
 
 
@@ -196,11 +204,18 @@ def test_reverse_mode_through_a_system_built_inside_grad():
     (the maps' traced constants) and runs the single scan, which reverse mode can transpose
     (the chunked march's loops stop at n_steps and cannot be); the gradient is the built-in
     model's, whose parameter is an array leaf."""
+
     def final(I1, closure):
         I = jnp.stack([I1, 1.0, 2 / 3])
-        system = (cj.ClebschSystem(lagrangian=lambda x: 0.5 * jnp.sum(I * x * x),
-                                   velocity_map=lambda x, Q: Q @ cj.lie.hat(x), derivative_map=cj.cayley)
-                  if closure else cj.models.rigid_body(I))
+        system = (
+            cj.ClebschSystem(
+                lagrangian=lambda x: 0.5 * jnp.sum(I * x * x),
+                velocity_map=lambda x, Q: Q @ cj.lie.hat(x),
+                derivative_map=cj.cayley,
+            )
+            if closure
+            else cj.models.rigid_body(I)
+        )
         sol = cj.integrate(system, jnp.eye(3), jnp.array([0.2, 1.0, 0.3]), dt=0.1, n_steps=20)
         return sol.Q[-1, 0, 1] + sol.xi[-1, 2]
 
@@ -211,6 +226,7 @@ def test_reverse_mode_through_a_system_built_inside_grad():
 
 def test_gradients_through_the_march_match_finite_differences():
     """Reverse and forward mode through the Newton solves (implicit differentiation)."""
+
     def final_angle(I1, x0):
         sol = cj.integrate(cj.models.rigid_body(jnp.stack([I1, 1.0, 2 / 3])), jnp.eye(3), x0, dt=0.1, n_steps=20)
         return sol.Q[-1, 0, 1] + sol.xi[-1, 2]
@@ -260,9 +276,9 @@ def test_failure_is_reported_with_step_and_member_and_never_as_silent_nan(reduce
     assert bool(jnp.isfinite(sols.xi[1, k, 0])) or int(sols.nodal_stats.status[1, k]) == cj.Status.NONFINITE
     assert not bool(sols.valid[1, k + 1]) and bool(sols.valid[1, k])
     # after the failure: flagged invalid, later steps marked skipped, no finite-looking values
-    assert np.all(np.asarray(sols.stats.status[1, k + 1:]) == cj.Status.SKIPPED)
-    assert np.all(np.isnan(np.asarray(sols.Q[1, k + 1:])))
-    assert np.all(np.isnan(np.asarray(sols.xi[1, k + 1:])))
+    assert np.all(np.asarray(sols.stats.status[1, k + 1 :]) == cj.Status.SKIPPED)
+    assert np.all(np.isnan(np.asarray(sols.Q[1, k + 1 :])))
+    assert np.all(np.isnan(np.asarray(sols.xi[1, k + 1 :])))
     assert np.all(np.isfinite(np.asarray(sols.Q[1, : k + 1])))
     assert np.all(np.isfinite(np.asarray(sols.Q[0])))
     with pytest.raises(cj.IntegrationError, match=r"batch member 1, step"):
@@ -302,9 +318,11 @@ def test_minimum_norm_cotangent_of_forty_components_is_the_exact_solution(spread
     rng = np.random.default_rng(3)
     scales = np.geomspace(spread, 1.0, n)
     mix = np.linalg.qr(rng.normal(size=(n + 4, n)))[0]  # orthonormal columns: A = mix·diag(s)
-    system = cj.ClebschSystem(lagrangian=lambda x, Q: 0.5 * jnp.sum(x * x) - 0.5 * jnp.sum(Q * Q),
-                              velocity_map=lambda x, Q: jnp.asarray(mix) @ (jnp.asarray(scales) * x),
-                              derivative_map=cj.forward_difference)
+    system = cj.ClebschSystem(
+        lagrangian=lambda x, Q: 0.5 * jnp.sum(x * x) - 0.5 * jnp.sum(Q * Q),
+        velocity_map=lambda x, Q: jnp.asarray(mix) @ (jnp.asarray(scales) * x),
+        derivative_map=cj.forward_difference,
+    )
     Q, mu = jnp.asarray(rng.normal(size=n + 4)), rng.normal(size=n)
     expected = mix @ (mu / scales)
     p = cj.cotangent_from_momentum(system, Q, jnp.asarray(mu))
@@ -329,10 +347,12 @@ def test_dense_solves_above_three_unknowns_match_numpy(n):
     A[1] = np.eye(n)[rng.permutation(n)] * rng.uniform(1.0, 2.0, n)  # a zero diagonal: the pivots swap rows
     A[2, 0, 0] = 0.0
     b, B = rng.normal(size=(3, n)), rng.normal(size=(3, n, 2))
-    for got, ref in [(linalg.solve(A, b), np.linalg.solve(A, b[..., None])[..., 0]),
-                     (linalg.solve(A, B), np.linalg.solve(A, B)),
-                     (linalg.inv(A), np.linalg.inv(A)),
-                     (linalg.solve(A[0], B), np.linalg.solve(A[0], B))]:
+    for got, ref in [
+        (linalg.solve(A, b), np.linalg.solve(A, b[..., None])[..., 0]),
+        (linalg.solve(A, B), np.linalg.solve(A, B)),
+        (linalg.inv(A), np.linalg.inv(A)),
+        (linalg.solve(A[0], B), np.linalg.solve(A[0], B)),
+    ]:
         # round-off of well-conditioned solves (condition numbers below 1e3 here)
         np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-12 * np.max(np.abs(ref)))
 
@@ -393,14 +413,24 @@ def test_batched_marches_call_no_lapack_kernel():
         # the exponential derivative map's matrix exponential (its logarithm is Denman–Beavers
         # iterations and `linalg.solve`); a whole march with it takes seconds to lower
         "expm": (cj.lie.expm, 0.1 * jnp.ones((2, 3, 3))),
-        "rigid body": (lambda x: cj.integrate(rigid, jnp.eye(3), x, dt=0.1, n_steps=3, throw=False).momentum,
-                       jnp.ones((2, 3))),
-        "SE(3), Cayley": (lambda x: cj.integrate(se3, jnp.eye(4), x, dt=0.1, n_steps=3, throw=False).momentum,
-                          jnp.ones((2, 6))),
+        "rigid body": (
+            lambda x: cj.integrate(rigid, jnp.eye(3), x, dt=0.1, n_steps=3, throw=False).momentum,
+            jnp.ones((2, 3)),
+        ),
+        "SE(3), Cayley": (
+            lambda x: cj.integrate(se3, jnp.eye(4), x, dt=0.1, n_steps=3, throw=False).momentum,
+            jnp.ones((2, 6)),
+        ),
         "hand-over": (lambda m: cotangent_from_momentum(rigid, jnp.eye(3), m), jnp.ones((2, 3))),
         # Q0 batched too: one unbatched Cholesky (a Q0 shared by the members) is LAPACK, and safe.
-        "peakons": (lambda x: cj.integrate(cj.models.peakons(), x[0] * jnp.array([-1.0, 0.0, 1.5]), x[1], dt=0.01,
-                                           n_steps=3, throw=False).Q, jnp.ones((2, 2, 3))),
+        "peakons": (
+            lambda x: (
+                cj.integrate(
+                    cj.models.peakons(), x[0] * jnp.array([-1.0, 0.0, 1.5]), x[1], dt=0.01, n_steps=3, throw=False
+                ).Q
+            ),
+            jnp.ones((2, 2, 3)),
+        ),
     }
     for name, (fn, x) in programs.items():
         text = jax.jit(jax.vmap(fn)).lower(x).as_text().lower()

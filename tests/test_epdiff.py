@@ -83,22 +83,26 @@ def peakon_antipeakon_exact(t, c, t_star):
 
 def peakon_rhs(width):
     """ṗ_a = Σ_b p_a p_b sign(q_a − q_b) e^{−|q_a − q_b|/α}/α, q̇_a = Σ_b e^{−|q_a − q_b|/α} p_b."""
+
     def rhs(t, y):
         q, p = np.split(y, 2)
         d = q[:, None] - q[None, :]
         K = np.exp(-np.abs(d) / width)
         return np.concatenate([K @ p, p * ((np.sign(d) * K) @ p) / width])
+
     return rhs
 
 
 def landmark_rhs(width, n, dim):
     """q̇_a = Σ_b K_ab p_b, ṗ_a = Σ_b (p_a·p_b) K_ab (q_a − q_b)/α², K_ab = e^{−|q_a−q_b|²/(2α²)}."""
+
     def rhs(t, y):
-        q, p = y[: n * dim].reshape(n, dim), y[n * dim:].reshape(n, dim)
+        q, p = y[: n * dim].reshape(n, dim), y[n * dim :].reshape(n, dim)
         d = q[:, None, :] - q[None, :, :]
         K = np.exp(-np.sum(d * d, -1) / (2 * width**2))
         pdot = np.einsum("ab,ab,abi->ai", p @ p.T, K, d) / width**2
         return np.concatenate([(K @ p).ravel(), pdot.ravel()])
+
     return rhs
 
 
@@ -112,14 +116,28 @@ def dop853(rhs, q0, p0, ts):
 
 
 def run_peakons(width, q0, p0, dt, throw=True, derivative_map=ordered_difference):
-    return cj.integrate(peakons(width, derivative_map), q0, peakon_velocity(q0, p0, width), dt=dt,
-                        n_steps=N_PEAKON, scheme="midpoint", throw=throw)
+    return cj.integrate(
+        peakons(width, derivative_map),
+        q0,
+        peakon_velocity(q0, p0, width),
+        dt=dt,
+        n_steps=N_PEAKON,
+        scheme="midpoint",
+        throw=throw,
+    )
 
 
 def user_landmarks(width, q0, p0, dt):
     """What a user writes for one trajectory; the tests only ever vmap it."""
-    return cj.integrate(landmarks(width), q0, landmark_velocity(q0, p0, width), dt=dt, n_steps=N_LANDMARK,
-                        scheme="midpoint", throw=False)
+    return cj.integrate(
+        landmarks(width),
+        q0,
+        landmark_velocity(q0, p0, width),
+        dt=dt,
+        n_steps=N_LANDMARK,
+        scheme="midpoint",
+        throw=False,
+    )
 
 
 # One compiled program for every landmark test: batches of 4 over (width, Q0, P0, dt), always
@@ -172,8 +190,11 @@ def test_companions_agree_with_the_formulas_and_the_peakon_convention():
         np.testing.assert_allclose(np.asarray(Xi), Kl @ Pi, rtol=1e-14)
         np.testing.assert_allclose(np.asarray(landmark_field(Qi, Qi, Pi, a)), Kl @ Pi, rtol=1e-14)
     np.testing.assert_allclose(np.asarray(landmark_momenta(Q, landmark_velocity(Q, P, a), a)), P, rtol=1e-12)
-    np.testing.assert_allclose(np.asarray(landmark_angular_momentum(Q, P)),
-                               np.sum(Q[..., 0] * P[..., 1] - Q[..., 1] * P[..., 0], -1), rtol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(landmark_angular_momentum(Q, P)),
+        np.sum(Q[..., 0] * P[..., 1] - Q[..., 1] * P[..., 0], -1),
+        rtol=1e-15,
+    )
 
 
 @pytest.mark.parametrize("model", ["peakons", "landmarks"])
@@ -198,8 +219,11 @@ def test_closure_verdict_is_closed_abelian_and_the_ep_field_is_hamiltons_equatio
     # ξ̇ = d/dt K(Q)P along the NumPy Hamiltonian flow, by the chain rule: a jvp of the
     # companion (Q, P) ↦ K(Q)P in the direction (q̇, ṗ) of the independent NumPy right-hand side.
     k = rhs(0.0, np.concatenate([Q.ravel(), P.ravel()]))
-    _, expect = jax.jvp(velocity, (jnp.asarray(Q), jnp.asarray(P)),
-                        (jnp.asarray(k[:Q.size].reshape(Q.shape)), jnp.asarray(k[Q.size:].reshape(Q.shape))))
+    _, expect = jax.jvp(
+        velocity,
+        (jnp.asarray(Q), jnp.asarray(P)),
+        (jnp.asarray(k[: Q.size].reshape(Q.shape)), jnp.asarray(k[Q.size :].reshape(Q.shape))),
+    )
     np.testing.assert_allclose(np.asarray(xidot), np.asarray(expect), rtol=1e-12, atol=1e-14)
 
 
@@ -233,15 +257,17 @@ def test_two_peakon_overtaking_converges_at_order_two_and_conserves_momentum():
         dt = T / k
         sol = run_peakons(1.0, q0, p0, dt)
         assert sol.form == "full" and sol.order == 2
-        errs.append(max(np.max(np.abs(np.asarray(sol.Q[k]) - q_ex)),
-                        np.max(np.abs(np.asarray(sol.momentum[k]) - p_ex))))
+        errs.append(
+            max(np.max(np.abs(np.asarray(sol.Q[k]) - q_ex)), np.max(np.abs(np.asarray(sol.momentum[k]) - p_ex)))
+        )
         dts.append(dt)
         # Σ p is the Noether momentum of translations: conserved to round-off.
         total = np.asarray(sol.momentum).sum(-1)
         assert np.max(np.abs(total - p0.sum())) < 1e-13
         # Nodal velocities (Lemma 7) are u(Q) = K(Q)p.
-        np.testing.assert_allclose(np.asarray(sol.xi[k]), np.asarray(peakon_velocity(sol.Q[k], sol.momentum[k])),
-                                   rtol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(sol.xi[k]), np.asarray(peakon_velocity(sol.Q[k], sol.momentum[k])), rtol=1e-12
+        )
     order = dg.fit_order(dts, errs)
     print(f"two peakons, midpoint: errors {errs}, order {order:.3f}")
     assert abs(order - 2.0) < 0.15, errs
@@ -280,8 +306,9 @@ def test_peakon_antipeakon_matches_the_exact_solution_before_the_collision():
         dt = t_eval / k
         sol = run_peakons(1.0, q0, p0, dt, throw=False)  # the larger steps reach t* and fail there
         assert bool(sol.valid[k])
-        errs.append(max(np.max(np.abs(np.asarray(sol.Q[k]) - q_ex)),
-                        np.max(np.abs(np.asarray(sol.momentum[k]) - p_ex))))
+        errs.append(
+            max(np.max(np.abs(np.asarray(sol.Q[k]) - q_ex)), np.max(np.abs(np.asarray(sol.momentum[k]) - p_ex)))
+        )
         dts.append(dt)
     order = dg.fit_order(dts, errs)
     print(f"peakon-antipeakon at t*-0.6: errors {errs}, order {order:.3f}")
@@ -298,8 +325,10 @@ def test_peakon_antipeakon_matches_the_exact_solution_before_the_collision():
     rel = np.abs(P[:, 0] - p_ex[:, 0]) / p_ex[:, 0]
     H = np.asarray(peakon_hamiltonian(np.asarray(sol.Q)[before], P))
     z = dt / (COLLISION["t_star"] - ts[before])
-    print(f"up to t* - 8dt (p = {p_ex[-1, 0]:.1f}): max relative momentum error {rel.max():.2e}, "
-          f"max |H - c²| {np.max(np.abs(H - 1)):.2e}, max |H - c²|/(dt/(t*-t))² {np.max(np.abs(H - 1) / z**2):.3f}")
+    print(
+        f"up to t* - 8dt (p = {p_ex[-1, 0]:.1f}): max relative momentum error {rel.max():.2e}, "
+        f"max |H - c²| {np.max(np.abs(H - 1)):.2e}, max |H - c²|/(dt/(t*-t))² {np.max(np.abs(H - 1) / z**2):.3f}"
+    )
     assert rel.max() < 1e-2
     assert np.all(np.abs(H - 1.0) <= 0.5 * z**2)
     Q = np.asarray(sol.Q)[before]
@@ -325,9 +354,9 @@ def test_symmetric_collision_is_a_clear_failure_at_t_star(dt, derivative_map):
     sol = run_peakons(1.0, q0, p0, dt, throw=False, derivative_map=derivative_map)
     assert int(sol.result) != cj.Status.SUCCESS and int(sol.failed_step) == step
     valid = np.asarray(sol.valid)
-    assert valid[: step + 1].all() and not valid[step + 1:].any()
+    assert valid[: step + 1].all() and not valid[step + 1 :].any()
     Q, P = np.asarray(sol.Q), np.asarray(sol.momentum)
-    assert np.all(np.isnan(Q[step + 1:])) and np.all(np.isnan(P[step + 1:]))
+    assert np.all(np.isnan(Q[step + 1 :])) and np.all(np.isnan(P[step + 1 :]))
     assert np.all(np.isfinite(Q[: step + 1])) and np.all(np.isfinite(P[: step + 1]))
     # every valid node has its nodal velocity, also the one the failed step leaves from
     assert np.all(np.isfinite(np.asarray(sol.xi)[: step + 1]))
@@ -354,11 +383,13 @@ def test_skew_collision_fails_at_the_step_that_would_cross():
     q_ex, p_ex = two_peakons_exact(ts[before], **SKEW_COLLISION)
     P = np.asarray(sol.momentum)[before]
     rel = np.max(np.abs(P - p_ex) / np.abs(p_ex))
-    print(f"skew collision: fails at step {step} (t = {step * dt:.4f}, t* = {t_star}); "
-          f"relative momentum error up to t* - 8dt: {rel:.2e}")
+    print(
+        f"skew collision: fails at step {step} (t = {step * dt:.4f}, t* = {t_star}); "
+        f"relative momentum error up to t* - 8dt: {rel:.2e}"
+    )
     assert rel < 2e-2  # the local error grows like (dt/(t* - t))², as in the symmetric case
     assert np.max(np.abs(P.sum(-1) - p0.sum())) < 1e-12 * np.max(np.abs(P))  # Σp to round-off
-    assert np.all(np.isnan(np.asarray(sol.Q)[step + 1:]))
+    assert np.all(np.isnan(np.asarray(sol.Q)[step + 1 :]))
 
 
 # --------------------------------------------------------------------------------------------
@@ -370,8 +401,9 @@ def test_landmarks_match_dop853_at_order_two_and_conserve_linear_and_angular_mom
     q_ref, p_ref = dop853(landmark_rhs(LANDMARK_WIDTH, 3, 2), LANDMARK_Q0, LANDMARK_P0, np.array([0.0, T]))
     ks = np.array([30, 60, 120, 240])
     dts = T / ks
-    batch = landmark_batch(np.full(4, LANDMARK_WIDTH), np.tile(LANDMARK_Q0, (4, 1, 1)),
-                           np.tile(LANDMARK_P0, (4, 1, 1)), dts)  # vmapped over dt
+    batch = landmark_batch(
+        np.full(4, LANDMARK_WIDTH), np.tile(LANDMARK_Q0, (4, 1, 1)), np.tile(LANDMARK_P0, (4, 1, 1)), dts
+    )  # vmapped over dt
     batch.raise_if_failed()
     errs = []
     for i, (k, dt) in enumerate(zip(ks, dts)):
@@ -387,9 +419,11 @@ def test_landmarks_match_dop853_at_order_two_and_conserve_linear_and_angular_mom
         H = np.asarray(landmark_hamiltonian(Q, p, LANDMARK_WIDTH))
         assert np.max(np.abs(H - H[0])) < dt**2 * H[0]  # bounded at O(dt²) over t = 240 dt
     order = dg.fit_order(dts, errs)
-    print(f"landmarks, midpoint: errors {errs}, order {order:.3f}, "
-          f"|lin drift| {np.max(np.abs(lin - lin[0])):.1e}, |ang drift| {np.max(np.abs(ang - ang[0])):.1e}, "
-          f"scale {scale:.1f}")
+    print(
+        f"landmarks, midpoint: errors {errs}, order {order:.3f}, "
+        f"|lin drift| {np.max(np.abs(lin - lin[0])):.1e}, |ang drift| {np.max(np.abs(ang - ang[0])):.1e}, "
+        f"scale {scale:.1f}"
+    )
     assert abs(order - 2.0) < 0.15, errs
     # The landmarks do interact: the final momenta are far from the initial ones.
     assert np.max(np.abs(p_ref[-1] - LANDMARK_P0)) > 0.1
@@ -407,8 +441,9 @@ def test_vmap_peakons_over_width_and_initial_data_with_one_failing_member():
     dt = 0.0125
 
     def user(width, q0, p0):  # exactly what a user writes for one trajectory
-        return cj.integrate(peakons(width), q0, peakon_velocity(q0, p0, width), dt=dt, n_steps=N_PEAKON,
-                            scheme="midpoint", throw=False)
+        return cj.integrate(
+            peakons(width), q0, peakon_velocity(q0, p0, width), dt=dt, n_steps=N_PEAKON, scheme="midpoint", throw=False
+        )
 
     batch = jax.jit(jax.vmap(user))(widths, q0s, p0s)
     assert batch.Q.shape == (3, N_PEAKON + 1, 2)
@@ -418,8 +453,10 @@ def test_vmap_peakons_over_width_and_initial_data_with_one_failing_member():
     ts = np.asarray(batch.ts[0])
     for i in range(2):
         q_ref, p_ref = dop853(peakon_rhs(float(widths[i])), q0s[i], p0s[i], ts[::60])
-        err = max(np.max(np.abs(np.asarray(batch.Q[i, ::60]) - q_ref)),
-                  np.max(np.abs(np.asarray(batch.momentum[i, ::60]) - p_ref)))
+        err = max(
+            np.max(np.abs(np.asarray(batch.Q[i, ::60]) - q_ref)),
+            np.max(np.abs(np.asarray(batch.momentum[i, ::60]) - p_ref)),
+        )
         assert err < 1e-4, err  # second-order error at dt = 0.0125 over t = 6
         single = run_peakons(widths[i], q0s[i], p0s[i], dt)
         np.testing.assert_allclose(np.asarray(batch.Q[i]), np.asarray(single.Q), rtol=1e-11, atol=1e-12)
@@ -441,14 +478,17 @@ def test_vmap_landmarks_over_width_and_initial_data():
     batch.raise_if_failed()
     for i in range(4):
         q_ref, p_ref = dop853(landmark_rhs(float(widths[i]), 3, 2), q0s[i], p0s[i], np.array([0.0, 3.0]))
-        err = max(np.max(np.abs(np.asarray(batch.Q[i, -1]) - q_ref[-1])),
-                  np.max(np.abs(np.asarray(batch.momentum[i, -1]) - p_ref[-1])))
+        err = max(
+            np.max(np.abs(np.asarray(batch.Q[i, -1]) - q_ref[-1])),
+            np.max(np.abs(np.asarray(batch.momentum[i, -1]) - p_ref[-1])),
+        )
         print(f"member {i}, width {float(widths[i])}: error at t = 3: {err:.2e}")
         # Second-order error at dt = 0.0125 over t = 3: 2e-5 for the base configuration; the
         # members pass closer to each other (down to 0.6 apart), hence the looser bound.
         assert err < 5e-4, err
-        np.testing.assert_allclose(np.asarray(batch.momentum[i]).sum(-2),
-                                   np.tile(p0s[i].sum(0), (N_LANDMARK + 1, 1)), atol=1e-13)
+        np.testing.assert_allclose(
+            np.asarray(batch.momentum[i]).sum(-2), np.tile(p0s[i].sum(0), (N_LANDMARK + 1, 1)), atol=1e-13
+        )
     # The width matters: member 1 rerun at width 1.2 ends elsewhere.
     other = landmark_batch(np.full(4, 1.2), q0s, p0s, np.full(4, dt))
     assert np.max(np.abs(np.asarray(other.Q[1, -1]) - np.asarray(batch.Q[1, -1]))) > 1e-2

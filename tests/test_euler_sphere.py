@@ -66,8 +66,11 @@ def test_laplacian_is_hoppe_yau_and_its_inverse_solves_it():
     rng = np.random.default_rng(0)
     P = rng.normal(size=(N, N)) + 1j * rng.normal(size=(N, N))
     assert np.allclose(np.asarray(models.euler_sphere_laplacian(P)).ravel(), L @ P.ravel(), atol=1e-12)
-    assert np.allclose(np.sort(np.linalg.eigvalsh(L.real)),
-                       np.sort(np.concatenate([[-l * (l + 1)] * (2 * l + 1) for l in range(N)])), atol=1e-10)
+    assert np.allclose(
+        np.sort(np.linalg.eigvalsh(L.real)),
+        np.sort(np.concatenate([[-l * (l + 1)] * (2 * l + 1) for l in range(N)])),
+        atol=1e-10,
+    )
     W = P - np.trace(P) / N * np.eye(N)
     X = np.asarray(models.euler_sphere_inverse_laplacian(W))
     assert abs(np.trace(X)) < 1e-13
@@ -104,8 +107,11 @@ def test_quantisation_round_trip_and_field_against_scipy():
     assert np.max(np.abs(np.asarray(models.euler_sphere_coefficients(W)) - c)) < 1e-13
     theta, phi = np.linspace(0.05, 3.1, 9), np.linspace(0.0, 6.2, 7)
     T, P = np.meshgrid(theta, phi, indexing="ij")
-    reference = sum(c[l, 0].real * sph_harm_y(l, 0, T, P).real
-                    + sum(2 * np.real(c[l, m] * sph_harm_y(l, m, T, P)) for m in range(1, l + 1)) for l in range(N))
+    reference = sum(
+        c[l, 0].real * sph_harm_y(l, 0, T, P).real
+        + sum(2 * np.real(c[l, m] * sph_harm_y(l, m, T, P)) for m in range(1, l + 1))
+        for l in range(N)
+    )
     assert np.max(np.abs(models.euler_sphere_field(W, theta, phi) - reference)) < 1e-12
 
 
@@ -113,10 +119,12 @@ def test_commutator_quantises_the_poisson_bracket():
     """(1/ħ)[Ŵ(z), Ŵ(x)] = Ŵ({z, x}) = Ŵ(y) with {f, g} = n·(∇f × ∇g): the model's
     Ẇ = [P, W]/ħ is Euler's ω̇ = {ψ, ω} (exact for degree 1, the spin matrices)."""
     Nq = 9
+
     def field(l, m, value):
         c = np.zeros((Nq, Nq), complex)
         c[l, m] = value
         return np.asarray(models.euler_sphere_quantise(c))
+
     a = np.sqrt(2 * np.pi / 3)
     Wz, Wx, Wy = field(1, 0, np.sqrt(4 * np.pi / 3)), field(1, 1, -a), field(1, 1, 1j * a)
     theta, phi = np.array([0.3, 1.9]), np.array([0.4, 4.0])
@@ -157,13 +165,20 @@ def test_matrix_free_model_checks_refuse_a_wrong_inverse_legendre_map(monkeypatc
     W = models.euler_sphere_quantise(random_coefficients(Nl, 3))
     Q0, xi0 = models.euler_sphere_start(W)
     check_model(good, Q0, xi0, 0.1)  # passes
-    bad = cj.ClebschSystem(lagrangian=good.lagrangian, velocity_map=good.velocity_map,
-                           derivative_map=good.derivative_map,
-                           inverse_legendre=lambda mu, Q: 2.0 * good.inverse_legendre(mu, Q))
+    bad = cj.ClebschSystem(
+        lagrangian=good.lagrangian,
+        velocity_map=good.velocity_map,
+        derivative_map=good.derivative_map,
+        inverse_legendre=lambda mu, Q: 2.0 * good.inverse_legendre(mu, Q),
+    )
     with pytest.raises(ValueError, match="inverse_legendre"):
         check_model(bad, Q0, xi0, 0.1)
-    affine = cj.ClebschSystem(lagrangian=good.lagrangian, velocity_map=lambda xi, Q: Q @ xi + Q,
-                              derivative_map=good.derivative_map, inverse_legendre=good.inverse_legendre)
+    affine = cj.ClebschSystem(
+        lagrangian=good.lagrangian,
+        velocity_map=lambda xi, Q: Q @ xi + Q,
+        derivative_map=good.derivative_map,
+        inverse_legendre=good.inverse_legendre,
+    )
     with pytest.raises(ValueError, match="velocity_map"):
         check_model(affine, Q0, xi0, 0.1)
 
@@ -174,9 +189,10 @@ def test_sweeps_and_newton_give_the_same_steps():
     W = models.euler_sphere_quantise(random_coefficients(Ns, 4))
     Q0, xi0 = models.euler_sphere_start(W)
     system = models.euler_sphere(Ns)
-    runs = [cj.integrate(system, Q0, xi0, dt=0.05, n_steps=20, method=cj.ReducedStep(root_finder=finder,
-                                                                                      reconstruct=False))
-            for finder in (cj.Newton(), cj.FixedPoint())]
+    runs = [
+        cj.integrate(system, Q0, xi0, dt=0.05, n_steps=20, method=cj.ReducedStep(root_finder=finder, reconstruct=False))
+        for finder in (cj.Newton(), cj.FixedPoint())
+    ]
     assert np.max(np.abs(runs[0].momentum - runs[1].momentum)) < 1e-12
     assert np.all(runs[1].stats.jacobians == 0)
 
@@ -275,15 +291,22 @@ def zeitlin_reference(W0, ts):
     hbar = 2.0 / np.sqrt(n * n - 1.0)
 
     def rhs(t, y):
-        W = (y[: n * n] + 1j * y[n * n:]).reshape(n, n)
+        W = (y[: n * n] + 1j * y[n * n :]).reshape(n, n)
         P = (Lp @ W.ravel()).reshape(n, n)
         dW = (P @ W - W @ P) / hbar
         return np.concatenate([dW.real.ravel(), dW.imag.ravel()])
 
     W0 = np.asarray(W0)
-    y = solve_ivp(rhs, (ts[0], ts[-1]), np.concatenate([W0.real.ravel(), W0.imag.ravel()]), method="DOP853",
-                  t_eval=ts, rtol=1e-13, atol=1e-13).y
-    return (y[: n * n] + 1j * y[n * n:]).T.reshape(len(ts), n, n)
+    y = solve_ivp(
+        rhs,
+        (ts[0], ts[-1]),
+        np.concatenate([W0.real.ravel(), W0.imag.ravel()]),
+        method="DOP853",
+        t_eval=ts,
+        rtol=1e-13,
+        atol=1e-13,
+    ).y
+    return (y[: n * n] + 1j * y[n * n :]).T.reshape(len(ts), n, n)
 
 
 def test_order_two_against_a_tight_reference():
@@ -327,11 +350,11 @@ def test_converges_in_N_to_a_spectral_solve_of_eulers_equation():
     c0 *= np.sqrt(4 * np.pi / (np.sum(np.abs(c0[:, 0]) ** 2) + 2 * np.sum(np.abs(c0[:, 1:]) ** 2)))
     T, dt = 1.0, 0.0025  # the time error (order 2) far below the space error at these N
     reference = sphere_euler_spectral(c0, T, 24)
-    assert np.max(np.abs(reference[:L0 + 1, :L0 + 1] - c0)) > 0.3  # the flow moves the field at O(1)
+    assert np.max(np.abs(reference[: L0 + 1, : L0 + 1] - c0)) > 0.3  # the flow moves the field at O(1)
     Ns, errors = np.array([16, 32, 64]), []
     for n in Ns:
         c = np.zeros((n, n), complex)
-        c[:L0 + 1, :L0 + 1] = c0
+        c[: L0 + 1, : L0 + 1] = c0
         _, Ws = run(models.euler_sphere_quantise(c), dt, round(T / dt))
         cT = np.asarray(models.euler_sphere_coefficients(Ws[-1]))
         errors.append(np.max(np.abs(cT[:9, :9] - reference[:9, :9])))

@@ -23,8 +23,14 @@ from clebsch_jax.roots.solvers import FixedNewton
 from .helpers import compiles_recorded
 
 N_STEPS = 40
-RB = dict(n_steps=N_STEPS, chunk_steps=20, batch_size=4, reconstruct=False, fast=True,
-          invariants={"casimir": lambda system, sol: jnp.sum(sol.momentum**2, axis=-1)})
+RB = dict(
+    n_steps=N_STEPS,
+    chunk_steps=20,
+    batch_size=4,
+    reconstruct=False,
+    fast=True,
+    invariants={"casimir": lambda system, sol: jnp.sum(sol.momentum**2, axis=-1)},
+)
 INERTIAS = np.array([[2.0, 1.0, 2.0 / 3.0], [1.0, 1.5, 0.5], [0.5, 0.6, 1.0], [1.2, 1.1, 0.7]])
 OMEGAS = np.array([[1.3, 0.8, -0.4], [0.2, 1.0, 0.3], [-0.5, 0.1, 0.9], [0.3, -0.7, 0.3]])
 EYES = np.broadcast_to(np.eye(3), (4, 3, 3))
@@ -42,8 +48,7 @@ def test_rigid_bodies_agree_with_integrate_and_keep_invariants():
     assert res.fast_chunks == 2 and res.fallback_chunks == 0  # one batch, two chunks, all checks passed
     assert np.all(res.succeeded)
     for m in range(4):
-        mu, energy_error = reference(rigid_body(INERTIAS[m]), np.eye(3), OMEGAS[m], 0.05, N_STEPS,
-                                     reconstruct=False)
+        mu, energy_error = reference(rigid_body(INERTIAS[m]), np.eye(3), OMEGAS[m], 0.05, N_STEPS, reconstruct=False)
         np.testing.assert_allclose(res.final_momentum[m], mu, rtol=0, atol=1e-13)
         # the same scheme to round-off: the same energy error (it is O(dt²), far above round-off)
         assert abs(res.energy_error[m] - energy_error) <= 1e-13
@@ -67,8 +72,7 @@ def test_forced_fallback_large_dt_gives_the_general_answer(monkeypatch):
     np.testing.assert_array_equal(res.status, general.status)
     np.testing.assert_allclose(res.final_momentum, general.final_momentum, rtol=0, atol=1e-12)
     for m in range(4):
-        mu, _ = reference(rigid_body(INERTIAS[m]), np.eye(3), omegas[m], 0.6, N_STEPS, reconstruct=False,
-                          throw=False)
+        mu, _ = reference(rigid_body(INERTIAS[m]), np.eye(3), omegas[m], 0.6, N_STEPS, reconstruct=False, throw=False)
         np.testing.assert_allclose(res.final_momentum[m], mu, rtol=0, atol=1e-12)
 
 
@@ -116,8 +120,20 @@ def test_only_the_members_whose_check_failed_run_again(monkeypatch):
 
 
 def _assert_same_table(a, b):
-    for key in ("status", "failed_step", "newton_iterations", "max_residual", "final_t", "final_momentum", "final_xi",
-                "final_p", "energy_error", "fast_chunks", "fallback_chunks", "fallback_member_chunks"):
+    for key in (
+        "status",
+        "failed_step",
+        "newton_iterations",
+        "max_residual",
+        "final_t",
+        "final_momentum",
+        "final_xi",
+        "final_p",
+        "energy_error",
+        "fast_chunks",
+        "fallback_chunks",
+        "fallback_member_chunks",
+    ):
         np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
     for name in a.drift:
         np.testing.assert_array_equal(a.drift[name], b.drift[name], err_msg=name)
@@ -142,8 +158,10 @@ def test_threads_run_batches_side_by_side_with_the_same_table(monkeypatch):
     assert one.fallback_member_chunks == 6 and one.batch_size == three.batch_size == 2
     _assert_same_table(one, three)
     general = {**run, "fast": False}
-    _assert_same_table(cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **general, threads=1),
-                       cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **general, threads=4))
+    _assert_same_table(
+        cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **general, threads=1),
+        cj.sweep(rigid_body, inertias, eyes, omegas, dt=dts, **general, threads=4),
+    )
 
 
 def test_integrate_traced_without_derivative_rules_is_still_differentiable():
@@ -266,8 +284,9 @@ def _top(params):
 @pytest.mark.slow  # compiles a lean heavy-top chunk (potential, Q reconstructed): most of a minute
 def test_heavy_tops_agree_with_integrate():
     params = np.array([[1.0, 1.0, 0.4, 1.5], [1.0, 1.2, 0.5, 0.8]])
-    Q0 = np.stack([np.asarray(cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))),
-                   np.asarray(cj.lie.so3_exp(jnp.array([0.2, 0.3, 0.0])))])
+    Q0 = np.stack(
+        [np.asarray(cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))), np.asarray(cj.lie.so3_exp(jnp.array([0.2, 0.3, 0.0])))]
+    )
     omegas = np.array([[0.1, 0.2, 5.0], [0.3, -0.2, 3.0]])
     res = cj.sweep(_top, params, Q0, omegas, dt=0.01, n_steps=30, chunk_steps=15, fast=True)
     assert res.form == "reduced" and res.fast_chunks == 2 and res.fallback_chunks == 0
@@ -306,8 +325,9 @@ def test_fixed_newton_solve_checks_its_answer():
     _, st_far, _, _ = fixed_newton_solve(F, root + 0.5, updates=3, rtol=0.0, atol=0.0)
     assert st_far.status == Status.MAX_ITERATIONS
     # derivatives of the root by the implicit function theorem: dz/dc = 1 / (3z² + 1)
-    g = jax.grad(lambda cc: jnp.sum(fixed_newton_solve(lambda z: z**3 + z - cc, root + 1e-6, updates=3,
-                                                       rtol=0.0, atol=0.0)[0]))(c)
+    g = jax.grad(
+        lambda cc: jnp.sum(fixed_newton_solve(lambda z: z**3 + z - cc, root + 1e-6, updates=3, rtol=0.0, atol=0.0)[0])
+    )(c)
     np.testing.assert_allclose(g, 1.0 / (3.0 * root**2 + 1.0), rtol=1e-12)
 
 
@@ -324,11 +344,14 @@ def test_the_round_off_rule_leaves_out_the_tests_a_zero_tolerance_cannot_pass():
     assert tolerance(z, 0.0, 0.0) == 0.0 and isinstance(tolerance(z, 0.0, 0.0), float)
     assert not isinstance(tolerance(z, 1e-12, 0.0), float)  # a real tolerance stays an array
     eps = np.finfo(float).eps
-    sizes = np.array([0.0, 1e-300, eps, 4 * eps, 8 * eps, 9 * eps, 1e-12, 1e3 * eps, 2e4 * eps, 0.5, 1.0, 3.0,
-                      1e300, np.inf, np.nan])
+    sizes = np.array(
+        [0.0, 1e-300, eps, 4 * eps, 8 * eps, 9 * eps, 1e-12, 1e3 * eps, 2e4 * eps, 0.5, 1.0, 3.0, 1e300, np.inf, np.nan]
+    )
     eta, prev, zmax = (a.ravel() for a in np.meshgrid(sizes, sizes[:-2], sizes[:-1], indexing="ij"))
-    verdict = jax.jit(lambda e, p, k, zm, static_zero: converged(
-        e, p, k, 0.0 if static_zero else jnp.zeros(()), z, zm), static_argnums=4)
+    verdict = jax.jit(
+        lambda e, p, k, zm, static_zero: converged(e, p, k, 0.0 if static_zero else jnp.zeros(()), z, zm),
+        static_argnums=4,
+    )
     real = prev <= np.maximum(1.0, zmax)
     eta, prev, zmax = eta[real], prev[real], zmax[real]
     for k in (0, 1, 3):
@@ -343,7 +366,7 @@ def test_fixed_newton_in_integrate_reports_unconverged_steps():
     sol = cj.integrate(body, jnp.eye(3), jnp.array([3.0, 1.0, -2.0]), dt=0.6, n_steps=12, method=method, throw=False)
     status = np.asarray(sol.stats.status)
     # the warm-up steps use the general loop and succeed; a later step's check fails
-    assert np.all(status[:method.root_finder.warmup] == Status.SUCCESS)
+    assert np.all(status[: method.root_finder.warmup] == Status.SUCCESS)
     assert Status.MAX_ITERATIONS in status
 
 
@@ -356,8 +379,9 @@ def _scalarise_case(x, A):
         return y / jnp.linalg.norm(y), y[k] + jax.lax.dynamic_slice(y, (jnp.asarray(1),), (1,))[0]
 
     c, ys = jax.lax.scan(body, x, None, length=5)
-    n = jax.lax.while_loop(lambda s: s[0] < jnp.abs(c[0]) * 10 + 1, lambda s: (s[0] + 1.0, s[1] * 0.5),
-                           (0.0, jnp.sum(c)))
+    n = jax.lax.while_loop(
+        lambda s: s[0] < jnp.abs(c[0]) * 10 + 1, lambda s: (s[0] + 1.0, s[1] * 0.5), (0.0, jnp.sum(c))
+    )
     r = jax.lax.cond(x[1] > 0, lambda v: v[::-1], lambda v: -v, c)
     return r, ys, n[1], jnp.sum(M, axis=0)
 
@@ -480,6 +504,7 @@ def test_lean_chunk_carries_what_the_general_chunk_carries():
         def spy(cfg, *args, real=real, cap=cap):
             cap.setdefault("calls", []).append((cfg, args))
             return real(cfg, *args)
+
         sw_name = "_run_fast_chunk" if fast else "_run_chunk"
         setattr(sw, sw_name, spy)
         try:
@@ -505,8 +530,11 @@ def test_lean_chunk_carries_what_the_general_chunk_carries():
 def _quartic_body(inertia):
     """A rigid body whose kinetic energy has a quartic term: l = ½ξ·𝕀ξ + (ξ·ξ)²/8, so that the
     nodal relation is nonlinear (its Hessian depends on ξ)."""
-    return cj.ClebschSystem(lagrangian=lambda xi, Q: 0.5 * jnp.sum(inertia * xi * xi) + 0.125 * jnp.sum(xi * xi) ** 2,
-                            velocity_map=lambda xi, Q: Q @ cj.lie.hat(xi), derivative_map=cj.cayley)
+    return cj.ClebschSystem(
+        lagrangian=lambda xi, Q: 0.5 * jnp.sum(inertia * xi * xi) + 0.125 * jnp.sum(xi * xi) ** 2,
+        velocity_map=lambda xi, Q: Q @ cj.lie.hat(xi),
+        derivative_map=cj.cayley,
+    )
 
 
 @pytest.mark.slow  # compiles the lean and the general chunk of a new system
@@ -586,10 +614,14 @@ def test_rounds_of_chord_updates_converge_where_one_round_does_not():
     assert solve(1)[1].status == Status.MAX_ITERATIONS  # the same program, one round: not converged
     # under vmap with a batched guess and grad through the implicit rule
     z = jax.vmap(lambda g: fixed_newton_solve(F, g, updates=2, rtol=0.0, atol=0.0, rounds=5)[0])(
-        jnp.stack([root + 0.5, root - 0.3]))
+        jnp.stack([root + 0.5, root - 0.3])
+    )
     np.testing.assert_allclose(z, jnp.stack([root, root]), rtol=0, atol=1e-14)
-    dz = jax.grad(lambda s: fixed_newton_solve(lambda z: z**3 + z - s * c, root, updates=2, rtol=0.0, atol=0.0,
-                                               rounds=jnp.asarray(2))[0][0])(1.0)
+    dz = jax.grad(
+        lambda s: fixed_newton_solve(
+            lambda z: z**3 + z - s * c, root, updates=2, rtol=0.0, atol=0.0, rounds=jnp.asarray(2)
+        )[0][0]
+    )(1.0)
     np.testing.assert_allclose(dz, c[0] / (3 * root[0] ** 2 + 1), rtol=1e-12)
 
     # FixedNewton: warm-up steps by rounds, later steps by one round, one solve compiled
@@ -627,6 +659,7 @@ def test_scalarise_keeps_optimization_barriers():
     def f(x):
         a, b = jax.lax.optimization_barrier((x * x, jnp.sum(x)))
         return jax.lax.fori_loop(0, 3, lambda i, c: jax.lax.optimization_barrier(c * 0.5 + a * b), x)
+
     xs = jnp.arange(12.0).reshape(4, 3)
     np.testing.assert_allclose(jax.jit(scalarise(f))(xs), jax.vmap(f)(xs), rtol=1e-15)
     assert "optimization_barrier" in str(jax.make_jaxpr(scalarise(f))(xs))
@@ -637,9 +670,19 @@ FOLDED = {
     "arithmetic": lambda a, b: (a + b, a - b, a * b, a / b, -a, jnp.maximum(a, b), jnp.minimum(a, b), jnp.abs(b)),
     "comparisons": lambda a, b: (a == b, a != b, a < b, a <= b, a > b, a >= b, (a < b) & (a > 0), (a < b) | ~(b > 0)),
     "select": lambda a, b: (jnp.where(a > b, a, b), jax.lax.select_n(jnp.arange(3) % 2 == 0, a, b)),
-    "layout": lambda a, b: (jnp.eye(3, dtype=a.dtype), jnp.broadcast_to(a[:, None], (3, 4)), a.reshape(1, 3),
-                            jnp.squeeze(a.reshape(1, 3), 0), a[1:], a[::2], jnp.outer(a, b).T, a[::-1],
-                            jnp.concatenate([a, b]), jnp.stack([a, b], 1), *jnp.split(a, 3)),
+    "layout": lambda a, b: (
+        jnp.eye(3, dtype=a.dtype),
+        jnp.broadcast_to(a[:, None], (3, 4)),
+        a.reshape(1, 3),
+        jnp.squeeze(a.reshape(1, 3), 0),
+        a[1:],
+        a[::2],
+        jnp.outer(a, b).T,
+        a[::-1],
+        jnp.concatenate([a, b]),
+        jnp.stack([a, b], 1),
+        *jnp.split(a, 3),
+    ),
     "types": lambda a, b: (a.astype(jnp.int32), jnp.arange(4), (a > 0).astype(a.dtype)),
     "ieee": lambda a, b: (a * jnp.inf * 0.0, a / (b * 0.0), jnp.maximum(a * jnp.nan, b)),  # NaN, ±inf, silently
 }
@@ -676,11 +719,13 @@ def test_scalarise_traces_known_values_without_compiling():
     """Tracing a member program whose loop builds constants (an identity, slices, a split) runs
     no eager JAX operation: `scalarise` folds them in NumPy, where each would otherwise be
     dispatched and, per new shape, compiled on its own."""
+
     def f(x):
         def body(c, _):
             e = jnp.eye(3, dtype=c.dtype)
             w = jnp.stack(jnp.split(jnp.arange(3.0), 3))[:, 0]
             return e[:, 1:] @ c[:2] * 0.25 + c * 0.5 + w[::-1] * 1e-3, None
+
         return jax.lax.scan(body, x, None, length=3)[0]
 
     xs = jnp.asarray(np.random.default_rng(2).normal(size=(5, 3)))

@@ -40,9 +40,12 @@ SE3_XI0 = jnp.array([0.3, 0.2, -0.5, 1.0, 0.0, 0.2])
 def test_the_forward_difference_with_a_one_sided_principle_leaves_the_rotations(scheme):
     """Left: Q1 = Q0 (I + h ξ̂), with Q1ᵀQ1 = I + h² ξ̂ᵀξ̂: refused, naming the derivative map,
     what check_Q says, and the two ways out."""
-    with pytest.raises(ValueError, match=r"^derivative_map: one step of forward difference from Q0 "
-                                         rf"\({scheme} principle\) leaves the configuration manifold: "
-                                         r"not a rotation matrix") as info:
+    with pytest.raises(
+        ValueError,
+        match=r"^derivative_map: one step of forward difference from Q0 "
+        rf"\({scheme} principle\) leaves the configuration manifold: "
+        r"not a rotation matrix",
+    ) as info:
         cj.integrate(FORWARD, jnp.eye(3), XI0, dt=0.1, n_steps=2, scheme=scheme)
     assert "clebsch_jax.cayley" in str(info.value) and 'scheme="midpoint"' in str(info.value)
 
@@ -67,9 +70,12 @@ def test_se3_without_a_check_warns_with_the_left_principle_and_not_with_the_midp
     """SE(3) written by hand, with no check_Q: the matrix group is read off the velocity map
     (right multiplication by a closed algebra). The left principle's step leaves it (a warning:
     without check_Q the configurations may be any 4×4 matrices); the midpoint's does not."""
-    with pytest.warns(UserWarning, match=r"^derivative_map: one step of forward difference from Q0 \(left "
-                                         r"principle\) leaves the configuration manifold on which velocity_map "
-                                         r"acts, a matrix group") as record:
+    with pytest.warns(
+        UserWarning,
+        match=r"^derivative_map: one step of forward difference from Q0 \(left "
+        r"principle\) leaves the configuration manifold on which velocity_map "
+        r"acts, a matrix group",
+    ) as record:
         sol = cj.integrate(SE3, SE3_Q0, SE3_XI0, dt=0.1, n_steps=2, scheme="left")
     # the warning points at the caller's line (other warnings can land in the record too: a
     # ResourceWarning for a file an earlier test left open, when the collector closes it here)
@@ -97,8 +103,12 @@ def test_a_rotation_that_only_just_passes_is_not_blamed_on_a_correct_step():
 def test_a_velocity_map_not_tangent_to_the_manifold_is_refused_after_its_first_step():
     """Translations of the plane are not tangent to the unit circle that check_Q declares: every
     principle leaves it, and the first step's Q1 fails check_Q (no matrix group here)."""
-    circle = cj.ClebschSystem(lagrangian=kinetic, velocity_map=translation, derivative_map=cj.forward_difference,
-                              check_Q=unit_vector)
-    with pytest.raises(ValueError, match=r"^derivative_map: one step of forward difference from Q0 \(midpoint "
-                                         r"principle\) leaves the configuration manifold: not a unit vector"):
+    circle = cj.ClebschSystem(
+        lagrangian=kinetic, velocity_map=translation, derivative_map=cj.forward_difference, check_Q=unit_vector
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"^derivative_map: one step of forward difference from Q0 \(midpoint "
+        r"principle\) leaves the configuration manifold: not a unit vector",
+    ):
         cj.integrate(circle, np.array([0.6, 0.8]), np.ones(2), dt=0.1, n_steps=2)

@@ -64,14 +64,26 @@ def test_plan_facts_and_refusals_before_compiling():
 # reference moved that point by 2e-13 and the fit to 12.5). Orders 14 and 16 leave nothing to
 # measure in double precision: their error constants are so small that their steps are exact
 # to round-off wherever the iteration contracts (order 16 at Δt = 1: 8e-14 here).
-GAUSS_DTS = {2: [0.2, 0.1, 0.05], 4: [0.4, 0.2, 0.1], 6: [0.5, 0.4, 0.25, 0.2], 8: [0.8, 0.5, 0.4, 0.32],
-             12: [1.0, 0.8, 0.5]}
+GAUSS_DTS = {
+    2: [0.2, 0.1, 0.05],
+    4: [0.4, 0.2, 0.1],
+    6: [0.5, 0.4, 0.25, 0.2],
+    8: [0.8, 0.5, 0.4, 0.32],
+    12: [1.0, 0.8, 0.5],
+}
 REFERENCE_RTOL = {12: 2.5e-14}
 
 
-@pytest.mark.parametrize("order", [pytest.param(2, marks=pytest.mark.slow), 4,
-                                   pytest.param(6, marks=pytest.mark.slow), 8,
-                                   pytest.param(12, marks=pytest.mark.slow)])  # 2, 6, 12: ~5 s each, in CI's slow run
+@pytest.mark.parametrize(
+    "order",
+    [
+        pytest.param(2, marks=pytest.mark.slow),
+        4,
+        pytest.param(6, marks=pytest.mark.slow),
+        8,
+        pytest.param(12, marks=pytest.mark.slow),
+    ],
+)  # 2, 6, 12: ~5 s each, in CI's slow run
 def test_rigid_body_orders_against_dop853(order):
     """Gauss–Legendre with order/2 stages on the rigid body on SO(3): Q(T) against SciPy DOP853
     at rtol 1e-13 (2.5e-14 for order 12); log-log fit within 0.15 of the order."""
@@ -84,8 +96,9 @@ def test_rigid_body_orders_against_dop853(order):
     for dt in dts:
         # concrete calls: one compiled chunk program for every dt and run length, the one
         # test_invariants_rigid_body uses for order 8 as well
-        sol = cj.integrate(system, Q0, PI0 / TEST_INERTIA, dt=dt, n_steps=int(round(T / dt)), scheme="gauss",
-                           order=order)
+        sol = cj.integrate(
+            system, Q0, PI0 / TEST_INERTIA, dt=dt, n_steps=int(round(T / dt)), scheme="gauss", order=order
+        )
         assert np.isclose(float(sol.ts[-1]), T)
         errs.append(np.max(np.abs(np.asarray(sol.Q[-1]) - Qref[-1])))
     assert sol.form == "full" and sol.order == order and sol.scheme == "gauss"
@@ -99,8 +112,9 @@ def test_high_orders_with_large_steps():
     order 16 is at the reference's level, where order 8 at half the step is 1e-6 off; the
     quadratic invariants stay at round-off with these large steps."""
     T = 200.0
-    _, w = rigid_body_reference(TEST_INERTIA, np.eye(3), PI0 / TEST_INERTIA, np.array([0.0, T]), rtol=2.5e-14,
-                                atol=2.5e-14)
+    _, w = rigid_body_reference(
+        TEST_INERTIA, np.eye(3), PI0 / TEST_INERTIA, np.array([0.0, T]), rtol=2.5e-14, atol=2.5e-14
+    )
     Pi_ref = w[-1] * TEST_INERTIA
     vec = cj.models.rigid_body_vector(TEST_INERTIA)
     Q0, P0 = cj.models.rigid_body_vector_start(PI0)
@@ -125,8 +139,9 @@ def test_first_step_from_substeps_and_steps_near_the_limit():
     the quadratic invariants stay at round-off (measured 4e-15 where a looser stop left 3e-12),
     and Π(T) is within 1e-9 of DOP853 (measured 4e-11)."""
     T = 100.0
-    _, w = rigid_body_reference(TEST_INERTIA, np.eye(3), PI0 / TEST_INERTIA, np.array([0.0, T]), rtol=2.5e-14,
-                                atol=2.5e-14)
+    _, w = rigid_body_reference(
+        TEST_INERTIA, np.eye(3), PI0 / TEST_INERTIA, np.array([0.0, T]), rtol=2.5e-14, atol=2.5e-14
+    )
     vec = cj.models.rigid_body_vector(TEST_INERTIA)
     Q0, P0 = cj.models.rigid_body_vector_start(PI0)
     sol = cj.integrate(vec, Q0, PI0 / TEST_INERTIA, P0=P0, dt=1.25, n_steps=80, scheme="gauss", order=16)
@@ -156,8 +171,9 @@ def test_descends_to_the_same_map_of_the_body_momentum():
     momentum's map does not depend on which (Q, P) carries it: on SO(3) (3×3 matrices) and on
     R³ from two different starting pairs, the same Π at every node."""
     n, dt = 400, 0.25
-    so3 = cj.integrate(cj.models.rigid_body(TEST_INERTIA), np.eye(3), PI0 / TEST_INERTIA, dt=dt, n_steps=n,
-                       scheme="gauss", order=8)
+    so3 = cj.integrate(
+        cj.models.rigid_body(TEST_INERTIA), np.eye(3), PI0 / TEST_INERTIA, dt=dt, n_steps=n, scheme="gauss", order=8
+    )
     vec = cj.models.rigid_body_vector(TEST_INERTIA)
     Q0, P0 = cj.models.rigid_body_vector_start(PI0)
     a = cj.integrate(vec, Q0, PI0 / TEST_INERTIA, P0=P0, dt=dt, n_steps=n, scheme="gauss", order=8)
@@ -185,8 +201,9 @@ def test_invariants_rigid_body():
     assert dg.envelope_ratio(E - E[0]) < 1.5
     assert np.all(np.asarray(sol.stats.jacobians) == 0)
 
-    so3 = cj.integrate(cj.models.rigid_body(TEST_INERTIA), np.eye(3), PI0 / TEST_INERTIA, dt=0.25, n_steps=400,
-                       scheme="gauss", order=8)
+    so3 = cj.integrate(
+        cj.models.rigid_body(TEST_INERTIA), np.eye(3), PI0 / TEST_INERTIA, dt=0.25, n_steps=400, scheme="gauss", order=8
+    )
     Qs = np.asarray(so3.Q)
     assert np.max(np.abs(np.einsum("nji,njk->nik", Qs, Qs) - np.eye(3))) < 1e-14
 
@@ -206,11 +223,21 @@ def test_heavy_top_noether_momentum_and_order():
     Jz = np.asarray(dg.noether_momentum(sol, _vertical))[:, 0]
     assert np.max(np.abs(Jz - Jz[0])) < 1e-12 * np.max(np.abs(sol.momentum[0]))
     T, dts = 1.0, np.array([0.1, 0.05, 0.025])
-    y = solve_ivp(heavy_top_rhs(I, mgl, chi), (0, T), np.concatenate([Q0.ravel(), w0]), method="DOP853",
-                  rtol=1e-13, atol=1e-13).y[:9, -1]
+    y = solve_ivp(
+        heavy_top_rhs(I, mgl, chi), (0, T), np.concatenate([Q0.ravel(), w0]), method="DOP853", rtol=1e-13, atol=1e-13
+    ).y[:9, -1]
     # concrete calls: the chunk program of the run above serves every dt and run length
-    errs = [np.max(np.abs(np.asarray(cj.integrate(top, Q0, w0, dt=dt, n_steps=int(round(T / dt)), scheme="gauss",
-                                                  order=4).Q[-1]).ravel() - y)) for dt in dts]
+    errs = [
+        np.max(
+            np.abs(
+                np.asarray(
+                    cj.integrate(top, Q0, w0, dt=dt, n_steps=int(round(T / dt)), scheme="gauss", order=4).Q[-1]
+                ).ravel()
+                - y
+            )
+        )
+        for dt in dts
+    ]
     assert abs(dg.fit_order(dts, errs) - 4) < 0.15, errs
 
 
@@ -242,8 +269,7 @@ def test_batch_vmap_and_failure_report():
     Q0s, P0s = jax.vmap(cj.models.rigid_body_vector_start)(jnp.asarray(Pis))
 
     def run(Q, P, Pi, dt):
-        return cj.integrate(system, Q, Pi / TEST_INERTIA, P0=P, dt=dt, n_steps=20, scheme="gauss", order=8,
-                            throw=False)
+        return cj.integrate(system, Q, Pi / TEST_INERTIA, P0=P, dt=dt, n_steps=20, scheme="gauss", order=8, throw=False)
 
     vmapped = jax.jit(jax.vmap(run))  # one program for the healthy and the failing batch
     dts = jnp.array([0.2, 0.2, 0.2])
@@ -256,6 +282,7 @@ def test_batch_vmap_and_failure_report():
     sol = vmapped(Q0s, P0s, jnp.asarray(Pis), dts)
     assert list(np.asarray(sol.result)) == [cj.Status.SUCCESS, cj.Status.DIVERGED, cj.Status.SUCCESS]
     assert int(sol.failed_step[1]) == 0 and np.all(np.isnan(np.asarray(sol.Q[1, 1:])))
+
     def run_throw(Q, P, Pi, dt):
         return cj.integrate(system, Q, Pi / TEST_INERTIA, P0=P, dt=dt, n_steps=20, scheme="gauss", order=8)
 

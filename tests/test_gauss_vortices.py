@@ -31,8 +31,15 @@ def _random_vortices(n, seed):
 
 
 def _run(gamma, Q0, dt, n_steps, **kw):
-    return cj.integrate(models.point_vortices(gamma), Q0, models.vortex_velocity(gamma, Q0), dt=dt,
-                        n_steps=n_steps, scheme="gauss", **kw)
+    return cj.integrate(
+        models.point_vortices(gamma),
+        Q0,
+        models.vortex_velocity(gamma, Q0),
+        dt=dt,
+        n_steps=n_steps,
+        scheme="gauss",
+        **kw,
+    )
 
 
 def test_one_stage_is_the_midpoint_principle():
@@ -104,8 +111,16 @@ def test_blocks_give_the_dense_steps_and_vmap_and_batch_agree():
     Q0s = rng.normal(size=(3, 4, 2))
 
     def run(g, q):
-        return cj.integrate(models.point_vortices(g), q, models.vortex_velocity(g, q), dt=0.05, n_steps=40,
-                            scheme="gauss", order=6, throw=False)
+        return cj.integrate(
+            models.point_vortices(g),
+            q,
+            models.vortex_velocity(g, q),
+            dt=0.05,
+            n_steps=40,
+            scheme="gauss",
+            order=6,
+            throw=False,
+        )
 
     vm = jax.jit(jax.vmap(run))(gammas, Q0s)
     bt = jax.jit(cj.batch(run))(gammas, Q0s)

@@ -43,25 +43,34 @@ def test_newton_failures_are_counted_in_max_newton_iterations_unit():
     """`max_newton_iterations` caps the Jacobians formed; the message counts those, then updates."""
     message = failure_message(cj.Status.MAX_ITERATIONS, 3, 10, 0.3, 90, 1e-3, None, "left", 1, 20)
     assert "after 20 Newton iterations (max_newton_iterations counts these" in message and "90 updates" in message
-    sol = cj.integrate(SO3, jnp.eye(3), 40.0 * XI0, dt=1.0, n_steps=2, max_newton_iterations=1, throw=False,
-                       scheme="left")
+    sol = cj.integrate(
+        SO3, jnp.eye(3), 40.0 * XI0, dt=1.0, n_steps=2, max_newton_iterations=1, throw=False, scheme="left"
+    )
     assert int(sol.result) == cj.Status.MAX_ITERATIONS  # a step this large is not solved with one Jacobian
     updates = int(np.asarray(sol.stats.iterations)[0])
     assert updates > 1  # chord updates: more updates than the cap allows iterations
-    with pytest.raises(cj.IntegrationError, match=rf"after 1 Newton iterations \(max_newton_iterations counts these: "
-                                                  rf"Jacobians formed\), with {updates} updates"):
+    with pytest.raises(
+        cj.IntegrationError,
+        match=rf"after 1 Newton iterations \(max_newton_iterations counts these: "
+        rf"Jacobians formed\), with {updates} updates",
+    ):
         sol.raise_if_failed()
 
 
-@pytest.mark.parametrize("Q0, problem", [(1.01 * np.eye(3), "max|Q^T Q - I|"),
-                                         (np.diag([1.0, 1.0, -1.0]), "det Q = -1")],
-                         ids=["scaled", "reflection"])
+@pytest.mark.parametrize(
+    "Q0, problem",
+    [(1.01 * np.eye(3), "max|Q^T Q - I|"), (np.diag([1.0, 1.0, -1.0]), "det Q = -1")],
+    ids=["scaled", "reflection"],
+)
 def test_a_hand_written_so3_system_warns_about_a_q0_off_the_group(Q0, problem, monkeypatch):
     """No check_Q given: the engine reads SO(3) off the velocity map (right multiplication by
     antisymmetric matrices) and names what is wrong with Q0, before marching (stubbed here)."""
     monkeypatch.setattr(_integrate, "march_chunked", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("marched")))
-    with pytest.warns(UserWarning, match=r"Q0: velocity_map moves Q by right multiplication with the Lie algebra "
-                                         r"of SO\(3\), but Q0 is not in SO\(3\)") as record:
+    with pytest.warns(
+        UserWarning,
+        match=r"Q0: velocity_map moves Q by right multiplication with the Lie algebra "
+        r"of SO\(3\), but Q0 is not in SO\(3\)",
+    ) as record:
         with pytest.raises(RuntimeError, match="marched"):
             cj.integrate(SO3, Q0, XI0, dt=0.1, n_steps=2)
     assert any(problem in str(w.message) for w in record)
@@ -77,8 +86,11 @@ def test_a_function_remade_for_each_value_of_a_python_number_is_said_to_recompil
     monkeypatch.setattr(_integrate, "march_chunked", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("marched")))
 
     def attempt(g):
-        system = cj.ClebschSystem(lagrangian=lambda xi, q: 0.5 * jnp.sum(xi**2) - g * q[2],
-                                  velocity_map=lambda xi, q: jnp.cross(xi, q), derivative_map=cj.forward_difference)
+        system = cj.ClebschSystem(
+            lagrangian=lambda xi, q: 0.5 * jnp.sum(xi**2) - g * q[2],
+            velocity_map=lambda xi, q: jnp.cross(xi, q),
+            derivative_map=cj.forward_difference,
+        )
         with warnings.catch_warnings(record=True) as record:
             warnings.simplefilter("always")
             with pytest.raises(RuntimeError, match="marched"):

@@ -34,14 +34,23 @@ EPS = np.finfo(float).eps
 
 def reduced(inertia, omega0, dt, **kw):
     """The shared reduced march (body momentum only)."""
-    return cj.integrate(cj.models.rigid_body(inertia), jnp.eye(3), omega0, dt=np.float64(dt), n_steps=N_STEPS,
-                        throw=False, reconstruct=False, **kw)
+    return cj.integrate(
+        cj.models.rigid_body(inertia),
+        jnp.eye(3),
+        omega0,
+        dt=np.float64(dt),
+        n_steps=N_STEPS,
+        throw=False,
+        reconstruct=False,
+        **kw,
+    )
 
 
 def full(inertia, omega0, dt):
     """The shared full (ξ, P, Q) march."""
-    return cj.integrate(cj.models.rigid_body(inertia), jnp.eye(3), omega0, dt=np.float64(dt), n_steps=N_STEPS,
-                        throw=False, reduce=False)
+    return cj.integrate(
+        cj.models.rigid_body(inertia), jnp.eye(3), omega0, dt=np.float64(dt), n_steps=N_STEPS, throw=False, reduce=False
+    )
 
 
 MARCHES = {"reduced": reduced, "full": full}
@@ -282,8 +291,8 @@ def assert_succeeded_or_reported(sol, inertia, energy_bound):
         return True
     k = int(sol.failed_step)
     assert 0 <= k < N_STEPS
-    assert valid[: k + 1].all() and not valid[k + 1:].any()
-    assert np.isfinite(mu[: k + 1]).all() and np.isnan(mu[k + 1:]).all()
+    assert valid[: k + 1].all() and not valid[k + 1 :].any()
+    assert np.isfinite(mu[: k + 1]).all() and np.isnan(mu[k + 1 :]).all()
     with pytest.raises(cj.IntegrationError, match=f"step {k} of {N_STEPS}"):
         sol.raise_if_failed()
     return False
@@ -382,8 +391,9 @@ def test_soak_on_the_separatrix():
     (no blow-up, energy bounded without drift, Casimir at round-off)."""
     soak = _load_soak()
     m0 = separatrix_point(0.0)
-    case = soak.rigid_body_case()._replace(name="separatrix", description="rigid body on the separatrix",
-                                            xi0=m0 / INERTIA)
+    case = soak.rigid_body_case()._replace(
+        name="separatrix", description="rigid body on the separatrix", xi0=m0 / INERTIA
+    )
     result = soak.soak(case, n_steps=100_000, chunk_steps=2_000)
     check_soak(result)
     assert result["quantities"]["energy"]["max_error"] < 0.04 * 0.1**2

@@ -22,8 +22,9 @@ def test_heavy_top_midpoint_is_second_order_and_conservative():
     Q0, w0 = np.asarray(cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0]))), np.array([0.3, -0.2, 6.0])
     system = cj.models.heavy_top(I, mgl, chi)
     T, dts = 1.0, np.array([0.04, 0.02, 0.01, 0.005])
-    y = solve_ivp(heavy_top_rhs(I, mgl, chi), (0, T), np.concatenate([Q0.ravel(), w0]), method="DOP853",
-                  rtol=1e-13, atol=1e-13).y[:, -1]
+    y = solve_ivp(
+        heavy_top_rhs(I, mgl, chi), (0, T), np.concatenate([Q0.ravel(), w0]), method="DOP853", rtol=1e-13, atol=1e-13
+    ).y[:, -1]
     # one program for every run (dt traced): compiling the full march dominates this test
     run = jax.jit(lambda dt: cj.integrate(system, Q0, w0, dt=dt, n_steps=1000, scheme="midpoint"))
     errs = []
@@ -43,10 +44,20 @@ def test_heavy_top_midpoint_is_second_order_and_conservative():
 
 
 def test_midpoint_needs_a_derivative_map_with_a_midpoint():
-    system = cj.ClebschSystem(lagrangian=lambda xi: 0.5 * jnp.sum(xi**2), velocity_map=lambda xi, Q: xi,
-                              derivative_map=lambda Q1, Q0, dt: (Q1 - Q0) / dt)
+    system = cj.ClebschSystem(
+        lagrangian=lambda xi: 0.5 * jnp.sum(xi**2),
+        velocity_map=lambda xi, Q: xi,
+        derivative_map=lambda Q1, Q0, dt: (Q1 - Q0) / dt,
+    )
     with pytest.raises(ValueError, match="midpoint"):
         cj.integrate(system, np.zeros(2), np.ones(2), dt=0.1, n_steps=3, scheme="midpoint")
     with pytest.raises(ValueError, match="reduce"):
-        cj.integrate(cj.models.rigid_body((1.0, 2.0, 3.0)), np.eye(3), np.ones(3), dt=0.1, n_steps=3,
-                     scheme="midpoint", reduce=True)
+        cj.integrate(
+            cj.models.rigid_body((1.0, 2.0, 3.0)),
+            np.eye(3),
+            np.ones(3),
+            dt=0.1,
+            n_steps=3,
+            scheme="midpoint",
+            reduce=True,
+        )

@@ -53,8 +53,9 @@ def _cross(xi, Q):
 
 
 def _on_r3(lagrangian, velocity_map=_cross, **kwargs):
-    return cj.ClebschSystem(lagrangian=lagrangian, velocity_map=velocity_map, derivative_map=cj.forward_difference,
-                            **kwargs)
+    return cj.ClebschSystem(
+        lagrangian=lagrangian, velocity_map=velocity_map, derivative_map=cj.forward_difference, **kwargs
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -89,8 +90,9 @@ def test_a_lagrangian_degenerate_along_the_isotropy_of_q0_only_is_refused():
     assert "1-dimensional isotropy" in message and "degenerate=True" not in message
 
 
-@pytest.mark.parametrize("lagrangian", [lambda xi: jnp.sum(xi), lambda xi, Q: jnp.dot(xi, Q) - Q[2]],
-                         ids=["l(xi)", "l(xi, Q)"])
+@pytest.mark.parametrize(
+    "lagrangian", [lambda xi: jnp.sum(xi), lambda xi, Q: jnp.dot(xi, Q) - Q[2]], ids=["l(xi)", "l(xi, Q)"]
+)
 def test_a_lagrangian_linear_in_xi_needs_degenerate_true(lagrangian):
     message = refused(_on_r3(lagrangian), E3, XI0, r"^lagrangian: l is linear in xi")
     assert "ClebschSystem(..., degenerate=True)" in message and "midpoint" in message
@@ -101,6 +103,7 @@ def test_a_lagrangian_linear_in_xi_needs_degenerate_true(lagrangian):
 def test_a_lagrangian_written_l_of_Q_xi_is_recognised():
     """The R³ pendulum l(ξ, q) = ½|ξ|² − g q₃ with the parameter names swapped: the engine
     calls it as l(xi, Q), so it reads ½|Q|² − g ξ₃, linear in ξ and regular in Q."""
+
     def swapped(Q, xi):
         return 0.5 * jnp.sum(xi**2) - 9.81 * Q[2]
 
@@ -129,11 +132,18 @@ def test_a_lagrangian_must_return_a_real_floating_point_scalar(lagrangian, retur
 
 def test_the_maps_must_return_real_floating_point_arrays():
     good = lambda xi: 0.5 * jnp.sum(xi**2)  # noqa: E731
-    refused(_on_r3(good, lambda xi, Q: jnp.cross(xi, Q) * (1 + 0j)), E3, XI0,
-            r"^velocity_map: must return a real floating-point array of Q's shape, returned dtype complex128")
-    integer = cj.ClebschSystem(lagrangian=good, velocity_map=_cross,
-                               derivative_map=lambda Q1, Q, dt: jnp.round(Q1 - Q).astype(int))
-    refused(integer, E3, XI0, r"^derivative_map: must return a real floating-point array of Q's shape, returned dtype int")
+    refused(
+        _on_r3(good, lambda xi, Q: jnp.cross(xi, Q) * (1 + 0j)),
+        E3,
+        XI0,
+        r"^velocity_map: must return a real floating-point array of Q's shape, returned dtype complex128",
+    )
+    integer = cj.ClebschSystem(
+        lagrangian=good, velocity_map=_cross, derivative_map=lambda Q1, Q, dt: jnp.round(Q1 - Q).astype(int)
+    )
+    refused(
+        integer, E3, XI0, r"^derivative_map: must return a real floating-point array of Q's shape, returned dtype int"
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -142,8 +152,9 @@ def test_the_maps_must_return_real_floating_point_arrays():
 
 def test_a_velocity_map_not_linear_in_xi_is_refused():
     """The README's SE(2) body with ξ̂ replaced by (ξ∘ξ)^: quadratic in ξ."""
-    system = cj.ClebschSystem(lagrangian=lambda x: 0.5 * x @ x, velocity_map=lambda x, Q: Q @ cj.lie.se2_hat(x * x),
-                              derivative_map=cj.cayley)
+    system = cj.ClebschSystem(
+        lagrangian=lambda x: 0.5 * x @ x, velocity_map=lambda x, Q: Q @ cj.lie.se2_hat(x * x), derivative_map=cj.cayley
+    )
     message = refused(system, jnp.eye(3), XI0, r"^velocity_map: must be linear in xi \(Definition 1\)")
     assert "differs from J xi" in message
 
@@ -163,8 +174,11 @@ def test_an_affine_velocity_map_is_refused():
 
 
 def _se2_body():
-    return cj.ClebschSystem(lagrangian=lambda xi: 0.5 * 0.7 * xi[0] ** 2 + 0.5 * 1.3 * (xi[1] ** 2 + xi[2] ** 2),
-                            velocity_map=lambda xi, Q: Q @ cj.lie.se2_hat(xi), derivative_map=cj.cayley)
+    return cj.ClebschSystem(
+        lagrangian=lambda xi: 0.5 * 0.7 * xi[0] ** 2 + 0.5 * 1.3 * (xi[1] ** 2 + xi[2] ** 2),
+        velocity_map=lambda xi, Q: Q @ cj.lie.se2_hat(xi),
+        derivative_map=cj.cayley,
+    )
 
 
 def test_the_checks_accept_the_built_in_models():

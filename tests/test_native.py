@@ -41,10 +41,31 @@ def _agree(native, xla, rtol=1e-13, atol=1e-13):
 # ---------------------------------------------------------------------------------------------
 # Random programs of the covered primitives against XLA.
 
-_UNARY = [jnp.sin, jnp.cos, jnp.tanh, jnp.abs, jnp.negative, jnp.square, lambda x: jnp.sqrt(jnp.abs(x)),
-          lambda x: jnp.exp(-x * x), lambda x: jnp.log1p(jnp.abs(x)), jnp.arctan, lambda x: x ** 3, jnp.floor]
-_BINARY = [jnp.add, jnp.subtract, jnp.multiply, jnp.maximum, jnp.minimum, lambda a, b: a / (1.0 + b * b),
-           jnp.arctan2, lambda a, b: jnp.where(a > b, a, b - 1.0), lambda a, b: jnp.hypot(a, b)]
+_UNARY = [
+    jnp.sin,
+    jnp.cos,
+    jnp.tanh,
+    jnp.abs,
+    jnp.negative,
+    jnp.square,
+    lambda x: jnp.sqrt(jnp.abs(x)),
+    lambda x: jnp.exp(-x * x),
+    lambda x: jnp.log1p(jnp.abs(x)),
+    jnp.arctan,
+    lambda x: x**3,
+    jnp.floor,
+]
+_BINARY = [
+    jnp.add,
+    jnp.subtract,
+    jnp.multiply,
+    jnp.maximum,
+    jnp.minimum,
+    lambda a, b: a / (1.0 + b * b),
+    jnp.arctan2,
+    lambda a, b: jnp.where(a > b, a, b - 1.0),
+    lambda a, b: jnp.hypot(a, b),
+]
 
 
 def _structural(k, a, b):
@@ -78,6 +99,7 @@ def _program(ops):
             elif kind == 2:
                 out = _structural(k % 8, a, b)
             elif kind == 3:  # a loop whose trip count differs from lane to lane
+
                 def cond(c):
                     return (c[1] < 30) & (jnp.max(jnp.abs(c[0] - jnp.cos(c[0]))) > 1e-13)
 
@@ -88,11 +110,13 @@ def _program(ops):
                 out = jax.lax.fori_loop(0, 6, lambda n, c: 0.5 * c + jnp.sin(b) / (n + 1.0), a)
             pool.append(jnp.clip(out, -1e3, 1e3))
         return pool[-1], jnp.sum(pool[-1]) > 0, jnp.argmin(pool[-1])
+
     return f
 
 
-_OPS = st.lists(st.tuples(st.integers(0, 5), st.integers(0, 9), st.integers(0, 9), st.integers(0, 20)),
-                min_size=1, max_size=6)
+_OPS = st.lists(
+    st.tuples(st.integers(0, 5), st.integers(0, 9), st.integers(0, 9), st.integers(0, 20)), min_size=1, max_size=6
+)
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -116,6 +140,7 @@ def test_random_programs_agree_with_xla(ops, seed):
 def test_lanes_stop_their_loops_independently_and_inactive_lanes_keep_their_values():
     """A Newton iteration for x = cos(a x) per member: the members converge after different
     numbers of iterations; each keeps its own count and value, as under `jax.vmap`."""
+
     def newton(a):
         def cond(c):
             x, n = c
@@ -138,6 +163,7 @@ def test_lanes_stop_their_loops_independently_and_inactive_lanes_keep_their_valu
 def test_a_long_scan_with_inputs_and_outputs_agrees_with_xla():
     """A scan too long to unroll, with per-iteration inputs and outputs (held in arrays on the
     stack, indexed by the counter), forwards and in reverse."""
+
     def f(x, y):
         xs = jnp.outer(jnp.linspace(0.0, 1.0, 700), y)
         c, ys = jax.lax.scan(lambda c, v: (jnp.tanh(0.5 * c + v), c * v[0]), x, xs)
@@ -177,13 +203,19 @@ def test_indexing_by_values_agrees_with_xla():
     big = np.arange(120.0).reshape(12, 10)
 
     def f(x, i, j, M):
-        return (x[i % 3], jnp.take(M, jnp.array([2, 0, 1]), axis=0), M[i % 3, j % 3], x.at[j % 3].set(7.0),
-                x.at[jnp.array([0, 2])].add(jnp.array([1.0, 2.0])), jax.lax.dynamic_slice(M, (i, j), (2, 2)),
-                jax.lax.dynamic_update_slice(M, x[:2, None] * jnp.ones((2, 2)), (j, i)),
-                jax.lax.dynamic_slice(big * x[0], (3 * i, j), (3, 2)),
-                jax.lax.dynamic_update_slice(big, M, (4 * j, i)) * x[1],
-                jnp.take(big[0] * x[2], i + 6, mode="fill", fill_value=-1.0),
-                jnp.take_along_axis(M, jnp.argmax(M, axis=0, keepdims=True), axis=0))
+        return (
+            x[i % 3],
+            jnp.take(M, jnp.array([2, 0, 1]), axis=0),
+            M[i % 3, j % 3],
+            x.at[j % 3].set(7.0),
+            x.at[jnp.array([0, 2])].add(jnp.array([1.0, 2.0])),
+            jax.lax.dynamic_slice(M, (i, j), (2, 2)),
+            jax.lax.dynamic_update_slice(M, x[:2, None] * jnp.ones((2, 2)), (j, i)),
+            jax.lax.dynamic_slice(big * x[0], (3 * i, j), (3, 2)),
+            jax.lax.dynamic_update_slice(big, M, (4 * j, i)) * x[1],
+            jnp.take(big[0] * x[2], i + 6, mode="fill", fill_value=-1.0),
+            jnp.take_along_axis(M, jnp.argmax(M, axis=0, keepdims=True), axis=0),
+        )
 
     rng = np.random.default_rng(4)
     x, M = rng.standard_normal((B, 3)), rng.standard_normal((B, 3, 3))
@@ -278,7 +310,7 @@ def test_native_sweep_of_heavy_tops_equals_the_xla_sweep():
 
 
 def test_backend_choice_and_fallback():
-    """"auto" runs native where it applies and says once why not elsewhere (here: saved
+    """ "auto" runs native where it applies and says once why not elsewhere (here: saved
     nodes); "native" where it cannot apply is refused with the reason; a bad name is refused."""
     inertias, Q0, omegas = _rigid_body_members(3)
     with pytest.raises(ValueError, match="save_every"):
@@ -290,7 +322,8 @@ def test_backend_choice_and_fallback():
         res = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, save_every=10, **RB)
     assert res.saved is not None
     assert not any(issubclass(w.category, NativeFallbackWarning) for w in caught) or any(
-        "save_every" in str(w.message) for w in caught)
+        "save_every" in str(w.message) for w in caught
+    )
     with pytest.warns(DeprecationWarning, match="fast="):
         cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, fast=False, **RB)
 

@@ -58,8 +58,9 @@ def test_notebook_runs(path, monkeypatch):
     nb = nbformat.read(path, as_version=4)
     nb.cells.append(nbformat.v4.new_code_cell(RENDER_FIGURES))
     monkeypatch.setenv("MPLBACKEND", "Agg")  # inherited by the kernel
-    client = nbclient.NotebookClient(nb, timeout=CELL_TIMEOUT, kernel_name="python3",
-                                     resources={"metadata": {"path": str(NOTEBOOKS_DIR)}})
+    client = nbclient.NotebookClient(
+        nb, timeout=CELL_TIMEOUT, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS_DIR)}}
+    )
     current = {}
     client.on_cell_start = lambda cell, cell_index: current.update(index=cell_index)
     failure = None
@@ -92,8 +93,11 @@ def test_notebook_is_committed_stripped(path):
     """No outputs and no execution counts in the committed file (so diffs stay readable and the
     repository small), and the kernel the runner uses."""
     nb = json.loads(path.read_text(encoding="utf-8"))
-    dirty = [i for i, cell in enumerate(nb["cells"]) if cell["cell_type"] == "code"
-             and (cell.get("outputs") or cell.get("execution_count") is not None)]
+    dirty = [
+        i
+        for i, cell in enumerate(nb["cells"])
+        if cell["cell_type"] == "code" and (cell.get("outputs") or cell.get("execution_count") is not None)
+    ]
     assert not dirty, (
         f"{path.name}: code cells {dirty} have outputs or execution counts; clear them before committing "
         "(Jupyter's 'Clear All Outputs', or `jupyter nbconvert --clear-output --inplace`)"

@@ -36,8 +36,9 @@ def _se3_hat(xi):
 
 
 def _system(velocity_map, derivative_map=cj.cayley, m=3):
-    return cj.ClebschSystem(lagrangian=lambda x: 0.5 * jnp.sum(x**2), velocity_map=velocity_map,
-                            derivative_map=derivative_map)
+    return cj.ClebschSystem(
+        lagrangian=lambda x: 0.5 * jnp.sum(x**2), velocity_map=velocity_map, derivative_map=derivative_map
+    )
 
 
 # ------------------------------------------------------------------------------------------
@@ -99,10 +100,12 @@ def test_euler_poincare_field_is_eulers_equations():
 
 def heavy_top_rhs(inertia, mgl, chi):
     """Hand-written heavy top: Π' = Π×Ω + mgl Γ×χ, Q' = Q Ω̂ with Γ = Qᵀe₃ (independent)."""
+
     def rhs(t, y):
         Q, w = y[:9].reshape(3, 3), y[9:]
         G = Q.T @ np.array([0.0, 0.0, 1.0])
         return np.concatenate([(Q @ hat(w)).ravel(), (np.cross(inertia * w, w) + mgl * np.cross(G, chi)) / inertia])
+
     return rhs
 
 
@@ -165,8 +168,7 @@ def test_rodrigues_exponential_agrees_with_the_matrix_exponential():
     """SO(3)'s Rodrigues-based map gives the same reduced and full trajectories as `exponential`."""
     x0 = np.array([0.3, 1.0, 0.2])
     a = cj.integrate(cj.models.rigid_body(INERTIA, cj.so3_exponential), np.eye(3), x0, dt=0.1, n_steps=200)
-    b = cj.integrate(cj.models.rigid_body(INERTIA, cj.exponential), np.eye(3), x0, dt=0.1, n_steps=200,
-                     reduce=False)
+    b = cj.integrate(cj.models.rigid_body(INERTIA, cj.exponential), np.eye(3), x0, dt=0.1, n_steps=200, reduce=False)
     assert a.form == "reduced" and b.form == "full"
     np.testing.assert_allclose(np.asarray(a.Q), np.asarray(b.Q), atol=1e-11)
     np.testing.assert_allclose(np.asarray(a.xi), np.asarray(b.xi), atol=1e-11)
@@ -181,8 +183,9 @@ def test_reduce_switch():
     red_P = cj.integrate(system, np.eye(3), x0, dt=0.1, n_steps=20, reduce=True, need_P=True)
     J = lambda sol: jax.vmap(lambda P, Q: cj.momentum_map(system, P, Q, x0))(sol.P, sol.Q[:-1])
     np.testing.assert_allclose(np.asarray(J(red_P)), np.asarray(J(auto_P)), atol=1e-12)
-    oscillator = cj.ClebschSystem(lagrangian=lambda x: 0.5 * jnp.sum(x**2), velocity_map=lambda x, Q: x,
-                                  derivative_map=cj.forward_difference)
+    oscillator = cj.ClebschSystem(
+        lagrangian=lambda x: 0.5 * jnp.sum(x**2), velocity_map=lambda x, Q: x, derivative_map=cj.forward_difference
+    )
     assert cj.integrate(oscillator, np.zeros(2), np.ones(2), dt=0.1, n_steps=3).form == "full"
     with pytest.raises(ValueError, match="^reduce: the reduced march does not apply.*not a matrix-group map"):
         cj.integrate(oscillator, np.zeros(2), np.ones(2), dt=0.1, n_steps=3, reduce=True)
@@ -251,8 +254,9 @@ def test_heavy_top_full_and_reduced_agree_and_conserve(lagrange_top):
 def test_lagrange_top_converges_to_a_tight_reference(lagrange_top):
     system, (I, mgl, chi), Q0, w0 = lagrange_top
     T, dts = 2.0, np.array([0.02, 0.01, 0.005, 0.0025])
-    y = solve_ivp(heavy_top_rhs(I, mgl, chi), (0, T), np.concatenate([Q0.ravel(), w0]), method="DOP853",
-                  rtol=1e-13, atol=1e-13).y[:, -1]
+    y = solve_ivp(
+        heavy_top_rhs(I, mgl, chi), (0, T), np.concatenate([Q0.ravel(), w0]), method="DOP853", rtol=1e-13, atol=1e-13
+    ).y[:, -1]
     run = jax.jit(lambda dt: cj.integrate(system, Q0, w0, dt=dt, n_steps=800))
     errs = []
     for dt in dts:
@@ -286,8 +290,11 @@ def test_bruls_cardona_arnold_fast_top_runs_stably():
 def _heavy_se3():
     """A user-written body on SE(3) with a potential on the position part (l(ξ, Q), Def. 14)."""
     I = jnp.array([1.0, 1.3, 0.6, 2.0, 2.0, 2.0])
-    return cj.ClebschSystem(lagrangian=lambda x, Q: 0.5 * jnp.sum(I * x * x) - 0.7 * Q[2, 3] + 0.2 * Q[0, 1],
-                            velocity_map=lambda x, Q: Q @ _se3_hat(x), derivative_map=cj.cayley)
+    return cj.ClebschSystem(
+        lagrangian=lambda x, Q: 0.5 * jnp.sum(I * x * x) - 0.7 * Q[2, 3] + 0.2 * Q[0, 1],
+        velocity_map=lambda x, Q: Q @ _se3_hat(x),
+        derivative_map=cj.cayley,
+    )
 
 
 def _reduced_case(name):
@@ -296,8 +303,11 @@ def _reduced_case(name):
 
     system, Q0, m = {
         "rigid body": (cj.models.rigid_body(INERTIA), cj.lie.so3_exp(jnp.array([0.3, 0.2, -0.1])), 3),
-        "heavy top": (cj.models.heavy_top(np.array([1.0, 1.2, 0.5]), 1.7, (0.0, 0.6, 0.8)),
-                      cj.lie.so3_exp(jnp.array([0.3, 0.2, -0.1])), 3),
+        "heavy top": (
+            cj.models.heavy_top(np.array([1.0, 1.2, 0.5]), 1.7, (0.0, 0.6, 0.8)),
+            cj.lie.so3_exp(jnp.array([0.3, 0.2, -0.1])),
+            3,
+        ),
         "SE(2)": (se2_system(), jnp.asarray(se2(0.4, 1.0, -0.5)), 3),
         "SE(3) with potential": (_heavy_se3(), jnp.asarray(cj.lie.cayley_exp(_se3_hat(jnp.arange(6.0) / 7))), 6),
         "SO(4)": (_system(lambda x, Q: Q @ _so_n_hat(4)(x)), cj.lie.cayley_exp(_so_n_hat(4)(jnp.arange(6.0) / 9)), 6),
@@ -312,9 +322,16 @@ def _reduced_case(name):
 _FOUR_BY_FOUR = pytest.mark.slow
 
 
-@pytest.mark.parametrize("name", ["rigid body", "heavy top", "SE(2)",
-                                  pytest.param("SE(3) with potential", marks=_FOUR_BY_FOUR),
-                                  pytest.param("SO(4)", marks=_FOUR_BY_FOUR)])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "rigid body",
+        "heavy top",
+        "SE(2)",
+        pytest.param("SE(3) with potential", marks=_FOUR_BY_FOUR),
+        pytest.param("SO(4)", marks=_FOUR_BY_FOUR),
+    ],
+)
 @pytest.mark.parametrize("scheme", ["left", "right"])
 def test_closed_form_cayley_step_equals_the_autodiff_step(name, scheme):
     """`reduced_step` uses the Cayley map's explicit derivative; `reduced_residual` and
@@ -346,8 +363,9 @@ def test_closed_form_cayley_step_equals_the_autodiff_step(name, scheme):
 
 def _with_map(system, derivative_map):
     """`system` with another derivative map."""
-    return cj.ClebschSystem(lagrangian=system.lagrangian, velocity_map=system.velocity_map,
-                            derivative_map=derivative_map)
+    return cj.ClebschSystem(
+        lagrangian=system.lagrangian, velocity_map=system.velocity_map, derivative_map=derivative_map
+    )
 
 
 @pytest.mark.parametrize("name", ["rigid body", "SE(3) with potential", "SO(4)"])
@@ -417,7 +435,7 @@ def test_predictor_is_exact_on_polynomials_and_falls_back_on_rough_data():
 def _cubic_system():
     """F(z) = z + z³/3 − b componentwise, coupled by a rotation: a smooth nonlinear test system."""
     A = jnp.asarray(cj.lie.so3_exp(jnp.array([0.2, -0.1, 0.3])))
-    return lambda b: (lambda z: A @ (z + z**3 / 3) - b)
+    return lambda b: lambda z: A @ (z + z**3 / 3) - b
 
 
 def test_reusing_newton_solver_reuses_refreshes_and_reports_failures():
@@ -425,8 +443,9 @@ def test_reusing_newton_solver_reuses_refreshes_and_reports_failures():
 
     F = _cubic_system()
     b = jnp.array([0.3, -0.2, 0.5])
-    solve = lambda F, guess, H, reuse, **kw: newton_solve_reusing(F, guess, H, reuse, rtol=0.0, atol=0.0,
-                                                                    max_iterations=kw.pop("max_iterations", 20), **kw)
+    solve = lambda F, guess, H, reuse, **kw: newton_solve_reusing(
+        F, guess, H, reuse, rtol=0.0, atol=0.0, max_iterations=kw.pop("max_iterations", 20), **kw
+    )
     ref, _ = cj.newton_solve(F(b), jnp.zeros(3), rtol=0.0, atol=0.0, max_iterations=20)
     # first solve: no usable H, so a fresh Jacobian
     z, st, H, extra = solve(F(b), jnp.zeros(3), jnp.eye(3), False)
@@ -522,18 +541,33 @@ def _upper2(x):
     return jnp.array([[x[0], x[2]], [0.0 * x[0], x[1]]])
 
 
-@pytest.mark.parametrize("name, velocity_map, Q0, m, reason", [
-    ("symmetric", lambda x, Q: Q @ _sym2(x), np.eye(2), 3, "not closed"),
-    ("upper triangular", lambda x, Q: Q @ _upper2(x), np.eye(2), 3, None),
-    ("so(3), written by hand", lambda x, Q: Q @ cj.lie.hat(x), np.eye(3), 3, None),
-    ("left multiplication", lambda x, Q: cj.lie.hat(x) @ Q, np.eye(3), 3, "not right multiplication"),
-    ("quadratic in xi", lambda x, Q: Q @ cj.lie.hat(x + x ** 2), np.eye(3), 3, "not linear in xi"),
-    ("a plane of so(3)", lambda x, Q: Q @ cj.lie.hat(jnp.stack([x[0], x[1], x[0] + x[1]])), np.eye(3), 2, "not closed"),
-    ("not injective", lambda x, Q: Q @ cj.lie.hat(jnp.stack([x[0] + x[1], 0 * x[0], 0 * x[0]])), np.eye(3), 2,
-     "not injective"),
-])
-def test_the_reduction_applies_exactly_to_right_multiplication_on_a_matrix_lie_algebra(name, velocity_map, Q0, m,
-                                                                                      reason):
+@pytest.mark.parametrize(
+    "name, velocity_map, Q0, m, reason",
+    [
+        ("symmetric", lambda x, Q: Q @ _sym2(x), np.eye(2), 3, "not closed"),
+        ("upper triangular", lambda x, Q: Q @ _upper2(x), np.eye(2), 3, None),
+        ("so(3), written by hand", lambda x, Q: Q @ cj.lie.hat(x), np.eye(3), 3, None),
+        ("left multiplication", lambda x, Q: cj.lie.hat(x) @ Q, np.eye(3), 3, "not right multiplication"),
+        ("quadratic in xi", lambda x, Q: Q @ cj.lie.hat(x + x**2), np.eye(3), 3, "not linear in xi"),
+        (
+            "a plane of so(3)",
+            lambda x, Q: Q @ cj.lie.hat(jnp.stack([x[0], x[1], x[0] + x[1]])),
+            np.eye(3),
+            2,
+            "not closed",
+        ),
+        (
+            "not injective",
+            lambda x, Q: Q @ cj.lie.hat(jnp.stack([x[0] + x[1], 0 * x[0], 0 * x[0]])),
+            np.eye(3),
+            2,
+            "not injective",
+        ),
+    ],
+)
+def test_the_reduction_applies_exactly_to_right_multiplication_on_a_matrix_lie_algebra(
+    name, velocity_map, Q0, m, reason
+):
     """`find_reduction` decides closure from the commutators of the basis X(e_k) (the bracket
     of the left-invariant fields Q ↦ Q X); `check_closure`, which fits the brackets of the
     vector fields by jvps at points along their flows, gives the same verdict."""

@@ -81,15 +81,21 @@ _RIGHT_MULTIPLICATION = cj.models.rigid_body(INERTIA).velocity_map  # Q ↦ Q ha
 def particles(params):
     """Two free particles on a line, Q, ξ of shape (2,); the clock is particle 0."""
     kind, threshold = params
-    return cj.ClebschSystem(lagrangian=Partial(_particles_lagrangian, kind, threshold),
-                            velocity_map=_translation, derivative_map=cj.forward_difference)
+    return cj.ClebschSystem(
+        lagrangian=Partial(_particles_lagrangian, kind, threshold),
+        velocity_map=_translation,
+        derivative_map=cj.forward_difference,
+    )
 
 
 def body(params):
     """The free rigid body on SO(3) (Cayley); the clock is the angle of Q's first column in the xy-plane."""
     kind, threshold = params
-    return cj.ClebschSystem(lagrangian=Partial(_body_lagrangian, kind, threshold),
-                            velocity_map=_RIGHT_MULTIPLICATION, derivative_map=cj.cayley)
+    return cj.ClebschSystem(
+        lagrangian=Partial(_body_lagrangian, kind, threshold),
+        velocity_map=_RIGHT_MULTIPLICATION,
+        derivative_map=cj.cayley,
+    )
 
 
 # march → (system, Q0, the members' ξ0 (member 1 is the one that reaches the threshold), its
@@ -100,8 +106,13 @@ MARCHES = {
     "full": (particles, np.zeros(2), _XI_PARTICLES, 1.0, {"scheme": "left"}),
     "blocks": (particles, np.zeros(2), _XI_PARTICLES, 1.0, {"scheme": "left", "jacobian": "blocks"}),
     "order4": (particles, np.zeros(2), _XI_PARTICLES, 1.0, {"order": 4}),
-    "reduced": (body, np.eye(3), np.array([[0.3, 0.1, 0.2], [0.0, 0.0, 1.0], [-0.2, 0.3, 0.4]]), 1.0,
-                {"scheme": "left"}),
+    "reduced": (
+        body,
+        np.eye(3),
+        np.array([[0.3, 0.1, 0.2], [0.0, 0.0, 1.0], [-0.2, 0.3, 0.4]]),
+        1.0,
+        {"scheme": "left"},
+    ),
 }
 FORMS = {"full": "full", "blocks": "full", "order4": "full", "reduced": "reduced"}
 
@@ -122,8 +133,9 @@ def run(march, kinds, throw=False):
     thresholds = jnp.full(3, threshold_of(march))
 
     def member(xi0, kind, threshold):
-        return cj.integrate(make((kind, threshold)), Q0, xi0, dt=DT, n_steps=N_STEPS,
-                            max_newton_iterations=1, throw=throw, **options)
+        return cj.integrate(
+            make((kind, threshold)), Q0, xi0, dt=DT, n_steps=N_STEPS, max_newton_iterations=1, throw=throw, **options
+        )
 
     return jax.vmap(member)(jnp.asarray(xi0s), jnp.asarray(kinds), thresholds)
 
@@ -157,7 +169,7 @@ def test_an_injected_failure_is_reported_at_its_step_and_member(march, kind):
     bad = _member(sol, 1)
     np.testing.assert_array_equal(bad.stats.status[:k], Status.SUCCESS)
     assert bad.stats.status[k] == kind
-    np.testing.assert_array_equal(bad.stats.status[k + 1:], Status.SKIPPED)
+    np.testing.assert_array_equal(bad.stats.status[k + 1 :], Status.SKIPPED)
     # skipped steps and nodes count no work and report no residual
     for stats in (bad.stats, bad.nodal_stats):
         skipped = np.asarray(stats.status) == Status.SKIPPED
@@ -169,14 +181,14 @@ def test_an_injected_failure_is_reported_at_its_step_and_member(march, kind):
     np.testing.assert_array_equal(bad.valid, np.arange(N_STEPS + 1) <= k)
     nodes = [a for a in (bad.Q, bad.p, bad.momentum) if a is not None]
     for a in nodes:
-        assert np.all(np.isfinite(a[: k + 1])) and np.all(np.isnan(a[k + 1:]))
+        assert np.all(np.isfinite(a[: k + 1])) and np.all(np.isnan(a[k + 1 :]))
     for a in (bad.xi_step, bad.P):  # per step: NaN from the failed step on
         if a is not None:
             assert np.all(np.isfinite(a[:k])) and np.all(np.isnan(a[k:]))
     # nodal velocities: NaN at every invalid node, finite at every valid node whose own solve
     # (Lemma 7) succeeded; only node k may report a failed nodal solve, and only when it is
     # already past the threshold (the single-solve marches)
-    assert np.all(np.isnan(bad.xi[k + 1:]))
+    assert np.all(np.isnan(bad.xi[k + 1 :]))
     solved = bad.nodal_stats.status[: k + 1] == Status.SUCCESS
     np.testing.assert_array_equal(np.isfinite(bad.xi[: k + 1]).all(-1), solved)
     assert np.all(solved[:k])
@@ -210,8 +222,17 @@ def test_sweep_reports_each_fault_at_its_global_step():
     kinds = np.array([HEALTHY, Status.NONFINITE, Status.SINGULAR, Status.MAX_ITERATIONS, HEALTHY])
     thresholds = (ks + 0.5) * DT
     xi0s = np.array([[1.0, 0.1], [1.0, 0.4], [1.0, -0.3], [1.0, 0.2], [0.5, 0.5]])
-    res = cj.sweep(particles, (kinds, thresholds), np.zeros((5, 2)), xi0s, dt=DT, n_steps=N_STEPS,
-                   chunk_steps=5, batch_size=3, max_newton_iterations=1)
+    res = cj.sweep(
+        particles,
+        (kinds, thresholds),
+        np.zeros((5, 2)),
+        xi0s,
+        dt=DT,
+        n_steps=N_STEPS,
+        chunk_steps=5,
+        batch_size=3,
+        max_newton_iterations=1,
+    )
     failing = kinds != HEALTHY
     np.testing.assert_array_equal(res.failed_members, np.flatnonzero(failing))
     np.testing.assert_array_equal(res.status, kinds)

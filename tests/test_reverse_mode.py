@@ -116,10 +116,16 @@ def test_reverse_mode_on_a_two_dimensional_vector_space_matches_finite_differenc
 
 PRINCIPLES = ("default", "left", "right", "midpoint")
 CASES = (  # every stepper on one system of each kind, the principles on the others
-    [(name, stepper) for name in ("oscillator (2,)", "kepler (2,)", "rigid body, cayley", "heavy top, cayley")
-     for stepper in STEPPERS]
-    + [(name, stepper) for name in ("oscillator (1, 2)", "oscillator (2, 1)", "free particle (2,)")
-       for stepper in PRINCIPLES]
+    [
+        (name, stepper)
+        for name in ("oscillator (2,)", "kepler (2,)", "rigid body, cayley", "heavy top, cayley")
+        for stepper in STEPPERS
+    ]
+    + [
+        (name, stepper)
+        for name in ("oscillator (1, 2)", "oscillator (2, 1)", "free particle (2,)")
+        for stepper in PRINCIPLES
+    ]
     # the forward difference leaves SO(3) with the left and right principles (refused): the
     # symmetric methods only
     + [("rigid body, forward difference", stepper) for stepper in ("default", "midpoint", "gauss 4")]

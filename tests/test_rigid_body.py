@@ -22,8 +22,9 @@ def test_full_march_reproduces_cay_recursion():
     """Issue 2, check 1: Example 30's compact reduced equation, 2000 steps at Δt = 0.1."""
     dt, n = 0.1, 2000
     m0 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
-    sol = cj.integrate(cj.models.rigid_body(TEST_INERTIA), jnp.eye(3), m0 / TEST_INERTIA, dt=dt, n_steps=n,
-                       reduce=False)
+    sol = cj.integrate(
+        cj.models.rigid_body(TEST_INERTIA), jnp.eye(3), m0 / TEST_INERTIA, dt=dt, n_steps=n, reduce=False
+    )
     X = np.asarray(sol.xi_step)
     # The compact matrix form holds along the computed step velocities ...
     assert cay_compact_residual(TEST_INERTIA, X, dt) <= 1e-12
@@ -32,8 +33,11 @@ def test_full_march_reproduces_cay_recursion():
     assert np.max(np.abs(ref - X)) <= 1e-10
 
 
-@pytest.mark.parametrize("dmap", [cj.cayley, pytest.param(cj.exponential, marks=pytest.mark.slow)],  # exp: ~20 s
-                         ids=["cayley", "exponential"])
+@pytest.mark.parametrize(
+    "dmap",
+    [cj.cayley, pytest.param(cj.exponential, marks=pytest.mark.slow)],  # exp: ~20 s
+    ids=["cayley", "exponential"],
+)
 def test_order_two_against_tight_reference(dmap):
     """Issue 2, check 2: measured order from a log-log fit against SciPy DOP853 at rtol 1e-13.
 
@@ -109,7 +113,7 @@ def test_figure1_energy_bounded_and_orbit_persists(figure1_run):
     assert dg.envelope_ratio(err) < 1.3
     # Orbit persistence: in the last period the body momentum revisits its starting point
     # (the orbit is a closed curve near the exact one, not a spiral).
-    last = J[-len(J) // 100:]
+    last = J[-len(J) // 100 :]
     assert np.min(np.linalg.norm(last - J[0], axis=1)) < 0.05 * np.linalg.norm(J[0])
 
 

@@ -33,16 +33,23 @@ def _wall(strength, xi, Q):
     return 0.5 * xi @ xi + strength / jnp.abs(5.0 - Q[0])
 
 
-WALL = cj.ClebschSystem(lagrangian=Partial(_wall, jnp.asarray(1.0)), velocity_map=lambda x, Q: x + 0 * Q,
-                        derivative_map=cj.forward_difference)
+WALL = cj.ClebschSystem(
+    lagrangian=Partial(_wall, jnp.asarray(1.0)),
+    velocity_map=lambda x, Q: x + 0 * Q,
+    derivative_map=cj.forward_difference,
+)
 
 
 # -- 1. a nonlinear velocity map --------------------------------------------------------------
 
-@pytest.mark.parametrize("velocity_map", [
-    lambda x, Q: Q @ cj.lie.se2_hat(x * x),  # the issue's
-    lambda x, Q: Q @ cj.lie.hat(x) + 0.1 * Q @ cj.lie.hat(jnp.sin(x)),  # variant: nonlinear in a part
-])
+
+@pytest.mark.parametrize(
+    "velocity_map",
+    [
+        lambda x, Q: Q @ cj.lie.se2_hat(x * x),  # the issue's
+        lambda x, Q: Q @ cj.lie.hat(x) + 0.1 * Q @ cj.lie.hat(jnp.sin(x)),  # variant: nonlinear in a part
+    ],
+)
 def test_a_nonlinear_velocity_map_is_refused_naming_it(velocity_map):
     Q0 = jnp.eye(3)
     S = cj.ClebschSystem(lagrangian=lambda x: 0.5 * x @ x, velocity_map=velocity_map, derivative_map=cj.cayley)
@@ -52,19 +59,21 @@ def test_a_nonlinear_velocity_map_is_refused_naming_it(velocity_map):
 
 # -- 2. a step across a singularity -------------------------------------------------------------
 
+
 @pytest.mark.parametrize("scheme, step", [("left", 39), ("right", 38)])
 def test_a_step_across_a_singularity_fails_with_its_own_status(scheme, step):
     sol = cj.integrate(WALL, jnp.zeros(2), jnp.array([1.0, 0.0]), dt=0.1, n_steps=120, scheme=scheme, throw=False)
     assert int(sol.result) == Status.ENERGY_JUMP and int(sol.failed_step) == step
-    assert np.all(np.isfinite(sol.Q[: step + 1])) and np.all(np.isnan(sol.Q[step + 1:]))
-    assert not np.any(sol.valid[step + 1:]) and np.all(sol.stats.status[step + 1:] == Status.SKIPPED)
+    assert np.all(np.isfinite(sol.Q[: step + 1])) and np.all(np.isnan(sol.Q[step + 1 :]))
+    assert not np.any(sol.valid[step + 1 :]) and np.all(sol.stats.status[step + 1 :] == Status.SKIPPED)
     # the particle stopped short of the wall at x = 5, not at x = 833 beyond it
     assert float(sol.Q[step, 0]) < 5.0
     with pytest.raises(cj.IntegrationError, match=f"step {step} of 120.*energy changed"):
         cj.integrate(WALL, jnp.zeros(2), jnp.array([1.0, 0.0]), dt=0.1, n_steps=120, scheme=scheme)
     # the check can be switched off: the same run then reports success, as before
-    off = cj.integrate(WALL, jnp.zeros(2), jnp.array([1.0, 0.0]), dt=0.1, n_steps=120, scheme=scheme,
-                       check_energy=False)
+    off = cj.integrate(
+        WALL, jnp.zeros(2), jnp.array([1.0, 0.0]), dt=0.1, n_steps=120, scheme=scheme, check_energy=False
+    )
     assert int(off.result) == Status.SUCCESS and float(off.Q[-1, 0]) > 5.0
 
 
@@ -72,6 +81,7 @@ def test_a_jump_is_reported_with_its_member_under_vmap():
     """Variant: the wall's strength is a batched parameter; only the member whose particle
     reaches the attractive wall (strength > 0: potential -strength/|5 - x|) fails; one bounces
     off a repulsive wall and one moves along it, both successes, untouched by the failure."""
+
     def run(strength, v):
         return cj.integrate(_wall_system(strength), jnp.zeros(2), v, dt=0.1, n_steps=120, scheme="left", throw=False)
 
@@ -86,8 +96,9 @@ def test_a_jump_is_reported_with_its_member_under_vmap():
 
 
 def _wall_system(strength):
-    return cj.ClebschSystem(lagrangian=Partial(_wall, strength), velocity_map=WALL.velocity_map,
-                            derivative_map=cj.forward_difference)
+    return cj.ClebschSystem(
+        lagrangian=Partial(_wall, strength), velocity_map=WALL.velocity_map, derivative_map=cj.forward_difference
+    )
 
 
 def test_a_sweep_finds_the_same_jump_across_its_chunks():
@@ -97,10 +108,12 @@ def test_a_sweep_finds_the_same_jump_across_its_chunks():
     error covers the nodes before the jump, and the other members are untouched."""
     strengths = jnp.array([1.0, -1.0])
     Q0, v = jnp.zeros((1, 2)), jnp.array([[1.0, 0.0]])
-    res = cj.sweep(_wall_system, strengths, Q0, v, dt=0.1, n_steps=120, grid=True, chunk_steps=16, save_every=4,
-                   scheme="left")
-    ref = [cj.integrate(_wall_system(s), Q0[0], v[0], dt=0.1, n_steps=120, scheme="left", throw=False)
-           for s in strengths]
+    res = cj.sweep(
+        _wall_system, strengths, Q0, v, dt=0.1, n_steps=120, grid=True, chunk_steps=16, save_every=4, scheme="left"
+    )
+    ref = [
+        cj.integrate(_wall_system(s), Q0[0], v[0], dt=0.1, n_steps=120, scheme="left", throw=False) for s in strengths
+    ]
     step = int(ref[0].failed_step)
     assert int(ref[0].result) == Status.ENERGY_JUMP and step % 16 not in (0, 15)  # inside a chunk
     np.testing.assert_array_equal(res.status, [Status.ENERGY_JUMP, Status.SUCCESS])
@@ -111,8 +124,18 @@ def test_a_sweep_finds_the_same_jump_across_its_chunks():
     assert np.all(np.isfinite(res.saved["Q"][0, saved <= step])) and np.all(np.isnan(res.saved["Q"][0, saved > step]))
     energy = np.asarray(cj.diagnostics.energy(_wall_system(strengths[0]), ref[0]))
     np.testing.assert_allclose(res.energy_error[0], np.max(np.abs(energy[: step + 1] - energy[0])), rtol=1e-9)
-    off = cj.sweep(_wall_system, strengths, Q0, v, dt=0.1, n_steps=120, grid=True, chunk_steps=16, scheme="left",
-                   check_energy=False)
+    off = cj.sweep(
+        _wall_system,
+        strengths,
+        Q0,
+        v,
+        dt=0.1,
+        n_steps=120,
+        grid=True,
+        chunk_steps=16,
+        scheme="left",
+        check_energy=False,
+    )
     np.testing.assert_array_equal(off.status, [Status.SUCCESS, Status.SUCCESS])
 
 
@@ -121,10 +144,13 @@ _jump_traced = jax.jit(lambda E, size, status, largest, size_max: energy_jump(jn
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.floats(-1.0, 1.0), min_size=_JUMP_N + 1, max_size=_JUMP_N + 1),
-       st.lists(st.sampled_from([1e-3, 1e-1, 10.0]), min_size=_JUMP_N + 1, max_size=_JUMP_N + 1),
-       st.lists(st.integers(0, 2), min_size=_JUMP_N + 1, max_size=_JUMP_N + 1),
-       st.sampled_from([(1e-4, 1e-2, 1.0), (1e-2, 1.0, 1e2)]), st.integers(0, _JUMP_N))
+@given(
+    st.lists(st.floats(-1.0, 1.0), min_size=_JUMP_N + 1, max_size=_JUMP_N + 1),
+    st.lists(st.sampled_from([1e-3, 1e-1, 10.0]), min_size=_JUMP_N + 1, max_size=_JUMP_N + 1),
+    st.lists(st.integers(0, 2), min_size=_JUMP_N + 1, max_size=_JUMP_N + 1),
+    st.sampled_from([(1e-4, 1e-2, 1.0), (1e-2, 1.0, 1e2)]),
+    st.integers(0, _JUMP_N),
+)
 def test_the_energy_check_made_in_pieces_is_the_check_of_the_whole_run(noise, scale, level, sizes, failure):
     """The sweep checks a run chunk by chunk, carrying the running maxima: on any energy
     sequence (changes of scales 1e-3 to 10, energy sizes of 1e-4 to 1e2, so that some changes
@@ -160,6 +186,7 @@ def test_the_energy_check_passes_a_long_smooth_run():
 
 # -- 3. the gradient of a failed march ----------------------------------------------------------
 
+
 @pytest.mark.parametrize("reduce", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_the_gradient_of_a_failed_march_is_nan_not_zero(reduce):
     def final(x):
@@ -191,20 +218,24 @@ def test_the_gradient_of_a_member_with_invalid_input_is_nan():
 def test_a_failed_member_does_not_poison_the_others_gradients():
     """Variant: a vmapped batch with one failing member: its gradient is NaN, the healthy
     member's is the one it has alone (with respect to its own initial velocity)."""
+
     def loss(xs, dts):
-        sol = jax.vmap(lambda x, d: cj.integrate(RB, I3, x, dt=d, n_steps=10, throw=False,
-                                                 max_newton_iterations=2))(xs, dts)
+        sol = jax.vmap(lambda x, d: cj.integrate(RB, I3, x, dt=d, n_steps=10, throw=False, max_newton_iterations=2))(
+            xs, dts
+        )
         return jnp.sum(jnp.where(sol.succeeded, sol.momentum[:, -1].sum(-1), 0.0))
 
     xs, dts = jnp.stack([W, W]), jnp.array([0.1, 5.0])
     g = jax.grad(loss)(xs, dts)
-    alone = jax.grad(lambda x: cj.integrate(RB, I3, x, dt=0.1, n_steps=10, throw=False,
-                                            max_newton_iterations=2).momentum[-1].sum())(W)
+    alone = jax.grad(
+        lambda x: cj.integrate(RB, I3, x, dt=0.1, n_steps=10, throw=False, max_newton_iterations=2).momentum[-1].sum()
+    )(W)
     np.testing.assert_allclose(g[0], alone, rtol=1e-12)
     assert np.all(np.isnan(g[1]))
 
 
 # -- 4. bad values under vmap, cj.batch and in sweeps ----------------------------------------------
+
 
 def _with_inertia(inertia):
     return cj.integrate(cj.models.rigid_body(inertia), I3, W, dt=0.1, n_steps=5, throw=False)
@@ -247,8 +278,7 @@ def test_a_zero_circulation_under_vmap_is_invalid_input():
     Q0 = jnp.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0]])
 
     def run(gamma):
-        return cj.integrate(cj.models.point_vortices(gamma), Q0, jnp.zeros_like(Q0), dt=0.05, n_steps=3,
-                            throw=False)
+        return cj.integrate(cj.models.point_vortices(gamma), Q0, jnp.zeros_like(Q0), dt=0.05, n_steps=3, throw=False)
 
     sol = jax.vmap(run)(jnp.array([[1.0, 1.0, -0.5], [1.0, 0.0, -0.5]]))
     np.testing.assert_array_equal(sol.result, [Status.SUCCESS, Status.INVALID_INPUT])
@@ -256,10 +286,12 @@ def test_a_zero_circulation_under_vmap_is_invalid_input():
 
 def test_a_sweep_checks_every_parameter_row():
     inertias = jnp.array([[2.0, 1.0, 2 / 3], [1.0, 1.0, 0.5], [-1.0, 1.0, 0.5], [3.0, 0.0, 1.0]])
-    res = cj.sweep(cj.models.rigid_body, inertias, jnp.broadcast_to(I3, (4, 3, 3)), jnp.broadcast_to(W, (4, 3)),
-                   dt=0.1, n_steps=5)
-    np.testing.assert_array_equal(res.status, [Status.SUCCESS, Status.SUCCESS, Status.INVALID_INPUT,
-                                               Status.INVALID_INPUT])
+    res = cj.sweep(
+        cj.models.rigid_body, inertias, jnp.broadcast_to(I3, (4, 3, 3)), jnp.broadcast_to(W, (4, 3)), dt=0.1, n_steps=5
+    )
+    np.testing.assert_array_equal(
+        res.status, [Status.SUCCESS, Status.SUCCESS, Status.INVALID_INPUT, Status.INVALID_INPUT]
+    )
     np.testing.assert_array_equal(res.failed_step, [-1, -1, 0, 0])
     with pytest.raises(cj.IntegrationError, match="member 2"):
         res.raise_if_failed()
@@ -267,11 +299,12 @@ def test_a_sweep_checks_every_parameter_row():
 
 # -- 5. float32 input ----------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("which", ["Q0", "xi0", "dt", "all"])
 def test_float32_input_is_promoted_to_float64(which):
     args = dict(Q0=I3, xi0=W, dt=jnp.asarray(0.1))
     expect = cj.integrate(RB, args["Q0"], args["xi0"], dt=args["dt"], n_steps=5)
-    for name in (args if which == "all" else [which]):
+    for name in args if which == "all" else [which]:
         args[name] = np.asarray(args[name], np.float32)
     sol = cj.integrate(RB, args["Q0"], args["xi0"], dt=args["dt"], n_steps=5)
     assert sol.momentum.dtype == jnp.float64
@@ -290,10 +323,14 @@ def test_float32_batches_run_under_vmap_and_in_sweeps():
 
 # -- 6. internal errors become named ones ------------------------------------------------------------
 
-@pytest.mark.parametrize("velocity_map", [
-    lambda x, Q: Q @ cj.lie.hat(x) / Q[0, 1],  # the issue's kind: NaN (0/0) at Q0 = I
-    lambda x, Q: Q @ cj.lie.hat(x) * jnp.log(Q[0, 1]),  # variant: inf at Q0 = I
-])
+
+@pytest.mark.parametrize(
+    "velocity_map",
+    [
+        lambda x, Q: Q @ cj.lie.hat(x) / Q[0, 1],  # the issue's kind: NaN (0/0) at Q0 = I
+        lambda x, Q: Q @ cj.lie.hat(x) * jnp.log(Q[0, 1]),  # variant: inf at Q0 = I
+    ],
+)
 def test_a_velocity_map_not_finite_at_Q0_is_named(velocity_map):
     S = cj.ClebschSystem(lagrangian=lambda x: 0.5 * x @ x, velocity_map=velocity_map, derivative_map=cj.cayley)
     with pytest.raises(ValueError, match="velocity_map: not finite at the initial configuration Q0"):
@@ -302,11 +339,13 @@ def test_a_velocity_map_not_finite_at_Q0_is_named(velocity_map):
 
 def test_numpy_integer_step_counts_run():
     for n in (np.int64(5), np.int32(5)):
-        np.testing.assert_array_equal(cj.integrate(RB, I3, W, dt=0.1, n_steps=n).momentum,
-                                      cj.integrate(RB, I3, W, dt=0.1, n_steps=5).momentum)
+        np.testing.assert_array_equal(
+            cj.integrate(RB, I3, W, dt=0.1, n_steps=n).momentum, cj.integrate(RB, I3, W, dt=0.1, n_steps=5).momentum
+        )
 
 
 # -- 7. size guard, empty batches ------------------------------------------------------------------
+
 
 def test_a_run_too_large_for_memory_is_refused_with_the_estimate():
     with pytest.raises(ValueError, match=r"n_steps: 1000000000 steps would need about .* GB.*clebsch_jax.sweep"):
@@ -344,18 +383,26 @@ def _family(params, xi, Q):
 
 
 def _property_run(scheme, params, Q0, xi0, dt):
-    system = cj.ClebschSystem(lagrangian=Partial(_family, params), velocity_map=WALL.velocity_map,
-                              derivative_map=cj.forward_difference)
+    system = cj.ClebschSystem(
+        lagrangian=Partial(_family, params), velocity_map=WALL.velocity_map, derivative_map=cj.forward_difference
+    )
     return cj.integrate(system, Q0, xi0, dt=dt, n_steps=N_STEPS_PROPERTY, scheme=scheme, throw=False)
 
 
-_PROPERTY_RUNS = {scheme: jax.jit(jax.vmap(functools.partial(_property_run, scheme))) for scheme in ("left", "midpoint")}
+_PROPERTY_RUNS = {
+    scheme: jax.jit(jax.vmap(functools.partial(_property_run, scheme))) for scheme in ("left", "midpoint")
+}
 
 finite = dict(allow_nan=False, allow_infinity=False)
 mass = st.one_of(st.floats(0.5, 2.0, **finite), st.floats(-2.0, -0.5, **finite))
-good_row = st.tuples(mass, mass, st.sampled_from([0.0, 1.0]).flatmap(lambda on: st.floats(0.0, 2.0 * on, **finite)),
-                     st.sampled_from([0.0, 1.0]).flatmap(lambda on: st.floats(-1.0 * on, 1.0 * on, **finite)),
-                     st.floats(2.0, 6.0, **finite), st.floats(0.02, 0.2, **finite))
+good_row = st.tuples(
+    mass,
+    mass,
+    st.sampled_from([0.0, 1.0]).flatmap(lambda on: st.floats(0.0, 2.0 * on, **finite)),
+    st.sampled_from([0.0, 1.0]).flatmap(lambda on: st.floats(-1.0 * on, 1.0 * on, **finite)),
+    st.floats(2.0, 6.0, **finite),
+    st.floats(0.02, 0.2, **finite),
+)
 bad_value = st.sampled_from([np.nan, np.inf, -0.1, 0.0])
 
 
@@ -388,13 +435,14 @@ def test_every_run_succeeds_within_tolerance_or_reports_a_failure(rows, scheme):
             continue
         if result[m] != Status.SUCCESS:  # a failure, reported where it happened
             k = failed_step[m]
-            assert 0 <= k < N_STEPS_PROPERTY and not np.any(sol.valid[m, k + 1:]), (m, rows[m])
-            assert np.all(np.isnan(sol.Q[m, k + 1:])), (m, rows[m])
+            assert 0 <= k < N_STEPS_PROPERTY and not np.any(sol.valid[m, k + 1 :]), (m, rows[m])
+            assert np.all(np.isnan(sol.Q[m, k + 1 :])), (m, rows[m])
             continue
         # a success: finite, and the energy within tolerance of its initial value
         assert np.all(np.isfinite(sol.Q[m])) and np.all(np.isfinite(sol.xi[m])), (m, rows[m])
-        system = cj.ClebschSystem(lagrangian=Partial(_family, params[m]), velocity_map=WALL.velocity_map,
-                                  derivative_map=cj.forward_difference)
+        system = cj.ClebschSystem(
+            lagrangian=Partial(_family, params[m]), velocity_map=WALL.velocity_map, derivative_map=cj.forward_difference
+        )
         member = jax.tree_util.tree_map(lambda a: a[m], sol)
         energy = np.asarray(cj.diagnostics.energy(system, member))
         pairing = np.sum(np.asarray(member.momentum) * np.asarray(member.xi), axis=-1)

@@ -11,9 +11,15 @@ from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
 import clebsch_jax as cj
-from clebsch_jax.models import (point_vortices_sphere, sphere_vortex_hamiltonian, sphere_vortex_lift,
-                                sphere_vortex_moment, sphere_vortex_positions, sphere_vortex_velocity,
-                                sphere_vortex_xi)
+from clebsch_jax.models import (
+    point_vortices_sphere,
+    sphere_vortex_hamiltonian,
+    sphere_vortex_lift,
+    sphere_vortex_moment,
+    sphere_vortex_positions,
+    sphere_vortex_velocity,
+    sphere_vortex_xi,
+)
 
 
 def _unit(theta, phi):
@@ -21,8 +27,9 @@ def _unit(theta, phi):
 
 
 def _run(gamma, x0, dt, n):
-    sol = cj.integrate(point_vortices_sphere(gamma), sphere_vortex_lift(x0), sphere_vortex_xi(gamma, x0), dt=dt,
-                       n_steps=n)
+    sol = cj.integrate(
+        point_vortices_sphere(gamma), sphere_vortex_lift(x0), sphere_vortex_xi(gamma, x0), dt=dt, n_steps=n
+    )
     assert sol.scheme == "midpoint" and sol.order == 2
     return np.asarray(sphere_vortex_positions(sol.Q))
 

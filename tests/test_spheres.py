@@ -33,8 +33,9 @@ def _double_pendulum_lagrangian(xi, Q):
     return 0.5 * jnp.sum(v1**2) + 0.5 * jnp.sum(v2**2) - G * (2.0 * Q[0, 2] + Q[1, 2])
 
 
-DOUBLE = cj.ClebschSystem(lagrangian=_double_pendulum_lagrangian, velocity_map=_cross,
-                          derivative_map=cj.forward_difference)
+DOUBLE = cj.ClebschSystem(
+    lagrangian=_double_pendulum_lagrangian, velocity_map=_cross, derivative_map=cj.forward_difference
+)
 Q0_DOUBLE = np.array([[0.6, 0.0, -0.8], [0.0, 0.6, -0.8]])
 XI0_DOUBLE = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # the first row has a component along q1
 
@@ -42,6 +43,7 @@ XI0_DOUBLE = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # the first row has a
 def _double_reference(Q0, V0, ts):
     """The double spherical pendulum in Cartesian coordinates r1 = q1, r2 = q1 + q2 with the rod
     constraints' forces solved at every evaluation (DOP853, tight tolerances)."""
+
     def rhs(t, y):
         r1, r2, v1, v2 = y[:3], y[3:6], y[6:9], y[9:]
         d, w = r2 - r1, v2 - v1
@@ -105,8 +107,12 @@ def test_the_double_spherical_pendulum_runs_as_written_with_default_options():
 def test_degenerate_true_is_no_longer_a_dead_end_for_the_natural_lagrangian():
     """`degenerate=True`, which an older message suggested: the gauge makes the system regular
     again (nodal velocities recovered), the same trajectory as the default."""
-    system = cj.ClebschSystem(lagrangian=_double_pendulum_lagrangian, velocity_map=_cross,
-                              derivative_map=cj.forward_difference, degenerate=True)
+    system = cj.ClebschSystem(
+        lagrangian=_double_pendulum_lagrangian,
+        velocity_map=_cross,
+        derivative_map=cj.forward_difference,
+        degenerate=True,
+    )
     a = _quiet(cj.integrate, system, Q0_DOUBLE, XI0_DOUBLE, dt=0.05, n_steps=5)
     b = _quiet(cj.integrate, DOUBLE, Q0_DOUBLE, XI0_DOUBLE, dt=0.05, n_steps=5)
     assert a.isotropy == 2 and a.xi is not None
@@ -121,8 +127,9 @@ CONICAL_G = 0.8  # ω = 1 at cos θ = 0.8: q(t) = (0.6 cos t, 0.6 sin t, -0.8)
 Q0_CONICAL = np.array([0.6, 0.0, -0.8])
 
 
-@pytest.mark.parametrize("natural", [False, pytest.param(True, marks=pytest.mark.slow)],
-                         ids=["l=|xi|^2/2", "l=|xi x q|^2/2"])  # the double pendulum covers the gauge by default
+@pytest.mark.parametrize(
+    "natural", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["l=|xi|^2/2", "l=|xi x q|^2/2"]
+)  # the double pendulum covers the gauge by default
 def test_the_conical_pendulum_keeps_its_physical_initial_velocity(natural):
     """ξ0 = e₃ + c q0 is the physical velocity (0, 0.6, 0) for every c: the run is the conical orbit
     whatever c, with one warning that ξ0 was changed (none when it has no isotropy component)."""
@@ -158,8 +165,9 @@ def _kepler_lagrangian(xi, q):
     return 0.5 * jnp.sum(xi**2) + 1.0 / jnp.sqrt(jnp.sum(q**2))
 
 
-KEPLER = cj.ClebschSystem(lagrangian=_kepler_lagrangian, velocity_map=lambda xi, q: xi,
-                          derivative_map=cj.forward_difference)
+KEPLER = cj.ClebschSystem(
+    lagrangian=_kepler_lagrangian, velocity_map=lambda xi, q: xi, derivative_map=cj.forward_difference
+)
 
 
 def _perihelion(e):

@@ -24,11 +24,14 @@ def _same(a, b):
     assert (a.form, a.scheme, a.order, a.method) == (b.form, b.scheme, b.order, b.method)
 
 
-@pytest.mark.parametrize("options, method", [
-    (dict(), cj.ReducedStep()),
-    (dict(reduce=False, order=4), cj.Composed(cj.FullStep(), cj.SUZUKI_4)),
-    (dict(reduce=False, scheme="midpoint"), cj.FullStep(cj.Principle.MIDPOINT)),
-])
+@pytest.mark.parametrize(
+    "options, method",
+    [
+        (dict(), cj.ReducedStep()),
+        (dict(reduce=False, order=4), cj.Composed(cj.FullStep(), cj.SUZUKI_4)),
+        (dict(reduce=False, scheme="midpoint"), cj.FullStep(cj.Principle.MIDPOINT)),
+    ],
+)
 def test_method_objects_run_the_march_the_options_choose(options, method):
     """`method=` and the equivalent options are one program: bit-identical solutions."""
     by_options = cj.integrate(RIGID, EYE, XI0, dt=0.1, n_steps=12, **options)
@@ -74,16 +77,19 @@ def test_quick_compile_is_a_fact_of_the_base_stepper():
     assert set(_PROGRAMS) == {True, False}
 
 
-@pytest.mark.parametrize("make, match", [
-    (lambda: cj.FullStep("sideways"), r"^principle: expected one of"),
-    (lambda: cj.FullStep(root_finder=cj.FixedPoint()), r"^root_finder: expected"),
-    (lambda: cj.ReducedStep(root_finder=cj.BlockNewton()), r"^root_finder: the reduced step"),
-    (lambda: cj.GaussLegendre(order=3), r"^order: Gauss-Legendre expects an even order"),
-    (lambda: cj.Composed(cj.FullStep(), "no such coefficients"), r"^composition: unknown name"),
-    (lambda: cj.Composed(cj.GaussLegendre(order=4), cj.SUZUKI_4), r"^base: compose"),
-    (lambda: cj.Newton(rtol=-1.0), r"^rtol: expected a finite number >= 0"),
-    (lambda: cj.FixedPoint(max_iterations=0), r"^max_iterations: expected an int >= 1"),
-])
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: cj.FullStep("sideways"), r"^principle: expected one of"),
+        (lambda: cj.FullStep(root_finder=cj.FixedPoint()), r"^root_finder: expected"),
+        (lambda: cj.ReducedStep(root_finder=cj.BlockNewton()), r"^root_finder: the reduced step"),
+        (lambda: cj.GaussLegendre(order=3), r"^order: Gauss-Legendre expects an even order"),
+        (lambda: cj.Composed(cj.FullStep(), "no such coefficients"), r"^composition: unknown name"),
+        (lambda: cj.Composed(cj.GaussLegendre(order=4), cj.SUZUKI_4), r"^base: compose"),
+        (lambda: cj.Newton(rtol=-1.0), r"^rtol: expected a finite number >= 0"),
+        (lambda: cj.FixedPoint(max_iterations=0), r"^max_iterations: expected an int >= 1"),
+    ],
+)
 def test_bad_steppers_are_refused_when_built(make, match):
     with pytest.raises((ValueError, TypeError), match=match):
         make()
@@ -93,8 +99,9 @@ def test_a_method_that_cannot_run_the_system_is_refused_before_compiling():
     with pytest.raises(ValueError, match=r"^method: a composition needs a symmetric second-order step"):
         cj.integrate(TOP, TOP_Q0, OMEGA0, dt=0.02, n_steps=3, method=cj.Composed(cj.FullStep(), cj.SUZUKI_4))
     with pytest.raises(ValueError, match=r"^reduce: the reduced march does not apply.*not a matrix-group map"):
-        lamp = cj.ClebschSystem(lagrangian=lambda x: 0.5 * x @ x, velocity_map=lambda x, Q: x * Q,
-                                derivative_map=cj.forward_difference)
+        lamp = cj.ClebschSystem(
+            lagrangian=lambda x: 0.5 * x @ x, velocity_map=lambda x, Q: x * Q, derivative_map=cj.forward_difference
+        )
         cj.integrate(lamp, jnp.ones(2), jnp.ones(2), dt=0.1, n_steps=3, method=cj.ReducedStep())
     vortices = cj.models.point_vortices(jnp.array([1.0, -1.0]))
     with pytest.raises(ValueError, match=r"^scheme: 'left' is inconsistent for a degenerate Lagrangian"):

@@ -91,7 +91,8 @@ def test_chunked_diagnostics_equal_those_of_the_stored_trajectory():
     # final_p is a canonical momentum at final_Q whose momentum map is the final body momentum,
     # so (final_Q, final_p) continues the run.
     mom = jax.vmap(lambda p, q, x: cj.momentum_map(rigid_body(np.ones(3)), p, q, x))(
-        res.final_p, res.final_Q, res.final_xi)
+        res.final_p, res.final_Q, res.final_xi
+    )
     np.testing.assert_allclose(np.asarray(mom), res.final_momentum, rtol=0, atol=1e-14)
     assert np.all(res.newton_iterations >= n) and np.all(res.max_residual < 1e-14)
 
@@ -104,12 +105,17 @@ def test_without_P0_the_first_chunk_derives_the_minimum_norm_multiplier():
     system = rigid_body(np.ones(3))
     options = {**RB, "save_every": None}
     derived = cj.sweep(rigid_body, INERTIAS, eyes(4), OMEGAS, **options)
-    P0 = np.stack([np.asarray(cj.initial_multiplier(rigid_body(i), jnp.eye(3), jnp.asarray(w)))
-                   for i, w in zip(INERTIAS, OMEGAS)])
+    P0 = np.stack(
+        [np.asarray(cj.initial_multiplier(rigid_body(i), jnp.eye(3), jnp.asarray(w))) for i, w in zip(INERTIAS, OMEGAS)]
+    )
     S = np.array([[0.3, 0.1, 0.0], [0.1, -0.2, 0.4], [0.0, 0.4, 0.5]])
     for given in (P0, P0 + S):
-        np.testing.assert_allclose(cj.momentum_map(system, jnp.asarray(given[0]), jnp.eye(3), jnp.zeros(3)),
-                                   INERTIAS[0] * OMEGAS[0], rtol=0, atol=1e-14)
+        np.testing.assert_allclose(
+            cj.momentum_map(system, jnp.asarray(given[0]), jnp.eye(3), jnp.zeros(3)),
+            INERTIAS[0] * OMEGAS[0],
+            rtol=0,
+            atol=1e-14,
+        )
         res = cj.sweep(rigid_body, INERTIAS, eyes(4), OMEGAS, P0=given, **options)
         assert np.all(res.succeeded)
         for key in ("final_momentum", "final_xi", "final_Q", "final_p", "energy_error"):
@@ -187,8 +193,17 @@ def test_a_member_failing_mid_run_is_reported_at_its_global_step_full_march():
     qo, po = two_peakons_exact(0.0, **OVERTAKE)
     q0s, p0s = np.array([qc, qo, [np.nan, 1.0]]), np.array([pc, po, [1.0, 1.0]])
     xi0s = np.asarray(jax.vmap(peakon_velocity)(q0s, p0s))
-    res = cj.sweep(peakons, np.ones(3), q0s, xi0s, dt=dt, n_steps=n, chunk_steps=20, scheme="midpoint",
-                   invariants={"total_momentum": total_momentum})
+    res = cj.sweep(
+        peakons,
+        np.ones(3),
+        q0s,
+        xi0s,
+        dt=dt,
+        n_steps=n,
+        chunk_steps=20,
+        scheme="midpoint",
+        invariants={"total_momentum": total_momentum},
+    )
     assert res.form == "full" and res.order == 2
     np.testing.assert_array_equal(res.failed_members, [0, 2])
     # the collision: as for one integrate call (tests/test_epdiff.py), within 3 steps before t*
@@ -257,12 +272,16 @@ def test_bad_input_is_rejected_before_compiling(monkeypatch):
         (dict(fast="yes"), "fast: expected True, False or 'auto'"),
         (dict(threads=0), "threads"),
         (dict(invariants={"scalar": lambda s, sol: jnp.sum(sol.momentum)}), "invariants: 'scalar'"),
-        (dict(invariants={"short": lambda s, sol: sol.momentum[1:]}),
-         "invariants: 'short' must return one value per node"),
+        (
+            dict(invariants={"short": lambda s, sol: sol.momentum[1:]}),
+            "invariants: 'short' must return one value per node",
+        ),
         (dict(scheme="sideways"), "scheme"),
         (dict(Q0=np.concatenate([eyes(3), np.diag([1.0, 1.0, -1.0])[None]])), r"Q0\[3\]: det Q = -1"),
-        (dict(Q0=np.concatenate([eyes(2), 1.01 * eyes(1), np.diag([1.0, 1.0, -1.0])[None]])),
-         r"Q0\[2\]: not a rotation matrix"),  # the first bad row is named
+        (
+            dict(Q0=np.concatenate([eyes(2), 1.01 * eyes(1), np.diag([1.0, 1.0, -1.0])[None]])),
+            r"Q0\[2\]: not a rotation matrix",
+        ),  # the first bad row is named
         (dict(params=-INERTIAS), "inertia"),  # the constructor's own check, on the concrete first row
     ]
     for change, message in cases:
@@ -331,8 +350,9 @@ def test_devices_split_the_members_and_the_results_are_identical():
     repeats itself to the bit."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    out = subprocess.run([sys.executable, "-c", textwrap.dedent(SHARDED)], capture_output=True, text=True,
-                         cwd=root, env=env, timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(SHARDED)], capture_output=True, text=True, cwd=root, env=env, timeout=300
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "identical 21" in out.stdout and "many members twice" in out.stdout
 
@@ -347,8 +367,12 @@ def test_a_check_without_a_batched_form_runs_on_every_row():
         return "too far out" if np.asarray(Q)[0, 0] > 1.5 else None
 
     system = rigid_body(INERTIAS[0])
-    system = cj.ClebschSystem(lagrangian=system.lagrangian, velocity_map=system.velocity_map,
-                              derivative_map=system.derivative_map, check_Q=check)
+    system = cj.ClebschSystem(
+        lagrangian=system.lagrangian,
+        velocity_map=system.velocity_map,
+        derivative_map=system.derivative_map,
+        check_Q=check,
+    )
     Q0 = eyes(3).copy()
     Q0[1, 0, 0] = 2.0
     with pytest.raises(ValueError, match=r"^Q0\[1\]: too far out"):
@@ -398,8 +422,14 @@ def test_a_sweep_of_many_peakon_systems_finishes():
     (`clebsch_jax.core.linalg.spd_solve`)."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = {**os.environ, "PYTHONPATH": root + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    out = subprocess.run([sys.executable, "-c", textwrap.dedent(PEAKON_BATCHES)], capture_output=True, text=True,
-                         cwd=root, env=env, timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(PEAKON_BATCHES)],
+        capture_output=True,
+        text=True,
+        cwd=root,
+        env=env,
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "finished 0" in out.stdout
 

@@ -58,8 +58,9 @@ def reference():
 
 
 def stored(path, **change):
-    return cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, store=str(path),
-                    **{**KW, **change})
+    return cj.sweep(
+        rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, store=str(path), **{**KW, **change}
+    )
 
 
 def test_store_round_trip_with_xarray_and_open_sweep(reference, tmp_path):
@@ -91,8 +92,9 @@ def test_a_store_of_another_configuration_is_refused(reference, tmp_path):
     with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*inputs_sha256"):
         cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS + 0.125, invariants={"casimir": casimir}, store=str(path), **KW)
     res = stored(path, dt=0.04, overwrite=True)
-    assert_same_table(res, cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir},
-                                    **{**KW, "dt": 0.04}))
+    assert_same_table(
+        res, cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, **{**KW, "dt": 0.04})
+    )
     assert xarray.open_zarr(path, consolidated=False).attrs["dt"] == 0.04
 
 
@@ -105,11 +107,19 @@ def test_a_sweep_that_computes_something_else_under_the_same_names_is_refused(re
     # the store keeps a digest of one member's traced program: same names, other bodies are refused
     path = tmp_path / "sweep.zarr"
     stored(path)
-    for change, differs in (({"invariants": {"casimir": quartic}}, r"\(program_sha256: stored"),
-                            ({"check_energy": False}, r"\(options: stored .*'check_energy': True")):
+    for change, differs in (
+        ({"invariants": {"casimir": quartic}}, r"\(program_sha256: stored"),
+        ({"check_energy": False}, r"\(options: stored .*'check_energy': True"),
+    ):
         with pytest.raises(cj.SweepStoreError, match=f"another sweep configuration {differs}"):
-            cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, store=str(path), **{"invariants": {"casimir": casimir},
-                                                                                 **KW, **change})
+            cj.sweep(
+                rigid_body,
+                INERTIAS,
+                EYES,
+                OMEGAS,
+                store=str(path),
+                **{"invariants": {"casimir": casimir}, **KW, **change},
+            )
 
     # make_system: a lambda with another body, a module-level function edited in place
     scaled = tmp_path / "scaled.zarr"
@@ -120,8 +130,9 @@ def test_a_sweep_that_computes_something_else_under_the_same_names_is_refused(re
     assert cj.sweep(twice[0][0], INERTIAS, EYES, OMEGAS, store=str(scaled), **KW).succeeded.all()  # the same: resumed
 
     module = tmp_path / "edited_model.py"
-    module.write_text("from clebsch_jax.models import rigid_body\n\n"
-                      "def model(inertia):\n    return rigid_body(inertia)\n")
+    module.write_text(
+        "from clebsch_jax.models import rigid_body\n\ndef model(inertia):\n    return rigid_body(inertia)\n"
+    )
     monkeypatch.syspath_prepend(str(tmp_path))
     import importlib
 
@@ -129,8 +140,9 @@ def test_a_sweep_that_computes_something_else_under_the_same_names_is_refused(re
 
     edited = tmp_path / "edited.zarr"
     cj.sweep(edited_model.model, INERTIAS, EYES, OMEGAS, store=str(edited), **KW)
-    module.write_text("from clebsch_jax.models import rigid_body\n\n"
-                      "def model(inertia):\n    return rigid_body(inertia[::-1])\n")
+    module.write_text(
+        "from clebsch_jax.models import rigid_body\n\ndef model(inertia):\n    return rigid_body(inertia[::-1])\n"
+    )
     importlib.reload(edited_model)
     with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*program_sha256"):
         cj.sweep(edited_model.model, INERTIAS, EYES, OMEGAS, store=str(edited), **KW)
@@ -208,12 +220,16 @@ def test_a_path_that_is_not_our_store_is_refused_and_kept(tmp_path, monkeypatch)
     a_file = tmp_path / "table.zarr"
     a_file.write_bytes(b"not a folder")
     other = tmp_path / "other.zarr"
-    zarr.open_group(str(other), mode="w", attributes={"source": "a simulation"}).create_array("x", shape=(3,),
-                                                                                             dtype="f8")
+    zarr.open_group(str(other), mode="w", attributes={"source": "a simulation"}).create_array(
+        "x", shape=(3,), dtype="f8"
+    )
     monkeypatch.chdir(folder)
-    cases = [(folder, "is a folder that is not a Zarr store \\(it holds notes.txt, runs\\)"),
-             (".", "is a folder that is not a Zarr store"), (a_file, "is a file, not a folder"),
-             (other, "is a Zarr group not written by clebsch_jax.sweep")]
+    cases = [
+        (folder, "is a folder that is not a Zarr store \\(it holds notes.txt, runs\\)"),
+        (".", "is a folder that is not a Zarr store"),
+        (a_file, "is a file, not a folder"),
+        (other, "is a Zarr group not written by clebsch_jax.sweep"),
+    ]
     before = _tree(tmp_path)
     for path, message in cases:
         for overwrite in (False, True):
@@ -234,8 +250,10 @@ def test_a_damaged_store_is_an_error_never_wiped(reference, tmp_path):
     meta.write_bytes(meta.read_bytes()[:-40])  # the root metadata cut short
     before = _tree(path)
     for overwrite in (False, True):
-        with pytest.raises(cj.SweepStoreError, match=f"store '{path}': damaged.*root metadata \\(zarr.json\\) cannot "
-                                                     "be read.*Nothing was removed"):
+        with pytest.raises(
+            cj.SweepStoreError,
+            match=f"store '{path}': damaged.*root metadata \\(zarr.json\\) cannot be read.*Nothing was removed",
+        ):
             stored(path, overwrite=overwrite)
     assert _tree(path) == before
 
@@ -250,8 +268,9 @@ def test_an_empty_folder_or_an_interrupted_creation_is_used(reference, tmp_path)
     empty.mkdir()
     assert_same_table(stored(empty), reference)
     interrupted = tmp_path / "interrupted.zarr"
-    zarr.open_group(str(interrupted), mode="w", attributes={OWNER: OWNER_VALUE}).create_array("status", shape=(2,),
-                                                                                              dtype="i4")
+    zarr.open_group(str(interrupted), mode="w", attributes={OWNER: OWNER_VALUE}).create_array(
+        "status", shape=(2,), dtype="i4"
+    )
     assert_same_table(stored(interrupted), reference)
     (empty / "status" / "c" / "0").unlink()  # ours, truncated: overwrite replaces it
     assert_same_table(stored(empty, overwrite=True), reference)
@@ -273,8 +292,11 @@ def test_a_flipped_bit_is_found_and_only_its_batch_is_computed_again(reference, 
     _flip_a_bit(path / "saved_momentum" / "c" / "3" / "0" / "0")  # batch 3's saved nodes
     _flip_a_bit(path / "final_t" / "c" / "1")  # batch 1
     _flip_a_bit(path / "xi0" / "c" / "0" / "0")  # an input
-    with pytest.raises(cj.SweepStoreError, match=f"store '{path}': cannot read 'final_t' .*checksum.*: batch 1; run "
-                                                 "the same sweep with this store: it computes only the damaged"):
+    with pytest.raises(
+        cj.SweepStoreError,
+        match=f"store '{path}': cannot read 'final_t' .*checksum.*: batch 1; run "
+        "the same sweep with this store: it computes only the damaged",
+    ):
         cj.open_sweep(path)
     capsys.readouterr()
     assert_same_table(stored(path), reference)
@@ -305,8 +327,9 @@ def test_a_store_another_process_is_creating_is_refused_naming_it(reference, tmp
     host = socket.gethostname()
     with subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"]) as alive:
         try:
-            zarr.open_group(str(path), mode="w", attributes={OWNER: OWNER_VALUE,
-                                                             "created_by": {"host": host, "pid": alive.pid}})
+            zarr.open_group(
+                str(path), mode="w", attributes={OWNER: OWNER_VALUE, "created_by": {"host": host, "pid": alive.pid}}
+            )
             with pytest.raises(cj.SweepStoreError, match=f"is being created by process {alive.pid} on host {host}"):
                 stored(path)
         finally:
@@ -314,8 +337,9 @@ def test_a_store_another_process_is_creating_is_refused_naming_it(reference, tmp
     # now gone (reaped): the store is created again
     assert_same_table(stored(path), reference)
     elsewhere = tmp_path / "elsewhere.zarr"  # a creator on another host cannot be checked: refused
-    zarr.open_group(str(elsewhere), mode="w", attributes={OWNER: OWNER_VALUE,
-                                                          "created_by": {"host": "node-17", "pid": 4242}})
+    zarr.open_group(
+        str(elsewhere), mode="w", attributes={OWNER: OWNER_VALUE, "created_by": {"host": "node-17", "pid": 4242}}
+    )
     with pytest.raises(cj.SweepStoreError, match="process 4242 on host node-17.*delete the store yourself"):
         stored(elsewhere, overwrite=True)
 
@@ -371,10 +395,12 @@ def test_store_needs_the_optional_extra(monkeypatch, tmp_path):
 
 def test_bad_store_client_and_overwrite_are_refused_before_compiling(tmp_path):
     pytest.importorskip("distributed")
-    bad = [({"overwrite": True}, ValueError, "overwrite: True replaces a store, but no store= was given"),
-           ({"overwrite": "yes", "store": str(tmp_path / "s.zarr")}, ValueError, "overwrite: expected True or False"),
-           ({"client": "tcp://localhost:8786"}, ValueError, "client: expected a dask.distributed.Client, got str"),
-           ({"store": ""}, ValueError, "store: expected a path")]
+    bad = [
+        ({"overwrite": True}, ValueError, "overwrite: True replaces a store, but no store= was given"),
+        ({"overwrite": "yes", "store": str(tmp_path / "s.zarr")}, ValueError, "overwrite: expected True or False"),
+        ({"client": "tcp://localhost:8786"}, ValueError, "client: expected a dask.distributed.Client, got str"),
+        ({"store": ""}, ValueError, "store: expected a path"),
+    ]
     for change, kind, message in bad:
         with pytest.raises(kind, match=message):
             cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, **{**KW, **change})
@@ -405,8 +431,11 @@ def test_a_sweep_killed_after_some_batches_resumes_with_the_same_table(reference
     path, inputs = tmp_path / "sweep.zarr", tmp_path / "inputs.npz"
     np.savez(inputs, inertias=INERTIAS, eyes=EYES, omegas=OMEGAS)
     (tmp_path / "run.py").write_text(SCRIPT)
-    proc = subprocess.Popen([sys.executable, str(tmp_path / "run.py"), str(path), str(inputs)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, str(tmp_path / "run.py"), str(path), str(inputs)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     done = np.zeros(N_BATCHES, bool)
     deadline = time.monotonic() + 300
     try:
@@ -443,14 +472,17 @@ def test_a_sweep_killed_after_some_batches_resumes_with_the_same_table(reference
 @pytest.fixture(scope="module")
 def client():
     distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
-            distributed.Client(cl) as c:
+    with (
+        distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl,
+        distributed.Client(cl) as c,
+    ):
         yield c
 
 
 def killing_casimir(flag: str, driver: int):
     """`casimir`, but the first worker process that traces it SIGKILLs itself (once, flagged
     by the file `flag`): a worker dying in the middle of its first batch."""
+
     def f(system, sol):
         if os.getpid() != driver and not os.path.exists(flag):
             open(flag, "w").close()
@@ -521,29 +553,59 @@ def test_the_command_line_help_documents_the_toml_format(capsys):
     assert main(["--help"]) == 0 and "sweep" in capsys.readouterr().out
     assert main(["sweep", "--help"]) == 0
     out = capsys.readouterr().out
-    for text in ("--store", "--workers", "--scheduler", "--overwrite", "model =", "n_steps =", "[params]",
-                 "linspace", "[initial]", "xi0 =", "[options]", "[invariants]"):
+    for text in (
+        "--store",
+        "--workers",
+        "--scheduler",
+        "--overwrite",
+        "model =",
+        "n_steps =",
+        "[params]",
+        "linspace",
+        "[initial]",
+        "xi0 =",
+        "[options]",
+        "[invariants]",
+    ):
         assert text in out
     assert main(["sweep", "x.toml", "--store", "s.zarr", "--workers", "2", "--scheduler", "tcp://h:8786"]) == 2
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda c: c.replace('"rigid_body"', '"no_such_model"'), "model: clebsch_jax.models has no function 'no_such_model'"),
-    (lambda c: "n_step = 3\n" + c, "unknown entry n_step"),
-    (lambda c: c.replace("[params]\nvalues", "[params]\nlinspace = [[1, 2, 3]]\nvalues"),
-     "[params]: give exactly one of values"),
-    (lambda c: c.replace("[params]\nvalues", "[params]\nvalue"), "[params]: unknown entry value"),
-    (lambda c: c + "[options]\nscheme = 3\n", "sweep.toml: sweep: one member"),  # refused by cj.sweep
-    # misspelled keys inside tables are refused, not ignored
-    (lambda c: c.replace("[params]\nvalues", "[params]\nvalues = [[1.0, 2.0, 3.0]]\nvaluess"),
-     "[params]: unknown entry valuess"),
-    (lambda c: c.replace("xi0 = [", "xi0 = {normal = [4, 3], seedd = 1}\nunused = ["),
-     "[initial]: unknown entry unused"),
-    (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], sede = 1}\n# [["), "[initial] xi0: unknown entry sede"),
-    (lambda c: c.replace("Q0 = {identity = 3}", "Q0 = {identity = 3, valu = 1}"), "[initial] Q0: expected"),
-    (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], seed = -7}\n# [["), "seed must be a whole number >= 0"),
-    (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], scale = 'big'}\n# [["), "scale must be a finite"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            lambda c: c.replace('"rigid_body"', '"no_such_model"'),
+            "model: clebsch_jax.models has no function 'no_such_model'",
+        ),
+        (lambda c: "n_step = 3\n" + c, "unknown entry n_step"),
+        (
+            lambda c: c.replace("[params]\nvalues", "[params]\nlinspace = [[1, 2, 3]]\nvalues"),
+            "[params]: give exactly one of values",
+        ),
+        (lambda c: c.replace("[params]\nvalues", "[params]\nvalue"), "[params]: unknown entry value"),
+        (lambda c: c + "[options]\nscheme = 3\n", "sweep.toml: sweep: one member"),  # refused by cj.sweep
+        # misspelled keys inside tables are refused, not ignored
+        (
+            lambda c: c.replace("[params]\nvalues", "[params]\nvalues = [[1.0, 2.0, 3.0]]\nvaluess"),
+            "[params]: unknown entry valuess",
+        ),
+        (
+            lambda c: c.replace("xi0 = [", "xi0 = {normal = [4, 3], seedd = 1}\nunused = ["),
+            "[initial]: unknown entry unused",
+        ),
+        (
+            lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], sede = 1}\n# [["),
+            "[initial] xi0: unknown entry sede",
+        ),
+        (lambda c: c.replace("Q0 = {identity = 3}", "Q0 = {identity = 3, valu = 1}"), "[initial] Q0: expected"),
+        (
+            lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], seed = -7}\n# [["),
+            "seed must be a whole number >= 0",
+        ),
+        (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], scale = 'big'}\n# [["), "scale must be a finite"),
+    ],
+)
 def test_the_command_line_names_a_bad_config_entry(tmp_path, capsys, edit, message):
     from clebsch_jax.cli import main
 
@@ -588,11 +650,13 @@ def test_the_command_line_refuses_a_store_it_cannot_use_in_one_line(tmp_path, ca
 def test_the_command_line_on_local_workers_stops_on_ctrl_c_and_resumes(tmp_path):
     config, path = tmp_path / "sweep.toml", tmp_path / "sweep.zarr"
     long = dict(KW, n_steps=2000, chunk_steps=100, batch_size=1, save_every=None)  # batches of ~1 s
-    config.write_text(CONFIG.replace(f"n_steps = {KW['n_steps']}", f"n_steps = {long['n_steps']}")
-                      .replace(f"chunk_steps = {KW['chunk_steps']}", f"chunk_steps = {long['chunk_steps']}")
-                      .replace(f"batch_size = {KW['batch_size']}", "batch_size = 1")
-                      .replace(f"save_every = {KW['save_every']}\n", "")
-                      .replace(f'casimir = "{__name__}:casimir"', 'body_momentum = "body_momentum"'))
+    config.write_text(
+        CONFIG.replace(f"n_steps = {KW['n_steps']}", f"n_steps = {long['n_steps']}")
+        .replace(f"chunk_steps = {KW['chunk_steps']}", f"chunk_steps = {long['chunk_steps']}")
+        .replace(f"batch_size = {KW['batch_size']}", "batch_size = 1")
+        .replace(f"save_every = {KW['save_every']}\n", "")
+        .replace(f'casimir = "{__name__}:casimir"', 'body_momentum = "body_momentum"')
+    )
     cmd = [sys.executable, "-m", "clebsch_jax", "sweep", str(config), "--store", str(path), "--quiet"]
     proc = subprocess.Popen(cmd + ["--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 300
@@ -613,6 +677,7 @@ def test_the_command_line_on_local_workers_stops_on_ctrl_c_and_resumes(tmp_path)
     rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     assert f"skipped {done.sum()} of {N_MEMBERS} members" in rerun.stderr
-    whole = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants={"body_momentum": cj.diagnostics.body_momentum},
-                     **long)
+    whole = cj.sweep(
+        rigid_body, INERTIAS, EYES, OMEGAS, invariants={"body_momentum": cj.diagnostics.body_momentum}, **long
+    )
     assert_same_table(cj.open_sweep(path), whole)

@@ -22,13 +22,18 @@ def _satellite_lagrangian(xi, Q):
     return 0.5 * jnp.sum(INERTIA * xi**2) - K * jnp.sum(INERTIA * gamma**2)
 
 
-SATELLITE = cj.ClebschSystem(lagrangian=_satellite_lagrangian, velocity_map=lambda xi, Q: Q @ cj.lie.hat(xi),
-                             derivative_map=cj.cayley, check_Q=cj.models.check_rotation)
+SATELLITE = cj.ClebschSystem(
+    lagrangian=_satellite_lagrangian,
+    velocity_map=lambda xi, Q: Q @ cj.lie.hat(xi),
+    derivative_map=cj.cayley,
+    check_Q=cj.models.check_rotation,
+)
 
 
 def _satellite_reference(Q0, w0, T):
     """Euler's equations with the gravity-gradient torque, I ω̇ = Iω × ω + γ × ∂V/∂γ (V = K γ·Iγ),
     and Q̇ = Q ω^."""
+
     def rhs(t, y):
         Q, w = y[:9].reshape(3, 3), y[9:]
         gamma = Q[2]
@@ -72,8 +77,9 @@ def _particle_lagrangian(xi, x):
     return 0.5 * jnp.sum(xi**2) + jnp.sum(xi * A) - 0.5 * TRAP * (x[0] ** 2 + x[1] ** 2)
 
 
-PARTICLE = cj.ClebschSystem(lagrangian=_particle_lagrangian, velocity_map=lambda xi, x: xi,
-                            derivative_map=cj.forward_difference)
+PARTICLE = cj.ClebschSystem(
+    lagrangian=_particle_lagrangian, velocity_map=lambda xi, x: xi, derivative_map=cj.forward_difference
+)
 
 
 def test_a_charged_particle_in_a_magnetic_field():

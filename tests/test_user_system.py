@@ -51,8 +51,7 @@ def test_se2_body_converges_at_order_two_to_the_exact_solution():
 def test_se2_noether_momentum_and_group_structure_are_preserved():
     """l is left-invariant, so the momentum of the left SE(2) action is conserved exactly."""
     system = se2_system()
-    sol = cj.integrate(system, se2(0.4, 1.0, -0.5), jnp.array([1.3, 0.8, -0.4]), dt=0.1, n_steps=5000,
-                       reduce=False)
+    sol = cj.integrate(system, se2(0.4, 1.0, -0.5), jnp.array([1.3, 0.8, -0.4]), dt=0.1, n_steps=5000, reduce=False)
     gens = lambda Q: jnp.stack([cj.lie.se2_hat(e) @ Q for e in jnp.eye(3)])
     J = np.asarray(dg.noether_momentum(sol, gens))
     # The pairing <p, Y(Q)> sums terms of size |x||p| that grow as the body translates

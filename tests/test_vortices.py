@@ -68,8 +68,9 @@ def test_two_vortices_rotate_rigidly_at_the_exact_rate_with_order_two():
         # rigid: the distance and the centre of vorticity are invariants of the discrete flow
         dist = np.linalg.norm(sol.Q[:, 0] - sol.Q[:, 1], axis=-1)
         np.testing.assert_allclose(dist, d, rtol=1e-13)
-        np.testing.assert_allclose((gamma[None, :, None] * sol.Q).sum(1) / gamma.sum(), centre[None].repeat(n + 1, 0),
-                                   atol=1e-13)
+        np.testing.assert_allclose(
+            (gamma[None, :, None] * sol.Q).sum(1) / gamma.sum(), centre[None].repeat(n + 1, 0), atol=1e-13
+        )
     assert abs(dg.fit_order(dts, errors) - 2.0) < 0.15, errors
     # the measured angular velocity converges to (Γ₁+Γ₂)/(2π d²)
     sol = _run(gamma, Q0, dts[-1], n)
@@ -167,8 +168,8 @@ def test_three_vortex_collapse_is_followed_then_reported_as_a_failure():
     assert int(sol.result) != cj.Status.SUCCESS
     step = int(sol.failed_step)
     assert 0.9 * tau < ts[step] <= tau + dt
-    assert valid[: step + 1].all() and not valid[step + 1:].any()
-    assert np.isnan(np.asarray(sol.Q[step + 1:])).all()
+    assert valid[: step + 1].all() and not valid[step + 1 :].any()
+    assert np.isnan(np.asarray(sol.Q[step + 1 :])).all()
     assert np.isfinite(np.asarray(sol.Q[: step + 1])).all()
     with pytest.raises(cj.IntegrationError, match=rf"step {step} of {n} .*Newton"):
         _run(COLLAPSE_GAMMA, COLLAPSE_Q0, dt, n)
@@ -180,8 +181,7 @@ def test_vmap_over_circulations_and_initial_positions():
     Q0s = rng.normal(size=(3, 4, 2))
 
     def run(g, q):
-        return cj.integrate(models.point_vortices(g), q, models.vortex_velocity(g, q), dt=0.02, n_steps=50,
-                            throw=False)
+        return cj.integrate(models.point_vortices(g), q, models.vortex_velocity(g, q), dt=0.02, n_steps=50, throw=False)
 
     batch = jax.jit(jax.vmap(run))(gammas, Q0s)
     batch.raise_if_failed()
@@ -214,8 +214,9 @@ def test_gradients_through_the_block_solver_match_finite_differences():
 
     def final_x(scale):
         Q = Q0 * scale
-        sol = cj.integrate(models.point_vortices(gamma), Q, models.vortex_velocity(gamma, Q), dt=0.02,
-                           n_steps=20, jacobian="blocks")
+        sol = cj.integrate(
+            models.point_vortices(gamma), Q, models.vortex_velocity(gamma, Q), dt=0.02, n_steps=20, jacobian="blocks"
+        )
         return sol.Q[-1, 0, 0]
 
     g = float(jax.grad(final_x)(1.0))

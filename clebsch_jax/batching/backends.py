@@ -59,8 +59,9 @@ def warn_once(reason: str) -> None:
         if reason in _WARNED:
             return
         _WARNED.add(reason)
-    warnings.warn(f"clebsch_jax: running the batch with XLA, not a native kernel: {reason}.",
-                  NativeFallbackWarning, stacklevel=3)
+    warnings.warn(
+        f"clebsch_jax: running the batch with XLA, not a native kernel: {reason}.", NativeFallbackWarning, stacklevel=3
+    )
 
 
 _PROGRAMS: dict = {}

@@ -126,6 +126,7 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
             def one(dyn_chunk):
                 it = iter(dyn_chunk)
                 return run([next(it) if f else x for x, f in zip(chunked, flags)])
+
             outs = lax.map(one, dyn)
         outs = [jnp.moveaxis(o, -1, 1).reshape((n_chunks * c,) + o.shape[1:-1])[:B] for o in outs]
         return jax.tree_util.tree_unflatten(out_tree, outs)
@@ -140,8 +141,10 @@ def _members(leaves, axes):
     if any(a == 0 and jnp.ndim(x) == 0 for x, a in zip(leaves, axes)):
         raise ValueError("in_axes: a batched argument is a scalar; it has no axis 0 to batch over.")
     if len(sizes) != 1:
-        raise ValueError("in_axes: the batched arguments must share one leading axis size, got "
-                         f"{sorted(sizes) if sizes else 'no batched argument'}.")
+        raise ValueError(
+            "in_axes: the batched arguments must share one leading axis size, got "
+            f"{sorted(sizes) if sizes else 'no batched argument'}."
+        )
     leaves = [jnp.asarray(x) for x in leaves]
     member = [jax.ShapeDtypeStruct(x.shape[1:] if a == 0 else x.shape, x.dtype) for x, a in zip(leaves, axes)]
     return sizes.pop(), leaves, member
@@ -152,8 +155,9 @@ def _flat_axes(in_axes, args):
     if in_axes is None or isinstance(in_axes, int):
         in_axes = (in_axes,) * len(args)
     if not isinstance(in_axes, (tuple, list)) or len(in_axes) != len(args):
-        raise ValueError(f"in_axes: expected 0, None or a tuple of them with one entry per argument "
-                         f"({len(args)}), got {in_axes!r}.")
+        raise ValueError(
+            f"in_axes: expected 0, None or a tuple of them with one entry per argument ({len(args)}), got {in_axes!r}."
+        )
     axes = []
     for ax, arg in zip(in_axes, args):
         if ax not in (0, None) or isinstance(ax, bool):
@@ -215,8 +219,10 @@ def _eval(jaxpr, consts, args, flags, B):
 
 def _fallback(eqn, vals, bs, B):
     """`jax.vmap` of the one primitive, the batch axis moved last around it."""
+
     def f(*xs):
         return _bind(eqn, xs)
+
     outs = jax.vmap(f, in_axes=[-1 if b else None for b in bs], out_axes=-1, axis_size=B)(*vals)
     return outs, [True] * len(outs)
 
@@ -278,8 +284,13 @@ def _reshape(eqn, vals, bs, B):
 def _slice(eqn, vals, bs, B):
     p = eqn.params
     strides = None if p["strides"] is None else tuple(p["strides"]) + (1,)
-    return _bind(eqn, vals, start_indices=tuple(p["start_indices"]) + (0,),
-                 limit_indices=tuple(p["limit_indices"]) + (B,), strides=strides), [True]
+    return _bind(
+        eqn,
+        vals,
+        start_indices=tuple(p["start_indices"]) + (0,),
+        limit_indices=tuple(p["limit_indices"]) + (B,),
+        strides=strides,
+    ), [True]
 
 
 def _pad(eqn, vals, bs, B):
@@ -308,7 +319,7 @@ def _dot_general(eqn, vals, bs, B):
     l = jnp.transpose(l, tuple(lb) + tuple(lf) + tuple(lc) + (len(ls),))
     r = jnp.transpose(r, tuple(rb) + tuple(rf) + tuple(rc) + (len(rs),))
     nb, nlf, nrf, nc = len(lb), len(lf), len(rf), len(lc)
-    l = l.reshape(l.shape[:nb + nlf] + (1,) * nrf + l.shape[nb + nlf:])
+    l = l.reshape(l.shape[: nb + nlf] + (1,) * nrf + l.shape[nb + nlf :])
     r = r.reshape(r.shape[:nb] + (1,) * nlf + r.shape[nb:])
     prod = l * r
     out = jnp.sum(prod, axis=tuple(range(nb + nlf + nrf, nb + nlf + nrf + nc))) if nc else prod
@@ -324,6 +335,7 @@ def _call(key):
         if isinstance(inner, jex.ClosedJaxpr):
             return _eval(inner.jaxpr, inner.consts, vals, bs, B)
         return _eval(inner, (), vals, bs, B)
+
     return rule
 
 
@@ -369,7 +381,7 @@ def _stable_carry(body, consts, carry, xs=()):
 
 def _while_carry_flags(p, bs):
     nc, nb = p["cond_nconsts"], p["body_nconsts"]
-    carry, _ = _stable_carry(p["body_jaxpr"], bs[nc:nc + nb], list(bs[nc + nb:]))
+    carry, _ = _stable_carry(p["body_jaxpr"], bs[nc : nc + nb], list(bs[nc + nb :]))
     pred = _flags(p["cond_jaxpr"], list(bs[:nc]) + carry)[0]
     if pred:
         carry = [True] * len(carry)
@@ -378,7 +390,7 @@ def _while_carry_flags(p, bs):
 
 def _scan_carry_flags(p, bs):
     nc, nk = p["num_consts"], p["num_carry"]
-    carry, out = _stable_carry(p["jaxpr"], bs[:nc], list(bs[nc:nc + nk]), bs[nc + nk:])
+    carry, out = _stable_carry(p["jaxpr"], bs[:nc], list(bs[nc : nc + nk]), bs[nc + nk :])
     return carry, carry + out[nk:]
 
 
@@ -393,9 +405,9 @@ def _while(eqn, vals, bs, B):
     p = eqn.params
     nc, nb = p["cond_nconsts"], p["body_nconsts"]
     carry_flags, pred_batched = _while_carry_flags(p, bs)
-    cc, bc = vals[:nc], vals[nc:nc + nb]
-    ccf, bcf = bs[:nc], bs[nc:nc + nb]
-    init = _match(vals[nc + nb:], bs[nc + nb:], carry_flags, B)
+    cc, bc = vals[:nc], vals[nc : nc + nb]
+    ccf, bcf = bs[:nc], bs[nc : nc + nb]
+    init = _match(vals[nc + nb :], bs[nc + nb :], carry_flags, B)
     cond_j, body_j = p["cond_jaxpr"], p["body_jaxpr"]
 
     def pred(carry):
@@ -412,6 +424,7 @@ def _while(eqn, vals, bs, B):
     if not pred_batched and not pred_shape:
         out = lax.while_loop(pred, body, init)
     else:
+
         def select(go, new, old):
             dims = tuple(range(len(pred_shape))) + ((new.ndim - 1,) if pred_batched else ())
             return lax.select(lax.broadcast_in_dim(go, new.shape, dims), new, old)
@@ -419,6 +432,7 @@ def _while(eqn, vals, bs, B):
         def masked_body(carry):
             go = pred(carry)
             return [select(go, n, o) for n, o in zip(body(carry), carry)]
+
         out = lax.while_loop(lambda c: jnp.any(pred(c)), masked_body, init)
     return list(out), carry_flags
 
@@ -428,8 +442,8 @@ def _scan(eqn, vals, bs, B):
     nc, nk = p["num_consts"], p["num_carry"]
     carry_flags, out_flags = _scan_carry_flags(p, bs)
     consts, cf = vals[:nc], bs[:nc]
-    init = _match(vals[nc:nc + nk], bs[nc:nc + nk], carry_flags, B)
-    xs, xf = vals[nc + nk:], bs[nc + nk:]
+    init = _match(vals[nc : nc + nk], bs[nc : nc + nk], carry_flags, B)
+    xs, xf = vals[nc + nk :], bs[nc + nk :]
     ys_flags = out_flags[nk:]
 
     def body(carry, x):
@@ -449,6 +463,7 @@ def _cond(eqn, vals, bs, B):
         def run(*xs):
             outs, fs = _eval_closed(br, list(xs), list(opf), B)
             return _match(outs, fs, out_flags, B)
+
         return run
 
     if not bs[0]:
@@ -475,8 +490,16 @@ argmax argmin cumlogsumexp cummax cummin cumprod cumsum reduce_and reduce_max re
 reduce_prod reduce_sum reduce_xor rev split squeeze
 """.split()
 
-_CALLS = {"jit": "jaxpr", "pjit": "jaxpr", "closed_call": "call_jaxpr", "core_call": "call_jaxpr",
-          "custom_jvp_call": "call_jaxpr", "custom_vjp_call": "call_jaxpr", "remat": "jaxpr", "checkpoint": "jaxpr"}
+_CALLS = {
+    "jit": "jaxpr",
+    "pjit": "jaxpr",
+    "closed_call": "call_jaxpr",
+    "core_call": "call_jaxpr",
+    "custom_jvp_call": "call_jaxpr",
+    "custom_vjp_call": "call_jaxpr",
+    "remat": "jaxpr",
+    "checkpoint": "jaxpr",
+}
 
 _RULES = {
     **{name: _elementwise for name in _ELEMENTWISE},

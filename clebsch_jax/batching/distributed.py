@@ -48,10 +48,16 @@ def _batch_members(members, b: int, batch_size: int):
     params = members.params
     if members.builder is not None:
         params = jax.tree_util.tree_map(lambda a: a[members.param_index[idx]], params)
-    return members._replace(params=params, Q0=members.Q0[ic], xi0=members.xi0[ic],
-                            P0=None if members.P0 is None else members.P0[ic], n_ic=n,
-                            param_index=np.arange(n) if members.builder is not None else np.zeros(n, int),
-                            ic_index=np.arange(n), dt=members.dt[idx])
+    return members._replace(
+        params=params,
+        Q0=members.Q0[ic],
+        xi0=members.xi0[ic],
+        P0=None if members.P0 is None else members.P0[ic],
+        n_ic=n,
+        param_index=np.arange(n) if members.builder is not None else np.zeros(n, int),
+        ic_index=np.arange(n),
+        dt=members.dt[idx],
+    )
 
 
 def _batch_task(static, token: str, b: int, members, store, run_id: int):
@@ -77,8 +83,9 @@ def check_client(client):
     try:
         from distributed import Client
     except ImportError:
-        raise ImportError('client=: running a sweep on Dask needs dask.distributed: '
-                          'pip install "clebsch-jax[sweep]"') from None
+        raise ImportError(
+            'client=: running a sweep on Dask needs dask.distributed: pip install "clebsch-jax[sweep]"'
+        ) from None
     if not isinstance(client, Client):
         raise ValueError(f"client: expected a dask.distributed.Client, got {type(client).__name__}.")
 
@@ -95,8 +102,20 @@ def run_on_client(client, plan, batches: list, store, run_id: int, progress):
     # the static part once per worker (broadcast): deserialised once, so its functions keep their
     # identity and jax.jit compiles once per worker; each task carries its own batch's inputs
     [static] = client.scatter([(plan.cfg, plan.shapes, plan.run, bs)], broadcast=True, hash=False)
-    futures = [client.submit(_batch_task, static, token, b, _batch_members(plan.members, b, bs), store, run_id,
-                             pure=False, key=f"clebsch-jax-sweep-{token}-batch-{b}") for b in batches]
+    futures = [
+        client.submit(
+            _batch_task,
+            static,
+            token,
+            b,
+            _batch_members(plan.members, b, bs),
+            store,
+            run_id,
+            pure=False,
+            key=f"clebsch-jax-sweep-{token}-batch-{b}",
+        )
+        for b in batches
+    ]
     start, done = time.perf_counter(), B - sum(min(bs, B - b * bs) for b in batches)
     try:
         for future in as_completed(futures):
@@ -105,8 +124,12 @@ def run_on_client(client, plan, batches: list, store, run_id: int, progress):
             done += min(bs, B - b * bs)
             info = SweepProgress(b, n_batches, n_steps, n_steps, done, B, time.perf_counter() - start)
             if progress is True:
-                print(f"\rsweep: batch {b + 1}/{n_batches} done, {done}/{B} members done, {info.elapsed:.1f} s",
-                      end="", file=sys.stderr, flush=True)
+                print(
+                    f"\rsweep: batch {b + 1}/{n_batches} done, {done}/{B} members done, {info.elapsed:.1f} s",
+                    end="",
+                    file=sys.stderr,
+                    flush=True,
+                )
             elif progress is not False:
                 progress(info)
             yield result

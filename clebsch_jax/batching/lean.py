@@ -102,8 +102,9 @@ def carries_Q(stepper, system) -> bool:
 
 def _nodal_velocity(system, finder: FixedNewton, Q, mu, guess):
     """ξ at a node from its momentum μ, by `NODAL_UPDATES` chord updates and the check."""
-    xi, stats, _, _ = fixed_newton_solve(lambda x: nodal_residual(system, Q, mu, x), guess, updates=NODAL_UPDATES,
-                                         rtol=finder.rtol, atol=finder.atol)
+    xi, stats, _, _ = fixed_newton_solve(
+        lambda x: nodal_residual(system, Q, mu, x), guess, updates=NODAL_UPDATES, rtol=finder.rtol, atol=finder.atol
+    )
     return xi, stats
 
 
@@ -148,9 +149,17 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
     ref = jnp.where(first, E0, carry.initial["energy"])
     carries = carries_Q(stepper, system)  # else Q stays the chunk's start (reconstruct=False)
     reductions = dict(
-        ok=ok, iterations=jnp.asarray(0, carry.iterations.dtype), residual=jnp.zeros((), dt.dtype),
-        change=carry.energy_change, size=jnp.maximum(carry.energy_size, zero_nan(size0)), E=E0,
-        drift=jnp.abs(E0 - ref), xin=xin0, mu=mu0, xstep=xin0, **({"Q": Q0} if carries else {}),
+        ok=ok,
+        iterations=jnp.asarray(0, carry.iterations.dtype),
+        residual=jnp.zeros((), dt.dtype),
+        change=carry.energy_change,
+        size=jnp.maximum(carry.energy_size, zero_nan(size0)),
+        E=E0,
+        drift=jnp.abs(E0 - ref),
+        xin=xin0,
+        mu=mu0,
+        xstep=xin0,
+        **({"Q": Q0} if carries else {}),
     )
 
     # warm-up steps by WARMUP_ROUNDS rounds, the others by one round of LEAN_UPDATES (module docstring)
@@ -172,9 +181,16 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
         size_max = jnp.maximum(red["size"], zero_nan(size))
         good = (stats.status == Status.SUCCESS) & (nst.status == Status.SUCCESS) & ~jumped
         red = dict(
-            ok=red["ok"] & good, iterations=red["iterations"] + stats.iterations,
-            residual=jnp.maximum(red["residual"], stats.residual_norm), change=change, size=size_max, E=E,
-            drift=jnp.maximum(red["drift"], jnp.abs(E - ref)), xin=xin, mu=mun, xstep=xi_step,
+            ok=red["ok"] & good,
+            iterations=red["iterations"] + stats.iterations,
+            residual=jnp.maximum(red["residual"], stats.residual_norm),
+            change=change,
+            size=size_max,
+            E=E,
+            drift=jnp.maximum(red["drift"], jnp.abs(E - ref)),
+            xin=xin,
+            mu=mun,
+            xstep=xi_step,
             **({"Q": nodes.Q[1]} if carries else {}),
         )
         return state, memory, red
@@ -187,10 +203,19 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
     initial = {**carry.initial, "energy": ref}
     drift = {**carry.drift, "energy": jnp.maximum(carry.drift["energy"], red["drift"])}
     new = carry._replace(
-        Q=Qn, P=cotangent_from_momentum(system, Qn, mun, unroll=True), xi=red["xin"],
-        t=carry.t + dt * n, status=status, iterations=carry.iterations + red["iterations"],
-        max_residual=jnp.maximum(carry.max_residual, red["residual"]), initial=initial, drift=drift,
-        momentum=mun, final_xi=red["xin"], energy_change=red["change"], energy_size=red["size"],
+        Q=Qn,
+        P=cotangent_from_momentum(system, Qn, mun, unroll=True),
+        xi=red["xin"],
+        t=carry.t + dt * n,
+        status=status,
+        iterations=carry.iterations + red["iterations"],
+        max_residual=jnp.maximum(carry.max_residual, red["residual"]),
+        initial=initial,
+        drift=drift,
+        momentum=mun,
+        final_xi=red["xin"],
+        energy_change=red["change"],
+        energy_size=red["size"],
     )
     return new, ok | ~alive0
 

@@ -67,7 +67,8 @@ def _one(tree):
 
 def _nan_unless(ok, tree):
     return jax.tree_util.tree_map(
-        lambda a: jnp.where(ok, a, jnp.nan) if jnp.issubdtype(a.dtype, jnp.inexact) else a, tree)
+        lambda a: jnp.where(ok, a, jnp.nan) if jnp.issubdtype(a.dtype, jnp.inexact) else a, tree
+    )
 
 
 def _node(system, finder, Q, mu, seed, ok):
@@ -84,8 +85,9 @@ def _node(system, finder, Q, mu, seed, ok):
     return xi, known, E, size
 
 
-def member_chunk(stepper, system, carry: MemberCarry, dt, n: int, first, offset, *, check_energy: bool = True,
-                 derive_P: bool = False) -> MemberCarry:
+def member_chunk(
+    stepper, system, carry: MemberCarry, dt, n: int, first, offset, *, check_energy: bool = True, derive_P: bool = False
+) -> MemberCarry:
     r"""`n` steps of one member from `carry`, with the sweep's reductions made in the loop.
 
     **Arguments:** `stepper`, prepared for `system` (`integrate`'s choice: `prepared_method`);
@@ -120,10 +122,20 @@ def member_chunk(stepper, system, carry: MemberCarry, dt, n: int, first, offset,
     int_dtype = carry.iterations.dtype
     size_max0 = jnp.maximum(carry.energy_size, zero_nan(size0)) if energy_on else carry.energy_size
     red0 = dict(
-        alive=ok_in, status=status0, step=jnp.where(ok_in & ok0, -1, 0).astype(jnp.int32),
-        iterations=jnp.where(ok_in, jnp.asarray(startup, int_dtype), 0), residual=jnp.zeros((), dt.dtype),
-        change=carry.energy_change, size=size_max0 if energy_on else carry.energy_size, E=E0,
-        drift=jnp.where(ok0, jnp.abs(E0 - ref), 0.0), Q=Q0, mu=mu0, xin=xin0, xstep=xi0, jumped=jnp.asarray(False),
+        alive=ok_in,
+        status=status0,
+        step=jnp.where(ok_in & ok0, -1, 0).astype(jnp.int32),
+        iterations=jnp.where(ok_in, jnp.asarray(startup, int_dtype), 0),
+        residual=jnp.zeros((), dt.dtype),
+        change=carry.energy_change,
+        size=size_max0 if energy_on else carry.energy_size,
+        E=E0,
+        drift=jnp.where(ok0, jnp.abs(E0 - ref), 0.0),
+        Q=Q0,
+        mu=mu0,
+        xin=xin0,
+        xstep=xi0,
+        jumped=jnp.asarray(False),
         p=jnp.full_like(Q0, jnp.nan),
     )
 
@@ -149,9 +161,11 @@ def member_chunk(stepper, system, carry: MemberCarry, dt, n: int, first, offset,
             change, size_max, jumped, new_jump = red["change"], red["size"], red["jumped"], jnp.asarray(False)
         still = red["status"] == Status.SUCCESS
         step_failed = alive & ~ok
-        code = jnp.where(new_jump, Status.ENERGY_JUMP,
-                         jnp.where(step_failed, stats.status, jnp.where(ok & ~nodal_ok, Status.LEGENDRE,
-                                                                        Status.SUCCESS)))
+        code = jnp.where(
+            new_jump,
+            Status.ENERGY_JUMP,
+            jnp.where(step_failed, stats.status, jnp.where(ok & ~nodal_ok, Status.LEGENDRE, Status.SUCCESS)),
+        )
         fails = still & (code != Status.SUCCESS)
         # a jump found after a node failure still names the jump (as `integrate` does)
         fails = fails | (new_jump & (red["status"] == Status.LEGENDRE))
@@ -164,9 +178,23 @@ def member_chunk(stepper, system, carry: MemberCarry, dt, n: int, first, offset,
         keep = ok & ~jumped  # the state handed on: NaN after a failure or a jump
         Qh = jnp.where(keep, nodes.Q[1] if nodes.Q is not None else red["Q"], jnp.nan)
         p = nodes.p[1] if nodes.p is not None else red["p"]
-        red = dict(alive=ok & ~jumped, status=status, step=step, iterations=iterations, residual=residual,
-                   change=change, size=size_max, E=E, drift=drift, Q=Qh, mu=jnp.where(keep, mun, jnp.nan),
-                   xin=jnp.where(keep, xin, jnp.nan), xstep=xi_step, jumped=jumped, p=jnp.where(keep, p, jnp.nan))
+        red = dict(
+            alive=ok & ~jumped,
+            status=status,
+            step=step,
+            iterations=iterations,
+            residual=residual,
+            change=change,
+            size=size_max,
+            E=E,
+            drift=drift,
+            Q=Qh,
+            mu=jnp.where(keep, mun, jnp.nan),
+            xin=jnp.where(keep, xin, jnp.nan),
+            xstep=xi_step,
+            jumped=jumped,
+            p=jnp.where(keep, p, jnp.nan),
+        )
         return state, memory, red
 
     _, _, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
@@ -181,9 +209,17 @@ def member_chunk(stepper, system, carry: MemberCarry, dt, n: int, first, offset,
     failed_step = jnp.where(newly, offset + red["step"], carry.failed_step).astype(jnp.int32)
     drift = jnp.where(jnp.isfinite(ref), jnp.maximum(carry.drift, red["drift"]), jnp.nan)
     return MemberCarry(
-        Q=jnp.where(alive0, Qn, jnp.nan), P=jnp.where(alive0, Pn, jnp.nan), xi=jnp.where(alive0, xin, jnp.nan),
-        t=carry.t + dt * n, status=status, failed_step=failed_step,
+        Q=jnp.where(alive0, Qn, jnp.nan),
+        P=jnp.where(alive0, Pn, jnp.nan),
+        xi=jnp.where(alive0, xin, jnp.nan),
+        t=carry.t + dt * n,
+        status=status,
+        failed_step=failed_step,
         iterations=carry.iterations + jnp.where(alive0, red["iterations"], 0),
-        max_residual=jnp.maximum(carry.max_residual, red["residual"]), energy0=ref, drift=drift,
-        momentum=jnp.where(alive0, mun, jnp.nan), energy_change=red["change"], energy_size=red["size"],
+        max_residual=jnp.maximum(carry.max_residual, red["residual"]),
+        energy0=ref,
+        drift=drift,
+        momentum=jnp.where(alive0, mun, jnp.nan),
+        energy_change=red["change"],
+        energy_size=red["size"],
     )

@@ -60,6 +60,7 @@ body is): their copies cost nothing worth saving, while XLA compiles every unrol
 their body (the lean chunk's minimum-norm cotangent, a loop of three, unrolled: about a third
 of its compile time)."""
 
+
 class _TraceState(threading.local):
     """The evaluator's state while it traces, the calling thread's own (a sweep traces its
     batches' programs from several threads at once, `clebsch_jax.sweep`'s `threads`):
@@ -311,8 +312,12 @@ def _unbatched(eqn, xs):
 
 
 def _slice_np(x, p):
-    return x[tuple(slice(a, b, None if p["strides"] is None else p["strides"][i])
-                   for i, (a, b) in enumerate(zip(p["start_indices"], p["limit_indices"])))]
+    return x[
+        tuple(
+            slice(a, b, None if p["strides"] is None else p["strides"][i])
+            for i, (a, b) in enumerate(zip(p["start_indices"], p["limit_indices"]))
+        )
+    ]
 
 
 def _broadcast_np(x, p):
@@ -332,12 +337,22 @@ def _split_np(x, p):
 
 
 _NUMPY_FOLD = {  # exactly rounded IEEE operations (and pure re-indexing), which NumPy and XLA agree on
-    "add": lambda p, a, b: [a + b], "add_any": lambda p, a, b: [a + b], "sub": lambda p, a, b: [a - b],
+    "add": lambda p, a, b: [a + b],
+    "add_any": lambda p, a, b: [a + b],
+    "sub": lambda p, a, b: [a - b],
     "mul": lambda p, a, b: [a * b],
-    "neg": lambda p, a: [-a], "max": lambda p, a, b: [np.maximum(a, b)], "min": lambda p, a, b: [np.minimum(a, b)],
-    "eq": lambda p, a, b: [a == b], "ne": lambda p, a, b: [a != b], "lt": lambda p, a, b: [a < b],
-    "le": lambda p, a, b: [a <= b], "gt": lambda p, a, b: [a > b], "ge": lambda p, a, b: [a >= b],
-    "and": lambda p, a, b: [a & b], "or": lambda p, a, b: [a | b], "not": lambda p, a: [~a],
+    "neg": lambda p, a: [-a],
+    "max": lambda p, a, b: [np.maximum(a, b)],
+    "min": lambda p, a, b: [np.minimum(a, b)],
+    "eq": lambda p, a, b: [a == b],
+    "ne": lambda p, a, b: [a != b],
+    "lt": lambda p, a, b: [a < b],
+    "le": lambda p, a, b: [a <= b],
+    "gt": lambda p, a, b: [a > b],
+    "ge": lambda p, a, b: [a >= b],
+    "and": lambda p, a, b: [a & b],
+    "or": lambda p, a, b: [a | b],
+    "not": lambda p, a: [~a],
     "abs": lambda p, a: [np.abs(a)],
     "select_n": lambda p, c, *xs: [np.choose(np.asarray(c, np.int64), np.broadcast_arrays(*xs))],
     "convert_element_type": lambda p, a: [a.astype(p["new_dtype"])],
@@ -385,8 +400,11 @@ def _apply(eqn, vals, B):
     rule = _RULES.get(name)
     if not _TRACE.in_loop[-1] and name != "scan":
         return _stacked_rule(eqn, vals, B)
-    shapes_small = all(_small(v.aval.shape) for v in list(eqn.invars) + list(eqn.outvars)
-                       if not isinstance(v, jex.Literal) and hasattr(v.aval, "shape"))
+    shapes_small = all(
+        _small(v.aval.shape)
+        for v in list(eqn.invars) + list(eqn.outvars)
+        if not isinstance(v, jex.Literal) and hasattr(v.aval, "shape")
+    )
     if rule is not None and (shapes_small or name in _CONTROL):
         out = rule(eqn, vals, B)
         if out is not None:
@@ -399,7 +417,7 @@ def _stacked_rule(eqn, vals, B):
     arrays = [x if k == U else _stacked((k, x), v.aval.shape, B) for (k, x), v in zip(vals, eqn.invars)]
     flags = [k != U for k, _ in vals]
     rule = _bl._RULES.get(eqn.primitive.name)
-    outs, out_flags = (_bl._fallback(eqn, arrays, flags, B) if rule is None else rule(eqn, arrays, flags, B))
+    outs, out_flags = _bl._fallback(eqn, arrays, flags, B) if rule is None else rule(eqn, arrays, flags, B)
     return [(S, o) if f else (U, o) for o, f in zip(outs, out_flags)]
 
 
@@ -407,7 +425,7 @@ def _entry(val, idx, aval_shape, B, dtype):
     """Component idx of an operand (scalars and size-1 axes broadcast): a (B,) row, or a NumPy
     scalar when it is known at trace time."""
     kind, x = val
-    src = tuple(i if n != 1 else 0 for i, n in zip(idx[len(idx) - len(aval_shape):], aval_shape))
+    src = tuple(i if n != 1 else 0 for i, n in zip(idx[len(idx) - len(aval_shape) :], aval_shape))
     if kind == R:
         return x[src]
     if kind == S:
@@ -553,8 +571,7 @@ def _dynamic_slice(eqn, vals, B):
         n = x.shape[d] - sizes[d] + 1
         if n == 1:
             return pick(idx, d + 1, prefix + [idx[d]])
-        return lax.select_n(clamped[d], *[_lift(pick(idx, d + 1, prefix + [k + idx[d]]), B, x_dtype)
-                                          for k in range(n)])
+        return lax.select_n(clamped[d], *[_lift(pick(idx, d + 1, prefix + [k + idx[d]]), B, x_dtype) for k in range(n)])
 
     out = np.empty(sizes, dtype=object)
     for idx in np.ndindex(*sizes):
@@ -562,8 +579,14 @@ def _dynamic_slice(eqn, vals, B):
     return [(R, out)]
 
 
-_REDUCERS = {"reduce_sum": lax.add, "reduce_max": lax.max, "reduce_min": lax.min, "reduce_prod": lax.mul,
-             "reduce_and": lax.bitwise_and, "reduce_or": lax.bitwise_or}
+_REDUCERS = {
+    "reduce_sum": lax.add,
+    "reduce_max": lax.max,
+    "reduce_min": lax.min,
+    "reduce_prod": lax.mul,
+    "reduce_and": lax.bitwise_and,
+    "reduce_or": lax.bitwise_or,
+}
 
 
 def _reduce(eqn, vals, B):
@@ -571,8 +594,8 @@ def _reduce(eqn, vals, B):
     axes = tuple(eqn.params["axes"])
     keep = [d for d in range(x.ndim) if d not in axes]
     moved = x.transpose(keep + list(axes))
-    out_shape = moved.shape[:len(keep)]
-    k = math.prod(moved.shape[len(keep):])
+    out_shape = moved.shape[: len(keep)]
+    k = math.prod(moved.shape[len(keep) :])
     if k == 0 or math.prod(out_shape) * k > MAX_PRODUCTS:
         return None
     flat = moved.reshape(out_shape + (k,))
@@ -609,7 +632,7 @@ def _dot_general(eqn, vals, B):
     L, Rr = _rows(vals[0], ls, B, lv.aval.dtype), _rows(vals[1], rs, B, rv.aval.dtype)
     out = np.empty(out_shape, dtype=object)
     for idx in np.ndindex(*out_shape):
-        bi, li, ri = idx[:len(lb)], idx[len(lb):len(lb) + len(lf)], idx[len(lb) + len(lf):]
+        bi, li, ri = idx[: len(lb)], idx[len(lb) : len(lb) + len(lf)], idx[len(lb) + len(lf) :]
         terms = []
         for ci in np.ndindex(*contracted):
             l_idx = _place(len(ls), (lb, bi), (lf, li), (lc, ci))
@@ -645,15 +668,17 @@ def _scan(eqn, vals, B):
     carry_flags, out_flags = _bl._scan_carry_flags(p, flags)
     body = p["jaxpr"]
     in_avals = body.in_avals
-    carry_avals = in_avals[nc:nc + nk]
+    carry_avals = in_avals[nc : nc + nk]
     ys_avals = body.out_avals[nk:]
     carry_kinds = _kinds(carry_avals, carry_flags)
     ys_kinds = [_canonical_kind(tuple(a.shape), f) for a, f in zip(ys_avals, out_flags[nk:])]
     consts = vals[:nc]
-    init = _pack(_canon(vals[nc:nc + nk], carry_kinds, carry_avals, B), B)
+    init = _pack(_canon(vals[nc : nc + nk], carry_kinds, carry_avals, B), B)
     # xs: sliced along the scan axis, so stacked (or unbatched)
-    xs = [x if k == U else _stacked((k, x), v.aval.shape, B) for (k, x), v in zip(vals[nc + nk:], eqn.invars[nc + nk:])]
-    x_kinds = [U if k == U else S for k, _ in vals[nc + nk:]]
+    xs = [
+        x if k == U else _stacked((k, x), v.aval.shape, B) for (k, x), v in zip(vals[nc + nk :], eqn.invars[nc + nk :])
+    ]
+    x_kinds = [U if k == U else S for k, _ in vals[nc + nk :]]
 
     def step(carry, x):
         c = _unpack(carry, carry_kinds, carry_avals)
@@ -678,8 +703,9 @@ def _scan(eqn, vals, B):
     else:
         unroll = min(SCAN_UNROLL, p["length"])
     carry, ys = lax.scan(step, init, xs, length=p["length"], reverse=p["reverse"], unroll=unroll)
-    return _unpack(carry, carry_kinds, carry_avals) + [_series(k, y, a.shape, p["length"], B)
-                                                       for k, y, a in zip(ys_kinds, ys, ys_avals)]
+    return _unpack(carry, carry_kinds, carry_avals) + [
+        _series(k, y, a.shape, p["length"], B) for k, y, a in zip(ys_kinds, ys, ys_avals)
+    ]
 
 
 def _series(kind, arrays, shape, n, B):
@@ -700,8 +726,8 @@ def _while(eqn, vals, B):
         return None  # a predicate with member axes: leave it to batch_last
     carry_avals = body_j.out_avals
     kinds = _kinds(carry_avals, carry_flags)
-    cc, bc = vals[:nc], vals[nc:nc + nb]
-    init = _pack(_canon(vals[nc + nb:], kinds, carry_avals, B), B)
+    cc, bc = vals[:nc], vals[nc : nc + nb]
+    init = _pack(_canon(vals[nc + nb :], kinds, carry_avals, B), B)
 
     def pred(carry):
         return _eval(cond_j.jaxpr, cond_j.consts, list(cc) + _unpack(carry, kinds, carry_avals), B)[0]
@@ -717,14 +743,20 @@ def _while(eqn, vals, B):
     if not pred_batched:
         out = lax.while_loop(lambda c: pred(c)[1], body, init)
     else:
+
         def go_row(c):
             return _lift(_entry(pred(c), (), (), B, jnp.bool_), B, jnp.bool_)
 
         def masked(carry):
             go = go_row(carry)
             new = body(carry)
-            return [[lax.select(go if n.ndim == 1 else lax.broadcast_in_dim(go, n.shape, (n.ndim - 1,)), n, o)
-                     for n, o in zip(ns, os)] for ns, os in zip(new, carry)]
+            return [
+                [
+                    lax.select(go if n.ndim == 1 else lax.broadcast_in_dim(go, n.shape, (n.ndim - 1,)), n, o)
+                    for n, o in zip(ns, os)
+                ]
+                for ns, os in zip(new, carry)
+            ]
 
         out = lax.while_loop(lambda c: jnp.any(go_row(c)), masked, init)
     return _unpack(out, kinds, carry_avals)
@@ -749,6 +781,7 @@ def _cond(eqn, vals, B):
 
         def branch(br):
             return lambda ps: run(br, _unpack(ps, op_kinds, op_avals))
+
         out = lax.switch(index[1], [branch(br) for br in branches], packed)
         return _unpack(out, kinds, out_avals)
     idx = _lift(_entry(index, (), (), B, eqn.invars[0].aval.dtype), B)

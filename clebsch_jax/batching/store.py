@@ -78,8 +78,17 @@ OWNER, OWNER_VALUE = "written_by", "clebsch_jax.sweep"  # the first attribute a 
 FORMAT = 2  # the layout's version, part of the configuration
 
 _EXTRA = 'pip install "clebsch-jax[sweep]"'
-_COLUMNS = ("status", "failed_step", "newton_iterations", "max_residual", "final_t", "final_Q", "final_p",
-            "final_xi", "final_momentum")
+_COLUMNS = (
+    "status",
+    "failed_step",
+    "newton_iterations",
+    "max_residual",
+    "final_t",
+    "final_Q",
+    "final_p",
+    "final_xi",
+    "final_momentum",
+)
 _SAVED = ("t", "Q", "xi", "momentum")
 
 
@@ -157,13 +166,28 @@ def program_digest(plan) -> str:
 
     def member(p, s, q, x, d):
         system = _system_of(cfg, p, s)
-        sol = integrate(system, q, x, dt=d, n_steps=cfg.n, P0=jnp.zeros_like(q), t0=jnp.zeros((), q.dtype),
-                        throw=False, check_energy=False, **options)
+        sol = integrate(
+            system,
+            q,
+            x,
+            dt=d,
+            n_steps=cfg.n,
+            P0=jnp.zeros_like(q),
+            t0=jnp.zeros((), q.dtype),
+            throw=False,
+            check_energy=False,
+            **options,
+        )
         return sol, [fn(system, sol) for _, fn in cfg.invariants]
 
     with undifferentiated():  # as the sweep's chunks are traced
-        closed = jax.make_jaxpr(member)(_first_row(members), members.shared, jnp.asarray(members.Q0[j]),
-                                        jnp.asarray(members.xi0[j]), jnp.asarray(members.dt[0]))
+        closed = jax.make_jaxpr(member)(
+            _first_row(members),
+            members.shared,
+            jnp.asarray(members.Q0[j]),
+            jnp.asarray(members.xi0[j]),
+            jnp.asarray(members.dt[0]),
+        )
     text = re.sub(r" at 0x[0-9a-fA-F]+", "", str(closed.jaxpr))  # no memory addresses (they change)
     return hashlib.sha256(text.encode() + _digest(closed.consts).encode()).hexdigest()
 
@@ -197,9 +221,18 @@ def configuration(plan) -> dict:
         "n_members": members.B,
         "n_batches": -(-members.B // batch_size),
         "invariants": [name for name in run.invariants if name != "energy"],
-        "inputs_sha256": _digest([*jax.tree_util.tree_leaves(members.params), members.Q0, members.xi0, members.P0,
-                                  members.dt, members.param_index, members.ic_index,
-                                  *(members.shared or [])]),
+        "inputs_sha256": _digest(
+            [
+                *jax.tree_util.tree_leaves(members.params),
+                members.Q0,
+                members.xi0,
+                members.P0,
+                members.dt,
+                members.param_index,
+                members.ic_index,
+                *(members.shared or []),
+            ]
+        ),
     }
 
 
@@ -278,8 +311,11 @@ def _invariant_keys(shapes) -> dict:
 def _create(zarr, store, plan, config: dict):
     with zarr.config.set({"array.write_empty_chunks": True}):
         # the owner first, in the group's own metadata: a store whose creation is interrupted is ours
-        return _fill(zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE,
-                                                                           "created_by": _creator()}), plan, config)
+        return _fill(
+            zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE, "created_by": _creator()}),
+            plan,
+            config,
+        )
 
 
 def _fill(root, plan, config: dict):
@@ -291,13 +327,27 @@ def _fill(root, plan, config: dict):
         fill = int(Status.NOT_RUN) if name == "status" else fill  # an unwritten member is no success
         # every chunk compressed, then checksummed (CRC-32C of the stored bytes): a flipped bit is
         # an error when the chunk is read, never a changed number
-        root.create_array(name, shape=shape, dtype=dtype, chunks=chunks, dimension_names=dims, fill_value=fill,
-                          compressors=[ZstdCodec(), Crc32cCodec()])
+        root.create_array(
+            name,
+            shape=shape,
+            dtype=dtype,
+            chunks=chunks,
+            dimension_names=dims,
+            fill_value=fill,
+            compressors=[ZstdCodec(), Crc32cCodec()],
+        )
     _write_inputs(root, plan)
     keys = _invariant_keys(plan.shapes)
     # the configuration last: a store without it was not finished being created
-    root.attrs.update({"invariant_arrays": keys, "runs": 0, "description": "clebsch_jax.sweep table",
-                       **{k: config[k] for k in ("method", "dt", "n_steps", "package_version")}, ATTR: config})
+    root.attrs.update(
+        {
+            "invariant_arrays": keys,
+            "runs": 0,
+            "description": "clebsch_jax.sweep table",
+            **{k: config[k] for k in ("method", "dt", "n_steps", "package_version")},
+            ATTR: config,
+        }
+    )
     return root
 
 
@@ -307,8 +357,14 @@ def _inputs(plan) -> dict:
     import jax
 
     members, run = plan.members, plan.run
-    out = {"member": np.arange(members.B), "param_index": members.param_index, "ic_index": members.ic_index,
-           "dt": members.dt, "Q0": members.Q0, "xi0": members.xi0}
+    out = {
+        "member": np.arange(members.B),
+        "param_index": members.param_index,
+        "ic_index": members.ic_index,
+        "dt": members.dt,
+        "Q0": members.Q0,
+        "xi0": members.xi0,
+    }
     if members.P0 is not None:
         out["P0"] = members.P0
     if members.builder is not None:
@@ -330,8 +386,9 @@ def _open_group(zarr, store, mode: str):
         # the arrays as they are (a consolidated copy of their metadata would hide a missing one)
         return zarr.open_group(_plain(store), mode=mode, use_consolidated=False)
     except Exception as err:  # zarr raises several kinds for a missing or unreadable group
-        raise SweepStoreError(f"store {store_name(store)!r}: not a readable Zarr group ({type(err).__name__}: "
-                              f"{err}).") from err
+        raise SweepStoreError(
+            f"store {store_name(store)!r}: not a readable Zarr group ({type(err).__name__}: {err})."
+        ) from err
 
 
 def stored_configuration(store) -> dict | None:
@@ -396,23 +453,29 @@ def _inspect(zarr, store):
             f"store {name!r}: damaged or not a Zarr group: its root metadata (zarr.json) cannot be read "
             f"({type(err).__name__}: {err}). Nothing was removed, also not with overwrite=True (a store whose "
             "metadata cannot be read is not recognised as a sweep's); move or delete it yourself, or give "
-            "another path.") from err
+            "another path."
+        ) from err
     if ATTR in attrs:
         if not isinstance(attrs[ATTR], dict):
-            raise SweepStoreError(f"store {name!r}: damaged: its attribute {ATTR!r} is not a configuration "
-                                  f"(got {type(attrs[ATTR]).__name__}). Nothing was removed.")
+            raise SweepStoreError(
+                f"store {name!r}: damaged: its attribute {ATTR!r} is not a configuration "
+                f"(got {type(attrs[ATTR]).__name__}). Nothing was removed."
+            )
         return "ours", root
     if attrs.get(OWNER) == OWNER_VALUE:
         creator = _live_creator(attrs.get("created_by"))
         if creator is not None:  # another process is creating it now: recreating it would wipe its work
-            raise SweepStoreError(f"store {name!r}: is being created by {creator}. Wait for it to start its "
-                                  "batches and run the same sweep again to share them, or give another path. "
-                                  "If that process is gone, delete the store yourself.")
+            raise SweepStoreError(
+                f"store {name!r}: is being created by {creator}. Wait for it to start its "
+                "batches and run the same sweep again to share them, or give another path. "
+                "If that process is gone, delete the store yourself."
+            )
         return "unfinished", root
     if not attrs and not list(root.keys()) and (path is None or entries == ["zarr.json"]):
         return "new", None  # an empty group: nothing to keep
-    raise SweepStoreError(f"store {name!r}: is a Zarr group not written by clebsch_jax.sweep (no attribute "
-                          f"{ATTR!r}). {keep}")
+    raise SweepStoreError(
+        f"store {name!r}: is a Zarr group not written by clebsch_jax.sweep (no attribute {ATTR!r}). {keep}"
+    )
 
 
 def _creator() -> dict:
@@ -454,10 +517,16 @@ def open_for_run(store, plan, overwrite: bool):
         diff = sorted(k for k in set(stored) | set(config) if stored.get(k) != config.get(k))
         if diff:
             shown = "; ".join(f"{k}: stored {stored.get(k)!r}, this sweep {config.get(k)!r}" for k in diff[:4])
-            why = (" One member's traced program differs: the body of make_system, of the system's maps or of an "
-                   "invariant, an integrate option, or the engine or JAX version." if "program_sha256" in diff else "")
-            raise SweepStoreError(f"store {name!r} was written by another sweep configuration ({shown}).{why} Use "
-                                  "another store, or overwrite=True to replace it.")
+            why = (
+                " One member's traced program differs: the body of make_system, of the system's maps or of an "
+                "invariant, an integrate option, or the engine or JAX version."
+                if "program_sha256" in diff
+                else ""
+            )
+            raise SweepStoreError(
+                f"store {name!r} was written by another sweep configuration ({shown}).{why} Use "
+                "another store, or overwrite=True to replace it."
+            )
         root = _open_group(zarr, store, "r+")
         _check_layout(root, plan, name)
         return root
@@ -472,11 +541,15 @@ def _check_layout(root, plan, name: str):
     have = set(root.array_keys())
     for var, (_, shape, _, _) in _variables(plan).items():
         if var not in have:
-            raise SweepStoreError(f"store {name!r}: the array {var!r} is missing (a truncated or corrupted store); "
-                                  "pass overwrite=True to start it afresh.")
+            raise SweepStoreError(
+                f"store {name!r}: the array {var!r} is missing (a truncated or corrupted store); "
+                "pass overwrite=True to start it afresh."
+            )
         if tuple(root[var].shape) != tuple(shape):
-            raise SweepStoreError(f"store {name!r}: the array {var!r} has shape {tuple(root[var].shape)}, expected "
-                                  f"{tuple(shape)} (a corrupted store); pass overwrite=True to start it afresh.")
+            raise SweepStoreError(
+                f"store {name!r}: the array {var!r} has shape {tuple(root[var].shape)}, expected "
+                f"{tuple(shape)} (a corrupted store); pass overwrite=True to start it afresh."
+            )
 
 
 def done_batches(root, name: str) -> np.ndarray:
@@ -491,8 +564,11 @@ def done_batches(root, name: str) -> np.ndarray:
             try:
                 done[b] = bool(flags[b])
             except Exception:  # codecs raise many kinds
-                print(f"sweep: store {name!r}: the done flag of batch {b} is damaged: computing the batch again.",
-                      file=sys.stderr, flush=True)
+                print(
+                    f"sweep: store {name!r}: the done flag of batch {b} is damaged: computing the batch again.",
+                    file=sys.stderr,
+                    flush=True,
+                )
         return done
 
 
@@ -500,8 +576,11 @@ def _written_by_batches(root) -> list:
     """The arrays written batch by batch (`write_rows`): those over `member`, less the inputs'
     rows written when the store was created."""
     created = {"member", "param_index", "ic_index", "dt"}
-    return [k for k in sorted(root.array_keys())
-            if k not in created and (root[k].metadata.dimension_names or (None,))[0] == "member"]
+    return [
+        k
+        for k in sorted(root.array_keys())
+        if k not in created and (root[k].metadata.dimension_names or (None,))[0] == "member"
+    ]
 
 
 def _chunk_problem(root, var: str, b: int, bs: int):
@@ -514,7 +593,7 @@ def _chunk_problem(root, var: str, b: int, bs: int):
     try:
         if not sync(root.store.exists(key)):
             return "a missing chunk"
-        arr[b * bs:(b + 1) * bs]
+        arr[b * bs : (b + 1) * bs]
     except Exception as err:  # a checksum mismatch, a truncated chunk: codecs raise many kinds
         return f"{type(err).__name__}: {err}"
     return None
@@ -540,8 +619,12 @@ def repair(root, plan, done: np.ndarray, name: str) -> np.ndarray:
     bs = plan.batch_size
     damaged = damaged_batches(root, np.flatnonzero(done).tolist(), bs)
     for b, (var, problem) in sorted(damaged.items()):
-        print(f"sweep: store {name!r}: batch {b} (members {b * bs}-{min((b + 1) * bs, plan.members.B) - 1}) is "
-              f"damaged ({var!r}: {problem}): computing it again.", file=sys.stderr, flush=True)
+        print(
+            f"sweep: store {name!r}: batch {b} (members {b * bs}-{min((b + 1) * bs, plan.members.B) - 1}) is "
+            f"damaged ({var!r}: {problem}): computing it again.",
+            file=sys.stderr,
+            flush=True,
+        )
         root["batch_done"][b] = False
         done[b] = False
     broken = []
@@ -551,8 +634,11 @@ def repair(root, plan, done: np.ndarray, name: str) -> np.ndarray:
         except Exception:  # codecs raise many kinds
             broken.append(var)
     if broken:
-        print(f"sweep: store {name!r}: the input arrays {', '.join(broken)} are damaged: written again.",
-              file=sys.stderr, flush=True)
+        print(
+            f"sweep: store {name!r}: the input arrays {', '.join(broken)} are damaged: written again.",
+            file=sys.stderr,
+            flush=True,
+        )
         _write_inputs(root, plan, broken)
     return done
 
@@ -630,30 +716,39 @@ def open_sweep(store):
         raise SweepStoreError(f"store {name!r}: holds no clebsch_jax sweep (no attribute {ATTR!r}).")
     done = done_batches(root, name)
     if not done.all():
-        raise SweepStoreError(f"store {name!r}: {int((~done).sum())} of {len(done)} batches are not written yet "
-                              "(the sweep was interrupted): run the same sweep with this store to finish it.")
+        raise SweepStoreError(
+            f"store {name!r}: {int((~done).sum())} of {len(done)} batches are not written yet "
+            "(the sweep was interrupted): run the same sweep with this store to finish it."
+        )
     keys = root.attrs.get("invariant_arrays", {})
-    per_member = {"param_index", "ic_index", "energy_error", *_COLUMNS,
-                  *(f"{kind}_{key}" for key in keys.values() for kind in ("initial", "drift")),
-                  *(f"saved_{k}" for k in _SAVED)}
+    per_member = {
+        "param_index",
+        "ic_index",
+        "energy_error",
+        *_COLUMNS,
+        *(f"{kind}_{key}" for key in keys.values() for kind in ("initial", "drift")),
+        *(f"saved_{k}" for k in _SAVED),
+    }
 
     def read(var, required=True):
         if var not in root.array_keys():
             if required:
-                raise SweepStoreError(f"store {name!r}: the array {var!r} is missing (a truncated or corrupted "
-                                      "store).")
+                raise SweepStoreError(f"store {name!r}: the array {var!r} is missing (a truncated or corrupted store).")
             return None
         try:
             arr = root[var]
             if var in per_member and arr.nchunks_initialized < arr.nchunks:
-                raise SweepStoreError(f"store {name!r}: {arr.nchunks - arr.nchunks_initialized} of {arr.nchunks} "
-                                      f"chunks of {var!r} are missing (a truncated store){_which(var)}")
+                raise SweepStoreError(
+                    f"store {name!r}: {arr.nchunks - arr.nchunks_initialized} of {arr.nchunks} "
+                    f"chunks of {var!r} are missing (a truncated store){_which(var)}"
+                )
             return np.asarray(arr[...])
         except SweepStoreError:
             raise
         except Exception as err:  # a checksum mismatch, a truncated chunk: codecs raise many kinds
-            raise SweepStoreError(f"store {name!r}: cannot read {var!r} ({type(err).__name__}: {err}): a "
-                                  f"damaged store{_which(var)}") from err
+            raise SweepStoreError(
+                f"store {name!r}: cannot read {var!r} ({type(err).__name__}: {err}): a damaged store{_which(var)}"
+            ) from err
 
     def _which(var):
         """Which batches of `var` are damaged, and what a rerun does about them."""
@@ -661,8 +756,10 @@ def open_sweep(store):
             return "; run the same sweep with this store: it writes the inputs again."
         bs = config["batch_size"]
         bad = sorted(b for b in range(len(done)) if _chunk_problem(root, var, b, bs) is not None)
-        return (f": batch{'es' if len(bad) > 1 else ''} {', '.join(map(str, bad))}; run the same sweep with this "
-                "store: it computes only the damaged batches again.")
+        return (
+            f": batch{'es' if len(bad) > 1 else ''} {', '.join(map(str, bad))}; run the same sweep with this "
+            "store: it computes only the damaged batches again."
+        )
 
     columns = {k: read(k, required=k not in ("final_Q", "final_xi")) for k in _COLUMNS}
     drift = {"energy": read("energy_error")}
@@ -673,13 +770,30 @@ def open_sweep(store):
             drift[inv] = read(f"drift_{key}")
     saved = None
     if config["save_every"] is not None:
-        saved = {"step": read("saved_step"), "t": read("saved_t"), "Q": read("saved_Q", False),
-                 "xi": read("saved_xi", False), "momentum": read("saved_momentum")}
+        saved = {
+            "step": read("saved_step"),
+            "t": read("saved_t"),
+            "Q": read("saved_Q", False),
+            "xi": read("saved_xi", False),
+            "momentum": read("saved_momentum"),
+        }
     return SweepResult(
-        param_index=read("param_index"), ic_index=read("ic_index"), energy_error=drift["energy"], drift=drift,
-        initial=initial, saved=saved, n_steps=config["n_steps"], chunk_steps=config["chunk_steps"],
-        batch_size=config["batch_size"], n_devices=1, form=config["form"], scheme=config["scheme"],
-        order=config["order"], method=config["method"], **columns)
+        param_index=read("param_index"),
+        ic_index=read("ic_index"),
+        energy_error=drift["energy"],
+        drift=drift,
+        initial=initial,
+        saved=saved,
+        n_steps=config["n_steps"],
+        chunk_steps=config["chunk_steps"],
+        batch_size=config["batch_size"],
+        n_devices=1,
+        form=config["form"],
+        scheme=config["scheme"],
+        order=config["order"],
+        method=config["method"],
+        **columns,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -727,9 +841,12 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
     pending = [b for b in range(n_batches) if not done[b]]
     if len(pending) < n_batches:
         skipped = B - sum(min(bs, B - b * bs) for b in pending)
-        print(f"sweep: store {name!r}: skipped {skipped} of {B} members already written "
-              f"({n_batches - len(pending)} of {n_batches} batches); computing the other {len(pending)} batches.",
-              file=sys.stderr, flush=True)
+        print(
+            f"sweep: store {name!r}: skipped {skipped} of {B} members already written "
+            f"({n_batches - len(pending)} of {n_batches} batches); computing the other {len(pending)} batches.",
+            file=sys.stderr,
+            flush=True,
+        )
     run_id = start_run(root, store)
     if client is not None:
         from .distributed import run_on_client
@@ -743,7 +860,7 @@ def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, mak
     with ThreadPoolExecutor(1, thread_name_prefix="clebsch-jax-sweep-store") as writer:
         writes = []
         for g in range(0, len(pending), len(slots)):
-            rows = _run_batches(plan, pending[g:g + len(slots)], slots, report)
+            rows = _run_batches(plan, pending[g : g + len(slots)], slots, report)
             used.update(rows.devices)
             chunks += rows.fast_chunks
             _place(tables, rows.tables, rows.rows)

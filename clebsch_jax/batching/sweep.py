@@ -244,11 +244,16 @@ class SweepResult:
         `drift_<name>` for every other invariant, `newton_iterations`, `max_residual`, `final_t`
         and, with `state=True`, one column per component of the final state (`final_Q[0,1]`, …).
         """
-        cols = {"member": np.arange(len(self)), "param_index": self.param_index, "ic_index": self.ic_index,
-                "status": self.status, "failed_step": self.failed_step, "energy_error": self.energy_error}
+        cols = {
+            "member": np.arange(len(self)),
+            "param_index": self.param_index,
+            "ic_index": self.ic_index,
+            "status": self.status,
+            "failed_step": self.failed_step,
+            "energy_error": self.energy_error,
+        }
         cols.update({f"drift_{k}": v for k, v in self.drift.items() if k != "energy"})
-        cols.update(newton_iterations=self.newton_iterations, max_residual=self.max_residual,
-                    final_t=self.final_t)
+        cols.update(newton_iterations=self.newton_iterations, max_residual=self.max_residual, final_t=self.final_t)
         if state:
             for name in ("final_Q", "final_p", "final_xi", "final_momentum"):
                 arr = getattr(self, name)
@@ -261,8 +266,10 @@ class SweepResult:
     def summary(self) -> str:
         """A few lines: members, failures (first few with their steps), worst errors and drifts."""
         fails = self.failed_members
-        lines = [f"sweep: {len(self)} members × {self.n_steps} steps ({self.form} march, {self.method or self.scheme}, "
-                 f"order {self.order}), {len(fails)} failed"]
+        lines = [
+            f"sweep: {len(self)} members × {self.n_steps} steps ({self.form} march, {self.method or self.scheme}, "
+            f"order {self.order}), {len(fails)} failed"
+        ]
         for m in fails[:5]:
             code = int(self.status[m])
             lines.append(f"  member {m}: step {int(self.failed_step[m])}: {Status.MESSAGES.get(code, code)}")
@@ -279,21 +286,51 @@ class SweepResult:
         """Raise `IntegrationError` naming the failed members and their steps; else return self."""
         fails = self.failed_members
         if len(fails):
-            first = ", ".join(f"member {m} at step {int(self.failed_step[m])} "
-                              f"({Status.MESSAGES.get(int(self.status[m]), int(self.status[m]))})"
-                              for m in fails[:3])
-            raise IntegrationError(f"clebsch_jax.sweep: {len(fails)} of {len(self)} members failed: {first}"
-                                   + (", …" if len(fails) > 3 else "") + ". Try a smaller dt for them.")
+            first = ", ".join(
+                f"member {m} at step {int(self.failed_step[m])} "
+                f"({Status.MESSAGES.get(int(self.status[m]), int(self.status[m]))})"
+                for m in fails[:3]
+            )
+            raise IntegrationError(
+                f"clebsch_jax.sweep: {len(fails)} of {len(self)} members failed: {first}"
+                + (", …" if len(fails) > 3 else "")
+                + ". Try a smaller dt for them."
+            )
         return self
 
 
 jax.tree_util.register_dataclass(
     SweepResult,
-    data_fields=["param_index", "ic_index", "status", "failed_step", "energy_error", "drift", "initial",
-                 "newton_iterations", "max_residual", "final_t", "final_Q", "final_p", "final_xi",
-                 "final_momentum", "saved"],
-    meta_fields=["n_steps", "chunk_steps", "batch_size", "n_devices", "form", "scheme", "order", "method",
-                 "fast_chunks", "fallback_chunks", "fallback_member_chunks"],
+    data_fields=[
+        "param_index",
+        "ic_index",
+        "status",
+        "failed_step",
+        "energy_error",
+        "drift",
+        "initial",
+        "newton_iterations",
+        "max_residual",
+        "final_t",
+        "final_Q",
+        "final_p",
+        "final_xi",
+        "final_momentum",
+        "saved",
+    ],
+    meta_fields=[
+        "n_steps",
+        "chunk_steps",
+        "batch_size",
+        "n_devices",
+        "form",
+        "scheme",
+        "order",
+        "method",
+        "fast_chunks",
+        "fallback_chunks",
+        "fallback_member_chunks",
+    ],
 )
 
 
@@ -431,24 +468,41 @@ def _member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, offset
     result = jnp.where(jumped, Status.ENERGY_JUMP, sol.result)
     new_failure = (carry.status == Status.SUCCESS) & (result != Status.SUCCESS)
     status = jnp.where(new_failure, result, carry.status).astype(jnp.int32)
-    failed_step = jnp.where(new_failure, offset + jnp.where(jumped, jump_step, sol.failed_step),
-                            carry.failed_step).astype(jnp.int32)
+    failed_step = jnp.where(
+        new_failure, offset + jnp.where(jumped, jump_step, sol.failed_step), carry.failed_step
+    ).astype(jnp.int32)
     attempted = (sol.stats.status != Status.SKIPPED) & (steps <= end)
     iterations = carry.iterations + jnp.sum(jnp.where(attempted, sol.stats.iterations, 0))
     good = (sol.stats.status == Status.SUCCESS) & (steps < end)
     max_residual = jnp.maximum(carry.max_residual, jnp.max(jnp.where(good, sol.stats.residual_norm, 0.0)))
     # The hand-over: the canonical state (Qⁿ, pⁿ) at the chunk's last node.
     start = continue_from(system, sol, Q=carry.Q)
-    new = _Carry(Q=start.Q0, P=start.P0, xi=start.xi0, t=start.t0, status=status, failed_step=failed_step,
-                 iterations=iterations, max_residual=max_residual, initial=initial, drift=drift,
-                 momentum=sol.momentum[-1], final_xi=None if sol.xi is None else sol.xi[-1],
-                 energy_change=energy_change, energy_size=energy_size)
+    new = _Carry(
+        Q=start.Q0,
+        P=start.P0,
+        xi=start.xi0,
+        t=start.t0,
+        status=status,
+        failed_step=failed_step,
+        iterations=iterations,
+        max_residual=max_residual,
+        initial=initial,
+        drift=drift,
+        momentum=sol.momentum[-1],
+        final_xi=None if sol.xi is None else sol.xi[-1],
+        energy_change=energy_change,
+        energy_size=energy_size,
+    )
     saved = None
     if cfg.save_every is not None:
         pick = slice(0, cfg.n, cfg.save_every)  # nodes 0, k, … of the chunk; its end is the next chunk's 0
         # (nodes after an energy jump are made NaN on the host: `_collect`)
-        saved = {"t": sol.ts[pick], "Q": None if sol.Q is None else sol.Q[pick],
-                 "xi": None if sol.xi is None else sol.xi[pick], "momentum": sol.momentum[pick]}
+        saved = {
+            "t": sol.ts[pick],
+            "Q": None if sol.Q is None else sol.Q[pick],
+            "xi": None if sol.xi is None else sol.xi[pick],
+            "momentum": sol.momentum[pick],
+        }
     return new, saved
 
 
@@ -465,6 +519,7 @@ def _lean_member_chunk(cfg: _Config, params, shared, carry: _Carry, dt, first, o
 def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows: bool = False):
     """The chunk of every member of a batch: `cj.batch` (in chunks of `member_chunk`), or with
     `rows` the scalarising evaluation (`clebsch_jax.batching.scalarise`, the whole batch)."""
+
     def one(p, c, d, s, f, o):
         if cfg.lean:
             return _lean_member_chunk(cfg, p, s, c, d, f, o)
@@ -484,8 +539,9 @@ def _batched_chunk(cfg: _Config, params, carry, dt, shared, first, offset, rows:
 @functools.partial(jit_with_options, compiler_options=QUICK_COMPILE, static_argnums=0)
 def _run_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
     """One chunk of a batch by the general path: (carry, saved)."""
-    return _batched_chunk(dataclasses.replace(cfg, fast_method=None, lean=False), params, carry, dt, shared, first,
-                          offset)
+    return _batched_chunk(
+        dataclasses.replace(cfg, fast_method=None, lean=False), params, carry, dt, shared, first, offset
+    )
 
 
 def _run_fast_chunk(cfg: _Config, params, carry, dt, shared, first, offset):
@@ -514,27 +570,51 @@ def _native_member(cfg: _Config, params, shared, carry: MemberCarry, dt, first, 
     """One member's chunk as the per-member program (`clebsch_jax.batching.member`): the method
     `integrate` chooses for it, its solves to their own stopping rule, the reductions in the loop."""
     system = _system_of(cfg, params, shared)
-    stepper, _, _ = prepared_method(system, carry.Q, carry.xi, dt=dt, n_steps=cfg.n, P0=carry.P, t0=carry.t,
-                                    **dict(cfg.options))
-    return member_chunk(stepper, system, carry, dt, cfg.n, first, offset, check_energy=cfg.check_energy,
-                        derive_P=cfg.derive_P)
+    stepper, _, _ = prepared_method(
+        system, carry.Q, carry.xi, dt=dt, n_steps=cfg.n, P0=carry.P, t0=carry.t, **dict(cfg.options)
+    )
+    return member_chunk(
+        stepper, system, carry, dt, cfg.n, first, offset, check_energy=cfg.check_energy, derive_P=cfg.derive_P
+    )
 
 
 def _as_member(carry: _Carry) -> MemberCarry:
     """The sweep's carry (energy the only invariant) as the per-member program's, on the host."""
     h = lambda a: np.asarray(a)
-    return MemberCarry(Q=h(carry.Q), P=h(carry.P), xi=h(carry.xi), t=h(carry.t), status=h(carry.status),
-                       failed_step=h(carry.failed_step), iterations=h(carry.iterations),
-                       max_residual=h(carry.max_residual), energy0=h(carry.initial["energy"]),
-                       drift=h(carry.drift["energy"]), momentum=h(carry.momentum),
-                       energy_change=h(carry.energy_change), energy_size=h(carry.energy_size))
+    return MemberCarry(
+        Q=h(carry.Q),
+        P=h(carry.P),
+        xi=h(carry.xi),
+        t=h(carry.t),
+        status=h(carry.status),
+        failed_step=h(carry.failed_step),
+        iterations=h(carry.iterations),
+        max_residual=h(carry.max_residual),
+        energy0=h(carry.initial["energy"]),
+        drift=h(carry.drift["energy"]),
+        momentum=h(carry.momentum),
+        energy_change=h(carry.energy_change),
+        energy_size=h(carry.energy_size),
+    )
 
 
 def _from_member(m: MemberCarry, has_xi: bool) -> _Carry:
-    return _Carry(Q=m.Q, P=m.P, xi=m.xi, t=m.t, status=m.status, failed_step=m.failed_step, iterations=m.iterations,
-                  max_residual=m.max_residual, initial={"energy": m.energy0}, drift={"energy": m.drift},
-                  momentum=m.momentum, final_xi=m.xi if has_xi else None, energy_change=m.energy_change,
-                  energy_size=m.energy_size)
+    return _Carry(
+        Q=m.Q,
+        P=m.P,
+        xi=m.xi,
+        t=m.t,
+        status=m.status,
+        failed_step=m.failed_step,
+        iterations=m.iterations,
+        max_residual=m.max_residual,
+        initial={"energy": m.energy0},
+        drift={"energy": m.drift},
+        momentum=m.momentum,
+        final_xi=m.xi if has_xi else None,
+        energy_change=m.energy_change,
+        energy_size=m.energy_size,
+    )
 
 
 _NATIVE_AXES = (0, None, 0, 0, None, None)
@@ -544,8 +624,14 @@ def _native_program(cfg: _Config, params, shared, carry: MemberCarry, dt):
     """The native kernel of `_native_member` for this configuration and these shapes (compiled
     once per process; from the disk cache when another process compiled it)."""
     row = lambda tree: jax.tree_util.tree_map(lambda a: np.asarray(a)[0], tree)
-    args = (row(params), None if shared is None else [np.asarray(x) for x in shared], row(carry), row(dt),
-            np.asarray(True), np.asarray(0, np.int32))
+    args = (
+        row(params),
+        None if shared is None else [np.asarray(x) for x in shared],
+        row(carry),
+        row(dt),
+        np.asarray(True),
+        np.asarray(0, np.int32),
+    )
     fun = functools.partial(_native_member, cfg)
 
     def traced(*a):
@@ -587,8 +673,10 @@ def _positive_int(x, name, allow_none=False):
 
 def _leading(arr, name, what):
     if arr.ndim < 1:
-        raise ValueError(f"{name}: expected a leading member axis ({what}), got a scalar. "
-                         f"For a single initial condition use {name}[None].")
+        raise ValueError(
+            f"{name}: expected a leading member axis ({what}), got a scalar. "
+            f"For a single initial condition use {name}[None]."
+        )
     return arr.shape[0]
 
 
@@ -605,7 +693,9 @@ def _devices(devices) -> list:
     try:
         devs = list(devices)
     except TypeError:
-        raise ValueError(f"devices: expected None, True, 'all', an int or a list of devices, got {devices!r}.") from None
+        raise ValueError(
+            f"devices: expected None, True, 'all', an int or a list of devices, got {devices!r}."
+        ) from None
     if not devs or not all(isinstance(d, jax.Device) for d in devs) or len(set(devs)) != len(devs):
         raise ValueError(f"devices: expected a non-empty list of distinct jax devices, got {devices!r}.")
     return devs
@@ -618,8 +708,9 @@ def _threads(threads, devices: list, B: int) -> int:
     thread a batch of `THREAD_MIN_MEMBERS` members."""
     if threads is not None:
         return _positive_int(threads, "threads")
-    if any(d is not None and d.platform != "cpu" for d in devices) or \
-            (devices == [None] and jax.default_backend() != "cpu"):
+    if any(d is not None and d.platform != "cpu" for d in devices) or (
+        devices == [None] and jax.default_backend() != "cpu"
+    ):
         return 1
     try:
         cores = len(os.sched_getaffinity(0))
@@ -683,16 +774,17 @@ class _Run(NamedTuple):
         return [(st, min(self.chunk_steps, self.n_steps - st)) for st in range(0, self.n_steps, self.chunk_steps)]
 
 
-def _check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, invariants, progress,
-               devices) -> _Run:
+def _check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, invariants, progress, devices) -> _Run:
     """The arguments that need no tracing, checked; the default chunk size chosen."""
     n_steps = _positive_int(n_steps, "n_steps")
     if not isinstance(grid, bool):
         raise ValueError(f"grid: expected True or False, got {grid!r}.")
     for key in options:
         if key in _RESERVED:
-            raise ValueError(f"{key}: set by sweep itself (it hands the state from chunk to chunk); "
-                             "pass P0 and dt to sweep, not as integrate options.")
+            raise ValueError(
+                f"{key}: set by sweep itself (it hands the state from chunk to chunk); "
+                "pass P0 and dt to sweep, not as integrate options."
+            )
     save_every = _positive_int(save_every, "save_every", allow_none=True)
     member_chunk = _positive_int(member_chunk, "member_chunk", allow_none=True)
     chunk_steps = _positive_int(chunk_steps, "chunk_steps", allow_none=True)
@@ -709,8 +801,15 @@ def _check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, in
         raise ValueError("invariants: expected a dict {name: f(system, sol)} of callables.")
     if not (progress is True or progress is False or callable(progress)):
         raise ValueError(f"progress: expected True, False or a callable, got {progress!r}.")
-    return _Run(n_steps, min(chunk_steps, n_steps), save_every, member_chunk,
-                {"energy": _diagnostics.energy, **invariants}, progress, _devices(devices))
+    return _Run(
+        n_steps,
+        min(chunk_steps, n_steps),
+        save_every,
+        member_chunk,
+        {"energy": _diagnostics.energy, **invariants},
+        progress,
+        _devices(devices),
+    )
 
 
 class _Members(NamedTuple):
@@ -742,11 +841,15 @@ def _systems(make_system, params):
         return (None, *_split_system(make_system))
     if callable(make_system):
         if params is None:
-            raise ValueError("params: None, but make_system is a function of the parameters; pass a "
-                             "ClebschSystem as make_system to share one system.")
+            raise ValueError(
+                "params: None, but make_system is a function of the parameters; pass a "
+                "ClebschSystem as make_system to share one system."
+            )
         return make_system, None, None
-    raise TypeError(f"make_system: expected a function params -> ClebschSystem or a ClebschSystem, "
-                    f"got {type(make_system).__name__}.")
+    raise TypeError(
+        f"make_system: expected a function params -> ClebschSystem or a ClebschSystem, "
+        f"got {type(make_system).__name__}."
+    )
 
 
 def _parameter_rows(params):
@@ -769,8 +872,10 @@ def _members(make_system, params, Q0, xi0, P0, dt, grid) -> _Members:
     xi0 = _float_array(xi0, "xi0")
     n_ic = _leading(Q0, "Q0", "one configuration per initial condition")
     if _leading(xi0, "xi0", "one velocity per initial condition") != n_ic:
-        raise ValueError(f"xi0: {xi0.shape[0]} initial velocities for {n_ic} configurations in Q0 "
-                         f"(shapes {xi0.shape} and {Q0.shape}).")
+        raise ValueError(
+            f"xi0: {xi0.shape[0]} initial velocities for {n_ic} configurations in Q0 "
+            f"(shapes {xi0.shape} and {Q0.shape})."
+        )
     if P0 is not None:
         P0 = _float_array(P0, "P0")
         if P0.shape != Q0.shape:
@@ -782,12 +887,17 @@ def _members(make_system, params, Q0, xi0, P0, dt, grid) -> _Members:
         B = n_p * n_ic
     else:
         if builder is not None and n_p != n_ic:
-            raise ValueError(f"params: {n_p} parameter rows for {n_ic} initial conditions; pass as many, or "
-                             "grid=True for every parameter row with every initial condition.")
+            raise ValueError(
+                f"params: {n_p} parameter rows for {n_ic} initial conditions; pass as many, or "
+                "grid=True for every parameter row with every initial condition."
+            )
         B = n_ic
     if B == 0:
-        raise ValueError(f"sweep: no members to run (Q0 and xi0 have {n_ic} initial conditions"
-                         + (f", params {n_p} rows" if builder is not None else "") + "): the sweep is empty.")
+        raise ValueError(
+            f"sweep: no members to run (Q0 and xi0 have {n_ic} initial conditions"
+            + (f", params {n_p} rows" if builder is not None else "")
+            + "): the sweep is empty."
+        )
     members = np.arange(B)
     param_index = members // n_ic if grid else (members if builder is not None else np.zeros(B, int))
     ic_index = members % n_ic if grid else members
@@ -808,14 +918,23 @@ def _chunk_config(run: _Run, members: _Members, options: dict) -> _Config:
     if not isinstance(check_energy, bool):
         raise TypeError(f"check_energy: expected True or False, got {check_energy!r}.")
     options = {**options, "check_energy": False}
-    cfg = _Config(members.builder, tuple(run.invariants.items()), tuple(sorted(options.items())), run.chunk_steps,
-                  run.save_every, members.shared_def, run.member_chunk, check_energy=check_energy,
-                  derive_P=members.P0 is None)
+    cfg = _Config(
+        members.builder,
+        tuple(run.invariants.items()),
+        tuple(sorted(options.items())),
+        run.chunk_steps,
+        run.save_every,
+        members.shared_def,
+        run.member_chunk,
+        check_energy=check_energy,
+        derive_P=members.P0 is None,
+    )
     try:
         hash(cfg)
     except TypeError as err:
-        raise ValueError(f"options: integrate options (and the non-array parts of a shared system) must be "
-                         f"hashable ({err}).") from None
+        raise ValueError(
+            f"options: integrate options (and the non-array parts of a shared system) must be hashable ({err})."
+        ) from None
     return cfg
 
 
@@ -847,16 +966,23 @@ def _particle_defaults(cfg: _Config, members: _Members) -> _Config:
     if not getattr(system, "degenerate", False):
         return cfg
     try:
-        method = _choose_method(system, jnp.asarray(members.Q0[j]), jnp.asarray(members.xi0[j]),
-                                **{k: v for k, v in options.items() if k != "check_energy"})
+        method = _choose_method(
+            system,
+            jnp.asarray(members.Q0[j]),
+            jnp.asarray(members.xi0[j]),
+            **{k: v for k, v in options.items() if k != "check_energy"},
+        )
     except (TypeError, ValueError):  # the probe reports bad options with the member named
         return cfg
     while isinstance(method, AbstractWrapper):
         method = method.base
     if not (isinstance(method, FullStep) and type(method.root_finder) is Newton):
         return cfg
-    return dataclasses.replace(cfg, options=tuple(sorted({**options, "jacobian": "blocks"}.items())),
-                               member_chunk=cfg.member_chunk or _PARTICLE_MEMBER_CHUNK)
+    return dataclasses.replace(
+        cfg,
+        options=tuple(sorted({**options, "jacobian": "blocks"}.items())),
+        member_chunk=cfg.member_chunk or _PARTICLE_MEMBER_CHUNK,
+    )
 
 
 def _fast_method_of(cfg: _Config, members: _Members):
@@ -864,8 +990,12 @@ def _fast_method_of(cfg: _Config, members: _Members):
     member as `integrate` chooses (the choice depends on the system's facts and the options,
     the same for every member), or None."""
     j = members.ic_index[0]
-    return _fast_method(_system_of(cfg, _first_row(members), members.shared), jnp.asarray(members.Q0[j]),
-                        jnp.asarray(members.xi0[j]), dict(cfg.options))
+    return _fast_method(
+        _system_of(cfg, _first_row(members), members.shared),
+        jnp.asarray(members.Q0[j]),
+        jnp.asarray(members.xi0[j]),
+        dict(cfg.options),
+    )
 
 
 def _lean_applies(cfg: _Config, members: _Members, method) -> bool:
@@ -930,6 +1060,7 @@ def _trace_member(cfg: _Config, *args):
     """`jax.eval_shape` of one member's chunk (its `Solution` and invariants), cached by the
     arguments' shapes and dtypes: the trace reads nothing else, and repeating it cost a sweep of
     a thousand members a third of its time."""
+
     def probe(p, s, q, x, d):
         system = _system_of(cfg, p, s)
         sol = _integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, cfg.n)
@@ -963,8 +1094,9 @@ def _check_member(cfg: _Config, *args):
 
     def check(p, s, q, x, d):
         system = _system_of(cfg, p, s)
-        stepper, _, _ = prepared_method(system, q, x, dt=d, n_steps=cfg.n, P0=jnp.zeros_like(q),
-                                        t0=jnp.zeros((), q.dtype), **dict(cfg.options))
+        stepper, _, _ = prepared_method(
+            system, q, x, dt=d, n_steps=cfg.n, P0=jnp.zeros_like(q), t0=jnp.zeros((), q.dtype), **dict(cfg.options)
+        )
         found["facts"], found["has_Q"] = stepper.facts(system), _lean_carries_Q(stepper, system)
         return node_energy(system, q, x)[0]
 
@@ -994,8 +1126,9 @@ def _probe(cfg: _Config, members: _Members, lean: bool = False, configurations: 
         else:
             sol_shape, inv_shape = _trace_member(cfg, *args)
     except (ValueError, TypeError) as err:
-        where = ("make_system(params[i]), " if members.builder is not None else "") + \
-                f"Q0[j] of shape {q_row.shape}, xi0[j] of shape {x_row.shape}"
+        where = (
+            "make_system(params[i]), " if members.builder is not None else ""
+        ) + f"Q0[j] of shape {q_row.shape}, xi0[j] of shape {x_row.shape}"
         kind = ValueError if isinstance(err, ValueError) else TypeError
         raise kind(f"sweep: one member ({where}) is rejected: {err}") from err
     # e.g. rotations for SO(3) models: the probe above traces Q0, which skips the check
@@ -1007,10 +1140,16 @@ def _probe(cfg: _Config, members: _Members, lean: bool = False, configurations: 
         return _Shapes(q_row.shape, x_row.shape, has_Q, True, invariants, facts)
     for name, v in inv_shape.items():
         if v.ndim < 1 or v.shape[0] != cfg.n + 1:
-            raise ValueError(f"invariants: {name!r} must return one value per node (leading axis n+1 = "
-                             f"{cfg.n + 1} for a {cfg.n}-step solution), returned shape {v.shape}.")
-    facts = dict(form=sol_shape.form, scheme=sol_shape.scheme, order=int(sol_shape.order),
-                 method=str(getattr(sol_shape, "method", "")))
+            raise ValueError(
+                f"invariants: {name!r} must return one value per node (leading axis n+1 = "
+                f"{cfg.n + 1} for a {cfg.n}-step solution), returned shape {v.shape}."
+            )
+    facts = dict(
+        form=sol_shape.form,
+        scheme=sol_shape.scheme,
+        order=int(sol_shape.order),
+        method=str(getattr(sol_shape, "method", "")),
+    )
     return _Shapes(q_row.shape, x_row.shape, sol_shape.Q is not None, sol_shape.xi is not None, inv_shape, facts)
 
 
@@ -1027,10 +1166,15 @@ class _Tables:
 def _allocate_tables(B: int, shapes: _Shapes, run: _Run) -> _Tables:
     q, x = shapes.q, shapes.xi
     columns = dict(
-        status=np.zeros(B, np.int32), failed_step=np.full(B, -1, np.int32),
-        newton_iterations=np.zeros(B, np.int64), max_residual=np.zeros(B), final_t=np.zeros(B),
-        final_Q=np.zeros((B,) + q) if shapes.has_Q else None, final_p=np.zeros((B,) + q),
-        final_xi=np.zeros((B,) + x) if shapes.has_xi else None, final_momentum=np.zeros((B,) + x),
+        status=np.zeros(B, np.int32),
+        failed_step=np.full(B, -1, np.int32),
+        newton_iterations=np.zeros(B, np.int64),
+        max_residual=np.zeros(B),
+        final_t=np.zeros(B),
+        final_Q=np.zeros((B,) + q) if shapes.has_Q else None,
+        final_p=np.zeros((B,) + q),
+        final_xi=np.zeros((B,) + x) if shapes.has_xi else None,
+        final_momentum=np.zeros((B,) + x),
     )
     initial = {k: np.zeros((B,) + v.shape[1:], v.dtype) for k, v in shapes.invariants.items()}
     drift = {k: np.zeros(B) for k in shapes.invariants}
@@ -1038,8 +1182,13 @@ def _allocate_tables(B: int, shapes: _Shapes, run: _Run) -> _Tables:
     if run.save_every is not None:
         steps = np.arange(0, run.n_steps + 1, run.save_every)
         S = len(steps)
-        saved = {"step": steps, "t": np.zeros((B, S)), "Q": np.zeros((B, S) + q) if shapes.has_Q else None,
-                 "xi": np.zeros((B, S) + x) if shapes.has_xi else None, "momentum": np.zeros((B, S) + x)}
+        saved = {
+            "step": steps,
+            "t": np.zeros((B, S)),
+            "Q": np.zeros((B, S) + q) if shapes.has_Q else None,
+            "xi": np.zeros((B, S) + x) if shapes.has_xi else None,
+            "momentum": np.zeros((B, S) + x),
+        }
     return _Tables(columns, initial, drift, saved)
 
 
@@ -1072,11 +1221,20 @@ def _start_batch(cfg: _Config, members: _Members, shapes: _Shapes, b: int, batch
     P = put(np.zeros((len(ic),) + members.Q0.shape[1:], members.Q0.dtype) if members.P0 is None else members.P0[ic])
     zeros = lambda shape, dtype=np.float64: put(np.zeros((batch_size,) + shape, dtype))
     carry = _Carry(
-        Q=Q, P=P, xi=xi, t=zeros(()), status=zeros((), np.int32),
-        failed_step=put(np.full((batch_size,), -1, np.int32)), iterations=zeros((), np.int64),
-        max_residual=zeros(()), initial={k: zeros(v.shape[1:], v.dtype) for k, v in shapes.invariants.items()},
-        drift={k: zeros(()) for k in shapes.invariants}, momentum=zeros(shapes.xi),
-        final_xi=zeros(shapes.xi) if shapes.has_xi else None, energy_change=zeros(()), energy_size=zeros(()),
+        Q=Q,
+        P=P,
+        xi=xi,
+        t=zeros(()),
+        status=zeros((), np.int32),
+        failed_step=put(np.full((batch_size,), -1, np.int32)),
+        iterations=zeros((), np.int64),
+        max_residual=zeros(()),
+        initial={k: zeros(v.shape[1:], v.dtype) for k, v in shapes.invariants.items()},
+        drift={k: zeros(()) for k in shapes.invariants},
+        momentum=zeros(shapes.xi),
+        final_xi=zeros(shapes.xi) if shapes.has_xi else None,
+        energy_change=zeros(()),
+        energy_size=zeros(()),
     )
     rows = slice(b * batch_size, b * batch_size + n_real)
     return _Batch(b, rows, n_real, params, put(members.dt[member]), shared, carry)
@@ -1087,9 +1245,9 @@ def _calls(run: _Run, lean: bool) -> list:
     lean chunk up to `LEAN_CHUNKS` consecutive full chunks — as many as divide their number, so
     that every call but a short last chunk's has the same length (one compiled program)."""
     full = [c for c in run.chunks if c[1] == run.chunk_steps]
-    rest = [[c] for c in run.chunks[len(full):]]
+    rest = [[c] for c in run.chunks[len(full) :]]
     per = max(d for d in range(1, LEAN_CHUNKS + 1) if len(full) % d == 0) if lean else 1
-    return [full[i:i + per] for i in range(0, len(full), per)] + rest
+    return [full[i : i + per] for i in range(0, len(full), per)] + rest
 
 
 def _general_chunks(cfg: _Config, run: _Run, one: _Batch, chunks: list, saved: dict | None):
@@ -1112,7 +1270,7 @@ def _rerun(cfg: _Config, run: _Run, one: _Batch, chunks: list, saved: dict | Non
         return _general_chunks(cfg, run, one, chunks, saved)
     table_rows = np.arange(one.rows.start, one.rows.stop)
     for g in range(0, len(members), size):
-        part = members[g:g + size]
+        part = members[g : g + size]
         pad = size - len(part)
         take = np.concatenate([part, np.full(pad, part[-1])]).astype(np.int32)
         params, dt, start = _take_members((one.params, one.dt, one.carry), take)
@@ -1141,7 +1299,7 @@ def _save(saved: dict | None, run: _Run, one: _Batch, st: int, n: int, chunk_sav
     k0, kn = st // run.save_every, len(range(0, n, run.save_every))
     for key in ("t", "Q", "xi", "momentum"):
         if saved[key] is not None:
-            saved[key][one.rows, k0:k0 + kn] = np.asarray(chunk_saved[key])[:one.n_real]
+            saved[key][one.rows, k0 : k0 + kn] = np.asarray(chunk_saved[key])[: one.n_real]
 
 
 def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report: Callable, fell_back: list):
@@ -1171,8 +1329,7 @@ def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report
             st, n = chunks[0][0], sum(k for _, k in chunks)
             c = _steps(cfg, run, n)
             call = functools.partial(_call, cfg, c, run, chunks, st, n, saved, pool is not None)
-            done = (list(pool.map(functools.partial(in_context, call), group)) if pool is not None
-                    else [call(group[0])])
+            done = list(pool.map(functools.partial(in_context, call), group)) if pool is not None else [call(group[0])]
             fell_back.extend(d for d in done if d is not None)
             report(group, st + n)
     finally:
@@ -1180,8 +1337,9 @@ def _run_chunks(cfg: _Config, group: list, run: _Run, saved: dict | None, report
             pool.shutdown()
 
 
-def _call(cfg: _Config, c: _Config, run: _Run, chunks: list, st: int, n: int, saved: dict | None, wait: bool,
-          one: _Batch):
+def _call(
+    cfg: _Config, c: _Config, run: _Run, chunks: list, st: int, n: int, saved: dict | None, wait: bool, one: _Batch
+):
     """One call of `_run_chunks` for one batch: the fast call (`c`: its chunk's configuration),
     then the general path for the members whose check failed; a batch in which most members
     failed `FAST_GIVE_UP` times in a row runs the general chunks directly. `wait`: return only
@@ -1193,13 +1351,16 @@ def _call(cfg: _Config, c: _Config, run: _Run, chunks: list, st: int, n: int, sa
         return None
     if cfg.fast_method is None or one.fallbacks_in_a_row >= FAST_GIVE_UP:
         # the general path: for every batch without a fast method, or given up
-        one.carry = (_general_chunks(cfg, run, one, chunks, saved) if cfg.fast_method is None
-                     else _rerun(cfg, run, one, chunks, saved, np.arange(one.n_real), one.carry))
+        one.carry = (
+            _general_chunks(cfg, run, one, chunks, saved)
+            if cfg.fast_method is None
+            else _rerun(cfg, run, one, chunks, saved, np.arange(one.n_real), one.carry)
+        )
         if wait:
             jax.block_until_ready(one.carry)
         return None
     f = _run_fast_chunk(c, one.params, one.carry, one.dt, one.shared, *_at(st))
-    failed = np.flatnonzero(~np.asarray(jax.device_get(f[2]))[:one.n_real])
+    failed = np.flatnonzero(~np.asarray(jax.device_get(f[2]))[: one.n_real])
     _save(saved, run, one, st, n, f[1])  # a rerun member's rows are written again by `_rerun`
     one.carry = _rerun(cfg, run, one, chunks, saved, failed, f[0]) if failed.size else f[0]
     one.fallbacks_in_a_row = one.fallbacks_in_a_row + 1 if 2 * failed.size >= one.n_real else 0
@@ -1216,12 +1377,17 @@ def _reporter(progress, n_batches: int, n_steps: int, B: int, batch_size: int) -
             return
         jax.block_until_ready([one.carry for one in group])
         done = group[0].index * batch_size + (sum(one.n_real for one in group) if step == n_steps else 0)
-        info = SweepProgress(group[-1].index, n_batches, step, n_steps, min(done, B), B,
-                             time.perf_counter() - start_time)
+        info = SweepProgress(
+            group[-1].index, n_batches, step, n_steps, min(done, B), B, time.perf_counter() - start_time
+        )
         if progress is True:
-            print(f"\rsweep: batch {info.batch + 1}/{n_batches}, step {step}/{n_steps}, "
-                  f"{info.members_done}/{B} members done, {info.elapsed:.1f} s", end="", file=sys.stderr,
-                  flush=True)
+            print(
+                f"\rsweep: batch {info.batch + 1}/{n_batches}, step {step}/{n_steps}, "
+                f"{info.members_done}/{B} members done, {info.elapsed:.1f} s",
+                end="",
+                file=sys.stderr,
+                flush=True,
+            )
         else:
             progress(info)
 
@@ -1231,15 +1397,23 @@ def _reporter(progress, n_batches: int, n_steps: int, B: int, batch_size: int) -
 def _collect(tables: _Tables, one: _Batch, run: _Run):
     """A finished batch's carry into its rows of the host tables."""
     host = jax.device_get(one.carry)
-    take = lambda a: np.asarray(a)[:one.n_real]
+    take = lambda a: np.asarray(a)[: one.n_real]
     failed = np.asarray(host.status) != Status.SUCCESS
 
     def state(a):  # a failed member's final state is NaN (after a jump the chunk's march ran on)
         return None if a is None else np.where(failed.reshape((-1,) + (1,) * (np.ndim(a) - 1)), np.nan, a)
 
-    final = {"status": host.status, "failed_step": host.failed_step, "newton_iterations": host.iterations,
-             "max_residual": host.max_residual, "final_t": host.t, "final_Q": state(host.Q),
-             "final_p": state(host.P), "final_xi": state(host.final_xi), "final_momentum": state(host.momentum)}
+    final = {
+        "status": host.status,
+        "failed_step": host.failed_step,
+        "newton_iterations": host.iterations,
+        "max_residual": host.max_residual,
+        "final_t": host.t,
+        "final_Q": state(host.Q),
+        "final_p": state(host.P),
+        "final_xi": state(host.final_xi),
+        "final_momentum": state(host.momentum),
+    }
     for key, column in tables.columns.items():
         if column is not None:
             column[one.rows] = take(final[key])
@@ -1307,13 +1481,14 @@ def _run_batches(plan: _Plan, batches: list, devices: list, report: Callable) ->
 
 def _place(tables: _Tables, part: _Tables, rows: list):
     """Copy a `_Rows` table `part` (its batches' rows one after the other) into `tables`."""
+
     def put(dst, src):
         if dst is None:
             return
         start = 0
         for r in rows:
             n = r.stop - r.start
-            dst[r] = src[start:start + n]
+            dst[r] = src[start : start + n]
             start += n
 
     for key, column in tables.columns.items():
@@ -1331,11 +1506,29 @@ def _place(tables: _Tables, part: _Tables, rows: list):
 
 
 def sweep(
-    make_system, params, Q0, xi0, *, dt, n_steps: int, P0=None, grid: bool = False,
-    invariants: dict | None = None, chunk_steps: int | None = None, batch_size: int | None = None,
-    save_every: int | None = None, member_chunk: int | None = None, devices=None, progress=False,
-    store=None, client=None, overwrite: bool = False, fast: bool | str = "auto", threads: int | None = None,
-    backend: str = "auto", **options,
+    make_system,
+    params,
+    Q0,
+    xi0,
+    *,
+    dt,
+    n_steps: int,
+    P0=None,
+    grid: bool = False,
+    invariants: dict | None = None,
+    chunk_steps: int | None = None,
+    batch_size: int | None = None,
+    save_every: int | None = None,
+    member_chunk: int | None = None,
+    devices=None,
+    progress=False,
+    store=None,
+    client=None,
+    overwrite: bool = False,
+    fast: bool | str = "auto",
+    threads: int | None = None,
+    backend: str = "auto",
+    **options,
 ) -> SweepResult:
     r"""Run many members — parameters × initial conditions — through `integrate`; keep a table.
 
@@ -1489,9 +1682,12 @@ def sweep(
         raise ValueError(f"fast: expected True, False or 'auto', got {fast!r}.")
     backend = _check_backend(backend)
     if fast != "auto":
-        warnings.warn("sweep: fast= is deprecated; it chooses among XLA's paths, and implies backend='xla' "
-                      "(the default backend='auto' runs native kernels where they apply).", DeprecationWarning,
-                      stacklevel=2)
+        warnings.warn(
+            "sweep: fast= is deprecated; it chooses among XLA's paths, and implies backend='xla' "
+            "(the default backend='auto' runs native kernels where they apply).",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         if backend == "native":
             raise ValueError("fast: chooses among XLA's paths; it cannot be combined with backend='native'.")
         backend = "xla"
@@ -1530,8 +1726,9 @@ def sweep(
     if store is not None or client is not None:
         from . import store as _store  # zarr, dask: the optional extra [sweep]
 
-        return _store.run_stored(plan, run, tables, store=store, client=client, overwrite=overwrite,
-                                 report=report, make_result=_result)
+        return _store.run_stored(
+            plan, run, tables, store=store, client=client, overwrite=overwrite, report=report, make_result=_result
+        )
     used, chunks, slots = set(), np.zeros(3, int), run.slots
     for g in range(0, n_batches, len(slots)):
         rows = _run_batches(plan, list(range(g, min(g + len(slots), n_batches))), slots, report)
@@ -1549,9 +1746,19 @@ def _result(plan: "_Plan", tables: _Tables, n_devices: int, chunks=(0, 0, 0)) ->
     which do not count them)."""
     members, run = plan.members, plan.run
     return SweepResult(
-        param_index=members.param_index, ic_index=members.ic_index, energy_error=tables.drift["energy"],
-        drift=tables.drift, initial=tables.initial, saved=tables.saved, n_steps=run.n_steps,
-        chunk_steps=run.chunk_steps, batch_size=plan.batch_size, n_devices=n_devices, **tables.columns,
-        **plan.shapes.facts, fast_chunks=int(chunks[0]), fallback_chunks=int(chunks[1]),
+        param_index=members.param_index,
+        ic_index=members.ic_index,
+        energy_error=tables.drift["energy"],
+        drift=tables.drift,
+        initial=tables.initial,
+        saved=tables.saved,
+        n_steps=run.n_steps,
+        chunk_steps=run.chunk_steps,
+        batch_size=plan.batch_size,
+        n_devices=n_devices,
+        **tables.columns,
+        **plan.shapes.facts,
+        fast_chunks=int(chunks[0]),
+        fallback_chunks=int(chunks[1]),
         fallback_member_chunks=int(chunks[2]),
     )

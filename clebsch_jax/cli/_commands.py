@@ -85,8 +85,13 @@ def _whole_number(text: str, low: int, high: float, not_a_number: str, out_of_ra
 
 
 def _steps(text: str) -> int:
-    return _whole_number(text, 1, MAX_STEPS, "expected a whole number of steps, got {text!r}",
-                         f"expected 1 to {MAX_STEPS:,} steps, got {{value}}")
+    return _whole_number(
+        text,
+        1,
+        MAX_STEPS,
+        "expected a whole number of steps, got {text!r}",
+        f"expected 1 to {MAX_STEPS:,} steps, got {{value}}",
+    )
 
 
 def _dt(text: str) -> float:
@@ -105,15 +110,21 @@ def _order(text: str) -> int:
     except ValueError:
         value = None
     if value not in ORDERS + GAUSS_ORDERS:
-        raise argparse.ArgumentTypeError(f"expected one of {', '.join(map(str, ORDERS))} (with --scheme gauss "
-                                          f"an even order up to {GAUSS_ORDERS[-1]}), got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected one of {', '.join(map(str, ORDERS))} (with --scheme gauss "
+            f"an even order up to {GAUSS_ORDERS[-1]}), got {text!r}"
+        )
     return value
 
 
 def _batch(text: str) -> int:
-    return _whole_number(text, 1, MAX_BATCH, "expected a whole number of members, got {text!r}",
-                         f"expected 1 to {MAX_BATCH:,} members, got {{value}} (for larger batches use "
-                         "clebsch_jax.sweep)")
+    return _whole_number(
+        text,
+        1,
+        MAX_BATCH,
+        "expected a whole number of members, got {text!r}",
+        f"expected 1 to {MAX_BATCH:,} members, got {{value}} (for larger batches use clebsch_jax.sweep)",
+    )
 
 
 def _seed(text: str) -> int:
@@ -167,8 +178,9 @@ def _require_matplotlib(prog: str) -> int | None:
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        return _fail('the plots are drawn with matplotlib, which is not installed: '
-                     'pip install "clebsch-jax[plot]"', prog=prog)
+        return _fail(
+            'the plots are drawn with matplotlib, which is not installed: pip install "clebsch-jax[plot]"', prog=prog
+        )
     return None
 
 
@@ -205,8 +217,10 @@ class _ProgressBar:
         d0, e0 = self.first or (done, elapsed)
         if d0 < done < total:
             eta = f", ~{(elapsed - e0) / (done - d0) * (total - done):.0f} s left"
-        line = (f"{self.label} [{'#' * filled}{'.' * (self.width - filled)}] {100 * frac:3.0f}% "
-                f"{done:,}/{total:,} steps, {elapsed:.1f} s{eta}")
+        line = (
+            f"{self.label} [{'#' * filled}{'.' * (self.width - filled)}] {100 * frac:3.0f}% "
+            f"{done:,}/{total:,} steps, {elapsed:.1f} s{eta}"
+        )
         if self.tty:
             self.stream.write("\r" + line + "\x1b[K")
         else:
@@ -246,8 +260,10 @@ def _failure_text(summary: dict) -> str:
     if not fails["count"]:
         return "none"
     first, others = fails["members"][0], fails["members"][1:6]
-    text = (f"{fails['count']} of {summary['scene']['members']} members failed: member {first['member']} at "
-            f"step {first['step']} (t = {first['t']:.4g}): {first['reason']}")
+    text = (
+        f"{fails['count']} of {summary['scene']['members']} members failed: member {first['member']} at "
+        f"step {first['step']} (t = {first['t']:.4g}): {first['reason']}"
+    )
     if others:
         text += "; also " + ", ".join(f"member {f['member']} (step {f['step']})" for f in others)
         if fails["count"] > 1 + len(others):
@@ -255,13 +271,23 @@ def _failure_text(summary: dict) -> str:
     return text
 
 
-def _run_scene_into(scene, out_dir: str, *, dt=None, steps=None, order=None, batch=1, seed=0, chunk=None,
-                    progress=None, scheme=None) -> dict:
+def _run_scene_into(
+    scene, out_dir: str, *, dt=None, steps=None, order=None, batch=1, seed=0, chunk=None, progress=None, scheme=None
+) -> dict:
     """`run_scene`, then write `<scene>.png` and `summary.json` into `out_dir` (which exists)."""
     from ._scenes import run_scene, write_plot, write_summary
 
-    summary = run_scene(scene, dt=dt, n_steps=steps, order=order, batch=batch, seed=seed, chunk_steps=chunk,
-                        progress=progress, scheme=scheme)
+    summary = run_scene(
+        scene,
+        dt=dt,
+        n_steps=steps,
+        order=order,
+        batch=batch,
+        seed=seed,
+        chunk_steps=chunk,
+        progress=progress,
+        scheme=scheme,
+    )
     tic = time.perf_counter()
     png = f"{scene.name}.png"
     write_plot(scene, summary, os.path.join(out_dir, png))
@@ -277,9 +303,12 @@ def _run_table(scene, summary: dict, out_dir: str) -> str:
     members = summary["scene"]["members"]
     rows = [
         ("method", f"{run['method']} ({run['form']} march, order {run['order']}, {run['derivative_map']})"),
-        ("steps", f"{run['n_steps']:,} x {members} member{'s' if members > 1 else ''}, dt = {run['dt']:g}, "
-                  f"t = 0 to {run['t_final']:g} ({run['chunks']} chunk{'s' if run['chunks'] > 1 else ''} "
-                  f"of {run['steps_per_chunk']:,})"),
+        (
+            "steps",
+            f"{run['n_steps']:,} x {members} member{'s' if members > 1 else ''}, dt = {run['dt']:g}, "
+            f"t = 0 to {run['t_final']:g} ({run['chunks']} chunk{'s' if run['chunks'] > 1 else ''} "
+            f"of {run['steps_per_chunk']:,})",
+        ),
         ("wall time", f"{timing['wall_s']:.2f} s (compile + first chunk {timing['first_chunk_s']:.2f} s)"),
         ("energy error (max rel.)", _fmt(summary["errors"]["energy_rel_max"])),
     ]
@@ -310,8 +339,16 @@ def _short_invariants(summary: dict) -> str:
 
 def _combined_table(rows: list) -> str:
     """Rows of (scene, method, steps, wall, energy, invariants, newton, failures) as columns."""
-    header = ("scene", "method", "steps x members", "wall", "energy err.", "Newton it./step", "failures",
-              "invariants (max rel. drift / max error)")
+    header = (
+        "scene",
+        "method",
+        "steps x members",
+        "wall",
+        "energy err.",
+        "Newton it./step",
+        "failures",
+        "invariants (max rel. drift / max error)",
+    )
     table = [header] + [tuple(r) for r in rows]
     widths = [max(len(r[i]) for r in table) for i in range(len(header) - 1)]
     fmt = lambda r: "  ".join(f"{c:<{w}}" for c, w in zip(r, widths)) + "  " + r[-1]
@@ -321,21 +358,34 @@ def _combined_table(rows: list) -> str:
 def _scene_row(summary: dict) -> tuple:
     run, newton = summary["run"], summary["newton_iterations"]
     fails = summary["failures"]["count"]
-    return (summary["scene"]["name"], run["method"], f"{run['n_steps']} x {summary['scene']['members']}",
-            f"{summary['timing']['wall_s']:.1f} s", _fmt(summary["errors"]["energy_rel_max"]),
-            f"{_fmt(newton['mean'], '.1f')} / {newton['max']}",
-            "0" if not fails else f"{fails} (member {summary['failures']['members'][0]['member']} "
-                                  f"at step {summary['failures']['members'][0]['step']})",
-            _short_invariants(summary))
+    return (
+        summary["scene"]["name"],
+        run["method"],
+        f"{run['n_steps']} x {summary['scene']['members']}",
+        f"{summary['timing']['wall_s']:.1f} s",
+        _fmt(summary["errors"]["energy_rel_max"]),
+        f"{_fmt(newton['mean'], '.1f')} / {newton['max']}",
+        "0"
+        if not fails
+        else f"{fails} (member {summary['failures']['members'][0]['member']} "
+        f"at step {summary['failures']['members'][0]['step']})",
+        _short_invariants(summary),
+    )
 
 
 def _figure1_row(summary: dict) -> tuple:
     err, newton, scene = summary["errors"], summary["newton_iterations"], summary["scene"]
-    return ("figure-1", f"CAY, Example 30 ({scene['march']} march)", f"{scene['n_steps']} x {scene['n_orbits']}",
-            f"{summary['timing']['total_s']:.1f} s", _fmt(err["energy_rel_max"]),
-            f"{newton['mean']:.1f} / {newton['max']}", "0",
-            f"Casimir |m|^2 {err['casimir_rel_max']:.1e}; spatial ang. momentum "
-            f"{err['spatial_momentum_drift_rel_max']:.1e}; |Q^T Q - I| {err['orthogonality_max']:.1e}")
+    return (
+        "figure-1",
+        f"CAY, Example 30 ({scene['march']} march)",
+        f"{scene['n_steps']} x {scene['n_orbits']}",
+        f"{summary['timing']['total_s']:.1f} s",
+        _fmt(err["energy_rel_max"]),
+        f"{newton['mean']:.1f} / {newton['max']}",
+        "0",
+        f"Casimir |m|^2 {err['casimir_rel_max']:.1e}; spatial ang. momentum "
+        f"{err['spatial_momentum_drift_rel_max']:.1e}; |Q^T Q - I| {err['orthogonality_max']:.1e}",
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -355,10 +405,13 @@ def _use_compilation_cache(args, prog: str) -> None:
 
 
 def _add_cache_flag(p) -> None:
-    p.add_argument("--no-cache", action="store_true",
-                   help="do not keep compiled programs on disk (by default they are kept in "
-                        "$CLEBSCH_JAX_CACHE_DIR or ~/.cache/clebsch-jax/xla, so a second run "
-                        "skips most of the compilation; CLEBSCH_JAX_NO_CACHE=1 does the same)")
+    p.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="do not keep compiled programs on disk (by default they are kept in "
+        "$CLEBSCH_JAX_CACHE_DIR or ~/.cache/clebsch-jax/xla, so a second run "
+        "skips most of the compilation; CLEBSCH_JAX_NO_CACHE=1 does the same)",
+    )
 
 
 def _run_run(args) -> int:
@@ -371,20 +424,39 @@ def _run_run(args) -> int:
     if code:
         return code
     if args.order is not None and args.order not in (GAUSS_ORDERS if args.scheme == "gauss" else ORDERS):
-        return _fail(f"--order {args.order} needs --scheme gauss (the compositions have orders "
-                     f"{', '.join(map(str, ORDERS))})", code=2, prog=prog)
+        return _fail(
+            f"--order {args.order} needs --scheme gauss (the compositions have orders {', '.join(map(str, ORDERS))})",
+            code=2,
+            prog=prog,
+        )
     _use_compilation_cache(args, prog)
     steps = scene.steps if args.steps is None else args.steps
     chunk = args.chunk or chunk_steps_for(args.batch, steps)
-    show = not args.quiet and -(-steps // chunk) > 1 and (
-        args.progress or _isatty(sys.stderr) or args.batch * steps >= LONG_RUN)
+    show = (
+        not args.quiet
+        and -(-steps // chunk) > 1
+        and (args.progress or _isatty(sys.stderr) or args.batch * steps >= LONG_RUN)
+    )
     bar = _ProgressBar(f"{scene.name}") if show else None
     if not args.quiet:
-        print(f"{prog}: integrating {scene.name} ({steps:,} steps x {args.batch} member"
-              f"{'s' if args.batch > 1 else ''}); compiling first takes a few seconds...", flush=True)
+        print(
+            f"{prog}: integrating {scene.name} ({steps:,} steps x {args.batch} member"
+            f"{'s' if args.batch > 1 else ''}); compiling first takes a few seconds...",
+            flush=True,
+        )
     try:
-        summary = _run_scene_into(scene, out_dir, dt=args.dt, steps=steps, order=args.order, batch=args.batch,
-                                  seed=args.seed, chunk=chunk, progress=bar, scheme=args.scheme)
+        summary = _run_scene_into(
+            scene,
+            out_dir,
+            dt=args.dt,
+            steps=steps,
+            order=args.order,
+            batch=args.batch,
+            seed=args.seed,
+            chunk=chunk,
+            progress=bar,
+            scheme=args.scheme,
+        )
     except OSError as err:
         return _fail(f"could not write to {out_dir!r}: {err.strerror or err}", prog=prog)
     except ValueError as err:  # integrate refused the scheme for this scene's system, before compiling
@@ -403,9 +475,11 @@ def _run_run(args) -> int:
 def _add_run(subparsers) -> None:
     from ._scenes import SCENES
 
-    scenes = "\n".join(f"  {s.name:<11} {s.description}\n" + textwrap.fill(s.details, 79, initial_indent=" " * 14,
-                                                                           subsequent_indent=" " * 14)
-                       for s in SCENES.values())
+    scenes = "\n".join(
+        f"  {s.name:<11} {s.description}\n"
+        + textwrap.fill(s.details, 79, initial_indent=" " * 14, subsequent_indent=" " * 14)
+        for s in SCENES.values()
+    )
     p = subparsers.add_parser(
         "run",
         help="integrate one built-in scene (rigid-body, heavy-top, vortices, peakons, landmarks)",
@@ -425,37 +499,69 @@ def _add_run(subparsers) -> None:
             "compiled with XLA's backend optimisation off (compilation dominates them).",
         ),
         epilog="examples: clebsch-jax run vortices --steps 20000 --order 4 --batch 8\n"
-               "          clebsch-jax run vortices --scheme gauss --order 12 --dt 0.25 --steps 2000",
+        "          clebsch-jax run vortices --scheme gauss --order 12 --dt 0.25 --steps 2000",
     )
     p.add_argument("scene", type=_scene, metavar="SCENE", help=f"one of: {', '.join(SCENES)}")
-    p.add_argument("--dt", type=_dt, default=None, metavar="DT",
-                   help="time step > 0 (default: the scene's, " +
-                        ", ".join(f"{s.name} {s.dt:g}" for s in SCENES.values()) + ")")
-    p.add_argument("--steps", type=_steps, default=None, metavar="N",
-                   help=f"number of time steps, 1 to {MAX_STEPS:,} (default: the scene's, " +
-                        ", ".join(f"{s.name} {s.steps}" for s in SCENES.values()) + ")")
-    p.add_argument("--order", type=_order, default=None, metavar="K",
-                   help="order of the method: 2, 4, 6 or 8 (symmetric compositions of discrete "
-                        "Clebsch steps; default 2); with --scheme gauss an even order up to 16 "
-                        "(order/2 Gauss-Legendre stages)")
-    p.add_argument("--scheme", choices=SCHEMES, default=None, metavar="S",
-                   help="discrete principle: left, right, midpoint, or gauss (the Gauss-Legendre "
-                        "discretisation of the Clebsch principle); default the scene's. A scheme the "
-                        "scene's system does not admit (left/right for the degenerate vortices) is "
-                        "refused before compiling")
-    p.add_argument("--batch", type=_batch, default=1, metavar="B",
-                   help=f"number of members, 1 to {MAX_BATCH:,} (default 1), run under jax.vmap")
-    p.add_argument("--seed", type=_seed, default=0, metavar="S",
-                   help="seed of the random members 1, ..., B-1 (default 0)")
-    p.add_argument("--out", metavar="DIR", default=None,
-                   help="output folder, created if needed (default: ./clebsch-jax-run/SCENE)")
-    p.add_argument("--chunk", type=_chunk, default=None, metavar="N",
-                   help="steps per compiled call (default: automatic, at most ~50 chunks; "
-                        "smaller chunks use less memory and update the progress bar more often)")
-    p.add_argument("--progress", action="store_true",
-                   help="draw the progress bar even when stderr is not a terminal")
-    p.add_argument("--quiet", action="store_true",
-                   help="no progress bar or status line (the summary table is still printed)")
+    p.add_argument(
+        "--dt",
+        type=_dt,
+        default=None,
+        metavar="DT",
+        help="time step > 0 (default: the scene's, " + ", ".join(f"{s.name} {s.dt:g}" for s in SCENES.values()) + ")",
+    )
+    p.add_argument(
+        "--steps",
+        type=_steps,
+        default=None,
+        metavar="N",
+        help=f"number of time steps, 1 to {MAX_STEPS:,} (default: the scene's, "
+        + ", ".join(f"{s.name} {s.steps}" for s in SCENES.values())
+        + ")",
+    )
+    p.add_argument(
+        "--order",
+        type=_order,
+        default=None,
+        metavar="K",
+        help="order of the method: 2, 4, 6 or 8 (symmetric compositions of discrete "
+        "Clebsch steps; default 2); with --scheme gauss an even order up to 16 "
+        "(order/2 Gauss-Legendre stages)",
+    )
+    p.add_argument(
+        "--scheme",
+        choices=SCHEMES,
+        default=None,
+        metavar="S",
+        help="discrete principle: left, right, midpoint, or gauss (the Gauss-Legendre "
+        "discretisation of the Clebsch principle); default the scene's. A scheme the "
+        "scene's system does not admit (left/right for the degenerate vortices) is "
+        "refused before compiling",
+    )
+    p.add_argument(
+        "--batch",
+        type=_batch,
+        default=1,
+        metavar="B",
+        help=f"number of members, 1 to {MAX_BATCH:,} (default 1), run under jax.vmap",
+    )
+    p.add_argument(
+        "--seed", type=_seed, default=0, metavar="S", help="seed of the random members 1, ..., B-1 (default 0)"
+    )
+    p.add_argument(
+        "--out", metavar="DIR", default=None, help="output folder, created if needed (default: ./clebsch-jax-run/SCENE)"
+    )
+    p.add_argument(
+        "--chunk",
+        type=_chunk,
+        default=None,
+        metavar="N",
+        help="steps per compiled call (default: automatic, at most ~50 chunks; "
+        "smaller chunks use less memory and update the progress bar more often)",
+    )
+    p.add_argument("--progress", action="store_true", help="draw the progress bar even when stderr is not a terminal")
+    p.add_argument(
+        "--quiet", action="store_true", help="no progress bar or status line (the summary table is still printed)"
+    )
     _add_cache_flag(p)
     p.set_defaults(handler=_run_run)
 
@@ -485,18 +591,24 @@ def _demo_table(summary: dict, out_dir: str) -> str:
         ("spatial momentum drift (max rel.)", f"{err['spatial_momentum_drift_rel_max']:.2e}"),
         ("orthogonality error (max)", f"{err['orthogonality_max']:.2e}"),
         ("Newton iterations/step", f"{newton['mean']:.2f} mean, {newton['max']} max"),
-        ("steps/s (compiled)", f"{timing['steps_per_s']:,.0f} x {scene['n_orbits']} orbits "
-                               f"= {timing['orbit_steps_per_s']:,.0f} orbit-steps/s{unoptimised}"),
+        (
+            "steps/s (compiled)",
+            f"{timing['steps_per_s']:,.0f} x {scene['n_orbits']} orbits "
+            f"= {timing['orbit_steps_per_s']:,.0f} orbit-steps/s{unoptimised}",
+        ),
         ("compile + first call", _fmt_time(timing["compile_and_first_call_s"])),
         ("demo total (after imports)", _fmt_time(timing["total_s"])),
     ]
     width = max(len(k) for k, _ in rows)
-    lines = [f"Figure 1 scene: rigid body, I = ({inertia}), dt = {scene['dt']:g}, "
-             f"{scene['derivative_map']} derivative map"]
+    lines = [
+        f"Figure 1 scene: rigid body, I = ({inertia}), dt = {scene['dt']:g}, {scene['derivative_map']} derivative map"
+    ]
     lines += [f"  {k:<{width}}  {v}" for k, v in rows]
     if not scene["quick"] and cov["min"] < summary["target_periods"] - 0.5:
-        lines.append(f"  (the paper shows {summary['target_periods']} periods: "
-                     f"--steps {summary['steps_for_target_periods']} covers them for the slowest orbit)")
+        lines.append(
+            f"  (the paper shows {summary['target_periods']} periods: "
+            f"--steps {summary['steps_for_target_periods']} covers them for the slowest orbit)"
+        )
     lines.append(f"wrote {', '.join(summary['files'])} to {out_dir}")
     return "\n".join(lines)
 
@@ -509,8 +621,11 @@ def _demo_figure1(args, out_dir: str, prog: str):
     """Run the Figure 1 scene; returns (exit code or None, summary or None)."""
     from ._demo import MissingPlotDependency, figure1
 
-    print(f"{PROG} demo: integrating the Figure 1 scene"
-          f"{' (quick)' if args.quick else ''}; compiling first takes a few seconds...", flush=True)
+    print(
+        f"{PROG} demo: integrating the Figure 1 scene"
+        f"{' (quick)' if args.quick else ''}; compiling first takes a few seconds...",
+        flush=True,
+    )
     try:
         summary = figure1(out_dir, quick=args.quick, n_steps=args.steps)
     except MissingPlotDependency as err:
@@ -546,8 +661,11 @@ def _run_demo(args) -> int:
         return code
     scenes = [SCENES[only]] if only else list(SCENES.values())
     failed = []
-    print(f"{prog}: the built-in scenes, briefly ({'each' if len(scenes) > 1 else 'it'} mostly compiles: "
-          "XLA optimisation off)...", flush=True)
+    print(
+        f"{prog}: the built-in scenes, briefly ({'each' if len(scenes) > 1 else 'it'} mostly compiles: "
+        "XLA optimisation off)...",
+        flush=True,
+    )
     for scene in scenes:
         steps = args.steps if only and args.steps is not None else scene.quick_steps
         sub = os.path.join(out_dir, scene.name)
@@ -588,17 +706,33 @@ def _add_demo(subparsers) -> None:
             "mostly compilation)."
         ),
     )
-    p.add_argument("--out", metavar="DIR", default="clebsch-jax-demo",
-                   help="output folder, created if needed (default: ./clebsch-jax-demo)")
-    p.add_argument("--steps", metavar="N", type=_steps, default=None,
-                   help=f"number of time steps of the Figure 1 scene (default: {TARGET_PERIODS} periods "
-                        f"of the slowest orbit, capped at {MAX_DEFAULT_STEPS}; {QUICK_STEPS} with --quick), "
-                        "or of the --only scene")
-    p.add_argument("--quick", action="store_true",
-                   help="fewer orbits and steps in the Figure 1 scene: a smoke test (a few seconds "
-                        "plus compilation)")
-    p.add_argument("--only", metavar="NAME", default=None, type=_demo_name,
-                   help=f"run only one scene: {FIGURE1} (the Figure 1 scene) or one of {', '.join(SCENES)}")
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        default="clebsch-jax-demo",
+        help="output folder, created if needed (default: ./clebsch-jax-demo)",
+    )
+    p.add_argument(
+        "--steps",
+        metavar="N",
+        type=_steps,
+        default=None,
+        help=f"number of time steps of the Figure 1 scene (default: {TARGET_PERIODS} periods "
+        f"of the slowest orbit, capped at {MAX_DEFAULT_STEPS}; {QUICK_STEPS} with --quick), "
+        "or of the --only scene",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="fewer orbits and steps in the Figure 1 scene: a smoke test (a few seconds plus compilation)",
+    )
+    p.add_argument(
+        "--only",
+        metavar="NAME",
+        default=None,
+        type=_demo_name,
+        help=f"run only one scene: {FIGURE1} (the Figure 1 scene) or one of {', '.join(SCENES)}",
+    )
     _add_cache_flag(p)
     p.set_defaults(handler=_run_demo)
 
@@ -610,7 +744,8 @@ def _demo_name(text: str) -> str:
         return _scene(text)
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(
-            f"unknown scene {text!r}; known: {FIGURE1}, {', '.join(_scene_names())}") from None
+            f"unknown scene {text!r}; known: {FIGURE1}, {', '.join(_scene_names())}"
+        ) from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -641,13 +776,19 @@ def _run_bench(args) -> int:
     folder = _benchmarks_dir()
     scripts = _benchmarks(folder) if folder.is_dir() else {}
     if not scripts:
-        return _fail(f"no benchmarks folder next to the package ({folder}): the benchmarks ship with the "
-                     "repository, not the installed package; clone it and `pip install -e .` to run them",
-                     prog=prog)
+        return _fail(
+            f"no benchmarks folder next to the package ({folder}): the benchmarks ship with the "
+            "repository, not the installed package; clone it and `pip install -e .` to run them",
+            prog=prog,
+        )
     unknown = [n for n in args.names if n not in scripts]
     if unknown:
-        return _fail(f"unknown benchmark{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}; "
-                     f"known: {', '.join(scripts)}", code=2, prog=prog)
+        return _fail(
+            f"unknown benchmark{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}; "
+            f"known: {', '.join(scripts)}",
+            code=2,
+            prog=prog,
+        )
     names = list(dict.fromkeys(args.names)) or list(scripts)
     if args.list:
         width = max(len(n) for n in scripts)
@@ -663,10 +804,15 @@ def _run_bench(args) -> int:
             return code
     results = []
     for name in names:
-        cmd = [sys.executable, str(scripts[name])] + (["--quick"] if args.quick else []) + \
-              (["--out", os.path.abspath(out_dir)] if out_dir is not None else [])
-        print(f"== {prog}: {name}{' --quick' if args.quick else ''} "
-              f"(results in {out_dir or folder / 'results'}) ==", flush=True)
+        cmd = (
+            [sys.executable, str(scripts[name])]
+            + (["--quick"] if args.quick else [])
+            + (["--out", os.path.abspath(out_dir)] if out_dir is not None else [])
+        )
+        print(
+            f"== {prog}: {name}{' --quick' if args.quick else ''} (results in {out_dir or folder / 'results'}) ==",
+            flush=True,
+        )
         tic = time.perf_counter()
         rc = subprocess.run(cmd).returncode
         results.append((name, rc, time.perf_counter() - tic))
@@ -676,8 +822,9 @@ def _run_bench(args) -> int:
         print(f"  {name:<{width}}  {'ok' if rc == 0 else f'FAILED (exit code {rc})'}  {wall:.1f} s")
     bad = [n for n, rc, _ in results if rc != 0]
     if bad:
-        return _fail(f"{len(bad)} of {len(results)} benchmarks failed: {', '.join(bad)} (their output is above)",
-                     prog=prog)
+        return _fail(
+            f"{len(bad)} of {len(results)} benchmarks failed: {', '.join(bad)} (their output is above)", prog=prog
+        )
     return 0
 
 
@@ -695,13 +842,20 @@ def _add_bench(subparsers) -> None:
         ),
     )
     p.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (default: all; see --list)")
-    p.add_argument("--quick", action="store_true",
-                   help="pass --quick to each script (small sizes, XLA optimisation off: a smoke run); "
-                        "results go to ./clebsch-jax-bench-quick unless --out is given")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="pass --quick to each script (small sizes, XLA optimisation off: a smoke run); "
+        "results go to ./clebsch-jax-bench-quick unless --out is given",
+    )
     p.add_argument("--list", action="store_true", help="list the benchmarks and what each measures, then exit")
-    p.add_argument("--out", metavar="DIR", default=None,
-                   help="output folder passed to the scripts (default: benchmarks/results, the recorded "
-                        "results; ./clebsch-jax-bench-quick with --quick)")
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        default=None,
+        help="output folder passed to the scripts (default: benchmarks/results, the recorded "
+        "results; ./clebsch-jax-bench-quick with --quick)",
+    )
     p.set_defaults(handler=_run_bench)
 
 

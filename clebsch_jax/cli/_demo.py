@@ -73,8 +73,7 @@ def _require_matplotlib() -> None:
         import matplotlib  # noqa: F401
     except ImportError:
         raise MissingPlotDependency(
-            'the demo draws its figures with matplotlib, which is not installed: '
-            'pip install "clebsch-jax[plot]"'
+            'the demo draws its figures with matplotlib, which is not installed: pip install "clebsch-jax[plot]"'
         ) from None
 
 
@@ -201,8 +200,7 @@ def _march(system, m0: np.ndarray, dt: float, n_steps: int, compiler_options=Non
                 f"{n_chunks}, starting at step {c * chunk}.)"
             ) from None
         keep = slice(0 if c == 0 else 1, None)
-        pieces.append({k: np.asarray(v)[:, keep] for k, v in diag.items()}
-                      | {"t": np.asarray(sol.ts)[0, keep]})
+        pieces.append({k: np.asarray(v)[:, keep] for k, v in diag.items()} | {"t": np.asarray(sol.ts)[0, keep]})
         iters.append(np.asarray(sol.stats.iterations))
 
     out = {k: np.concatenate([p[k] for p in pieces], axis=1 if k != "t" else 0) for k in pieces[0]}
@@ -285,11 +283,13 @@ def _plot_orbits(path, m: np.ndarray, colors, title: str) -> None:
 
     u = np.linspace(0.0, 2.0 * np.pi, 73)
     for lat in np.deg2rad(np.arange(-60, 61, 30)):
-        plot3(np.stack([math.cos(lat) * np.cos(u), math.cos(lat) * np.sin(u),
-                        np.full_like(u, math.sin(lat))], axis=-1), color="0.8", lw=0.4)
+        plot3(
+            np.stack([math.cos(lat) * np.cos(u), math.cos(lat) * np.sin(u), np.full_like(u, math.sin(lat))], axis=-1),
+            color="0.8",
+            lw=0.4,
+        )
     for lon in np.deg2rad(np.arange(0, 180, 30)):
-        plot3(np.stack([math.cos(lon) * np.cos(u), math.sin(lon) * np.cos(u), np.sin(u)], axis=-1),
-              color="0.8", lw=0.4)
+        plot3(np.stack([math.cos(lon) * np.cos(u), math.sin(lon) * np.cos(u), np.sin(u)], axis=-1), color="0.8", lw=0.4)
     separatrix = _separatrix()
     for curve in separatrix:
         plot3(curve, color="k", lw=0.8, ls="--")
@@ -315,10 +315,14 @@ def _plot_orbits(path, m: np.ndarray, colors, title: str) -> None:
             Line2D([], [], color=colormaps["Blues"](0.8), lw=1.5),
             Line2D([], [], color="k", lw=0.8, ls="--"),
         ],
-        labels=[f"about the minor axis $m_1$ ($I_1 = {i1:g}$)",
-                f"about the major axis $m_3$ ($I_3 = {i3:g}$)",
-                f"separatrix (through the middle axis $m_2$, $I_2 = {i2:g}$)"],
-        loc="lower left", fontsize=9, frameon=False,
+        labels=[
+            f"about the minor axis $m_1$ ($I_1 = {i1:g}$)",
+            f"about the major axis $m_3$ ($I_3 = {i3:g}$)",
+            f"separatrix (through the middle axis $m_2$, $I_2 = {i2:g}$)",
+        ],
+        loc="lower left",
+        fontsize=9,
+        frameon=False,
     )
 
     names = ("$m_1$", "$m_2$", "$m_3$")
@@ -516,8 +520,9 @@ def _orbits(m0, E, periods_exact, periods_meas, covered, errors) -> list:
 def _scene_facts(system, march: str, n_orbits: int, n_steps: int, t_final: float, quick: bool, options) -> dict:
     """The summary's `scene` entry: what was integrated, and how."""
     return {
-        "paper": ("C. J. Cotter and D. D. Holm, Continuous and discrete Clebsch variational "
-                  "principles: Example 30, Figure 1"),
+        "paper": (
+            "C. J. Cotter and D. D. Holm, Continuous and discrete Clebsch variational principles: Example 30, Figure 1"
+        ),
         "inertia": list(INERTIA),
         "dt": DT,
         "derivative_map": getattr(system.derivative_map, "name", "cayley"),
@@ -535,8 +540,10 @@ def _draw(out_dir: str, files: list, traj: dict, errors: dict, covered: np.ndarr
     """The two figures, `files[0]` (orbits) and `files[1]` (invariants), into `out_dir`."""
     t, m = traj["t"], traj["m"]
     span = f"{covered.min():.3g} to {covered.max():.3g} periods"
-    title = (f"Rigid body, I = {INERTIA}, dt = {DT}, Cayley (Example 30): {len(m)} orbits, "
-             f"{n_steps} steps (t = {float(t[-1]):g}), {span}")
+    title = (
+        f"Rigid body, I = {INERTIA}, dt = {DT}, Cayley (Example 30): {len(m)} orbits, "
+        f"{n_steps} steps (t = {float(t[-1]):g}), {span}"
+    )
     colors = _orbit_colors(2.0 * np.asarray(traj["E"][:, 0]))
     _plot_orbits(os.path.join(out_dir, files[0]), m, colors, title)
     _plot_invariants(os.path.join(out_dir, files[1]), t, errors, colors, title)

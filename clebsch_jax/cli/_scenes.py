@@ -70,8 +70,18 @@ from clebsch_jax.models import (
     vortex_velocity,
 )
 
-__all__ = ["Scene", "Invariant", "Setup", "SCENES", "run_scene", "solve", "program", "chunk_steps_for",
-           "QUICK_COMPILER_OPTIONS", "compiler_options_for"]
+__all__ = [
+    "Scene",
+    "Invariant",
+    "Setup",
+    "SCENES",
+    "run_scene",
+    "solve",
+    "program",
+    "chunk_steps_for",
+    "QUICK_COMPILER_OPTIONS",
+    "compiler_options_for",
+]
 
 PLOT_MEMBERS = 8
 """Members drawn in a scene's plot (the first ones)."""
@@ -265,10 +275,10 @@ def _top_system():
 
 
 def _top_setup(batch, rng):
-    tilt = np.column_stack([0.5 + 0.15 * rng.uniform(-1, 1, batch), 0.15 * rng.uniform(-1, 1, batch),
-                            np.zeros(batch)])
-    omega = np.array([0.3, -0.2, 6.0]) + np.column_stack([0.3 * rng.normal(size=(batch, 2)),
-                                                          0.5 * rng.normal(size=batch)])
+    tilt = np.column_stack([0.5 + 0.15 * rng.uniform(-1, 1, batch), 0.15 * rng.uniform(-1, 1, batch), np.zeros(batch)])
+    omega = np.array([0.3, -0.2, 6.0]) + np.column_stack(
+        [0.3 * rng.normal(size=(batch, 2)), 0.5 * rng.normal(size=batch)]
+    )
     tilt[0], omega[0] = (0.5, 0.0, 0.0), (0.3, -0.2, 6.0)
     Q0 = np.asarray(jax.vmap(lie.so3_exp)(jnp.asarray(tilt)))
     return Setup(Q0=Q0, xi0=omega, P0=None, members={"tilt": tilt.tolist(), "Omega0": omega.tolist()})
@@ -513,8 +523,10 @@ def sphere_random_coefficients(N: int, peak: float, rng: np.random.Generator) ->
 
 
 def _sphere_setup(batch, rng):
-    starts = [euler_sphere_start(euler_sphere_quantise(sphere_random_coefficients(SPHERE_N, SPHERE_PEAK, rng)))
-              for _ in range(batch)]
+    starts = [
+        euler_sphere_start(euler_sphere_quantise(sphere_random_coefficients(SPHERE_N, SPHERE_PEAK, rng)))
+        for _ in range(batch)
+    ]
     Q0 = np.stack([np.asarray(q) for q, _ in starts])
     xi0 = np.stack([np.asarray(x) for _, x in starts])
     return Setup(Q0=Q0, xi0=xi0, P0=None, members={"N": SPHERE_N, "peak_degree": SPHERE_PEAK})
@@ -523,6 +535,7 @@ def _sphere_setup(batch, rng):
 def _sphere_casimir(k):
     def values(system, sol):
         return euler_sphere_casimirs(euler_sphere_vorticity(sol.momentum), powers=(k,))
+
     return values
 
 
@@ -530,6 +543,7 @@ def _sphere_casimir_scale(k):
     def scale(system, sol):  # Σ|λ|^k over W's eigenvalues: tr W³ of a random field is near 0
         H = 1j * euler_sphere_vorticity(sol.momentum[0])
         return jnp.sum(jnp.abs(jnp.linalg.eigvalsh(H)) ** k)
+
     return scale
 
 
@@ -574,100 +588,139 @@ SCENES: dict[str, Scene] = {
             name="rigid-body",
             description="free rigid body, I = (2, 1, 2/3), Cayley (Example 30), reduced march",
             details="Member 0 starts from the body angular momentum Pi0 = (cos 1.1, 0, sin 1.1); "
-                    "with --batch B the others are random unit momenta. Reports the Casimir |Pi|^2, the "
-                    "spatial angular momentum (Noether, left SO(3) action) and |Q^T Q - I|.",
+            "with --batch B the others are random unit momenta. Reports the Casimir |Pi|^2, the "
+            "spatial angular momentum (Noether, left SO(3) action) and |Q^T Q - I|.",
             model="rigid_body(inertia=(2, 1, 2/3))",
-            system=_rigid_system, setup=_rigid_setup, dt=0.05, steps=4000, quick_steps=400, quick_batch=4,
+            system=_rigid_system,
+            setup=_rigid_setup,
+            dt=0.05,
+            steps=4000,
+            quick_steps=400,
+            quick_batch=4,
             invariants=(
                 Invariant("casimir", "Casimir |Pi|^2", _casimir),
                 Invariant("spatial_momentum", "spatial ang. momentum", _spatial_momentum),
                 Invariant("orthogonality", "|Q^T Q - I|", _orthogonality, kind="error"),
             ),
-            trajectory=_rigid_trajectory, plot=_rigid_plot,
+            trajectory=_rigid_trajectory,
+            plot=_rigid_plot,
         ),
         Scene(
             name="heavy-top",
             description="fast symmetric heavy top, I = (1, 1, 0.4), mgl = 1.5, tilted 0.5 rad",
             details="Definition 14's potential; order 2 composes the left principle with its adjoint "
-                    "over half steps (reduced march). With --batch B the others have jittered tilts and "
-                    "spins. Reports the vertical angular momentum (Noether, rotations about the "
-                    "vertical; relative to |Pi0|), ||Gamma| - 1| and |Q^T Q - I|.",
+            "over half steps (reduced march). With --batch B the others have jittered tilts and "
+            "spins. Reports the vertical angular momentum (Noether, rotations about the "
+            "vertical; relative to |Pi0|), ||Gamma| - 1| and |Q^T Q - I|.",
             model="heavy_top(inertia=(1, 1, 0.4), mass_gravity_length=1.5, center_of_mass=(0, 0, 1))",
-            system=_top_system, setup=_top_setup, dt=0.02, steps=2500, quick_steps=500, quick_batch=4,
+            system=_top_system,
+            setup=_top_setup,
+            dt=0.02,
+            steps=2500,
+            quick_steps=500,
+            quick_batch=4,
             invariants=(
-                Invariant("vertical_momentum", "vertical ang. momentum", _vertical_momentum,
-                          scale=_body_momentum_scale),
+                Invariant(
+                    "vertical_momentum", "vertical ang. momentum", _vertical_momentum, scale=_body_momentum_scale
+                ),
                 Invariant("gamma_norm", "||Gamma| - 1|", _gamma_norm_error, kind="error"),
                 Invariant("orthogonality", "|Q^T Q - I|", _orthogonality, kind="error"),
             ),
-            trajectory=_top_trajectory, plot=_top_plot,
+            trajectory=_top_trajectory,
+            plot=_top_plot,
         ),
         Scene(
             name="vortices",
             description="four point vortices, two leapfrogging pairs (midpoint principle)",
             details="Circulations (1, -1, 1, -1) at (0, +-1), (0, +-0.5): a degenerate Lagrangian, so "
-                    "the midpoint principle (the implicit midpoint rule). With --batch B the others "
-                    "are jittered copies (positions + 0.03 N(0, 1)). Reports the linear and angular "
-                    "impulses (relative to the sums of |terms|) and H as the energy.",
+            "the midpoint principle (the implicit midpoint rule). With --batch B the others "
+            "are jittered copies (positions + 0.03 N(0, 1)). Reports the linear and angular "
+            "impulses (relative to the sums of |terms|) and H as the energy.",
             model="point_vortices(circulations=(1, -1, 1, -1))",
-            system=_vortex_system, setup=_vortex_setup, dt=0.02, steps=3000, quick_steps=400, quick_batch=4,
+            system=_vortex_system,
+            setup=_vortex_setup,
+            dt=0.02,
+            steps=3000,
+            quick_steps=400,
+            quick_batch=4,
             invariants=(
                 Invariant("linear_impulse", "linear impulse", _linear_impulse, scale=_linear_impulse_scale),
                 Invariant("angular_impulse", "angular impulse", _angular_impulse, scale=_angular_impulse_scale),
             ),
-            trajectory=_vortex_trajectory, plot=_vortex_plot,
+            trajectory=_vortex_trajectory,
+            plot=_vortex_plot,
         ),
         Scene(
             name="peakons",
             description="two Camassa-Holm peakons overtaking (speeds 2, 1), against the exact solution",
             details="Width 1, midpoint principle, the order-keeping forward difference. Every member "
-                    "is an exact two-peakon solution (the others: random speeds c1 in [1.6, 2.4], c2 in "
-                    "[0.6, 1.2], interaction time in [2, 4]); reports the total momentum and the largest "
-                    "position error against the closed-form solution.",
+            "is an exact two-peakon solution (the others: random speeds c1 in [1.6, 2.4], c2 in "
+            "[0.6, 1.2], interaction time in [2, 4]); reports the total momentum and the largest "
+            "position error against the closed-form solution.",
             model="peakons(width=1)",
-            system=_peakon_system, setup=_peakon_setup, dt=0.02, steps=600, quick_steps=300, quick_batch=4,
+            system=_peakon_system,
+            setup=_peakon_setup,
+            dt=0.02,
+            steps=600,
+            quick_steps=300,
+            quick_batch=4,
             options=(("scheme", "midpoint"),),
             invariants=(
                 Invariant("total_momentum", "total momentum", _total_momentum_1d, scale=_abs_momentum_scale_1d),
             ),
-            trajectory=_peakon_trajectory, plot=_peakon_plot,
-            reference=_peakon_reference, reference_label="|q - q_exact|",
+            trajectory=_peakon_trajectory,
+            plot=_peakon_plot,
+            reference=_peakon_reference,
+            reference_label="|q - q_exact|",
         ),
         Scene(
             name="landmarks",
             description="three Gaussian landmarks in the plane (width 0.8), midpoint principle",
             details="EPDiff singular solutions with a Gaussian kernel. With --batch B the others are "
-                    "jittered copies (positions and momenta + 0.1 N(0, 1)). Reports the total linear "
-                    "momentum (relative to sum |p_a|) and the angular momentum sum q_a x p_a "
-                    "(relative to sum |q_a||p_a|).",
+            "jittered copies (positions and momenta + 0.1 N(0, 1)). Reports the total linear "
+            "momentum (relative to sum |p_a|) and the angular momentum sum q_a x p_a "
+            "(relative to sum |q_a||p_a|).",
             model="landmarks(width=0.8)",
-            system=_landmark_system, setup=_landmark_setup, dt=0.0125, steps=480, quick_steps=240, quick_batch=4,
+            system=_landmark_system,
+            setup=_landmark_setup,
+            dt=0.0125,
+            steps=480,
+            quick_steps=240,
+            quick_batch=4,
             options=(("scheme", "midpoint"),),
             invariants=(
                 Invariant("linear_momentum", "linear momentum", _total_momentum_2d, scale=_abs_momentum_scale_2d),
                 Invariant("angular_momentum", "angular momentum", _landmark_angular, scale=_landmark_angular_scale),
             ),
-            trajectory=_landmark_trajectory, plot=_landmark_plot,
+            trajectory=_landmark_trajectory,
+            plot=_landmark_plot,
         ),
         Scene(
             name="euler-sphere",
             description="incompressible Euler on the sphere, quantised at N = 32 (Euler-Zeitlin)",
             details="The paper's fluid: vorticity as a skew-Hermitian 32 x 32 matrix, the reduced Cayley "
-                    "march (the isospectral midpoint method) solved by matrix-free sweeps. Member 0 and, "
-                    "with --batch B, the others are random vorticities with an energy spectrum peaked "
-                    "near degree 10. Reports the Casimirs tr W^2, tr W^3, tr W^4 (relative to sum "
-                    "|lambda|^k) and the total angular momentum (relative to |omega|).",
+            "march (the isospectral midpoint method) solved by matrix-free sweeps. Member 0 and, "
+            "with --batch B, the others are random vorticities with an energy spectrum peaked "
+            "near degree 10. Reports the Casimirs tr W^2, tr W^3, tr W^4 (relative to sum "
+            "|lambda|^k) and the total angular momentum (relative to |omega|).",
             model=f"euler_sphere(N={SPHERE_N})",
-            system=_sphere_system, setup=_sphere_setup, dt=0.01, steps=2000, quick_steps=100, quick_batch=1,
+            system=_sphere_system,
+            setup=_sphere_setup,
+            dt=0.01,
+            steps=2000,
+            quick_steps=100,
+            quick_batch=1,
             invariants=(
                 Invariant("casimir_2", "Casimir tr W^2", _sphere_casimir(2), scale=_sphere_casimir_scale(2)),
                 Invariant("casimir_3", "Casimir tr W^3", _sphere_casimir(3), scale=_sphere_casimir_scale(3)),
                 Invariant("casimir_4", "Casimir tr W^4", _sphere_casimir(4), scale=_sphere_casimir_scale(4)),
-                Invariant("angular_momentum", "angular momentum", _sphere_angular_momentum,
-                          scale=_sphere_angular_scale),
+                Invariant(
+                    "angular_momentum", "angular momentum", _sphere_angular_momentum, scale=_sphere_angular_scale
+                ),
                 Invariant("orthogonality", "|Q^T Q - I|", _orthogonality, kind="error"),
             ),
-            trajectory=_sphere_trajectory, plot=_sphere_plot,
+            trajectory=_sphere_trajectory,
+            plot=_sphere_plot,
         ),
     )
 }
@@ -705,17 +758,27 @@ def program(name: str, order: int, n_steps: int, compiler_options: tuple = (), s
 
     def one(Q0, xi0, P0, derive_P0, t0, dt):
         P0 = jnp.where(derive_P0, cj.initial_multiplier(system, Q0, xi0), P0)
-        sol = cj.integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, order=order, throw=False,
-                           **options)
+        sol = cj.integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, order=order, throw=False, **options)
         values, scales = {}, {}
         for inv in invariants:
             v = jnp.asarray(inv.values(system, sol))
             values[inv.name] = v = v.reshape(v.shape[0], -1)
-            scales[inv.name] = jnp.ones((), v.dtype) if inv.kind != "drift" else \
-                inv.scale(system, sol) if inv.scale is not None else jnp.max(jnp.abs(v[0]))
+            scales[inv.name] = (
+                jnp.ones((), v.dtype)
+                if inv.kind != "drift"
+                else inv.scale(system, sol)
+                if inv.scale is not None
+                else jnp.max(jnp.abs(v[0]))
+            )
         known = sol.valid & (sol.nodal_stats.status == cj.Status.SUCCESS)
-        return dict(sol=sol, values=values, scales=scales, trajectory=scene.trajectory(system, sol),
-                    known=known, start=cj.continue_from(system, sol))
+        return dict(
+            sol=sol,
+            values=values,
+            scales=scales,
+            trajectory=scene.trajectory(system, sol),
+            known=known,
+            start=cj.continue_from(system, sol),
+        )
 
     mapped = jax.vmap(one, in_axes=(0, 0, 0, 0, None, None))
     return jax.jit(mapped, compiler_options=dict(compiler_options) or None)
@@ -746,8 +809,16 @@ def _initial_state(setup: Setup):
     return Q, jnp.asarray(setup.xi0), P, jnp.full((Q.shape[0],), derive)
 
 
-def solve(scene: Scene, setup: Setup, *, dt: float, n_steps: int, order: int | None = None,
-          compiler_options=None, scheme: str | None = None) -> dict:
+def solve(
+    scene: Scene,
+    setup: Setup,
+    *,
+    dt: float,
+    n_steps: int,
+    order: int | None = None,
+    compiler_options=None,
+    scheme: str | None = None,
+) -> dict:
     """One call of `program` from `setup`'s initial data, $t_0 = 0$ (no chunks): what `run_scene`
     computes first, as the dict `program` returns (its `"sol"` is the batched `Solution`).
     `compiler_options` default as in `run_scene` (the same compiled program)."""
@@ -773,9 +844,19 @@ class _Binned:
         return np.where(np.isfinite(self.data), self.data, np.nan)
 
 
-def run_scene(scene: Scene, *, dt: float | None = None, n_steps: int | None = None, order: int | None = None,
-              batch: int = 1, seed: int = 0, chunk_steps: int | None = None, compiler_options=None,
-              progress: Callable | None = None, scheme: str | None = None) -> dict:
+def run_scene(
+    scene: Scene,
+    *,
+    dt: float | None = None,
+    n_steps: int | None = None,
+    order: int | None = None,
+    batch: int = 1,
+    seed: int = 0,
+    chunk_steps: int | None = None,
+    compiler_options=None,
+    progress: Callable | None = None,
+    scheme: str | None = None,
+) -> dict:
     r"""Integrate a scene's batch and reduce it to a summary (no files written).
 
     **Arguments:**
@@ -798,8 +879,16 @@ def run_scene(scene: Scene, *, dt: float | None = None, n_steps: int | None = No
     (mean and max updates per step), `failures` (count; member, step, t, status, reason of
     each), `per_member` (status, failed_step: -1 if none), `timing` and `versions`.
     """
-    plan = _plan(scene, dt=dt, n_steps=n_steps, order=order, batch=batch, seed=seed, chunk_steps=chunk_steps,
-                 compiler_options=compiler_options)
+    plan = _plan(
+        scene,
+        dt=dt,
+        n_steps=n_steps,
+        order=order,
+        batch=batch,
+        seed=seed,
+        chunk_steps=chunk_steps,
+        compiler_options=compiler_options,
+    )
     setup = scene.setup(batch, np.random.default_rng(seed))
     run = program(scene.name, plan.order, plan.chunk, _options_key(plan.compiler_options), scheme)
     tally = _Tally(scene, setup, plan)
@@ -830,8 +919,16 @@ def _plan(scene: Scene, *, dt, n_steps, order, batch, seed, chunk_steps, compile
     n_steps = scene.steps if n_steps is None else int(n_steps)
     chunk = chunk_steps_for(batch, n_steps) if chunk_steps is None else min(int(chunk_steps), n_steps)
     copts = compiler_options_for(batch, n_steps) if compiler_options is None else dict(compiler_options)
-    return _Plan(dt=dt, n_steps=n_steps, order=scene.order if order is None else int(order), batch=batch, seed=seed,
-                 chunk=chunk, n_chunks=-(-n_steps // chunk), compiler_options=copts)
+    return _Plan(
+        dt=dt,
+        n_steps=n_steps,
+        order=scene.order if order is None else int(order),
+        batch=batch,
+        seed=seed,
+        chunk=chunk,
+        n_chunks=-(-n_steps // chunk),
+        compiler_options=copts,
+    )
 
 
 def _march(run, setup: Setup, plan: _Plan, tally: _Tally, progress: Callable | None) -> tuple:
@@ -888,8 +985,13 @@ class _Tally:
         """Take in one chunk (what `program` returns) whose node 0 is the run's node `offset`."""
         sol = out["sol"]
         if self.facts is None:
-            self.facts = dict(method=sol.method, form=sol.form, scheme=sol.scheme, order=int(sol.order),
-                              derivative_map=sol.derivative_map)
+            self.facts = dict(
+                method=sol.method,
+                form=sol.form,
+                scheme=sol.scheme,
+                order=int(sol.order),
+                derivative_map=sol.derivative_map,
+            )
         # nodes of this chunk kept: 0 only in the first chunk (later it is the previous end), and
         # none past n_steps (the last chunk may run over)
         lo, hi = (0 if offset == 0 else 1), min(self.chunk, self.n_steps - offset)
@@ -897,7 +999,7 @@ class _Tally:
         nodes = offset + np.arange(lo, hi + 1)
         known = np.asarray(out["known"])[:, keep]
         self._add_invariants(out, nodes, known, keep)
-        traj = np.asarray(out["trajectory"][:None if self.scene.reference is not None else self.n_plot])[:, keep]
+        traj = np.asarray(out["trajectory"][: None if self.scene.reference is not None else self.n_plot])[:, keep]
         if self.scene.reference is not None:
             self._add_reference(np.asarray(sol.ts)[0, keep], traj, nodes, known)
         self._add_trajectory(traj, nodes, known)
@@ -921,22 +1023,22 @@ class _Tally:
             err = np.where(known, err, np.nan)
             worst = np.nanmax(np.where(known, err, -np.inf), axis=-1)
             self.worst[inv.name] = np.fmax(self.worst[inv.name], worst)
-            self.errors_binned[inv.name].add(nodes, err[:self.n_plot])
+            self.errors_binned[inv.name].add(nodes, err[: self.n_plot])
 
     def _add_reference(self, ts, traj, nodes, known) -> None:
         """Every member's error against the scene's exact solution at the known nodes."""
         rerr = np.where(known, self.scene.reference(self.setup.members, ts, traj), np.nan)
         self.ref_worst = np.fmax(self.ref_worst, np.max(np.where(known, rerr, -np.inf), axis=-1))
-        self.ref_binned.add(nodes, rerr[:self.n_plot])
+        self.ref_binned.add(nodes, rerr[: self.n_plot])
 
     def _add_trajectory(self, traj, nodes, known) -> None:
         """The plotted members' trajectories at every `stride`-th node and the last (NaN where
         not known)."""
         pick = (nodes % self.stride == 0) | (nodes == self.n_steps)
         self.traj_nodes.append(nodes[pick])
-        mask = known[:self.n_plot, pick]
+        mask = known[: self.n_plot, pick]
         mask = mask.reshape(mask.shape + (1,) * (traj.ndim - 2))
-        self.traj_pieces.append(np.where(mask, traj[:self.n_plot][:, pick], np.nan))
+        self.traj_pieces.append(np.where(mask, traj[: self.n_plot][:, pick], np.nan))
 
     def _add_newton(self, sol, n: int) -> None:
         """Newton updates per step (summed over a composition's sub-steps) of the chunk's first
@@ -973,9 +1075,13 @@ def _finite_list(a) -> list:
 def _failures(tally: _Tally, dt: float) -> list:
     """One entry per failed member: its index, step, time, status code and the reason."""
     return [
-        {"member": int(m), "step": int(tally.failed_step[m]), "t": float(tally.failed_step[m] * dt),
-         "status": int(tally.status[m]),
-         "reason": cj.Status.MESSAGES.get(int(tally.status[m]), f"status {int(tally.status[m])}")}
+        {
+            "member": int(m),
+            "step": int(tally.failed_step[m]),
+            "t": float(tally.failed_step[m] * dt),
+            "status": int(tally.status[m]),
+            "reason": cj.Status.MESSAGES.get(int(tally.status[m]), f"status {int(tally.status[m])}"),
+        }
         for m in np.flatnonzero(tally.status != cj.Status.SUCCESS)
     ]
 
@@ -990,30 +1096,59 @@ def _summary(scene: Scene, setup: Setup, plan: _Plan, tally: _Tally, wall: float
         errors["reference_max"] = _finite_max(tally.ref_worst)
     compiled_steps = (plan.n_chunks - 1) * plan.chunk
     return {
-        "scene": {"name": scene.name, "description": scene.description, "model": scene.model,
-                  "options": dict(scene.options), "members": plan.batch, "seed": plan.seed,
-                  "initial": setup.members if plan.batch <= 64 else None},
-        "run": {"dt": plan.dt, "n_steps": plan.n_steps, "t_final": plan.n_steps * plan.dt, "order": facts["order"],
-                "order_requested": plan.order, "method": facts["method"], "form": facts["form"],
-                "scheme": facts["scheme"], "derivative_map": facts["derivative_map"],
-                "chunks": plan.n_chunks, "steps_per_chunk": plan.chunk, "compiler_options": plan.compiler_options},
+        "scene": {
+            "name": scene.name,
+            "description": scene.description,
+            "model": scene.model,
+            "options": dict(scene.options),
+            "members": plan.batch,
+            "seed": plan.seed,
+            "initial": setup.members if plan.batch <= 64 else None,
+        },
+        "run": {
+            "dt": plan.dt,
+            "n_steps": plan.n_steps,
+            "t_final": plan.n_steps * plan.dt,
+            "order": facts["order"],
+            "order_requested": plan.order,
+            "method": facts["method"],
+            "form": facts["form"],
+            "scheme": facts["scheme"],
+            "derivative_map": facts["derivative_map"],
+            "chunks": plan.n_chunks,
+            "steps_per_chunk": plan.chunk,
+            "compiler_options": plan.compiler_options,
+        },
         "errors": errors,
         "invariants": {
-            inv.name: {"label": inv.label, "kind": inv.kind, "conserved_exactly": inv.roundoff,
-                       "max": _finite_max(worst[inv.name]), "per_member": _finite_list(worst[inv.name])}
+            inv.name: {
+                "label": inv.label,
+                "kind": inv.kind,
+                "conserved_exactly": inv.roundoff,
+                "max": _finite_max(worst[inv.name]),
+                "per_member": _finite_list(worst[inv.name]),
+            }
             for inv in tally.invariants
         },
-        "reference": None if scene.reference is None else {
-            "label": scene.reference_label, "max": _finite_max(tally.ref_worst),
-            "per_member": _finite_list(tally.ref_worst)},
-        "newton_iterations": {"mean": tally.iter_sum / tally.iter_count if tally.iter_count else None,
-                              "max": tally.iter_max,
-                              "per": "step (updates summed over the sub-steps of a composition)"},
+        "reference": None
+        if scene.reference is None
+        else {
+            "label": scene.reference_label,
+            "max": _finite_max(tally.ref_worst),
+            "per_member": _finite_list(tally.ref_worst),
+        },
+        "newton_iterations": {
+            "mean": tally.iter_sum / tally.iter_count if tally.iter_count else None,
+            "max": tally.iter_max,
+            "per": "step (updates summed over the sub-steps of a composition)",
+        },
         "failures": {"count": len(failures), "members": failures[:100]},
         "per_member": {"status": tally.status.tolist(), "failed_step": tally.failed_step.tolist()},
-        "timing": {"wall_s": wall, "first_chunk_s": first_s,
-                   "steps_per_s_compiled": (compiled_steps / (wall - first_s)
-                                            if compiled_steps and wall > first_s else None)},
+        "timing": {
+            "wall_s": wall,
+            "first_chunk_s": first_s,
+            "steps_per_s_compiled": (compiled_steps / (wall - first_s) if compiled_steps and wall > first_s else None),
+        },
         "versions": {"jax": jax.__version__, "numpy": np.__version__},
     }
 
@@ -1023,7 +1158,8 @@ def _plot_data(setup: Setup, plan: _Plan, tally: _Tally) -> dict:
     with their times."""
     stride, n_bins = tally.stride, tally.errors_binned["energy"].data.shape[1]
     return {
-        "setup": setup, "t_traj": np.concatenate(tally.traj_nodes) * plan.dt,
+        "setup": setup,
+        "t_traj": np.concatenate(tally.traj_nodes) * plan.dt,
         "trajectory": np.concatenate(tally.traj_pieces, axis=1),
         "t_err": np.minimum(np.arange(n_bins) * stride + stride - 1, plan.n_steps) * plan.dt,
         "errors": {inv.name: tally.errors_binned[inv.name].result() for inv in tally.invariants},
@@ -1056,11 +1192,15 @@ def write_plot(scene: Scene, summary: dict, path: str) -> None:
     colors = [colormaps["tab10"](k % 10) for k in range(n_members)]
     run = summary["run"]
     fig = Figure(figsize=(12, 6.5), dpi=90)
-    fig.suptitle(f"{scene.name}: {scene.description}\n{run['method']} ({run['form']} march), order "
-                 f"{run['order']}, dt = {run['dt']:g}, {run['n_steps']} steps, "
-                 f"{summary['scene']['members']} member(s), first {n_members} shown", fontsize=10)
-    grid = fig.add_gridspec(len(panels), 2, width_ratios=(1.1, 1.0), left=0.06, right=0.97, bottom=0.08,
-                            top=0.86, hspace=0.35, wspace=0.22)
+    fig.suptitle(
+        f"{scene.name}: {scene.description}\n{run['method']} ({run['form']} march), order "
+        f"{run['order']}, dt = {run['dt']:g}, {run['n_steps']} steps, "
+        f"{summary['scene']['members']} member(s), first {n_members} shown",
+        fontsize=10,
+    )
+    grid = fig.add_gridspec(
+        len(panels), 2, width_ratios=(1.1, 1.0), left=0.06, right=0.97, bottom=0.08, top=0.86, hspace=0.35, wspace=0.22
+    )
     scene.plot(fig.add_subplot(grid[:, 0]), data["t_traj"], data["trajectory"], data["setup"], colors)
     eps = float(np.finfo(float).eps)
     floor = 1e-17

@@ -85,8 +85,10 @@ def _function(spec, where: str, default_module):
     else:
         fn = getattr(default_module, spec, None)
         if fn is None or spec.startswith("_"):
-            raise ConfigError(f"{where}: {default_module.__name__} has no function {spec!r}; use "
-                              "'package.module:function' for your own")
+            raise ConfigError(
+                f"{where}: {default_module.__name__} has no function {spec!r}; use "
+                "'package.module:function' for your own"
+            )
     if not callable(fn):
         raise ConfigError(f"{where}: {spec!r} is not a function")
     return fn
@@ -106,8 +108,10 @@ def _known(table: dict, known: set, where: str) -> None:
     """Refuse a key of `table` outside `known` (a misspelled one would be ignored silently)."""
     unknown = sorted(set(table) - known)
     if unknown:
-        raise ConfigError(f"{where}: unknown entr{'ies' if len(unknown) > 1 else 'y'} {', '.join(unknown)} "
-                          f"(known: {', '.join(sorted(known))})")
+        raise ConfigError(
+            f"{where}: unknown entr{'ies' if len(unknown) > 1 else 'y'} {', '.join(unknown)} "
+            f"(known: {', '.join(sorted(known))})"
+        )
 
 
 def _params(table) -> np.ndarray:
@@ -120,8 +124,9 @@ def _params(table) -> np.ndarray:
     cols = []
     for i, spec in enumerate(table["linspace"] if isinstance(table["linspace"], list) else [None]):
         if not (isinstance(spec, list) and len(spec) == 3 and isinstance(spec[2], int) and spec[2] >= 1):
-            raise ConfigError(f"[params] linspace[{i}]: expected [start, stop, num] with num a whole number >= 1, "
-                              f"got {spec!r}")
+            raise ConfigError(
+                f"[params] linspace[{i}]: expected [start, stop, num] with num a whole number >= 1, got {spec!r}"
+            )
         cols.append(np.linspace(float(spec[0]), float(spec[1]), spec[2]))
     return np.stack([g.ravel() for g in np.meshgrid(*cols, indexing="ij")], axis=-1)
 
@@ -156,8 +161,9 @@ def _initial(table) -> tuple:
         one = _array(q["value"], "[initial] Q0 value")
         Q0 = np.broadcast_to(one, (n,) + one.shape)
     elif isinstance(q, dict):
-        raise ConfigError(f"[initial] Q0: expected {{identity = d}}, {{value = [...]}} or one row per initial "
-                          f"condition, got {q!r}")
+        raise ConfigError(
+            f"[initial] Q0: expected {{identity = d}}, {{value = [...]}} or one row per initial condition, got {q!r}"
+        )
     else:
         Q0 = _array(q, "[initial] Q0")
     return Q0, xi0
@@ -166,26 +172,48 @@ def _initial(table) -> tuple:
 def load(path: str) -> dict:
     """CONFIG.toml as `clebsch_jax.sweep`'s arguments (a dict); ConfigError names a bad entry."""
     cfg = _toml(path)
-    known = {"model", "dt", "n_steps", "grid", "batch_size", "chunk_steps", "save_every", "params", "initial",
-             "options", "invariants"}
+    known = {
+        "model",
+        "dt",
+        "n_steps",
+        "grid",
+        "batch_size",
+        "chunk_steps",
+        "save_every",
+        "params",
+        "initial",
+        "options",
+        "invariants",
+    }
     unknown = sorted(set(cfg) - known)
     if unknown:
-        raise ConfigError(f"{path}: unknown entr{'ies' if len(unknown) > 1 else 'y'} {', '.join(unknown)} "
-                          f"(known: {', '.join(sorted(known))})")
+        raise ConfigError(
+            f"{path}: unknown entr{'ies' if len(unknown) > 1 else 'y'} {', '.join(unknown)} "
+            f"(known: {', '.join(sorted(known))})"
+        )
     for key in ("model", "dt", "n_steps", "params", "initial"):
         if key not in cfg:
             raise ConfigError(f"{path}: missing {key!r} (see 'clebsch-jax sweep --help')")
     Q0, xi0 = _initial(cfg["initial"])
     invariants = cfg.get("invariants", {})
     if not isinstance(invariants, dict):
-        raise ConfigError("[invariants]: expected a table name = \"package.module:function\"")
+        raise ConfigError('[invariants]: expected a table name = "package.module:function"')
     options = cfg.get("options", {})
     if not isinstance(options, dict):
         raise ConfigError("[options]: expected a table of integrate options")
-    args = dict(make_system=_function(cfg["model"], "model", cj.models), params=_params(cfg["params"]),
-                Q0=Q0, xi0=xi0, dt=cfg["dt"], n_steps=cfg["n_steps"], grid=cfg.get("grid", False),
-                invariants={k: _function(v, f"[invariants] {k}", cj.diagnostics) for k, v in invariants.items()},
-                chunk_steps=cfg.get("chunk_steps"), save_every=cfg.get("save_every"), **options)
+    args = dict(
+        make_system=_function(cfg["model"], "model", cj.models),
+        params=_params(cfg["params"]),
+        Q0=Q0,
+        xi0=xi0,
+        dt=cfg["dt"],
+        n_steps=cfg["n_steps"],
+        grid=cfg.get("grid", False),
+        invariants={k: _function(v, f"[invariants] {k}", cj.diagnostics) for k, v in invariants.items()},
+        chunk_steps=cfg.get("chunk_steps"),
+        save_every=cfg.get("save_every"),
+        **options,
+    )
     n_members = len(args["params"]) * len(Q0) if args["grid"] is True else len(Q0)
     args["batch_size"] = cfg.get("batch_size", min(n_members, 1024))
     return args
@@ -210,13 +238,24 @@ def _summary(res, store: str, wall: float, members_run: int) -> str:
     ok = res.succeeded
     steps = res.n_steps
     rows = [
-        ("members", f"{len(res):,} x {steps:,} steps ({res.form} march, {res.method or res.scheme}, "
-                    f"order {res.order})"),
-        ("failed", f"{len(res.failed_members):,}" + (f" (first: member {res.failed_members[0]} at step "
-                                                      f"{int(res.failed_step[res.failed_members[0]])})"
-                                                      if len(res.failed_members) else "")),
-        ("wall time", f"{wall:.1f} s for {members_run:,} members computed in this run"
-                      + (f" ({members_run * steps / wall:,.0f} member-steps/s)" if members_run and wall > 0 else "")),
+        (
+            "members",
+            f"{len(res):,} x {steps:,} steps ({res.form} march, {res.method or res.scheme}, order {res.order})",
+        ),
+        (
+            "failed",
+            f"{len(res.failed_members):,}"
+            + (
+                f" (first: member {res.failed_members[0]} at step {int(res.failed_step[res.failed_members[0]])})"
+                if len(res.failed_members)
+                else ""
+            ),
+        ),
+        (
+            "wall time",
+            f"{wall:.1f} s for {members_run:,} members computed in this run"
+            + (f" ({members_run * steps / wall:,.0f} member-steps/s)" if members_run and wall > 0 else ""),
+        ),
         ("Newton iterations/step", f"{np.mean(res.newton_iterations) / steps:.2f} mean"),
     ]
     for name, v in res.drift.items():
@@ -255,15 +294,31 @@ def run(args) -> int:
             if args.scheduler:
                 client = distributed.Client(args.scheduler)
             else:
-                cluster = distributed.LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                                                   dashboard_address=None)
+                cluster = distributed.LocalCluster(
+                    n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=None
+                )
                 client = distributed.Client(cluster)
-        where = (f"on the Dask cluster at {args.scheduler}" if args.scheduler else
-                 f"on {args.workers} local worker processes" if args.workers else "in this process")
-        print(f"{prog}: {B:,} members x {kwargs['n_steps']:,} steps in {n_batches} batches of {bs}, {where}, "
-              f"into {args.store}", flush=True)
-        bar = tqdm(total=n_batches, initial=before, unit="batch", desc="sweep", disable=args.quiet,
-                   dynamic_ncols=True, file=sys.stderr)
+        where = (
+            f"on the Dask cluster at {args.scheduler}"
+            if args.scheduler
+            else f"on {args.workers} local worker processes"
+            if args.workers
+            else "in this process"
+        )
+        print(
+            f"{prog}: {B:,} members x {kwargs['n_steps']:,} steps in {n_batches} batches of {bs}, {where}, "
+            f"into {args.store}",
+            flush=True,
+        )
+        bar = tqdm(
+            total=n_batches,
+            initial=before,
+            unit="batch",
+            desc="sweep",
+            disable=args.quiet,
+            dynamic_ncols=True,
+            file=sys.stderr,
+        )
 
         def progress(info):
             if info.step == info.n_steps:
@@ -276,16 +331,20 @@ def run(args) -> int:
             bar.close()
         wall = time.perf_counter() - tic
     except KeyboardInterrupt:
-        print(f"{prog}: stopped; the finished batches are in {args.store}: run the same command to resume",
-              file=sys.stderr)
+        print(
+            f"{prog}: stopped; the finished batches are in {args.store}: run the same command to resume",
+            file=sys.stderr,
+        )
         return 130
     except cj.SweepStoreError as err:  # the store cannot be used (a file, another's data, read-only, ...)
         return _fail(str(err), code=2, prog=prog)
     except (ValueError, TypeError) as err:  # the sweep refused its arguments, before compiling
         return _fail(f"{args.config}: {err}", code=2, prog=prog)
     except OSError as err:  # writing failed under way (a full disk, a lost mount)
-        return _fail(f"store {args.store!r}: {err}; the batches written before are kept: run the same command "
-                     "to resume", prog=prog)
+        return _fail(
+            f"store {args.store!r}: {err}; the batches written before are kept: run the same command to resume",
+            prog=prog,
+        )
     finally:
         if client is not None:
             client.close()
@@ -320,12 +379,21 @@ def add(subparsers) -> None:
     p.add_argument("config", metavar="CONFIG.toml", help="the sweep's configuration (format above)")
     p.add_argument("--store", required=True, metavar="OUT.zarr", help="the Zarr store (created, or resumed)")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=_workers, default=None, metavar="N",
-                       help="run on a LocalCluster of N worker processes (one thread each)")
-    where.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                       help="run on the Dask cluster whose scheduler is at ADDRESS")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace a store written by another configuration instead of refusing it")
+    where.add_argument(
+        "--workers",
+        type=_workers,
+        default=None,
+        metavar="N",
+        help="run on a LocalCluster of N worker processes (one thread each)",
+    )
+    where.add_argument(
+        "--scheduler", default=None, metavar="ADDRESS", help="run on the Dask cluster whose scheduler is at ADDRESS"
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace a store written by another configuration instead of refusing it",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar (the summary is still printed)")
     p.set_defaults(handler=run)
 
@@ -336,6 +404,7 @@ def _workers(text: str) -> int:
     except ValueError:
         n = 0
     if n < 1 or n > (os.cpu_count() or 1) * 4:
-        raise argparse.ArgumentTypeError(f"expected a whole number of worker processes from 1 to "
-                                         f"{(os.cpu_count() or 1) * 4}, got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number of worker processes from 1 to {(os.cpu_count() or 1) * 4}, got {text!r}"
+        )
     return n

@@ -30,8 +30,9 @@ def default_cache_directory() -> pathlib.Path:
     return pathlib.Path(base).expanduser() / "clebsch-jax" / "xla"
 
 
-def enable_compilation_cache(directory: str | os.PathLike | None = None, *,
-                             min_compile_time: float = 0.0) -> pathlib.Path:
+def enable_compilation_cache(
+    directory: str | os.PathLike | None = None, *, min_compile_time: float = 0.0
+) -> pathlib.Path:
     """Switch on JAX's persistent compilation cache in `directory` (created if missing).
 
     After this call every program JAX compiles in this process — `integrate`, `sweep`,
@@ -60,14 +61,18 @@ def enable_compilation_cache(directory: str | os.PathLike | None = None, *,
     if directory is None:
         directory = default_cache_directory()
     if not isinstance(directory, (str, os.PathLike)):
-        raise TypeError(f"enable_compilation_cache: `directory` must be a path (str or os.PathLike), "
-                        f"got {type(directory).__name__}")
+        raise TypeError(
+            f"enable_compilation_cache: `directory` must be a path (str or os.PathLike), got {type(directory).__name__}"
+        )
     if isinstance(min_compile_time, bool) or not isinstance(min_compile_time, (int, float)):
-        raise TypeError(f"enable_compilation_cache: `min_compile_time` must be a number of seconds, "
-                        f"got {type(min_compile_time).__name__}")
+        raise TypeError(
+            f"enable_compilation_cache: `min_compile_time` must be a number of seconds, "
+            f"got {type(min_compile_time).__name__}"
+        )
     if not (0.0 <= float(min_compile_time) < float("inf")):
-        raise ValueError(f"enable_compilation_cache: `min_compile_time` must be finite and >= 0, "
-                         f"got {min_compile_time}")
+        raise ValueError(
+            f"enable_compilation_cache: `min_compile_time` must be finite and >= 0, got {min_compile_time}"
+        )
     path = pathlib.Path(directory).expanduser().resolve()
     if path.exists() and not path.is_dir():
         raise ValueError(f"enable_compilation_cache: `directory` {str(path)!r} exists and is not a directory")

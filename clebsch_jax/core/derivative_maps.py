@@ -105,6 +105,7 @@ class MatrixGroupDifference(DerivativeMap):
 forward_difference = VectorSpaceDifference()
 """The vector-space forward difference of Remark 21."""
 
+
 @dataclasses.dataclass(frozen=True)
 class CayleyDifference(MatrixGroupDifference):
     r"""Definition 25 with the Cayley pair $\overline{\exp}(Y) = (I - Y/2)^{-1}(I + Y/2)$,

@@ -37,8 +37,15 @@ import numpy as np
 
 from .system import ClebschSystem
 
-__all__ = ["ISOTROPY_RTOL", "kernel_basis", "row_space_basis", "IsotropyGauge", "gauge_isotropy",
-           "physical_velocity", "isotropy_dimension"]
+__all__ = [
+    "ISOTROPY_RTOL",
+    "kernel_basis",
+    "row_space_basis",
+    "IsotropyGauge",
+    "gauge_isotropy",
+    "physical_velocity",
+    "isotropy_dimension",
+]
 
 ISOTROPY_RTOL = 1e-10
 r"""A direction of V is in the isotropy at Q when the velocity map's Jacobian
@@ -164,14 +171,25 @@ def gauge_isotropy(system: ClebschSystem, Q0, xi0, *, weight=None, regular=None)
         gauged = H + weight * K @ K.T
         s = np.linalg.svd(gauged, compute_uv=False)
         regular = (not system.degenerate) or bool(s.size and s[-1] > 1e-14 * s[0])
-    lag = IsotropyGauge(system.lagrangian, system.velocity_map, system.has_potential, xi0.size - K.shape[1],
-                        K.shape[1], jnp.asarray(weight, float))
+    lag = IsotropyGauge(
+        system.lagrangian,
+        system.velocity_map,
+        system.has_potential,
+        xi0.size - K.shape[1],
+        K.shape[1],
+        jnp.asarray(weight, float),
+    )
     return _rebuilt(system, lag, degenerate=system.degenerate and not regular)
 
 
 def _rebuilt(system, lagrangian, degenerate):
-    return ClebschSystem(lagrangian=lagrangian, velocity_map=system.velocity_map,
-                         derivative_map=system.derivative_map, degenerate=degenerate, check_Q=system.check_Q)
+    return ClebschSystem(
+        lagrangian=lagrangian,
+        velocity_map=system.velocity_map,
+        derivative_map=system.derivative_map,
+        degenerate=degenerate,
+        check_Q=system.check_Q,
+    )
 
 
 def physical_velocity(system, Q0, xi0, K: np.ndarray, *, warn: bool = True, stacklevel: int = 2):
@@ -206,5 +224,7 @@ def physical_velocity(system, Q0, xi0, K: np.ndarray, *, warn: bool = True, stac
             "xi -> L_xi Q0, directions that move Q0 not at all). The engine takes xi0 as the physical velocity "
             f"L_xi0 Q0 and starts from the xi with that tangent vector whose momentum has a multiplier "
             f"(Lemma 7): xi0 changed by {change:.3g} (Solution.xi[0] is the velocity used).",
-            UserWarning, stacklevel=stacklevel)
+            UserWarning,
+            stacklevel=stacklevel,
+        )
     return jnp.asarray(x.reshape(shape))

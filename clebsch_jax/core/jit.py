@@ -11,8 +11,15 @@ import jax
 
 from .validation import is_array
 
-__all__ = ["filter_jit", "jit_with_options", "memo", "undifferentiated", "in_undifferentiated", "QUICK_COMPILE",
-           "LEAN_COMPILE"]
+__all__ = [
+    "filter_jit",
+    "jit_with_options",
+    "memo",
+    "undifferentiated",
+    "in_undifferentiated",
+    "QUICK_COMPILE",
+    "LEAN_COMPILE",
+]
 
 QUICK_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 """XLA options (`jit_with_options(fun, QUICK_COMPILE)`) for programs whose compile time

@@ -18,8 +18,21 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["inv", "solve", "spd_solve", "cholesky", "cholesky_solve", "factor", "inverse", "solve_factored",
-           "lu_factor", "lu_solve", "matmul", "matvec", "weighted_sum"]
+__all__ = [
+    "inv",
+    "solve",
+    "spd_solve",
+    "cholesky",
+    "cholesky_solve",
+    "factor",
+    "inverse",
+    "solve_factored",
+    "lu_factor",
+    "lu_solve",
+    "matmul",
+    "matvec",
+    "weighted_sum",
+]
 
 CLOSED_FORM_MAX = 3
 
@@ -40,7 +53,7 @@ def matmul(A: jax.Array, B: jax.Array) -> jax.Array:
         return A @ B
     out = A[..., :, 0:1] * B[..., 0:1, :]
     for i in range(1, k):
-        out = out + A[..., :, i:i + 1] * B[..., i:i + 1, :]
+        out = out + A[..., :, i : i + 1] * B[..., i : i + 1, :]
     return out
 
 
@@ -238,7 +251,7 @@ def _lu_apply(A: jax.Array, B: jax.Array) -> jax.Array:
     vec = B.ndim == A.ndim - 1
     lead = jnp.broadcast_shapes(A.shape[:-2], B.shape[:-1] if vec else B.shape[:-2])
     A = jnp.broadcast_to(A, lead + A.shape[-2:])
-    B = jnp.broadcast_to(B, lead + B.shape[-1 if vec else -2:])
+    B = jnp.broadcast_to(B, lead + B.shape[-1 if vec else -2 :])
 
     def one(a, b):
         if a.shape[-1] <= ELIMINATION_MAX:

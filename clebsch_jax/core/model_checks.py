@@ -66,6 +66,7 @@ r"""A step leaves the group when the component of $\log((Q^0)^{-1}Q^1)$ outside 
 is more than this fraction of it (round-off for a step that stays on the group; of the order of
 $\Delta t|\xi|$ for the forward difference with the left principle)."""
 
+
 class ModelFacts(NamedTuple):
     r"""What `check_model` found at $(\xi^0, Q^0)$: `isotropy`, an orthonormal basis (dim V, k) of
     the kernel of $\xi \mapsto \mathcal L_\xi Q^0$ (`clebsch_jax.core.isotropy`), and `gauge`,
@@ -175,8 +176,7 @@ def _blind_to(K, H, g, xi) -> bool:
         return True
     hk = float(np.linalg.norm(H @ K))
     gk = float(np.linalg.norm(K.T @ g.reshape(-1)))
-    return (hk <= ISOTROPY_LAG_RTOL * size
-            and gk <= ISOTROPY_LAG_RTOL * (np.linalg.norm(g) + size * np.linalg.norm(xi)))
+    return hk <= ISOTROPY_LAG_RTOL * size and gk <= ISOTROPY_LAG_RTOL * (np.linalg.norm(g) + size * np.linalg.norm(xi))
 
 
 def _evaluate_matrix_free(system, Q0, xi0, direction):
@@ -184,8 +184,9 @@ def _evaluate_matrix_free(system, Q0, xi0, direction):
     2ξ⁰ + d; l's gradient μ at ξ⁰ and d and, with an inverse Legendre map G, ∇l(G(μ))."""
     grad = jax.grad(lambda x: system.l(x, Q0))
     mus = jnp.stack([grad(xi0), grad(direction)])
-    found = dict(velocities=jnp.stack([system.velocity_map(x, Q0) for x in (xi0, direction, 2.0 * xi0 + direction)]),
-                 momenta=mus)
+    found = dict(
+        velocities=jnp.stack([system.velocity_map(x, Q0) for x in (xi0, direction, 2.0 * xi0 + direction)]), momenta=mus
+    )
     if system.inverse_legendre is not None:
         found["recovered"] = jnp.stack([grad(system.inverse_legendre(mu, Q0)) for mu in mus])
     return found
@@ -206,21 +207,27 @@ def _check_matrix_free(system, Q0, xi0, direction) -> None:
     found = {key: np.asarray(value) for key, value in found.items()}
     v0, vd, v2 = found["velocities"]
     if not np.all(np.isfinite(found["velocities"])):
-        raise ValueError("velocity_map: not finite at the initial configuration Q0 (at xi0 or at a random "
-                         "direction); start from a Q0 where the map is defined.")
+        raise ValueError(
+            "velocity_map: not finite at the initial configuration Q0 (at xi0 or at a random "
+            "direction); start from a Q0 where the map is defined."
+        )
     defect = np.linalg.norm(v2 - 2.0 * v0 - vd)
     scale = 2.0 * np.linalg.norm(v0) + np.linalg.norm(vd) + np.linalg.norm(v2)
     if defect > LINEAR_RTOL * scale:
-        raise ValueError(f"velocity_map: must be linear in xi (Definition 1), but L(2 xi0 + d, Q0) differs from "
-                         f"2 L(xi0, Q0) + L(d, Q0) by {defect / scale:.1e} of their size (d a random direction): "
-                         "every term must be linear in xi, with no constant term.")
+        raise ValueError(
+            f"velocity_map: must be linear in xi (Definition 1), but L(2 xi0 + d, Q0) differs from "
+            f"2 L(xi0, Q0) + L(d, Q0) by {defect / scale:.1e} of their size (d a random direction): "
+            "every term must be linear in xi, with no constant term."
+        )
     if "recovered" in found:
         mus, back = found["momenta"], found["recovered"]
         error = max(np.linalg.norm(b - m) / max(np.linalg.norm(m), np.finfo(float).tiny) for m, b in zip(mus, back))
         if not error <= INVERSE_RTOL:
-            raise ValueError(f"inverse_legendre: G(mu, Q0) does not invert the Legendre map xi -> dl/dxi at Q0: "
-                             f"dl/dxi(G(mu)) differs from mu by {error:.1e} of its size at the momentum of xi0 or "
-                             "of a random velocity. It must return the xi whose momentum dl/dxi(xi, Q) is mu.")
+            raise ValueError(
+                f"inverse_legendre: G(mu, Q0) does not invert the Legendre map xi -> dl/dxi at Q0: "
+                f"dl/dxi(G(mu)) differs from mu by {error:.1e} of its size at the momentum of xi0 or "
+                "of a random velocity. It must return the xi whose momentum dl/dxi(xi, Q) is mu."
+            )
 
 
 class _Traced(Exception):
@@ -255,6 +262,7 @@ def _hessian_in(fn, x):
 def _evaluate(system, Q0, xi0, direction):
     """The derivatives the checks need, in one program: l's Hessian and gradient in ξ at ξ⁰, the
     velocity map's Jacobian in ξ there and its values at the probes ξ⁰, d, 2ξ⁰ + d."""
+
     def velocity(x):
         return system.velocity_map(x.reshape(xi0.shape), Q0).reshape(-1)
 
@@ -316,35 +324,42 @@ def _check_legendre_map(system, Q0, xi0, H, K, J):
                 "lagrangian: it looks like it was written l(Q, xi): its Hessian in its first argument (xi) "
                 "is singular at (xi0, Q0) while its Hessian in its second argument (Q) is not. The engine "
                 "calls lagrangian(xi, Q): write it as l(xi, Q), velocity first. (If l really is degenerate "
-                "in xi, as for point vortices, build the system with ClebschSystem(..., degenerate=True).)")
+                "in xi, as for point vortices, build the system with ClebschSystem(..., degenerate=True).)"
+            )
     if s[0] <= ZERO_RTOL * _hessian_scale(system, Q0, xi0):
         raise ValueError(
             "lagrangian: l is linear in xi (or does not depend on it) at (xi0, Q0): its Hessian in xi is "
             "zero, so the Legendre map xi -> dl/dxi (Lemma 8) is not invertible and the step equations "
             "have no unique solution. If that is the model (a Lagrangian linear in the velocity, as for "
             "point vortices), build it with ClebschSystem(..., degenerate=True) and integrate with "
-            "scheme=\"midpoint\" or \"gauss\"; otherwise make l quadratic in xi (a kinetic energy).")
+            'scheme="midpoint" or "gauss"; otherwise make l quadratic in xi (a kinetic energy).'
+        )
     rank = int(np.sum(s > SINGULAR_RTOL * s[0]))
     null = np.linalg.svd(H)[2][-1]
     # degenerate=True helps only where the constraint L_xi Q sees the null direction: a direction of
     # the isotropy appears in no step equation
     moves = float(np.linalg.norm(J @ null)) > 1e-8 * max(float(np.linalg.norm(J, 2)), np.finfo(float).tiny)
     if K.shape[1]:
-        isotropy = (f" The velocity map has a {K.shape[1]}-dimensional isotropy at Q0 (directions of xi that move "
-                    "Q0 not at all); a Lagrangian that sees xi only through L_xi Q (physical velocities) is "
-                    "accepted as written, the engine fixing that gauge, but this one depends on the isotropy "
-                    "directions or is degenerate elsewhere too.")
+        isotropy = (
+            f" The velocity map has a {K.shape[1]}-dimensional isotropy at Q0 (directions of xi that move "
+            "Q0 not at all); a Lagrangian that sees xi only through L_xi Q (physical velocities) is "
+            "accepted as written, the engine fixing that gauge, but this one depends on the isotropy "
+            "directions or is degenerate elsewhere too."
+        )
     else:
         isotropy = ""
-    fix = ("Make l depend quadratically on every component of xi (e.g. a positive moment of inertia for each)"
-           + (", or, if the degeneracy is the model's, build it with ClebschSystem(..., degenerate=True)." if moves
-              else ", or write it with the physical velocity L_xi Q only."))
+    fix = "Make l depend quadratically on every component of xi (e.g. a positive moment of inertia for each)" + (
+        ", or, if the degeneracy is the model's, build it with ClebschSystem(..., degenerate=True)."
+        if moves
+        else ", or write it with the physical velocity L_xi Q only."
+    )
     raise ValueError(
         f"lagrangian: degenerate in xi at (xi0, Q0): its Hessian in xi has rank {rank} of {H.shape[0]} (smallest "
         f"singular value {s[-1] / s[0]:.1e} of the largest), with null direction {_rounded(null, xi0.shape)}, so "
         "the Legendre map xi -> dl/dxi (Lemma 8) is not invertible and Newton's Jacobian of every step would "
         f"be singular.{isotropy} {fix} (If l is regular but this ill-conditioned, e.g. landmarks much "
-        "closer together than the kernel width, the steps cannot be solved in float64 either.)")
+        "closer together than the kernel width, the steps cannot be solved in float64 either.)"
+    )
 
 
 def _hessian_scale(system, Q0, xi0) -> float:
@@ -362,12 +377,16 @@ def _check_linear(xi0, found):
     labels = ("xi0", "a random direction d", "2 xi0 + d")
     if not (np.all(np.isfinite(J)) and np.all(np.isfinite(values))):
         where = [label for label, v in zip(labels, values) if not np.all(np.isfinite(v))]
-        what = (f"L(xi, Q0) contains NaN or inf at xi = {', '.join(where)}" if where
-                else "its Jacobian in xi at xi0 contains NaN or inf")
+        what = (
+            f"L(xi, Q0) contains NaN or inf at xi = {', '.join(where)}"
+            if where
+            else "its Jacobian in xi at xi0 contains NaN or inf"
+        )
         raise ValueError(
             f"velocity_map: not finite at the initial configuration Q0: {what}. The tangent vector L(xi, Q0) "
             "must be finite for every xi (a division by, or a log or sqrt of, a component of Q that is 0 at "
-            "Q0?); start from a Q0 where the map is defined.")
+            "Q0?); start from a Q0 where the map is defined."
+        )
     defects = []
     for label, x, value in zip(labels, found["probes"], values):
         defect = value - J @ x
@@ -380,17 +399,20 @@ def _check_linear(xi0, found):
         return
     offset = defects[0][3]
     if all(np.linalg.norm(item[3] - offset) <= 1e-6 * np.linalg.norm(offset) for item in defects):
-        what = (f"it is affine: L(xi, Q0) - J xi is the same nonzero offset (norm {size:.2e}) at every probe "
-                "xi, i.e. L(0, Q0) != 0")
+        what = (
+            f"it is affine: L(xi, Q0) - J xi is the same nonzero offset (norm {size:.2e}) at every probe "
+            "xi, i.e. L(0, Q0) != 0"
+        )
     else:
-        what = (f"at xi = {label}, L(xi, Q0) differs from J xi, J its Jacobian in xi at xi0, by "
-                f"{relative:.1e} of their size")
+        what = (
+            f"at xi = {label}, L(xi, Q0) differs from J xi, J its Jacobian in xi at xi0, by "
+            f"{relative:.1e} of their size"
+        )
     raise ValueError(
         f"velocity_map: must be linear in xi (Definition 1), but {what}. L(xi, Q) is the tangent vector by "
         "which xi moves Q: every term must be linear in xi (e.g. Q @ hat(xi), with no products of xi's "
-        "components and no constant term); put any nonlinear dependence on xi in the Lagrangian.")
-
-
+        "components and no constant term); put any nonlinear dependence on xi in the Lagrangian."
+    )
 
 
 def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
@@ -427,8 +449,10 @@ def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
         if not defect > GROUP_RTOL:
             return
         problem = system.check_Q(Q1) if checks else None
-        how = (f"(Q0^-1 Q1 is not in the group of the algebra X(V) by which velocity_map moves Q: the part of "
-               f"its logarithm outside X(V) is {defect:.1e} of it.)")
+        how = (
+            f"(Q0^-1 Q1 is not in the group of the algebra X(V) by which velocity_map moves Q: the part of "
+            f"its logarithm outside X(V) is {defect:.1e} of it.)"
+        )
     elif checks:
         problem = system.check_Q(Q1)
         if not isinstance(problem, str):
@@ -437,16 +461,21 @@ def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
     else:
         return
     name = _name(system.derivative_map)
-    fix = (f"Use a method whose steps keep Q on M (with {name}, e.g. scheme=\"midpoint\"), or, on a matrix group "
-           "with L(xi, Q) = Q X(xi), the derivative map clebsch_jax.cayley or clebsch_jax.exponential, which keep "
-           "Q on the group with every principle (Definition 25); forward_difference is for vector spaces.")
+    fix = (
+        f'Use a method whose steps keep Q on M (with {name}, e.g. scheme="midpoint"), or, on a matrix group '
+        "with L(xi, Q) = Q X(xi), the derivative map clebsch_jax.cayley or clebsch_jax.exponential, which keep "
+        "Q on the group with every principle (Definition 25); forward_difference is for vector spaces."
+    )
     where = f"one step of {name} from Q0 ({method}) leaves the configuration manifold"
     if checks:
         found = f"{problem} " if isinstance(problem, str) else ""
         raise ValueError(f"derivative_map: {where}: {found}{how} {fix}".replace("  ", " "))
-    warnings.warn(f"derivative_map: {where} on which velocity_map acts, a matrix group, so Q drifts off it at "
-                  f"every step {how} {fix} Give the system a check_Q to make this an error.", UserWarning,
-                  stacklevel=3)  # the caller of integrate
+    warnings.warn(
+        f"derivative_map: {where} on which velocity_map acts, a matrix group, so Q drifts off it at "
+        f"every step {how} {fix} Give the system a check_Q to make this an error.",
+        UserWarning,
+        stacklevel=3,
+    )  # the caller of integrate
 
 
 def check_group_configuration(system, Q0, xi0) -> None:
@@ -476,15 +505,22 @@ def check_group_configuration(system, Q0, xi0) -> None:
         group = f"SE({n - 1})"
         last = np.zeros(n)
         last[-1] = 1.0
-        problem = (f"its last row is {np.array2string(Q[-1], precision=4)}, not {np.array2string(last)}."
-                   if np.max(np.abs(Q[-1] - last)) > 1e-8 else check_rotation(Q[:-1, :-1]))
+        problem = (
+            f"its last row is {np.array2string(Q[-1], precision=4)}, not {np.array2string(last)}."
+            if np.max(np.abs(Q[-1] - last)) > 1e-8
+            else check_rotation(Q[:-1, :-1])
+        )
     else:
         return
     if problem is None:
         return
-    warnings.warn(f"Q0: velocity_map moves Q by right multiplication with the Lie algebra of {group}, but Q0 is "
-                  f"not in {group}: {problem} The march keeps Q in Q0 {group}. Give the system a check_Q (e.g. "
-                  "clebsch_jax.models.check_rotation) to make this an error.", UserWarning, stacklevel=5)
+    warnings.warn(
+        f"Q0: velocity_map moves Q by right multiplication with the Lie algebra of {group}, but Q0 is "
+        f"not in {group}: {problem} The march keeps Q in Q0 {group}. Give the system a check_Q (e.g. "
+        "clebsch_jax.models.check_rotation) to make this an error.",
+        UserWarning,
+        stacklevel=5,
+    )
 
 
 def _name(fn) -> str:
@@ -495,6 +531,7 @@ def _group_basis(system, Q0, xi0):
     """`clebsch_jax.discrete.reduction.matrix_group_basis` (imported here: the reduction sits
     above this module on the data path)."""
     from ..discrete.reduction import matrix_group_basis
+
     return matrix_group_basis(system, Q0, xi0)
 
 

@@ -27,14 +27,9 @@ def _positional_arity(fn: Callable, name: str) -> int:
     params = list(sig.parameters.values())
     if any(p.kind is p.VAR_POSITIONAL for p in params):
         raise TypeError(
-            f"{name}: takes *args, so it is ambiguous whether it is l(xi) or l(xi, Q); "
-            "give it explicit parameters."
+            f"{name}: takes *args, so it is ambiguous whether it is l(xi) or l(xi, Q); give it explicit parameters."
         )
-    required = [
-        p
-        for p in params
-        if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty
-    ]
+    required = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty]
     return len(required)
 
 
@@ -100,9 +95,16 @@ class ClebschSystem:
     check_Q: Callable | None
     inverse_legendre: Callable | None
 
-    def __init__(self, *, lagrangian: Callable, velocity_map: Callable, derivative_map: Callable,
-                 degenerate: bool = False, check_Q: Callable | None = None,
-                 inverse_legendre: Callable | None = None):
+    def __init__(
+        self,
+        *,
+        lagrangian: Callable,
+        velocity_map: Callable,
+        derivative_map: Callable,
+        degenerate: bool = False,
+        check_Q: Callable | None = None,
+        inverse_legendre: Callable | None = None,
+    ):
         for name, fn in (
             ("lagrangian", lagrangian),
             ("velocity_map", velocity_map),
@@ -113,8 +115,7 @@ class ClebschSystem:
         arity = _positional_arity(lagrangian, "lagrangian")
         if arity not in (1, 2):
             raise TypeError(
-                f"lagrangian: expected l(xi) or l(xi, Q) (1 or 2 required positional "
-                f"parameters), got {arity}."
+                f"lagrangian: expected l(xi) or l(xi, Q) (1 or 2 required positional parameters), got {arity}."
             )
         self.lagrangian = lagrangian
         self.velocity_map = velocity_map
@@ -127,8 +128,9 @@ class ClebschSystem:
             raise TypeError(f"check_Q: expected None or a callable Q -> None | str, got {type(check_Q).__name__}.")
         self.check_Q = check_Q
         if inverse_legendre is not None and not callable(inverse_legendre):
-            raise TypeError(f"inverse_legendre: expected None or a callable (mu, Q) -> xi, got "
-                            f"{type(inverse_legendre).__name__}.")
+            raise TypeError(
+                f"inverse_legendre: expected None or a callable (mu, Q) -> xi, got {type(inverse_legendre).__name__}."
+            )
         if inverse_legendre is not None and degenerate:
             raise ValueError("inverse_legendre: a degenerate Lagrangian has no inverse Legendre map.")
         self.inverse_legendre = inverse_legendre

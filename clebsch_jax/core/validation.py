@@ -11,8 +11,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["is_traced", "any_traced", "is_array", "float_array", "host_float_array", "positive_int", "nonnegative",
-           "positive_scalar", "output_shape", "check_configuration", "runnable_check", "nan_unless"]
+__all__ = [
+    "is_traced",
+    "any_traced",
+    "is_array",
+    "float_array",
+    "host_float_array",
+    "positive_int",
+    "nonnegative",
+    "positive_scalar",
+    "output_shape",
+    "check_configuration",
+    "runnable_check",
+    "nan_unless",
+]
 
 
 def is_traced(x) -> bool:
@@ -50,11 +62,11 @@ def is_array(x) -> bool:
 
 
 def _real_dtype(dtype, name: str, allow_bool: bool):
-    if dtype == object or not (np.issubdtype(dtype, np.number) or dtype == bool):
+    if dtype == np.dtype(object) or not (np.issubdtype(dtype, np.number) or dtype == np.dtype(bool)):
         raise TypeError(f"{name}: expected a real array of numbers, got dtype {dtype}.")
     if np.issubdtype(dtype, np.complexfloating):
         raise TypeError(f"{name}: expected a real floating-point array, got dtype {dtype}.")
-    if dtype == bool and not allow_bool:
+    if dtype == np.dtype(bool) and not allow_bool:
         raise TypeError(f"{name}: expected a real array, got dtype {dtype}.")
 
 
@@ -165,6 +177,7 @@ def check_configuration(system, Q0, name: str = "Q0"):
     if problem is None:
         return
     if not isinstance(problem, str):
-        raise TypeError(f"check_Q: must return None or a string saying what is wrong, returned "
-                        f"{type(problem).__name__}.")
+        raise TypeError(
+            f"check_Q: must return None or a string saying what is wrong, returned {type(problem).__name__}."
+        )
     raise ValueError(f"{name}: {problem}")

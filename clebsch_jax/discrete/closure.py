@@ -81,8 +81,9 @@ def _directions(xi, n_points: int, seed: int, dtype):
     return etas.astype(dtype)
 
 
-def sample_points(system: ClebschSystem, Q: jax.Array, xi: jax.Array, n_points: int, spread: float,
-                  seed: int = 0) -> jax.Array:
+def sample_points(
+    system: ClebschSystem, Q: jax.Array, xi: jax.Array, n_points: int, spread: float, seed: int = 0
+) -> jax.Array:
     r"""Points near Q reached by following the velocity map: $\dot Q = \mathcal L_\eta Q$ for a
     random unit $\eta$ (RK4, 16 substeps, time `spread`). They stay on the orbit of Q, so a
     model defined only on a submanifold (rotations, a sphere) is evaluated where it is valid.
@@ -98,7 +99,10 @@ def _flow(velocity_map, Q, etas, spread):
         f = lambda q: velocity_map(eta, q)
 
         def rk4(_, q):
-            k1 = f(q); k2 = f(q + 0.5 * h * k1); k3 = f(q + 0.5 * h * k2); k4 = f(q + h * k3)
+            k1 = f(q)
+            k2 = f(q + 0.5 * h * k1)
+            k3 = f(q + 0.5 * h * k2)
+            k4 = f(q + h * k3)
             return q + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
 
         return jax.lax.fori_loop(0, substeps, rk4, Q)
@@ -123,7 +127,9 @@ def _bracket_data(velocity_map, pts, basis):
         Lq = jax.vmap(lambda e: velocity_map(e, q))(basis)  # (m, *Q.shape)
         A = Lq.reshape(m, -1).T
         # T[j, i] = T_Q L_{e_j} · (L_{e_i} Q), a jvp of Q ↦ L_{e_j} Q
-        T = jax.vmap(lambda ej: jax.vmap(lambda li: jax.jvp(lambda qq: velocity_map(ej, qq), (q,), (li,))[1])(Lq))(basis)
+        T = jax.vmap(lambda ej: jax.vmap(lambda li: jax.jvp(lambda qq: velocity_map(ej, qq), (q,), (li,))[1])(Lq))(
+            basis
+        )
         T = T.reshape(m, m, -1)
         B = jnp.swapaxes(T, 0, 1) - T  # B[i, j] = T[j, i] - T[i, j]
         return A, B

@@ -65,9 +65,21 @@ import numpy as np
 from ..core import linalg as _linalg
 from ..core.system import ClebschSystem
 
-__all__ = ["GaussLegendre", "gauss_legendre", "GaussUnknowns", "clebsch_hamiltonian", "stage_values",
-           "stage_hessians", "gauss_sweep", "constraint_matrix_inverse", "degenerate_sweep", "gauss_update",
-           "extrapolate", "from_substeps", "GAUSS_ORDERS"]
+__all__ = [
+    "GaussLegendre",
+    "gauss_legendre",
+    "GaussUnknowns",
+    "clebsch_hamiltonian",
+    "stage_values",
+    "stage_hessians",
+    "gauss_sweep",
+    "constraint_matrix_inverse",
+    "degenerate_sweep",
+    "gauss_update",
+    "extrapolate",
+    "from_substeps",
+    "GAUSS_ORDERS",
+]
 
 GAUSS_ORDERS = (2, 4, 6, 8, 10, 12, 14, 16)
 """Orders `integrate(..., scheme="gauss", order=k)` accepts (k/2 stages). Above 8 they are for
@@ -200,8 +212,9 @@ def stage_hessians(system: ClebschSystem, tab: GaussLegendre, Q, P, z: GaussUnkn
     return jax.vmap(one)(z.xi, Qi)
 
 
-def gauss_sweep(system: ClebschSystem, tab: GaussLegendre, h, Q, P, z: GaussUnknowns,
-                inverse_hessians=None) -> GaussUnknowns:
+def gauss_sweep(
+    system: ClebschSystem, tab: GaussLegendre, h, Q, P, z: GaussUnknowns, inverse_hessians=None
+) -> GaussUnknowns:
     r"""One sweep of the iteration whose fixed point is the Gauss–Legendre step.
 
     From the stage values of `z`: one Newton update of each stage's Clebsch relation
@@ -241,6 +254,7 @@ def constraint_matrix_inverse(system: ClebschSystem, xi, Q, P, *, blocks: bool =
       not depend on M).
 
     Returns (inverse, singular): (dim V, dim V) or (N, k, k)."""
+
     def bracket(d):  # M d: the derivative of C along the Hamiltonian vector field of ⟨d, C⟩
         tangent = _constraint_flow(system, xi, d.reshape(xi.shape), Q, P)
         return jax.jvp(lambda q, p: _constraint(system, xi, q, p), (Q, P), tangent)[1]
@@ -255,8 +269,9 @@ def constraint_matrix_inverse(system: ClebschSystem, xi, Q, P, *, blocks: bool =
     return inverse, jnp.any(singular)
 
 
-def degenerate_sweep(system: ClebschSystem, tab: GaussLegendre, h, Q, P, z: GaussUnknowns,
-                     constraint_inverse) -> GaussUnknowns:
+def degenerate_sweep(
+    system: ClebschSystem, tab: GaussLegendre, h, Q, P, z: GaussUnknowns, constraint_inverse
+) -> GaussUnknowns:
     r"""One sweep of the Gauss–Legendre step of a *degenerate* system (l affine in ξ, so
     $\partial_\xi H$ does not involve ξ and the stage Clebsch relations $C(Q_i, P_i) = 0$ are
     constraints on the stage values that ξ enforces as a multiplier).
@@ -308,9 +323,11 @@ def extrapolate(tab: GaussLegendre, z: GaussUnknowns) -> GaussUnknowns:
     weights h·bⱼ, divided out and put back."""
     E = tab.extrapolation
     scale = E * (tab.b[:, None] / tab.b[None, :])
-    return GaussUnknowns(xi=jnp.stack([_combine(row, z.xi) for row in E]),
-                         dQ=jnp.stack([_combine(row, z.dQ) for row in scale]),
-                         dP=jnp.stack([_combine(row, z.dP) for row in scale]))
+    return GaussUnknowns(
+        xi=jnp.stack([_combine(row, z.xi) for row in E]),
+        dQ=jnp.stack([_combine(row, z.dQ) for row in scale]),
+        dP=jnp.stack([_combine(row, z.dP) for row in scale]),
+    )
 
 
 def from_substeps(tab: GaussLegendre, zs: GaussUnknowns) -> GaussUnknowns:

@@ -17,8 +17,13 @@ from ..roots.newton import newton_solve
 from ..roots.status import NewtonStats, Status
 from .residual import nodal_residual
 
-__all__ = ["initial_multiplier", "cotangent_from_momentum", "min_norm_transpose_solve", "nodal_velocity",
-           "explicit_nodal_velocity"]
+__all__ = [
+    "initial_multiplier",
+    "cotangent_from_momentum",
+    "min_norm_transpose_solve",
+    "nodal_velocity",
+    "explicit_nodal_velocity",
+]
 
 
 def initial_multiplier(system: ClebschSystem, Q0: jax.Array, xi0: jax.Array) -> jax.Array:
@@ -39,8 +44,7 @@ _DENSE_MAX = 256
 """Above this many components of V it is found matrix-free only (the dense matrix is not formed)."""
 
 
-def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array, *,
-                            unroll: bool = False) -> jax.Array:
+def cotangent_from_momentum(system: ClebschSystem, Q: jax.Array, mu: jax.Array, *, unroll: bool = False) -> jax.Array:
     r"""The minimum-norm $p \in T^*_QM$ with momentum map $-p\diamond Q = \mu$.
 
     Solves $A^T p = \mu$, $A = \partial_\xi \mathcal L_\xi Q$, for the $p$ in the range of $A$
@@ -158,8 +162,17 @@ def _min_norm_straight(A, b, tol):
     return functools.reduce(jnp.add, [U[j] * c[j] for j in range(n)])
 
 
-def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax.Array, *,
-                   rtol: float = 0.0, atol: float = 0.0, max_iterations: int = 20, solver=None):
+def nodal_velocity(
+    system: ClebschSystem,
+    Q: jax.Array,
+    p: jax.Array,
+    guess: jax.Array,
+    *,
+    rtol: float = 0.0,
+    atol: float = 0.0,
+    max_iterations: int = 20,
+    solver=None,
+):
     r"""Solve Lemma 7's $\delta l/\delta\xi(\xi, Q) = -p \diamond Q$ for $\xi$ by Newton
     (`solver`: `newton_solve`, or `block_newton_solve` for many particles).
 
@@ -167,8 +180,9 @@ def nodal_velocity(system: ClebschSystem, Q: jax.Array, p: jax.Array, guess: jax
     """
     mu = momentum_map(system, p, Q, guess)
     solver = newton_solve if solver is None else solver
-    return solver(lambda x: nodal_residual(system, Q, mu, x), guess,
-                  rtol=rtol, atol=atol, max_iterations=max_iterations)
+    return solver(
+        lambda x: nodal_residual(system, Q, mu, x), guess, rtol=rtol, atol=atol, max_iterations=max_iterations
+    )
 
 
 def explicit_nodal_velocity(system: ClebschSystem, Q: jax.Array, mu: jax.Array) -> tuple[jax.Array, NewtonStats]:

@@ -46,8 +46,15 @@ from ..discrete.closure import CLOSURE_TOLERANCE
 from ..core.system import ClebschSystem
 from ..core.validation import any_traced, is_traced
 
-__all__ = ["MatrixGroupReduction", "MatrixAlgebraReduction", "find_reduction", "matrix_group_basis", "reduced_residual", "outgoing_body_momentum",
-           "reduced_step"]
+__all__ = [
+    "MatrixGroupReduction",
+    "MatrixAlgebraReduction",
+    "find_reduction",
+    "matrix_group_basis",
+    "reduced_residual",
+    "outgoing_body_momentum",
+    "reduced_step",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,8 +85,11 @@ class MatrixGroupReduction:
         return hash((self.basis.tobytes(), self.xi_shape))
 
     def __eq__(self, other):
-        return (isinstance(other, MatrixGroupReduction) and self.xi_shape == other.xi_shape
-                and np.array_equal(self.basis, other.basis))
+        return (
+            isinstance(other, MatrixGroupReduction)
+            and self.xi_shape == other.xi_shape
+            and np.array_equal(self.basis, other.basis)
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,8 +151,7 @@ def _constant_map(C: np.ndarray, x, shape):
     making the reduced step cheap".)"""
     v = jnp.ravel(x)
     cut = 1e-14 * np.max(np.abs(C))
-    rows = [_linalg.weighted_sum(((float(c), v[j]) for j, c in enumerate(row) if abs(c) > cut), v.dtype)
-            for row in C]
+    rows = [_linalg.weighted_sum(((float(c), v[j]) for j, c in enumerate(row) if abs(c) > cut), v.dtype) for row in C]
     return jnp.stack(rows).reshape(shape)
 
 
@@ -158,8 +167,7 @@ def _memo(key, compute):
     return memo(_CACHE, key, compute, 256)
 
 
-def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | MatrixAlgebraReduction | None,
-                                                            str]:
+def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | MatrixAlgebraReduction | None, str]:
     """`_find_reduction`, cached: the verdict depends only on the two maps and the shapes."""
     if any_traced(system.velocity_map):
         return _find_reduction(system, Q0, xi0)
@@ -239,8 +247,9 @@ def _group_basis(system: ClebschSystem, Q0, xi0) -> tuple[np.ndarray | None, str
     E = np.concatenate([np.eye(m), rng.normal(size=(1, m))]).reshape((m + 1,) + xi_shape)
     # one compiled program for all evaluations (op-by-op evaluation compiles every operation)
     points = np.concatenate([np.eye(n)[None], Gs])
-    values = jit_with_options(lambda E, Q: jax.vmap(lambda q: jax.vmap(lambda e: system.velocity_map(e, q))(E))(Q),
-                              QUICK_COMPILE)(E, points)
+    values = jit_with_options(
+        lambda E, Q: jax.vmap(lambda q: jax.vmap(lambda e: system.velocity_map(e, q))(E))(Q), QUICK_COMPILE
+    )(E, points)
     if not _concrete(values):
         return None, "the velocity map depends on traced values, so it cannot be inspected"
     values = np.asarray(values)  # split on the host (unstacking the device array compiles a program)
@@ -267,8 +276,11 @@ def _commutator_residual(basis: np.ndarray, B: np.ndarray) -> float:
     """The largest relative residual of the least-squares fits of the commutators
     $[X_i, X_j]$ (i < j) in the span of the basis (the columns of `B`)."""
     m = basis.shape[0]
-    C = np.stack([(basis[i] @ basis[j] - basis[j] @ basis[i]).ravel() for i in range(m) for j in range(i + 1, m)]
-                 or [np.zeros(B.shape[0])], axis=1)
+    C = np.stack(
+        [(basis[i] @ basis[j] - basis[j] @ basis[i]).ravel() for i in range(m) for j in range(i + 1, m)]
+        or [np.zeros(B.shape[0])],
+        axis=1,
+    )
     fit, *_ = np.linalg.lstsq(B, C, rcond=None)
     size = max(float(np.linalg.norm(C, axis=0).max()), float(np.linalg.norm(B)), np.finfo(float).tiny)
     return float(np.max(np.linalg.norm(B @ fit - C, axis=0)) / size)
@@ -559,13 +571,14 @@ def cayley_polynomial(red: MatrixGroupReduction) -> CayleyPolynomial | None:
     cut = 1e-14 * max(np.max(np.abs(A0)), np.max(np.abs(A1)), np.max(np.abs(A2)), 1e-300)
 
     def nonzero(A, factors):  # per output k: (coefficient, factor indices) where it is not zero
-        return tuple(tuple((float(A[ix + (k,)]), ix) for ix in factors if abs(A[ix + (k,)]) > cut)
-                     for k in range(m))
+        return tuple(tuple((float(A[ix + (k,)]), ix) for ix in factors if abs(A[ix + (k,)]) > cut) for k in range(m))
 
     pairs = [(i, j) for i in range(m) for j in range(i, m)]
-    terms = (nonzero(A0, [(l,) for l in range(m)]),
-             nonzero(A1, [(i, l) for i in range(m) for l in range(m)]),
-             nonzero(A2, [ij + (l,) for ij in pairs for l in range(m)]))
+    terms = (
+        nonzero(A0, [(l,) for l in range(m)]),
+        nonzero(A1, [(i, l) for i in range(m) for l in range(m)]),
+        nonzero(A2, [ij + (l,) for ij in pairs for l in range(m)]),
+    )
     if sum(len(t) for part in terms for t in part) > POLYNOMIAL_MAX_TERMS:
         return None
     return CayleyPolynomial(terms=terms)

@@ -50,9 +50,7 @@ def step_residual(
     return StepUnknowns(xi=g_xi / dt, P=g_P, Q1=p0 + g_Q0)
 
 
-def outgoing_momentum(
-    system: ClebschSystem, scheme: str, dt: jax.Array, Q0: jax.Array, z: StepUnknowns
-) -> jax.Array:
+def outgoing_momentum(system: ClebschSystem, scheme: str, dt: jax.Array, Q0: jax.Array, z: StepUnknowns) -> jax.Array:
     r"""The discrete Legendre transform $p^{n+1} = \partial L_d / \partial Q^{n+1}$."""
     return jax.grad(lambda q1: discrete_lagrangian(system, scheme, dt, z.xi, z.P, Q0, q1))(z.Q1)
 

@@ -73,13 +73,17 @@ def continue_from(system: ClebschSystem, sol: Solution, Q: jax.Array | None = No
     fails at once.
     """
     if sol.batch_ndim:
-        raise ValueError(f"continue_from: `sol` has {sol.batch_ndim} batch axes; it takes one trajectory. "
-                         "For a batch, jax.vmap it: jax.vmap(lambda s: cj.continue_from(system, s))(sol).")
+        raise ValueError(
+            f"continue_from: `sol` has {sol.batch_ndim} batch axes; it takes one trajectory. "
+            "For a batch, jax.vmap it: jax.vmap(lambda s: cj.continue_from(system, s))(sol)."
+        )
     if sol.Q is not None:
         Q = sol.Q[-1]
     elif Q is None:
-        raise ValueError("continue_from: the march did not carry Q (reduced march with reconstruct=False); "
-                         "pass the last configuration as `Q`.")
+        raise ValueError(
+            "continue_from: the march did not carry Q (reduced march with reconstruct=False); "
+            "pass the last configuration as `Q`."
+        )
     P = sol.p[-1] if sol.p is not None else cotangent_from_momentum(system, Q, sol.momentum[-1])
     xi = sol.xi[-1] if sol.xi is not None else sol.xi_step[-1]
     return Start(Q0=Q, xi0=xi, P0=P, t0=sol.ts[-1])

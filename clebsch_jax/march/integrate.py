@@ -17,8 +17,17 @@ from ..core.isotropy import gauge_isotropy, physical_velocity
 from ..core.jit import filter_jit
 from ..core.model_checks import check_first_step, check_group_configuration, check_model
 from ..core.system import ClebschSystem
-from ..core.validation import (any_traced, check_configuration, float_array, is_array, is_traced, nonnegative, output_shape,
-                               positive_int, positive_scalar)
+from ..core.validation import (
+    any_traced,
+    check_configuration,
+    float_array,
+    is_array,
+    is_traced,
+    nonnegative,
+    output_shape,
+    positive_int,
+    positive_scalar,
+)
 from ..steppers.base import AbstractStepper
 from ..steppers.choose import check_scheme, choose_method
 from ..steppers.composition import StepPlan, plan_of
@@ -28,8 +37,18 @@ from .solution import Solution, check_traced
 
 __all__ = ["integrate", "step_plan"]
 
-_LEGACY_DEFAULTS = dict(scheme=None, reduce="auto", need_P=False, reconstruct=True, rtol=0.0, atol=0.0,
-                        max_newton_iterations=20, jacobian="dense", order=None, composition=None)
+_LEGACY_DEFAULTS = dict(
+    scheme=None,
+    reduce="auto",
+    need_P=False,
+    reconstruct=True,
+    rtol=0.0,
+    atol=0.0,
+    max_newton_iterations=20,
+    jacobian="dense",
+    order=None,
+    composition=None,
+)
 """`integrate`'s options that describe the method; with `method=` they belong to the stepper."""
 
 
@@ -51,8 +70,11 @@ def _real_output(name: str, out, expected: str):
         got = f"a {type(out).__name__} of {len(out)} values" if isinstance(out, (tuple, list)) else type(out).__name__
         raise ValueError(f"{name}: must return {expected}, returned {got}.")
     if not jnp.issubdtype(out.dtype, jnp.floating):
-        hint = ("take the real part or write it in real arithmetic" if jnp.issubdtype(out.dtype, jnp.complexfloating)
-                else "compute it in floating point, e.g. with float constants")
+        hint = (
+            "take the real part or write it in real arithmetic"
+            if jnp.issubdtype(out.dtype, jnp.complexfloating)
+            else "compute it in floating point, e.g. with float constants"
+        )
         raise ValueError(f"{name}: must return {expected}, returned dtype {out.dtype} ({hint}).")
 
 
@@ -103,8 +125,12 @@ def _check_maps(system, Q0, xi0, dt) -> bool:
         raise ValueError(
             f"velocity_map: must return an array of Q's shape {Q0.shape}, returned {vel.shape} for {shapes}."
         )
-    der, closes_d = output_shape("derivative_map", system.derivative_map, (sq, sq, jax.ShapeDtypeStruct((), dt.dtype)),
-                       f"derivative_map(Q_next, Q, dt) with Q of shape {Q0.shape}")
+    der, closes_d = output_shape(
+        "derivative_map",
+        system.derivative_map,
+        (sq, sq, jax.ShapeDtypeStruct((), dt.dtype)),
+        f"derivative_map(Q_next, Q, dt) with Q of shape {Q0.shape}",
+    )
     _real_output("derivative_map", der, "a real floating-point array of Q's shape")
     if der.shape != Q0.shape:
         raise ValueError(f"derivative_map: must return an array of Q's shape {Q0.shape}, returned {der.shape}.")
@@ -123,8 +149,9 @@ def _check_maps_once(system, Q0, xi0, dt) -> bool:
     function is made anew inside each trace)."""
     leaves, treedef = jax.tree_util.tree_flatten(system)
     # arrays by shape and dtype (weak types included), anything else (functions) as itself
-    avals = tuple((np.shape(x), jnp.result_type(x)) if is_array(x) or is_traced(x) else x
-                  for x in (*leaves, Q0, xi0, dt))
+    avals = tuple(
+        (np.shape(x), jnp.result_type(x)) if is_array(x) or is_traced(x) else x for x in (*leaves, Q0, xi0, dt)
+    )
     try:
         key = (treedef, avals)
         hash(key)
@@ -178,7 +205,10 @@ def _warn_if_remade(system) -> None:
             f"({', '.join(map(repr, values))}; before: {', '.join(map(repr, seen))}): the march is compiled again "
             "for every new function. Hold such a parameter as an array leaf to compile once, e.g. "
             "jax.tree_util.Partial(fn, jnp.asarray(value)) with fn taking it as its first argument (said once "
-            "per function).", UserWarning, stacklevel=3)
+            "per function).",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 def _memory_limit() -> int:
@@ -199,11 +229,13 @@ def _check_size(Q0, xi0, n_steps: int):
             f"n_steps: {n_steps} steps would need about {need / 1e9:.3g} GB for the Solution "
             f"({per_step} bytes per step), more than this machine's {limit / 1e9:.3g} GB of memory. Run it in "
             "pieces (clebsch_jax.continue_from), or with clebsch_jax.sweep, which keeps per-member "
-            "reductions and every k-th node (save_every=k) instead of the whole trajectory.")
+            "reductions and every k-th node (save_every=k) instead of the whole trajectory."
+        )
 
 
-def step_plan(system: ClebschSystem, scheme: str | None = None, order=None, composition=None, *,
-              Q0=None, xi0=None) -> StepPlan:
+def step_plan(
+    system: ClebschSystem, scheme: str | None = None, order=None, composition=None, *, Q0=None, xi0=None
+) -> StepPlan:
     """The `StepPlan` `integrate` runs for these arguments: its sub-steps and its facts
     (`order`, `symmetric`, `symplectic`, `name`, `solves_per_step`). Given `Q0` and `xi0` it
     is the plan of `integrate(system, Q0, xi0, ...)`, reduced march included; without them,
@@ -348,14 +380,30 @@ def integrate(
     """
     user_system = system
     stepper, (Q0, xi0, P0, dt, t0, closes), n_steps, system = _prepared(
-        system, Q0, xi0, dt=dt, n_steps=n_steps, P0=P0, t0=t0, method=method, scheme=scheme, reduce=reduce,
-        need_P=need_P, reconstruct=reconstruct, rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations,
-        jacobian=jacobian, order=order, composition=composition, check_energy=check_energy)
+        system,
+        Q0,
+        xi0,
+        dt=dt,
+        n_steps=n_steps,
+        P0=P0,
+        t0=t0,
+        method=method,
+        scheme=scheme,
+        reduce=reduce,
+        need_P=need_P,
+        reconstruct=reconstruct,
+        rtol=rtol,
+        atol=atol,
+        max_newton_iterations=max_newton_iterations,
+        jacobian=jacobian,
+        order=order,
+        composition=composition,
+        check_energy=check_energy,
+    )
     if closes or any_traced(system, Q0, xi0, P0, dt, t0):
         # one scan, in the caller's program (differentiable by it); values unknown until now
         # are checked per member
-        sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy,
-                         check_inputs=True)
+        sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy, check_inputs=True)
     else:  # programs reused for any n_steps
         _warn_if_remade(user_system)
         sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy)
@@ -379,9 +427,28 @@ def prepared_method(system, Q0, xi0, **options):
     return _prepared(system, Q0, xi0, **options)[:3]
 
 
-def _prepared(system, Q0, xi0, *, dt, n_steps, P0=None, t0=0.0, method=None, scheme=None, reduce="auto",
-              need_P=False, reconstruct=True, rtol=0.0, atol=0.0, max_newton_iterations=20, jacobian="dense",
-              order=None, composition=None, check_energy=True):
+def _prepared(
+    system,
+    Q0,
+    xi0,
+    *,
+    dt,
+    n_steps,
+    P0=None,
+    t0=0.0,
+    method=None,
+    scheme=None,
+    reduce="auto",
+    need_P=False,
+    reconstruct=True,
+    rtol=0.0,
+    atol=0.0,
+    max_newton_iterations=20,
+    jacobian="dense",
+    order=None,
+    composition=None,
+    check_energy=True,
+):
     """`prepared_method`, and the system to march (the gauged one, when `_check_arrays` fixed
     the isotropy's gauge)."""
     _check_options(system, n_steps, rtol, atol, max_newton_iterations)
@@ -397,18 +464,34 @@ def _prepared(system, Q0, xi0, *, dt, n_steps, P0=None, t0=0.0, method=None, sch
     if method is None:
         if jacobian == "blocks":
             check_particle_axis(Q0, xi0)
-        method = choose_method(system, Q0, xi0, scheme=scheme, reduce=reduce, need_P=need_P, reconstruct=reconstruct,
-                               rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian,
-                               order=order, composition=composition)
+        method = choose_method(
+            system,
+            Q0,
+            xi0,
+            scheme=scheme,
+            reduce=reduce,
+            need_P=need_P,
+            reconstruct=reconstruct,
+            rtol=rtol,
+            atol=atol,
+            max_newton_iterations=max_newton_iterations,
+            jacobian=jacobian,
+            order=order,
+            composition=composition,
+        )
     return method.prepare(system, Q0, xi0), (Q0, xi0, P0, dt, t0, closes), n_steps, system
 
 
 def _check_method(method, options):
     if not isinstance(method, AbstractStepper):
-        raise TypeError("method: expected a stepper (e.g. clebsch_jax.FullStep(), ReducedStep(), "
-                        f"GaussLegendre(order=8)), got {type(method).__name__}.")
+        raise TypeError(
+            "method: expected a stepper (e.g. clebsch_jax.FullStep(), ReducedStep(), "
+            f"GaussLegendre(order=8)), got {type(method).__name__}."
+        )
     for name, default in _LEGACY_DEFAULTS.items():
         value = options[name]
         if value is not default and value != default:
-            raise ValueError(f"{name}: with method= the method's options are the stepper's own; pass "
-                             f"{name}={value!r} to the stepper instead (or leave method unset).")
+            raise ValueError(
+                f"{name}: with method= the method's options are the stepper's own; pass "
+                f"{name}={value!r} to the stepper instead (or leave method unset)."
+            )

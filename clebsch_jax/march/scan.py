@@ -35,10 +35,30 @@ from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper, Nodes
 from .solution import Solution
 
-__all__ = ["march", "march_chunked", "run_chunk", "start", "gate", "failed_to_nan", "nodal_velocities",
-           "input_ok", "energy_terms", "node_energy", "node_energies", "energy_jump", "chunk_length", "CHUNK_STEPS",
-           "CHUNK_VALUES", "MIN_CHUNK_STEPS", "JUMP_FACTOR", "JUMP_FLOOR", "FIRST_STEP_RTOL", "FIRST_STEP_FLOOR",
-           "first_step_probe", "first_step_failed"]
+__all__ = [
+    "march",
+    "march_chunked",
+    "run_chunk",
+    "start",
+    "gate",
+    "failed_to_nan",
+    "nodal_velocities",
+    "input_ok",
+    "energy_terms",
+    "node_energy",
+    "node_energies",
+    "energy_jump",
+    "chunk_length",
+    "CHUNK_STEPS",
+    "CHUNK_VALUES",
+    "MIN_CHUNK_STEPS",
+    "JUMP_FACTOR",
+    "JUMP_FLOOR",
+    "FIRST_STEP_RTOL",
+    "FIRST_STEP_FLOOR",
+    "first_step_probe",
+    "first_step_failed",
+]
 
 CHUNK_STEPS = 1024
 """The most steps per compiled chunk of `march_chunked` (`chunk_length`)."""
@@ -129,7 +149,8 @@ def gate(alive, stats: NewtonStats, values):
     (ok, stats with statuses, gated values)."""
     ok = alive & (stats.status == Status.SUCCESS)
     values = jax.tree_util.tree_map(
-        lambda a: failed_to_nan(a, ok) if jnp.issubdtype(a.dtype, jnp.inexact) else jnp.where(ok, a, jnp.nan), values)
+        lambda a: failed_to_nan(a, ok) if jnp.issubdtype(a.dtype, jnp.inexact) else jnp.where(ok, a, jnp.nan), values
+    )
     return ok, skip_stats(stats, alive), values
 
 
@@ -161,13 +182,13 @@ def start(stepper: AbstractStepper, system, Q0, xi0, P0, dt, check_inputs: bool 
     step and its step 0 is reported `Status.INVALID_INPUT`."""
     state0, startup_iterations = stepper.init(system, Q0, xi0, P0, dt)
     alive = input_ok(system, Q0, xi0, P0, dt) if check_inputs else jnp.asarray(True)
-    carry = Carry(state0, stepper.init_memory(system, state0), jnp.asarray(0, jnp.int32), alive,
-                  jnp.zeros_like(xi0))
+    carry = Carry(state0, stepper.init_memory(system, state0), jnp.asarray(0, jnp.int32), alive, jnp.zeros_like(xi0))
     return carry, jnp.asarray(startup_iterations, jnp.int32)
 
 
-def first_step_probe(chunk_program, stepper: AbstractStepper, system, carry: Carry, dt, chunk_steps: int,
-                     check_energy: bool) -> FirstStepProbe:
+def first_step_probe(
+    chunk_program, stepper: AbstractStepper, system, carry: Carry, dt, chunk_steps: int, check_energy: bool
+) -> FirstStepProbe:
     """Two steps of size dt/2 from the start (`carry`), each with the stepper's own guesses, made
     by the march's own compiled chunk (`chunk_program`, `run_chunk`: dt is one of its arguments,
     so nothing is compiled for them): the node they reach, to check the first step against
@@ -183,6 +204,7 @@ def first_step_failed(xp, probe: FirstStepProbe, Qs, momenta, status0):
     check (`FIRST_STEP_RTOL`): it converged, and either the half steps did not (nothing confirms
     a root that smaller steps cannot reach) or its node differs from theirs by more than
     `FIRST_STEP_RTOL` of their displacement in both Q and the momentum."""
+
     def far(x, half):
         size = lambda a: xp.max(xp.abs(a))
         floor = FIRST_STEP_FLOOR * xp.maximum(1.0, size(half))
@@ -192,8 +214,16 @@ def first_step_failed(xp, probe: FirstStepProbe, Qs, momenta, status0):
     return converged & (~probe.ok | (far(Qs, probe.Q) & far(momenta, probe.momentum)))
 
 
-def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n_total,
-              check_energy: bool = False, exact: bool = False) -> tuple[Carry, Chunk]:
+def run_chunk(
+    stepper: AbstractStepper,
+    system,
+    carry: Carry,
+    dt,
+    length: int,
+    n_total,
+    check_energy: bool = False,
+    exact: bool = False,
+) -> tuple[Carry, Chunk]:
     """`length` steps from `carry`, their nodes and nodal velocities (and, with `check_energy`,
     their energies: `node_energies`); the steps numbered `n_total` (an int32 array: the run's
     number of steps) and later are not made and leave the carry unchanged.
@@ -226,16 +256,24 @@ def run_chunk(stepper: AbstractStepper, system, carry: Carry, dt, length: int, n
     valid = jnp.concatenate([valid, last.alive[None]])
     # seeds of the nodal solves: the velocity of the step leaving the node (the given ξ⁰ at
     # node 0), or, where that step failed or at the last node, of the step arriving at it
-    leaving = jnp.concatenate([jnp.where(carry.n == 0, nodes.xi_seed, nodes.xi_step[0])[None],
-                               nodes.xi_step[1:], xi_last[None]])
+    leaving = jnp.concatenate(
+        [jnp.where(carry.n == 0, nodes.xi_seed, nodes.xi_step[0])[None], nodes.xi_step[1:], xi_last[None]]
+    )
     first = jnp.where(carry.n == 0, nodes.xi_seed, carry.xi_last)
     arriving = jnp.concatenate([first[None], nodes.xi_step[:-1], xi_last[None]])
     guesses = jnp.where(_finite_rows(leaving), leaving, arriving)
     if system.degenerate:  # Lemma 7 does not determine nodal velocities: none are solved for
         zero = jnp.zeros(length + 1, jnp.int32)
         xi = None
-        nodal = skip_stats(NewtonStats(iterations=zero, residual_norm=jnp.zeros(length + 1, dt.dtype),
-                                       status=jnp.full(length + 1, Status.SUCCESS, jnp.int32), jacobians=zero), valid)
+        nodal = skip_stats(
+            NewtonStats(
+                iterations=zero,
+                residual_norm=jnp.zeros(length + 1, dt.dtype),
+                status=jnp.full(length + 1, Status.SUCCESS, jnp.int32),
+                jacobians=zero,
+            ),
+            valid,
+        )
     else:
         xi, nodal = nodal_velocities(system, stepper.nodal_solver, nodes.nodal_Q, nodes.momentum, guesses, valid)
     energy = node_energies(system, nodes.nodal_Q, xi) if check_energy and xi is not None else None
@@ -260,11 +298,13 @@ def _steps_until(advance, carry: Carry, length: int, n_total):
         c, y = advance(c)
         return c, i + 1, jax.tree_util.tree_map(lambda o, v: o.at[i].set(v), out, y)
 
-    last, made, (states, *records) = jax.lax.while_loop(lambda st: st[0].n < stop, body,
-                                                          (carry, jnp.asarray(0, jnp.int32), out0))
+    last, made, (states, *records) = jax.lax.while_loop(
+        lambda st: st[0].n < stop, body, (carry, jnp.asarray(0, jnp.int32), out0)
+    )
     idle = jnp.arange(length) >= made
-    states = jax.tree_util.tree_map(lambda a, s: jnp.where(idle.reshape((-1,) + (1,) * s.ndim), s, a),
-                                    states, last.state)
+    states = jax.tree_util.tree_map(
+        lambda a, s: jnp.where(idle.reshape((-1,) + (1,) * s.ndim), s, a), states, last.state
+    )
     return last, (states, *records)
 
 
@@ -309,21 +349,34 @@ def nodal_velocities(system, finder, Qs, mus, guesses, valid):
     return jnp.where(expand(ok, xin), xin, jnp.nan), skip_stats(st, valid)
 
 
-def march(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int, check_energy: bool = False,
-          check_inputs: bool = False) -> Solution:
+def march(
+    stepper: AbstractStepper,
+    system,
+    Q0,
+    xi0,
+    P0,
+    dt,
+    t0,
+    n_steps: int,
+    check_energy: bool = False,
+    check_inputs: bool = False,
+) -> Solution:
     """Run `stepper` (prepared for `system`) for `n_steps` steps of size `dt` from
     $(Q^0, \\xi^0)$ (and $P^0$, if not None) in one scan and assemble the `Solution`. With
     `check_energy` a step whose energy jumps fails (`Status.ENERGY_JUMP`); with `check_inputs`
     an invalid input fails step 0 (`Status.INVALID_INPUT`: `input_ok`)."""
     carry, startup = start(stepper, system, Q0, xi0, P0, dt, check_inputs)
-    _, chunk = run_chunk(stepper, system, carry, dt, n_steps, jnp.asarray(n_steps, jnp.int32), check_energy,
-                         exact=True)
+    _, chunk = run_chunk(stepper, system, carry, dt, n_steps, jnp.asarray(n_steps, jnp.int32), check_energy, exact=True)
     return _assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0, carry.alive)
 
 
-_PROGRAMS = {quick: (filter_jit(start, compiler_options=QUICK_COMPILE if quick else None),
-                     filter_jit(run_chunk, compiler_options=QUICK_COMPILE if quick else None))
-             for quick in (False, True)}
+_PROGRAMS = {
+    quick: (
+        filter_jit(start, compiler_options=QUICK_COMPILE if quick else None),
+        filter_jit(run_chunk, compiler_options=QUICK_COMPILE if quick else None),
+    )
+    for quick in (False, True)
+}
 """The compiled start and chunk of `march_chunked`, by the stepper's `quick_compile`."""
 
 
@@ -337,8 +390,18 @@ def chunk_length(Q0, xi0) -> int:
     return int(min(CHUNK_STEPS, max(MIN_CHUNK_STEPS, steps)))
 
 
-def march_chunked(stepper: AbstractStepper, system, Q0, xi0, P0, dt, t0, n_steps: int,
-                  chunk_steps: int | None = None, check_energy: bool = False) -> Solution:
+def march_chunked(
+    stepper: AbstractStepper,
+    system,
+    Q0,
+    xi0,
+    P0,
+    dt,
+    t0,
+    n_steps: int,
+    chunk_steps: int | None = None,
+    check_energy: bool = False,
+) -> Solution:
     """`march` with concrete arguments, as compiled chunks of `chunk_steps` steps (default
     `chunk_length`): the programs depend on the stepper, the system and the shapes, not on
     `n_steps` or `dt`."""
@@ -391,8 +454,12 @@ def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0):
         size_before = np.maximum(size_max, running_size[:-1])
         jumped = change > np.maximum(JUMP_FACTOR * largest_before, JUMP_FLOOR * size_before)
         jumped = jumped & (np.cumsum(status != Status.SUCCESS) == 0)  # before any other failure
-        return (np.any(jumped), np.argmax(jumped), np.maximum(largest, running_change[-1]),
-                np.maximum(size_max, running_size[-1]))
+        return (
+            np.any(jumped),
+            np.argmax(jumped),
+            np.maximum(largest, running_change[-1]),
+            np.maximum(size_max, running_size[-1]),
+        )
 
     def step(c, x):
         largest, size_max, clean, first, n = c
@@ -404,8 +471,13 @@ def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0):
         return (largest, size_max, clean, first, n + 1), None
 
     dtype = change.dtype
-    init = (jnp.asarray(largest, dtype), jnp.asarray(size_max, dtype), jnp.asarray(True), jnp.asarray(-1, jnp.int32),
-            jnp.asarray(0, jnp.int32))
+    init = (
+        jnp.asarray(largest, dtype),
+        jnp.asarray(size_max, dtype),
+        jnp.asarray(True),
+        jnp.asarray(-1, jnp.int32),
+        jnp.asarray(0, jnp.int32),
+    )
     (largest, size_max, _, first, _), _ = jax.lax.scan(step, init, (change, size[:-1], status))
     return first >= 0, jnp.maximum(first, 0), largest, jnp.maximum(size_max, zero_nan(size[-1]))
 
@@ -448,18 +520,33 @@ def _fail_from(xp, step, code, stats, nodal, valid, fields):
 
 def _np_skip(stats: NewtonStats, attempted) -> NewtonStats:
     """`skip_stats` on NumPy arrays."""
-    return NewtonStats(iterations=np.where(attempted, stats.iterations, 0).astype(stats.iterations.dtype),
-                       residual_norm=np.where(attempted, stats.residual_norm, np.nan),
-                       status=np.where(attempted, stats.status, Status.SKIPPED).astype(np.int32),
-                       jacobians=np.where(attempted, stats.jacobians, 0).astype(stats.jacobians.dtype))
+    return NewtonStats(
+        iterations=np.where(attempted, stats.iterations, 0).astype(stats.iterations.dtype),
+        residual_norm=np.where(attempted, stats.residual_norm, np.nan),
+        status=np.where(attempted, stats.status, Status.SKIPPED).astype(np.int32),
+        jacobians=np.where(attempted, stats.jacobians, 0).astype(stats.jacobians.dtype),
+    )
 
 
-def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, dt, t0, Q0, xi0,
-              input_ok=None, probe: FirstStepProbe | None = None) -> Solution:
+def _assemble(
+    xp,
+    stepper,
+    system,
+    chunks: list[Chunk],
+    n_steps: int,
+    startup,
+    dt,
+    t0,
+    Q0,
+    xi0,
+    input_ok=None,
+    probe: FirstStepProbe | None = None,
+) -> Solution:
     """The `Solution` from the chunks' records (`xp`: `numpy` or `jax.numpy`, as they are).
     `input_ok` (traced runs with `check_inputs`): False makes step 0 `Status.INVALID_INPUT`.
     `probe` (concrete runs with the energy check): step 0 checked against two half steps
     (`first_step_failed`)."""
+
     def join(get, node):
         fields = [get(c) for c in chunks]
         if fields[0] is None:
@@ -468,20 +555,31 @@ def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, d
 
     nodes = join(lambda c: c.nodes._replace(P=None, xi_step=None, xi_seed=None), True)
     stats = join(lambda c: c.stats, False)
-    stats = stats._replace(iterations=stats.iterations + xp.where(xp.arange(n_steps) == 0, startup, 0)
-                           .astype(stats.iterations.dtype))  # start-up work belongs to step 0
+    stats = stats._replace(
+        iterations=stats.iterations + xp.where(xp.arange(n_steps) == 0, startup, 0).astype(stats.iterations.dtype)
+    )  # start-up work belongs to step 0
     P, xi_step = join(lambda c: c.nodes.P, False), join(lambda c: c.nodes.xi_step, False)
     xin, nodal, valid = join(lambda c: c.xi, True), join(lambda c: c.nodal_stats, True), join(lambda c: c.valid, True)
     if input_ok is not None:  # an invalid member made no step: its step 0 says why
-        stats = stats._replace(status=xp.where((xp.arange(n_steps) == 0) & ~input_ok, Status.INVALID_INPUT,
-                                               stats.status).astype(stats.status.dtype))
-    fields_of = lambda: [(nodes.Q, True), (nodes.p, True), (nodes.momentum, True), (xin, True), (xi_step, False),
-                         (P, False)]
+        stats = stats._replace(
+            status=xp.where((xp.arange(n_steps) == 0) & ~input_ok, Status.INVALID_INPUT, stats.status).astype(
+                stats.status.dtype
+            )
+        )
+    fields_of = lambda: [
+        (nodes.Q, True),
+        (nodes.p, True),
+        (nodes.momentum, True),
+        (xin, True),
+        (xi_step, False),
+        (P, False),
+    ]
     if probe is not None:
         first = first_step_failed(xp, probe, nodes.nodal_Q[:2], nodes.momentum[:2], stats.status[0])
         if xp is jnp or bool(first):  # on the host, only a failure costs a pass
-            stats, nodal, valid, out = _fail_from(xp, xp.where(first, 0, n_steps), Status.FIRST_STEP, stats, nodal,
-                                                  valid, fields_of())
+            stats, nodal, valid, out = _fail_from(
+                xp, xp.where(first, 0, n_steps), Status.FIRST_STEP, stats, nodal, valid, fields_of()
+            )
             Qn, pn, mun, xin, xi_step, P = out
             nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
     energy = join(lambda c: c.energy, True)
@@ -496,16 +594,36 @@ def _assemble(xp, stepper, system, chunks: list[Chunk], n_steps: int, startup, d
     any_step, first_step = xp.any(failed), xp.argmax(failed)
     nodal_failed = valid & (nodal.status != Status.SUCCESS)
     any_nodal, first_node = xp.any(nodal_failed), xp.argmax(nodal_failed)
-    result = xp.where(any_step, stats.status[first_step],
-                      xp.where(any_nodal, Status.LEGENDRE, Status.SUCCESS)).astype(xp.int32)
+    result = xp.where(any_step, stats.status[first_step], xp.where(any_nodal, Status.LEGENDRE, Status.SUCCESS)).astype(
+        xp.int32
+    )
     failed_step = xp.where(any_step, first_step, xp.where(any_nodal, first_node, -1)).astype(xp.int32)
     # Gauss–Legendre takes Q̇ from its collocation polynomial, not from the derivative map
-    derivative_map = ("none (collocation)" if facts.scheme == "gauss"
-                      else getattr(system.derivative_map, "name", repr(system.derivative_map)))
+    derivative_map = (
+        "none (collocation)"
+        if facts.scheme == "gauss"
+        else getattr(system.derivative_map, "name", repr(system.derivative_map))
+    )
     return Solution(
-        ts=t0 + dt * xp.arange(n_steps + 1, dtype=dt.dtype), Q=nodes.Q, p=nodes.p, xi=xin, xi_step=xi_step,
-        P=P, momentum=nodes.momentum, stats=stats, nodal_stats=nodal, result=result, failed_step=failed_step,
-        valid=valid, scheme=facts.scheme, form=facts.form, order=facts.order, method=facts.name,
-        derivative_map=derivative_map, q_ndim=Q0.ndim, xi_ndim=xi0.ndim,
-        solves_per_step=facts.solves_per_step, isotropy=isotropy_dimension(system),
+        ts=t0 + dt * xp.arange(n_steps + 1, dtype=dt.dtype),
+        Q=nodes.Q,
+        p=nodes.p,
+        xi=xin,
+        xi_step=xi_step,
+        P=P,
+        momentum=nodes.momentum,
+        stats=stats,
+        nodal_stats=nodal,
+        result=result,
+        failed_step=failed_step,
+        valid=valid,
+        scheme=facts.scheme,
+        form=facts.form,
+        order=facts.order,
+        method=facts.name,
+        derivative_map=derivative_map,
+        q_ndim=Q0.ndim,
+        xi_ndim=xi0.ndim,
+        solves_per_step=facts.solves_per_step,
+        isotropy=isotropy_dimension(system),
     )

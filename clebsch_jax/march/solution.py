@@ -118,8 +118,18 @@ class Solution:
         res = pick(stats.residual_norm)[..., step]
         matrices = pick(stats.jacobians)[..., step]
         t = pick(self.ts)[..., step]
-        msg = failure_message(code, step, n_steps, float(t), int(iters), float(res), member or None,
-                              self.scheme, 1 if code == Status.LEGENDRE else self.solves_per_step, int(matrices))
+        msg = failure_message(
+            code,
+            step,
+            n_steps,
+            float(t),
+            int(iters),
+            float(res),
+            member or None,
+            self.scheme,
+            1 if code == Status.LEGENDRE else self.solves_per_step,
+            int(matrices),
+        )
         if len(failed) > 1:
             msg += f" ({len(failed)} batch members failed in all.)"
         raise IntegrationError(msg)
@@ -128,16 +138,36 @@ class Solution:
 jax.tree_util.register_dataclass(
     Solution,
     data_fields=[
-        "ts", "Q", "p", "xi", "xi_step", "P", "momentum", "stats", "nodal_stats", "result", "failed_step",
+        "ts",
+        "Q",
+        "p",
+        "xi",
+        "xi_step",
+        "P",
+        "momentum",
+        "stats",
+        "nodal_stats",
+        "result",
+        "failed_step",
         "valid",
     ],
-    meta_fields=["scheme", "form", "order", "method", "derivative_map", "q_ndim", "xi_ndim", "solves_per_step",
-                 "isotropy"],
+    meta_fields=[
+        "scheme",
+        "form",
+        "order",
+        "method",
+        "derivative_map",
+        "q_ndim",
+        "xi_ndim",
+        "solves_per_step",
+        "isotropy",
+    ],
 )
 
 
-def failure_message(code, step, n_steps, t, iterations, residual, member=None, scheme=None, solves=1,
-                    jacobians=None) -> str:
+def failure_message(
+    code, step, n_steps, t, iterations, residual, member=None, scheme=None, solves=1, jacobians=None
+) -> str:
     """A readable failure message: what failed, where, and what to try. `iterations` is what
     the step's solves made in all (`solves` of them; `scheme="gauss"` counts fixed-point sweeps);
     `jacobians` the Newton matrices they formed, the unit of `max_newton_iterations` (None:
@@ -175,16 +205,24 @@ def failure_message(code, step, n_steps, t, iterations, residual, member=None, s
     if scheme == "gauss":
         made = f"{iterations} fixed-point sweeps; the cap is 5 x max_newton_iterations sweeps per step"
     elif jacobians is None:
-        made = f"{iterations} Newton updates" + (f" in all over the step's {solves} sub-step solves" if solves > 1 else "")
+        made = f"{iterations} Newton updates" + (
+            f" in all over the step's {solves} sub-step solves" if solves > 1 else ""
+        )
     else:
         # max_newton_iterations counts Newton iterations with a fresh Jacobian; each is followed by
         # chord updates with it, so the updates can be many more
         over = f" in all over the step's {solves} sub-step solves" if solves > 1 else ""
-        made = (f"{jacobians} Newton iterations{over} (max_newton_iterations counts these: Jacobians formed"
-                f"{', per solve' if solves > 1 else ''}), with {iterations} updates")
-    singular = (" A Jacobian singular from the start may be a Lagrangian degenerate in xi, which integrate refuses "
-                "or gauges before compiling but not under jit/vmap: for one that sees xi only through L_xi Q, build "
-                "the system with clebsch_jax.gauge_isotropy." if code == Status.SINGULAR else "")
+        made = (
+            f"{jacobians} Newton iterations{over} (max_newton_iterations counts these: Jacobians formed"
+            f"{', per solve' if solves > 1 else ''}), with {iterations} updates"
+        )
+    singular = (
+        " A Jacobian singular from the start may be a Lagrangian degenerate in xi, which integrate refuses "
+        "or gauges before compiling but not under jit/vmap: for one that sees xi only through L_xi Q, build "
+        "the system with clebsch_jax.gauge_isotropy."
+        if code == Status.SINGULAR
+        else ""
+    )
     return (
         f"clebsch_jax.integrate: {where}step {step} of {n_steps} (t = {t:.6g}): {what} "
         f"(residual {residual:.3e} after {made}). Later states are "
@@ -204,9 +242,16 @@ def _host_check(result, failed_step, iterations, residual, t, n_steps, jacobians
     pick = (lambda a: np.asarray(a)[member]) if member else np.asarray
     raise IntegrationError(
         failure_message(
-            int(pick(result)), int(pick(failed_step)), int(np.asarray(n_steps).ravel()[0]), float(pick(t)),
-            int(pick(iterations)), float(pick(residual)), member or None, scheme,
-            1 if int(pick(result)) == Status.LEGENDRE else solves, int(pick(jacobians)),
+            int(pick(result)),
+            int(pick(failed_step)),
+            int(np.asarray(n_steps).ravel()[0]),
+            float(pick(t)),
+            int(pick(iterations)),
+            float(pick(residual)),
+            member or None,
+            scheme,
+            1 if int(pick(result)) == Status.LEGENDRE else solves,
+            int(pick(jacobians)),
         )
     )
 
@@ -220,8 +265,9 @@ def _traced_checker(scheme, solves):
 
     @jax.custom_batching.custom_vmap
     def check(result, failed_step, iterations, residual, t, n_steps, jacobians):
-        jax.debug.callback(lambda *a: host(*a, batched=False), result, failed_step, iterations, residual, t, n_steps,
-                           jacobians)
+        jax.debug.callback(
+            lambda *a: host(*a, batched=False), result, failed_step, iterations, residual, t, n_steps, jacobians
+        )
         return result
 
     @check.def_vmap

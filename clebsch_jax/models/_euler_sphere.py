@@ -65,11 +65,24 @@ import numpy as np
 from ..core.derivative_maps import DerivativeMap, cayley
 from ..core.system import ClebschSystem
 
-__all__ = ["euler_sphere", "euler_sphere_hbar", "euler_sphere_laplacian", "euler_sphere_inverse_laplacian",
-           "euler_sphere_real_form", "euler_sphere_complex_form", "euler_sphere_start", "euler_sphere_vorticity",
-           "euler_sphere_quantise", "euler_sphere_coefficients", "euler_sphere_field", "euler_sphere_basis",
-           "euler_sphere_casimirs", "euler_sphere_energy", "euler_sphere_angular_momentum",
-           "euler_sphere_orthographic"]
+__all__ = [
+    "euler_sphere",
+    "euler_sphere_hbar",
+    "euler_sphere_laplacian",
+    "euler_sphere_inverse_laplacian",
+    "euler_sphere_real_form",
+    "euler_sphere_complex_form",
+    "euler_sphere_start",
+    "euler_sphere_vorticity",
+    "euler_sphere_quantise",
+    "euler_sphere_coefficients",
+    "euler_sphere_field",
+    "euler_sphere_basis",
+    "euler_sphere_casimirs",
+    "euler_sphere_energy",
+    "euler_sphere_angular_momentum",
+    "euler_sphere_orthographic",
+]
 
 
 def euler_sphere_hbar(N: int) -> float:
@@ -108,8 +121,19 @@ def _laplacian_data(N: int):
     T0 = np.diag(d[0]) + np.diag(e[0, :-1], 1) + np.diag(e[0, :-1], -1)
     lam, V0 = np.linalg.eigh(-T0)  # l(l+1) ascending, l = 0 first
     lam_hat = np.concatenate([[_outer_weight(N)], lam[1:]])
-    return dict(centre=centre, up=up, down=down, rows=np.where(valid, i, 0), cols=j, valid=valid,
-                d=d, du=du, dl=dl, V0=V0, inv0=(V0 / lam_hat) @ V0.T)
+    return dict(
+        centre=centre,
+        up=up,
+        down=down,
+        rows=np.where(valid, i, 0),
+        cols=j,
+        valid=valid,
+        d=d,
+        du=du,
+        dl=dl,
+        V0=V0,
+        inv0=(V0 / lam_hat) @ V0.T,
+    )
 
 
 def _neg_laplacian_hat(M):
@@ -284,8 +308,12 @@ def euler_sphere(N: int, derivative_map: DerivativeMap = cayley) -> ClebschSyste
     Start from `euler_sphere_start(W)`, with W from `euler_sphere_quantise`.
     """
     N = _check_N(N)
-    return ClebschSystem(lagrangian=_Lagrangian(N), velocity_map=_right_multiplication,
-                         derivative_map=derivative_map, inverse_legendre=_InverseLegendre(N))
+    return ClebschSystem(
+        lagrangian=_Lagrangian(N),
+        velocity_map=_right_multiplication,
+        derivative_map=derivative_map,
+        inverse_legendre=_InverseLegendre(N),
+    )
 
 
 def euler_sphere_start(W):
@@ -345,8 +373,7 @@ def euler_sphere_angular_momentum(W):
     J1, J2, J3 = _spin_matrices(N)
     hbar = euler_sphere_hbar(N)
     H = 1j * W
-    return jnp.stack([4 * np.pi / N * hbar * jnp.real(jnp.sum(H * J.T, axis=(-2, -1))) for J in (J1, J2, J3)],
-                     axis=-1)
+    return jnp.stack([4 * np.pi / N * hbar * jnp.real(jnp.sum(H * J.T, axis=(-2, -1))) for J in (J1, J2, J3)], axis=-1)
 
 
 def _spin_matrices(N: int):
@@ -380,7 +407,7 @@ def euler_sphere_basis(N: int) -> tuple:
     bases, previous = [], None
     for m in range(N):
         n = N - m
-        T = np.diag(D["d"][m, :n]) + np.diag(D["du"][m, :n - 1], 1) + np.diag(D["du"][m, :n - 1], -1)
+        T = np.diag(D["d"][m, :n]) + np.diag(D["du"][m, : n - 1], 1) + np.diag(D["du"][m, : n - 1], -1)
         _, V = np.linalg.eigh(-T)  # l(l+1) ascending: l = m, ..., N-1
         if m == 0:
             V = V * np.sign(V[0])
@@ -485,8 +512,9 @@ def euler_sphere_field(W, theta, phi) -> np.ndarray:
     return np.real(np.einsum("mt,mp->tp", weight * g, phase))
 
 
-def euler_sphere_orthographic(W, *, colatitude: float = 0.9, longitude: float = 0.4, resolution: int = 181,
-                              grid: int = 181) -> np.ndarray:
+def euler_sphere_orthographic(
+    W, *, colatitude: float = 0.9, longitude: float = 0.4, resolution: int = 181, grid: int = 181
+) -> np.ndarray:
     r"""The field of W on the hemisphere seen from the direction (`colatitude`, `longitude`)
     (radians), in orthographic projection: a (resolution, resolution) image over the square
     $[-1, 1]^2$ (x to the right, y up; NaN outside the disc), for `imshow(..., origin="lower",
@@ -494,13 +522,15 @@ def euler_sphere_orthographic(W, *, colatitude: float = 0.9, longitude: float = 
     (`euler_sphere_field`) and read at the nearest grid point. NumPy (concrete W)."""
     x, y = np.meshgrid(np.linspace(-1, 1, resolution), np.linspace(-1, 1, resolution))
     z = np.sqrt(np.clip(1 - x**2 - y**2, 0, None))
-    out = np.array([np.sin(colatitude) * np.cos(longitude), np.sin(colatitude) * np.sin(longitude),
-                    np.cos(colatitude)])
+    out = np.array([np.sin(colatitude) * np.cos(longitude), np.sin(colatitude) * np.sin(longitude), np.cos(colatitude)])
     right = np.array([-np.sin(longitude), np.cos(longitude), 0.0])
     up = np.cross(out, right)
     p = x[..., None] * right + y[..., None] * up + z[..., None] * out
     theta, phi = np.arccos(np.clip(p[..., 2], -1, 1)), np.arctan2(p[..., 1], p[..., 0])
     n_theta, n_phi = grid, 2 * grid - 1
     f = euler_sphere_field(W, np.linspace(0, np.pi, n_theta), np.linspace(-np.pi, np.pi, n_phi))
-    values = f[np.rint(theta / np.pi * (n_theta - 1)).astype(int), np.rint((phi + np.pi) / (2 * np.pi) * (n_phi - 1)).astype(int)]
+    values = f[
+        np.rint(theta / np.pi * (n_theta - 1)).astype(int),
+        np.rint((phi + np.pi) / (2 * np.pi) * (n_phi - 1)).astype(int),
+    ]
     return np.where(x**2 + y**2 <= 1, values, np.nan)

@@ -20,8 +20,9 @@ def _lagrangian(inertia, mgl, chi, xi, Q):
     return 0.5 * jnp.sum(inertia * xi * xi) - mgl * jnp.dot(Q[2], chi)
 
 
-def heavy_top(inertia, mass_gravity_length, center_of_mass=(0.0, 0.0, 1.0),
-              derivative_map: DerivativeMap = cayley) -> ClebschSystem:
+def heavy_top(
+    inertia, mass_gravity_length, center_of_mass=(0.0, 0.0, 1.0), derivative_map: DerivativeMap = cayley
+) -> ClebschSystem:
     r"""The heavy top as a Clebsch system with potential energy (Definition 14).
 
     $$ l(\Omega, Q) = \tfrac12\,\Omega\cdot\mathbb I\Omega - m g \ell\; e_3\cdot(Q\chi), \qquad

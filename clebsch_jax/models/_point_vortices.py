@@ -78,9 +78,11 @@ def _circulations(circulations, *, nonzero: bool = False) -> jax.Array:
         if not np.all(np.isfinite(values)):
             raise ValueError(f"circulations: must be finite, got {values.tolist()}.")
         if nonzero and np.any(values == 0):
-            raise ValueError(f"circulations: must be nonzero: vortex {int(np.argmax(values == 0))} has zero "
-                             "circulation, which leaves its motion undetermined by the Lagrangian (a passive "
-                             "tracer is not a point vortex); negative circulations are fine.")
+            raise ValueError(
+                f"circulations: must be nonzero: vortex {int(np.argmax(values == 0))} has zero "
+                "circulation, which leaves its motion undetermined by the Lagrangian (a passive "
+                "tracer is not a point vortex); negative circulations are fine."
+            )
     elif nonzero:
         gamma = nan_unless(gamma, jnp.all(gamma != 0))  # reported by integrate as Status.INVALID_INPUT
     return gamma
@@ -116,8 +118,9 @@ def _on_configurations(fn, circulations, Q, dim: int = 2, name: str = "Q"):
     gamma = _circulations(circulations)
     Q = jnp.asarray(Q, dtype=jnp.result_type(float))
     if Q.ndim < 2 or Q.shape[-2:] != (gamma.shape[0], dim):
-        raise ValueError(f"{name}: expected shape (..., {gamma.shape[0]}, {dim}) for {gamma.shape[0]} vortices, "
-                         f"got {Q.shape}.")
+        raise ValueError(
+            f"{name}: expected shape (..., {gamma.shape[0]}, {dim}) for {gamma.shape[0]} vortices, got {Q.shape}."
+        )
     flat = Q.reshape((-1,) + Q.shape[-2:])
     out = jax.vmap(lambda q: fn(gamma, q))(flat)
     return out.reshape(Q.shape[:-2] + out.shape[1:])

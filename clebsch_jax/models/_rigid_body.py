@@ -12,8 +12,14 @@ from ..core.derivative_maps import DerivativeMap, cayley, forward_difference
 from ..core.system import ClebschSystem
 from ..core.validation import is_traced, nan_unless
 
-__all__ = ["rigid_body", "rigid_body_vector", "rigid_body_vector_start", "check_rotation", "rotation_ok",
-           "ROTATION_TOLERANCE"]
+__all__ = [
+    "rigid_body",
+    "rigid_body_vector",
+    "rigid_body_vector_start",
+    "check_rotation",
+    "rotation_ok",
+    "ROTATION_TOLERANCE",
+]
 
 
 ROTATION_TOLERANCE = float(np.sqrt(np.finfo(np.float64).eps))
@@ -51,10 +57,14 @@ def check_rotations(Qs) -> tuple[int, str] | None:
         return None
     j = int(np.argmax(bad))
     if not_orthogonal[j]:
-        return j, (f"not a rotation matrix: max|Q^T Q - I| = {defect[j]:.2e} > {ROTATION_TOLERANCE:.1e}. "
-                   "Pass an orthogonal matrix (e.g. orthogonalise it with a QR or polar decomposition).")
-    return j, (f"det Q = {det[j]:.6g}: an orthogonal matrix that is a reflection, not a rotation "
-               "(SO(n) needs det Q = +1; flip the sign of one column).")
+        return j, (
+            f"not a rotation matrix: max|Q^T Q - I| = {defect[j]:.2e} > {ROTATION_TOLERANCE:.1e}. "
+            "Pass an orthogonal matrix (e.g. orthogonalise it with a QR or polar decomposition)."
+        )
+    return j, (
+        f"det Q = {det[j]:.6g}: an orthogonal matrix that is a reflection, not a rotation "
+        "(SO(n) needs det Q = +1; flip the sign of one column)."
+    )
 
 
 def rotation_ok(Q) -> jax.Array:

@@ -40,8 +40,15 @@ from ..core.derivative_maps import DerivativeMap, forward_difference
 from ..core.system import ClebschSystem
 from ._point_vortices import _circulations, _on_configurations
 
-__all__ = ["point_vortices_sphere", "sphere_vortex_lift", "sphere_vortex_positions", "sphere_vortex_hamiltonian",
-           "sphere_vortex_velocity", "sphere_vortex_xi", "sphere_vortex_moment"]
+__all__ = [
+    "point_vortices_sphere",
+    "sphere_vortex_lift",
+    "sphere_vortex_positions",
+    "sphere_vortex_hamiltonian",
+    "sphere_vortex_velocity",
+    "sphere_vortex_xi",
+    "sphere_vortex_moment",
+]
 
 
 def _su2_generators() -> np.ndarray:
@@ -101,8 +108,12 @@ def point_vortices_sphere(circulations, derivative_map: DerivativeMap = forward_
     (`sphere_vortex_hamiltonian`) stays bounded.
     """
     gamma = _circulations(circulations, nonzero=True)
-    return ClebschSystem(lagrangian=Partial(_lagrangian, gamma), velocity_map=_velocity_map,
-                         derivative_map=derivative_map, degenerate=True)
+    return ClebschSystem(
+        lagrangian=Partial(_lagrangian, gamma),
+        velocity_map=_velocity_map,
+        derivative_map=derivative_map,
+        degenerate=True,
+    )
 
 
 def sphere_vortex_lift(x) -> jax.Array:
@@ -143,6 +154,7 @@ def sphere_vortex_hamiltonian(circulations, x) -> jax.Array:
 def sphere_vortex_velocity(circulations, x) -> jax.Array:
     r"""$\dot x_a = \nabla_a H \times x_a / \Gamma_a$ (by autodiff of H): the right-hand side for a
     reference ODE solve. Shape of x."""
+
     def velocity(gamma, q):
         return jnp.cross(jax.grad(_hamiltonian, argnums=1)(gamma, q) / gamma[:, None], q)
 
@@ -152,6 +164,7 @@ def sphere_vortex_velocity(circulations, x) -> jax.Array:
 def sphere_vortex_xi(circulations, x) -> jax.Array:
     r"""The consistent ξ at positions x: $\omega_a = \nabla_a H / \Gamma_a$ (the collective velocity),
     $s_a = 0$; shape (..., N, 4). The seed `xi0` for `integrate`."""
+
     def xi(gamma, q):
         omega = jax.grad(_hamiltonian, argnums=1)(gamma, q) / gamma[:, None]
         return jnp.concatenate([omega, jnp.zeros_like(omega[:, :1])], axis=-1)

@@ -38,7 +38,7 @@ def _size(jaxpr) -> int:
     for eqn in jaxpr.eqns:
         n += sum(int(np.prod(v.aval.shape, dtype=int)) for v in eqn.outvars if hasattr(v.aval, "shape")) or 1
         for v in eqn.params.values():
-            for x in (v if isinstance(v, (tuple, list)) else [v]):
+            for x in v if isinstance(v, (tuple, list)) else [v]:
                 if isinstance(x, jcore.ClosedJaxpr):
                     n += _size(x.jaxpr)
                 elif isinstance(x, jcore.Jaxpr):
@@ -86,7 +86,7 @@ def _store(em: Emitter, slots, new, old, dtypes, where):
 def _while(em: Emitter, eqn, args):
     p = eqn.params
     cc, bc = p["cond_nconsts"], p["body_nconsts"]
-    cconsts, bconsts, init = args[:cc], args[cc:cc + bc], args[cc + bc:]
+    cconsts, bconsts, init = args[:cc], args[cc : cc + bc], args[cc + bc :]
     cond_j, body_j = p["cond_jaxpr"], p["body_jaxpr"]
     body_in = body_j.jaxpr.invars[bc:]
     fixed = [o is i for o, i in zip(body_j.jaxpr.outvars, body_in)]
@@ -94,8 +94,11 @@ def _while(em: Emitter, eqn, args):
     slots = _slots(em, init, dtypes, fixed)
     b = em.b
     fn = b.function
-    head, body, done = fn.append_basic_block("while.head"), fn.append_basic_block("while.body"), \
-        fn.append_basic_block("while.done")
+    head, body, done = (
+        fn.append_basic_block("while.head"),
+        fn.append_basic_block("while.body"),
+        fn.append_basic_block("while.done"),
+    )
     b.branch(head)
     b.position_at_end(head)
     cur = _load(em, slots, init, dtypes)
@@ -139,7 +142,7 @@ def _scan(em: Emitter, eqn, args):
     p = eqn.params
     length, nc, ncar, reverse = p["length"], p["num_consts"], p["num_carry"], p["reverse"]
     closed = p["jaxpr"]
-    consts, init, xs = list(args[:nc]), list(args[nc:nc + ncar]), list(args[nc + ncar:])
+    consts, init, xs = list(args[:nc]), list(args[nc : nc + ncar]), list(args[nc + ncar :])
     order = range(length - 1, -1, -1) if reverse else range(length)
     if length <= SHORT_SCAN or length * _size(closed.jaxpr) <= UNROLL_BUDGET:
         carry, ys = init, []
@@ -153,7 +156,7 @@ def _scan(em: Emitter, eqn, args):
         return carry + stacked
 
     jaxpr = closed.jaxpr
-    body_in = jaxpr.invars[nc:nc + ncar]
+    body_in = jaxpr.invars[nc : nc + ncar]
     fixed = [o is i for o, i in zip(jaxpr.outvars[:ncar], body_in)]
     dtypes = [np.dtype(v.aval.dtype) for v in body_in]
     slots = _slots(em, init, dtypes, fixed)
@@ -161,7 +164,7 @@ def _scan(em: Emitter, eqn, args):
     i64 = ir.IntType(64)
     # the inputs, stored in arrays indexed by the counter (known entries stay known when all
     # iterations share them)
-    x_dtypes = [np.dtype(v.aval.dtype) for v in jaxpr.invars[nc + ncar:]]
+    x_dtypes = [np.dtype(v.aval.dtype) for v in jaxpr.invars[nc + ncar :]]
     x_slots = []
     for x, dtype in zip(xs, x_dtypes):
         arr = _array_slots(em, length, x.shape[1:], dtype)
@@ -175,8 +178,11 @@ def _scan(em: Emitter, eqn, args):
     counter = em.alloca(i64)
     b.store(ir.Constant(i64, 0), counter)
     fn = b.function
-    head, body, done = fn.append_basic_block("scan.head"), fn.append_basic_block("scan.body"), \
-        fn.append_basic_block("scan.done")
+    head, body, done = (
+        fn.append_basic_block("scan.head"),
+        fn.append_basic_block("scan.body"),
+        fn.append_basic_block("scan.done"),
+    )
     b.branch(head)
     b.position_at_end(head)
     k = b.load(counter, typ=i64)

@@ -81,7 +81,7 @@ class _Stored:
 
 
 def _strides(shape) -> list:
-    return [int(np.prod(shape[d + 1:], dtype=int)) for d in range(len(shape))]
+    return [int(np.prod(shape[d + 1 :], dtype=int)) for d in range(len(shape))]
 
 
 def _offset(em: Emitter, starts, dims, strides):
@@ -213,8 +213,18 @@ def _gather_map(eqn, operand_shape, idx) -> np.ndarray:
     where = np.full(out_shape, -1, np.int64)
     for o in np.ndindex(out_shape):
         bpos = tuple(o[d] for d in batch_out)
-        where[o] = _place(idx[bpos], dn.start_index_map, bpos, dn.operand_batching_dims, dn.start_indices_batching_dims,
-                          his, fill, [o[d] for d in dn.offset_dims], window_dims, strides)
+        where[o] = _place(
+            idx[bpos],
+            dn.start_index_map,
+            bpos,
+            dn.operand_batching_dims,
+            dn.start_indices_batching_dims,
+            his,
+            fill,
+            [o[d] for d in dn.offset_dims],
+            window_dims,
+            strides,
+        )
     return where
 
 
@@ -240,8 +250,15 @@ def _fill_value(eqn):
     dtype = _out_dtype(eqn)
     value = eqn.params.get("fill_value")
     if value is None:
-        value = np.nan if dtype.kind == "f" else np.iinfo(dtype).min if dtype.kind == "i" else \
-            np.iinfo(dtype).max if dtype.kind == "u" else True
+        value = (
+            np.nan
+            if dtype.kind == "f"
+            else np.iinfo(dtype).min
+            if dtype.kind == "i"
+            else np.iinfo(dtype).max
+            if dtype.kind == "u"
+            else True
+        )
     return np.asarray(value).astype(dtype)[()]
 
 
@@ -285,8 +302,9 @@ def _gather(em: Emitter, eqn, args):
                 cond = _conds(em, comps, combo, his)
                 for o in mine:
                     value = flat[where0[o] + shift]
-                    out[o] = value if (cond is None or (clip and n_combo == 0)) else \
-                        em.select(cond, value, out[o], dtype)
+                    out[o] = (
+                        value if (cond is None or (clip and n_combo == 0)) else em.select(cond, value, out[o], dtype)
+                    )
             continue
         # memory: the entry at the window's position plus the (clamped) start's offset
         if stored is None:
@@ -325,9 +343,18 @@ def _scatter_targets(eqn, operand_shape, updates_shape, idx) -> np.ndarray:
     target = np.full(int(np.prod(updates_shape, dtype=int)), -1, np.int64)
     for n, u in enumerate(np.ndindex(tuple(updates_shape))):
         spos = tuple(u[d] for d in scatter_dims)
-        target[n] = _place(idx[spos], dn.scatter_dims_to_operand_dims, spos, dn.operand_batching_dims,
-                           dn.scatter_indices_batching_dims, his, drop, [u[d] for d in dn.update_window_dims],
-                           window_dims, strides)
+        target[n] = _place(
+            idx[spos],
+            dn.scatter_dims_to_operand_dims,
+            spos,
+            dn.operand_batching_dims,
+            dn.scatter_indices_batching_dims,
+            his,
+            drop,
+            [u[d] for d in dn.update_window_dims],
+            window_dims,
+            strides,
+        )
     return target
 
 
@@ -345,8 +372,9 @@ def _scatter(combine: str | None):
         ranges = [[int(c)] if is_known(c) else None for c in comps]
         if any(r is None for r in ranges):
             # every place a lane's indices can reach: small index spaces only
-            his = [a.shape[d] for d in dnums.scatter_dims_to_operand_dims] * (len(comps) // max(
-                1, len(dnums.scatter_dims_to_operand_dims)))
+            his = [a.shape[d] for d in dnums.scatter_dims_to_operand_dims] * (
+                len(comps) // max(1, len(dnums.scatter_dims_to_operand_dims))
+            )
             ranges = [[int(c)] if is_known(c) else list(range(hi)) for c, hi in zip(comps, his)]
             if _n_combos(ranges) > SELECT_STARTS:
                 raise Unsupported(f"scatter with indices computed at run time ({_n_combos(ranges)} places)")
@@ -371,9 +399,19 @@ def _scatter(combine: str | None):
                 flat_out[t] = value if cond is None else em.select(cond, value, flat_out[t], dtype)
             out = flat_out.reshape(a.shape)
         return out
+
     return rule
 
 
-RULES.update({"dynamic_slice": _dynamic_slice, "dynamic_update_slice": _dynamic_update_slice, "gather": _gather,
-              "scatter": _scatter(None), "scatter-add": _scatter("add"), "scatter_add": _scatter("add"),
-              "scatter-mul": _scatter("mul"), "scatter_mul": _scatter("mul")})
+RULES.update(
+    {
+        "dynamic_slice": _dynamic_slice,
+        "dynamic_update_slice": _dynamic_update_slice,
+        "gather": _gather,
+        "scatter": _scatter(None),
+        "scatter-add": _scatter("add"),
+        "scatter_add": _scatter("add"),
+        "scatter-mul": _scatter("mul"),
+        "scatter_mul": _scatter("mul"),
+    }
+)

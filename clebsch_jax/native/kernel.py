@@ -52,8 +52,14 @@ def _binding():
             cpu, features = llvm.get_host_cpu_name(), llvm.get_host_cpu_features().flatten()
             target = llvm.Target.from_triple(llvm.get_process_triple())
             tm = target.create_target_machine(cpu=cpu, features=features, opt=2, codemodel="jitdefault", jit=True)
-            _LLVM.update(llvm=llvm, tm=tm, cpu=cpu, features=features, version=llvmlite.__version__,
-                         triple=llvm.get_process_triple())
+            _LLVM.update(
+                llvm=llvm,
+                tm=tm,
+                cpu=cpu,
+                features=features,
+                version=llvmlite.__version__,
+                triple=llvm.get_process_triple(),
+            )
         return _LLVM
 
 
@@ -93,8 +99,11 @@ def build_ir(closed, width: int, batched=None) -> str:
     em = Emitter(module, b, width, entry)
     counter = b.alloca(i64)
     b.store(first, counter)
-    head, body, done = fn.append_basic_block("block.head"), fn.append_basic_block("block.body"), \
-        fn.append_basic_block("block.done")
+    head, body, done = (
+        fn.append_basic_block("block.head"),
+        fn.append_basic_block("block.body"),
+        fn.append_basic_block("block.done"),
+    )
     b.branch(head)
     b.position_at_end(head)
     k = b.load(counter, typ=i64)
@@ -115,8 +124,9 @@ def build_ir(closed, width: int, batched=None) -> str:
             x = b.icmp_unsigned("!=", x, ir.Constant(st, 0))
         vt = ir.VectorType(x.type, width)
         one = b.insert_element(ir.Constant(vt, ir.Undefined), x, ir.Constant(ir.IntType(32), 0))
-        return b.shuffle_vector(one, ir.Constant(vt, ir.Undefined),
-                                ir.Constant(ir.VectorType(ir.IntType(32), width), [0] * width))
+        return b.shuffle_vector(
+            one, ir.Constant(vt, ir.Undefined), ir.Constant(ir.VectorType(ir.IntType(32), width), [0] * width)
+        )
 
     batched = [True] * len(closed.jaxpr.invars) if batched is None else list(batched)
     args = []
@@ -298,7 +308,7 @@ class Kernel:
                 raise ValueError(f"expected an array of shape {(B,) + shape}, got {a.shape}")
             rows = np.empty((size, stride), storage)
             rows[:, :B] = a.reshape(B, size).T
-            rows[:, B:] = rows[:, B - 1:B]  # padding lanes repeat the last member
+            rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
             buffers.append(rows)
         outs = [np.empty((size, stride), storage) for _, size, storage in self._outs]
         pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[x.ctypes.data for x in buffers + outs])

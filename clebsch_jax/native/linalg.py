@@ -28,8 +28,16 @@ class _Ops:
         if all(is_known(x) for x in xs):
             import numpy
 
-            f = {"add": numpy.add, "sub": numpy.subtract, "mul": numpy.multiply, "div": numpy.divide,
-                 "abs": numpy.abs, "sqrt": numpy.sqrt, "gt": numpy.greater, "neg": numpy.negative}[name]
+            f = {
+                "add": numpy.add,
+                "sub": numpy.subtract,
+                "mul": numpy.multiply,
+                "div": numpy.divide,
+                "abs": numpy.abs,
+                "sqrt": numpy.sqrt,
+                "gt": numpy.greater,
+                "neg": numpy.negative,
+            }[name]
             with numpy.errstate(all="ignore"):
                 return numpy.asarray(f(*[numpy.asarray(x, self.dtype) for x in xs]))[()]
         return self._emit(self.em, name, self.dtype, list(xs), None)
@@ -141,10 +149,9 @@ def _custom_linear_solve(em: Emitter, eqn, args):
     lengths = eqn.params["const_lengths"]
     jaxprs = eqn.params["jaxprs"]
     start = lengths.matvec + lengths.vecmat
-    consts = list(args[start:start + lengths.solve])
-    rest = list(args[sum(lengths):])
+    consts = list(args[start : start + lengths.solve])
+    rest = list(args[sum(lengths) :])
     return eval_closed(em, jaxprs.solve, consts + rest)
 
 
-RULES.update(lu=_lu, triangular_solve=_triangular_solve, cholesky=_cholesky,
-             custom_linear_solve=_custom_linear_solve)
+RULES.update(lu=_lu, triangular_solve=_triangular_solve, cholesky=_cholesky, custom_linear_solve=_custom_linear_solve)

@@ -72,12 +72,32 @@ def _trunc_rem(a, b):
 
 
 _FOLD = {
-    "add": np.add, "sub": np.subtract, "mul": np.multiply, "neg": np.negative, "max": np.maximum,
-    "min": np.minimum, "abs": np.abs, "sqrt": np.sqrt, "eq": np.equal, "ne": np.not_equal, "lt": np.less,
-    "le": np.less_equal, "gt": np.greater, "ge": np.greater_equal, "and": np.bitwise_and, "or": np.bitwise_or,
-    "xor": np.bitwise_xor, "not": lambda a: ~a if a.dtype != np.bool_ else np.logical_not(a),
-    "floor": np.floor, "ceil": np.ceil, "is_finite": np.isfinite, "sign": np.sign, "square": np.square,
-    "copy": lambda a: a, "copy_p": lambda a: a, "stop_gradient": lambda a: a,
+    "add": np.add,
+    "sub": np.subtract,
+    "mul": np.multiply,
+    "neg": np.negative,
+    "max": np.maximum,
+    "min": np.minimum,
+    "abs": np.abs,
+    "sqrt": np.sqrt,
+    "eq": np.equal,
+    "ne": np.not_equal,
+    "lt": np.less,
+    "le": np.less_equal,
+    "gt": np.greater,
+    "ge": np.greater_equal,
+    "and": np.bitwise_and,
+    "or": np.bitwise_or,
+    "xor": np.bitwise_xor,
+    "not": lambda a: ~a if a.dtype != np.bool_ else np.logical_not(a),
+    "floor": np.floor,
+    "ceil": np.ceil,
+    "is_finite": np.isfinite,
+    "sign": np.sign,
+    "square": np.square,
+    "copy": lambda a: a,
+    "copy_p": lambda a: a,
+    "stop_gradient": lambda a: a,
 }
 
 
@@ -92,10 +112,30 @@ def _fold_rem(a, b):
 _FOLD.update(div=_fold_div, rem=_fold_rem)
 
 _FCMP = {"eq": "==", "ne": "!=", "lt": "<", "le": "<=", "gt": ">", "ge": ">="}
-_LIBM = {"exp": "exp", "log": "log", "sin": "sin", "cos": "cos", "tan": "tan", "tanh": "tanh", "atan": "atan",
-         "asin": "asin", "acos": "acos", "sinh": "sinh", "cosh": "cosh", "asinh": "asinh", "acosh": "acosh",
-         "atanh": "atanh", "expm1": "expm1", "log1p": "log1p", "cbrt": "cbrt", "erf": "erf", "erfc": "erfc",
-         "exp2": "exp2", "atan2": "atan2", "pow": "pow"}
+_LIBM = {
+    "exp": "exp",
+    "log": "log",
+    "sin": "sin",
+    "cos": "cos",
+    "tan": "tan",
+    "tanh": "tanh",
+    "atan": "atan",
+    "asin": "asin",
+    "acos": "acos",
+    "sinh": "sinh",
+    "cosh": "cosh",
+    "asinh": "asinh",
+    "acosh": "acosh",
+    "atanh": "atanh",
+    "expm1": "expm1",
+    "log1p": "log1p",
+    "cbrt": "cbrt",
+    "erf": "erf",
+    "erfc": "erfc",
+    "exp2": "exp2",
+    "atan2": "atan2",
+    "pow": "pow",
+}
 
 
 def _emit_float(em: Emitter, name: str, dtype, xs, eqn):
@@ -295,8 +335,11 @@ def _convert_entry(em: Emitter, x, src, dst):
     if src == dst:
         return x
     if dst == np.bool_:
-        return (b.fcmp_unordered("!=", x, em.const(0.0, src)) if src.kind == "f"
-                else b.icmp_unsigned("!=", x, em.const(0, src)))
+        return (
+            b.fcmp_unordered("!=", x, em.const(0.0, src))
+            if src.kind == "f"
+            else b.icmp_unsigned("!=", x, em.const(0, src))
+        )
     if src == np.bool_:
         return b.uitofp(x, t) if dst.kind == "f" else b.zext(x, t)
     if src.kind == "f" and dst.kind == "f":
@@ -469,8 +512,11 @@ def _sum_products(em: Emitter, pairs, dtype):
         elif is_known(c) and float(c) == 1.0:
             p = a
         else:
-            p = _emit_float(em, "mul", dtype, [a, c], None) if dtype.kind == "f" else _emit_int(em, "mul", dtype,
-                                                                                                  [a, c], None)
+            p = (
+                _emit_float(em, "mul", dtype, [a, c], None)
+                if dtype.kind == "f"
+                else _emit_int(em, "mul", dtype, [a, c], None)
+            )
         if acc is None:
             acc = p
         elif is_known(acc) and is_known(p):
@@ -493,8 +539,8 @@ def _dot_general(em, eqn, args):
     R = np.transpose(rhs, list(rb) + rf + list(rc))
     nb, nk = len(lb), len(lc)
     bshape = L.shape[:nb]
-    lfs, rfs = L.shape[nb:L.ndim - nk], R.shape[nb:R.ndim - nk]
-    K = int(np.prod(L.shape[L.ndim - nk:], dtype=int))
+    lfs, rfs = L.shape[nb : L.ndim - nk], R.shape[nb : R.ndim - nk]
+    K = int(np.prod(L.shape[L.ndim - nk :], dtype=int))
     L = L.reshape(bshape + lfs + (K,))
     R = R.reshape(bshape + rfs + (K,))
     out = np.empty(bshape + lfs + rfs, object)
@@ -524,7 +570,7 @@ def _reduce(op: str):
         dtype = _out_dtype(eqn)
         keep = [d for d in range(a.ndim) if d not in axes]
         moved = np.transpose(a, keep + list(axes))
-        rest = moved.shape[:len(keep)]
+        rest = moved.shape[: len(keep)]
         moved = moved.reshape(rest + (-1,))
         out = np.empty(rest, object)
         fake = type("E", (), {"params": {}})()
@@ -540,15 +586,22 @@ def _reduce(op: str):
                     acc = emit(em, op, dtype, [acc, x], fake)
             out[idx] = acc if acc is not None else _IDENTITY[op](dtype)
         return out
+
     return rule
 
 
-_IDENTITY = {"add": lambda d: np.zeros((), d)[()], "mul": lambda d: np.ones((), d)[()],
-             "max": lambda d: (np.array(-np.inf, d) if d.kind == "f" else np.array(np.iinfo(d).min, d)
-                               if d.kind in "iu" else np.array(False))[()],
-             "min": lambda d: (np.array(np.inf, d) if d.kind == "f" else np.array(np.iinfo(d).max, d)
-                               if d.kind in "iu" else np.array(True))[()],
-             "and": lambda d: np.array(True)[()], "or": lambda d: np.array(False)[()]}
+_IDENTITY = {
+    "add": lambda d: np.zeros((), d)[()],
+    "mul": lambda d: np.ones((), d)[()],
+    "max": lambda d: (
+        np.array(-np.inf, d) if d.kind == "f" else np.array(np.iinfo(d).min, d) if d.kind in "iu" else np.array(False)
+    )[()],
+    "min": lambda d: (
+        np.array(np.inf, d) if d.kind == "f" else np.array(np.iinfo(d).max, d) if d.kind in "iu" else np.array(True)
+    )[()],
+    "and": lambda d: np.array(True)[()],
+    "or": lambda d: np.array(False)[()],
+}
 
 
 def _argminmax(greater: bool):
@@ -579,6 +632,7 @@ def _argminmax(greater: bool):
                 where = em.select(better, np.asarray(k, idx_dtype)[()], where, idx_dtype)
             out[idx] = where
         return out
+
     return rule
 
 
@@ -598,6 +652,7 @@ def _cumulative(op: str):
                 acc = x if acc is None else emit(em, op, dtype, [acc, x], None)
                 out[idx + (k,)] = acc
         return np.moveaxis(out, -1, axis)
+
     return rule
 
 
@@ -607,6 +662,7 @@ def _call_rule(*keys: str):
         if hasattr(closed, "consts"):
             return eval_closed(em, closed, args)
         return eval_jaxpr(em, closed, [], args)
+
     return rule
 
 
@@ -617,16 +673,46 @@ def _custom_vjp(em, eqn, args):
 
 RULES = {name: _elementwise for name in _ELEMENTWISE}
 RULES.update(
-    select_n=_select_n, convert_element_type=_convert, clamp=_clamp, broadcast_in_dim=_broadcast_in_dim,
-    reshape=_reshape, squeeze=_squeeze, expand_dims=_expand_dims, transpose=_transpose, slice=_slice,
-    concatenate=_concatenate, stack=_stack, unstack=_unstack, rev=_rev, split=_split, pad=_pad, iota=_iota,
+    select_n=_select_n,
+    convert_element_type=_convert,
+    clamp=_clamp,
+    broadcast_in_dim=_broadcast_in_dim,
+    reshape=_reshape,
+    squeeze=_squeeze,
+    expand_dims=_expand_dims,
+    transpose=_transpose,
+    slice=_slice,
+    concatenate=_concatenate,
+    stack=_stack,
+    unstack=_unstack,
+    rev=_rev,
+    split=_split,
+    pad=_pad,
+    iota=_iota,
     optimization_barrier=_identity,
-    reduce_precision=_identity, dot_general=_dot_general, reduce_sum=_reduce("add"), reduce_prod=_reduce("mul"),
-    reduce_max=_reduce("max"), reduce_min=_reduce("min"), reduce_and=_reduce("and"), reduce_or=_reduce("or"),
-    argmax=_argminmax(True), argmin=_argminmax(False), cumsum=_cumulative("add"), cumprod=_cumulative("mul"),
-    cummax=_cumulative("max"), cummin=_cumulative("min"), debug_callback=_nothing, platform_index=_platform_index,
-    pjit=_call_rule("jaxpr"), jit=_call_rule("jaxpr"), closed_call=_call_rule("call_jaxpr"),
-    core_call=_call_rule("call_jaxpr"), custom_jvp_call=_call_rule("call_jaxpr"),
-    custom_vmap_call=_call_rule("call", "call_jaxpr"), custom_vjp_call=_custom_vjp, checkpoint=_call_rule("jaxpr"),
+    reduce_precision=_identity,
+    dot_general=_dot_general,
+    reduce_sum=_reduce("add"),
+    reduce_prod=_reduce("mul"),
+    reduce_max=_reduce("max"),
+    reduce_min=_reduce("min"),
+    reduce_and=_reduce("and"),
+    reduce_or=_reduce("or"),
+    argmax=_argminmax(True),
+    argmin=_argminmax(False),
+    cumsum=_cumulative("add"),
+    cumprod=_cumulative("mul"),
+    cummax=_cumulative("max"),
+    cummin=_cumulative("min"),
+    debug_callback=_nothing,
+    platform_index=_platform_index,
+    pjit=_call_rule("jaxpr"),
+    jit=_call_rule("jaxpr"),
+    closed_call=_call_rule("call_jaxpr"),
+    core_call=_call_rule("call_jaxpr"),
+    custom_jvp_call=_call_rule("call_jaxpr"),
+    custom_vmap_call=_call_rule("call", "call_jaxpr"),
+    custom_vjp_call=_custom_vjp,
+    checkpoint=_call_rule("jaxpr"),
     remat=_call_rule("jaxpr"),
 )

@@ -20,8 +20,10 @@ __all__ = ["Unsupported", "Emitter", "llvm_type", "is_known", "known_array", "FL
 
 
 FLOATS = {np.dtype(np.float64): ir.DoubleType(), np.dtype(np.float32): ir.FloatType()}
-INTS = {np.dtype(t): ir.IntType(8 * np.dtype(t).itemsize) for t in
-        (np.int8, np.int16, np.int32, np.int64, np.uint8, np.uint16, np.uint32, np.uint64)}
+INTS = {
+    np.dtype(t): ir.IntType(8 * np.dtype(t).itemsize)
+    for t in (np.int8, np.int16, np.int32, np.int64, np.uint8, np.uint16, np.uint32, np.uint64)
+}
 BOOL = ir.IntType(1)
 
 
@@ -89,8 +91,10 @@ class Emitter:
         """Entries translated so far: a program past `MAX_ENTRIES` is refused (`Unsupported`)."""
         self.entries += entries
         if self.entries > MAX_ENTRIES:
-            raise Unsupported(f"a program of more than {MAX_ENTRIES} entries (members with many components: "
-                              "their matrices unrolled entry by entry outgrow a kernel)")
+            raise Unsupported(
+                f"a program of more than {MAX_ENTRIES} entries (members with many components: "
+                "their matrices unrolled entry by entry outgrow a kernel)"
+            )
 
     # -- types and constants -------------------------------------------------------------
     def vtype(self, dtype) -> ir.VectorType:
@@ -104,13 +108,17 @@ class Emitter:
             value = float(value)
         else:
             value = int(value)
-        key = (dtype, value if not (dtype in FLOATS and value != value) else "nan",
-               np.copysign(1.0, value) if dtype in FLOATS else 0)
+        key = (
+            dtype,
+            value if not (dtype in FLOATS and value != value) else "nan",
+            np.copysign(1.0, value) if dtype in FLOATS else 0,
+        )
         found = self._consts.get(key)
         if found is None:
             t = llvm_type(dtype)
-            found = self._consts[key] = _Splat(ir.VectorType(t, self.W), ir.Constant(t, int(value) if dtype == np.bool_
-                                                                                     else value))
+            found = self._consts[key] = _Splat(
+                ir.VectorType(t, self.W), ir.Constant(t, int(value) if dtype == np.bool_ else value)
+            )
         return found
 
     def vec(self, e, dtype):

@@ -55,7 +55,7 @@ def _unblocks(Z, template):
     out, start = [], 0
     for leaf in leaves:
         width = leaf.size // leaf.shape[0]
-        out.append(Z[:, start:start + width].reshape(leaf.shape))
+        out.append(Z[:, start : start + width].reshape(leaf.shape))
         start += width
     return jax.tree_util.tree_unflatten(treedef, out)
 
@@ -118,8 +118,17 @@ def block_newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, ato
     def Fb(Z):
         return _blocks(F(_unblocks(Z, guess)), n)
 
-    Z, stats, H, _ = newton_solve_reusing(Fb, Z0, H, reuse, rtol=rtol, atol=atol, max_iterations=max_iterations,
-                                          max_contraction=1.0, matrix=lumped_matrix(Z0.shape))
+    Z, stats, H, _ = newton_solve_reusing(
+        Fb,
+        Z0,
+        H,
+        reuse,
+        rtol=rtol,
+        atol=atol,
+        max_iterations=max_iterations,
+        max_contraction=1.0,
+        matrix=lumped_matrix(Z0.shape),
+    )
     return _unblocks(Z, guess), stats, H
 
 
@@ -128,6 +137,5 @@ def block_newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iter
     iterations with the lumped block-diagonal Jacobian (module docstring). Same contract as
     `newton_solve`: returns `(z, NewtonStats)`, stops at round-off by default, and
     `max_iterations` caps the number of block matrices formed."""
-    z, stats, _ = block_newton_solve_reusing(F, guess, None, False, rtol=rtol, atol=atol,
-                                             max_iterations=max_iterations)
+    z, stats, _ = block_newton_solve_reusing(F, guess, None, False, rtol=rtol, atol=atol, max_iterations=max_iterations)
     return z, stats

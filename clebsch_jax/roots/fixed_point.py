@@ -33,8 +33,9 @@ sweep alternate in size, so pairs of sweeps contract steadily, and a test costs 
 as a sweep on the CPU (see `benchmarks/README.md` for the runs behind this choice)."""
 
 
-def fixed_point_solve(G: Callable, guess, *, rtol: float, atol: float, max_iterations: int, size=None,
-                      untested: int = 0):
+def fixed_point_solve(
+    G: Callable, guess, *, rtol: float, atol: float, max_iterations: int, size=None, untested: int = 0
+):
     r"""Solve $z = G(z)$ for a pytree z by the iteration $z \leftarrow G(z)$ (sweeps), for a
     contraction G with a good guess (a Gauss–Legendre step, `clebsch_jax.discrete.collocation`).
 
@@ -83,19 +84,29 @@ def fixed_point_solve(G: Callable, guess, *, rtol: float, atol: float, max_itera
             converged = ~nonfinite & is_converged(eta, previous, k, tol, z_new, zmax, stalled=STALLED)
             diverged = (k >= 2 * SWEEPS_PER_TEST) & (eta > previous) & (eta > 1e4 * jnp.finfo(z.dtype).eps * scale)
             # sweeps that overflow from a finite start did not contract: DIVERGED too
-            status = jnp.where(nonfinite & ~start_finite, Status.NONFINITE,
-                               jnp.where((diverged & ~converged) | nonfinite, Status.DIVERGED,
-                                         Status.SUCCESS)).astype(jnp.int32)
+            status = jnp.where(
+                nonfinite & ~start_finite,
+                Status.NONFINITE,
+                jnp.where((diverged & ~converged) | nonfinite, Status.DIVERGED, Status.SUCCESS),
+            ).astype(jnp.int32)
             done = converged | nonfinite | diverged
             return k + SWEEPS_PER_TEST, jnp.where(nonfinite, z, z_new), eta, done, status
 
         x0 = jax.lax.fori_loop(0, untested, lambda _, x: g(x), x0)
-        init = (jnp.asarray(0, jnp.int32), x0, jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(False),
-                jnp.asarray(Status.SUCCESS, jnp.int32))
+        init = (
+            jnp.asarray(0, jnp.int32),
+            x0,
+            jnp.asarray(jnp.inf, x0.dtype),
+            jnp.asarray(False),
+            jnp.asarray(Status.SUCCESS, jnp.int32),
+        )
         k, z, eta, done, status = jax.lax.while_loop(cond, body, init)
         status = jnp.where(done, status, Status.MAX_ITERATIONS).astype(jnp.int32)
-        return z, NewtonStats(iterations=k + untested, residual_norm=eta, status=status,
-                              jacobians=jnp.asarray(0, jnp.int32)), None
+        return (
+            z,
+            NewtonStats(iterations=k + untested, residual_norm=eta, status=status, jacobians=jnp.asarray(0, jnp.int32)),
+            None,
+        )
 
     flat, stats, _ = implicit_root(F_flat, flat0, loop, dense_tangent_solve)
     return unravel(flat), stats

@@ -89,4 +89,3 @@ def _zero_tangent(a):
     if jnp.issubdtype(a.dtype, jnp.inexact):
         return jnp.zeros_like(a)
     return np.zeros(a.shape, jax.dtypes.float0)
-

@@ -30,9 +30,21 @@ from ..core import linalg
 from .implicit import dense_tangent_solve, implicit_root
 from .status import NewtonStats, Status
 
-__all__ = ["Matrix", "dense_matrix", "newton_loop", "newton_solve", "newton_solve_reusing", "fixed_newton_solve",
-           "jacobian", "max_abs",
-           "converged", "tolerance", "MAX_CHORD_ITERATIONS", "REUSE_MAX_CONTRACTION", "SMALL_SYSTEM"]
+__all__ = [
+    "Matrix",
+    "dense_matrix",
+    "newton_loop",
+    "newton_solve",
+    "newton_solve_reusing",
+    "fixed_newton_solve",
+    "jacobian",
+    "max_abs",
+    "converged",
+    "tolerance",
+    "MAX_CHORD_ITERATIONS",
+    "REUSE_MAX_CONTRACTION",
+    "SMALL_SYSTEM",
+]
 
 
 MAX_CHORD_ITERATIONS = 8
@@ -175,8 +187,19 @@ def dense_matrix(n: int) -> Matrix:
 _RUNNING, _CONVERGED, _NONFINITE, _STOPPED = 0, 1, 2, 3
 
 
-def _chord(F, z0, H, rtol, atol, *, F0=None, max_contraction=1.0, active=True, apply=linalg.matvec,
-           max_updates=MAX_CHORD_ITERATIONS):
+def _chord(
+    F,
+    z0,
+    H,
+    rtol,
+    atol,
+    *,
+    F0=None,
+    max_contraction=1.0,
+    active=True,
+    apply=linalg.matvec,
+    max_updates=MAX_CHORD_ITERATIONS,
+):
     """Chord updates z ← z − M⁻¹F(z) with one matrix (`apply(H, r)` = M⁻¹r) until `converged`,
     until they contract by less than `max_contraction` per update (time for a fresh matrix),
     an iterate is non-finite, or `max_updates`. Each update computes max|Δz| and max|z| once
@@ -194,8 +217,7 @@ def _chord(F, z0, H, rtol, atol, *, F0=None, max_contraction=1.0, active=True, a
         nonfinite = ~(jnp.isfinite(eta) & jnp.isfinite(zmax))
         done = converged(eta, eta_prev, k, tolerance(z_new, rtol, atol, zmax), z_new, zmax)
         stopped = ((k > 0) & (eta >= max_contraction * eta_prev)) | (k + 1 >= max_updates)
-        code = jnp.where(nonfinite, _NONFINITE,
-                         jnp.where(done, _CONVERGED, jnp.where(stopped, _STOPPED, _RUNNING)))
+        code = jnp.where(nonfinite, _NONFINITE, jnp.where(done, _CONVERGED, jnp.where(stopped, _STOPPED, _RUNNING)))
         return k + 1, jnp.where(nonfinite, z, z_new), eta, code.astype(jnp.int32)
 
     code0 = jnp.where(active, _RUNNING, _STOPPED).astype(jnp.int32)
@@ -206,8 +228,9 @@ def _chord(F, z0, H, rtol, atol, *, F0=None, max_contraction=1.0, active=True, a
     return z, k, code == _CONVERGED, code == _NONFINITE
 
 
-def newton_loop(F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max_contraction=1.0, *,
-                matrix: Matrix = DENSE_INVERSE):
+def newton_loop(
+    F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max_contraction=1.0, *, matrix: Matrix = DENSE_INVERSE
+):
     """Newton's method on flat unknowns, first with a carried matrix, then with fresh ones.
 
     First chord updates with the carried `H0` (if `reuse`; `reuse=False`, a Python bool, leaves
@@ -224,8 +247,17 @@ def newton_loop(F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max
     if reuse is False:
         z1, k0, converged0, nonfinite0 = z0, jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(False)
     else:
-        z1, k0, converged0, nonfinite0 = _chord(F, z0, H0, rtol, atol, max_contraction=max_contraction,
-                                                active=reuse, apply=matrix.apply, max_updates=matrix.max_updates)
+        z1, k0, converged0, nonfinite0 = _chord(
+            F,
+            z0,
+            H0,
+            rtol,
+            atol,
+            max_contraction=max_contraction,
+            active=reuse,
+            apply=matrix.apply,
+            max_updates=matrix.max_updates,
+        )
 
     def cond(state):
         j, _, _, _, done, _ = state
@@ -234,10 +266,10 @@ def newton_loop(F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max
     def body(state):
         j, z, H_old, _, _, updates = state
         Fz, H, singular = matrix.invert(F, z)
-        z1, k, conv, nonfinite = _chord(F, z, H, rtol, atol, F0=Fz, apply=matrix.apply,
-                                        max_updates=matrix.max_updates)
-        status = jnp.where(singular, Status.SINGULAR,
-                           jnp.where(nonfinite, Status.NONFINITE, Status.SUCCESS)).astype(jnp.int32)
+        z1, k, conv, nonfinite = _chord(F, z, H, rtol, atol, F0=Fz, apply=matrix.apply, max_updates=matrix.max_updates)
+        status = jnp.where(singular, Status.SINGULAR, jnp.where(nonfinite, Status.NONFINITE, Status.SUCCESS)).astype(
+            jnp.int32
+        )
         done = conv | singular | nonfinite
         H = None if H_old is None else jax.tree_util.tree_map(lambda old, new: jnp.where(singular, old, new), H_old, H)
         return j + 1, jnp.where(singular, z, z1), H, status, done, updates + jnp.where(singular, 0, k)
@@ -246,8 +278,11 @@ def newton_loop(F: Callable, z0, H0, reuse, rtol, atol, max_iterations: int, max
     init = (jnp.asarray(0, jnp.int32), z1, H0, status0, converged0 | nonfinite0, k0)
     j, z, H, status, done, updates = jax.lax.while_loop(cond, body, init)
     status = jnp.where(done, status, Status.MAX_ITERATIONS).astype(jnp.int32)
-    return z, NewtonStats(iterations=updates, residual_norm=jnp.asarray(jnp.nan, z.dtype), status=status,
-                          jacobians=j), H
+    return (
+        z,
+        NewtonStats(iterations=updates, residual_norm=jnp.asarray(jnp.nan, z.dtype), status=status, jacobians=j),
+        H,
+    )
 
 
 def with_residual(stats: NewtonStats, residual) -> NewtonStats:
@@ -258,9 +293,19 @@ def with_residual(stats: NewtonStats, residual) -> NewtonStats:
     return stats._replace(residual_norm=res_norm, status=status.astype(jnp.int32))
 
 
-def newton_solve_reusing(F: Callable, guess, H, reuse, *, rtol: float, atol: float, max_iterations: int,
-                         finish: Callable | None = None, max_contraction: float | None = None,
-                         matrix: Matrix = DENSE_INVERSE):
+def newton_solve_reusing(
+    F: Callable,
+    guess,
+    H,
+    reuse,
+    *,
+    rtol: float,
+    atol: float,
+    max_iterations: int,
+    finish: Callable | None = None,
+    max_contraction: float | None = None,
+    matrix: Matrix = DENSE_INVERSE,
+):
     r"""Solve $F(z) = 0$ for a pytree z by Newton's method, carrying the matrix between solves.
 
     `H` is the matrix returned by the previous solve (any array of the right structure when
@@ -314,13 +359,24 @@ def newton_solve(F: Callable, guess, *, rtol: float, atol: float, max_iterations
     """
     flat0, unravel = ravel_pytree(guess)
     matrix = dense_matrix(flat0.shape[0]) if matrix is None else matrix
-    z, stats, _, _ = newton_solve_reusing(F, guess, None, False, rtol=rtol, atol=atol, max_iterations=max_iterations,
-                                          matrix=matrix)
+    z, stats, _, _ = newton_solve_reusing(
+        F, guess, None, False, rtol=rtol, atol=atol, max_iterations=max_iterations, matrix=matrix
+    )
     return z, stats
 
 
-def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: float, finish: Callable | None = None,
-                       matrix: Matrix = FENCED_INVERSE, refresh: bool = False, rounds=1):
+def fixed_newton_solve(
+    F: Callable,
+    guess,
+    *,
+    updates: int,
+    rtol: float,
+    atol: float,
+    finish: Callable | None = None,
+    matrix: Matrix = FENCED_INVERSE,
+    refresh: bool = False,
+    rounds=1,
+):
     r"""Solve $F(z) = 0$ by a fixed number of chord updates with one matrix formed at the guess,
     as straight-line code (no loop, no test between updates), then check the result.
 
@@ -370,18 +426,25 @@ def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: f
         if isinstance(rounds, int) and rounds == 1:
             x, M, eta, singular = one_round(f, x0)
         else:  # the rounds in a loop: the round's code once (the matrix's shape from a trace of it)
-            M0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype),
-                                        jax.eval_shape(lambda x: matrix.invert(f, x)[1], x0))
+            M0 = jax.tree_util.tree_map(
+                lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(lambda x: matrix.invert(f, x)[1], x0)
+            )
+
             def body(_, c):
                 x, M, eta, singular = c
                 x, M, eta, singular_k = one_round(f, x)
                 return x, M, eta, singular | singular_k
+
             x, M, eta, singular = jax.lax.fori_loop(
-                0, rounds, body, (x0, M0, jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(False)))
+                0, rounds, body, (x0, M0, jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(False))
+            )
         n_rounds = jnp.asarray(rounds, jnp.int32)
-        stats = NewtonStats(iterations=n_rounds * updates, residual_norm=jnp.asarray(jnp.nan, x.dtype),
-                            status=jnp.where(singular, Status.SINGULAR, Status.SUCCESS).astype(jnp.int32),
-                            jacobians=n_rounds * (updates if refresh else 1))
+        stats = NewtonStats(
+            iterations=n_rounds * updates,
+            residual_norm=jnp.asarray(jnp.nan, x.dtype),
+            status=jnp.where(singular, Status.SINGULAR, Status.SUCCESS).astype(jnp.int32),
+            jacobians=n_rounds * (updates if refresh else 1),
+        )
         return x, stats, (M, eta)
 
     flat, stats, (M, eta_last) = implicit_root(F_flat, flat0, loop, matrix.tangent_solve)
@@ -390,10 +453,18 @@ def fixed_newton_solve(F: Callable, guess, *, updates: int, rtol: float, atol: f
     # the check: the update the residual at z would make, judged by the general loop's rule
     dz = matrix.apply(jax.lax.stop_gradient(M), ravel_pytree(residual)[0])
     eta, zmax = max_abs(jnp.stack([dz, flat]))
-    done = converged(eta, jax.lax.stop_gradient(eta_last), jnp.asarray(updates, jnp.int32),
-                     tolerance(flat, rtol, atol, zmax), flat, zmax)
-    status = jnp.where(~(jnp.isfinite(eta) & jnp.isfinite(zmax)), Status.NONFINITE,
-                       jnp.where(stats.status != Status.SUCCESS, stats.status,
-                                 jnp.where(done, Status.SUCCESS, Status.MAX_ITERATIONS)))
+    done = converged(
+        eta,
+        jax.lax.stop_gradient(eta_last),
+        jnp.asarray(updates, jnp.int32),
+        tolerance(flat, rtol, atol, zmax),
+        flat,
+        zmax,
+    )
+    status = jnp.where(
+        ~(jnp.isfinite(eta) & jnp.isfinite(zmax)),
+        Status.NONFINITE,
+        jnp.where(stats.status != Status.SUCCESS, stats.status, jnp.where(done, Status.SUCCESS, Status.MAX_ITERATIONS)),
+    )
     stats = fence(with_residual(stats._replace(status=status.astype(jnp.int32)), residual))
     return z, stats, jax.lax.stop_gradient(M), extra

@@ -111,9 +111,18 @@ class FixedNewton(Newton):
         """`updates` chord updates and a check; the general loop for steps before `warmup`
         (`step`: the step's number, None: treated as past the warm-up).
         **Returns:** `(z, NewtonStats, H, extra)` as `Newton.solve_reusing`."""
+
         def fixed(_, rounds=1):
-            return fixed_newton_solve(F, guess, updates=self.updates, rtol=self.rtol, atol=self.atol, finish=finish,
-                                      refresh=self.refresh, rounds=rounds)
+            return fixed_newton_solve(
+                F,
+                guess,
+                updates=self.updates,
+                rtol=self.rtol,
+                atol=self.atol,
+                finish=finish,
+                refresh=self.refresh,
+                rounds=rounds,
+            )
 
         if step is None or self.warmup == 0:
             return fixed(None)
@@ -175,5 +184,12 @@ class FixedPoint:
 
     def solve(self, G, guess, size=None):
         """Solve z = G(z) from `guess`, sizes judged against `size`. **Returns:** `(z, NewtonStats)`."""
-        return fixed_point_solve(G, guess, rtol=self.rtol, atol=self.atol, max_iterations=self.max_iterations,
-                                 size=size, untested=self.untested)
+        return fixed_point_solve(
+            G,
+            guess,
+            rtol=self.rtol,
+            atol=self.atol,
+            max_iterations=self.max_iterations,
+            size=size,
+            untested=self.untested,
+        )

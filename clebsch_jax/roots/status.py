@@ -91,16 +91,23 @@ class NewtonStats(NamedTuple):
         residual = np.asarray(self.residual_norm, dtype=float).ravel()[attempted]
         worst = float(np.nanmax(residual)) if residual.size and not np.all(np.isnan(residual)) else float("nan")
         done = iterations[attempted]
-        lines = [f"{status.size} solves: {counts.get(Status.SUCCESS, 0)} converged" + (f", {failed}" if failed else ""),
-                 (f"Newton updates per solve: mean {done.mean():.2f}, max {done.max()}, total {done.sum()}"
-                  if done.size else "Newton updates per solve: none attempted"),
-                 f"Jacobians formed: {int(np.asarray(self.jacobians).sum())}; worst final residual: {worst:.2e}"]
+        lines = [
+            f"{status.size} solves: {counts.get(Status.SUCCESS, 0)} converged" + (f", {failed}" if failed else ""),
+            (
+                f"Newton updates per solve: mean {done.mean():.2f}, max {done.max()}, total {done.sum()}"
+                if done.size
+                else "Newton updates per solve: none attempted"
+            ),
+            f"Jacobians formed: {int(np.asarray(self.jacobians).sum())}; worst final residual: {worst:.2e}",
+        ]
         return "\n".join(lines)
 
     def __repr__(self) -> str:
         if any(is_traced(a) for a in self) or np.ndim(self.status) == 0:
-            return (f"NewtonStats(iterations={self.iterations!r}, residual_norm={self.residual_norm!r}, "
-                    f"status={self.status!r}, jacobians={self.jacobians!r})")
+            return (
+                f"NewtonStats(iterations={self.iterations!r}, residual_norm={self.residual_norm!r}, "
+                f"status={self.status!r}, jacobians={self.jacobians!r})"
+            )
         return "NewtonStats(\n  " + self.summary().replace("\n", "\n  ") + "\n)"
 
     @staticmethod
@@ -114,18 +121,22 @@ class NewtonStats(NamedTuple):
 def _first_failure(status):
     """The first status that is not SUCCESS along the last axis (SUCCESS if none)."""
     failed = status != Status.SUCCESS
-    return jnp.where(jnp.any(failed, axis=-1),
-                     jnp.take_along_axis(status, jnp.argmax(failed, axis=-1)[..., None], axis=-1)[..., 0],
-                     Status.SUCCESS).astype(jnp.int32)
+    return jnp.where(
+        jnp.any(failed, axis=-1),
+        jnp.take_along_axis(status, jnp.argmax(failed, axis=-1)[..., None], axis=-1)[..., 0],
+        Status.SUCCESS,
+    ).astype(jnp.int32)
 
 
 def combine_stats(stats: NewtonStats) -> NewtonStats:
     """One `NewtonStats` for a step made of several solves (stacked along the last axis): the
     updates and Jacobians add up, the residual is the worst, the status the first failure."""
-    return NewtonStats(iterations=jnp.sum(stats.iterations, axis=-1).astype(jnp.int32),
-                       residual_norm=jnp.max(stats.residual_norm, axis=-1),
-                       status=_first_failure(stats.status),
-                       jacobians=jnp.sum(stats.jacobians, axis=-1).astype(jnp.int32))
+    return NewtonStats(
+        iterations=jnp.sum(stats.iterations, axis=-1).astype(jnp.int32),
+        residual_norm=jnp.max(stats.residual_norm, axis=-1),
+        status=_first_failure(stats.status),
+        jacobians=jnp.sum(stats.jacobians, axis=-1).astype(jnp.int32),
+    )
 
 
 def stack_stats(stats) -> NewtonStats:
@@ -138,7 +149,9 @@ def stack_stats(stats) -> NewtonStats:
 
 def skip_stats(stats: NewtonStats, attempted) -> NewtonStats:
     """`stats` with the solves that were not `attempted` marked SKIPPED, counting nothing."""
-    return NewtonStats(iterations=jnp.where(attempted, stats.iterations, 0).astype(stats.iterations.dtype),
-                       residual_norm=jnp.where(attempted, stats.residual_norm, jnp.nan),
-                       status=jnp.where(attempted, stats.status, Status.SKIPPED).astype(jnp.int32),
-                       jacobians=jnp.where(attempted, stats.jacobians, 0).astype(stats.jacobians.dtype))
+    return NewtonStats(
+        iterations=jnp.where(attempted, stats.iterations, 0).astype(stats.iterations.dtype),
+        residual_norm=jnp.where(attempted, stats.residual_norm, jnp.nan),
+        status=jnp.where(attempted, stats.status, Status.SKIPPED).astype(jnp.int32),
+        jacobians=jnp.where(attempted, stats.jacobians, 0).astype(stats.jacobians.dtype),
+    )

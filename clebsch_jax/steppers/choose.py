@@ -40,7 +40,14 @@ from .gauss import SWEEPS_PER_NEWTON_ITERATION, GaussLegendre
 from .principles import check_principle, principle_facts
 from .reduced import ReducedStep
 
-__all__ = ["DENSE_NEWTON_MAX", "default_scheme", "default_method", "choose_method", "check_scheme", "COMPOSITION_ORDERS"]
+__all__ = [
+    "DENSE_NEWTON_MAX",
+    "default_scheme",
+    "default_method",
+    "choose_method",
+    "check_scheme",
+    "COMPOSITION_ORDERS",
+]
 
 DENSE_NEWTON_MAX = 64
 """Above this many unknowns per step, the reduced march of a system with an inverse Legendre map
@@ -70,14 +77,18 @@ def _composition(order, composition):
     if composition is not None:
         if isinstance(composition, str):
             if composition not in COMPOSITIONS:
-                raise ValueError(f"composition: unknown name {composition!r}; expected one of "
-                                 f"{sorted(COMPOSITIONS)} or a Composition.")
+                raise ValueError(
+                    f"composition: unknown name {composition!r}; expected one of "
+                    f"{sorted(COMPOSITIONS)} or a Composition."
+                )
             composition = COMPOSITIONS[composition]
         if not isinstance(composition, Composition):
             raise ValueError(f"composition: expected a Composition or its name, got {composition!r}.")
         if order is not None and order != composition.order:
-            raise ValueError(f"order: {order} disagrees with composition {composition.name!r} "
-                             f"of order {composition.order}; pass one of them.")
+            raise ValueError(
+                f"order: {order} disagrees with composition {composition.name!r} "
+                f"of order {composition.order}; pass one of them."
+            )
         order = composition.order
     if order is not None and order not in COMPOSITION_ORDERS:
         raise ValueError(f"order: expected None, 2, 4, 6 or 8, got {order!r}.")
@@ -88,20 +99,28 @@ def _composition(order, composition):
 
 def _gauss(system, order, composition, rtol, atol, max_newton_iterations, jacobian):
     if composition is not None:
-        raise ValueError("composition: scheme='gauss' reaches its order with stages, not by composition; "
-                         f"pass order={', '.join(map(str, GAUSS_ORDERS))} and no composition.")
+        raise ValueError(
+            "composition: scheme='gauss' reaches its order with stages, not by composition; "
+            f"pass order={', '.join(map(str, GAUSS_ORDERS))} and no composition."
+        )
     order = 2 if order is None else order
     if isinstance(order, bool) or order not in GAUSS_ORDERS:
-        raise ValueError(f"order: scheme='gauss' expects None or an even order from 2 to {GAUSS_ORDERS[-1]}, "
-                         f"got {order!r}.")
+        raise ValueError(
+            f"order: scheme='gauss' expects None or an even order from 2 to {GAUSS_ORDERS[-1]}, got {order!r}."
+        )
     if jacobian != "dense" and not system.degenerate:
-        raise ValueError("jacobian: scheme='gauss' solves the steps of a regular Lagrangian by fixed-point "
-                         "sweeps, without a Newton matrix; 'blocks' lumps the constraint matrix of a degenerate "
-                         f"one. Leave jacobian at 'dense', got {jacobian!r}.")
+        raise ValueError(
+            "jacobian: scheme='gauss' solves the steps of a regular Lagrangian by fixed-point "
+            "sweeps, without a Newton matrix; 'blocks' lumps the constraint matrix of a degenerate "
+            f"one. Leave jacobian at 'dense', got {jacobian!r}."
+        )
     sweeps = FixedPoint(rtol=rtol, atol=atol, max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations)
-    return GaussLegendre(order=order, root_finder=sweeps,
-                         nodal_solver=Newton(rtol=rtol, atol=atol, max_iterations=max_newton_iterations),
-                         constraint_blocks=jacobian == "blocks")
+    return GaussLegendre(
+        order=order,
+        root_finder=sweeps,
+        nodal_solver=Newton(rtol=rtol, atol=atol, max_iterations=max_newton_iterations),
+        constraint_blocks=jacobian == "blocks",
+    )
 
 
 def symmetric_step(system, base, order, composition):
@@ -119,8 +138,22 @@ def _size(x) -> int:
     return int(np.prod(x)) if isinstance(x, tuple) else int(np.size(x))
 
 
-def choose_method(system, Q0, xi0, *, scheme=None, reduce="auto", need_P=False, reconstruct=True, rtol=0.0,
-                  atol=0.0, max_newton_iterations=20, jacobian="dense", order=None, composition=None):
+def choose_method(
+    system,
+    Q0,
+    xi0,
+    *,
+    scheme=None,
+    reduce="auto",
+    need_P=False,
+    reconstruct=True,
+    rtol=0.0,
+    atol=0.0,
+    max_newton_iterations=20,
+    jacobian="dense",
+    order=None,
+    composition=None,
+):
     """The stepper `integrate` runs for these options (the rules of the module docstring).
     `Q0` and `xi0` (arrays or shapes) serve the reduction test; None skips it (full step)."""
     scheme_given, scheme = scheme, check_scheme(system, scheme)
@@ -130,8 +163,10 @@ def choose_method(system, Q0, xi0, *, scheme=None, reduce="auto", need_P=False, 
         raise ValueError(f"jacobian: expected 'dense' or 'blocks', got {jacobian!r}.")
     if scheme == "gauss":
         if reduce is True:
-            raise ValueError("reduce: the reduced march implements the left and right principles only; "
-                             "scheme='gauss' marches (Q, P).")
+            raise ValueError(
+                "reduce: the reduced march implements the left and right principles only; "
+                "scheme='gauss' marches (Q, P)."
+            )
         return _gauss(system, order, composition, rtol, atol, max_newton_iterations, jacobian)
     by_default = scheme_given is None and order is None and composition is None
     order, composition = _composition(order, composition)
@@ -142,10 +177,12 @@ def choose_method(system, Q0, xi0, *, scheme=None, reduce="auto", need_P=False, 
     if Q0 is not None and (reduce is True or (reduce == "auto" and not need_P)):
         reduced_finder = newton
         if system.inverse_legendre is not None and _size(xi0) > DENSE_NEWTON_MAX and jacobian == "dense":
-            reduced_finder = FixedPoint(rtol=rtol, atol=atol,
-                                        max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations)
-        reduced = ReducedStep(principle=principle, root_finder=reduced_finder, reconstruct=bool(reconstruct),
-                              need_P=bool(need_P))
+            reduced_finder = FixedPoint(
+                rtol=rtol, atol=atol, max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations
+            )
+        reduced = ReducedStep(
+            principle=principle, root_finder=reduced_finder, reconstruct=bool(reconstruct), need_P=bool(need_P)
+        )
         if reduce is True:
             base = reduced.prepare(system, Q0, xi0)  # says why, when it does not apply
         elif principle != Principle.MIDPOINT and find_reduction(system, Q0, xi0)[0] is not None:

@@ -30,8 +30,19 @@ from ..roots.status import NewtonStats
 from .base import AbstractStepper, AbstractWrapper, Facts
 
 __all__ = [
-    "Composition", "StepPlan", "COMPOSITIONS", "DEFAULT_COMPOSITIONS", "SymmetricPair", "Composed", "plan_of",
-    "SUZUKI_4", "TRIPLE_JUMP_4", "YOSHIDA_6", "KAHAN_LI_6", "SUZUKI_UMENO_8", "KAHAN_LI_8",
+    "Composition",
+    "StepPlan",
+    "COMPOSITIONS",
+    "DEFAULT_COMPOSITIONS",
+    "SymmetricPair",
+    "Composed",
+    "plan_of",
+    "SUZUKI_4",
+    "TRIPLE_JUMP_4",
+    "YOSHIDA_6",
+    "KAHAN_LI_6",
+    "SUZUKI_UMENO_8",
+    "KAHAN_LI_8",
 ]
 
 
@@ -68,37 +79,77 @@ _SUZUKI_A = 1.0 / (4.0 - 4.0 ** (1.0 / 3.0))
 _TRIPLE_A = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
 
 SUZUKI_4 = Composition(
-    "Suzuki p4s5", 4, (_SUZUKI_A, _SUZUKI_A, 1.0 - 4.0 * _SUZUKI_A, _SUZUKI_A, _SUZUKI_A),
+    "Suzuki p4s5",
+    4,
+    (_SUZUKI_A, _SUZUKI_A, 1.0 - 4.0 * _SUZUKI_A, _SUZUKI_A, _SUZUKI_A),
     "M. Suzuki, Phys. Lett. A 146 (1990) 319",
 )
 TRIPLE_JUMP_4 = Composition(
-    "triple jump p4s3", 4, (_TRIPLE_A, 1.0 - 2.0 * _TRIPLE_A, _TRIPLE_A),
+    "triple jump p4s3",
+    4,
+    (_TRIPLE_A, 1.0 - 2.0 * _TRIPLE_A, _TRIPLE_A),
     "H. Yoshida, Phys. Lett. A 150 (1990) 262 (large error constant; for comparison)",
 )
 YOSHIDA_6 = Composition(
-    "Yoshida p6s7", 6,
-    _palindrome([0.78451361047755726381949763, 0.23557321335935813368479318, -1.17767998417887100694641568,
-                 1.31518632068391121888424973]),
+    "Yoshida p6s7",
+    6,
+    _palindrome(
+        [
+            0.78451361047755726381949763,
+            0.23557321335935813368479318,
+            -1.17767998417887100694641568,
+            1.31518632068391121888424973,
+        ]
+    ),
     "H. Yoshida, Phys. Lett. A 150 (1990) 262, solution A",
 )
 KAHAN_LI_6 = Composition(
-    "Kahan-Li p6s9", 6,
-    _palindrome([0.39216144400731413927925056, 0.33259913678935943859974864, -0.70624617255763935980996482,
-                 0.08221359629355080023149045, 0.79854399093482996339895035]),
+    "Kahan-Li p6s9",
+    6,
+    _palindrome(
+        [
+            0.39216144400731413927925056,
+            0.33259913678935943859974864,
+            -0.70624617255763935980996482,
+            0.08221359629355080023149045,
+            0.79854399093482996339895035,
+        ]
+    ),
     "W. Kahan & R.-C. Li, Math. Comp. 66 (1997) 1089; Hairer-Lubich-Wanner (V.3.12)",
 )
 SUZUKI_UMENO_8 = Composition(
-    "Suzuki-Umeno p8s15", 8,
-    _palindrome([0.74167036435061295344822780, -0.40910082580003159399730010, 0.19075471029623837995387626,
-                 -0.57386247111608226665638773, 0.29906418130365592384446354, 0.33462491824529818378495798,
-                 0.31529309239676659663205666, -0.79688793935291635401978884]),
+    "Suzuki-Umeno p8s15",
+    8,
+    _palindrome(
+        [
+            0.74167036435061295344822780,
+            -0.40910082580003159399730010,
+            0.19075471029623837995387626,
+            -0.57386247111608226665638773,
+            0.29906418130365592384446354,
+            0.33462491824529818378495798,
+            0.31529309239676659663205666,
+            -0.79688793935291635401978884,
+        ]
+    ),
     "M. Suzuki & K. Umeno (1993); McLachlan, SIAM J. Sci. Comput. 16 (1995) 151",
 )
 KAHAN_LI_8 = Composition(
-    "Kahan-Li p8s17", 8,
-    _palindrome([0.13020248308889008087881763, 0.56116298177510838456196441, -0.38947496264484728640807860,
-                 0.15884190655515560089621075, -0.39590389413323757733623154, 0.18453964097831570709183254,
-                 0.25837438768632204729397911, 0.29501172360931029887096624, -0.60550853383003451169892108]),
+    "Kahan-Li p8s17",
+    8,
+    _palindrome(
+        [
+            0.13020248308889008087881763,
+            0.56116298177510838456196441,
+            -0.38947496264484728640807860,
+            0.15884190655515560089621075,
+            -0.39590389413323757733623154,
+            0.18453964097831570709183254,
+            0.25837438768632204729397911,
+            0.29501172360931029887096624,
+            -0.60550853383003451169892108,
+        ]
+    ),
     "W. Kahan & R.-C. Li, Math. Comp. 66 (1997) 1089; Hairer-Lubich-Wanner (V.3.14)",
 )
 
@@ -161,8 +212,15 @@ class SymmetricPair(AbstractWrapper):
 
     def facts(self, system) -> Facts:
         first, second = (m.facts(system) for m in self.members)
-        return Facts(first.form, f"{second.scheme} o {first.scheme}", max(2, first.order), True, first.symplectic,
-                     f"{second.scheme}(h/2) o {first.scheme}(h/2)", first.solves_per_step + second.solves_per_step)
+        return Facts(
+            first.form,
+            f"{second.scheme} o {first.scheme}",
+            max(2, first.order),
+            True,
+            first.symplectic,
+            f"{second.scheme}(h/2) o {first.scheme}(h/2)",
+            first.solves_per_step + second.solves_per_step,
+        )
 
     def init_memory(self, system, state):
         return tuple(m.init_memory(system, state) for m in self.members)
@@ -197,27 +255,40 @@ class Composed(AbstractWrapper):
         composition = self.composition
         if isinstance(composition, str):
             if composition not in COMPOSITIONS:
-                raise ValueError(f"composition: unknown name {composition!r}; expected one of "
-                                 f"{sorted(COMPOSITIONS)} or a Composition.")
+                raise ValueError(
+                    f"composition: unknown name {composition!r}; expected one of "
+                    f"{sorted(COMPOSITIONS)} or a Composition."
+                )
             object.__setattr__(self, "composition", COMPOSITIONS[composition])
         elif not isinstance(composition, Composition):
             raise ValueError(f"composition: expected a Composition or its name, got {composition!r}.")
         if not isinstance(self.base, AbstractStepper) or getattr(self.base, "stages", None) is not None:
-            raise ValueError("base: compose a FullStep, ReducedStep or SymmetricPair; Gauss-Legendre reaches its "
-                             "order with stages, not by composition.")
+            raise ValueError(
+                "base: compose a FullStep, ReducedStep or SymmetricPair; Gauss-Legendre reaches its "
+                "order with stages, not by composition."
+            )
 
     def facts(self, system) -> Facts:
         base = self.base.facts(system)
-        return Facts(base.form, base.scheme, self.composition.order, True, base.symplectic,
-                     f"{self.composition.name} of {base.name}", len(self.composition.gammas) * base.solves_per_step)
+        return Facts(
+            base.form,
+            base.scheme,
+            self.composition.order,
+            True,
+            base.symplectic,
+            f"{self.composition.name} of {base.name}",
+            len(self.composition.gammas) * base.solves_per_step,
+        )
 
     def prepare(self, system, Q0, xi0) -> "Composed":
         prepared = super().prepare(system, Q0, xi0)
         facts = prepared.base.facts(system)
         if not (facts.symmetric and facts.order == 2):
-            raise ValueError(f"method: a composition needs a symmetric second-order step, and {facts.name} is of "
-                             f"order {facts.order}{'' if facts.symmetric else ' and not symmetric'}; wrap it in "
-                             "SymmetricPair.")
+            raise ValueError(
+                f"method: a composition needs a symmetric second-order step, and {facts.name} is of "
+                f"order {facts.order}{'' if facts.symmetric else ' and not symmetric'}; wrap it in "
+                "SymmetricPair."
+            )
         return prepared
 
     def init_memory(self, system, state):
@@ -254,5 +325,4 @@ def check_coefficients(composition: Composition) -> float:
     """max over the necessary order conditions Σγ^(2j+1) = 0, 2j+1 < order, of |Σγ^(2j+1)|
     (a test of the stored digits; the full conditions are checked by measured orders)."""
     g = np.asarray(composition.gammas, dtype=float)
-    return max([abs(np.sum(g ** k)) for k in range(3, composition.order, 2)] + [abs(g.sum() - 1.0)])
-
+    return max([abs(np.sum(g**k)) for k in range(3, composition.order, 2)] + [abs(g.sum() - 1.0)])

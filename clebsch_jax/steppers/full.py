@@ -82,8 +82,9 @@ class FullStep(PrincipleStep):
         # The guess is (ξ, P, Q¹) = (ξ_last, p, Q) + the predicted increment: at step 0 the
         # explicit (0, 0, h L_ξ Q), later the extrapolation of this sub-step's past increments.
         base, unravel = ravel_pytree(StepUnknowns(xi_last, p, Q))
-        first = ravel_pytree(StepUnknowns(jnp.zeros_like(xi_last), jnp.zeros_like(p),
-                                          h * system.velocity_map(xi_last, Q)))[0]
+        first = ravel_pytree(
+            StepUnknowns(jnp.zeros_like(xi_last), jnp.zeros_like(p), h * system.velocity_map(xi_last, Q))
+        )[0]
         residual = lambda z: step_residual(system, self.principle, h, Q, p, z)
         guess = unravel(base + predict(n, first, history))
         if self.root_finder.carries_matrix:  # this slot's last matrix, refreshed when it stops contracting

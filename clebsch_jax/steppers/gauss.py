@@ -20,9 +20,18 @@ import jax
 import jax.numpy as jnp
 
 from ..core.system import momentum_map
-from ..discrete.collocation import (GAUSS_ORDERS, GaussUnknowns, constraint_matrix_inverse, degenerate_sweep,
-                                    extrapolate, from_substeps, gauss_legendre, gauss_sweep, gauss_update,
-                                    stage_hessians)
+from ..discrete.collocation import (
+    GAUSS_ORDERS,
+    GaussUnknowns,
+    constraint_matrix_inverse,
+    degenerate_sweep,
+    extrapolate,
+    from_substeps,
+    gauss_legendre,
+    gauss_sweep,
+    gauss_update,
+    stage_hessians,
+)
 from ..discrete.legendre import initial_multiplier
 from ..roots.solvers import FixedPoint, Newton
 from ..roots.status import Status
@@ -72,8 +81,9 @@ class GaussLegendre(AbstractStepper):
 
     def __post_init__(self):
         if isinstance(self.order, bool) or self.order not in GAUSS_ORDERS:
-            raise ValueError(f"order: Gauss-Legendre expects an even order from 2 to {GAUSS_ORDERS[-1]}, "
-                             f"got {self.order!r}.")
+            raise ValueError(
+                f"order: Gauss-Legendre expects an even order from 2 to {GAUSS_ORDERS[-1]}, got {self.order!r}."
+            )
         if not isinstance(self.root_finder, FixedPoint):
             raise TypeError(f"root_finder: expected clebsch_jax.FixedPoint(), got {self.root_finder!r}.")
 
@@ -87,9 +97,11 @@ class GaussLegendre(AbstractStepper):
     def prepare(self, system, Q0, xi0) -> "GaussLegendre":
         if self.constraint_blocks:
             if not system.degenerate:
-                raise ValueError("jacobian: scheme='gauss' solves the steps of a regular Lagrangian by fixed-point "
-                                 "sweeps, without a Newton matrix; 'blocks' lumps the constraint matrix of a "
-                                 "degenerate one. Leave jacobian at 'dense'.")
+                raise ValueError(
+                    "jacobian: scheme='gauss' solves the steps of a regular Lagrangian by fixed-point "
+                    "sweeps, without a Newton matrix; 'blocks' lumps the constraint matrix of a "
+                    "degenerate one. Leave jacobian at 'dense'."
+                )
             check_particle_axis(Q0, xi0)
         return self
 
@@ -134,8 +146,9 @@ class GaussLegendre(AbstractStepper):
 
         _, (zs, status, sweeps) = jax.lax.scan(substep, (Q0, P0, crude), None, length=FIRST_STEP_SUBSTEPS)
         ok = jnp.all(status == Status.SUCCESS)
-        guess0 = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), from_substeps(tab, zs),
-                                        self._sweep(system, tab, dt, Q0, P0, still, m0))
+        guess0 = jax.tree_util.tree_map(
+            lambda a, b: jnp.where(ok, a, b), from_substeps(tab, zs), self._sweep(system, tab, dt, Q0, P0, still, m0)
+        )
         return (Q0, P0, guess0, xi0), jnp.sum(sweeps)
 
     def step(self, system, state, memory, h, n, alive):

@@ -57,7 +57,7 @@ def _differences(history):
     p = history.shape[0] - 1
     H = history.reshape(p + 1, -1)
     C = np.array([[(-1) ** i * math.comb(j, i) for i in range(p + 1)] for j in range(p + 1)], dtype=float)
-    return functools.reduce(jnp.add, [jnp.asarray(C[:, i:i + 1], H.dtype) * H[i] for i in range(p + 1)])
+    return functools.reduce(jnp.add, [jnp.asarray(C[:, i : i + 1], H.dtype) * H[i] for i in range(p + 1)])
 
 
 def _degree(n, D):

@@ -31,8 +31,9 @@ def check_principle(system, principle) -> Principle:
     try:
         principle = Principle(principle)
     except ValueError:
-        raise ValueError(f"scheme: expected one of {tuple(p.value for p in Principle) + ('gauss',)}, "
-                         f"got {principle!r}.") from None
+        raise ValueError(
+            f"scheme: expected one of {tuple(p.value for p in Principle) + ('gauss',)}, got {principle!r}."
+        ) from None
     if principle == Principle.MIDPOINT and not callable(getattr(system.derivative_map, "at_midpoint", None)):
         raise ValueError(
             "scheme: 'midpoint' needs a derivative map that knows the midpoint of a step "
@@ -72,8 +73,9 @@ class PrincipleStep(AbstractStepper):
         try:
             object.__setattr__(self, "principle", Principle(self.principle))
         except ValueError:
-            raise ValueError(f"principle: expected one of {[p.value for p in Principle]}, got "
-                             f"{self.principle!r}.") from None
+            raise ValueError(
+                f"principle: expected one of {[p.value for p in Principle]}, got {self.principle!r}."
+            ) from None
 
     def facts(self, system) -> Facts:
         order, symmetric = principle_facts(system, self.principle)

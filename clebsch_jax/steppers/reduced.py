@@ -79,19 +79,25 @@ class ReducedStep(PrincipleStep):
     def __post_init__(self):
         super().__post_init__()
         if type(self.root_finder) not in (Newton, FixedNewton, FixedPoint):
-            raise TypeError(f"root_finder: the reduced step solves dim V equations with clebsch_jax.Newton() (or "
-                            f"its fixed-update form, clebsch_jax.roots.solvers.FixedNewton), or by sweeps with "
-                            f"clebsch_jax.FixedPoint() for a system with an inverse_legendre map, got "
-                            f"{self.root_finder!r}.")
+            raise TypeError(
+                f"root_finder: the reduced step solves dim V equations with clebsch_jax.Newton() (or "
+                f"its fixed-update form, clebsch_jax.roots.solvers.FixedNewton), or by sweeps with "
+                f"clebsch_jax.FixedPoint() for a system with an inverse_legendre map, got "
+                f"{self.root_finder!r}."
+            )
 
     def prepare(self, system, Q0, xi0) -> "ReducedStep":
         if self.principle == Principle.MIDPOINT:
-            raise ValueError("reduce: the reduced march does not apply to this system: the reduced march "
-                             "implements the left and right principles only.")
+            raise ValueError(
+                "reduce: the reduced march does not apply to this system: the reduced march "
+                "implements the left and right principles only."
+            )
         if self._sweeps and system.inverse_legendre is None:
-            raise ValueError("root_finder: FixedPoint() sweeps of the reduced step are preconditioned with the "
-                             "system's inverse Legendre map; build the system with ClebschSystem(..., "
-                             "inverse_legendre=...) or use clebsch_jax.Newton().")
+            raise ValueError(
+                "root_finder: FixedPoint() sweeps of the reduced step are preconditioned with the "
+                "system's inverse Legendre map; build the system with ClebschSystem(..., "
+                "inverse_legendre=...) or use clebsch_jax.Newton()."
+            )
         red, reason = find_reduction(system, Q0, xi0)
         if red is None:
             raise ValueError(f"reduce: the reduced march does not apply to this system: {reason}.")
@@ -149,8 +155,9 @@ class ReducedStep(PrincipleStep):
             _, (mu1, Q1) = finish(xi)
         else:
             reuse = False if self._fresh(system) else (n > 0) | ~alive
-            xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(residual, guess, H, reuse, finish=finish,
-                                                                         step=n)
+            xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(
+                residual, guess, H, reuse, finish=finish, step=n
+            )
         # a fresh Jacobian every solve: the carried matrix is never read, so it is handed on
         # unchanged (a loop-invariant placeholder rather than a new value per step)
         H = H if reuse is False else H_new

@@ -37,10 +37,16 @@ from tests.test_behaviour_identity import CASES, JSON_PATH, NPZ_PATH, record  # 
 def _commit() -> str:
     """The commit the data are produced at (with "+changes" if the work tree differs from it)."""
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                              text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "clebsch_jax"],
-                               cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", "clebsch_jax"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head + ("+changes" if dirty else "")
@@ -51,18 +57,25 @@ def main(argv=None) -> int:
     parser.add_argument("--overwrite", action="store_true", help="replace existing data")
     args = parser.parse_args(argv)
     if (NPZ_PATH.exists() or JSON_PATH.exists()) and not args.overwrite:
-        print(f"{NPZ_PATH.name} / {JSON_PATH.name} exist; pass --overwrite to replace them "
-              "(read this script's docstring first).", file=sys.stderr)
+        print(
+            f"{NPZ_PATH.name} / {JSON_PATH.name} exist; pass --overwrite to replace them "
+            "(read this script's docstring first).",
+            file=sys.stderr,
+        )
         return 1
     arrays, facts = {}, {}
     for case in CASES:
         case_arrays, case_facts = record(case.run())
         arrays.update({f"{case.name}/{key}": value for key, value in case_arrays.items()})
         facts[case.name] = case_facts
-        print(f"{case.name}: {len(case_arrays)} arrays, {case_facts.get('form')} march, "
-              f"{case_facts.get('method')!r}")
-    meta = {"commit": _commit(), "clebsch_jax": clebsch_jax.__version__, "jax": jax.__version__,
-            "numpy": np.__version__, "platform": jax.default_backend()}
+        print(f"{case.name}: {len(case_arrays)} arrays, {case_facts.get('form')} march, {case_facts.get('method')!r}")
+    meta = {
+        "commit": _commit(),
+        "clebsch_jax": clebsch_jax.__version__,
+        "jax": jax.__version__,
+        "numpy": np.__version__,
+        "platform": jax.default_backend(),
+    }
     NPZ_PATH.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(NPZ_PATH, **arrays)
     JSON_PATH.write_text(json.dumps({"produced_with": meta, "cases": facts}, indent=1, sort_keys=True) + "\n")
