@@ -55,6 +55,7 @@ def _binding():
             _LLVM.update(
                 llvm=llvm,
                 tm=tm,
+                target=target,
                 cpu=cpu,
                 features=features,
                 version=llvmlite.__version__,
@@ -255,14 +256,19 @@ def _load(obj: bytes) -> int:
     L = _binding()
     llvm = L["llvm"]
     with _LOCK:
-        engine = llvm.create_mcjit_compiler(llvm.parse_assembly(""), L["tm"])
+        # an engine owns the target machine it is given: each gets one of its own, never the
+        # one `compile_ir` emits objects with
+        tm = L["target"].create_target_machine(
+            cpu=L["cpu"], features=L["features"], opt=2, codemodel="jitdefault", jit=True
+        )
+        engine = llvm.create_mcjit_compiler(llvm.parse_assembly(""), tm)
         ref = llvm.ObjectFileRef.from_data(obj)
         engine.add_object_file(ref)
         engine.finalize_object()
         address = engine.get_function_address("kernel")
         ref.detach()
         engine.detach()
-        _ENGINES.append((engine, ref, obj))
+        _ENGINES.append((engine, ref, obj, tm))
     return address
 
 
