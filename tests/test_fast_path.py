@@ -457,12 +457,13 @@ def test_auto_runs_the_lean_chunk_of_a_large_sweep_and_the_general_loop_otherwis
     import clebsch_jax.batching.sweep as sw
 
     lean = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **LEAN)
-    small = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, **LEAN)  # the default, "auto"
+    # fast="auto" chooses among XLA's paths (the native backend, the default, is tests/test_native.py's)
+    small = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, backend="xla", **LEAN)
     assert small.fast_chunks == 0
     # the same four members counted as a large sweep: "auto" runs the lean chunk, to the bit
     monkeypatch.setattr(sw, "AUTO_LEAN_MIN_MEMBERS", 4)
     monkeypatch.setattr(sw, "AUTO_LEAN_MIN_MEMBER_STEPS", 4 * N_STEPS)
-    auto = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, **LEAN)
+    auto = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, backend="xla", **LEAN)
     assert auto.fast_chunks == 2 and auto.fallback_chunks == 0
     for key in ("final_momentum", "final_xi", "final_p", "energy_error", "newton_iterations"):
         np.testing.assert_array_equal(getattr(auto, key), getattr(lean, key), err_msg=key)
@@ -548,7 +549,7 @@ def test_lean_sweep_of_a_nonlinear_nodal_relation_falls_back_then_gives_up():
 
     run = {**LEAN, "chunk_steps": 5, "n_steps": 3 * LEAN_CHUNKS * 5}
     lean = cj.sweep(_quartic_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **run)
-    general = cj.sweep(_quartic_body, INERTIAS, EYES, OMEGAS, dt=0.05, **run)
+    general = cj.sweep(_quartic_body, INERTIAS, EYES, OMEGAS, dt=0.05, backend="xla", **run)
     assert FAST_GIVE_UP == 2 and lean.fast_chunks == lean.fallback_chunks == 2 * LEAN_CHUNKS
     assert np.all(lean.succeeded) and np.all(general.succeeded)
     for key in ("final_momentum", "final_xi", "final_p", "energy_error", "newton_iterations"):
