@@ -478,6 +478,11 @@ def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
     )  # the caller of integrate
 
 
+GROUP_CHECK_MAX_DIM = 64
+"""`check_group_configuration` looks at algebras of at most this many dimensions (so(n) up to
+n = 11, se(n) up to n = 10): it forms their basis and its commutators."""
+
+
 def check_group_configuration(system, Q0, xi0) -> None:
     r"""For a system without `check_Q` whose velocity map is right multiplication on a matrix
     group, $\mathcal L_\xi Q = Q X(\xi)$: warn when $Q^0$ is not in the group the engine reads off
@@ -490,6 +495,10 @@ def check_group_configuration(system, Q0, xi0) -> None:
         return
     Q = np.asarray(Q0)
     if Q.ndim != 2 or Q.shape[0] != Q.shape[1] or not np.all(np.isfinite(Q)):
+        return
+    if np.size(xi0) > GROUP_CHECK_MAX_DIM or np.shape(xi0) == Q.shape:
+        # a large algebra (the fluid's gl(2N), whose basis and commutators would take gigabytes)
+        # or ξ the matrix itself: not the small SO(n) or SE(n) this check is for
         return
     basis = _group_basis(system, Q0, xi0)
     if basis is None:
