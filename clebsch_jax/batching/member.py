@@ -155,7 +155,8 @@ def member_chunk(
             # the step leaves the node whose size red["size"] already holds (`jump_step`)
             change, size_max, jump = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
             size_max = jnp.maximum(size_max, zero_nan(size))
-            jumped = red["jumped"] | (jump & ok & (red["status"] == Status.SUCCESS))
+            # checked up to the first failed step, as integrate does: a node's failure does not stop it
+            jumped = red["jumped"] | (jump & ok)
             new_jump = jumped & ~red["jumped"]
         else:
             change, size_max, jumped, new_jump = red["change"], red["size"], red["jumped"], jnp.asarray(False)
@@ -166,11 +167,11 @@ def member_chunk(
             Status.ENERGY_JUMP,
             jnp.where(step_failed, stats.status, jnp.where(ok & ~nodal_ok, Status.LEGENDRE, Status.SUCCESS)),
         )
-        fails = still & (code != Status.SUCCESS)
-        # a jump found after a node failure still names the jump (as `integrate` does)
-        fails = fails | (new_jump & (red["status"] == Status.LEGENDRE))
+        # a step's failure or a jump outranks an earlier node's (LEGENDRE), as integrate ranks them
+        fails = (still & (code != Status.SUCCESS)) | ((red["status"] == Status.LEGENDRE) & (step_failed | new_jump))
         status = jnp.where(fails, code, red["status"]).astype(jnp.int32)
-        step = jnp.where(fails, k, red["step"]).astype(jnp.int32)
+        # a step's failure is reported at the step, a node's at the node (k + 1: the one step k reaches)
+        step = jnp.where(fails, jnp.where(code == Status.LEGENDRE, k + 1, k), red["step"]).astype(jnp.int32)
         good = ok & ~jumped
         residual = jnp.maximum(red["residual"], jnp.where(good, stats.residual_norm, 0.0))
         known = good & nodal_ok
