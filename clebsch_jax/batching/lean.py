@@ -45,7 +45,7 @@ from ..roots.implicit import undifferentiated
 from ..roots.newton import fixed_newton_solve
 from ..roots.solvers import FixedNewton
 from ..roots.status import Status
-from ..steppers.base import AbstractWrapper
+from ..steppers.base import AbstractWrapper, innermost
 from ..steppers.reduced import ReducedStep
 
 __all__ = ["lean_chunk", "supports", "carries_Q", "LEAN_UPDATES", "NODAL_UPDATES", "WARMUP_ROUNDS"]
@@ -79,16 +79,10 @@ def _with_finder(stepper, **changes):
     return dataclasses.replace(stepper, root_finder=dataclasses.replace(stepper.root_finder, **changes))
 
 
-def _base(stepper):
-    while isinstance(stepper, AbstractWrapper):
-        stepper = stepper.base
-    return stepper
-
-
 def supports(stepper, system) -> bool:
     """Whether the lean chunk runs this fast method: reduced steps (possibly wrapped) with fixed
     Newton solves, for a system with nodal velocities."""
-    base = _base(stepper)
+    base = innermost(stepper)
     return isinstance(base, ReducedStep) and isinstance(base.root_finder, FixedNewton) and not system.degenerate
 
 
@@ -96,7 +90,7 @@ def carries_Q(stepper, system) -> bool:
     """Whether the lean chunk carries the configuration Q from step to step: not for a reduced
     step that does not reconstruct it (`ReducedStep.reconstruct=False` and an l without
     potential), whose Q stays the chunk's start — and whose sweep then reports no final Q."""
-    base = _base(stepper)
+    base = innermost(stepper)
     return base._carry_Q(system) if isinstance(base, ReducedStep) else True
 
 
@@ -133,7 +127,7 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
     alive0 = carry.status == Status.SUCCESS
     nan_unless = lambda a: jnp.where(alive0, a, jnp.nan)
     Q0, P0, xi0 = nan_unless(carry.Q), nan_unless(carry.P), nan_unless(carry.xi)
-    finder = _base(stepper).root_finder
+    finder = innermost(stepper).root_finder
     ok = input_ok(system, Q0, xi0, P0, dt)
 
     # node 0: its momentum and velocity (what the general path's start and nodal solve give)

@@ -31,7 +31,7 @@ from ..discrete.legendre import cotangent_from_momentum, initial_multiplier
 from ..discrete.residual import nodal_residual
 from ..march.scan import input_ok, jump_step, node_energy, zero_nan
 from ..roots.status import Status
-from ..steppers.base import AbstractWrapper
+from ..steppers.base import innermost
 from ..steppers.reduced import ReducedStep
 
 __all__ = ["MemberCarry", "member_chunk"]
@@ -53,12 +53,6 @@ class MemberCarry(NamedTuple):
     momentum: jax.Array  # the momentum map at the last node
     energy_change: jax.Array  # the energy check's running maxima (`clebsch_jax.march.scan.jump_step`)
     energy_size: jax.Array
-
-
-def _base(stepper):
-    while isinstance(stepper, AbstractWrapper):
-        stepper = stepper.base
-    return stepper
 
 
 def _one(tree):
@@ -202,7 +196,7 @@ def member_chunk(
     Qn, mun = red["Q"], red["mu"]
     # the reduced march carries μ, not p: the minimum-norm cotangent with that momentum map
     # (as `continue_from` hands it over)
-    reduced = isinstance(_base(stepper), ReducedStep)
+    reduced = isinstance(innermost(stepper), ReducedStep)
     Pn = cotangent_from_momentum(system, Qn, mun, unroll=True) if reduced else red["p"]
     xin = red["xstep"] if degenerate else red["xin"]
     newly = alive0 & (red["status"] != Status.SUCCESS)

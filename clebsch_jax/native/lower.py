@@ -355,13 +355,15 @@ def _convert_entry(em: Emitter, x, src, dst):
     return x
 
 
-def _convert(em: Emitter, eqn, args):
-    src, dst = _in_dtype(eqn), _out_dtype(eqn)
-    (a,) = args
+def _convert_array(em: Emitter, a, src, dst):
     out = np.empty(a.shape, object)
     for idx in np.ndindex(a.shape):
         out[idx] = _convert_entry(em, a[idx], src, dst)
     return out
+
+
+def _convert(em: Emitter, eqn, args):
+    return _convert_array(em, args[0], _in_dtype(eqn), _out_dtype(eqn))
 
 
 def _clamp(em: Emitter, eqn, args):
@@ -530,9 +532,8 @@ def _dot_general(em, eqn, args):
     lhs, rhs = args
     (lc, rc), (lb, rb) = eqn.params["dimension_numbers"]
     dtype = _out_dtype(eqn)
-    if _in_dtype(eqn) != dtype or _in_dtype(eqn, 1) != dtype:
-        lhs = _convert(em, _fake(eqn, 0, dtype), [lhs]) if _in_dtype(eqn) != dtype else lhs
-        rhs = _convert(em, _fake(eqn, 1, dtype), [rhs]) if _in_dtype(eqn, 1) != dtype else rhs
+    lhs = _convert_array(em, lhs, _in_dtype(eqn), dtype) if _in_dtype(eqn) != dtype else lhs
+    rhs = _convert_array(em, rhs, _in_dtype(eqn, 1), dtype) if _in_dtype(eqn, 1) != dtype else rhs
     lf = [d for d in range(lhs.ndim) if d not in lc and d not in lb]
     rf = [d for d in range(rhs.ndim) if d not in rc and d not in rb]
     L = np.transpose(lhs, list(lb) + lf + list(lc))
@@ -549,18 +550,6 @@ def _dot_general(em, eqn, args):
             for j in np.ndindex(rfs):
                 out[bi + i + j] = _sum_products(em, zip(L[bi + i], R[bi + j]), dtype)
     return out
-
-
-class _fake:
-    """An equation-like object for `_convert` of one operand of another equation."""
-
-    def __init__(self, eqn, i, dst):
-        self.invars, self.outvars = [eqn.invars[i]], [_Var(dst)]
-
-
-class _Var:
-    def __init__(self, dtype):
-        self.aval = type("A", (), {"dtype": dtype})()
 
 
 def _reduce(op: str):

@@ -32,7 +32,7 @@ from typing import Any, ClassVar, NamedTuple
 
 import jax
 
-__all__ = ["AbstractStepper", "AbstractWrapper", "Facts", "Nodes", "Principle"]
+__all__ = ["AbstractStepper", "AbstractWrapper", "Facts", "Nodes", "Principle", "innermost"]
 
 
 class Principle(str, enum.Enum):
@@ -145,3 +145,10 @@ class AbstractWrapper(AbstractStepper):
 
     def nodes(self, system, state0, states, outs) -> Nodes:
         return self.base.nodes(system, state0, states, outs)
+
+
+def innermost(stepper):
+    """The stepper inside any wrappers (`AbstractWrapper`): the one that makes the solves."""
+    while isinstance(stepper, AbstractWrapper):
+        stepper = stepper.base
+    return stepper
