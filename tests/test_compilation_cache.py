@@ -71,8 +71,8 @@ def test_bad_arguments_are_refused_before_touching_jax(tmp_path):
         cj.enable_compilation_cache(tmp_path, min_compile_time=True)
     import jax
 
-    # unchanged in this process (the test run's own cache, tests/conftest.py)
-    assert jax.config.jax_compilation_cache_dir == os.environ["CLEBSCH_JAX_TEST_RUN_XLA_CACHE"]
+    # unchanged in this process (the test run keeps no persistent cache, tests/conftest.py)
+    assert jax.config.jax_compilation_cache_dir is None
 
 
 def test_default_directory_follows_the_environment(monkeypatch, tmp_path):
