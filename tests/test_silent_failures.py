@@ -20,7 +20,7 @@ from jax.tree_util import Partial
 
 import clebsch_jax as cj
 from clebsch_jax import Status
-from clebsch_jax.march import integrate as integrate_module
+from clebsch_jax.core import validation
 from clebsch_jax.march.scan import energy_jump
 
 I3, W = jnp.eye(3), jnp.array([1.3, 0.8, -0.4])
@@ -354,7 +354,7 @@ def test_a_run_too_large_for_memory_is_refused_with_the_estimate():
 
 def test_the_size_guard_uses_the_machines_memory(monkeypatch):
     """Variant: on a machine with 1 MB a 10⁴-step run does not fit, a 10-step one does."""
-    monkeypatch.setattr(integrate_module, "_memory_limit", lambda: 10**6)
+    monkeypatch.setattr(validation, "memory_limit", lambda: 10**6)
     with pytest.raises(ValueError, match="more than this machine's 0.001 GB"):
         cj.integrate(RB, I3, W, dt=0.1, n_steps=10**4)
     assert int(cj.integrate(RB, I3, W, dt=0.1, n_steps=10).result) == Status.SUCCESS

@@ -5,7 +5,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import numbers
-import os
 import types
 import warnings
 
@@ -20,6 +19,7 @@ from ..core.system import ClebschSystem
 from ..core.validation import (
     any_traced,
     check_configuration,
+    check_memory,
     float_array,
     is_array,
     is_traced,
@@ -211,26 +211,24 @@ def _warn_if_remade(system) -> None:
         )
 
 
-def _memory_limit() -> int:
-    """The machine's physical memory in bytes (0 if unknown: no limit)."""
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return 0
-
-
 def _check_size(Q0, xi0, n_steps: int):
     """Refuse a run whose `Solution` could not fit in memory, before allocating it: every node
     keeps Q, p, the momentum and ξ, every step P, ξ and four statistics (float64)."""
-    per_step = 8 * (3 * Q0.size + 3 * xi0.size + 8)
-    need, limit = per_step * (n_steps + 1), _memory_limit()
-    if limit and need > limit:
-        raise ValueError(
-            f"n_steps: {n_steps} steps would need about {need / 1e9:.3g} GB for the Solution "
-            f"({per_step} bytes per step), more than this machine's {limit / 1e9:.3g} GB of memory. Run it in "
-            "pieces (clebsch_jax.continue_from), or with clebsch_jax.sweep, which keeps per-member "
-            "reductions and every k-th node (save_every=k) instead of the whole trajectory."
-        )
+    per_step = solution_bytes_per_step(Q0, xi0)
+    check_memory(
+        "n_steps",
+        f"{n_steps} steps",
+        per_step * (n_steps + 1),
+        "Run it in pieces (clebsch_jax.continue_from), or with clebsch_jax.sweep, which keeps per-member "
+        "reductions and every k-th node (save_every=k) instead of the whole trajectory.",
+        detail=f" for the Solution ({per_step} bytes per step)",
+    )
+
+
+def solution_bytes_per_step(Q0, xi0) -> int:
+    """Bytes a `Solution` keeps per step of a member with these shapes (float64): every node
+    Q, p, the momentum and ξ, every step P, ξ and four statistics."""
+    return 8 * (3 * int(np.size(Q0)) + 3 * int(np.size(xi0)) + 8)
 
 
 def step_plan(
