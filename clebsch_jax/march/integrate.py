@@ -14,7 +14,7 @@ import numpy as np
 
 from ..core.isotropy import gauge_isotropy, physical_velocity
 from ..core.jit import filter_jit
-from ..core.model_checks import check_first_step, check_group_configuration, check_model
+from ..core.model_checks import check_first_step, check_group_configuration, check_model, first_step_may_leave
 from ..core.system import ClebschSystem
 from ..core.validation import (
     any_traced,
@@ -423,6 +423,32 @@ def prepared_method(system, Q0, xi0, **options):
     (`clebsch_jax.sweep` checks one member this way, under `jax.eval_shape`). The keyword
     options are `integrate`'s."""
     return _prepared(system, Q0, xi0, **options)[:3]
+
+
+def check_member(system, Q0, xi0, **options) -> None:
+    """`integrate`'s checks of one member with concrete values, for callers that march it
+    traced, where `integrate` itself cannot make them (`clebsch_jax.sweep` and
+    `clebsch_jax.batch` call it on their first member before compiling the batch). Raises the
+    errors and emits the warnings `integrate` would for the same call: everything checked
+    before the march (`prepared_method`: the arguments, the maps' shapes, `check_configuration`,
+    `check_model`, `check_group_configuration`), and, when the first step could leave the
+    configuration manifold (`first_step_may_leave`: not for the built-in models with their
+    default derivative maps), `check_first_step` on one step of this member, marched alone
+    (one compiled step). The keyword options are `integrate`'s; `n_steps` is not used (the
+    caller checks the size of its own run). Skipped where a value is traced or a map closes
+    over a traced value."""
+    options = {key: value for key, value in options.items() if key not in ("n_steps", "throw")}
+    P0 = options.pop("P0", None)
+    # the isotropy's adjustment of xi0 (and its warning) is integrate's, when P0 is not given:
+    # a batch marches xi0 as given, so the checks see it as given
+    given = P0 if P0 is not None else jnp.zeros(np.shape(Q0))
+    stepper, (Q0, xi0, _, dt, t0, closes), _, system = _prepared(system, Q0, xi0, n_steps=1, P0=given, **options)
+    if closes or any_traced(system, Q0, xi0, dt, t0, P0) or not first_step_may_leave(system, Q0, xi0):
+        return
+    P0 = None if P0 is None else float_array(P0, "P0")
+    sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, 1, check_energy=False)
+    if sol.Q is not None and not any_traced(sol.Q):
+        check_first_step(system, sol.method, Q0, xi0, np.asarray(sol.Q)[1])
 
 
 def _prepared(
