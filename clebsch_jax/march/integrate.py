@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import collections
+import contextlib
+import contextvars
 import dataclasses
 import numbers
 import types
 import warnings
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -377,6 +380,7 @@ def integrate(
     differentiation (`clebsch_jax.roots.implicit`).
     """
     user_system = system
+    given = (system, Q0, xi0, P0, dt, t0)
     stepper, (Q0, xi0, P0, dt, t0, closes), n_steps, system = _prepared(
         system,
         Q0,
@@ -401,6 +405,11 @@ def integrate(
     if closes or any_traced(system, Q0, xi0, P0, dt, t0):
         # one scan, in the caller's program (differentiable by it); values unknown until now
         # are checked per member
+        calls = _RECORDED.get()
+        if calls is not None and not closes:
+            options = dict(method=method, scheme=scheme, reduce=reduce, need_P=need_P, reconstruct=reconstruct)
+            options.update(rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian)
+            calls.append(RecordedCall(given, dict(options, order=order, composition=composition)))
         sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy, check_inputs=True)
     else:  # programs reused for any n_steps
         _warn_if_remade(user_system)
@@ -423,6 +432,32 @@ def prepared_method(system, Q0, xi0, **options):
     (`clebsch_jax.sweep` checks one member this way, under `jax.eval_shape`). The keyword
     options are `integrate`'s."""
     return _prepared(system, Q0, xi0, **options)[:3]
+
+
+class RecordedCall(NamedTuple):
+    """A traced `integrate` call seen inside `recording_calls`: its arguments as given, `args` =
+    (system, Q0, xi0, P0, dt, t0) (tracers of the caller's trace), and its other `options`."""
+
+    args: tuple
+    options: dict
+
+
+_RECORDED: contextvars.ContextVar = contextvars.ContextVar("clebsch_jax_recorded_calls", default=None)
+
+
+@contextlib.contextmanager
+def recording_calls():
+    """Within this context (in this thread), every `integrate` call on traced values whose maps
+    close over no traced value is recorded (`RecordedCall`) in the list it yields: a caller
+    that traces a function of one member (`clebsch_jax.batch`) can then evaluate those
+    arguments for a concrete member and make the checks `integrate` skipped on them
+    (`check_member`)."""
+    calls: list = []
+    token = _RECORDED.set(calls)
+    try:
+        yield calls
+    finally:
+        _RECORDED.reset(token)
 
 
 def check_member(system, Q0, xi0, **options) -> None:
