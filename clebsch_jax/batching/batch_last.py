@@ -110,7 +110,7 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
         c = B if chunk is None else min(chunk, B)
         n_chunks = -(-B // c)
         pad = n_chunks * c - B
-        _check_outputs(out_shapes, B + pad)
+        _check_outputs(out_shapes, B, pad)
         if calls:
             _check_first_member(closed, calls, n_out, [np.asarray(x)[0] if f else x for x, f in zip(leaves, flags)])
 
@@ -180,15 +180,16 @@ moved to `jax.vmap`'s layout (a copy) — a lower bound of what the program need
 intermediate arrays (a march's stacked steps) come on top."""
 
 
-def _check_outputs(out_shapes, B: int) -> None:
+def _check_outputs(out_shapes, B: int, pad: int) -> None:
     """Refuse, before compiling, a batch whose outputs alone would not fit in memory
     (`clebsch_jax.core.validation.check_memory`, `integrate`'s guard), e.g. the `Solution`s of
-    10⁴ members of thousands of steps each: the estimate and the ways out."""
+    10⁴ members of thousands of steps each (`pad`: the copies that fill the last chunk): the
+    estimate and the ways out."""
     per = sum(int(np.prod(x.shape)) * np.dtype(x.dtype).itemsize for x in jax.tree_util.tree_leaves(out_shapes))
     check_memory(
         "batch",
         f"{B} members",
-        RESULT_COPIES * per * B,
+        RESULT_COPIES * per * (B + pad),
         "Run fewer members per call, return less per member (e.g. sol.Q[-1] or a reduction instead of the "
         "whole Solution), or use clebsch_jax.sweep, which runs members in batches and keeps per-member "
         "reductions and every k-th node (save_every=k) instead of trajectories.",
