@@ -946,13 +946,17 @@ def _check_first_member(cfg: _Config, members: _Members) -> None:
     members, on which `integrate` skips the checks that need values — the model by autodiff
     (`check_model`), Q0 in the velocity map's group (`check_group_configuration`) and the
     first step on the configuration manifold (`check_first_step`). One member: the checks
-    look at the model (its functions), which the members share."""
+    look at the model (its functions), which the members share. The system's own check of its
+    configurations (`check_Q`) runs on every Q0[j], first (`_check_configurations`)."""
     j = int(members.ic_index[0])
     system = _system_of(cfg, _first_row(members), members.shared)
+    _check_configurations(system, members.Q0, members.n_ic)
     options = {k: v for k, v in cfg.options if k != "check_energy"}
     P0 = None if members.P0 is None else members.P0[j]
     try:
-        _check_member_eagerly(system, members.Q0[j], members.xi0[j], dt=members.dt[0], P0=P0, **options)
+        _check_member_eagerly(
+            system, members.Q0[j], members.xi0[j], dt=members.dt[0], P0=P0, configuration=False, **options
+        )
     except (ValueError, TypeError) as err:
         where = ("make_system(params[0]), " if members.builder is not None else "") + f"Q0[{j}], xi0[{j}]"
         raise type(err)(f"sweep: the first member ({where}) is rejected: {err}") from err
@@ -1155,14 +1159,13 @@ def _check_member(cfg: _Config, *args):
     return memo(_TRACES, ("check",) + _trace_key(cfg, args), run, _TRACES_MAX)
 
 
-def _probe(cfg: _Config, members: _Members, lean: bool = False, configurations: bool = True) -> _Shapes:
+def _probe(cfg: _Config, members: _Members, lean: bool = False) -> _Shapes:
     """One member's shapes, by tracing integrate (its own checks name Q0, xi0, ...): no compile.
-    Then the system's own check of its configurations on every concrete Q0[j].
 
     With `lean` (the sweep runs the lean chunk, `clebsch_jax.batching.lean`, which keeps the
     energy only): the same checks and shapes without tracing the march, which nothing else
-    of such a sweep would reuse (`_check_member`). `configurations=False` leaves out the check
-    of the configurations (made by an earlier probe)."""
+    of such a sweep would reuse (`_check_member`). The configurations and the checks that need
+    values were made before, on concrete values (`_check_first_member`)."""
     p_row = _first_row(members)
     j = members.ic_index[0]
     q_row, x_row = jnp.asarray(members.Q0[j]), jnp.asarray(members.xi0[j])
@@ -1179,9 +1182,6 @@ def _probe(cfg: _Config, members: _Members, lean: bool = False, configurations: 
         ) + f"Q0[j] of shape {q_row.shape}, xi0[j] of shape {x_row.shape}"
         kind = ValueError if isinstance(err, ValueError) else TypeError
         raise kind(f"sweep: one member ({where}) is rejected: {err}") from err
-    # e.g. rotations for SO(3) models: the probe above traces Q0, which skips the check
-    if configurations:
-        _check_configurations(_system_of(cfg, p_row, members.shared), members.Q0, members.n_ic)
     if lean:  # a regular system (nodal velocities), the energy its only invariant (`_lean_applies`)
         invariants = {"energy": jax.ShapeDtypeStruct((cfg.n + 1,), energy_dtype)}
         facts = dict(form=facts.form, scheme=facts.scheme, order=int(facts.order), method=str(facts.name))
@@ -1759,7 +1759,7 @@ def sweep(
         if fast is True or lean:  # "auto" takes the fast path only as the lean chunk
             cfg = dataclasses.replace(cfg, fast_method=method, lean=lean)
     if not (cfg.lean or cfg.native):  # the general chunk's shapes, from a trace of its march (cached by `general`)
-        shapes = _probe(general, members, configurations=shapes is None)
+        shapes = _probe(general, members)
     if batch_size is None:  # every device, and every thread of each, gets a batch
         per_slot = -(-B // (n_dev * run.threads))
         if cfg.lean or cfg.native:  # batches of equal size (no padded members), at most _DEFAULT_BATCH_LEAN

@@ -81,7 +81,7 @@ def _real_output(name: str, out, expected: str):
         raise ValueError(f"{name}: must return {expected}, returned dtype {out.dtype} ({hint}).")
 
 
-def _check_arrays(system, Q0, xi0, P0, dt, t0):
+def _check_arrays(system, Q0, xi0, P0, dt, t0, configuration: bool = True):
     """The arrays as float arrays, and the three maps called on their shapes (`ValueError`
     naming the map that cannot run on them or returns the wrong shape or dtype); then, on
     concrete values, the configuration (`check_configuration`) and the model (`check_model`).
@@ -100,7 +100,8 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     if t0.shape != ():
         raise ValueError(f"t0: expected a scalar, got an array of shape {t0.shape}.")
     closes = _check_maps_once(system, Q0, xi0, dt)
-    check_configuration(system, Q0)
+    if configuration:  # False: the caller checked it (`check_member`)
+        check_configuration(system, Q0)
     facts = check_model(system, Q0, xi0, dt)
     check_group_configuration(system, Q0, xi0)  # after check_model: the velocity map is finite at Q0
     if facts is not None:
@@ -460,7 +461,7 @@ def recording_calls():
         _RECORDED.reset(token)
 
 
-def check_member(system, Q0, xi0, **options) -> None:
+def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> None:
     """`integrate`'s checks of one member with concrete values, for callers that march it
     traced, where `integrate` itself cannot make them (`clebsch_jax.sweep` and
     `clebsch_jax.batch` call it on their first member before compiling the batch). Raises the
@@ -471,13 +472,16 @@ def check_member(system, Q0, xi0, **options) -> None:
     default derivative maps), `check_first_step` on one step of this member, marched alone
     (one compiled step). The keyword options are `integrate`'s; `n_steps` is not used (the
     caller checks the size of its own run). Skipped where a value is traced or a map closes
-    over a traced value."""
+    over a traced value. `configuration=False` leaves out `check_configuration` (a sweep checks
+    every member's Q0 at once)."""
     options = {key: value for key, value in options.items() if key not in ("n_steps", "throw")}
     P0 = options.pop("P0", None)
     # the isotropy's adjustment of xi0 (and its warning) is integrate's, when P0 is not given:
     # a batch marches xi0 as given, so the checks see it as given
     given = P0 if P0 is not None else jnp.zeros(np.shape(Q0))
-    stepper, (Q0, xi0, _, dt, t0, closes), _, system = _prepared(system, Q0, xi0, n_steps=1, P0=given, **options)
+    stepper, (Q0, xi0, _, dt, t0, closes), _, system = _prepared(
+        system, Q0, xi0, n_steps=1, P0=given, configuration=configuration, **options
+    )
     if closes or any_traced(system, Q0, xi0, dt, t0, P0) or not first_step_may_leave(system, Q0, xi0):
         return
     P0 = None if P0 is None else float_array(P0, "P0")
@@ -507,6 +511,7 @@ def _prepared(
     order=None,
     composition=None,
     check_energy=True,
+    configuration=True,
 ):
     """`prepared_method`, and the system to march (the gauged one, when `_check_arrays` fixed
     the isotropy's gauge)."""
@@ -518,7 +523,7 @@ def _prepared(
         check_scheme(system, scheme)
     else:
         _check_method(method, locals())
-    Q0, xi0, P0, dt, t0, closes, system = _check_arrays(system, Q0, xi0, P0, dt, t0)
+    Q0, xi0, P0, dt, t0, closes, system = _check_arrays(system, Q0, xi0, P0, dt, t0, configuration)
     _check_size(Q0, xi0, n_steps)
     if method is None:
         if jacobian == "blocks":
