@@ -146,7 +146,9 @@ def test_a_sweep_refuses_it_before_tracing_a_batch(backend, monkeypatch):
     monkeypatch.setattr(_sweep, "_probe", _reached)
     monkeypatch.setattr(_sweep, "_native_config", _reached)
     Q0, xi0 = np.broadcast_to(np.eye(3), (2, 3, 3)), np.tile(TOP_XI0, (2, 1))
-    with pytest.raises(ValueError, match=rf"^sweep: the first member \(Q0\[0\], xi0\[0\]\) is rejected: {LEAVES}"):
+    with pytest.raises(
+        ValueError, match=rf"^sweep: member 0 \(Q0\[0\], xi0\[0\]\) is rejected by integrate's checks: {LEAVES}"
+    ):
         cj.sweep(TOP, None, Q0, xi0, dt=0.05, n_steps=4, scheme="left", backend=backend)
     with pytest.raises(_Reached):  # the default (midpoint) principle keeps Q on SO(3): accepted
         cj.sweep(TOP, None, Q0, xi0, dt=0.05, n_steps=4, backend=backend)
@@ -155,5 +157,5 @@ def test_a_sweep_refuses_it_before_tracing_a_batch(backend, monkeypatch):
 def test_batch_refuses_it_before_evaluating_the_batch(monkeypatch):
     monkeypatch.setattr(_batch_last, "_eval_closed", _reached)
     march = cj.batch(lambda x: cj.integrate(TOP, jnp.eye(3), x, dt=0.05, n_steps=2, scheme="left", throw=False).Q[-1])
-    with pytest.raises(ValueError, match=rf"^batch: the first member is rejected by integrate's checks: {LEAVES}"):
+    with pytest.raises(ValueError, match=rf"^batch: member 0 is rejected by integrate's checks: {LEAVES}"):
         march(np.tile(TOP_XI0, (2, 1)))

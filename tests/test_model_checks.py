@@ -257,7 +257,9 @@ def test_a_velocity_map_not_linear_in_xi_is_refused_by_integrate_on_a_vector_spa
 def test_a_sweep_refuses_a_velocity_map_not_linear_in_xi_before_tracing_a_batch(backend, no_batch_trace):
     """Before, the sweep ran it and reported success (the body frozen, no energy error)."""
     Q0, xi0 = np.tile(np.asarray(E3), (3, 1)), np.tile(np.asarray(XI0), (3, 1))
-    with pytest.raises(ValueError, match=r"^sweep: the first member \(Q0\[0\], xi0\[0\]\) is rejected: velocity_map: "):
+    with pytest.raises(
+        ValueError, match=r"^sweep: member 0 \(Q0\[0\], xi0\[0\]\) is rejected by integrate's checks: velocity_map: "
+    ):
         cj.sweep(_quadratic_on_r3(), None, Q0, xi0, dt=0.1, n_steps=4, backend=backend)
     # the same sweep of a linear map gets past its checks to the (stubbed) batch
     with pytest.raises(_Marched):
@@ -269,8 +271,20 @@ def test_a_sweep_refuses_a_degenerate_lagrangian_of_its_parameters(no_batch_trac
     of inertia (the constructor's own check is skipped on the sweep's traced rows)."""
     rows = np.array([[2.0, 1.0, 0.0], [2.0, 1.0, 0.5]])
     Q0 = np.broadcast_to(np.eye(3), (2, 3, 3))
-    with pytest.raises(ValueError, match=r"^sweep: the first member \(make_system\(params\[0\]\), Q0\[0\], xi0\[0\]\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"^sweep: member 0 \(make_system\(params\[0\]\), Q0\[0\], xi0\[0\]\) is rejected by integrate's checks: lagrangian: degenerate",
+    ):
         cj.sweep(_zero_moment_body, rows, Q0, np.tile(np.asarray(XI0), (2, 1)), dt=0.1, n_steps=4, backend="xla")
+
+
+def test_a_sweep_checks_the_first_member_that_can_run(no_batch_trace):
+    """A member with non-finite initial data is reported in the table (INVALID_INPUT), not
+    refused: the checks take the next member, and name it."""
+    Q0, xi0 = np.tile(np.asarray(E3), (3, 1)), np.tile(np.asarray(XI0), (3, 1))
+    xi0[0, 1] = np.nan
+    with pytest.raises(ValueError, match=r"^sweep: member 1 \(Q0\[1\], xi0\[1\]\) is rejected by integrate's checks: "):
+        cj.sweep(_quadratic_on_r3(), None, Q0, xi0, dt=0.1, n_steps=4, backend="xla")
 
 
 def _zero_moment_body(inertia):
@@ -292,7 +306,10 @@ def test_batch_refuses_a_velocity_map_not_linear_in_xi_before_evaluating_the_bat
     monkeypatch.setattr(_batch_last, "_eval_closed", evaluated)
     Q0s, xi0s = np.tile(np.asarray(E3), (3, 1)), np.tile(np.asarray(XI0), (3, 1))
     march = cj.batch(lambda q, x: cj.integrate(_quadratic_on_r3(), q, x, dt=0.1, n_steps=2, throw=False).Q[-1])
-    with pytest.raises(ValueError, match=r"^batch: the first member is rejected by integrate's checks: velocity_map: "):
+    with pytest.raises(ValueError, match=r"^batch: member 0 is rejected by integrate's checks: velocity_map: "):
+        march(Q0s, xi0s)
+    xi0s[0, 0] = np.nan  # a member with non-finite data is reported by the batch: the next is checked
+    with pytest.raises(ValueError, match=r"^batch: member 1 is rejected by integrate's checks: velocity_map: "):
         march(Q0s, xi0s)
     # under the caller's jit the values are unknown: the batch is traced and evaluated unchecked
     with pytest.raises(_Marched):

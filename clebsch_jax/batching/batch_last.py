@@ -81,6 +81,15 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
     **Returns:** a function with `jax.vmap(fun, in_axes)`'s signature and outputs (every output
     batched along axis 0).
 
+    Checks, before anything is evaluated or compiled: the outputs of all members, estimated
+    from one member's trace, must fit in memory (twice: batch-last and in `jax.vmap`'s layout;
+    a `ValueError` naming `batch` gives the estimate). Called on concrete arrays (not inside
+    `jax.jit`), each `clebsch_jax.integrate` call in `fun` is also checked on the first
+    member's values as `integrate` checks a plain call (`clebsch_jax.march.integrate.
+    check_member`: the model by autodiff, the configuration, the first step on the manifold),
+    which under tracing it cannot do itself; not when its arguments are computed by a loop or
+    inside a transformation of `fun`'s own.
+
     Transformations: jit-compatible (trace it inside `jax.jit`; it is not jitted itself).
     Not for differentiation: the program is evaluated primitive by primitive, so custom
     derivative rules (`custom_jvp`, the implicit differentiation of `integrate`'s Newton
@@ -112,7 +121,7 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
         pad = n_chunks * c - B
         _check_outputs(out_shapes, B, pad)
         if calls:
-            _check_first_member(closed, calls, n_out, [np.asarray(x)[0] if f else x for x, f in zip(leaves, flags)])
+            _check_first_member(closed, calls, n_out, leaves, flags, B)
 
         def run(chunk_leaves):  # batched leaves batch-last, (…, c)
             outs, out_flags = _eval_closed(closed, chunk_leaves, flags, c)
@@ -199,16 +208,21 @@ def _check_outputs(out_shapes, B: int, pad: int) -> None:
 
 MEMBER_CHECK_MAX_EQNS = 200
 """`_check_first_member` evaluates the operations that compute `integrate`'s arguments from the
-batch's for the first member, one by one, when there are at most this many and none is a loop:
+batch's for a member, one by one, when there are at most this many and none is a loop:
 arguments computed by a long program (another march's result) are not checked."""
 
+MEMBER_CHECK_TRIES = 8
+"""`_check_first_member` checks the first member whose arguments are valid (finite, dt > 0)
+among the first this many members."""
 
-def _check_first_member(closed, calls: list, n_out: int, first: list) -> None:
+
+def _check_first_member(closed, calls: list, n_out: int, leaves: list, flags: list, B: int) -> None:
     """`integrate`'s checks that need values (`clebsch_jax.march.integrate.check_member`: the model
     by autodiff, the configuration, Q0 in the velocity map's group, the first step on the
-    manifold) of each recorded `integrate` call, for the batch's first member, before the batch
-    is compiled: its arguments evaluated from the jaxpr's extra outputs (after the `n_out`
-    outputs of the function) on `first`, the first member's inputs."""
+    manifold) of each recorded `integrate` call, for the batch's first member whose arguments are
+    valid (a member with non-finite values or dt <= 0 reports `Status.INVALID_INPUT` in the
+    batch, as under `jax.vmap`), before the batch is compiled: its arguments are the jaxpr's
+    extra outputs (after the `n_out` outputs of the function), evaluated for that member."""
     jaxpr = closed.jaxpr
     extras = jaxpr.outvars[n_out:]
     needed = {v for v in extras if not isinstance(v, jex.Literal)}
@@ -219,20 +233,30 @@ def _check_first_member(closed, calls: list, n_out: int, first: list) -> None:
             needed.update(v for v in eqn.invars if not isinstance(v, jex.Literal))
     if len(kept) > MEMBER_CHECK_MAX_EQNS or any(eqn.primitive.name in ("while", "scan") for eqn in kept):
         return
-    env = dict(zip(jaxpr.constvars, closed.consts))
-    env.update(zip(jaxpr.invars, first))
-    for eqn in reversed(kept):
-        vals = [v.val if isinstance(v, jex.Literal) else env[v] for v in eqn.invars]
-        env.update(zip(eqn.outvars, _bind(eqn, vals)))
-    values = iter(v.val if isinstance(v, jex.Literal) else env[v] for v in extras)
+    kept.reverse()
+    host = [np.asarray(x) if f else x for x, f in zip(leaves, flags)]
+    for m in range(min(B, MEMBER_CHECK_TRIES)):
+        env = dict(zip(jaxpr.constvars, closed.consts))
+        env.update(zip(jaxpr.invars, [x[m] if f else x for x, f in zip(host, flags)]))
+        for eqn in kept:
+            vals = [v.val if isinstance(v, jex.Literal) else env[v] for v in eqn.invars]
+            env.update(zip(eqn.outvars, _bind(eqn, vals)))
+        values = [np.asarray(v.val if isinstance(v, jex.Literal) else env[v]) for v in extras]
+        if all(np.all(np.isfinite(v)) for v in values if np.issubdtype(v.dtype, np.inexact)):
+            break
+    else:
+        return
+    values = iter(values)
     for call in calls:
-        leaves, tree = jax.tree_util.tree_flatten(call.args)
-        leaves = [next(values) if _is_value(x) else x for x in leaves]  # functions stay as they are
-        system, Q0, xi0, P0, dt, t0 = jax.tree_util.tree_unflatten(tree, leaves)
+        flat, tree = jax.tree_util.tree_flatten(call.args)
+        flat = [next(values) if _is_value(x) else x for x in flat]  # functions stay as they are
+        system, Q0, xi0, P0, dt, t0 = jax.tree_util.tree_unflatten(tree, flat)
+        if not np.all(np.asarray(dt) > 0):
+            continue  # reported by the batch (INVALID_INPUT), as under jax.vmap
         try:
             check_member(system, Q0, xi0, dt=dt, P0=P0, t0=t0, **call.options)
         except (ValueError, TypeError) as err:
-            raise type(err)(f"batch: the first member is rejected by integrate's checks: {err}") from err
+            raise type(err)(f"batch: member {m} is rejected by integrate's checks: {err}") from err
 
 
 def _members(leaves, axes):

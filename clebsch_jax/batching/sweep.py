@@ -940,26 +940,45 @@ def _check_size(run: _Run, members: _Members) -> None:
     )
 
 
+FIRST_MEMBER_TRIES = 8
+"""`_check_first_member` checks the first member whose inputs are finite and whose system
+`make_system` builds from its concrete parameter row, among the first this many such members."""
+
+
 def _check_first_member(cfg: _Config, members: _Members) -> None:
-    """`integrate`'s checks of the first member, with its concrete values, before any batch is
-    traced or compiled (`clebsch_jax.march.integrate.check_member`): the batches march traced
-    members, on which `integrate` skips the checks that need values — the model by autodiff
-    (`check_model`), Q0 in the velocity map's group (`check_group_configuration`) and the
-    first step on the configuration manifold (`check_first_step`). One member: the checks
-    look at the model (its functions), which the members share. The system's own check of its
+    """`integrate`'s checks of a member, with its concrete values, before any batch is traced or
+    compiled (`clebsch_jax.march.integrate.check_member`): the batches march traced members, on
+    which `integrate` skips the checks that need values — the model by autodiff (`check_model`),
+    Q0 in the velocity map's group (`check_group_configuration`) and the first step on the
+    configuration manifold (`check_first_step`). One member: the checks look at the model (its
+    functions), which the members share. It is the first member that can run: one with
+    non-finite inputs, or whose parameter row the model's constructor refuses, is reported in
+    the table instead (`Status.INVALID_INPUT`), as before. The system's own check of its
     configurations (`check_Q`) runs on every Q0[j], first (`_check_configurations`)."""
-    j = int(members.ic_index[0])
-    system = _system_of(cfg, _first_row(members), members.shared)
-    _check_configurations(system, members.Q0, members.n_ic)
+    _check_configurations(_system_of(cfg, _first_row(members), members.shared), members.Q0, members.n_ic)
+    finite = lambda a: np.all(np.isfinite(np.reshape(a, (len(a), -1))), axis=1)  # noqa: E731
+    ok_ic = finite(members.Q0) & finite(members.xi0) & (True if members.P0 is None else finite(members.P0))
+    ok = ok_ic[members.ic_index]
+    if members.builder is not None:
+        rows = np.all([finite(leaf) for leaf in jax.tree_util.tree_leaves(members.params)], axis=0)
+        ok &= rows[members.param_index]
     options = {k: v for k, v in cfg.options if k != "check_energy"}
-    P0 = None if members.P0 is None else members.P0[j]
-    try:
-        _check_member_eagerly(
-            system, members.Q0[j], members.xi0[j], dt=members.dt[0], P0=P0, configuration=False, **options
-        )
-    except (ValueError, TypeError) as err:
-        where = ("make_system(params[0]), " if members.builder is not None else "") + f"Q0[{j}], xi0[{j}]"
-        raise type(err)(f"sweep: the first member ({where}) is rejected: {err}") from err
+    for m in np.flatnonzero(ok)[:FIRST_MEMBER_TRIES]:
+        i, j = int(members.param_index[m]), int(members.ic_index[m])
+        try:
+            row = None if members.builder is None else _member_slices(members.params, i)
+            system = _system_of(cfg, row, members.shared)
+        except (ValueError, TypeError):  # a row the constructor refuses: that member reports it
+            continue
+        P0 = None if members.P0 is None else members.P0[j]
+        try:
+            _check_member_eagerly(
+                system, members.Q0[j], members.xi0[j], dt=members.dt[m], P0=P0, configuration=False, **options
+            )
+        except (ValueError, TypeError) as err:
+            where = (f"make_system(params[{i}]), " if members.builder is not None else "") + f"Q0[{j}], xi0[{j}]"
+            raise type(err)(f"sweep: member {m} ({where}) is rejected by integrate's checks: {err}") from err
+        return
 
 
 def _chunk_config(run: _Run, members: _Members, options: dict) -> _Config:
