@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 import clebsch_jax as cj
+from clebsch_jax.batching import batch_last as _batch_last
+from clebsch_jax.batching import sweep as _sweep
 
 from .systems import kinetic, translation, unit_vector
 
@@ -112,3 +114,48 @@ def test_a_velocity_map_not_tangent_to_the_manifold_is_refused_after_its_first_s
         r"principle\) leaves the configuration manifold: not a unit vector",
     ):
         cj.integrate(circle, np.array([0.6, 0.8]), np.ones(2), dt=0.1, n_steps=2)
+
+
+# --------------------------------------------------------------------------------------------
+# sweeps and batches march traced members: they make this check on their first member, one
+# step marched alone, before any batch is traced or compiled. A variant of the issue's example
+# (the rigid body): the heavy top with the forward difference and the left principle.
+
+TOP = cj.models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5, derivative_map=cj.forward_difference)
+TOP_XI0 = np.array([0.3, -0.2, 6.0])
+LEAVES = r"derivative_map: one step of forward difference from Q0 \(left principle\) leaves the configuration manifold"
+
+
+class _Reached(Exception):
+    """The batch was about to be traced or evaluated: the check came too late."""
+
+
+def _reached(*args, **kwargs):
+    raise _Reached
+
+
+def test_integrate_refuses_the_forward_difference_on_the_heavy_top_with_the_left_principle():
+    with pytest.raises(ValueError, match=rf"^{LEAVES}: not a rotation matrix"):
+        cj.integrate(TOP, np.eye(3), TOP_XI0, dt=0.05, n_steps=2, scheme="left")
+
+
+@pytest.mark.parametrize("backend", ["xla", "native"])
+def test_a_sweep_refuses_it_before_tracing_a_batch(backend, monkeypatch):
+    """Before, a sweep reported success with |QᵀQ − I| of order one. The native backend does not
+    apply to this program (backend="native" would be refused for it): the check comes first."""
+    monkeypatch.setattr(_sweep, "_probe", _reached)
+    monkeypatch.setattr(_sweep, "_native_config", _reached)
+    Q0, xi0 = np.broadcast_to(np.eye(3), (2, 3, 3)), np.tile(TOP_XI0, (2, 1))
+    with pytest.raises(
+        ValueError, match=rf"^sweep: member 0 \(Q0\[0\], xi0\[0\]\) is rejected by integrate's checks: {LEAVES}"
+    ):
+        cj.sweep(TOP, None, Q0, xi0, dt=0.05, n_steps=4, scheme="left", backend=backend)
+    with pytest.raises(_Reached):  # the default (midpoint) principle keeps Q on SO(3): accepted
+        cj.sweep(TOP, None, Q0, xi0, dt=0.05, n_steps=4, backend=backend)
+
+
+def test_batch_refuses_it_before_evaluating_the_batch(monkeypatch):
+    monkeypatch.setattr(_batch_last, "_eval_closed", _reached)
+    march = cj.batch(lambda x: cj.integrate(TOP, jnp.eye(3), x, dt=0.05, n_steps=2, scheme="left", throw=False).Q[-1])
+    with pytest.raises(ValueError, match=rf"^batch: member 0 is rejected by integrate's checks: {LEAVES}"):
+        march(np.tile(TOP_XI0, (2, 1)))

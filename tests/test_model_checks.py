@@ -15,11 +15,16 @@ import numpy as np
 import pytest
 
 import clebsch_jax as cj
+from clebsch_jax.batching import batch_last as _batch_last
+from clebsch_jax.batching import sweep as _sweep
 from clebsch_jax.march import integrate as _integrate
 
 XI0 = jnp.array([1.3, 0.8, -0.4])
 E3 = jnp.array([0.0, 0.0, 1.0])
 INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
+
+
+_TRACED_MARCH = _integrate._march_jit  # the real one, for the test that traces a batch
 
 
 class _Marched(Exception):
@@ -220,3 +225,92 @@ def test_the_checks_are_skipped_under_vmap():
     forward = cj.models.rigid_body(INERTIA, derivative_map=cj.forward_difference)
     with pytest.raises(_Marched):
         jax.vmap(lambda Q0: cj.integrate(forward, Q0, XI0, dt=0.1, n_steps=2).Q)(np.broadcast_to(np.eye(3), (2, 3, 3)))
+
+
+# --------------------------------------------------------------------------------------------
+# the same checks in sweeps and batches, which march traced members: made on the first member's
+# values before anything of the batch is traced or compiled
+
+
+def _quadratic_on_r3():
+    """A variant of the issue's cubic map: R³ moved by ξ₁ (ξ × Q), quadratic in ξ."""
+    return _on_r3(lambda xi: 0.5 * jnp.sum(xi**2), lambda xi, Q: xi[0] * jnp.cross(xi, Q))
+
+
+@pytest.fixture
+def no_batch_trace(monkeypatch):
+    """A sweep that gets past its checks of the first member would probe or trace a batch."""
+
+    def stub(*args, **kwargs):
+        raise _Marched
+
+    monkeypatch.setattr(_sweep, "_probe", stub)
+    monkeypatch.setattr(_sweep, "_native_config", stub)
+
+
+def test_a_velocity_map_not_linear_in_xi_is_refused_by_integrate_on_a_vector_space():
+    message = refused(_quadratic_on_r3(), E3, XI0, r"^velocity_map: must be linear in xi \(Definition 1\)")
+    assert "differs from J xi" in message
+
+
+@pytest.mark.parametrize("backend", ["xla", "native"])
+def test_a_sweep_refuses_a_velocity_map_not_linear_in_xi_before_tracing_a_batch(backend, no_batch_trace):
+    """Before, the sweep ran it and reported success (the body frozen, no energy error)."""
+    Q0, xi0 = np.tile(np.asarray(E3), (3, 1)), np.tile(np.asarray(XI0), (3, 1))
+    with pytest.raises(
+        ValueError, match=r"^sweep: member 0 \(Q0\[0\], xi0\[0\]\) is rejected by integrate's checks: velocity_map: "
+    ):
+        cj.sweep(_quadratic_on_r3(), None, Q0, xi0, dt=0.1, n_steps=4, backend=backend)
+    # the same sweep of a linear map gets past its checks to the (stubbed) batch
+    with pytest.raises(_Marched):
+        cj.sweep(_on_r3(lambda xi: 0.5 * jnp.sum(xi**2)), None, Q0, xi0, dt=0.1, n_steps=4, backend=backend)
+
+
+def test_a_sweep_refuses_a_degenerate_lagrangian_of_its_parameters(no_batch_trace):
+    """make_system(params[0]) is checked: a rigid body whose first inertia row has a zero moment
+    of inertia (the constructor's own check is skipped on the sweep's traced rows)."""
+    rows = np.array([[2.0, 1.0, 0.0], [2.0, 1.0, 0.5]])
+    Q0 = np.broadcast_to(np.eye(3), (2, 3, 3))
+    with pytest.raises(
+        ValueError,
+        match=r"^sweep: member 0 \(make_system\(params\[0\]\), Q0\[0\], xi0\[0\]\) is rejected by integrate's checks: lagrangian: degenerate",
+    ):
+        cj.sweep(_zero_moment_body, rows, Q0, np.tile(np.asarray(XI0), (2, 1)), dt=0.1, n_steps=4, backend="xla")
+
+
+def test_a_sweep_checks_the_first_member_that_can_run(no_batch_trace):
+    """A member with non-finite initial data is reported in the table (INVALID_INPUT), not
+    refused: the checks take the next member, and name it."""
+    Q0, xi0 = np.tile(np.asarray(E3), (3, 1)), np.tile(np.asarray(XI0), (3, 1))
+    xi0[0, 1] = np.nan
+    with pytest.raises(ValueError, match=r"^sweep: member 1 \(Q0\[1\], xi0\[1\]\) is rejected by integrate's checks: "):
+        cj.sweep(_quadratic_on_r3(), None, Q0, xi0, dt=0.1, n_steps=4, backend="xla")
+
+
+def _zero_moment_body(inertia):
+    return cj.ClebschSystem(
+        lagrangian=lambda xi: 0.5 * jnp.sum(inertia * xi**2),
+        velocity_map=lambda xi, Q: Q @ cj.lie.hat(xi),
+        derivative_map=cj.cayley,
+    )
+
+
+def test_batch_refuses_a_velocity_map_not_linear_in_xi_before_evaluating_the_batch(monkeypatch):
+    """cj.batch traces one member (integrate's traced path), then checks the first member's values
+    before its program is evaluated (stubbed here: reaching it fails the test)."""
+    monkeypatch.setattr(_integrate, "_march_jit", _TRACED_MARCH)  # the trace is needed
+
+    def evaluated(*args, **kwargs):
+        raise _Marched
+
+    monkeypatch.setattr(_batch_last, "_eval_closed", evaluated)
+    Q0s, xi0s = np.tile(np.asarray(E3), (3, 1)), np.tile(np.asarray(XI0), (3, 1))
+    march = cj.batch(lambda q, x: cj.integrate(_quadratic_on_r3(), q, x, dt=0.1, n_steps=2, throw=False).Q[-1])
+    with pytest.raises(ValueError, match=r"^batch: member 0 is rejected by integrate's checks: velocity_map: "):
+        march(Q0s, xi0s)
+    xi0s[0, 0] = np.nan  # a member with non-finite data is reported by the batch: the next is checked
+    with pytest.raises(ValueError, match=r"^batch: member 1 is rejected by integrate's checks: velocity_map: "):
+        march(Q0s, xi0s)
+    # under the caller's jit the values are unknown: the batch is traced and evaluated unchecked
+    with pytest.raises(_Marched):
+        jax.jit(march)(Q0s, xi0s)

@@ -20,7 +20,9 @@ from jax.tree_util import Partial
 
 import clebsch_jax as cj
 from clebsch_jax import Status
-from clebsch_jax.march import integrate as integrate_module
+from clebsch_jax.batching import batch_last
+from clebsch_jax.batching import sweep as sweep_module
+from clebsch_jax.core import validation
 from clebsch_jax.march.scan import energy_jump
 
 I3, W = jnp.eye(3), jnp.array([1.3, 0.8, -0.4])
@@ -354,10 +356,42 @@ def test_a_run_too_large_for_memory_is_refused_with_the_estimate():
 
 def test_the_size_guard_uses_the_machines_memory(monkeypatch):
     """Variant: on a machine with 1 MB a 10⁴-step run does not fit, a 10-step one does."""
-    monkeypatch.setattr(integrate_module, "_memory_limit", lambda: 10**6)
+    monkeypatch.setattr(validation, "memory_limit", lambda: 10**6)
     with pytest.raises(ValueError, match="more than this machine's 0.001 GB"):
         cj.integrate(RB, I3, W, dt=0.1, n_steps=10**4)
     assert int(cj.integrate(RB, I3, W, dt=0.1, n_steps=10).result) == Status.SUCCESS
+
+
+def test_a_sweep_too_long_for_its_schedule_is_refused_with_the_estimate_before_tracing(monkeypatch):
+    """10¹² steps in chunks of 100 would be 10¹⁰ chunk descriptors (an empty MemoryError before):
+    refused with the estimate and the ways out, before anything is traced."""
+
+    def traced(*args, **kwargs):
+        raise AssertionError("the sweep was traced for a run it cannot hold")
+
+    monkeypatch.setattr(sweep_module, "_check_first_member", traced)
+    with pytest.raises(ValueError, match=r"^n_steps: 1000000000000 steps in 10000000000 chunks of 100 .* GB") as info:
+        cj.sweep(RB, None, I3[None], W[None], dt=0.1, n_steps=10**12)
+    assert "for the schedule of chunks" in str(info.value) and "larger chunk_steps" in str(info.value)
+    # variant: the saved nodes of a run that would fit without them
+    monkeypatch.setattr(validation, "memory_limit", lambda: 10**6)
+    with pytest.raises(ValueError, match=r"^n_steps: .* GB for the saved nodes.*save_every"):
+        cj.sweep(RB, None, I3[None], W[None], dt=0.1, n_steps=10**5, save_every=1)
+
+
+def test_a_batch_whose_outputs_cannot_fit_is_refused_with_the_estimate_before_evaluating(monkeypatch):
+    """cj.batch knows the members' output shapes from one member's trace: 10⁴ members of 2000
+    steps on a machine of 1 GB are refused before the program is evaluated or compiled."""
+
+    def evaluated(*args, **kwargs):
+        raise AssertionError("the batch was evaluated")
+
+    monkeypatch.setattr(batch_last, "_eval_closed", evaluated)
+    monkeypatch.setattr(validation, "memory_limit", lambda: 10**9)
+    march = cj.batch(lambda x: cj.integrate(RB, I3, x, dt=0.1, n_steps=2000, throw=False))
+    with pytest.raises(ValueError, match=r"^batch: 10000 members would need about .* GB for the outputs") as info:
+        march(jnp.zeros((10**4, 3)))
+    assert "clebsch_jax.sweep" in str(info.value)
 
 
 def test_an_empty_batch_gives_an_empty_result_and_an_empty_sweep_says_so():

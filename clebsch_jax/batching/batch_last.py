@@ -37,7 +37,11 @@ from typing import Callable
 import jax
 import jax.extend.core as jex
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
+
+from ..core.validation import check_memory, is_traced
+from ..march.integrate import check_member, recording_calls
 
 __all__ = ["batch"]
 
@@ -77,6 +81,15 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
     **Returns:** a function with `jax.vmap(fun, in_axes)`'s signature and outputs (every output
     batched along axis 0).
 
+    Checks, before anything is evaluated or compiled: the outputs of all members, estimated
+    from one member's trace, must fit in memory (twice: batch-last and in `jax.vmap`'s layout;
+    a `ValueError` naming `batch` gives the estimate). Called on concrete arrays (not inside
+    `jax.jit`), each `clebsch_jax.integrate` call in `fun` is also checked on the first
+    member's values as `integrate` checks a plain call (`clebsch_jax.march.integrate.
+    check_member`: the model by autodiff, the configuration, the first step on the manifold),
+    which under tracing it cannot do itself; not when its arguments are computed by a loop or
+    inside a transformation of `fun`'s own.
+
     Transformations: jit-compatible (trace it inside `jax.jit`; it is not jitted itself).
     Not for differentiation: the program is evaluated primitive by primitive, so custom
     derivative rules (`custom_jvp`, the implicit differentiation of `integrate`'s Newton
@@ -100,15 +113,19 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
         def flat_fun(*flat):
             return fun(*jax.tree_util.tree_unflatten(tree, flat))
 
-        closed, out_shapes = jax.make_jaxpr(flat_fun, return_shape=True)(*member)
+        closed, out_shapes, calls = _trace(flat_fun, member, record=not any(is_traced(x) for x in leaves))
         out_tree = jax.tree_util.tree_structure(out_shapes)
+        n_out = out_tree.num_leaves
         c = B if chunk is None else min(chunk, B)
         n_chunks = -(-B // c)
         pad = n_chunks * c - B
+        _check_outputs(out_shapes, B, pad)
+        if calls:
+            _check_first_member(closed, calls, n_out, leaves, flags, B)
 
         def run(chunk_leaves):  # batched leaves batch-last, (…, c)
             outs, out_flags = _eval_closed(closed, chunk_leaves, flags, c)
-            return [_to_batched(o, f, c) for o, f in zip(outs, out_flags)]
+            return [_to_batched(o, f, c) for o, f in zip(outs[:n_out], out_flags[:n_out])]
 
         def split(x, a):  # (B, …) -> (n_chunks, …, c)
             if a != 0:
@@ -132,6 +149,114 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
         return jax.tree_util.tree_unflatten(out_tree, outs)
 
     return batched
+
+
+def _trace(flat_fun, member, record: bool):
+    """`jax.make_jaxpr` of one member's `flat_fun`: (closed jaxpr, output shapes, recorded
+    `integrate` calls). With `record` (the batch's values are concrete), the traced `integrate`
+    calls inside are recorded (`clebsch_jax.march.integrate.recording_calls`) and their array
+    arguments added as extra outputs of the jaxpr, after the function's own, so that they can
+    be evaluated for the first member (`_check_first_member`). Calls whose arguments belong to
+    a trace inside the function (its own `jit`, `vmap`, `scan`) cannot be outputs: the function
+    is then traced again without recording (and those calls are not checked)."""
+    if record:
+        found = []
+
+        def probe(*flat):
+            with recording_calls() as calls:
+                out = flat_fun(*flat)
+            found.extend(calls)
+            return out, [[x for x in jax.tree_util.tree_leaves(call.args) if _is_value(x)] for call in calls]
+
+        try:
+            closed, (out_shapes, _) = jax.make_jaxpr(probe, return_shape=True)(*member)
+            return closed, out_shapes, found
+        except jax.errors.UnexpectedTracerError:
+            pass
+    closed, out_shapes = jax.make_jaxpr(flat_fun, return_shape=True)(*member)
+    return closed, out_shapes, []
+
+
+def _is_value(x) -> bool:
+    """Whether a leaf of `integrate`'s arguments is a value (an array, a tracer, a number),
+    which the trace can output, and not a function or other static object."""
+    return is_traced(x) or isinstance(x, (jax.Array, np.ndarray, np.generic, int, float, complex))
+
+
+RESULT_COPIES = 2
+"""`_check_outputs` counts the batch's outputs this many times: they are made batch-last, then
+moved to `jax.vmap`'s layout (a copy) — a lower bound of what the program needs, whose own
+intermediate arrays (a march's stacked steps) come on top."""
+
+
+def _check_outputs(out_shapes, B: int, pad: int) -> None:
+    """Refuse, before compiling, a batch whose outputs alone would not fit in memory
+    (`clebsch_jax.core.validation.check_memory`, `integrate`'s guard), e.g. the `Solution`s of
+    10⁴ members of thousands of steps each (`pad`: the copies that fill the last chunk): the
+    estimate and the ways out."""
+    per = sum(int(np.prod(x.shape)) * np.dtype(x.dtype).itemsize for x in jax.tree_util.tree_leaves(out_shapes))
+    check_memory(
+        "batch",
+        f"{B} members",
+        RESULT_COPIES * per * (B + pad),
+        "Run fewer members per call, return less per member (e.g. sol.Q[-1] or a reduction instead of the "
+        "whole Solution), or use clebsch_jax.sweep, which runs members in batches and keeps per-member "
+        "reductions and every k-th node (save_every=k) instead of trajectories.",
+        detail=f" for the outputs ({per} bytes per member, {RESULT_COPIES} copies: batch-last and batch-first)",
+    )
+
+
+MEMBER_CHECK_MAX_EQNS = 200
+"""`_check_first_member` evaluates the operations that compute `integrate`'s arguments from the
+batch's for a member, one by one, when there are at most this many and none is a loop:
+arguments computed by a long program (another march's result) are not checked."""
+
+MEMBER_CHECK_TRIES = 8
+"""`_check_first_member` checks the first member whose arguments are valid (finite, dt > 0)
+among the first this many members."""
+
+
+def _check_first_member(closed, calls: list, n_out: int, leaves: list, flags: list, B: int) -> None:
+    """`integrate`'s checks that need values (`clebsch_jax.march.integrate.check_member`: the model
+    by autodiff, the configuration, Q0 in the velocity map's group, the first step on the
+    manifold) of each recorded `integrate` call, for the batch's first member whose arguments are
+    valid (a member with non-finite values or dt <= 0 reports `Status.INVALID_INPUT` in the
+    batch, as under `jax.vmap`), before the batch is compiled: its arguments are the jaxpr's
+    extra outputs (after the `n_out` outputs of the function), evaluated for that member."""
+    jaxpr = closed.jaxpr
+    extras = jaxpr.outvars[n_out:]
+    needed = {v for v in extras if not isinstance(v, jex.Literal)}
+    kept = []
+    for eqn in reversed(jaxpr.eqns):
+        if any(v in needed for v in eqn.outvars if not isinstance(v, jex.DropVar)):
+            kept.append(eqn)
+            needed.update(v for v in eqn.invars if not isinstance(v, jex.Literal))
+    if len(kept) > MEMBER_CHECK_MAX_EQNS or any(eqn.primitive.name in ("while", "scan") for eqn in kept):
+        return
+    kept.reverse()
+    host = [np.asarray(x) if f else x for x, f in zip(leaves, flags)]
+    for m in range(min(B, MEMBER_CHECK_TRIES)):
+        env = dict(zip(jaxpr.constvars, closed.consts))
+        env.update(zip(jaxpr.invars, [x[m] if f else x for x, f in zip(host, flags)]))
+        for eqn in kept:
+            vals = [v.val if isinstance(v, jex.Literal) else env[v] for v in eqn.invars]
+            env.update(zip(eqn.outvars, _bind(eqn, vals)))
+        values = [np.asarray(v.val if isinstance(v, jex.Literal) else env[v]) for v in extras]
+        if all(np.all(np.isfinite(v)) for v in values if np.issubdtype(v.dtype, np.inexact)):
+            break
+    else:
+        return
+    values = iter(values)
+    for call in calls:
+        flat, tree = jax.tree_util.tree_flatten(call.args)
+        flat = [next(values) if _is_value(x) else x for x in flat]  # functions stay as they are
+        system, Q0, xi0, P0, dt, t0 = jax.tree_util.tree_unflatten(tree, flat)
+        if not np.all(np.asarray(dt) > 0):
+            continue  # reported by the batch (INVALID_INPUT), as under jax.vmap
+        try:
+            check_member(system, Q0, xi0, dt=dt, P0=P0, t0=t0, **call.options)
+        except (ValueError, TypeError) as err:
+            raise type(err)(f"batch: member {m} is rejected by integrate's checks: {err}") from err
 
 
 def _members(leaves, axes):

@@ -49,12 +49,14 @@ from .. import diagnostics as _diagnostics
 from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, jit_with_options, memo, undifferentiated
 from ..core.system import ClebschSystem
 from ..core.validation import check_configuration as _check_configuration
+from ..core.validation import check_memory as _check_memory
 from ..core.validation import host_float_array as _float_array
 from ..core.validation import is_array as _is_array
 from ..core.validation import positive_int as _positive_int_checked
 from ..core.validation import runnable_check as _runnable_check
 from ..discrete.legendre import initial_multiplier
 from ..march.continuation import continue_from
+from ..march.integrate import check_member as _check_member_eagerly
 from ..march.integrate import integrate, prepared_method
 from ..march.scan import energy_jump, node_energies, node_energy
 from ..march.solution import IntegrationError
@@ -910,6 +912,75 @@ def _members(make_system, params, Q0, xi0, P0, dt, grid) -> _Members:
     return _Members(builder, shared_def, shared, params, Q0, xi0, P0, n_ic, param_index, ic_index, dt)
 
 
+CHUNK_BYTES = 200
+"""Host memory per chunk of a run's schedule (`_Run.chunks` and the calls that hold them: a
+(first step, steps) pair and its places in two lists), for `_check_size`."""
+
+
+def _check_size(run: _Run, members: _Members) -> None:
+    """Refuse, before anything is traced or allocated, a sweep whose bookkeeping would not fit
+    in memory (`clebsch_jax.core.validation.check_memory`, `integrate`'s guard): the schedule of
+    ⌈n_steps / chunk_steps⌉ chunks (`CHUNK_BYTES` each), the nodes kept with `save_every` (t,
+    Q, ξ and the momentum per member and node) and the table (the final state per member)."""
+    n_chunks = -(-run.n_steps // run.chunk_steps)
+    q, x = int(np.prod(members.Q0.shape[1:])), int(np.prod(members.xi0.shape[1:]))
+    saved = 0 if run.save_every is None else members.B * (run.n_steps // run.save_every + 1) * 8 * (1 + q + 2 * x)
+    table = members.B * 8 * (8 + 2 * q + 2 * x)
+    what = f"{run.n_steps} steps in {n_chunks} chunks of {run.chunk_steps} (chunk_steps) for {members.B} members"
+    _check_memory(
+        "n_steps",
+        what,
+        n_chunks * CHUNK_BYTES + saved + table,
+        "Give a larger chunk_steps (fewer chunks), save fewer nodes (a larger save_every, or none), or run "
+        "fewer steps per sweep and start the next from this one's final state (Q0=res.final_Q, P0=res.final_p).",
+        detail=(
+            f" ({n_chunks * CHUNK_BYTES / 1e9:.3g} GB for the schedule of chunks, {saved / 1e9:.3g} GB for the "
+            f"saved nodes, {table / 1e9:.3g} GB for the table)"
+        ),
+    )
+
+
+FIRST_MEMBER_TRIES = 8
+"""`_check_first_member` checks the first member whose inputs are finite and whose system
+`make_system` builds from its concrete parameter row, among the first this many such members."""
+
+
+def _check_first_member(cfg: _Config, members: _Members) -> None:
+    """`integrate`'s checks of a member, with its concrete values, before any batch is traced or
+    compiled (`clebsch_jax.march.integrate.check_member`): the batches march traced members, on
+    which `integrate` skips the checks that need values — the model by autodiff (`check_model`),
+    Q0 in the velocity map's group (`check_group_configuration`) and the first step on the
+    configuration manifold (`check_first_step`). One member: the checks look at the model (its
+    functions), which the members share. It is the first member that can run: one with
+    non-finite inputs, or whose parameter row the model's constructor refuses, is reported in
+    the table instead (`Status.INVALID_INPUT`), as before. The system's own check of its
+    configurations (`check_Q`) runs on every Q0[j], first (`_check_configurations`)."""
+    _check_configurations(_system_of(cfg, _first_row(members), members.shared), members.Q0, members.n_ic)
+    finite = lambda a: np.all(np.isfinite(np.reshape(a, (len(a), -1))), axis=1)  # noqa: E731
+    ok_ic = finite(members.Q0) & finite(members.xi0) & (True if members.P0 is None else finite(members.P0))
+    ok = ok_ic[members.ic_index]
+    if members.builder is not None:
+        rows = np.all([finite(leaf) for leaf in jax.tree_util.tree_leaves(members.params)], axis=0)
+        ok &= rows[members.param_index]
+    options = {k: v for k, v in cfg.options if k != "check_energy"}
+    for m in np.flatnonzero(ok)[:FIRST_MEMBER_TRIES]:
+        i, j = int(members.param_index[m]), int(members.ic_index[m])
+        try:
+            row = None if members.builder is None else _member_slices(members.params, i)
+            system = _system_of(cfg, row, members.shared)
+        except (ValueError, TypeError):  # a row the constructor refuses: that member reports it
+            continue
+        P0 = None if members.P0 is None else members.P0[j]
+        try:
+            _check_member_eagerly(
+                system, members.Q0[j], members.xi0[j], dt=members.dt[m], P0=P0, configuration=False, **options
+            )
+        except (ValueError, TypeError) as err:
+            where = (f"make_system(params[{i}]), " if members.builder is not None else "") + f"Q0[{j}], xi0[{j}]"
+            raise type(err)(f"sweep: member {m} ({where}) is rejected by integrate's checks: {err}") from err
+        return
+
+
 def _chunk_config(run: _Run, members: _Members, options: dict) -> _Config:
     """The static part of a chunk, which jit hashes: refused here if it is not hashable. The
     energy check (`check_energy`, on by default as in `integrate`) is the sweep's own, over
@@ -1107,14 +1178,13 @@ def _check_member(cfg: _Config, *args):
     return memo(_TRACES, ("check",) + _trace_key(cfg, args), run, _TRACES_MAX)
 
 
-def _probe(cfg: _Config, members: _Members, lean: bool = False, configurations: bool = True) -> _Shapes:
+def _probe(cfg: _Config, members: _Members, lean: bool = False) -> _Shapes:
     """One member's shapes, by tracing integrate (its own checks name Q0, xi0, ...): no compile.
-    Then the system's own check of its configurations on every concrete Q0[j].
 
     With `lean` (the sweep runs the lean chunk, `clebsch_jax.batching.lean`, which keeps the
     energy only): the same checks and shapes without tracing the march, which nothing else
-    of such a sweep would reuse (`_check_member`). `configurations=False` leaves out the check
-    of the configurations (made by an earlier probe)."""
+    of such a sweep would reuse (`_check_member`). The configurations and the checks that need
+    values were made before, on concrete values (`_check_first_member`)."""
     p_row = _first_row(members)
     j = members.ic_index[0]
     q_row, x_row = jnp.asarray(members.Q0[j]), jnp.asarray(members.xi0[j])
@@ -1131,9 +1201,6 @@ def _probe(cfg: _Config, members: _Members, lean: bool = False, configurations: 
         ) + f"Q0[j] of shape {q_row.shape}, xi0[j] of shape {x_row.shape}"
         kind = ValueError if isinstance(err, ValueError) else TypeError
         raise kind(f"sweep: one member ({where}) is rejected: {err}") from err
-    # e.g. rotations for SO(3) models: the probe above traces Q0, which skips the check
-    if configurations:
-        _check_configurations(_system_of(cfg, p_row, members.shared), members.Q0, members.n_ic)
     if lean:  # a regular system (nodal velocities), the energy its only invariant (`_lean_applies`)
         invariants = {"energy": jax.ShapeDtypeStruct((cfg.n + 1,), energy_dtype)}
         facts = dict(form=facts.form, scheme=facts.scheme, order=int(facts.order), method=str(facts.name))
@@ -1692,10 +1759,12 @@ def sweep(
             raise ValueError("fast: chooses among XLA's paths; it cannot be combined with backend='native'.")
         backend = "xla"
     members = _members(make_system, params, Q0, xi0, P0, dt, grid)
+    _check_size(run, members)
     B, n_dev = members.B, len(run.devices)
     n_threads = _threads(threads, run.devices, B)  # checked also where a Dask client's tasks take 1
     run = run._replace(threads=n_threads if client is None else 1)
     cfg = _particle_defaults(_chunk_config(run, members, options), members)
+    _check_first_member(cfg, members)  # integrate's checks that need values, before any trace
     fast, batch_size, backend = _resumed(fast, batch_size, store, overwrite, backend)
     if batch_size is not None:
         batch_size = _positive_int(batch_size, "batch_size")
@@ -1709,7 +1778,7 @@ def sweep(
         if fast is True or lean:  # "auto" takes the fast path only as the lean chunk
             cfg = dataclasses.replace(cfg, fast_method=method, lean=lean)
     if not (cfg.lean or cfg.native):  # the general chunk's shapes, from a trace of its march (cached by `general`)
-        shapes = _probe(general, members, configurations=shapes is None)
+        shapes = _probe(general, members)
     if batch_size is None:  # every device, and every thread of each, gets a batch
         per_slot = -(-B // (n_dev * run.threads))
         if cfg.lean or cfg.native:  # batches of equal size (no padded members), at most _DEFAULT_BATCH_LEAN

@@ -31,7 +31,7 @@ from .isotropy import kernel_basis
 from .jit import QUICK_COMPILE, filter_jit
 from .validation import any_traced, is_traced, runnable_check
 
-__all__ = ["check_model", "check_first_step", "check_group_configuration", "ModelFacts"]
+__all__ = ["check_model", "check_first_step", "first_step_may_leave", "check_group_configuration", "ModelFacts"]
 
 SINGULAR_RTOL = 1e-14
 """A Hessian is singular when its smallest singular value is at most this times its largest.
@@ -476,6 +476,26 @@ def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
         UserWarning,
         stacklevel=3,
     )  # the caller of integrate
+
+
+def first_step_may_leave(system, Q0, xi0) -> bool:
+    r"""Whether `check_first_step` has anything to look at for a march from $Q^0$ that a caller
+    would have to make first (`sweep` and `batch` march their first member one step for it):
+    False when there is nothing to check (no `check_Q` and no matrix group read off the velocity
+    map), and False when the derivative map is of Definition 25's form (`MatrixGroupDifference`)
+    on the group of a velocity map that is right multiplication by a closed algebra, whose steps
+    $Q^0 \to Q^0\,\overline{\exp}(\Delta t\,X(\xi))$ stay in $Q^0 G$ by construction (the built-in
+    SO(3) models with `cayley` or `exponential`). True otherwise, and False for traced values."""
+    if any_traced(Q0, xi0, system):
+        return False
+    checks = runnable_check(system, Q0) is not None
+    square = np.ndim(Q0) == 2 and np.shape(Q0)[0] == np.shape(Q0)[1]
+    if isinstance(system.derivative_map, MatrixGroupDifference):
+        if not checks:
+            return False  # check_first_step looks only at check_Q for these maps
+        small = np.size(xi0) <= GROUP_CHECK_MAX_DIM
+        return not (square and small and _group_basis(system, Q0, xi0) is not None)
+    return checks or (square and _group_basis(system, Q0, xi0) is not None)
 
 
 GROUP_CHECK_MAX_DIM = 64

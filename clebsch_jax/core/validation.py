@@ -6,6 +6,7 @@ what was expected. Values are checked only where they are concrete (not traced b
 from __future__ import annotations
 
 import numbers
+import os
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +25,8 @@ __all__ = [
     "check_configuration",
     "runnable_check",
     "nan_unless",
+    "memory_limit",
+    "check_memory",
 ]
 
 
@@ -181,3 +184,25 @@ def check_configuration(system, Q0, name: str = "Q0"):
             f"check_Q: must return None or a string saying what is wrong, returned {type(problem).__name__}."
         )
     raise ValueError(f"{name}: {problem}")
+
+
+def memory_limit() -> int:
+    """The machine's physical memory in bytes (0 if unknown: no limit)."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def check_memory(name: str, what: str, need: float, fix: str, detail: str = "") -> None:
+    """Refuse, before allocating anything, a run whose arrays would not fit in the machine's
+    memory (`memory_limit`): a `ValueError` naming the argument `name`, saying that `what`
+    (e.g. "1000000000 steps") would need about `need` bytes (`detail`: for what, e.g. " for
+    the Solution (128 bytes per step)"), the machine's memory, and `fix`, the way out. Shared by `integrate`, `sweep`
+    and `batch`, which each estimate `need` from shapes known before compiling."""
+    limit = memory_limit()
+    if limit and need > limit:
+        raise ValueError(
+            f"{name}: {what} would need about {need / 1e9:.3g} GB{detail}, more than this machine's "
+            f"{limit / 1e9:.3g} GB of memory. {fix}"
+        )

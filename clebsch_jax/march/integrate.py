@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import collections
+import contextlib
+import contextvars
 import dataclasses
 import numbers
-import os
 import types
 import warnings
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -15,11 +17,12 @@ import numpy as np
 
 from ..core.isotropy import gauge_isotropy, physical_velocity
 from ..core.jit import filter_jit
-from ..core.model_checks import check_first_step, check_group_configuration, check_model
+from ..core.model_checks import check_first_step, check_group_configuration, check_model, first_step_may_leave
 from ..core.system import ClebschSystem
 from ..core.validation import (
     any_traced,
     check_configuration,
+    check_memory,
     float_array,
     is_array,
     is_traced,
@@ -78,7 +81,7 @@ def _real_output(name: str, out, expected: str):
         raise ValueError(f"{name}: must return {expected}, returned dtype {out.dtype} ({hint}).")
 
 
-def _check_arrays(system, Q0, xi0, P0, dt, t0):
+def _check_arrays(system, Q0, xi0, P0, dt, t0, configuration: bool = True):
     """The arrays as float arrays, and the three maps called on their shapes (`ValueError`
     naming the map that cannot run on them or returns the wrong shape or dtype); then, on
     concrete values, the configuration (`check_configuration`) and the model (`check_model`).
@@ -97,7 +100,8 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0):
     if t0.shape != ():
         raise ValueError(f"t0: expected a scalar, got an array of shape {t0.shape}.")
     closes = _check_maps_once(system, Q0, xi0, dt)
-    check_configuration(system, Q0)
+    if configuration:  # False: the caller checked it (`check_member`)
+        check_configuration(system, Q0)
     facts = check_model(system, Q0, xi0, dt)
     check_group_configuration(system, Q0, xi0)  # after check_model: the velocity map is finite at Q0
     if facts is not None:
@@ -211,26 +215,24 @@ def _warn_if_remade(system) -> None:
         )
 
 
-def _memory_limit() -> int:
-    """The machine's physical memory in bytes (0 if unknown: no limit)."""
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return 0
-
-
 def _check_size(Q0, xi0, n_steps: int):
     """Refuse a run whose `Solution` could not fit in memory, before allocating it: every node
     keeps Q, p, the momentum and ξ, every step P, ξ and four statistics (float64)."""
-    per_step = 8 * (3 * Q0.size + 3 * xi0.size + 8)
-    need, limit = per_step * (n_steps + 1), _memory_limit()
-    if limit and need > limit:
-        raise ValueError(
-            f"n_steps: {n_steps} steps would need about {need / 1e9:.3g} GB for the Solution "
-            f"({per_step} bytes per step), more than this machine's {limit / 1e9:.3g} GB of memory. Run it in "
-            "pieces (clebsch_jax.continue_from), or with clebsch_jax.sweep, which keeps per-member "
-            "reductions and every k-th node (save_every=k) instead of the whole trajectory."
-        )
+    per_step = solution_bytes_per_step(Q0, xi0)
+    check_memory(
+        "n_steps",
+        f"{n_steps} steps",
+        per_step * (n_steps + 1),
+        "Run it in pieces (clebsch_jax.continue_from), or with clebsch_jax.sweep, which keeps per-member "
+        "reductions and every k-th node (save_every=k) instead of the whole trajectory.",
+        detail=f" for the Solution ({per_step} bytes per step)",
+    )
+
+
+def solution_bytes_per_step(Q0, xi0) -> int:
+    """Bytes a `Solution` keeps per step of a member with these shapes (float64): every node
+    Q, p, the momentum and ξ, every step P, ξ and four statistics."""
+    return 8 * (3 * int(np.size(Q0)) + 3 * int(np.size(xi0)) + 8)
 
 
 def step_plan(
@@ -375,10 +377,21 @@ def integrate(
 
     Transformations: works under `jax.jit` (`n_steps`, `method` and the options are static)
     and `jax.vmap` over `Q0`, `xi0`, `P0`, `dt` and array parameters inside the system.
+    There the values are unknown before compiling: the shapes and the maps' output types are
+    checked as above, and each member's values at step 0 inside the program (`dt`, `Q0`,
+    `xi0`, `P0` and the parameters finite, `Q0` on the manifold through `check_Q.traced`, l
+    and the velocity map finite; a failing member reports `Status.INVALID_INPUT`). What needs
+    values is not checked: the model by autodiff (`check_model`: a singular Lagrangian, a
+    velocity map not linear in ξ), `Q0` against `check_Q` and the velocity map's group, the
+    first step on the manifold (`check_first_step`), and the memory the `Solution`s of all
+    members need (XLA reports that, when it runs out). `clebsch_jax.sweep`, and
+    `clebsch_jax.batch` called on concrete arrays, make those checks on their first member
+    before compiling (`check_member`), and estimate their memory.
     Derivatives (forward and reverse mode) flow through the root finders by implicit
     differentiation (`clebsch_jax.roots.implicit`).
     """
     user_system = system
+    given = (system, Q0, xi0, P0, dt, t0)
     stepper, (Q0, xi0, P0, dt, t0, closes), n_steps, system = _prepared(
         system,
         Q0,
@@ -403,6 +416,11 @@ def integrate(
     if closes or any_traced(system, Q0, xi0, P0, dt, t0):
         # one scan, in the caller's program (differentiable by it); values unknown until now
         # are checked per member
+        calls = _RECORDED.get()
+        if calls is not None and not closes:
+            options = dict(method=method, scheme=scheme, reduce=reduce, need_P=need_P, reconstruct=reconstruct)
+            options.update(rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian)
+            calls.append(RecordedCall(given, dict(options, order=order, composition=composition)))
         sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy, check_inputs=True)
     else:  # programs reused for any n_steps
         _warn_if_remade(user_system)
@@ -427,6 +445,61 @@ def prepared_method(system, Q0, xi0, **options):
     return _prepared(system, Q0, xi0, **options)[:3]
 
 
+class RecordedCall(NamedTuple):
+    """A traced `integrate` call seen inside `recording_calls`: its arguments as given, `args` =
+    (system, Q0, xi0, P0, dt, t0) (tracers of the caller's trace), and its other `options`."""
+
+    args: tuple
+    options: dict
+
+
+_RECORDED: contextvars.ContextVar = contextvars.ContextVar("clebsch_jax_recorded_calls", default=None)
+
+
+@contextlib.contextmanager
+def recording_calls():
+    """Within this context (in this thread), every `integrate` call on traced values whose maps
+    close over no traced value is recorded (`RecordedCall`) in the list it yields: a caller
+    that traces a function of one member (`clebsch_jax.batch`) can then evaluate those
+    arguments for a concrete member and make the checks `integrate` skipped on them
+    (`check_member`)."""
+    calls: list = []
+    token = _RECORDED.set(calls)
+    try:
+        yield calls
+    finally:
+        _RECORDED.reset(token)
+
+
+def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> None:
+    """`integrate`'s checks of one member with concrete values, for callers that march it
+    traced, where `integrate` itself cannot make them (`clebsch_jax.sweep` and
+    `clebsch_jax.batch` call it on their first member before compiling the batch). Raises the
+    errors and emits the warnings `integrate` would for the same call: everything checked
+    before the march (`prepared_method`: the arguments, the maps' shapes, `check_configuration`,
+    `check_model`, `check_group_configuration`), and, when the first step could leave the
+    configuration manifold (`first_step_may_leave`: not for the built-in models with their
+    default derivative maps), `check_first_step` on one step of this member, marched alone
+    (one compiled step). The keyword options are `integrate`'s; `n_steps` is not used (the
+    caller checks the size of its own run). Skipped where a value is traced or a map closes
+    over a traced value. `configuration=False` leaves out `check_configuration` (a sweep checks
+    every member's Q0 at once)."""
+    options = {key: value for key, value in options.items() if key not in ("n_steps", "throw")}
+    P0 = options.pop("P0", None)
+    # the isotropy's adjustment of xi0 (and its warning) is integrate's, when P0 is not given:
+    # a batch marches xi0 as given, so the checks see it as given
+    given = P0 if P0 is not None else jnp.zeros(np.shape(Q0))
+    stepper, (Q0, xi0, _, dt, t0, closes), _, system = _prepared(
+        system, Q0, xi0, n_steps=1, P0=given, configuration=configuration, **options
+    )
+    if closes or any_traced(system, Q0, xi0, dt, t0, P0) or not first_step_may_leave(system, Q0, xi0):
+        return
+    P0 = None if P0 is None else float_array(P0, "P0")
+    sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, 1, check_energy=False)
+    if sol.Q is not None and not any_traced(sol.Q):
+        check_first_step(system, sol.method, Q0, xi0, np.asarray(sol.Q)[1])
+
+
 def _prepared(
     system,
     Q0,
@@ -448,6 +521,7 @@ def _prepared(
     order=None,
     composition=None,
     check_energy=True,
+    configuration=True,
 ):
     """`prepared_method`, and the system to march (the gauged one, when `_check_arrays` fixed
     the isotropy's gauge)."""
@@ -459,7 +533,7 @@ def _prepared(
         check_scheme(system, scheme)
     else:
         _check_method(method, locals())
-    Q0, xi0, P0, dt, t0, closes, system = _check_arrays(system, Q0, xi0, P0, dt, t0)
+    Q0, xi0, P0, dt, t0, closes, system = _check_arrays(system, Q0, xi0, P0, dt, t0, configuration)
     _check_size(Q0, xi0, n_steps)
     if method is None:
         if jacobian == "blocks":
