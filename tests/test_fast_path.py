@@ -253,11 +253,11 @@ def test_the_lean_probe_gives_the_shapes_of_a_traced_march(monkeypatch, case):
 
     real, seen = sw._probe, []
 
-    def spy(cfg, members, lean=False, configurations=True):
-        shapes = real(cfg, members, lean=lean, configurations=configurations)
+    def spy(cfg, members, lean=False):
+        shapes = real(cfg, members, lean=lean)
         if lean:
             seen.append(shapes)
-            traced = real(cfg, members, configurations=False)
+            traced = real(cfg, members)
             assert shapes._replace(invariants=None) == traced._replace(invariants=None)
             assert list(shapes.invariants) == list(traced.invariants) == ["energy"]
             for a, b in zip(shapes.invariants.values(), traced.invariants.values()):

@@ -584,7 +584,7 @@ def test_the_command_line_help_documents_the_toml_format(capsys):
             "[params]: give exactly one of values",
         ),
         (lambda c: c.replace("[params]\nvalues", "[params]\nvalue"), "[params]: unknown entry value"),
-        (lambda c: c + "[options]\nscheme = 3\n", "sweep.toml: sweep: one member"),  # refused by cj.sweep
+        (lambda c: c + "[options]\nscheme = 3\n", "sweep.toml: sweep: member 0"),  # refused by cj.sweep
         # misspelled keys inside tables are refused, not ignored
         (
             lambda c: c.replace("[params]\nvalues", "[params]\nvalues = [[1.0, 2.0, 3.0]]\nvaluess"),
