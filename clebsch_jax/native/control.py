@@ -21,7 +21,7 @@ from llvmlite import ir
 from .lower import RULES, eval_closed
 from .values import MAX_ENTRIES, Emitter, Unsupported, is_known
 
-__all__ = ["SHORT_SCAN", "UNROLL_BUDGET", "ROLLED_BUDGET", "unroll_policy", "entries"]
+__all__ = ["SHORT_SCAN", "UNROLL_BUDGET", "ROLLED_BUDGET", "POLICIES", "unroll_policy", "entries"]
 
 SHORT_SCAN = 4
 """Scans of at most this many iterations are unrolled (no loop, no arrays in memory) ..."""
