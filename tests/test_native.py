@@ -452,3 +452,13 @@ def test_native_sweep_of_landmarks_equals_the_xla_sweep():
     xla = cj.sweep(cj.models.landmarks, np.ones(3), q0, xi0, backend="xla", **kw)
     _compare(native, xla)
     assert np.all(native.succeeded)
+
+
+def test_a_placement_inside_the_program_is_the_identity():
+    """`device_put` (a placement, e.g. of a model's constant) changes no value."""
+
+    def f(x):
+        return jax.device_put(x) * 2.0, jax.device_put(jnp.arange(3.0))
+
+    x = np.random.default_rng(2).standard_normal((B, 3))
+    _agree(compile_member(f, x[0], use_cache=False)(x), jax.vmap(f)(x), rtol=0, atol=0)
