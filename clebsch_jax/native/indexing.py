@@ -32,7 +32,9 @@ each lane loads its entry from memory."""
 SCATTER_SELECTS = 4096
 """A scatter whose indices reach more than `SELECT_STARTS` places is still resolved by selects
 when places × updated entries stays within this many (one select per place and update: a
-column set at a loop counter, `M.at[:, k].set(v)`, costs one select per entry of M)."""
+column set at a loop counter, `M.at[:, k].set(v)`, costs one select per entry of M). Those
+selects count as entries of the program (`Emitter.count`), so a member whose loops scatter
+much stays within the size limit or on XLA."""
 
 _MAX_STARTS = 4096
 
@@ -387,6 +389,8 @@ def _scatter(combine: str | None):
         out = _copy(a)
         base = _copy(a)
         combos = list(itertools.product(*ranges))
+        if len(combos) > 1:  # a select per place and update: counted against the program's size
+            em.count(len(combos) * flat_u.size)
         for combo in combos:
             idx = np.asarray(combo, idx_dtype).reshape(indices.shape)
             target = _scatter_targets(eqn, a.shape, updates.shape, idx)
