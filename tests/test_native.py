@@ -345,3 +345,120 @@ def test_without_llvmlite_the_sweep_runs_xla_and_says_so_once(monkeypatch):
         cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, **RB)
     with pytest.raises(ValueError, match="llvmlite"):
         cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
+
+
+# ---------------------------------------------------------------------------------------------
+# Coverage: Gauss–Legendre stages and compositions, and what lets their programs fit a kernel.
+
+
+def _diverging_rigid_bodies():
+    """Rigid bodies (0.5, 1, 3) whose Gauss–Legendre sweeps at Δt = 0.05 contract (members 0,
+    3), stop contracting at a later step (1, 2: |ω| ≈ 18 and 22, the sweeps' limit) or at step
+    0 (4), and a NaN initial velocity (5)."""
+    rng = np.random.default_rng(7)
+    base = rng.standard_normal((40, 3))
+    omegas = base / np.linalg.norm(base, axis=1, keepdims=True) * np.linspace(16.0, 22.0, 40)[:, None]
+    omegas = omegas[[0, 14, 38, 5, 8, 1]].copy()
+    omegas[5, 1] = np.nan
+    inertias = np.broadcast_to(np.array([0.5, 1.0, 3.0]), (6, 3))
+    return inertias, np.broadcast_to(np.eye(3), (6, 3, 3)), omegas
+
+
+def test_native_gauss_legendre_sweep_equals_the_xla_sweep_with_its_failures():
+    """Gauss–Legendre of order 6 (three stages, fixed-point sweeps; its first step's substeps
+    and untested sweeps would pass the entry limit unrolled, so they run as loops): the same
+    statuses — DIVERGED at step 0 and in a later chunk, INVALID_INPUT — failing steps and
+    finals on both backends, and the native table bit for bit from run to run."""
+    inertias, Q0, omegas = _diverging_rigid_bodies()
+    kw = dict(dt=0.05, n_steps=60, chunk_steps=20, scheme="gauss", order=6)
+    native = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **kw)
+    xla = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="xla", **kw)
+    _compare(native, xla)
+    assert native.method == "Gauss-Legendre 3-stage PRK"
+    assert list(native.failed_members) == [1, 2, 4, 5]
+    assert np.all(native.status[[1, 2, 4]] == Status.DIVERGED) and native.status[5] == Status.INVALID_INPUT
+    assert native.failed_step[4] == 0 and np.all(native.failed_step[[1, 2]] >= 40)
+    again = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **kw)
+    for a, b in zip(jax.tree_util.tree_leaves(native), jax.tree_util.tree_leaves(again)):
+        assert np.array_equal(a, b, equal_nan=True)
+
+
+def _exponential_rigid_body(inertia):
+    return cj.models.rigid_body(inertia, derivative_map=cj.exponential)
+
+
+def test_native_composition_sweep_equals_the_xla_sweep():
+    """The triple jump (a composition of the reduced step of the exponential map, three stages;
+    unrolled, its stages would pass the entry limit) with a negative inertia (INVALID_INPUT):
+    the same table on both backends."""
+    inertias, Q0, omegas = _rigid_body_members(5)
+    inertias = inertias.copy()
+    inertias[3, 0] = -1.0
+    kw = dict(dt=0.05, n_steps=40, chunk_steps=20, composition="triple jump p4s3")
+    native = cj.sweep(_exponential_rigid_body, inertias, Q0, omegas, backend="native", **kw)
+    xla = cj.sweep(_exponential_rigid_body, inertias, Q0, omegas, backend="xla", **kw)
+    _compare(native, xla)
+    assert native.method == "triple jump p4s3 of left principle" and native.order == 4
+    assert list(native.failed_members) == [3] and native.status[3] == Status.INVALID_INPUT
+
+
+def test_a_scan_that_fits_only_as_a_loop_is_translated_as_one():
+    """A short scan whose body counts many entries (a broadcast: no code, but entries): unrolled
+    it would pass the entry limit, so `unroll_policy` keeps it a loop; the values are XLA's."""
+    from clebsch_jax.native import control
+    from clebsch_jax.native.values import MAX_ENTRIES
+
+    def f(x):
+        def body(c, _):
+            wide = jnp.broadcast_to(c, (MAX_ENTRIES // 6, 3))
+            return jnp.sin(c) * 0.5 + wide[7], jnp.sum(c)
+
+        return jax.lax.scan(body, x, None, length=4)
+
+    x = np.random.default_rng(3).standard_normal((B, 3))
+    closed = jax.make_jaxpr(f)(x[0])
+    assert control.entries(closed.jaxpr, control.POLICIES[0]) > MAX_ENTRIES
+    assert control.unroll_policy(closed.jaxpr) != control.POLICIES[0]
+    _agree(compile_member(f, x[0], use_cache=False)(x), jax.vmap(f)(x), rtol=1e-14, atol=1e-14)
+
+
+def test_a_scatter_at_a_run_time_column_agrees_with_xla():
+    """`M.at[:, k].set(v)` with k differing from lane to lane over more places than
+    `SELECT_STARTS` (the column update of an LU factorisation run as a loop): one select per
+    place and entry, XLA's values, an index out of range dropped as XLA drops it."""
+
+    def f(M, v, k):
+        return M.at[:, k].set(v), M.at[k].add(v[0])
+
+    rng = np.random.default_rng(6)
+    M, v = rng.standard_normal((B, 12, 12)), rng.standard_normal((B, 12))
+    k = rng.integers(-2, 14, B).astype(np.int32)
+    native = compile_member(f, M[0], v[0], k[0], use_cache=False)(M, v, k)
+    _agree(native, jax.vmap(f)(M, v, k), rtol=0, atol=0)
+
+
+@pytest.mark.slow  # LLVM compiles this kernel in tens of seconds; the default run covers the
+# rolled loops and the run-time scatters it needs with the two tests above
+def test_native_sweep_of_landmarks_equals_the_xla_sweep():
+    """Three landmarks in the plane (the full march, 18 unknowns: its LU factorisations run as
+    loops with column updates at run-time indices) on both backends."""
+    from clebsch_jax.models import landmark_velocity
+
+    rng = np.random.default_rng(1)
+    q0 = rng.standard_normal((3, 3, 2))
+    xi0 = np.asarray(jax.vmap(landmark_velocity)(q0, 0.3 * rng.standard_normal((3, 3, 2))))
+    kw = dict(dt=0.02, n_steps=20, chunk_steps=10)
+    native = cj.sweep(cj.models.landmarks, np.ones(3), q0, xi0, backend="native", **kw)
+    xla = cj.sweep(cj.models.landmarks, np.ones(3), q0, xi0, backend="xla", **kw)
+    _compare(native, xla)
+    assert np.all(native.succeeded)
+
+
+def test_a_placement_inside_the_program_is_the_identity():
+    """`device_put` (a placement, e.g. of a model's constant) changes no value."""
+
+    def f(x):
+        return jax.device_put(x) * 2.0, jax.device_put(jnp.arange(3.0))
+
+    x = np.random.default_rng(2).standard_normal((B, 3))
+    _agree(compile_member(f, x[0], use_cache=False)(x), jax.vmap(f)(x), rtol=0, atol=0)

@@ -6,7 +6,9 @@
   nested in it stop when those lanes are done.
 - `scan`: a counted loop (the count is the same in every lane); the carry lives in allocas
   (promoted to registers by LLVM), the per-iteration inputs and outputs in arrays indexed by
-  the counter. Short scans are unrolled.
+  the counter. Short scans are unrolled, unless unrolling would take the program past
+  `MAX_ENTRIES` (`unroll_policy`): the stage loops of a composition and the solves of a
+  Gauss–Legendre step then stay loops.
 - `cond`: a known index picks its branch; otherwise every branch is emitted under the mask of
   its lanes and the outputs are selected lane by lane.
 """
@@ -17,9 +19,9 @@ import numpy as np
 from llvmlite import ir
 
 from .lower import RULES, eval_closed
-from .values import Emitter, Unsupported, is_known
+from .values import MAX_ENTRIES, Emitter, Unsupported, is_known
 
-__all__ = ["SHORT_SCAN"]
+__all__ = ["SHORT_SCAN", "UNROLL_BUDGET", "ROLLED_BUDGET", "POLICIES", "unroll_policy", "entries"]
 
 SHORT_SCAN = 4
 """Scans of at most this many iterations are unrolled (no loop, no arrays in memory) ..."""
@@ -44,6 +46,59 @@ def _size(jaxpr) -> int:
                 elif isinstance(x, jcore.Jaxpr):
                     n += _size(x)
     return n
+
+
+ROLLED_BUDGET = 2_000
+"""The unroll budget of a program that unrolled by the rules above would pass `MAX_ENTRIES`
+(`unroll_policy`): only scans of small bodies (the column loops of small factorisations) are
+unrolled; the rest (a composition's stages, a Gauss–Legendre step's substeps and untested
+sweeps) run as loops. A loop computes what its unrolled copies compute, in the same order."""
+
+POLICIES = ((SHORT_SCAN, UNROLL_BUDGET), (0, UNROLL_BUDGET), (0, ROLLED_BUDGET))
+"""`(short, budget)` pairs, from the most unrolled: a scan is unrolled when its length is at
+most `short` or its length times its body's size is at most `budget`."""
+
+
+def _unrolled(length: int, body, policy) -> bool:
+    short, budget = policy
+    return length <= short or length * _size(body) <= budget
+
+
+def entries(jaxpr, policy) -> int:
+    """The entries the translation of `jaxpr` counts (`Emitter.count`) with the unrolling
+    `policy`: an unrolled scan's body once per iteration, every branch of a `cond`, a
+    `custom_linear_solve` its solve, any other nested jaxpr once (a bound: a branch known
+    while translating is the only one translated)."""
+    from jax.extend import core as jcore
+
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += sum(int(np.prod(v.aval.shape, dtype=int)) for v in eqn.outvars if hasattr(v.aval, "shape"))
+        p = eqn.params
+        if eqn.primitive.name == "scan":
+            body = p["jaxpr"].jaxpr
+            n += entries(body, policy) * (p["length"] if _unrolled(p["length"], body, policy) else 1)
+            continue
+        if eqn.primitive.name == "custom_linear_solve":
+            n += entries(p["jaxprs"].solve.jaxpr, policy)
+            continue
+        for v in p.values():
+            for x in v if isinstance(v, (tuple, list)) else [v]:
+                if isinstance(x, jcore.ClosedJaxpr):
+                    n += entries(x.jaxpr, policy)
+                elif isinstance(x, jcore.Jaxpr):
+                    n += entries(x, policy)
+    return n
+
+
+def unroll_policy(jaxpr):
+    """The most unrolled of `POLICIES` whose program stays within `MAX_ENTRIES` (the last,
+    the least unrolled, when none does: the translation then refuses the program). A function
+    of the jaxpr alone, so the kernel of a program is always the same code."""
+    for policy in POLICIES:
+        if entries(jaxpr, policy) <= MAX_ENTRIES:
+            return policy
+    return POLICIES[-1]
 
 
 def _slots(em: Emitter, values, dtypes, fixed):
@@ -144,7 +199,7 @@ def _scan(em: Emitter, eqn, args):
     closed = p["jaxpr"]
     consts, init, xs = list(args[:nc]), list(args[nc : nc + ncar]), list(args[nc + ncar :])
     order = range(length - 1, -1, -1) if reverse else range(length)
-    if length <= SHORT_SCAN or length * _size(closed.jaxpr) <= UNROLL_BUDGET:
+    if _unrolled(length, closed.jaxpr, em.unroll or POLICIES[0]):
         carry, ys = init, []
         for i in order:
             outs = eval_closed(em, closed, consts + carry + [x[i, ...] for x in xs])

@@ -23,11 +23,18 @@ from llvmlite import ir
 from .lower import RULES, _copy, _emit_float, _emit_int, _out_dtype
 from .values import Emitter, Unsupported, is_known
 
-__all__ = ["SELECT_STARTS"]
+__all__ = ["SELECT_STARTS", "SCATTER_SELECTS"]
 
 SELECT_STARTS = 8
 """Index vectors that can reach at most this many places are resolved by selects; beyond,
 each lane loads its entry from memory."""
+
+SCATTER_SELECTS = 4096
+"""A scatter whose indices reach more than `SELECT_STARTS` places is still resolved by selects
+when places × updated entries stays within this many (one select per place and update: a
+column set at a loop counter, `M.at[:, k].set(v)`, costs one select per entry of M). Those
+selects count as entries of the program (`Emitter.count`), so a member whose loops scatter
+much stays within the size limit or on XLA."""
 
 _MAX_STARTS = 4096
 
@@ -376,11 +383,14 @@ def _scatter(combine: str | None):
                 len(comps) // max(1, len(dnums.scatter_dims_to_operand_dims))
             )
             ranges = [[int(c)] if is_known(c) else list(range(hi)) for c, hi in zip(comps, his)]
-            if _n_combos(ranges) > SELECT_STARTS:
+            n = _n_combos(ranges)
+            if n > SELECT_STARTS and n * max(1, flat_u.size) > SCATTER_SELECTS:
                 raise Unsupported(f"scatter with indices computed at run time ({_n_combos(ranges)} places)")
         out = _copy(a)
         base = _copy(a)
         combos = list(itertools.product(*ranges))
+        if len(combos) > 1:  # a select per place and update: counted against the program's size
+            em.count(len(combos) * flat_u.size)
         for combo in combos:
             idx = np.asarray(combo, idx_dtype).reshape(indices.shape)
             target = _scatter_targets(eqn, a.shape, updates.shape, idx)

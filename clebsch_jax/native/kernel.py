@@ -28,7 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from llvmlite import ir
 
-from . import control as _control  # noqa: F401  (registers the loop and branch rules)
+from . import control as _control  # registers the loop and branch rules
 from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
 from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
 from .lower import eval_closed
@@ -98,6 +98,7 @@ def build_ir(closed, width: int, batched=None) -> str:
     entry = fn.append_basic_block("entry")
     b = ir.IRBuilder(entry)
     em = Emitter(module, b, width, entry)
+    em.unroll = _control.unroll_policy(closed.jaxpr)
     counter = b.alloca(i64)
     b.store(first, counter)
     head, body, done = (

@@ -679,6 +679,7 @@ RULES.update(
     pad=_pad,
     iota=_iota,
     optimization_barrier=_identity,
+    device_put=_identity,  # a placement, no value changes (the kernel runs on the host)
     reduce_precision=_identity,
     dot_general=_dot_general,
     reduce_sum=_reduce("add"),

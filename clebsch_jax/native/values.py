@@ -83,6 +83,7 @@ class Emitter:
     def __init__(self, module: ir.Module, builder: ir.IRBuilder, width: int, entry: ir.Block):
         self.module, self.b, self.W, self.entry = module, builder, width, entry
         self.mask = None
+        self.unroll = None  # which scans are unrolled (`control.unroll_policy`; None: the first)
         self._decls: dict = {}
         self._consts: dict = {}
         self.entries = 0
