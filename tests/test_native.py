@@ -347,6 +347,27 @@ def test_without_llvmlite_the_sweep_runs_xla_and_says_so_once(monkeypatch):
         cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
 
 
+def test_auto_leaves_a_kernel_past_its_size_budget_to_xla_and_native_compiles_it(tmp_path, monkeypatch):
+    """ "auto" does not ask LLVM for a kernel of more IR lines than `AUTO_MAX_IR_LINES` (here
+    made small, with an empty disk cache): it runs XLA and says why; "native" compiles it, and
+    the two tables agree."""
+    import clebsch_jax.batching.backends as backends
+    import clebsch_jax.batching.sweep as sweep_module
+
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+    monkeypatch.setattr(sweep_module, "AUTO_MAX_IR_LINES", 100)
+    monkeypatch.setattr(backends, "_WARNED", set())
+    inertias, Q0, omegas = _rigid_body_members(3)
+    with pytest.warns(NativeFallbackWarning, match=r"a kernel of \d+ lines of LLVM IR, more than the 100"):
+        auto = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, **RB)
+    assert not list(tmp_path.rglob("*.o"))  # nothing compiled
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NativeFallbackWarning)
+        native = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
+    assert list(tmp_path.rglob("*.o"))
+    _compare(native, auto)
+
+
 # ---------------------------------------------------------------------------------------------
 # Coverage: Gauss–Legendre stages and compositions, and what lets their programs fit a kernel.
 

@@ -113,6 +113,13 @@ THREAD_MIN_MEMBERS = 256
 """... and only as many threads as give each a batch of at least this many members (a smaller
 sweep runs as before: its batches gain little from running side by side)."""
 
+AUTO_MAX_IR_LINES = 50_000
+"""`backend="auto"` compiles a native kernel whose LLVM IR has at most this many lines (a kernel
+in the disk cache is always used): LLVM's time grows with the IR, to tens of seconds for the
+largest programs the translation covers, where XLA compiles in a few. Larger kernels run on
+XLA, with the reason said once; `backend="native"` compiles them.
+(`benchmarks/README.md`, `native.py`, records the sizes and times behind the value.)"""
+
 AUTO_LEAN_MIN_MEMBERS = 1000
 """`fast="auto"` runs the lean chunk only for sweeps of at least this many members: on shorter
 rows its steps gain too little over the general chunk's to repay its compile
@@ -386,6 +393,7 @@ class _Config:
     lean: bool = False  # the fast path runs the lean chunk (`clebsch_jax.batching.lean`)
     derive_P: bool = False  # the run's first chunk derives the initial multiplier (`_with_start_P`)
     native: bool = False  # the batches run the per-member program as native kernels (`_native_call`)
+    native_max_lines: int | None = None  # a kernel of more IR lines is not compiled (backend="auto")
 
 
 def _integrate(cfg: _Config, system, Q, xi, P, t, dt, n):
@@ -640,7 +648,7 @@ def _native_program(cfg: _Config, params, shared, carry: MemberCarry, dt):
         with undifferentiated():  # a sweep is never differentiated: no derivative rules traced
             return fun(*a)
 
-    return NativeProgram.get(("sweep", _trace_key(cfg, args)), traced, args, _NATIVE_AXES)
+    return NativeProgram.get(("sweep", _trace_key(cfg, args)), traced, args, _NATIVE_AXES, cfg.native_max_lines)
 
 
 def _native_call(c: _Config, one: "_Batch", st: int) -> _Carry:
@@ -1103,7 +1111,8 @@ def _native_config(cfg: _Config, run: _Run, members: _Members, backend: str):
         from ..native import Unsupported
 
         shapes = _probe(cfg, members, lean=True)  # integrate's checks of a member, no march traced
-        native = dataclasses.replace(cfg, native=True)
+        limit = AUTO_MAX_IR_LINES if backend == "auto" else None
+        native = dataclasses.replace(cfg, native=True, native_max_lines=limit)
         one = _start_batch(native, members, shapes, 0, 1, None)
         try:
             _native_program(native, one.params, one.shared, _as_member(one.carry), one.dt)

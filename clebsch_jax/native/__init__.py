@@ -31,7 +31,7 @@ class NativeFunction:
     """`fun` of one member compiled for batches: call it with pytrees whose leaves have a
     leading member axis; it returns the outputs' pytree with the same leading axis."""
 
-    def __init__(self, fun, *member_args, width=None, use_cache=True, in_axes=0):
+    def __init__(self, fun, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None):
         import jax
 
         from .kernel import Kernel
@@ -43,7 +43,7 @@ class NativeFunction:
             in_axes = (in_axes,) * len(member_args)
         flags = [jax.tree_util.tree_map(lambda _: ax is not None, arg) for ax, arg in zip(in_axes, member_args)]
         batched = jax.tree_util.tree_leaves(flags)
-        self.kernel = Kernel(closed, width=width, use_cache=use_cache, batched=batched)
+        self.kernel = Kernel(closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines)
 
     def __call__(self, *args, threads: int = 1):
         import jax
@@ -56,8 +56,10 @@ class NativeFunction:
         return jax.tree_util.tree_unflatten(self._out_tree, outs)
 
 
-def compile_member(fun, *member_args, width=None, use_cache=True, in_axes=0) -> NativeFunction:
+def compile_member(fun, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None) -> NativeFunction:
     """`NativeFunction(fun, *member_args)`: `fun` traced on one member's arguments and compiled.
     `in_axes` (0 or None per argument, as `jax.vmap`'s): an argument with None is shared by
-    all members (passed without the member axis)."""
-    return NativeFunction(fun, *member_args, width=width, use_cache=use_cache, in_axes=in_axes)
+    all members (passed without the member axis). `max_lines`: a kernel not in the disk cache
+    whose LLVM IR has more lines than this is refused (`Unsupported`) before LLVM compiles it
+    (`clebsch_jax.native.kernel.Kernel`)."""
+    return NativeFunction(fun, *member_args, width=width, use_cache=use_cache, in_axes=in_axes, max_lines=max_lines)

@@ -32,7 +32,7 @@ from . import control as _control  # registers the loop and branch rules
 from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
 from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
 from .lower import eval_closed
-from .values import Emitter, llvm_type
+from .values import Emitter, Unsupported, llvm_type
 
 __all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir"]
 
@@ -280,7 +280,7 @@ class Kernel:
     each of shape (B, *the member's shape), in the order of the jaxpr's inputs; it returns the
     outputs, each (B, *shape)."""
 
-    def __init__(self, closed, width: int | None = None, use_cache: bool = True, batched=None):
+    def __init__(self, closed, width: int | None = None, use_cache: bool = True, batched=None, max_lines=None):
         self.width = width or host_lanes()
         self.in_avals = [v.aval for v in closed.jaxpr.invars]
         self.out_avals = [v.aval for v in closed.jaxpr.outvars]
@@ -291,7 +291,14 @@ class Kernel:
         obj = _cached(key) if use_cache else None
         self.from_cache = obj is not None
         if obj is None:
-            obj = compile_ir(build_ir(closed, self.width, self.batched))
+            text = build_ir(closed, self.width, self.batched)
+            lines = text.count("\n")
+            if max_lines is not None and lines > max_lines:
+                raise Unsupported(
+                    f"a kernel of {lines} lines of LLVM IR, more than the {max_lines} compiled without being "
+                    "asked (LLVM's time grows with them; backend='native' compiles it)"
+                )
+            obj = compile_ir(text)
             if use_cache:
                 _store(key, obj)
         self._fn = _SIGNATURE(_load(obj))
