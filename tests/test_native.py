@@ -357,6 +357,7 @@ def test_auto_leaves_a_kernel_past_its_size_budget_to_xla_and_native_compiles_it
     monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
     monkeypatch.setattr(sweep_module, "AUTO_MAX_IR_LINES", 100)
     monkeypatch.setattr(backends, "_WARNED", set())
+    monkeypatch.setattr(backends, "_PROGRAMS", {})  # no kernel kept from an earlier test
     inertias, Q0, omegas = _rigid_body_members(3)
     with pytest.warns(NativeFallbackWarning, match=r"a kernel of \d+ lines of LLVM IR, more than the 100"):
         auto = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, **RB)
