@@ -125,11 +125,11 @@ def implicit_midpoint_vortices(gamma, Q0, dt, n_steps):
 
 
 @contextlib.contextmanager
-def compiles_recorded(where: str | None = None):
+def compiles_recorded(where: str | tuple | None = None):
     """The XLA compilations made inside the `with` block, as a list of program names filled in
     as they happen; with `where`, only those whose innermost `clebsch_jax` frame is in a file
-    whose path ends with `where`. (JAX's listeners cannot be removed: this one stops recording
-    when the block ends.)"""
+    whose path ends with `where` (or with one of a tuple of them). (JAX's listeners cannot be
+    removed: this one stops recording when the block ends.)"""
     names, on = [], [True]
 
     def listen(event, secs, fun_name=None, **kw):

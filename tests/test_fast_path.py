@@ -59,14 +59,14 @@ def test_rigid_bodies_agree_with_integrate_and_keep_invariants():
 def test_forced_fallback_large_dt_gives_the_general_answer(monkeypatch):
     # Δt = 0.6 with |ω| ~ 3: the predictor is poor, K fixed updates do not reach round-off,
     # every chunk is rerun with the general loop; the answers are the general loop's
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import schedule
 
     omegas = 3.0 * OMEGAS
     res = cj.sweep(rigid_body, INERTIAS, EYES, omegas, dt=0.6, **RB)
     assert res.fallback_chunks >= 1 and res.fast_chunks == 2
     # fast=False runs each batch whole: no member is gathered into rerun groups
-    monkeypatch.setattr(sw, "FALLBACK_BATCH", 2)
-    monkeypatch.setattr(sw, "_take_members", lambda *a: pytest.fail("fast=False gathered members"))
+    monkeypatch.setattr(schedule, "FALLBACK_BATCH", 2)
+    monkeypatch.setattr(schedule, "_take_members", lambda *a: pytest.fail("fast=False gathered members"))
     general = cj.sweep(rigid_body, INERTIAS, EYES, omegas, dt=0.6, **{**RB, "fast": False})
     assert general.fast_chunks == 0 and general.fallback_chunks == 0
     np.testing.assert_array_equal(res.status, general.status)
@@ -93,9 +93,9 @@ def test_only_the_members_whose_check_failed_run_again(monkeypatch):
     # round-off); the others are easy. Only those three run again on the general path, in groups
     # of FALLBACK_BATCH = 2 members (the last group padded with a copy of its member), every
     # chunk; the table (saved nodes included) is the general path's.
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import schedule
 
-    monkeypatch.setattr(sw, "FALLBACK_BATCH", 2)
+    monkeypatch.setattr(schedule, "FALLBACK_BATCH", 2)
     inertias, eyes = np.concatenate([INERTIAS, INERTIAS]), np.concatenate([EYES, EYES])
     omegas, dts = np.concatenate([OMEGAS, OMEGAS]), np.full(8, 0.05)
     hard = np.array([1, 4, 6])
@@ -145,9 +145,9 @@ def test_threads_run_batches_side_by_side_with_the_same_table(monkeypatch):
     # batches of 2 members, three at a time from host threads (sweep's threads), with hard
     # members rerun on the general path and saved nodes written from those threads: the table
     # is threads=1's to the bit
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import schedule
 
-    monkeypatch.setattr(sw, "FALLBACK_BATCH", 2)
+    monkeypatch.setattr(schedule, "FALLBACK_BATCH", 2)
     inertias, eyes = np.concatenate([INERTIAS, INERTIAS]), np.concatenate([EYES, EYES])
     omegas, dts = np.concatenate([OMEGAS, OMEGAS]), np.full(8, 0.05)
     omegas[[1, 4, 6]] *= 3.0
@@ -227,18 +227,18 @@ def test_trace_contexts_are_each_threads_own():
 
 
 def test_default_threads_follow_the_cores_and_the_batch(monkeypatch):
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import schedule
 
     cpu = jax.devices("cpu")[0]
-    monkeypatch.setattr(sw.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
-    assert sw._threads(None, [None], 10**4) == sw.THREADS_MAX == 2  # at most THREADS_MAX
-    assert sw._threads(None, [cpu, cpu], 10**4) == 1  # the cores shared by the devices
-    assert sw._threads(None, [None], 2 * sw.THREAD_MIN_MEMBERS - 1) == 1  # each thread a batch of 256
-    assert sw._threads(3, [None], 10) == 3  # the caller's choice
-    monkeypatch.setattr(sw.os, "sched_getaffinity", lambda pid: {0}, raising=False)
-    assert sw._threads(None, [None], 10**4) == 1  # one core
+    monkeypatch.setattr(schedule.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    assert schedule.thread_count(None, [None], 10**4) == schedule.THREADS_MAX == 2  # at most THREADS_MAX
+    assert schedule.thread_count(None, [cpu, cpu], 10**4) == 1  # the cores shared by the devices
+    assert schedule.thread_count(None, [None], 2 * schedule.THREAD_MIN_MEMBERS - 1) == 1  # each thread a batch of 256
+    assert schedule.thread_count(3, [None], 10) == 3  # the caller's choice
+    monkeypatch.setattr(schedule.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    assert schedule.thread_count(None, [None], 10**4) == 1  # one core
     with pytest.raises(ValueError, match="threads"):
-        sw._threads(0, [None], 10)
+        schedule.thread_count(0, [None], 10)
 
 
 class _Probed(Exception):
@@ -247,11 +247,11 @@ class _Probed(Exception):
 
 @pytest.mark.parametrize("case", ["reduced", "reconstructed", "composition", "potential"])
 def test_the_lean_probe_gives_the_shapes_of_a_traced_march(monkeypatch, case):
-    # the lean path checks a member without tracing its march (_check_member); the shapes and
+    # the lean path checks a member without tracing its march (probe._check_member); the shapes and
     # facts it finds are those the traced march gives. The sweep stops after the probes: no compile.
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import probe
 
-    real, seen = sw._probe, []
+    real, seen = probe.member_shapes, []
 
     def spy(cfg, members, lean=False):
         shapes = real(cfg, members, lean=lean)
@@ -265,7 +265,7 @@ def test_the_lean_probe_gives_the_shapes_of_a_traced_march(monkeypatch, case):
             raise _Probed
         return shapes
 
-    monkeypatch.setattr(sw, "_probe", spy)
+    monkeypatch.setattr(probe, "member_shapes", spy)
     if case == "potential":
         args = (_top, np.array([[1.0, 1.0, 0.4, 1.5]]), np.eye(3)[None], np.array([[0.1, 0.2, 5.0]]))
         options = {}
@@ -409,13 +409,13 @@ LEAN = dict(n_steps=N_STEPS, chunk_steps=20, batch_size=4, reconstruct=False)
 
 @pytest.mark.slow  # compiles the lean and the general chunk (the lean chunk is opt-in: fast=True)
 def test_lean_sweep_agrees_with_the_general_one_and_falls_back_like_it():
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import chunks_xla
 
-    general_programs = sw._run_chunk._cache_size()
+    general_programs = chunks_xla.run_chunk._cache_size()
     lean = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **LEAN)
     assert lean.fast_chunks == 2 and lean.fallback_chunks == 0
     # no check failed: the general chunk program was not even compiled
-    assert sw._run_chunk._cache_size() == general_programs
+    assert chunks_xla.run_chunk._cache_size() == general_programs
     general = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, **LEAN)
     assert np.all(lean.succeeded) and np.all(general.succeeded)
     for key in ("final_momentum", "final_xi", "final_p", "final_t", "energy_error"):
@@ -444,25 +444,25 @@ def test_lean_sweep_agrees_with_the_general_one_and_falls_back_like_it():
 
 
 def test_auto_takes_the_lean_chunk_only_for_large_sweeps():
-    from clebsch_jax.batching.sweep import AUTO_LEAN_MIN_MEMBER_STEPS, AUTO_LEAN_MIN_MEMBERS, _auto_lean
+    from clebsch_jax.batching.choose import AUTO_LEAN_MIN_MEMBER_STEPS, AUTO_LEAN_MIN_MEMBERS, auto_lean
 
-    assert not _auto_lean(AUTO_LEAN_MIN_MEMBERS - 1, 10**6)  # short rows: the compile is not repaid
-    assert not _auto_lean(AUTO_LEAN_MIN_MEMBERS, 10)  # long rows, little work: the compile is not repaid
-    assert _auto_lean(AUTO_LEAN_MIN_MEMBERS, -(-AUTO_LEAN_MIN_MEMBER_STEPS // AUTO_LEAN_MIN_MEMBERS))
-    assert _auto_lean(10**5, 10**3)
+    assert not auto_lean(AUTO_LEAN_MIN_MEMBERS - 1, 10**6)  # short rows: the compile is not repaid
+    assert not auto_lean(AUTO_LEAN_MIN_MEMBERS, 10)  # long rows, little work: the compile is not repaid
+    assert auto_lean(AUTO_LEAN_MIN_MEMBERS, -(-AUTO_LEAN_MIN_MEMBER_STEPS // AUTO_LEAN_MIN_MEMBERS))
+    assert auto_lean(10**5, 10**3)
 
 
 @pytest.mark.slow  # compiles the lean chunk of the other lean tests (the same configuration)
 def test_auto_runs_the_lean_chunk_of_a_large_sweep_and_the_general_loop_otherwise(monkeypatch):
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import choose
 
     lean = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **LEAN)
     # fast="auto" chooses among XLA's paths (the native backend, the default, is tests/test_native.py's)
     small = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, backend="xla", **LEAN)
     assert small.fast_chunks == 0
     # the same four members counted as a large sweep: "auto" runs the lean chunk, to the bit
-    monkeypatch.setattr(sw, "AUTO_LEAN_MIN_MEMBERS", 4)
-    monkeypatch.setattr(sw, "AUTO_LEAN_MIN_MEMBER_STEPS", 4 * N_STEPS)
+    monkeypatch.setattr(choose, "AUTO_LEAN_MIN_MEMBERS", 4)
+    monkeypatch.setattr(choose, "AUTO_LEAN_MIN_MEMBER_STEPS", 4 * N_STEPS)
     auto = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, backend="xla", **LEAN)
     assert auto.fast_chunks == 2 and auto.fallback_chunks == 0
     for key in ("final_momentum", "final_xi", "final_p", "energy_error", "newton_iterations"):
@@ -495,23 +495,23 @@ def test_lean_chunk_carries_what_the_general_chunk_carries():
     drift) against the general chunk's, for a first and a later chunk."""
     import dataclasses
 
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import chunks_xla
 
     res = {}
     for fast in (False, True):
         cap = {}
-        real = sw._run_fast_chunk if fast else sw._run_chunk
+        real = chunks_xla.run_fast_chunk if fast else chunks_xla.run_chunk
 
         def spy(cfg, *args, real=real, cap=cap):
             cap.setdefault("calls", []).append((cfg, args))
             return real(cfg, *args)
 
-        sw_name = "_run_fast_chunk" if fast else "_run_chunk"
-        setattr(sw, sw_name, spy)
+        name = "run_fast_chunk" if fast else "run_chunk"
+        setattr(chunks_xla, name, spy)
         try:
             cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=fast, **LEAN)
         finally:
-            setattr(sw, sw_name, real)
+            setattr(chunks_xla, name, real)
         res[fast] = cap["calls"]
     for (cfg_g, args_g), (cfg_f, args_f) in zip(res[False], res[True]):
         general = dataclasses.replace(cfg_f, fast_method=None, lean=False)
@@ -519,8 +519,8 @@ def test_lean_chunk_carries_what_the_general_chunk_carries():
         params, carry, dt, shared, first, offset = args_g
         one = lambda c, j: jax.tree_util.tree_map(lambda a: a[j], c)
         for j in range(4):
-            g, _ = sw._member_chunk(general, params[j], shared, one(carry, j), dt[j], first, offset)
-            f, _ = sw._lean_member_chunk(fast, params[j], shared, one(carry, j), dt[j], first, offset)
+            g, _ = chunks_xla._member_chunk(general, params[j], shared, one(carry, j), dt[j], first, offset)
+            f, _ = chunks_xla._lean_member_chunk(fast, params[j], shared, one(carry, j), dt[j], first, offset)
             for name in ("Q", "P", "xi", "t", "momentum", "final_xi", "energy_change", "energy_size", "max_residual"):
                 np.testing.assert_allclose(getattr(f, name), getattr(g, name), rtol=1e-12, atol=1e-14, err_msg=name)
             np.testing.assert_allclose(f.drift["energy"], g.drift["energy"], rtol=1e-9, atol=1e-15)
@@ -545,7 +545,7 @@ def test_lean_sweep_of_a_nonlinear_nodal_relation_falls_back_then_gives_up():
     # FAST_GIVE_UP rejected calls in a row the batch runs the general path only: the third
     # call (of LEAN_CHUNKS chunks) is not tried. A rejected call's chunks are rerun one by one,
     # so the table is the general path's to the bit.
-    from clebsch_jax.batching.sweep import FAST_GIVE_UP, LEAN_CHUNKS
+    from clebsch_jax.batching.schedule import FAST_GIVE_UP, LEAN_CHUNKS
 
     run = {**LEAN, "chunk_steps": 5, "n_steps": 3 * LEAN_CHUNKS * 5}
     lean = cj.sweep(_quartic_body, INERTIAS, EYES, OMEGAS, dt=0.05, fast=True, **run)
@@ -559,10 +559,11 @@ def test_lean_sweep_of_a_nonlinear_nodal_relation_falls_back_then_gives_up():
 def test_lean_calls_cover_several_chunks_of_one_length():
     # the lean chunk covers up to LEAN_CHUNKS chunks per call, as many as divide the number of
     # full chunks (one compiled length), and a short last chunk alone; other paths one each
-    from clebsch_jax.batching.sweep import LEAN_CHUNKS, _calls, _Run
+    from clebsch_jax.batching.config import Run
+    from clebsch_jax.batching.schedule import LEAN_CHUNKS, _calls
 
     def lengths(n_steps, chunk_steps, lean=True):
-        run = _Run(n_steps, chunk_steps, None, None, {}, False, [None])
+        run = Run(n_steps, chunk_steps, None, None, {}, False, [None])
         calls = _calls(run, lean)
         assert [c for call in calls for c in call] == run.chunks  # every chunk once, in order
         return [sum(n for _, n in call) for call in calls]

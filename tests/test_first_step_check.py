@@ -12,7 +12,8 @@ import pytest
 
 import clebsch_jax as cj
 from clebsch_jax.batching import batch_last as _batch_last
-from clebsch_jax.batching import sweep as _sweep
+from clebsch_jax.batching import choose as _choose
+from clebsch_jax.batching import probe as _probe
 
 from .systems import kinetic, translation, unit_vector
 
@@ -143,8 +144,8 @@ def test_integrate_refuses_the_forward_difference_on_the_heavy_top_with_the_left
 def test_a_sweep_refuses_it_before_tracing_a_batch(backend, monkeypatch):
     """Before, a sweep reported success with |QᵀQ − I| of order one. The native backend does not
     apply to this program (backend="native" would be refused for it): the check comes first."""
-    monkeypatch.setattr(_sweep, "_probe", _reached)
-    monkeypatch.setattr(_sweep, "_native_config", _reached)
+    monkeypatch.setattr(_probe, "member_shapes", _reached)
+    monkeypatch.setattr(_choose, "native_config", _reached)
     Q0, xi0 = np.broadcast_to(np.eye(3), (2, 3, 3)), np.tile(TOP_XI0, (2, 1))
     with pytest.raises(
         ValueError, match=rf"^sweep: member 0 \(Q0\[0\], xi0\[0\]\) is rejected by integrate's checks: {LEAVES}"

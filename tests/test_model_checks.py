@@ -16,7 +16,8 @@ import pytest
 
 import clebsch_jax as cj
 from clebsch_jax.batching import batch_last as _batch_last
-from clebsch_jax.batching import sweep as _sweep
+from clebsch_jax.batching import choose as _choose
+from clebsch_jax.batching import probe as _probe
 from clebsch_jax.march import integrate as _integrate
 
 XI0 = jnp.array([1.3, 0.8, -0.4])
@@ -244,8 +245,8 @@ def no_batch_trace(monkeypatch):
     def stub(*args, **kwargs):
         raise _Marched
 
-    monkeypatch.setattr(_sweep, "_probe", stub)
-    monkeypatch.setattr(_sweep, "_native_config", stub)
+    monkeypatch.setattr(_probe, "member_shapes", stub)
+    monkeypatch.setattr(_choose, "native_config", stub)
 
 
 def test_a_velocity_map_not_linear_in_xi_is_refused_by_integrate_on_a_vector_space():

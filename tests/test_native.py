@@ -352,10 +352,10 @@ def test_auto_leaves_a_kernel_past_its_size_budget_to_xla_and_native_compiles_it
     made small, with an empty disk cache): it runs XLA and says why; "native" compiles it, and
     the two tables agree."""
     import clebsch_jax.batching.backends as backends
-    import clebsch_jax.batching.sweep as sweep_module
+    import clebsch_jax.batching.choose as choose
 
     monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
-    monkeypatch.setattr(sweep_module, "AUTO_MAX_IR_LINES", 100)
+    monkeypatch.setattr(choose, "AUTO_MAX_IR_LINES", 100)
     monkeypatch.setattr(backends, "_WARNED", set())
     monkeypatch.setattr(backends, "_PROGRAMS", {})  # no kernel kept from an earlier test
     inertias, Q0, omegas = _rigid_body_members(3)

@@ -21,7 +21,7 @@ from jax.tree_util import Partial
 import clebsch_jax as cj
 from clebsch_jax import Status
 from clebsch_jax.batching import batch_last
-from clebsch_jax.batching import sweep as sweep_module
+from clebsch_jax.batching import probe
 from clebsch_jax.core import validation
 from clebsch_jax.march.scan import energy_jump
 
@@ -369,7 +369,7 @@ def test_a_sweep_too_long_for_its_schedule_is_refused_with_the_estimate_before_t
     def traced(*args, **kwargs):
         raise AssertionError("the sweep was traced for a run it cannot hold")
 
-    monkeypatch.setattr(sweep_module, "_check_first_member", traced)
+    monkeypatch.setattr(probe, "check_first_member", traced)
     with pytest.raises(ValueError, match=r"^n_steps: 1000000000000 steps in 10000000000 chunks of 100 .* GB") as info:
         cj.sweep(RB, None, I3[None], W[None], dt=0.1, n_steps=10**12)
     assert "for the schedule of chunks" in str(info.value) and "larger chunk_steps" in str(info.value)

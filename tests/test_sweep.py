@@ -240,14 +240,14 @@ def test_progress_is_reported_after_every_chunk(capsys):
 
 
 def test_bad_input_is_rejected_before_compiling(monkeypatch):
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import chunks_native, chunks_xla
 
     def compiled(*args, **kwargs):
         raise AssertionError("compiled a chunk for bad input")
 
-    monkeypatch.setattr(sw, "_run_chunk", compiled)
-    monkeypatch.setattr(sw, "_run_fast_chunk", compiled)
-    monkeypatch.setattr(sw, "_native_program", compiled)
+    monkeypatch.setattr(chunks_xla, "run_chunk", compiled)
+    monkeypatch.setattr(chunks_xla, "run_fast_chunk", compiled)
+    monkeypatch.setattr(chunks_native, "native_program", compiled)
     good = dict(make_system=rigid_body, params=INERTIAS, Q0=eyes(4), xi0=OMEGAS, dt=0.05, n_steps=10)
     cases = [
         (dict(chunk_steps=0), "chunk_steps"),
@@ -288,8 +288,8 @@ def test_bad_input_is_rejected_before_compiling(monkeypatch):
         with pytest.raises((ValueError, TypeError), match=message):
             cj.sweep(**{**good, **change})
     # the same on the fast path, whose lean chunk checks the member without tracing its march
-    monkeypatch.setattr(sw, "_lean_program", compiled)
-    monkeypatch.setattr(sw, "_fast_program", compiled)
+    monkeypatch.setattr(chunks_xla, "_lean_program", compiled)
+    monkeypatch.setattr(chunks_xla, "_fast_program", compiled)
     for change, message in cases:
         if "fast" not in change:
             with pytest.raises((ValueError, TypeError), match=message):
@@ -318,12 +318,12 @@ for a, b in zip(la, lb):
 assert list(one.failed_members) == [5] and np.any(one.drift["casimir"][:5] > 0)
 print("identical", len(la))
 # two batches side by side from two threads under the caller's default device: they run there
-import clebsch_jax.batching.sweep as sw
-seen, collect = set(), sw._collect
-sw._collect = lambda tables, one, run: (seen.update(one.carry.status.devices()), collect(tables, one, run))[1]
+from clebsch_jax.batching import tables as tb
+seen, collect = set(), tb.collect
+tb.collect = lambda tables, one, run: (seen.update(one.carry.status.devices()), collect(tables, one, run))[1]
 with jax.default_device(jax.devices()[1]):
     there = cj.sweep(*args, threads=2, **RB)
-sw._collect = collect
+tb.collect = collect
 assert seen == {jax.devices()[1]}, seen
 for a, b in zip(la, jax.tree_util.tree_leaves(there)):
     assert np.array_equal(a, b, equal_nan=True)
@@ -434,28 +434,35 @@ def test_a_sweep_of_many_peakon_systems_finishes():
     assert "finished 0" in out.stdout
 
 
+SWEEP_HOST = tuple(
+    os.path.join("batching", f"{name}.py")
+    for name in ("sweep", "config", "probe", "choose", "schedule", "tables", "chunks_xla", "chunks_native")
+)
+"""The modules of `cj.sweep`'s host code (those `clebsch_jax.batching.sweep` was split into)."""
+
+
 @pytest.mark.slow  # compiles a sweep's programs for a batch shape of its own
 def test_a_sweep_compiles_only_its_programs():
     """The sweep's host code deals the inputs out as NumPy arrays and device transfers: the only
-    programs compiled from `clebsch_jax.batching.sweep` itself are its jitted chunks (the initial
+    programs compiled from the sweep's own modules (`SWEEP_HOST`) are its jitted chunks (the initial
     multipliers are derived in the first chunk's program), never an eager JAX operation (a gather, a broadcast, ...), which
     would compile once per new shape on every first call."""
     n = 7  # a batch shape no other test uses
     inertias = np.concatenate([INERTIAS, INERTIAS[:3]])
     omegas = np.concatenate([OMEGAS, -OMEGAS[:3]])
-    with compiles_recorded(where=os.path.join("batching", "sweep.py")) as compiled:
+    with compiles_recorded(where=SWEEP_HOST) as compiled:
         res = cj.sweep(rigid_body, inertias, eyes(n), omegas, dt=0.05, n_steps=6, chunk_steps=3)
     assert np.all(res.succeeded)
-    assert set(compiled) <= {"jit(_run_chunk)", "jit(stage)"}, compiled
+    assert set(compiled) <= {"jit(run_chunk)", "jit(stage)"}, compiled
 
 
 def test_a_repeated_sweep_traces_its_member_once(monkeypatch):
     """The probe of a member's shapes (a trace of `integrate`) depends only on one member's
     shapes and dtypes and the sweep's options: a second sweep reuses it (with other values,
     members or steps), a new chunk length traces again, and the table is the same either way."""
-    import clebsch_jax.batching.sweep as sw
+    from clebsch_jax.batching import probe
 
-    monkeypatch.setattr(sw, "_TRACES", {})  # other tests' sweeps of these shapes are cached
+    monkeypatch.setattr(probe, "_TRACES", {})  # other tests' sweeps of these shapes are cached
     traces = []
     real = jax.eval_shape
     monkeypatch.setattr(jax, "eval_shape", lambda *a, **k: traces.append(1) or real(*a, **k))
@@ -468,4 +475,4 @@ def test_a_repeated_sweep_traces_its_member_once(monkeypatch):
     assert len(traces) == 1
     cj.sweep(rigid_body, INERTIAS, eyes(4), OMEGAS, **{**run, "chunk_steps": 2})  # a new chunk: traced
     assert len(traces) == 2
-    assert len(sw._TRACES) <= sw._TRACES_MAX
+    assert len(probe._TRACES) <= probe._TRACES_MAX

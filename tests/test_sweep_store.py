@@ -162,24 +162,24 @@ def test_fast_auto_resumes_on_the_path_a_store_was_written_with(reference, tmp_p
     # stored sweep keeps the path and batch size it was written with (the store refuses
     # others), so defaults can change without stranding stores
     from clebsch_jax.batching.store import ATTR, stored_configuration
-    from clebsch_jax.batching.sweep import _resumed
+    from clebsch_jax.batching.choose import resumed
 
     path = tmp_path / "sweep.zarr"
-    nothing = _resumed("auto", None, path, False, "auto")
+    nothing = resumed("auto", None, path, False, "auto")
     assert stored_configuration(path) is None and nothing == ("auto", None, "auto")  # nothing yet
     stored(path, fast=False)
     assert stored_configuration(path)["fast"] is False
     written = zarr.open_group(str(path), mode="r").attrs[ATTR]["batch_size"]
     # a store written before the native backend (no "backend" recorded) resumes on XLA
-    assert _resumed("auto", None, path, False, "auto") == (False, written, "xla")
-    assert _resumed("auto", None, path, True, "auto") == ("auto", None, "auto")  # overwrite: a new sweep
-    assert _resumed(True, 3, path, False, "xla") == (True, 3, "xla")  # explicit choices stay (and are refused)
+    assert resumed("auto", None, path, False, "auto") == (False, written, "xla")
+    assert resumed("auto", None, path, True, "auto") == ("auto", None, "auto")  # overwrite: a new sweep
+    assert resumed(True, 3, path, False, "xla") == (True, 3, "xla")  # explicit choices stay (and are refused)
     fast_store = zarr.open_group(str(tmp_path / "fast.zarr"), mode="w")
     fast_store.attrs[ATTR] = {"fast": True}
-    assert _resumed("auto", None, tmp_path / "fast.zarr", False, "auto") == (True, None, "xla")
+    assert resumed("auto", None, tmp_path / "fast.zarr", False, "auto") == (True, None, "xla")
     native_store = zarr.open_group(str(tmp_path / "native.zarr"), mode="w")
     native_store.attrs[ATTR] = {"fast": False, "backend": "native", "batch_size": 8}
-    assert _resumed("auto", None, tmp_path / "native.zarr", False, "auto") == (False, 8, "native")
+    assert resumed("auto", None, tmp_path / "native.zarr", False, "auto") == (False, 8, "native")
     zarr.open_group(str(tmp_path / "other.zarr"), mode="w").attrs["x"] = 1  # not a sweep's store
     assert stored_configuration(tmp_path / "other.zarr") is None
     assert_same_table(stored(path), reference)  # the default, "auto", reads the stored table back
@@ -501,7 +501,7 @@ def test_a_local_cluster_gives_the_in_process_table_even_when_a_worker_dies(refe
     assert flag.exists()  # a worker was killed in the middle of a batch
     assert_same_table(res, reference)
     # every worker compiled the chunk program at most once for its 2-3 batches (16 steps = 2 chunks of 8)
-    compiled = client.run(lambda: __import__("clebsch_jax.batching.sweep", fromlist=["_"])._run_chunk._cache_size())
+    compiled = client.run(lambda: __import__("clebsch_jax.batching.chunks_xla", fromlist=["_"]).run_chunk._cache_size())
     assert max(compiled.values()) == 1, compiled
     assert np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:]).all()
     assert_same_table(cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, invariants=inv, client=client, **KW), reference)

@@ -4,7 +4,7 @@ The sweep is planned where `sweep` is called (inputs checked, one member's shape
 store created), then every batch still to do becomes one task on the client's cluster — a
 `LocalCluster` of processes on one machine, or any cluster with a scheduler address (SLURM or
 PBS through dask-jobqueue, Kubernetes, cloud). A task runs the very function an in-process
-sweep runs for a batch (`clebsch_jax.batching.sweep._run_batches`: the same compiled program on
+sweep runs for a batch (`clebsch_jax.batching.schedule.run_batches`: the same compiled program on
 the same padded inputs), so the table is identical to the bit.
 
 **Compile once per worker.** The static part of the plan (configuration, shapes, options) is
@@ -29,7 +29,9 @@ import uuid
 
 import numpy as np
 
-from .sweep import SweepProgress
+from .schedule import Plan, run_batches
+from .store import open_group, write_rows, zarr_module
+from .tables import SweepProgress
 
 __all__ = ["run_on_client", "check_client"]
 
@@ -63,19 +65,15 @@ def _batch_members(members, b: int, batch_size: int):
 def _batch_task(static, token: str, b: int, members, store, run_id: int):
     """Batch b on a worker (`members`: its own, `_batch_members`): its rows, written to `store`
     (returns b) or returned."""
-    from .sweep import _Plan, _run_batches
-
     cfg, shapes, run, bs = _PLANS.setdefault(token, static)  # the first copy: one jit cache entry
-    plan = _Plan(cfg, members, shapes, run, bs)
-    rows = _run_batches(plan, [0], [None], lambda group, step: None)
+    plan = Plan(cfg, members, shapes, run, bs)
+    rows = run_batches(plan, [0], [None], lambda group, step: None)
     n = members.B
     # its rows of the whole table; devices do not pickle (the result counts one)
     rows = rows._replace(batches=[b], rows=[slice(b * bs, b * bs + n)], devices=set())
     if store is None:
         return rows
-    from .store import write_rows, _open_group, _zarr
-
-    write_rows(_open_group(_zarr(), store, "r+"), plan, rows, run_id)
+    write_rows(open_group(zarr_module(), store, "r+"), plan, rows, run_id)
     return b
 
 

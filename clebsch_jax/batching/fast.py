@@ -9,7 +9,7 @@ after the same small number K of updates, so the sweep first runs a chunk of ste
 `FixedNewton` (K chord updates as straight-line code, then one check per member and step), and
 reruns the chunk from the same start with the general loop for the members whose check failed
 (gathered from the batch: the few hard members of a batch cost the general path's time for
-themselves only; `clebsch_jax.batching.sweep.FALLBACK_BATCH`). A rerun chunk is the general
+themselves only; `clebsch_jax.batching.schedule.FALLBACK_BATCH`). A rerun chunk is the general
 path's chunk, so statuses and failures (step and member) are the general path's; the fast chunk
 that is kept has every member and step solved to round-off, as the general loop solves it: the
 two agree to round-off (`tests/test_fast_path.py`).

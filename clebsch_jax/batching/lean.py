@@ -18,7 +18,7 @@ Nothing is stored per step, so the loop body is all the program holds. The chunk
 the general chunk's (the carry handed to the next chunk, the reductions); a member that failed
 before the chunk stays failed. A member that was alive and failed in the chunk is run again
 by `sweep` with the general path (in the sweep's chunks: one lean chunk covers several,
-`clebsch_jax.batching.sweep.LEAN_CHUNKS`), which reports the failure's status and step: the
+`clebsch_jax.batching.schedule.LEAN_CHUNKS`), which reports the failure's status and step: the
 lean chunk only has to notice that something failed, never to say what.
 
 The first `warmup` steps of a chunk (the fast method's `FixedNewton.warmup`), while the
@@ -106,7 +106,7 @@ def lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum=False)
     r"""`n` steps of one member from the sweep's carry, with the reductions made in the loop.
 
     **Arguments:** `stepper`, the fast method prepared for `system` (`supports`); `carry`, the
-    sweep's carry (`clebsch_jax.batching.sweep._Carry`: the canonical state (Q, P), the nodal
+    sweep's carry (`clebsch_jax.batching.config.Carry`: the canonical state (Q, P), the nodal
     velocity ξ, t and the running reductions); `dt`; `n` the chunk's steps; `first` whether
     this is the run's first chunk (the energy drift's reference is then this chunk's node 0);
     `derive_momentum` (a traced bool, or False) whether the carry's multiplier P is a

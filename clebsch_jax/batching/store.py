@@ -1,37 +1,9 @@
 r"""A sweep's table in a Zarr (v3) store, written batch by batch: resumable, readable by xarray.
 
 `cj.sweep(..., store=path)` creates the store (or reopens it), then writes each batch's rows
-as soon as the batch is finished. `xarray.open_zarr(path)` is the analysis entry point and
+as soon as the batch is finished. The arrays and the configuration it holds are
+`clebsch_jax.batching.store_layout`'s. `xarray.open_zarr(path)` is the analysis entry point and
 `cj.open_sweep(path)` gives the `SweepResult` back.
-
-**Layout.** One Zarr group; every array carries its dimension names (Zarr v3
-`dimension_names`, which xarray reads):
-
-- `member` (member,) and, per member, `param_index`, `ic_index`, `dt`, `status`, `failed_step`,
-  `energy_error`, `newton_iterations`, `max_residual`, `final_t`, `final_Q`, `final_p`,
-  `final_xi`, `final_momentum` (the state arrays with one more dimension per axis of Q or ξ:
-  `Q_axis0`, … and `component`, …), `initial_<k>` and `drift_<k>` of every invariant but the
-  energy (the names in the attribute `invariants`; `drift_energy` is `energy_error`);
-- the inputs: `Q0`, `xi0` (`P0` if given) over (ic, …) and every parameter leaf `params_<i>`
-  over (param, …); the member's row of them is `ic_index`, `param_index`;
-- with `save_every`: `saved_step` (node,) and `saved_t`, `saved_Q`, `saved_xi`,
-  `saved_momentum` over (member, node, …);
-- `batch_done` (batch,) and `batch_run` (batch,): whether batch b is written, and by which run
-  of the sweep (1 for the first, 2 for the first resume, …).
-
-A member not written yet (an interrupted sweep) reads `status` = `Status.NOT_RUN` (-1), never
-a success, and NaN in its float arrays; `status` is the last of a batch's arrays written, so a
-member with another status has all its data. The metadata are consolidated at the start of
-every run, so `xarray.open_zarr(store)` opens it without a warning.
-
-**Checksums.** Every chunk is compressed (zstd), then carries a CRC-32C of its stored bytes
-(Zarr's `crc32c` codec): a flipped bit is an error when the chunk is read, never a changed
-number. A reopened store is read back chunk by chunk (`repair`): a finished batch with a damaged
-or missing chunk is marked not done, with a message, and computed again by this run alone; a
-damaged chunk of the inputs is written again. `open_sweep` names the damaged batches.
-
-Per-member arrays are chunked by the sweep's `batch_size` along `member`, so each batch writes
-whole chunks of its own and batches written at once by different processes never share one.
 
 **Resume.** The attribute `clebsch_jax_sweep` holds the sweep's configuration: the method and
 its options (`check_energy` as asked), `n_steps`, `batch_size`, `chunk_steps`, `save_every`, the
@@ -59,44 +31,41 @@ garbled by two writers at once fails its checksum, and is computed again by the 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
-import re
 import sys
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..roots.status import Status
+from .store_layout import (
+    ATTR,
+    COLUMNS,
+    OWNER,
+    OWNER_VALUE,
+    SAVED,
+    chunk_problem,
+    configuration,
+    fill,
+    inputs,
+    invariant_keys,
+    variables,
+    write_inputs,
+    written_by_batches,
+)
+from .tables import SweepResult
 
 __all__ = ["open_sweep", "SweepStoreError"]
 
-ATTR = "clebsch_jax_sweep"
-OWNER, OWNER_VALUE = "written_by", "clebsch_jax.sweep"  # the first attribute a new store gets: it is ours
-FORMAT = 2  # the layout's version, part of the configuration
-
 _EXTRA = 'pip install "clebsch-jax[sweep]"'
-_COLUMNS = (
-    "status",
-    "failed_step",
-    "newton_iterations",
-    "max_residual",
-    "final_t",
-    "final_Q",
-    "final_p",
-    "final_xi",
-    "final_momentum",
-)
-_SAVED = ("t", "Q", "xi", "momentum")
 
 
 class SweepStoreError(ValueError):
     """A sweep store that cannot be used: another configuration, unfinished, truncated or corrupted."""
 
 
-def _zarr():
+def zarr_module():
+    """The `zarr` package (v3), or an ImportError naming the extra that installs it."""
     try:
         import zarr
     except ImportError:
@@ -121,267 +90,18 @@ def _plain(store):
     return os.fspath(store) if isinstance(store, os.PathLike) else store
 
 
-# --------------------------------------------------------------------------------------------
-# The configuration a store belongs to.
-
-
-def _digest(arrays) -> str:
-    h = hashlib.sha256()
-    for a in arrays:
-        if a is None:
-            h.update(b"none")
-            continue
-        a = np.ascontiguousarray(np.asarray(a))
-        h.update(f"{a.dtype.str}{a.shape}".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
-def _describe(obj) -> str:
-    """A repr without memory addresses (they change from process to process)."""
-    if callable(obj) and hasattr(obj, "__qualname__"):
-        return f"{getattr(obj, '__module__', '?')}.{obj.__qualname__}"
-    return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(obj))
-
-
-def program_digest(plan) -> str:
-    r"""A SHA-256 of what one member computes: the jaxpr of one chunk of its `integrate` run
-    and its invariants (`jax.make_jaxpr` on the first member's shapes, as the sweep traces it),
-    with the values of the constants the trace captured. The system's maps and Lagrangian,
-    `make_system`'s body, the invariants' bodies and every `integrate` option are in it, so a
-    store refuses a sweep that would compute something else under the same names (a lambda with
-    another body, a function edited in place); so do another version of the engine or of JAX
-    when they trace another program. Array inputs are traced, not in the jaxpr: they have
-    their own digest."""
-    import jax
-    import jax.numpy as jnp
-
-    from ..core.jit import undifferentiated
-    from ..march.integrate import integrate
-    from .sweep import _first_row, _system_of
-
-    cfg, members = plan.cfg, plan.members
-    j = int(members.ic_index[0])
-    options = {k: v for k, v in cfg.options if k != "check_energy"}
-
-    def member(p, s, q, x, d):
-        system = _system_of(cfg, p, s)
-        sol = integrate(
-            system,
-            q,
-            x,
-            dt=d,
-            n_steps=cfg.n,
-            P0=jnp.zeros_like(q),
-            t0=jnp.zeros((), q.dtype),
-            throw=False,
-            check_energy=False,
-            **options,
-        )
-        return sol, [fn(system, sol) for _, fn in cfg.invariants]
-
-    with undifferentiated():  # as the sweep's chunks are traced
-        closed = jax.make_jaxpr(member)(
-            _first_row(members),
-            members.shared,
-            jnp.asarray(members.Q0[j]),
-            jnp.asarray(members.xi0[j]),
-            jnp.asarray(members.dt[0]),
-        )
-    text = re.sub(r" at 0x[0-9a-fA-F]+", "", str(closed.jaxpr))  # no memory addresses (they change)
-    return hashlib.sha256(text.encode() + _digest(closed.consts).encode()).hexdigest()
-
-
-def configuration(plan) -> dict:
-    """The sweep's configuration, as stored in the attribute `clebsch_jax_sweep` (JSON)."""
-    from .. import __version__
-    import jax
-
-    cfg, members, shapes, run, batch_size = plan
-    dts = np.unique(members.dt)
-    return {
-        "format": FORMAT,
-        "package_version": __version__,
-        "model": "shared system" if members.builder is None else _describe(members.builder),
-        "method": shapes.facts["method"] or shapes.facts["scheme"],
-        "scheme": shapes.facts["scheme"],
-        "form": shapes.facts["form"],
-        "order": shapes.facts["order"],
-        # the energy check is the sweep's own (its chunks run without it): recorded as asked
-        "options": {**{k: _describe(v) for k, v in cfg.options}, "check_energy": cfg.check_energy},
-        "program_sha256": program_digest(plan),
-        "jax_version": jax.__version__,
-        "fast": cfg.fast_method is not None,  # the fast path agrees with the general one to round-off only
-        **({"backend": "native"} if getattr(cfg, "native", False) else {}),  # stores before it ran XLA
-        "dt": float(dts[0]) if len(dts) == 1 else "one per member",
-        "n_steps": run.n_steps,
-        "chunk_steps": run.chunk_steps,
-        "save_every": run.save_every,
-        "batch_size": batch_size,
-        "n_members": members.B,
-        "n_batches": -(-members.B // batch_size),
-        "invariants": [name for name in run.invariants if name != "energy"],
-        "inputs_sha256": _digest(
-            [
-                *jax.tree_util.tree_leaves(members.params),
-                members.Q0,
-                members.xi0,
-                members.P0,
-                members.dt,
-                members.param_index,
-                members.ic_index,
-                *(members.shared or []),
-            ]
-        ),
-    }
-
-
-# --------------------------------------------------------------------------------------------
-# Creating, checking and writing.
-
-
-def _dims(prefix: str, shape: tuple) -> list:
-    return [f"{prefix}{k}" for k in range(len(shape))]
-
-
-def _xi_dims(shape: tuple) -> list:
-    return ["component"] if len(shape) == 1 else _dims("component", shape)
-
-
-def _variables(plan) -> dict:
-    """{name: (dimension names, shape, dtype, chunk along the first axis)} of every array."""
-    cfg, members, shapes, run, bs = plan
-    import jax
-
-    B, q, x = members.B, shapes.q, shapes.xi
-    qd, xd = _dims("Q_axis", q), _xi_dims(x)
-    n_batches = -(-B // bs)
-    out = {
-        "member": (["member"], (B,), np.int64, bs),
-        "param_index": (["member"], (B,), np.int64, bs),
-        "ic_index": (["member"], (B,), np.int64, bs),
-        "dt": (["member"], (B,), np.float64, bs),
-        "status": (["member"], (B,), np.int32, bs),
-        "failed_step": (["member"], (B,), np.int32, bs),
-        "energy_error": (["member"], (B,), np.float64, bs),
-        "newton_iterations": (["member"], (B,), np.int64, bs),
-        "max_residual": (["member"], (B,), np.float64, bs),
-        "final_t": (["member"], (B,), np.float64, bs),
-        "final_p": (["member"] + qd, (B,) + q, np.float64, bs),
-        "final_momentum": (["member"] + xd, (B,) + x, np.float64, bs),
-        "Q0": (["ic"] + qd, members.Q0.shape, np.float64, bs),
-        "xi0": (["ic"] + xd, members.xi0.shape, np.float64, bs),
-        "batch_done": (["batch"], (n_batches,), np.bool_, 1),
-        "batch_run": (["batch"], (n_batches,), np.int32, 1),
-    }
-    if shapes.has_Q:
-        out["final_Q"] = (["member"] + qd, (B,) + q, np.float64, bs)
-    if shapes.has_xi:
-        out["final_xi"] = (["member"] + xd, (B,) + x, np.float64, bs)
-    if members.P0 is not None:
-        out["P0"] = (["ic"] + qd, members.P0.shape, np.float64, bs)
-    if members.builder is not None:
-        for i, leaf in enumerate(jax.tree_util.tree_leaves(members.params)):
-            shape = tuple(np.shape(leaf))
-            out[f"params_{i}"] = (["param"] + _dims(f"params_{i}_axis", shape[1:]), shape, np.float64, bs)
-    for k, (name, v) in enumerate(shapes.invariants.items()):
-        if name == "energy":
-            continue
-        tail = tuple(v.shape[1:])
-        out[f"initial_{k}"] = (["member"] + _dims(f"initial_{k}_axis", tail), (B,) + tail, v.dtype, bs)
-        out[f"drift_{k}"] = (["member"], (B,), np.float64, bs)
-    out["initial_energy"] = (["member"], (B,), shapes.invariants["energy"].dtype, bs)
-    if run.save_every is not None:
-        S = len(range(0, run.n_steps + 1, run.save_every))
-        out["saved_step"] = (["node"], (S,), np.int64, S)
-        out["saved_t"] = (["member", "node"], (B, S), np.float64, bs)
-        out["saved_momentum"] = (["member", "node"] + xd, (B, S) + x, np.float64, bs)
-        if shapes.has_Q:
-            out["saved_Q"] = (["member", "node"] + qd, (B, S) + q, np.float64, bs)
-        if shapes.has_xi:
-            out["saved_xi"] = (["member", "node"] + xd, (B, S) + x, np.float64, bs)
-    return out
-
-
-def _invariant_keys(shapes) -> dict:
-    """{invariant name: the suffix of its arrays}: its position, since a name may hold any character."""
-    return {name: ("energy" if name == "energy" else str(k)) for k, name in enumerate(shapes.invariants)}
-
-
 def _create(zarr, store, plan, config: dict):
     with zarr.config.set({"array.write_empty_chunks": True}):
         # the owner first, in the group's own metadata: a store whose creation is interrupted is ours
-        return _fill(
+        return fill(
             zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE, "created_by": _creator()}),
             plan,
             config,
         )
 
 
-def _fill(root, plan, config: dict):
-    from zarr.codecs import Crc32cCodec, ZstdCodec
-
-    for name, (dims, shape, dtype, chunk) in _variables(plan).items():
-        chunks = (max(1, min(chunk, shape[0])),) + tuple(shape[1:]) if shape else ()
-        fill = False if dtype == np.bool_ else (0 if np.issubdtype(dtype, np.integer) else np.nan)
-        fill = int(Status.NOT_RUN) if name == "status" else fill  # an unwritten member is no success
-        # every chunk compressed, then checksummed (CRC-32C of the stored bytes): a flipped bit is
-        # an error when the chunk is read, never a changed number
-        root.create_array(
-            name,
-            shape=shape,
-            dtype=dtype,
-            chunks=chunks,
-            dimension_names=dims,
-            fill_value=fill,
-            compressors=[ZstdCodec(), Crc32cCodec()],
-        )
-    _write_inputs(root, plan)
-    keys = _invariant_keys(plan.shapes)
-    # the configuration last: a store without it was not finished being created
-    root.attrs.update(
-        {
-            "invariant_arrays": keys,
-            "runs": 0,
-            "description": "clebsch_jax.sweep table",
-            **{k: config[k] for k in ("method", "dt", "n_steps", "package_version")},
-            ATTR: config,
-        }
-    )
-    return root
-
-
-def _inputs(plan) -> dict:
-    """{array: its data} of the arrays written when the store is created (the inputs, the
-    members' rows of them, the saved steps): every other array is written batch by batch."""
-    import jax
-
-    members, run = plan.members, plan.run
-    out = {
-        "member": np.arange(members.B),
-        "param_index": members.param_index,
-        "ic_index": members.ic_index,
-        "dt": members.dt,
-        "Q0": members.Q0,
-        "xi0": members.xi0,
-    }
-    if members.P0 is not None:
-        out["P0"] = members.P0
-    if members.builder is not None:
-        for i, leaf in enumerate(jax.tree_util.tree_leaves(members.params)):
-            out[f"params_{i}"] = np.asarray(leaf)
-    if run.save_every is not None:
-        out["saved_step"] = np.arange(0, run.n_steps + 1, run.save_every)
-    return out
-
-
-def _write_inputs(root, plan, names=None):
-    for name, data in _inputs(plan).items():
-        if names is None or name in names:
-            root[name][:] = data
-
-
-def _open_group(zarr, store, mode: str):
+def open_group(zarr, store, mode: str):
+    """The store's root group, opened as it is; a `SweepStoreError` naming the store if it cannot be."""
     try:
         # the arrays as they are (a consolidated copy of their metadata would hide a missing one)
         return zarr.open_group(_plain(store), mode=mode, use_consolidated=False)
@@ -395,7 +115,7 @@ def stored_configuration(store) -> dict | None:
     """The configuration of the sweep stored in `store` (`configuration`, as read back); None
     where there is none (nothing yet, or not a sweep's store)."""
     try:
-        stored = _zarr().open_group(_plain(store), mode="r").attrs.get(ATTR)
+        stored = zarr_module().open_group(_plain(store), mode="r").attrs.get(ATTR)
     except Exception:  # nothing there: the sweep creates it (open_for_run reports other problems)
         return None
     return stored if isinstance(stored, dict) else None
@@ -508,7 +228,7 @@ def _live_creator(created_by) -> str | None:
 def open_for_run(store, plan, overwrite: bool):
     """The store of this sweep: created, or reopened after checking its configuration. Only a
     store recognised as a sweep's (`_inspect`) is ever replaced, and only with `overwrite`."""
-    zarr = _zarr()
+    zarr = zarr_module()
     config = json.loads(json.dumps(configuration(plan)))  # as it reads back (tuples become lists)
     name = store_name(store)
     state, root = _inspect(zarr, store)
@@ -527,7 +247,7 @@ def open_for_run(store, plan, overwrite: bool):
                 f"store {name!r} was written by another sweep configuration ({shown}).{why} Use "
                 "another store, or overwrite=True to replace it."
             )
-        root = _open_group(zarr, store, "r+")
+        root = open_group(zarr, store, "r+")
         _check_layout(root, plan, name)
         return root
     try:
@@ -539,7 +259,7 @@ def open_for_run(store, plan, overwrite: bool):
 def _check_layout(root, plan, name: str):
     """Every array the configuration implies is there with its shape: else a clear error."""
     have = set(root.array_keys())
-    for var, (_, shape, _, _) in _variables(plan).items():
+    for var, (_, shape, _, _) in variables(plan).items():
         if var not in have:
             raise SweepStoreError(
                 f"store {name!r}: the array {var!r} is missing (a truncated or corrupted store); "
@@ -572,40 +292,13 @@ def done_batches(root, name: str) -> np.ndarray:
         return done
 
 
-def _written_by_batches(root) -> list:
-    """The arrays written batch by batch (`write_rows`): those over `member`, less the inputs'
-    rows written when the store was created."""
-    created = {"member", "param_index", "ic_index", "dt"}
-    return [
-        k
-        for k in sorted(root.array_keys())
-        if k not in created and (root[k].metadata.dimension_names or (None,))[0] == "member"
-    ]
-
-
-def _chunk_problem(root, var: str, b: int, bs: int):
-    """None if batch b's rows of `var` (exactly one chunk: per-member arrays are chunked by the
-    batch size) are there and read back; else what is wrong with them."""
-    from zarr.core.sync import sync
-
-    arr = root[var]
-    key = f"{arr.path}/{arr.metadata.encode_chunk_key((b,) + (0,) * (arr.ndim - 1))}"
-    try:
-        if not sync(root.store.exists(key)):
-            return "a missing chunk"
-        arr[b * bs : (b + 1) * bs]
-    except Exception as err:  # a checksum mismatch, a truncated chunk: codecs raise many kinds
-        return f"{type(err).__name__}: {err}"
-    return None
-
-
 def damaged_batches(root, batches, bs: int) -> dict:
     """{batch: (array, what is wrong)} of the given batches whose data cannot be read back."""
     found = {}
-    for var in _written_by_batches(root):
+    for var in written_by_batches(root):
         for b in batches:
             if b not in found:
-                problem = _chunk_problem(root, var, b, bs)
+                problem = chunk_problem(root, var, b, bs)
                 if problem is not None:
                     found[b] = (var, problem)
     return found
@@ -628,7 +321,7 @@ def repair(root, plan, done: np.ndarray, name: str) -> np.ndarray:
         root["batch_done"][b] = False
         done[b] = False
     broken = []
-    for var in _inputs(plan):
+    for var in inputs(plan):
         try:
             root[var][...]
         except Exception:  # codecs raise many kinds
@@ -639,23 +332,23 @@ def repair(root, plan, done: np.ndarray, name: str) -> np.ndarray:
             file=sys.stderr,
             flush=True,
         )
-        _write_inputs(root, plan, broken)
+        write_inputs(root, plan, broken)
     return done
 
 
 def write_rows(root, plan, rows, run_id: int):
-    """Write finished batches (a `_Rows`) into the store: data first, then each batch's flags."""
+    """Write finished batches (a `schedule.Rows`) into the store: data first, then each batch's flags."""
     shapes = plan.shapes
-    keys = _invariant_keys(shapes)
+    keys = invariant_keys(shapes)
     part = rows.tables
-    arrays = {k: part.columns[k] for k in _COLUMNS if part.columns[k] is not None and k != "status"}
+    arrays = {k: part.columns[k] for k in COLUMNS if part.columns[k] is not None and k != "status"}
     for name, key in keys.items():
         arrays[f"initial_{key}"] = part.initial[name]
         if name != "energy":
             arrays[f"drift_{key}"] = part.drift[name]
     arrays["energy_error"] = part.drift["energy"]
     if part.saved is not None:
-        arrays.update({f"saved_{k}": part.saved[k] for k in _SAVED if part.saved[k] is not None})
+        arrays.update({f"saved_{k}": part.saved[k] for k in SAVED if part.saved[k] is not None})
     arrays["status"] = part.columns["status"]  # the last data: a member with a status has all its data
     start = 0
     spans = []
@@ -664,7 +357,7 @@ def write_rows(root, plan, rows, run_id: int):
         spans.append((r, slice(start, start + n)))
         start += n
     # every chunk written, even one that equals the fill value: a missing chunk means a truncated store
-    with _zarr().config.set({"array.write_empty_chunks": True}):
+    with zarr_module().config.set({"array.write_empty_chunks": True}):
         for var, data in arrays.items():
             target = root[var]
             for r, local in spans:
@@ -683,7 +376,7 @@ def start_run(root, store) -> int:
     root.attrs["runs"] = run_id
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
-        _zarr().consolidate_metadata(_plain(store))
+        zarr_module().consolidate_metadata(_plain(store))
     return run_id
 
 
@@ -706,11 +399,9 @@ def open_sweep(store):
     truncated or corrupted. For analysis, `xarray.open_zarr(store)` reads the same arrays with
     their dimension names.
     """
-    from .sweep import SweepResult
-
-    zarr = _zarr()
+    zarr = zarr_module()
     name = store_name(store)
-    root = _open_group(zarr, store, "r")
+    root = open_group(zarr, store, "r")
     config = root.attrs.get(ATTR)
     if config is None:
         raise SweepStoreError(f"store {name!r}: holds no clebsch_jax sweep (no attribute {ATTR!r}).")
@@ -725,9 +416,9 @@ def open_sweep(store):
         "param_index",
         "ic_index",
         "energy_error",
-        *_COLUMNS,
+        *COLUMNS,
         *(f"{kind}_{key}" for key in keys.values() for kind in ("initial", "drift")),
-        *(f"saved_{k}" for k in _SAVED),
+        *(f"saved_{k}" for k in SAVED),
     }
 
     def read(var, required=True):
@@ -752,16 +443,16 @@ def open_sweep(store):
 
     def _which(var):
         """Which batches of `var` are damaged, and what a rerun does about them."""
-        if var not in _written_by_batches(root):
+        if var not in written_by_batches(root):
             return "; run the same sweep with this store: it writes the inputs again."
         bs = config["batch_size"]
-        bad = sorted(b for b in range(len(done)) if _chunk_problem(root, var, b, bs) is not None)
+        bad = sorted(b for b in range(len(done)) if chunk_problem(root, var, b, bs) is not None)
         return (
             f": batch{'es' if len(bad) > 1 else ''} {', '.join(map(str, bad))}; run the same sweep with this "
             "store: it computes only the damaged batches again."
         )
 
-    columns = {k: read(k, required=k not in ("final_Q", "final_xi")) for k in _COLUMNS}
+    columns = {k: read(k, required=k not in ("final_Q", "final_xi")) for k in COLUMNS}
     drift = {"energy": read("energy_error")}
     initial = {}
     for inv, key in keys.items():
@@ -796,82 +487,15 @@ def open_sweep(store):
     )
 
 
-# --------------------------------------------------------------------------------------------
-# A stored sweep: skip what is done, run the rest (here or on a Dask cluster), read it back.
-
-
-def check_arguments(store, client, overwrite) -> None:
-    """`sweep`'s `store`, `client` and `overwrite`, checked before anything is traced or compiled
-    (the optional packages they need named with the extra that installs them)."""
+def check_arguments(store, overwrite) -> None:
+    """`sweep`'s `store` and `overwrite`, checked before anything is traced or compiled (zarr
+    named with the extra that installs it)."""
     if overwrite not in (True, False):
         raise ValueError(f"overwrite: expected True or False, got {overwrite!r}.")
     if overwrite and store is None:
         raise ValueError("overwrite: True replaces a store, but no store= was given.")
     if store is not None:
-        zarr = _zarr()
+        zarr = zarr_module()
         if isinstance(store, (str, bytes)) and not store:
             raise ValueError("store: expected a path or a zarr store, got an empty string.")
         _inspect(zarr, store)  # a path that is not a sweep store of ours is refused here already
-    if client is not None:
-        from .distributed import check_client
-
-        check_client(client)
-
-
-def run_stored(plan, run, tables, *, store, client, overwrite: bool, report, make_result):
-    """`sweep` with `store=` and/or `client=`: called by `sweep` after `check_arguments` and its
-    own checks."""
-    from .sweep import _place, _run_batches
-
-    B, bs = plan.members.B, plan.batch_size
-    n_batches = -(-B // bs)
-    if store is None:  # a Dask cluster, the table kept in memory
-        from .distributed import run_on_client
-
-        chunks = np.zeros(3, int)
-        for rows in run_on_client(client, plan, list(range(n_batches)), None, 0, run.progress):
-            _place(tables, rows.tables, rows.rows)
-            chunks += rows.fast_chunks
-        return make_result(plan, tables, 1, chunks)
-    name = store_name(store)
-    root = open_for_run(store, plan, overwrite)
-    done = done_batches(root, name)
-    if done.any():  # reopened: every chunk of the finished batches is read back (checksums)
-        done = repair(root, plan, done, name)
-    pending = [b for b in range(n_batches) if not done[b]]
-    if len(pending) < n_batches:
-        skipped = B - sum(min(bs, B - b * bs) for b in pending)
-        print(
-            f"sweep: store {name!r}: skipped {skipped} of {B} members already written "
-            f"({n_batches - len(pending)} of {n_batches} batches); computing the other {len(pending)} batches.",
-            file=sys.stderr,
-            flush=True,
-        )
-    run_id = start_run(root, store)
-    if client is not None:
-        from .distributed import run_on_client
-
-        for _ in run_on_client(client, plan, pending, store, run_id, run.progress):
-            pass
-        return open_sweep(store)
-    # Each group's rows go to the store from a writer thread while the next group computes; the
-    # table is kept in memory too. Leaving the `with` (also on Ctrl-C) waits for the writes under way.
-    slots, used, chunks = run.slots, set(), np.zeros(3, int)
-    with ThreadPoolExecutor(1, thread_name_prefix="clebsch-jax-sweep-store") as writer:
-        writes = []
-        for g in range(0, len(pending), len(slots)):
-            rows = _run_batches(plan, pending[g : g + len(slots)], slots, report)
-            used.update(rows.devices)
-            chunks += rows.fast_chunks
-            _place(tables, rows.tables, rows.rows)
-            writes.append(writer.submit(write_rows, root, plan, rows, run_id))
-            for w in writes:
-                if w.done():
-                    w.result()  # a failed write stops the sweep now
-        for w in writes:
-            w.result()
-    if run.progress is True:
-        print(file=sys.stderr, flush=True)
-    if len(pending) < n_batches:  # resumed: the skipped batches' rows are in the store only
-        return open_sweep(store)
-    return make_result(plan, tables, len(used), chunks)

@@ -1,0 +1,106 @@
+r"""A chunk of a batch as one call of a native kernel (`clebsch_jax.native`).
+
+The per-member program (`clebsch_jax.batching.member`) of a sweep's configuration, compiled
+once per process (`native_program`, from the disk cache when another process compiled it),
+and called on a batch's host arrays (`native_call`), with the sweep's carry converted to the
+program's and back.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import numpy as np
+
+from ..core.jit import undifferentiated
+from ..march.integrate import prepared_method
+from .backends import NativeProgram
+from .config import Carry, Config, system_of
+from .member import MemberCarry, member_chunk
+from .probe import trace_key
+
+
+def _native_member(cfg: Config, params, shared, carry: MemberCarry, dt, first, offset) -> MemberCarry:
+    """One member's chunk as the per-member program (`clebsch_jax.batching.member`): the method
+    `integrate` chooses for it, its solves to their own stopping rule, the reductions in the loop."""
+    system = system_of(cfg, params, shared)
+    stepper, _, _ = prepared_method(
+        system, carry.Q, carry.xi, dt=dt, n_steps=cfg.n, P0=carry.P, t0=carry.t, **dict(cfg.options)
+    )
+    return member_chunk(
+        stepper, system, carry, dt, cfg.n, first, offset, check_energy=cfg.check_energy, derive_P=cfg.derive_P
+    )
+
+
+def as_member(carry: Carry) -> MemberCarry:
+    """The sweep's carry (energy the only invariant) as the per-member program's, on the host."""
+    h = lambda a: np.asarray(a)
+    return MemberCarry(
+        Q=h(carry.Q),
+        P=h(carry.P),
+        xi=h(carry.xi),
+        t=h(carry.t),
+        status=h(carry.status),
+        failed_step=h(carry.failed_step),
+        iterations=h(carry.iterations),
+        max_residual=h(carry.max_residual),
+        energy0=h(carry.initial["energy"]),
+        drift=h(carry.drift["energy"]),
+        momentum=h(carry.momentum),
+        energy_change=h(carry.energy_change),
+        energy_size=h(carry.energy_size),
+    )
+
+
+def _from_member(m: MemberCarry, has_xi: bool) -> Carry:
+    return Carry(
+        Q=m.Q,
+        P=m.P,
+        xi=m.xi,
+        t=m.t,
+        status=m.status,
+        failed_step=m.failed_step,
+        iterations=m.iterations,
+        max_residual=m.max_residual,
+        initial={"energy": m.energy0},
+        drift={"energy": m.drift},
+        momentum=m.momentum,
+        final_xi=m.xi if has_xi else None,
+        energy_change=m.energy_change,
+        energy_size=m.energy_size,
+    )
+
+
+_NATIVE_AXES = (0, None, 0, 0, None, None)
+
+
+def native_program(cfg: Config, params, shared, carry: MemberCarry, dt):
+    """The native kernel of `_native_member` for this configuration and these shapes (compiled
+    once per process; from the disk cache when another process compiled it)."""
+    row = lambda tree: jax.tree_util.tree_map(lambda a: np.asarray(a)[0], tree)
+    args = (
+        row(params),
+        None if shared is None else [np.asarray(x) for x in shared],
+        row(carry),
+        row(dt),
+        np.asarray(True),
+        np.asarray(0, np.int32),
+    )
+    fun = functools.partial(_native_member, cfg)
+
+    def traced(*a):
+        with undifferentiated():  # a sweep is never differentiated: no derivative rules traced
+            return fun(*a)
+
+    return NativeProgram.get(("sweep", trace_key(cfg, args)), traced, args, _NATIVE_AXES, cfg.native_max_lines)
+
+
+def native_call(c: Config, one, st: int) -> Carry:
+    """One chunk of a batch (`schedule.Batch`) by its native kernel: the batch's carry after it (host arrays)."""
+    carry = as_member(one.carry)
+    program = native_program(c, one.params, one.shared, carry, one.dt)
+    shared = None if one.shared is None else [np.asarray(x) for x in one.shared]
+    params = jax.tree_util.tree_map(np.asarray, one.params)
+    new = program(params, shared, carry, np.asarray(one.dt), np.asarray(st == 0), np.asarray(st, np.int32))
+    return _from_member(new, one.carry.final_xi is not None)

@@ -1,0 +1,192 @@
+r"""One member checked and traced before anything is compiled.
+
+`check_first_member` makes `integrate`'s checks that need values on the first member that can
+run (concrete values: the model by autodiff, the configuration, the first step);
+`member_shapes` traces one member's chunk (or, for a sweep that keeps the energy only, its
+choice of method alone) for the shapes of the table and the facts of the march. Traces are
+cached by the configuration and the member's shapes (`trace_key`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..core.jit import memo, undifferentiated
+from ..core.validation import check_configuration as _check_configuration
+from ..core.validation import runnable_check as _runnable_check
+from ..march.integrate import check_member as _check_member_eagerly
+from ..march.integrate import prepared_method
+from ..march.scan import node_energy
+from .config import Config, Members, chunk_integrate, first_row, member_slices, system_of
+from .lean import carries_Q as _lean_carries_Q
+
+
+def _check_configurations(system, Q0, n_ic):
+    """The system's `check_Q` of every concrete Q0[j]: at once when the check has a vectorised
+    form (`check_Q.batched(stack) -> None | (j, sentence)`, as the SO(n) models' rotation check
+    has; called row by row from Python, it took a large part of a million-member sweep's time),
+    else one call per row."""
+    check = _runnable_check(system, Q0)
+    if check is None:
+        return
+    batched = getattr(check, "batched", None)
+    if batched is not None:
+        found = batched(np.asarray(Q0))
+        if found is not None:
+            j, problem = found
+            raise ValueError(f"Q0[{j}]: {problem}")
+        return
+    for j in range(n_ic):
+        try:
+            _check_configuration(system, Q0[j])
+        except ValueError as err:
+            raise ValueError(f"Q0[{j}]: {str(err).removeprefix('Q0: ')}") from None
+
+
+FIRST_MEMBER_TRIES = 8
+"""`check_first_member` checks the first member whose inputs are finite and whose system
+`make_system` builds from its concrete parameter row, among the first this many such members."""
+
+
+def check_first_member(cfg: Config, members: Members) -> None:
+    """`integrate`'s checks of a member, with its concrete values, before any batch is traced or
+    compiled (`clebsch_jax.march.integrate.check_member`): the batches march traced members, on
+    which `integrate` skips the checks that need values — the model by autodiff (`check_model`),
+    Q0 in the velocity map's group (`check_group_configuration`) and the first step on the
+    configuration manifold (`check_first_step`). One member: the checks look at the model (its
+    functions), which the members share. It is the first member that can run: one with
+    non-finite inputs, or whose parameter row the model's constructor refuses, is reported in
+    the table instead (`Status.INVALID_INPUT`), as before. The system's own check of its
+    configurations (`check_Q`) runs on every Q0[j], first (`_check_configurations`)."""
+    _check_configurations(system_of(cfg, first_row(members), members.shared), members.Q0, members.n_ic)
+    finite = lambda a: np.all(np.isfinite(np.reshape(a, (len(a), -1))), axis=1)  # noqa: E731
+    ok_ic = finite(members.Q0) & finite(members.xi0) & (True if members.P0 is None else finite(members.P0))
+    ok = ok_ic[members.ic_index]
+    if members.builder is not None:
+        rows = np.all([finite(leaf) for leaf in jax.tree_util.tree_leaves(members.params)], axis=0)
+        ok &= rows[members.param_index]
+    options = {k: v for k, v in cfg.options if k != "check_energy"}
+    for m in np.flatnonzero(ok)[:FIRST_MEMBER_TRIES]:
+        i, j = int(members.param_index[m]), int(members.ic_index[m])
+        try:
+            row = None if members.builder is None else member_slices(members.params, i)
+            system = system_of(cfg, row, members.shared)
+        except (ValueError, TypeError):  # a row the constructor refuses: that member reports it
+            continue
+        P0 = None if members.P0 is None else members.P0[j]
+        try:
+            _check_member_eagerly(
+                system, members.Q0[j], members.xi0[j], dt=members.dt[m], P0=P0, configuration=False, **options
+            )
+        except (ValueError, TypeError) as err:
+            where = (f"make_system(params[{i}]), " if members.builder is not None else "") + f"Q0[{j}], xi0[{j}]"
+            raise type(err)(f"sweep: member {m} ({where}) is rejected by integrate's checks: {err}") from err
+        return
+
+
+class Shapes(NamedTuple):
+    """One member's shapes and the facts of its march."""
+
+    q: tuple  # Q's shape
+    xi: tuple  # ξ's shape
+    has_Q: bool  # False: the reduced march ran without reconstructing Q
+    has_xi: bool  # False: a degenerate system (no nodal velocity)
+    invariants: dict  # {name: shape and dtype of its values on a 1-step solution, (2, …)}
+    facts: dict  # form, scheme, order, method
+
+
+def _trace_member(cfg: Config, *args):
+    """`jax.eval_shape` of one member's chunk (its `Solution` and invariants), cached by the
+    arguments' shapes and dtypes: the trace reads nothing else, and repeating it cost a sweep of
+    a thousand members a third of its time."""
+
+    def probe(p, s, q, x, d):
+        system = system_of(cfg, p, s)
+        sol = chunk_integrate(cfg, system, q, x, jnp.zeros_like(q), jnp.zeros((), q.dtype), d, cfg.n)
+        return sol, {name: jnp.asarray(fn(system, sol)) for name, fn in cfg.invariants}
+
+    def trace():  # as the chunk programs trace the march (`chunks_xla._batched_chunk`), whose traces it shares
+        with undifferentiated():
+            return jax.eval_shape(probe, *args)
+
+    return memo(_TRACES, trace_key(cfg, args), trace, _TRACES_MAX)
+
+
+def trace_key(cfg: Config, args) -> tuple:
+    """The cache key of a trace of one member's `args`: the configuration, the arguments' tree,
+    shapes and dtypes (a trace reads nothing else)."""
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    dtype = lambda x: x.dtype if hasattr(x, "dtype") else np.result_type(x)  # not an array as a dtype (deprecated)
+    return (cfg, tree, tuple((np.shape(x), dtype(x), getattr(x, "weak_type", False)) for x in leaves))
+
+
+_TRACES: dict = {}
+_TRACES_MAX = 64
+"""`_trace_member`'s cache (`clebsch_jax.core.jit.memo`): cleared when it holds this many."""
+
+
+def _check_member(cfg: Config, *args):
+    """`integrate`'s checks of one member's arguments and its choice of method, traced
+    (`prepared_method` under `jax.eval_shape`: no march is traced, nothing compiled):
+    (the prepared method's facts, whether the lean chunk carries Q, the energy's dtype)."""
+    found = {}
+
+    def check(p, s, q, x, d):
+        system = system_of(cfg, p, s)
+        stepper, _, _ = prepared_method(
+            system, q, x, dt=d, n_steps=cfg.n, P0=jnp.zeros_like(q), t0=jnp.zeros((), q.dtype), **dict(cfg.options)
+        )
+        found["facts"], found["has_Q"] = stepper.facts(system), _lean_carries_Q(stepper, system)
+        return node_energy(system, q, x)[0]
+
+    def run():
+        energy = jax.eval_shape(check, *args)
+        return found["facts"], found["has_Q"], energy.dtype
+
+    return memo(_TRACES, ("check",) + trace_key(cfg, args), run, _TRACES_MAX)
+
+
+def member_shapes(cfg: Config, members: Members, lean: bool = False) -> Shapes:
+    """One member's shapes, by tracing integrate (its own checks name Q0, xi0, ...): no compile.
+
+    With `lean` (the sweep runs the lean chunk, `clebsch_jax.batching.lean`, which keeps the
+    energy only): the same checks and shapes without tracing the march, which nothing else
+    of such a sweep would reuse (`_check_member`). The configurations and the checks that need
+    values were made before, on concrete values (`check_first_member`)."""
+    p_row = first_row(members)
+    j = members.ic_index[0]
+    q_row, x_row = jnp.asarray(members.Q0[j]), jnp.asarray(members.xi0[j])
+
+    args = (p_row, members.shared, q_row, x_row, jnp.asarray(members.dt[0]))
+    try:
+        if lean:
+            facts, has_Q, energy_dtype = _check_member(cfg, *args)
+        else:
+            sol_shape, inv_shape = _trace_member(cfg, *args)
+    except (ValueError, TypeError) as err:
+        where = (
+            "make_system(params[i]), " if members.builder is not None else ""
+        ) + f"Q0[j] of shape {q_row.shape}, xi0[j] of shape {x_row.shape}"
+        kind = ValueError if isinstance(err, ValueError) else TypeError
+        raise kind(f"sweep: one member ({where}) is rejected: {err}") from err
+    if lean:  # a regular system (nodal velocities), the energy its only invariant (`lean_applies`)
+        invariants = {"energy": jax.ShapeDtypeStruct((cfg.n + 1,), energy_dtype)}
+        facts = dict(form=facts.form, scheme=facts.scheme, order=int(facts.order), method=str(facts.name))
+        return Shapes(q_row.shape, x_row.shape, has_Q, True, invariants, facts)
+    for name, v in inv_shape.items():
+        if v.ndim < 1 or v.shape[0] != cfg.n + 1:
+            raise ValueError(
+                f"invariants: {name!r} must return one value per node (leading axis n+1 = "
+                f"{cfg.n + 1} for a {cfg.n}-step solution), returned shape {v.shape}."
+            )
+    facts = dict(
+        form=sol_shape.form,
+        scheme=sol_shape.scheme,
+        order=int(sol_shape.order),
+        method=str(getattr(sol_shape, "method", "")),
+    )
+    return Shapes(q_row.shape, x_row.shape, sol_shape.Q is not None, sol_shape.xi is not None, inv_shape, facts)

@@ -1,0 +1,339 @@
+r"""A sweep's schedule: batches on devices and threads, chunk by chunk, with reruns and progress.
+
+`run_batches` is the one function behind an in-process sweep, a stored one and a Dask task: a
+group of batches (one per device and thread, `Plan`) marched side by side through every chunk
+of the run, each chunk by the backend the plan chose — a native kernel call
+(`clebsch_jax.batching.chunks_native`) or XLA's programs (`clebsch_jax.batching.chunks_xla`),
+whose fast path reruns the members whose check failed on the general path — and collected
+into table rows (`Rows`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, NamedTuple
+
+import jax
+import numpy as np
+
+from ..core.jit import QUICK_COMPILE, jit_with_options
+from ..core.validation import positive_int
+from . import chunks_xla, tables
+from .chunks_native import native_call
+from .config import Carry, Config, Members, Run, member_slices
+from .probe import Shapes
+from .tables import SweepProgress, Tables, allocate_tables
+
+
+FAST_GIVE_UP = 2
+"""A batch in which at least half the members' checks failed in this many fast-path calls in a
+row (a call covers a chunk, or `LEAN_CHUNKS` for the lean chunk) runs its remaining chunks on
+the general path directly (the table is the same: a member whose check failed is run again by
+the general path anyway): the fast path does not suit its march — e.g. a Lagrangian that is not
+quadratic in ξ, whose nodal relation the lean chunk's two fixed updates do not solve to
+round-off, or steps too large for them — and trying each chunk twice would make the sweep
+slower than `fast=False`. A call in which fewer members failed reruns only those
+(`FALLBACK_BATCH`) and keeps the fast path."""
+
+FALLBACK_BATCH = 256
+"""Members per call of the general path where it reruns the members whose fast-path check
+failed in a call (gathered from the batch, the last group padded with copies of its last
+member; at most the batch size): a few hard members — fast rotations, steps too large for the
+fixed updates — then cost the general path's time for themselves only, not for their whole
+batch, and every rerun compiles the same program. General batches of this size run at the
+general path's full rate (`benchmarks/throughput.py --sweep-only`)."""
+
+LEAN_CHUNKS = 4
+"""Chunks of `chunk_steps` steps per call of the lean chunk, at most (`_calls`): its start and
+end (the momentum map, node 0's velocity, the warm-up steps, the cotangent P of the last node)
+are then paid once per that many chunks."""
+
+THREADS_MAX = 2
+"""`sweep`'s default `threads`: the CPU cores the process may use, at most this many (measured
+on a 2-core host, `benchmarks/README.md`; more threads on more cores are the caller's choice)."""
+
+THREAD_MIN_MEMBERS = 256
+"""... and only as many threads as give each a batch of at least this many members (a smaller
+sweep runs as before: its batches gain little from running side by side)."""
+
+
+def thread_count(threads, devices: list, B: int) -> int:
+    """Host threads per device (`sweep`'s `threads`): the given number, or by default the CPU
+    cores this process may use, at most `THREADS_MAX`, shared by the devices, for CPU devices
+    (1 for others: an accelerator runs its queue in order) — and never more than give each
+    thread a batch of `THREAD_MIN_MEMBERS` members."""
+    if threads is not None:
+        return positive_int(threads, "threads")
+    if any(d is not None and d.platform != "cpu" for d in devices) or (
+        devices == [None] and jax.default_backend() != "cpu"
+    ):
+        return 1
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        cores = os.cpu_count() or 1
+    per_device = max(1, min(THREADS_MAX, cores) // len(devices))
+    return max(1, min(per_device, B // (len(devices) * THREAD_MIN_MEMBERS)))
+
+
+@dataclasses.dataclass
+class Batch:
+    """One batch on its device: its members' inputs and the carry handed from chunk to chunk."""
+
+    index: int
+    rows: slice  # its members' rows of the table (without the padding)
+    n_real: int  # members that are not padding
+    params: object
+    dt: jax.Array
+    shared: list | None
+    carry: Carry
+    fallbacks_in_a_row: int = 0  # fast chunks of this batch rerun by the general path, the last ones
+
+
+def start_batch(cfg: Config, members: Members, shapes: Shapes, b: int, batch_size: int, device) -> Batch:
+    """Batch b on `device` (None: JAX's default placement); the last batch is padded with copies
+    of the last member."""
+    member = np.minimum(np.arange(b * batch_size, (b + 1) * batch_size), members.B - 1)
+    n_real = min(batch_size, members.B - b * batch_size)
+    ic = members.ic_index[member]
+    # host arrays moved to the device as they are: a transfer each, no JAX operation to compile
+    put = functools.partial(jax.device_put, device=device)
+    params = None if members.builder is None else put(member_slices(members.params, members.param_index[member]))
+    Q, xi = put(members.Q0[ic]), put(members.xi0[ic])
+    shared = None if members.shared is None else put(members.shared)
+    # without P0, a placeholder that the first chunk's program replaces (`chunks_xla._with_start_P`)
+    P = put(np.zeros((len(ic),) + members.Q0.shape[1:], members.Q0.dtype) if members.P0 is None else members.P0[ic])
+    zeros = lambda shape, dtype=np.float64: put(np.zeros((batch_size,) + shape, dtype))
+    carry = Carry(
+        Q=Q,
+        P=P,
+        xi=xi,
+        t=zeros(()),
+        status=zeros((), np.int32),
+        failed_step=put(np.full((batch_size,), -1, np.int32)),
+        iterations=zeros((), np.int64),
+        max_residual=zeros(()),
+        initial={k: zeros(v.shape[1:], v.dtype) for k, v in shapes.invariants.items()},
+        drift={k: zeros(()) for k in shapes.invariants},
+        momentum=zeros(shapes.xi),
+        final_xi=zeros(shapes.xi) if shapes.has_xi else None,
+        energy_change=zeros(()),
+        energy_size=zeros(()),
+    )
+    rows = slice(b * batch_size, b * batch_size + n_real)
+    return Batch(b, rows, n_real, params, put(members.dt[member]), shared, carry)
+
+
+def _calls(run: Run, lean: bool) -> list:
+    """The chunks of `run.chunks` that each call of the fast path covers: one each, or for the
+    lean chunk up to `LEAN_CHUNKS` consecutive full chunks — as many as divide their number, so
+    that every call but a short last chunk's has the same length (one compiled program)."""
+    full = [c for c in run.chunks if c[1] == run.chunk_steps]
+    rest = [[c] for c in run.chunks[len(full) :]]
+    per = max(d for d in range(1, LEAN_CHUNKS + 1) if len(full) % d == 0) if lean else 1
+    return [full[i : i + per] for i in range(0, len(full), per)] + rest
+
+
+def _general_chunks(cfg: Config, run: Run, one: Batch, chunks: list, saved: dict | None):
+    """The general path over `chunks` from the batch's carry (dispatched, not waited for): the
+    new carry; each chunk's saved nodes go to `saved`."""
+    carry = one.carry
+    for st, n in chunks:
+        carry, chunk_saved = chunks_xla.run_chunk(_steps(cfg, run, n), one.params, carry, one.dt, one.shared, *_at(st))
+        _save(saved, run, one, st, n, chunk_saved)
+    return carry
+
+
+def _rerun(cfg: Config, run: Run, one: Batch, chunks: list, saved: dict | None, members: np.ndarray, carry):
+    """The general path over `chunks` from the batch's carry for its `members` (indices of real
+    members), in groups of `FALLBACK_BATCH`: `carry` (the fast path's new carry) with those
+    members' rows replaced by the general path's; their saved nodes go to `saved`. All the
+    batch's members in one group: the batch itself, as `_general_chunks`."""
+    size = min(FALLBACK_BATCH, len(one.dt))
+    if len(members) == one.n_real and size == len(one.dt):
+        return _general_chunks(cfg, run, one, chunks, saved)
+    table_rows = np.arange(one.rows.start, one.rows.stop)
+    for g in range(0, len(members), size):
+        part = members[g : g + size]
+        pad = size - len(part)
+        take = np.concatenate([part, np.full(pad, part[-1])]).astype(np.int32)
+        params, dt, start = _take_members((one.params, one.dt, one.carry), take)
+        sub = Batch(one.index, table_rows[part], len(part), params, dt, one.shared, start)
+        new = _general_chunks(cfg, run, sub, chunks, saved)
+        put = np.concatenate([part, np.full(pad, len(one.dt))]).astype(np.int32)  # padding: dropped
+        carry = _put_members(carry, put, new)
+    return carry
+
+
+def _steps(cfg: Config, run: Run, n: int) -> Config:
+    """`cfg` for a call of n steps (the same object for the run's chunk length)."""
+    return cfg if n == run.chunk_steps else dataclasses.replace(cfg, n=n)
+
+
+def _at(st: int):
+    """A chunk's (first, offset) arguments: host values, so no eager JAX operation."""
+    return np.asarray(st == 0), np.asarray(st, np.int32)
+
+
+def _save(saved: dict | None, run: Run, one: Batch, st: int, n: int, chunk_saved):
+    """A chunk's saved nodes into the batch's rows of `saved` (`one.rows`: a slice, or the
+    table rows of a rerun's members)."""
+    if saved is None:
+        return
+    k0, kn = st // run.save_every, len(range(0, n, run.save_every))
+    for key in ("t", "Q", "xi", "momentum"):
+        if saved[key] is not None:
+            saved[key][one.rows, k0 : k0 + kn] = np.asarray(chunk_saved[key])[: one.n_real]
+
+
+def _run_chunks(cfg: Config, group: list, run: Run, saved: dict | None, report: Callable, fell_back: list):
+    """March a group of batches (one per device and thread, side by side) through every chunk:
+    each batch's carry moves on, the chunks' saved nodes go to `saved`, each fast-path call's
+    (chunks, members rerun) to `fell_back`, `report(group, step)` follows each call.
+
+    A call of the fast path covers one chunk, or `LEAN_CHUNKS` for the lean chunk (which
+    records nothing, so its length costs no memory, and its work at the start and end of a call
+    is then shared by more steps); the members whose check failed in it are run again by the
+    general path, chunk by chunk from the call's start (`_rerun`). Each batch of a group is
+    called from a host thread of its own (`sweep`'s `threads`): one thread would run the
+    programs it gives one device one after the other."""
+    pool = ThreadPoolExecutor(len(group), thread_name_prefix="clebsch-jax-sweep") if len(group) > 1 else None
+    # the caller's default device (`jax.default_device`, a context of the calling thread) holds
+    # in the pool's threads too: the batches were placed there
+    default = jax.config.jax_default_device
+
+    def in_context(call, one):
+        if default is None:
+            return call(one)
+        with jax.default_device(default):
+            return call(one)
+
+    try:
+        for chunks in _calls(run, cfg.lean):
+            st, n = chunks[0][0], sum(k for _, k in chunks)
+            c = _steps(cfg, run, n)
+            call = functools.partial(_call, cfg, c, run, chunks, st, n, saved, pool is not None)
+            done = list(pool.map(functools.partial(in_context, call), group)) if pool is not None else [call(group[0])]
+            fell_back.extend(d for d in done if d is not None)
+            report(group, st + n)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+
+
+def _call(
+    cfg: Config, c: Config, run: Run, chunks: list, st: int, n: int, saved: dict | None, wait: bool, one: Batch
+):
+    """One call of `_run_chunks` for one batch: the fast call (`c`: its chunk's configuration),
+    then the general path for the members whose check failed; a batch in which most members
+    failed `FAST_GIVE_UP` times in a row runs the general chunks directly. `wait`: return only
+    when the general path's programs have run (called from a thread of a group: the group's
+    batches then run side by side; a batch alone dispatches them and goes on). Returns the
+    fast call's (chunks, members rerun), or None without one."""
+    if cfg.native:
+        one.carry = native_call(c, one, st)
+        return None
+    if cfg.fast_method is None or one.fallbacks_in_a_row >= FAST_GIVE_UP:
+        # the general path: for every batch without a fast method, or given up
+        one.carry = (
+            _general_chunks(cfg, run, one, chunks, saved)
+            if cfg.fast_method is None
+            else _rerun(cfg, run, one, chunks, saved, np.arange(one.n_real), one.carry)
+        )
+        if wait:
+            jax.block_until_ready(one.carry)
+        return None
+    f = chunks_xla.run_fast_chunk(c, one.params, one.carry, one.dt, one.shared, *_at(st))
+    failed = np.flatnonzero(~np.asarray(jax.device_get(f[2]))[: one.n_real])
+    _save(saved, run, one, st, n, f[1])  # a rerun member's rows are written again by `_rerun`
+    one.carry = _rerun(cfg, run, one, chunks, saved, failed, f[0]) if failed.size else f[0]
+    one.fallbacks_in_a_row = one.fallbacks_in_a_row + 1 if 2 * failed.size >= one.n_real else 0
+    return len(chunks), failed.size
+
+
+def reporter(progress, n_batches: int, n_steps: int, B: int, batch_size: int) -> Callable:
+    """`report(group, step)` after each chunk: nothing (progress False), a line on stderr (True),
+    or a `SweepProgress` to the callable. Reporting waits for the chunk to finish."""
+    start_time = time.perf_counter()
+
+    def report(group, step):
+        if progress is False:
+            return
+        jax.block_until_ready([one.carry for one in group])
+        done = group[0].index * batch_size + (sum(one.n_real for one in group) if step == n_steps else 0)
+        info = SweepProgress(
+            group[-1].index, n_batches, step, n_steps, min(done, B), B, time.perf_counter() - start_time
+        )
+        if progress is True:
+            print(
+                f"\rsweep: batch {info.batch + 1}/{n_batches}, step {step}/{n_steps}, "
+                f"{info.members_done}/{B} members done, {info.elapsed:.1f} s",
+                end="",
+                file=sys.stderr,
+                flush=True,
+            )
+        else:
+            progress(info)
+
+    return report
+
+
+class Plan(NamedTuple):
+    """Everything a batch needs, built once by `sweep` (and sent once to each Dask worker)."""
+
+    cfg: Config
+    members: Members
+    shapes: Shapes
+    run: Run  # with progress False and devices [None]
+    batch_size: int
+
+
+class Rows(NamedTuple):
+    """The table rows of some batches: `tables` holds them one after the other."""
+
+    batches: list  # batch indices
+    rows: list  # each batch's rows of the sweep's table (slices)
+    tables: Tables
+    devices: set  # the devices they ran on
+    fast_chunks: tuple = (0, 0, 0)  # chunks run by the fast path, those with members rerun by the
+    # general one, and the (member, chunk) pairs rerun
+
+
+def run_batches(plan: Plan, batches: list, devices: list, report: Callable) -> Rows:
+    """Run batches side by side (batch i on `devices[i]`; None: JAX's default placement) → their
+    table rows. The one function behind an in-process sweep, a stored one and a Dask task: the
+    same program on the same padded inputs, so the rows are the same to the bit wherever they
+    are computed."""
+    cfg, members, shapes, run, bs = plan
+    group = [start_batch(cfg, members, shapes, b, bs, dev) for b, dev in zip(batches, devices)]
+    rows, at = [], 0
+    for one in group:  # each batch's rows in the group's own table
+        rows.append(one.rows)
+        one.rows = slice(at, at + one.n_real)
+        at += one.n_real
+    part = allocate_tables(at, shapes, run)
+    fell_back = []
+    _run_chunks(cfg, group, run, part.saved, report, fell_back)
+    used = set()
+    for one in group:
+        used.update(one.carry.status.devices() if hasattr(one.carry.status, "devices") else ["native"])
+        tables.collect(part, one, run)
+    fast = (sum(k for k, _ in fell_back), sum(k for k, m in fell_back if m), sum(k * m for k, m in fell_back))
+    return Rows(list(batches), rows, part, used, fast)
+
+
+@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE)
+def _take_members(tree, idx):
+    """The rows `idx` of every leaf of a batch's pytree (params, dt, carry)."""
+    return jax.tree_util.tree_map(lambda a: a[idx], tree)
+
+
+@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE)
+def _put_members(tree, idx, rows):
+    """`tree` with its rows `idx` replaced by `rows`; an index past the end (padding) is dropped."""
+    return jax.tree_util.tree_map(lambda a, r: a.at[idx].set(r, mode="drop"), tree, rows)
