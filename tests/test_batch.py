@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 import clebsch_jax as cj
 from clebsch_jax import models
-from clebsch_jax.batching.batch_last import _RULES
+from clebsch_jax.batching.rules import RULES
 
 EPS = np.finfo(float).eps
 RNG = np.random.default_rng(6)
@@ -241,5 +241,5 @@ def test_rules_cover_the_reduced_march():
                 walk(sub)
 
     walk(jaxpr.jaxpr)
-    missing = {n for n in names if n not in _RULES} - {"iota"}
+    missing = {n for n in names if n not in RULES} - {"iota"}
     assert missing <= {"gather", "dynamic_slice"}, missing

@@ -694,8 +694,8 @@ FOLDED = {
 def test_scalarise_folds_known_values_in_numpy_exactly(name):
     """Every operation of `FOLDED[name]` on known operands gives, folded in NumPy, JAX's own
     result to the bit (the folding rules are exact: rounded IEEE arithmetic and re-indexing)."""
-    from clebsch_jax.batching.batch_last import _bind
-    from clebsch_jax.batching.scalarise import _numpy_fold
+    from clebsch_jax.batching.rules import bind
+    from clebsch_jax.batching.rows import numpy_fold
 
     a, b = np.array([0.3, -1.7, 2.5]), np.array([1.1, -1.7, 1e-3])
     jaxpr = jax.make_jaxpr(FOLDED[name])(a, b).jaxpr
@@ -705,8 +705,8 @@ def test_scalarise_folds_known_values_in_numpy_exactly(name):
     for eqn in jaxpr.eqns:
         known = [read(v) for v in eqn.invars]
         with jax.ensure_compile_time_eval():
-            want = [np.asarray(o) for o in _bind(eqn, [jnp.asarray(k) for k in known])]
-        got = _numpy_fold(eqn, known)
+            want = [np.asarray(o) for o in bind(eqn, [jnp.asarray(k) for k in known])]
+        got = numpy_fold(eqn, known)
         if got is not None:
             folded += 1
             for g, w in zip(got, want):

@@ -156,7 +156,7 @@ def test_a_sweep_refuses_it_before_tracing_a_batch(backend, monkeypatch):
 
 
 def test_batch_refuses_it_before_evaluating_the_batch(monkeypatch):
-    monkeypatch.setattr(_batch_last, "_eval_closed", _reached)
+    monkeypatch.setattr(_batch_last, "eval_closed", _reached)
     march = cj.batch(lambda x: cj.integrate(TOP, jnp.eye(3), x, dt=0.05, n_steps=2, scheme="left", throw=False).Q[-1])
     with pytest.raises(ValueError, match=rf"^batch: member 0 is rejected by integrate's checks: {LEAVES}"):
         march(np.tile(TOP_XI0, (2, 1)))

@@ -304,7 +304,7 @@ def test_batch_refuses_a_velocity_map_not_linear_in_xi_before_evaluating_the_bat
     def evaluated(*args, **kwargs):
         raise _Marched
 
-    monkeypatch.setattr(_batch_last, "_eval_closed", evaluated)
+    monkeypatch.setattr(_batch_last, "eval_closed", evaluated)
     Q0s, xi0s = np.tile(np.asarray(E3), (3, 1)), np.tile(np.asarray(XI0), (3, 1))
     march = cj.batch(lambda q, x: cj.integrate(_quadratic_on_r3(), q, x, dt=0.1, n_steps=2, throw=False).Q[-1])
     with pytest.raises(ValueError, match=r"^batch: member 0 is rejected by integrate's checks: velocity_map: "):

@@ -386,7 +386,7 @@ def test_a_batch_whose_outputs_cannot_fit_is_refused_with_the_estimate_before_ev
     def evaluated(*args, **kwargs):
         raise AssertionError("the batch was evaluated")
 
-    monkeypatch.setattr(batch_last, "_eval_closed", evaluated)
+    monkeypatch.setattr(batch_last, "eval_closed", evaluated)
     monkeypatch.setattr(validation, "memory_limit", lambda: 10**9)
     march = cj.batch(lambda x: cj.integrate(RB, I3, x, dt=0.1, n_steps=2000, throw=False))
     with pytest.raises(ValueError, match=r"^batch: 10000 members would need about .* GB for the outputs") as info:
