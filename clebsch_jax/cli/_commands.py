@@ -151,7 +151,8 @@ def _scene(text: str) -> str:
     return name
 
 
-def _fail(message: str, *, code: int = 1, prog: str = PROG) -> int:
+def fail(message: str, *, code: int = 1, prog: str = PROG) -> int:
+    """Print `prog: error: message` on stderr; return the exit code."""
     print(f"{prog}: error: {message}", file=sys.stderr)
     return code
 
@@ -159,7 +160,7 @@ def _fail(message: str, *, code: int = 1, prog: str = PROG) -> int:
 def _check_out_dir(out_dir: str, prog: str) -> int | None:
     """Exit code 2 (one line) when `out_dir` exists and is not a folder, else None."""
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        return _fail(f"--out: {out_dir!r} exists and is not a folder", code=2, prog=prog)
+        return fail(f"--out: {out_dir!r} exists and is not a folder", code=2, prog=prog)
     return None
 
 
@@ -168,9 +169,9 @@ def _make_out_dir(out_dir: str, prog: str) -> int | None:
     try:
         os.makedirs(out_dir, exist_ok=True)
     except OSError as err:
-        return _fail(f"could not create {out_dir!r}: {err.strerror or err}", prog=prog)
+        return fail(f"could not create {out_dir!r}: {err.strerror or err}", prog=prog)
     if not os.access(out_dir, os.W_OK):
-        return _fail(f"{out_dir!r} is not writable", prog=prog)
+        return fail(f"{out_dir!r} is not writable", prog=prog)
     return None
 
 
@@ -178,7 +179,7 @@ def _require_matplotlib(prog: str) -> int | None:
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        return _fail(
+        return fail(
             'the plots are drawn with matplotlib, which is not installed: pip install "clebsch-jax[plot]"', prog=prog
         )
     return None
@@ -234,7 +235,7 @@ class _ProgressBar:
             self.stream.flush()
 
 
-def _paragraphs(*texts: str) -> str:
+def paragraphs(*texts: str) -> str:
     """Help text: each paragraph wrapped to 79 columns, except those with line breaks (lists)."""
     return "\n\n".join(t if "\n" in t else textwrap.fill(t, 79) for t in texts)
 
@@ -424,7 +425,7 @@ def _run_run(args) -> int:
     if code:
         return code
     if args.order is not None and args.order not in (GAUSS_ORDERS if args.scheme == "gauss" else ORDERS):
-        return _fail(
+        return fail(
             f"--order {args.order} needs --scheme gauss (the compositions have orders {', '.join(map(str, ORDERS))})",
             code=2,
             prog=prog,
@@ -458,17 +459,17 @@ def _run_run(args) -> int:
             scheme=args.scheme,
         )
     except OSError as err:
-        return _fail(f"could not write to {out_dir!r}: {err.strerror or err}", prog=prog)
+        return fail(f"could not write to {out_dir!r}: {err.strerror or err}", prog=prog)
     except ValueError as err:  # integrate refused the scheme for this scene's system, before compiling
         if args.scheme is None:
             raise
-        return _fail(f"--scheme {args.scheme} on {scene.name}: {str(err).splitlines()[0]}", code=2, prog=prog)
+        return fail(f"--scheme {args.scheme} on {scene.name}: {str(err).splitlines()[0]}", code=2, prog=prog)
     finally:
         if bar is not None:
             bar.close()
     print(_run_table(scene, summary, out_dir))
     if summary["failures"]["count"]:
-        return _fail(f"{_failure_text(summary)}. Try a smaller --dt.", prog=prog)
+        return fail(f"{_failure_text(summary)}. Try a smaller --dt.", prog=prog)
     return 0
 
 
@@ -484,7 +485,7 @@ def _add_run(subparsers) -> None:
         "run",
         help="integrate one built-in scene (rigid-body, heavy-top, vortices, peakons, landmarks)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description=_paragraphs(
+        description=paragraphs(
             "Integrate a built-in scene with the discrete Clebsch integrator (integrate(..., "
             "throw=False) under jax.vmap over --batch members), print a summary table (method, "
             "steps, wall time, energy error, the scene's momentum/Casimir errors, Newton "
@@ -629,11 +630,11 @@ def _demo_figure1(args, out_dir: str, prog: str):
     try:
         summary = figure1(out_dir, quick=args.quick, n_steps=args.steps)
     except MissingPlotDependency as err:
-        return _fail(str(err), prog=prog), None
+        return fail(str(err), prog=prog), None
     except cj.IntegrationError as err:
-        return _fail(str(err), prog=prog), None
+        return fail(str(err), prog=prog), None
     except OSError as err:
-        return _fail(f"could not write to {out_dir!r}: {err.strerror or err}", prog=prog), None
+        return fail(f"could not write to {out_dir!r}: {err.strerror or err}", prog=prog), None
     print(_demo_table(summary, out_dir))
     return None, summary
 
@@ -676,14 +677,14 @@ def _run_demo(args) -> int:
         try:
             summary = _run_scene_into(scene, sub, steps=steps, batch=scene.quick_batch)
         except OSError as err:
-            return _fail(f"could not write to {sub!r}: {err.strerror or err}", prog=prog)
+            return fail(f"could not write to {sub!r}: {err.strerror or err}", prog=prog)
         rows.append(_scene_row(summary))
         if summary["failures"]["count"]:
             failed.append(f"{scene.name}: {_failure_text(summary)}")
     print(f"Built-in scenes (files in {out_dir}{os.sep}SCENE{os.sep}; clebsch-jax run SCENE for longer runs):")
     print(_combined_table(rows))
     if failed:
-        return _fail("; ".join(failed), prog=prog)
+        return fail("; ".join(failed), prog=prog)
     return 0
 
 
@@ -776,14 +777,14 @@ def _run_bench(args) -> int:
     folder = _benchmarks_dir()
     scripts = _benchmarks(folder) if folder.is_dir() else {}
     if not scripts:
-        return _fail(
+        return fail(
             f"no benchmarks folder next to the package ({folder}): the benchmarks ship with the "
             "repository, not the installed package; clone it and `pip install -e .` to run them",
             prog=prog,
         )
     unknown = [n for n in args.names if n not in scripts]
     if unknown:
-        return _fail(
+        return fail(
             f"unknown benchmark{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}; "
             f"known: {', '.join(scripts)}",
             code=2,
@@ -822,7 +823,7 @@ def _run_bench(args) -> int:
         print(f"  {name:<{width}}  {'ok' if rc == 0 else f'FAILED (exit code {rc})'}  {wall:.1f} s")
     bad = [n for n, rc, _ in results if rc != 0]
     if bad:
-        return _fail(
+        return fail(
             f"{len(bad)} of {len(results)} benchmarks failed: {', '.join(bad)} (their output is above)", prog=prog
         )
     return 0

@@ -267,17 +267,17 @@ def _summary(res, store: str, wall: float, members_run: int) -> str:
 
 
 def run(args) -> int:
-    from ._commands import PROG, _fail
+    from ._commands import PROG, fail
 
     prog = f"{PROG} sweep"
     try:
         kwargs = load(args.config)
     except (ValueError, TypeError) as err:  # ConfigError names the entry; anything else, the file
-        return _fail(str(err) if isinstance(err, ConfigError) else f"{args.config}: {err}", code=2, prog=prog)
+        return fail(str(err) if isinstance(err, ConfigError) else f"{args.config}: {err}", code=2, prog=prog)
     try:
         from tqdm import tqdm
     except ImportError:
-        return _fail('the progress bar needs tqdm: pip install "clebsch-jax[sweep]"', prog=prog)
+        return fail('the progress bar needs tqdm: pip install "clebsch-jax[sweep]"', prog=prog)
     B = _n_members(kwargs)
     bs = kwargs["batch_size"]
     n_batches = -(-B // bs) if isinstance(bs, int) and bs > 0 else 0
@@ -290,7 +290,7 @@ def run(args) -> int:
             try:
                 import distributed
             except ImportError:
-                return _fail('--workers/--scheduler need dask.distributed: pip install "clebsch-jax[sweep]"', prog=prog)
+                return fail('--workers/--scheduler need dask.distributed: pip install "clebsch-jax[sweep]"', prog=prog)
             if args.scheduler:
                 client = distributed.Client(args.scheduler)
             else:
@@ -337,11 +337,11 @@ def run(args) -> int:
         )
         return 130
     except cj.SweepStoreError as err:  # the store cannot be used (a file, another's data, read-only, ...)
-        return _fail(str(err), code=2, prog=prog)
+        return fail(str(err), code=2, prog=prog)
     except (ValueError, TypeError) as err:  # the sweep refused its arguments, before compiling
-        return _fail(f"{args.config}: {err}", code=2, prog=prog)
+        return fail(f"{args.config}: {err}", code=2, prog=prog)
     except OSError as err:  # writing failed under way (a full disk, a lost mount)
-        return _fail(
+        return fail(
             f"store {args.store!r}: {err}; the batches written before are kept: run the same command to resume",
             prog=prog,
         )
@@ -355,13 +355,13 @@ def run(args) -> int:
 
 
 def add(subparsers) -> None:
-    from ._commands import _paragraphs
+    from ._commands import paragraphs
 
     p = subparsers.add_parser(
         "sweep",
         help="a parameter sweep from a TOML file into a Zarr store (resumable; local or Dask workers)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description=_paragraphs(
+        description=paragraphs(
             "Run the parameter sweep CONFIG.toml describes (clebsch_jax.sweep: every member's "
             "status, energy error, invariant drifts, Newton statistics and final state) and write "
             "each finished batch to the Zarr store --store. Read it with xarray.open_zarr(STORE) or "
