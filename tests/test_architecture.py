@@ -34,6 +34,13 @@ KNOWN_PRIVATE_IMPORTS = {
 }
 """(importer, module, name) of the private imports still to remove."""
 
+BATCHING_LAYERS = """
+rules batch_last rows scalarise member fast lean backends config probe chunks_xla chunks_native tables schedule
+store_layout store distributed choose sweep
+""".split()
+"""The modules of `clebsch_jax.batching` in the order of `docs/architecture.md`: each imports only
+modules before it."""
+
 KNOWN_LONG_FILES = {"native/lower.py"}
 """Files above `MAX_LINES` still to split (native/ is being changed elsewhere)."""
 
@@ -142,6 +149,10 @@ def test_the_batching_modules_import_one_another_without_a_cycle():
     # the layers, one way: nothing below the entry point imports it, the store is not imported
     # by the schedule or the programs, and Dask's tasks only by the entry point
     short = {m: {e.rpartition(".")[2] for e in edges} for m, edges in graph.items()}
+    assert sorted(m.rpartition(".")[2] for m in short) == sorted(BATCHING_LAYERS + ["batching"])  # each in its place
+    for k, module in enumerate(BATCHING_LAYERS):
+        later = short[f"clebsch_jax.batching.{module}"] & set(BATCHING_LAYERS[k:])
+        assert not later, f"batching.{module} imports {sorted(later)}, listed after it in docs/architecture.md"
     importers = lambda module: {m.rpartition(".")[2] for m, edges in short.items() if module in edges}
     assert importers("sweep") == set()
     assert importers("distributed") == {"sweep"}
