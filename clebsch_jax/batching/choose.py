@@ -30,6 +30,8 @@ from .schedule import start_batch
 
 
 DEFAULT_BATCH = 1024
+"""Members per compiled call of the general chunk, at most (`batch_size`)."""
+
 DEFAULT_BATCH_LEAN = 16_384
 """Members per compiled call of the lean chunk (`fast=True`): it records nothing, and its rows
 of many members share XLA's per-operation cost (`benchmarks/throughput.py --sweep-only`)."""
@@ -182,15 +184,15 @@ def native_config(cfg: Config, run: Run, members: Members, backend: str):
     return cfg, shapes
 
 
-def batch_size(batch_size, B: int, run: Run, cfg: Config) -> int:
+def batch_size(given, B: int, run: Run, cfg: Config) -> int:
     """Members per batch: the caller's (clamped to B: more would only run padding), or by
     default one batch for every device and every thread of each — at most `DEFAULT_BATCH`
     members, or for the lean chunk and native kernels batches of equal size (no padded
     members) up to `DEFAULT_BATCH_LEAN`."""
-    if batch_size is None:
+    if given is None:
         per_slot = -(-B // (len(run.devices) * run.threads))
         if cfg.lean or cfg.native:
-            batch_size = -(-per_slot // -(-per_slot // DEFAULT_BATCH_LEAN))
+            given = -(-per_slot // -(-per_slot // DEFAULT_BATCH_LEAN))
         else:
-            batch_size = min(per_slot, DEFAULT_BATCH)
-    return min(positive_int(batch_size, "batch_size"), B)
+            given = min(per_slot, DEFAULT_BATCH)
+    return min(positive_int(given, "batch_size"), B)

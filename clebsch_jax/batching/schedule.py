@@ -149,6 +149,18 @@ def _general_chunks(cfg: Config, run: Run, one: Batch, chunks: list, saved: dict
     return carry
 
 
+@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE)
+def _take_members(tree, idx):
+    """The rows `idx` of every leaf of a batch's pytree (params, dt, carry)."""
+    return jax.tree_util.tree_map(lambda a: a[idx], tree)
+
+
+@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE)
+def _put_members(tree, idx, rows):
+    """`tree` with its rows `idx` replaced by `rows`; an index past the end (padding) is dropped."""
+    return jax.tree_util.tree_map(lambda a, r: a.at[idx].set(r, mode="drop"), tree, rows)
+
+
 def _rerun(cfg: Config, run: Run, one: Batch, chunks: list, saved: dict | None, members: np.ndarray, carry):
     """The general path over `chunks` from the batch's carry for its `members` (indices of real
     members), in groups of `FALLBACK_BATCH`: `carry` (the fast path's new carry) with those
@@ -325,15 +337,3 @@ def run_batches(plan: Plan, batches: list, devices: list, report: Callable) -> R
         tables.collect(part, one, run)
     fast = (sum(k for k, _ in fell_back), sum(k for k, m in fell_back if m), sum(k * m for k, m in fell_back))
     return Rows(list(batches), rows, part, used, fast)
-
-
-@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE)
-def _take_members(tree, idx):
-    """The rows `idx` of every leaf of a batch's pytree (params, dt, carry)."""
-    return jax.tree_util.tree_map(lambda a: a[idx], tree)
-
-
-@functools.partial(jit_with_options, compiler_options=QUICK_COMPILE)
-def _put_members(tree, idx, rows):
-    """`tree` with its rows `idx` replaced by `rows`; an index past the end (padding) is dropped."""
-    return jax.tree_util.tree_map(lambda a, r: a.at[idx].set(r, mode="drop"), tree, rows)

@@ -27,6 +27,14 @@ so a chunked run reproduces the unchunked trajectory to a few ulps per chunk
 keep the cost of the restarts and of a call small against the steps; the measurements behind
 the default chunk size are in `benchmarks/README.md` ("Measurements behind the engine's
 choices").
+
+This module is the entry point: `sweep` checks its arguments in order and runs the plan. The
+layers below it (`docs/architecture.md`): `config` (options, members, the static configuration),
+`probe` (the first member checked and traced), `choose` (the path: backend, fast path, batch
+size, with `AUTO_MAX_IR_LINES`, `AUTO_LEAN_MIN_MEMBERS`, `AUTO_LEAN_MIN_MEMBER_STEPS`),
+`chunks_xla` and `chunks_native` (a chunk of a batch), `schedule` (batches on devices and
+threads, reruns, progress, with `LEAN_CHUNKS`, `FALLBACK_BATCH`, `FAST_GIVE_UP`, `THREADS_MAX`,
+`THREAD_MIN_MEMBERS`), `tables` (`SweepResult`), `store` and `distributed`.
 """
 
 from __future__ import annotations
