@@ -238,9 +238,7 @@ def _run_chunks(cfg: Config, group: list, run: Run, saved: dict | None, report: 
             pool.shutdown()
 
 
-def _call(
-    cfg: Config, c: Config, run: Run, chunks: list, st: int, n: int, saved: dict | None, wait: bool, one: Batch
-):
+def _call(cfg: Config, c: Config, run: Run, chunks: list, st: int, n: int, saved: dict | None, wait: bool, one: Batch):
     """One call of `_run_chunks` for one batch: the fast call (`c`: its chunk's configuration),
     then the general path for the members whose check failed; a batch in which most members
     failed `FAST_GIVE_UP` times in a row runs the general chunks directly. `wait`: return only
