@@ -33,7 +33,7 @@ recorded beside the wall time):
   (`models.rigid_body`, `reconstruct=False`): the reduced Cayley march (order 2) and its
   compositions (Suzuki 4, Kahan-Li 6 and 8), Gauss-Legendre orders 4, 6, 8. Clusters
   (`models.point_vortices`): the midpoint principle and its compositions (native), Gauss-Legendre
-  orders 4, 6, 8 (XLA: past the native size limit for 4 vortices). A warm-up sweep of one chunk
+  orders 4, 6, 8, 12 (XLA: past the native size limit for 4 vortices). A warm-up sweep of one chunk
   compiles (or loads) the kernel first. Every solve to its default stopping rule.
 - **diffrax** Dopri8 (rtol 1e-8, 1e-10, 1e-12) and Tsit5 (1e-8, 1e-10): `work_precision.diffrax_program`
   (`PIDController`, atol = rtol * scale, `jit(vmap)` over the members, each its own steps).
@@ -127,6 +127,7 @@ ENSEMBLES = {
             ("gauss4", {"scheme": "gauss", "order": 4}, (0.1, 0.05)),
             ("gauss6", {"scheme": "gauss", "order": 6}, (0.25, 0.125)),
             ("gauss8", {"scheme": "gauss", "order": 8}, (0.5, 0.25, 0.125)),
+            ("gauss12", {"scheme": "gauss", "order": 12}, (0.5, 0.25)),
         ],
         "heyoka": (1e-8, 1e-10, 1e-12, 1e-14, 1e-16),
         "tsit5": (1e-8, 1e-10),
@@ -341,7 +342,8 @@ class HeyokaEnsemble:
 def heyoka_reference(hy, scene, tol, members=None) -> np.ndarray:
     """Final states (B, n_eq) from heyoka's scalar integrator in extended precision."""
     ld = np.longdouble
-    ta = hy.taylor_adaptive(scene.heyoka_system(hy), np.zeros(scene.flat(scene.y0).shape[1], ld), tol=ld(tol), fp_type=ld)
+    n_eq = scene.flat(scene.y0).shape[1]
+    ta = hy.taylor_adaptive(scene.heyoka_system(hy), np.zeros(n_eq, ld), tol=ld(tol), fp_type=ld)
     y0 = scene.flat(scene.y0)[:members]
     out = np.empty(y0.shape)
     for m, y in enumerate(y0):
@@ -463,7 +465,10 @@ def run_ensemble(scene, cfg, run, hy) -> dict:
             for dt in dts:
                 n_steps = _steps(T, dt)
                 timing, (res, _) = time_calls(
-                    run, lambda d=dt, n=n_steps: ours_sweep(scene, options, d, n, backend), f"{method} dt {dt:g}", budget
+                    run,
+                    lambda d=dt, n=n_steps: ours_sweep(scene, options, d, n, backend),
+                    f"{method} dt {dt:g}",
+                    budget,
                 )
                 e0 = np.asarray(res.initial["energy"])
                 ok = bool(np.all(res.succeeded))
@@ -504,7 +509,8 @@ def _point(scene, family, method, param_name, param, timing, res, y_ref, E0) -> 
     if res["valid"]:
         ys = res["ys"]  # (n, B, n_eq)
         p.update(global_error(scene, ys[-1], y_ref))
-        p["energy_error"] = relative_energy_error(scene, scene.unflat(ys.reshape(-1, ys.shape[-1])).reshape(ys.shape[:2] + scene.y0.shape[1:]))
+        states = scene.unflat(ys.reshape(-1, ys.shape[-1])).reshape(ys.shape[:2] + scene.y0.shape[1:])
+        p["energy_error"] = relative_energy_error(scene, states)
         p["energy0_mismatch"] = float(np.max(np.abs(scene.energy(scene.unflat(ys[0])) - E0) / np.abs(E0)))
     return p
 
@@ -550,7 +556,8 @@ def targets(scene_result) -> dict:
             ours, peer, lambda e, pe=peer["energy_error"]: e <= pe or e <= HEYOKA_ENERGY_FLOOR
         )
         row = _row(peer, met, best)
-        row["in_target_range"] = bool(HEYOKA_TARGET_TOLS[0] * (1 - 1e-9) <= peer["param"] <= HEYOKA_TARGET_TOLS[1] * (1 + 1e-9))
+        lo, hi = HEYOKA_TARGET_TOLS
+        row["in_target_range"] = bool(lo * (1 - 1e-9) <= peer["param"] <= hi * (1 + 1e-9))
         # the time our fastest point needs to be at least as accurate in global error only
         glob = sorted((o for o in ours if o["global_error"] <= peer["global_error"]), key=lambda o: o["wall_s"])
         row["global_only_time_ratio"] = glob[0]["wall_s"] / peer["wall_s"] if glob else None
@@ -664,6 +671,7 @@ def _e(x, w=9):
 
 
 def print_report(summary) -> None:
+    quick = summary["config"]["quick"]
     if summary["config"]["mode"].endswith("long horizon"):
         lh = summary["results"][0]
         print(f"\nLong horizon, {lh['members']} rigid bodies, T = {lh['T']:g}: relative energy error at sample times")
@@ -678,16 +686,18 @@ def print_report(summary) -> None:
         )
         return
     print(
-        f"\nWork-precision on ensembles ({'--quick: not a measurement' if summary['config']['quick'] else 'measured'}); "
+        f"\nWork-precision on ensembles ({'--quick: not a measurement' if quick else 'measured'}); "
         "wall = median of the samples (n given), one thread per peer; load = 1-min average after the point."
     )
     for sc in summary["results"]:
         ref = sc["reference"]
         print(f"\n{sc['label']}: reference {ref['method']} (check {_e(ref.get('floor')).strip()})")
         harness.print_table(
-            f"{'peer':<8}{'method':<8}{'param':>8}{'backend':>8}{'wall [s]':>10}{'n':>3}{'load':>6} |{'global':>9}{'energy':>9}",
+            f"{'peer':<8}{'method':<8}{'param':>8}{'backend':>8}{'wall [s]':>10}{'cpu [s]':>9}{'n':>3}{'load':>6} |"
+            f"{'global':>9}{'energy':>9}",
             (
                 f"{p['family']:<8}{p['method']:<8}{p['param']:>8.3g}{p.get('backend', ''):>8}{p['wall_s']:>10.3g}"
+                f"{p['cpu_s']:>9.3g}"
                 f"{len(p['samples_s']):>3}{p['load'][0]:>6.2f} |{_e(p.get('global_error'))}{_e(p.get('energy_error'))}"
                 + ("" if p["valid"] else "  FAILED")
                 for p in sc["points"]
@@ -724,6 +734,7 @@ _STYLE = {
     "gauss4": ("*", "#74c476"),
     "gauss6": ("*", "#41ab5d"),
     "gauss8": ("*", "#006d2c"),
+    "gauss12": ("P", "#e7298a"),
     "heyoka": ("s", "C3"),
     "tsit5": ("^", "C1"),
     "dopri8": ("v", "C5"),
@@ -736,7 +747,7 @@ def plot(summary, path: Path) -> None:
 
     if summary["config"]["mode"].endswith("long horizon"):
         return plot_long_horizon(summary, path)
-    scenes = summary["results"]
+    scenes, quick = summary["results"], summary["config"]["quick"]
     fig = Figure(figsize=(12, 4.4 * len(scenes) + 0.8), layout="constrained")
     FigureCanvasAgg(fig)
     axes = np.atleast_2d(fig.subplots(len(scenes), 2))
@@ -766,14 +777,16 @@ def plot(summary, path: Path) -> None:
             if measure == "global_error" and sc["reference"].get("floor"):
                 ax.axhline(sc["reference"]["floor"], color="0.5", ls=":", lw=1, label="reference check")
             ax.set_xlabel("wall time of the ensemble [s]")
-            ax.set_ylabel("global error at T (max over members)" if measure == "global_error" else "max relative energy error")
+            ax.set_ylabel(
+                "global error at T (max over members)" if measure == "global_error" else "max relative energy error"
+            )
             ax.set_title(f"{sc['label']}", fontsize=9)
             ax.grid(True, which="both", alpha=0.3)
         row[0].legend(fontsize=7)
     mach = summary["machine"]
     loads = [p["load"][0] for sc in scenes for p in sc["points"] if p.get("load")]
     fig.suptitle(
-        f"Work-precision on ensembles (issue 41){'; --quick: not a measurement' if summary['config']['quick'] else ''}: "
+        f"Work-precision on ensembles (issue 41){'; --quick: not a measurement' if quick else ''}: "
         f"one thread per peer, {mach['cpu_count']} CPUs, 1-min load {min(loads):.1f}-{max(loads):.1f}.\n"
         "Ours: cj.sweep, energy at every node; heyoka and diffrax: energy at the sample times.",
         fontsize=10,
@@ -794,10 +807,12 @@ def plot_long_horizon(summary, path: Path) -> None:
         marker, color = _STYLE.get(c["method"], ("x", "k"))
         if c["family"] == HEYOKA:
             alpha = 1.0 if c.get("closest_in_cost_to_ours") else 0.35
-            label = f"heyoka tol {c['param']:g} ({c['wall_s']:.3g} s)" + (" ~ ours' cost" if c.get("closest_in_cost_to_ours") else "")
+            label = f"heyoka tol {c['param']:g} ({c['wall_s']:.3g} s)"
+            label += " ~ ours' cost" if c.get("closest_in_cost_to_ours") else ""
         else:
             alpha = 1.0
-            label = f"{'ours ' + c['method'] + ' dt' if c['family'] == OURS else 'diffrax Dopri8 rtol'} {c['param']:g} ({c['wall_s']:.3g} s)"
+            what = f"ours {c['method']} dt" if c["family"] == OURS else "diffrax Dopri8 rtol"
+            label = f"{what} {c['param']:g} ({c['wall_s']:.3g} s)"
         ax.loglog(ts[1:], np.maximum(c["energy_error_t"][1:], 1e-18), color=color, alpha=alpha, lw=1, label=label)
     ax.set_xlabel("t")
     ax.set_ylabel("max over bodies of |E(t) - E0| / E0")
@@ -805,7 +820,8 @@ def plot_long_horizon(summary, path: Path) -> None:
     ax.legend(fontsize=7)
     mach = summary["machine"]
     ax.set_title(
-        f"{lh['members']} rigid bodies, T = {lh['T']:g}: energy error over time (wall time of the whole run in the legend)"
+        f"{lh['members']} rigid bodies, T = {lh['T']:g}: energy error over time "
+        "(wall time of the whole run in the legend)"
         f"{'; --quick' if summary['config']['quick'] else ''}\n{mach['cpu_count']} CPUs, load "
         f"{mach['load_average_1min_at_start']:.1f} at start",
         fontsize=9,
@@ -818,7 +834,9 @@ def plot_long_horizon(summary, path: Path) -> None:
 
 def add_arguments(parser) -> None:
     parser.add_argument("--ensembles", action="store_true", help="the long ensembles against heyoka and diffrax")
-    parser.add_argument("--long-horizon", action="store_true", dest="long_horizon", help="energy error over T = --horizon")
+    parser.add_argument(
+        "--long-horizon", action="store_true", dest="long_horizon", help="energy error over T = --horizon"
+    )
     parser.add_argument("--horizon", type=float, default=1e5, help="T of --long-horizon (default 1e5)")
     parser.add_argument("--batch", type=int, default=None, help="rigid bodies in the ensemble (default 64)")
     parser.add_argument("--clusters-batch", type=int, default=None, dest="clusters_batch", help="clusters (default 16)")
