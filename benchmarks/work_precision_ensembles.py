@@ -31,7 +31,10 @@ recorded beside the wall time):
   `backend="native"` wherever the sweep accepts it (it refuses otherwise, with the reason, which
   is recorded and the point run with `backend="xla"`, labelled so). Rigid body
   (`models.rigid_body`, `reconstruct=False`): the reduced Cayley march (order 2) and its
-  compositions (Suzuki 4, Kahan-Li 6 and 8), Gauss-Legendre orders 4, 6, 8. Clusters
+  compositions (Suzuki 4, Kahan-Li 6 and 8), Gauss-Legendre orders 4, 6, 8; and Gauss-Legendre
+  orders 4, 6, 8 on the body in Clebsch variables on R³ (`models.rigid_body_vector`, each body's
+  (Q, P) from `rigid_body_vector_start(Π0)`, labelled `vgauss`), with order 16 there on XLA (the
+  best point of the XLA path in the `--long` runs). Clusters
   (`models.point_vortices`): the midpoint principle and its compositions (native), Gauss-Legendre
   orders 4, 6, 8, 12 (XLA: past the native size limit for 4 vortices). A warm-up sweep of one chunk
   compiles (or loads) the kernel first. Every solve to its default stopping rule.
@@ -110,6 +113,11 @@ ENSEMBLES = {
             ("gauss4", {"scheme": "gauss", "order": 4}, (0.2, 0.1)),
             ("gauss6", {"scheme": "gauss", "order": 6}, (0.5, 0.25)),
             ("gauss8", {"scheme": "gauss", "order": 8}, (1.0, 0.5, 0.25, 0.125)),
+            ("vgauss4", {"model": "vector", "scheme": "gauss", "order": 4}, (0.1,)),
+            ("vgauss6", {"model": "vector", "scheme": "gauss", "order": 6}, (0.25,)),
+            ("vgauss8", {"model": "vector", "scheme": "gauss", "order": 8}, (0.5, 0.25, 0.125)),
+            # the best of the XLA path before (issue 41's baseline), on the same sweep
+            ("vgauss16", {"model": "vector", "scheme": "gauss", "order": 16, "backend": "xla"}, (1.0,)),
         ],
         "heyoka": (1e-8, 1e-10, 1e-12, 1e-14, 1e-16),
         "tsit5": (1e-8, 1e-10),
@@ -139,7 +147,11 @@ QUICK_ENSEMBLES = {
         "batch": 8,
         "T": 20.0,
         "n_samples": 10,
-        "ours": [("order4", {"order": 4}, (0.1,)), ("gauss8", {"scheme": "gauss", "order": 8}, (0.2,))],
+        "ours": [
+            ("order4", {"order": 4}, (0.1,)),
+            ("gauss8", {"scheme": "gauss", "order": 8}, (0.2,)),
+            ("vgauss8", {"model": "vector", "scheme": "gauss", "order": 8}, (0.2,)),
+        ],
         "heyoka": (1e-10, 1e-14),
         "tsit5": (1e-8,),
         "dopri8": (1e-10,),
@@ -207,10 +219,16 @@ class RigidEnsemble(wp.RigidBody):
         """E = ½ Σ Π²/I of states (..., 3)."""
         return 0.5 * np.sum(np.asarray(ys) ** 2 / self.inertia, -1)
 
-    def sweep_args(self):
-        inertia = jnp.asarray(self.inertia)
+    def sweep_args(self, model=None):
+        """(make_system, params, Q0, xi0, options) of `cj.sweep`: `models.rigid_body` (the reduced
+        march, Q not reconstructed), or with `model="vector"` `models.rigid_body_vector` (each
+        body's (Q, P) from `rigid_body_vector_start(Π0)`)."""
+        inertia, m = jnp.asarray(self.inertia), jnp.asarray(self.y0)
+        if model == "vector":
+            Q0, P0 = jax.vmap(models.rigid_body_vector_start)(m)
+            return models.rigid_body_vector, inertia[None], Q0, m / inertia, {"P0": P0}
         Q0 = jnp.broadcast_to(jnp.eye(3), (self.members, 3, 3))
-        return models.rigid_body, inertia[None], Q0, jnp.asarray(self.y0) / inertia, {"reconstruct": False}
+        return models.rigid_body, inertia[None], Q0, m / inertia, {"reconstruct": False}
 
     def sweep_final(self, res):
         return np.asarray(res.final_momentum)
@@ -252,7 +270,7 @@ class ClusterEnsemble(wp.VortexClusters):
                 H = H - self.gamma[a] * self.gamma[b] * np.log(r2) / (4.0 * math.pi)
         return H
 
-    def sweep_args(self):
+    def sweep_args(self, model=None):
         G = jnp.asarray(self.gamma)
         Q0 = jnp.asarray(self.y0)
         xi0 = jax.vmap(lambda q: models.vortex_velocity(G, q))(Q0)
@@ -361,8 +379,10 @@ def heyoka_reference(hy, scene, tol, members=None) -> np.ndarray:
 
 
 def ours_sweep(scene, options, dt, n_steps, backend):
-    """`cj.sweep` of the scene's ensemble: (result, warnings' messages)."""
-    make_system, params, Q0, xi0, extra = scene.sweep_args()
+    """`cj.sweep` of the scene's ensemble: (result, warnings' messages). `options["model"]`, if
+    given, chooses the scene's model (`sweep_args`); the others go to the sweep."""
+    options = dict(options)
+    make_system, params, Q0, xi0, extra = scene.sweep_args(options.pop("model", None))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = cj.sweep(
@@ -383,7 +403,14 @@ def ours_sweep(scene, options, dt, n_steps, backend):
 
 def ours_backend(scene, options, dt, n_steps) -> tuple[str, str | None, float, list]:
     """(backend, why not native, warm-up seconds, warnings): a one-chunk sweep with
-    `backend="native"` (compiles or loads the kernel); where the sweep refuses it, with "xla"."""
+    `backend="native"` (compiles or loads the kernel); where the sweep refuses it, with "xla".
+    `options["backend"]`, if given, is taken as it is (for XLA-only points)."""
+    options = dict(options)
+    if "backend" in options:
+        backend = options.pop("backend")
+        tic = time.perf_counter()
+        _, msgs = ours_sweep(scene, options, dt, min(n_steps, CHUNK), backend)
+        return backend, "chosen", time.perf_counter() - tic, msgs
     tic = time.perf_counter()
     try:
         _, msgs = ours_sweep(scene, options, dt, min(n_steps, CHUNK), "native")
@@ -462,6 +489,7 @@ def run_ensemble(scene, cfg, run, hy) -> dict:
         with run.case(f"{scene.name}: ours {method}, dt {list(dts)}"):
             with run.guard(f"warm-up {method}"):
                 backend, why, warm, msgs = ours_backend(scene, options, dts[0], _steps(T, dts[0]))
+            options = {k: v for k, v in options.items() if k != "backend"}
             for dt in dts:
                 n_steps = _steps(T, dt)
                 timing, (res, _) = time_calls(
@@ -519,58 +547,60 @@ def _point(scene, family, method, param_name, param, timing, res, y_ref, E0) -> 
 # Targets.
 
 
-def _dominating(ours, peer, energy_ok):
-    """(fastest point of ours no slower and as accurate, or None; fastest accurate one)."""
+def _dominating(ours, peer, energy_ok, key):
+    """(fastest point of ours no slower by `key` and as accurate, or None; fastest accurate one)."""
     good = sorted(
         (o for o in ours if o["global_error"] <= peer["global_error"] and energy_ok(o["energy_error"])),
-        key=lambda o: o["wall_s"],
+        key=lambda o: o[key],
     )
-    met = [o for o in good if o["wall_s"] <= peer["wall_s"]]
+    met = [o for o in good if o[key] <= peer[key]]
     return (met[0] if met else None), (good[0] if good else None)
 
 
-def _row(peer, met, best):
-    def name(o):
-        return None if o is None else f"{o['method']} dt {o['param']:g} ({o['backend']})"
-
+def _row(peer, met, best, key):
+    o = met or best
     return {
         "peer": f"{peer['method']} {peer['param_name']} {peer['param']:g}",
-        "peer_wall_s": peer["wall_s"],
+        "peer_time_s": peer[key],
         "peer_global": peer["global_error"],
         "peer_energy": peer["energy_error"],
         "met": met is not None,
-        "ours": name(met or best),
-        "ours_wall_s": None if (met or best) is None else (met or best)["wall_s"],
-        "ours_global": None if (met or best) is None else (met or best)["global_error"],
-        "ours_energy": None if (met or best) is None else (met or best)["energy_error"],
-        "time_ratio_ours_over_peer": None if (met or best) is None else (met or best)["wall_s"] / peer["wall_s"],
+        "ours": None if o is None else f"{o['method']} dt {o['param']:g} ({o['backend']})",
+        "ours_time_s": None if o is None else o[key],
+        "ours_global": None if o is None else o["global_error"],
+        "ours_energy": None if o is None else o["energy_error"],
+        "time_ratio_ours_over_peer": None if o is None else o[key] / peer[key],
     }
 
 
-def targets(scene_result) -> dict:
+def targets(scene_result, key="wall_s") -> dict:
+    """Issue 41's targets (module docstring) by the time `key`: "wall_s" (the issue's), or
+    "cpu_s" (the process's CPU time, less sensitive to other processes on a loaded machine)."""
     pts = [p for p in scene_result["points"] if p["valid"]]
     ours = [p for p in pts if p["family"] == OURS]
     rows_h, rows_d = [], []
     for peer in sorted((p for p in pts if p["family"] == HEYOKA), key=lambda p: -p["param"]):
         met, best = _dominating(
-            ours, peer, lambda e, pe=peer["energy_error"]: e <= pe or e <= HEYOKA_ENERGY_FLOOR
+            ours, peer, lambda e, pe=peer["energy_error"]: e <= pe or e <= HEYOKA_ENERGY_FLOOR, key
         )
-        row = _row(peer, met, best)
+        row = _row(peer, met, best, key)
         lo, hi = HEYOKA_TARGET_TOLS
         row["in_target_range"] = bool(lo * (1 - 1e-9) <= peer["param"] <= hi * (1 + 1e-9))
-        # the time our fastest point needs to be at least as accurate in global error only
-        glob = sorted((o for o in ours if o["global_error"] <= peer["global_error"]), key=lambda o: o["wall_s"])
-        row["global_only_time_ratio"] = glob[0]["wall_s"] / peer["wall_s"] if glob else None
+        # our fastest point at no larger global error (energy not asked), over heyoka's time
+        glob = sorted((o for o in ours if o["global_error"] <= peer["global_error"]), key=lambda o: o[key])
+        row["global_only_time_ratio"] = glob[0][key] / peer[key] if glob else None
         rows_h.append(row)
     for peer in sorted((p for p in pts if p["family"] == DIFFRAX), key=lambda p: (p["method"], -p["param"])):
         met, best = _dominating(
             ours,
             peer,
             lambda e, pe=peer["energy_error"]: e * DIFFRAX_ENERGY_RATIO <= pe or e <= DIFFRAX_ENERGY_FLOOR,
+            key,
         )
-        rows_d.append(_row(peer, met, best))
+        rows_d.append(_row(peer, met, best, key))
     in_range = [r for r in rows_h if r["in_target_range"]]
     return {
+        "time": key,
         "heyoka": rows_h,
         "heyoka_met": bool(in_range) and all(r["met"] for r in in_range),
         "diffrax": rows_d,
@@ -703,27 +733,32 @@ def print_report(summary) -> None:
                 for p in sc["points"]
             ),
         )
-        tg = summary["targets"][sc["scene"]]
-        print(
-            f"Issue 41 targets, {sc['scene']}: heyoka 1e-8..1e-14 {'MET' if tg['heyoka_met'] else 'NOT MET'}; "
-            f"diffrax dominated {'MET' if tg['diffrax_met'] else 'NOT MET'}"
+        for tg in (summary["targets"][sc["scene"]], summary["targets_cpu"][sc["scene"]]):
+            _print_targets(sc["scene"], tg)
+
+
+def _print_targets(scene, tg) -> None:
+    what = "wall time" if tg["time"] == "wall_s" else "CPU time of the process"
+    print(
+        f"Issue 41 targets, {scene}, by {what}: heyoka 1e-8..1e-14 {'MET' if tg['heyoka_met'] else 'NOT MET'}; "
+        f"diffrax dominated {'MET' if tg['diffrax_met'] else 'NOT MET'}"
+    )
+    for r in tg["heyoka"] + tg["diffrax"]:
+        ours = (
+            "no point of ours is as accurate"
+            if r["ours"] is None
+            else f"{'met by' if r['met'] else 'closest:'} {r['ours']} {r['ours_time_s']:.3g} s "
+            f"({r['time_ratio_ours_over_peer']:.3g}x), global {r['ours_global']:.1e}, energy {r['ours_energy']:.1e}"
         )
-        for r in tg["heyoka"] + tg["diffrax"]:
-            ours = (
-                "no point of ours is as accurate"
-                if r["ours"] is None
-                else f"{'met by' if r['met'] else 'closest:'} {r['ours']} {r['ours_wall_s']:.3g} s "
-                f"({r['time_ratio_ours_over_peer']:.3g}x), global {r['ours_global']:.1e}, energy {r['ours_energy']:.1e}"
-            )
-            extra = (
-                f"; global only: {r['global_only_time_ratio']:.3g}x"
-                if r.get("global_only_time_ratio") is not None
-                else ""
-            )
-            print(
-                f"  {r['peer']:<18} {r['peer_wall_s']:8.3g} s, global {r['peer_global']:.1e}, energy "
-                f"{r['peer_energy']:.1e}: {ours}{extra}"
-            )
+        extra = (
+            f"; global only: {r['global_only_time_ratio']:.3g}x"
+            if r.get("global_only_time_ratio") is not None
+            else ""
+        )
+        print(
+            f"  {r['peer']:<18} {r['peer_time_s']:8.3g} s, global {r['peer_global']:.1e}, energy "
+            f"{r['peer_energy']:.1e}: {ours}{extra}"
+        )
 
 
 _STYLE = {
@@ -735,6 +770,10 @@ _STYLE = {
     "gauss6": ("*", "#41ab5d"),
     "gauss8": ("*", "#006d2c"),
     "gauss12": ("P", "#e7298a"),
+    "vgauss4": ("D", "#fdae6b"),
+    "vgauss6": ("D", "#f16913"),
+    "vgauss8": ("D", "#a63603"),
+    "vgauss16": ("X", "#7a0177"),
     "heyoka": ("s", "C3"),
     "tsit5": ("^", "C1"),
     "dopri8": ("v", "C5"),
@@ -879,7 +918,7 @@ def main(argv) -> dict:
             T = 20.0 if run.quick else args.horizon
             results = [run_long_horizon(run, hy, T, cfg)]
             config = {"mode": "quick long horizon" if run.quick else "long horizon", "T": T, **cfg}
-            tg = {}
+            tg = tg_cpu = {}
         else:
             config = {k: dict(v) for k, v in (QUICK_ENSEMBLES if run.quick else ENSEMBLES).items()}
             if args.batch:
@@ -892,6 +931,7 @@ def main(argv) -> dict:
                 scene = RigidEnsemble(cfg) if s == "rigid_body" else ClusterEnsemble(cfg)
                 results.append(run_ensemble(scene, cfg, run, hy))
             tg = {r["scene"]: targets(r) for r in results}
+            tg_cpu = {r["scene"]: targets(r, "cpu_s") for r in results}
             config = {"mode": "quick ensembles" if run.quick else "ensembles", "scenes": config}
     summary = run.summary(
         config={
@@ -910,6 +950,7 @@ def main(argv) -> dict:
         },
         results=results,
         targets=tg,
+        targets_cpu=tg_cpu,
         peers=machine_extra,
     )
     summary["uptime_load_at_end"] = load3()

@@ -275,9 +275,9 @@ def check_work_precision_ensembles(summary: dict) -> None:
                 assert p["backend"] in ("native", "xla"), where
                 if name == "rigid_body":  # the quick run's rigid-body methods run natively
                     assert p["backend"] == "native", where
-        tg = summary["targets"][name]
-        assert tg["heyoka_met"] in (True, False) and tg["diffrax_met"] in (True, False)
-        assert bool(tg["heyoka"]) == with_heyoka and tg["diffrax"]
+        for tg in (summary["targets"][name], summary["targets_cpu"][name]):  # by wall and by CPU time
+            assert tg["heyoka_met"] in (True, False) and tg["diffrax_met"] in (True, False)
+            assert bool(tg["heyoka"]) == with_heyoka and tg["diffrax"]
 
 
 def check_soak(summary: dict) -> None:
