@@ -580,9 +580,7 @@ def targets(scene_result, key="wall_s") -> dict:
     ours = [p for p in pts if p["family"] == OURS]
     rows_h, rows_d = [], []
     for peer in sorted((p for p in pts if p["family"] == HEYOKA), key=lambda p: -p["param"]):
-        met, best = _dominating(
-            ours, peer, lambda e, pe=peer["energy_error"]: e <= pe or e <= HEYOKA_ENERGY_FLOOR, key
-        )
+        met, best = _dominating(ours, peer, lambda e, pe=peer["energy_error"]: e <= pe or e <= HEYOKA_ENERGY_FLOOR, key)
         row = _row(peer, met, best, key)
         lo, hi = HEYOKA_TARGET_TOLS
         row["in_target_range"] = bool(lo * (1 - 1e-9) <= peer["param"] <= hi * (1 + 1e-9))
@@ -751,9 +749,7 @@ def _print_targets(scene, tg) -> None:
             f"({r['time_ratio_ours_over_peer']:.3g}x), global {r['ours_global']:.1e}, energy {r['ours_energy']:.1e}"
         )
         extra = (
-            f"; global only: {r['global_only_time_ratio']:.3g}x"
-            if r.get("global_only_time_ratio") is not None
-            else ""
+            f"; global only: {r['global_only_time_ratio']:.3g}x" if r.get("global_only_time_ratio") is not None else ""
         )
         print(
             f"  {r['peer']:<18} {r['peer_time_s']:8.3g} s, global {r['peer_global']:.1e}, energy "
@@ -796,14 +792,16 @@ def plot(summary, path: Path) -> None:
             for p in sc["points"]:
                 if p["valid"] and p.get(measure) is not None:
                     key = (p["family"], p["method"], p.get("backend"))
-                    groups.setdefault(key, []).append((p["wall_s"], max(p[measure], 1e-17)))
+                    groups.setdefault(key, []).append((-p["param"], p["wall_s"], max(p[measure], 1e-17)))
             for (family, method, backend), pts in groups.items():
-                pts.sort()
+                pts = [(t, e) for _, t, e in sorted(pts)]  # from the loosest setting to the tightest
                 marker, color = _STYLE.get(method, ("x", "k"))
                 label = (
                     f"ours {method} ({backend})"
                     if family == OURS
-                    else "heyoka (batch)" if family == HEYOKA else f"diffrax {method}"
+                    else "heyoka (batch)"
+                    if family == HEYOKA
+                    else f"diffrax {method}"
                 )
                 ax.loglog(
                     *zip(*pts),
