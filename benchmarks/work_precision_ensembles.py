@@ -166,6 +166,7 @@ QUICK_ENSEMBLES = {
         "dopri8": (1e-10,),
     },
 }
+DEFAULT_HORIZON = 1e5
 LONG_HORIZON = {
     "batch": 4,
     "n_samples": 1000,
@@ -874,7 +875,12 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--long-horizon", action="store_true", dest="long_horizon", help="energy error over T = --horizon"
     )
-    parser.add_argument("--horizon", type=float, default=1e5, help="T of --long-horizon (default 1e5)")
+    parser.add_argument(
+        "--horizon",
+        type=float,
+        default=DEFAULT_HORIZON,
+        help="T of --long-horizon (default 1e5; another T writes work_precision_long_horizon_T<T>.{json,png})",
+    )
     parser.add_argument("--batch", type=int, default=None, help="rigid bodies in the ensemble (default 64)")
     parser.add_argument("--clusters-batch", type=int, default=None, dest="clusters_batch", help="clusters (default 16)")
     parser.add_argument(
@@ -889,9 +895,22 @@ def add_arguments(parser) -> None:
     )
 
 
+def _horizon(argv) -> float:
+    """The value of `--horizon` in argv (before the parser runs: it names the output files)."""
+    for k, a in enumerate(argv):
+        if a.startswith("--horizon="):
+            return float(a.split("=", 1)[1])
+        if a == "--horizon" and k + 1 < len(argv):
+            return float(argv[k + 1])
+    return DEFAULT_HORIZON
+
+
 def main(argv) -> dict:
     long_horizon = "--long-horizon" in argv
     name = "work_precision_long_horizon" if long_horizon else "work_precision_ensembles"
+    horizon = _horizon(argv)
+    if long_horizon and horizon != DEFAULT_HORIZON:  # another horizon does not replace the default's files
+        name += f"_T{horizon:g}"
     if not any(a.startswith("--repeats") for a in argv):
         argv = [*argv, "--repeats", "3"]
     with harness.Run(
