@@ -10,6 +10,13 @@ Run from the repository root:
     python benchmarks/work_precision.py --clusters # batches of leapfrogging clusters at T = 1e3 (issue 20),
                                                    # written as work_precision_clusters.{json,png}
     python benchmarks/work_precision.py --quick    # smoke test, tiny sizes (not a measurement)
+    python benchmarks/work_precision.py --ensembles     # issue 41: long ensembles against heyoka and
+                                                        # diffrax, ours by `cj.sweep` on the native path
+    python benchmarks/work_precision.py --long-horizon  # issue 41: energy error over T = 1e5 (--horizon)
+
+`--ensembles` and `--long-horizon` are run by `work_precision_ensembles.py` (its docstring
+describes them: scenes, peers, measures, targets); the rest of this docstring is about the
+other modes.
 
 **Scenes** (one process, one run, the same initial conditions for every method):
 

@@ -820,7 +820,7 @@ def plot(summary, path: Path) -> None:
             )
             ax.set_title(f"{sc['label']}", fontsize=9)
             ax.grid(True, which="both", alpha=0.3)
-        row[0].legend(fontsize=7)
+        row[1].legend(fontsize=6, ncol=2, loc="upper right")  # the energy panel's upper right is empty
     mach = summary["machine"]
     loads = [p["load"][0] for sc in scenes for p in sc["points"] if p.get("load")]
     fig.suptitle(
