@@ -846,7 +846,7 @@ def plot_long_horizon(summary, path: Path) -> None:
         if c["family"] == HEYOKA:
             alpha = 1.0 if c.get("closest_in_cost_to_ours") else 0.35
             label = f"heyoka tol {c['param']:g} ({c['wall_s']:.3g} s)"
-            label += " ~ ours' cost" if c.get("closest_in_cost_to_ours") else ""
+            label += ", the closest to ours in cost" if c.get("closest_in_cost_to_ours") else ""
         else:
             alpha = 1.0
             what = f"ours {c['method']} dt" if c["family"] == OURS else "diffrax Dopri8 rtol"
