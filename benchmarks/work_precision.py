@@ -10,6 +10,13 @@ Run from the repository root:
     python benchmarks/work_precision.py --clusters # batches of leapfrogging clusters at T = 1e3 (issue 20),
                                                    # written as work_precision_clusters.{json,png}
     python benchmarks/work_precision.py --quick    # smoke test, tiny sizes (not a measurement)
+    python benchmarks/work_precision.py --ensembles     # issue 41: long ensembles against heyoka and
+                                                        # diffrax, ours by `cj.sweep` on the native path
+    python benchmarks/work_precision.py --long-horizon  # issue 41: energy error over T = 1e5 (--horizon)
+
+`--ensembles` and `--long-horizon` are run by `work_precision_ensembles.py` (its docstring
+describes them: scenes, peers, measures, targets); the rest of this docstring is about the
+other modes.
 
 **Scenes** (one process, one run, the same initial conditions for every method):
 
@@ -1304,6 +1311,18 @@ def _add_arguments(parser) -> None:
         "work_precision_clusters.{json,png})",
     )
     parser.add_argument(
+        "--ensembles",
+        action="store_true",
+        help="issue 41: long ensembles against heyoka and diffrax, ours by cj.sweep on the native path "
+        "(work_precision_ensembles.py; its flags: --batch, --clusters-batch, --scenes, --point-budget)",
+    )
+    parser.add_argument(
+        "--long-horizon",
+        action="store_true",
+        dest="long_horizon",
+        help="issue 41: energy error over T = --horizon (default 1e5) for a few rigid bodies",
+    )
+    parser.add_argument(
         "--scenes",
         nargs="+",
         choices=list(DEFAULT) + list(CLUSTERS),
@@ -1323,6 +1342,10 @@ def main(argv=None) -> dict:
     import sys
 
     argv = sys.argv[1:] if argv is None else list(argv)
+    if "--ensembles" in argv or "--long-horizon" in argv:  # issue 41: its own module and flags
+        import work_precision_ensembles
+
+        return work_precision_ensembles.main(argv)
     name = (
         "work_precision_long"
         if "--long" in argv

@@ -257,6 +257,29 @@ def check_work_precision_clusters(summary: dict) -> None:
         assert r["met"] in (True, False) and (r["ours"] is None or _positive_finite(r["time_ratio_ours_over_peer"]))
 
 
+def check_work_precision_ensembles(summary: dict) -> None:
+    scenes = {sc["scene"]: sc for sc in summary["results"]}
+    assert set(scenes) == {"rigid_body", "vortex_clusters"}
+    with_heyoka = summary["peers"]["heyoka"] is not None  # heyoka is in the bench extra only
+    for name, sc in scenes.items():
+        families = {p["family"] for p in sc["points"]}
+        assert families == {"ours", "diffrax"} | ({"heyoka"} if with_heyoka else set()), (name, families)
+        for p in sc["points"]:
+            where = (name, p["method"], p["param"])
+            assert p["valid"] and _positive_finite(p["wall_s"]) and p["samples_s"], where
+            for key in ("global_error", "energy_error"):
+                assert math.isfinite(p[key]) and p[key] >= 0, (where, key)
+            # every peer's energy at t = 0 is the script's own energy (ours: the sweep's)
+            assert p["energy0_mismatch"] < 1e-12, where
+            if p["family"] == "ours":
+                assert p["backend"] in ("native", "xla"), where
+                if name == "rigid_body":  # the quick run's rigid-body methods run natively
+                    assert p["backend"] == "native", where
+        for tg in (summary["targets"][name], summary["targets_cpu"][name]):  # by wall and by CPU time
+            assert tg["heyoka_met"] in (True, False) and tg["diffrax_met"] in (True, False)
+            assert bool(tg["heyoka"]) == with_heyoka and tg["diffrax"]
+
+
 def check_soak(summary: dict) -> None:
     cases = {r["case"]: r for r in summary["results"]}
     assert set(cases) == {"rigid_body", "rigid_body_order4", "vortices_4"}
@@ -380,6 +403,7 @@ CHECKS = {
     "throughput": check_throughput,
     "work_precision": check_work_precision,
     "work_precision_clusters": check_work_precision_clusters,
+    "work_precision_ensembles": check_work_precision_ensembles,
     "soak": check_soak,
     "defaults": check_defaults,
     "sweep_scaling": check_sweep_scaling,
@@ -388,7 +412,10 @@ CHECKS = {
 }
 
 
-SCRIPTS = {"work_precision_clusters": ("work_precision", ["--clusters"])}  # name -> (script, extra arguments)
+SCRIPTS = {  # name -> (script, extra arguments)
+    "work_precision_clusters": ("work_precision", ["--clusters"]),
+    "work_precision_ensembles": ("work_precision", ["--ensembles"]),
+}
 
 
 @pytest.mark.slow  # minutes for the seven scripts (benchmarks/README.md): run with -m slow, and in CI
