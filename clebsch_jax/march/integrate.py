@@ -353,13 +353,15 @@ def integrate(
       `jit`/`vmap` the error is raised from a host callback. If False, failures are only
       recorded in the `Solution` (`result`, `failed_step`, per-step `stats.status`, `valid`);
       call `Solution.raise_if_failed()` later.
-    - `check_energy`: if True (default) a step whose energy change is orders of magnitude
-      beyond the run's so far fails with `Status.ENERGY_JUMP` (a converged step across a
-      singularity of the model, which would otherwise pass as a success): step n fails when
-      $|E^{n+1} - E^n|$ exceeds both `JUMP_FACTOR` (100) times the largest change of the
-      steps before it and `JUMP_FLOOR` (1) times the energy's size so far
-      (`clebsch_jax.march.scan`). It costs one evaluation of l per node; False switches it off.
-      Step 0, which has no history, is checked against two half steps made once at the start
+    - `check_energy`: if True (default) every step is checked by a per-step error indicator, its
+      relative energy change: step n fails with `Status.ENERGY_JUMP` when
+      $|E^{n+1} - E^n|$ exceeds `ENERGY_STEP_RTOL` (0.1) times the energy's size so far,
+      $\max_{k \le n} |\langle\delta l/\delta\xi, \xi^k\rangle| + |l(\xi^k, Q^k)|$
+      (`clebsch_jax.march.scan`): a converged step across a singularity of the model, or one far
+      too large for the motion there, which would otherwise pass as a success. It costs one
+      evaluation of l and its gradient per node; False switches it off.
+      Step 0, whose energy change can be small next to the terms at the start, is also checked
+      against two half steps made once at the start
       (by the march's own compiled program; on concrete runs, not under `jit`/`vmap`):
       it fails with `Status.FIRST_STEP` when they do not converge, or when their node differs
       from step 0's by more than `FIRST_STEP_RTOL` (0.5) of their own displacement in both Q and
