@@ -554,8 +554,8 @@ def _assemble(
 ) -> Solution:
     """The `Solution` from the chunks' records (`xp`: `numpy` or `jax.numpy`, as they are).
     `input_ok` (traced runs with `check_inputs`): False makes step 0 `Status.INVALID_INPUT`.
-    `probe` (concrete runs with the energy check): step 0 checked against two half steps
-    (`first_step_failed`)."""
+    `probe` (concrete runs with the energy check): step 0, unless the energy check failed it,
+    checked against two half steps (`first_step_failed`)."""
 
     def join(get, node):
         fields = [get(c) for c in chunks]
@@ -584,14 +584,6 @@ def _assemble(
         (xi_step, False),
         (P, False),
     ]
-    if probe is not None:
-        first = first_step_failed(xp, probe, nodes.nodal_Q[:2], nodes.momentum[:2], stats.status[0])
-        if xp is jnp or bool(first):  # on the host, only a failure costs a pass
-            stats, nodal, valid, out = _fail_from(
-                xp, xp.where(first, 0, n_steps), Status.FIRST_STEP, stats, nodal, valid, fields_of()
-            )
-            Qn, pn, mun, xin, xi_step, P = out
-            nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
     energy = join(lambda c: c.energy, True)
     jumped, step = energy_jump(xp, *energy, stats.status)[:2] if energy is not None else (False, None)
     if energy is not None and (xp is jnp or bool(jumped)):  # on the host, only a jump costs a pass
@@ -599,6 +591,14 @@ def _assemble(
         stats, nodal, valid, out = _fail_from(xp, step, Status.ENERGY_JUMP, stats, nodal, valid, fields_of())
         Qn, pn, mun, xin, xi_step, P = out
         nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
+    if probe is not None:  # after the energy check, which every path makes: a step 0 it fails keeps its status
+        first = first_step_failed(xp, probe, nodes.nodal_Q[:2], nodes.momentum[:2], stats.status[0])
+        if xp is jnp or bool(first):  # on the host, only a failure costs a pass
+            stats, nodal, valid, out = _fail_from(
+                xp, xp.where(first, 0, n_steps), Status.FIRST_STEP, stats, nodal, valid, fields_of()
+            )
+            Qn, pn, mun, xin, xi_step, P = out
+            nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
     facts = stepper.facts(system)
     failed = stats.status != Status.SUCCESS
     any_step, first_step = xp.any(failed), xp.argmax(failed)
