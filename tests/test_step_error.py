@@ -154,7 +154,12 @@ RESOLVED_RUNS = {
 }
 
 
-@pytest.mark.parametrize("name", list(RESOLVED_RUNS))
+SLOW_RUNS = ("peakons", "rigid body vector, Gauss order 8")  # a compile each, beyond the default run's budget
+
+
+@pytest.mark.parametrize(
+    "name", [pytest.param(name, marks=pytest.mark.slow) if name in SLOW_RUNS else name for name in RESOLVED_RUNS]
+)
 def test_runs_that_resolve_their_motion_stay_far_below_the_tolerance(name):
     """Over 400 steps (a Kepler period; several turns of the bodies) the largest relative change
     is a small fraction of the tolerance, also for a coarse or first-order run."""
@@ -191,6 +196,7 @@ def test_a_sweep_warns_that_xi0_has_no_multiplier_naming_its_size():
     np.testing.assert_allclose(res.final_momentum[0], np.asarray(ref.momentum)[-1], rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.slow  # compiles a batch; the sweep's test covers the first-member check by default
 def test_batch_warns_too_and_a_consistent_xi0_is_silent():
     march = cj.batch(lambda x: cj.integrate(VECTOR, jnp.asarray(E1), x, dt=0.1, n_steps=2, throw=False).Q[-1])
     with pytest.warns(UserWarning, match=NO_MULTIPLIER):
