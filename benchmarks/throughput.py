@@ -102,7 +102,7 @@ import numpy as np
 
 import _timing as harness
 import clebsch_jax as cj
-from clebsch_jax.march.scan import JUMP_FACTOR, JUMP_FLOOR
+from clebsch_jax.march.scan import ENERGY_STEP_RTOL
 import rigid_body_step_cost as rigid
 import vortex_step_cost as vortex
 from clebsch_jax import models
@@ -323,7 +323,7 @@ def hand_rows_march(inertia, dt, n_steps, updates=ROWS_UPDATES, unroll=ROWS_UNRO
         lagrangian = 0.5 * (I[0] * xn[0] * xn[0] + I[1] * xn[1] * xn[1] + I[2] * xn[2] * xn[2])
         E = pairing - lagrangian
         change = jnp.abs(E - E_prev)  # `integrate`'s rule, against the nodes before this one
-        passed = passed & ~(change > jnp.maximum(JUMP_FACTOR * change_max, JUMP_FLOOR * size_max)) & jnp.isfinite(E)
+        passed = passed & ~(change > ENERGY_STEP_RTOL * size_max) & jnp.isfinite(E)
         return passed, E, jnp.maximum(change_max, change), jnp.maximum(size_max, jnp.abs(pairing) + jnp.abs(lagrangian))
 
     def step(_, carry):  # the verified kernel carries (passed, E, largest change, largest size) too

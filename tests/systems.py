@@ -19,3 +19,8 @@ def unit_vector(Q):
     """A check_Q for the unit sphere: None, or what is wrong."""
     n = float(np.linalg.norm(Q))
     return None if abs(n - 1.0) <= 1e-12 else f"not a unit vector (|Q| = {n:.6g})."
+
+
+def kepler(xi, q):
+    """l(ξ, q) = |ξ|²/2 + 1/|q|: Kepler's problem (GM = 1), singular at q = 0."""
+    return 0.5 * jnp.sum(xi**2) + 1.0 / jnp.sqrt(jnp.sum(q**2))

@@ -21,6 +21,8 @@ Two consequences for a Clebsch system, both handled here and applied by `integra
 - **Initial velocities.** ξ⁰ and ξ⁰ + k (k in the kernel) are the same physical velocity
   $\mathcal L_{\xi^0}Q^0$. `physical_velocity` replaces ξ⁰ by the ξ with that tangent vector
   whose momentum $\delta l/\delta\xi$ has a multiplier (Lemma 7 needs it in the range of $A^T$).
+  Where ξ⁰ is marched as given (a sweep, a batch) the momentum's component along the kernel has
+  no multiplier and is dropped; `check_initial_momentum` says so, with its size.
 
 The kernel's dimension is constant along an orbit of the action (isotropy groups along an orbit
 are conjugate), and a Clebsch trajectory stays on the orbit of $Q^0$: the rank found at $Q^0$ is
@@ -45,6 +47,10 @@ __all__ = [
     "gauge_isotropy",
     "physical_velocity",
     "isotropy_dimension",
+    "MULTIPLIER_RTOL",
+    "MULTIPLIER_CHECK_MAX_DIM",
+    "momentum_defect",
+    "check_initial_momentum",
 ]
 
 ISOTROPY_RTOL = 1e-10
@@ -228,3 +234,68 @@ def physical_velocity(system, Q0, xi0, K: np.ndarray, *, warn: bool = True, stac
             stacklevel=stacklevel,
         )
     return jnp.asarray(x.reshape(shape))
+
+
+MULTIPLIER_RTOL = 1e-8
+r"""`check_initial_momentum` warns when the part of $\delta l/\delta\xi(\xi^0, Q^0)$ that no multiplier
+gives is more than this fraction of it (round-off for a momentum that has one; any genuine
+component along the isotropy far above)."""
+
+MULTIPLIER_CHECK_MAX_DIM = 256
+"""`momentum_defect` is measured up to this dim V (a dense SVD of the velocity map's Jacobian,
+as the isotropy is found: `clebsch_jax.core.model_checks.ISOTROPY_MAX_DIM`)."""
+
+
+def momentum_defect(system, Q0, xi0) -> tuple[float, int]:
+    r"""How far the momentum of ξ⁰ is from having a multiplier: Lemma 7 starts the march from a
+    $P^0$ with $\delta l/\delta\xi(\xi^0, Q^0) = A^T P^0$, $A = \partial_\xi\mathcal L_\xi Q^0$, which exists
+    exactly when $K^T\nabla_\xi l = 0$, K an orthonormal basis of the isotropy $\ker A$
+    (`kernel_basis`). Without it the minimum-norm $P^0$ (`initial_multiplier`) solves the
+    least-squares problem: its momentum is $\nabla_\xi l$ with that component removed.
+
+    **Returns:** (relative defect $|K^T\nabla_\xi l| / |\nabla_\xi l|$, dimension of the isotropy); (0, 0)
+    for a system whose gauge is fixed (`IsotropyGauge`: l does not see the isotropy, the gauge
+    term's part is the one the multiplier drops, and the motion is that of the physical velocity)
+    or when not measured (dim V above `MULTIPLIER_CHECK_MAX_DIM`, or values not finite)."""
+    if isinstance(system.lagrangian, IsotropyGauge) or np.size(xi0) > MULTIPLIER_CHECK_MAX_DIM:
+        return 0.0, 0
+    Q0, xi0 = jnp.asarray(Q0), jnp.asarray(xi0)
+    A = np.asarray(velocity_jacobian(system.velocity_map, Q0, xi0.shape))
+    if not np.all(np.isfinite(A)):
+        return 0.0, 0
+    K = kernel_basis(A)
+    if K.shape[1] == 0:
+        return 0.0, 0
+    g = np.asarray(jax.grad(lambda x: system.l(x, Q0))(xi0)).reshape(-1)
+    size = float(np.linalg.norm(g))
+    if not np.all(np.isfinite(g)) or size == 0.0:
+        return 0.0, K.shape[1]
+    return float(np.linalg.norm(K.T @ g)) / size, K.shape[1]
+
+
+def check_initial_momentum(system, Q0, xi0, *, as_given: bool, stacklevel: int = 2) -> float:
+    r"""Warn (`UserWarning`, naming `xi0`) when the momentum $\delta l/\delta\xi(\xi^0, Q^0)$ has a
+    component that no multiplier gives (`momentum_defect` above `MULTIPLIER_RTOL`): the march
+    would start from that momentum with the component removed, not from the one given.
+    `as_given`: ξ⁰ is marched as given (a sweep or batch member), not first taken as its physical
+    velocity (`physical_velocity`, which `integrate` does). Returns the relative defect."""
+    defect, k = momentum_defect(system, Q0, xi0)
+    if defect <= MULTIPLIER_RTOL:
+        return defect
+    if as_given:
+        why = (
+            "A sweep or batch marches xi0 as given; integrate alone takes it as the physical velocity L_xi0 Q0 "
+            "(whose momentum has a multiplier) and can start elsewhere. Pass an xi0 without that component "
+            "(e.g. integrate's Solution.xi[0]), or P0."
+        )
+    else:
+        why = "Taking xi0 as its physical velocity L_xi0 Q0 did not remove it. Pass P0, or another xi0."
+    warnings.warn(
+        f"xi0: its momentum dl/dxi(xi0, Q0) has a component along the isotropy of Q0 (the {k}-dimensional "
+        "kernel of xi -> L_xi Q0) that no initial multiplier gives (Lemma 7: dl/dxi = -P0<>Q0 is orthogonal "
+        f"to that kernel), {defect:.3g} of its size. The run starts from the momentum of the minimum-norm "
+        f"P0, which drops that component, not from the momentum of xi0. {why}",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+    return defect

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.isotropy import gauge_isotropy, physical_velocity
+from ..core.isotropy import check_initial_momentum, gauge_isotropy, physical_velocity
 from ..core.jit import filter_jit
 from ..core.model_checks import check_first_step, check_group_configuration, check_model, first_step_may_leave
 from ..core.system import ClebschSystem
@@ -89,7 +89,7 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0, configuration: bool = True):
     march: `system`, or, when l does not see the isotropy of Q0, `system` with that gauge fixed
     (`clebsch_jax.gauge_isotropy`). Without `P0`, ξ⁰ is taken as the physical
     velocity L_ξ⁰ Q⁰ (`physical_velocity`: its isotropy component dropped, with a
-    warning)."""
+    warning), and a momentum still without a multiplier is reported (`check_initial_momentum`)."""
     Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
     dt = positive_scalar(dt, "dt")
     if P0 is not None:
@@ -109,6 +109,7 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0, configuration: bool = True):
             system = gauge_isotropy(system, Q0, xi0)
         if P0 is None:
             xi0 = physical_velocity(system, Q0, xi0, facts.isotropy, stacklevel=5)
+            check_initial_momentum(system, Q0, xi0, as_given=False, stacklevel=5)
     return Q0, xi0, P0, dt, t0.astype(dt.dtype), closes, system
 
 
@@ -353,13 +354,15 @@ def integrate(
       `jit`/`vmap` the error is raised from a host callback. If False, failures are only
       recorded in the `Solution` (`result`, `failed_step`, per-step `stats.status`, `valid`);
       call `Solution.raise_if_failed()` later.
-    - `check_energy`: if True (default) a step whose energy change is orders of magnitude
-      beyond the run's so far fails with `Status.ENERGY_JUMP` (a converged step across a
-      singularity of the model, which would otherwise pass as a success): step n fails when
-      $|E^{n+1} - E^n|$ exceeds both `JUMP_FACTOR` (100) times the largest change of the
-      steps before it and `JUMP_FLOOR` (1) times the energy's size so far
-      (`clebsch_jax.march.scan`). It costs one evaluation of l per node; False switches it off.
-      Step 0, which has no history, is checked against two half steps made once at the start
+    - `check_energy`: if True (default) every step is checked by a per-step error indicator, its
+      relative energy change: step n fails with `Status.ENERGY_JUMP` when
+      $|E^{n+1} - E^n|$ exceeds `ENERGY_STEP_RTOL` (0.1) times the energy's size so far,
+      $\max_{k \le n} |\langle\delta l/\delta\xi, \xi^k\rangle| + |l(\xi^k, Q^k)|$
+      (`clebsch_jax.march.scan`): a converged step across a singularity of the model, or one far
+      too large for the motion there, which would otherwise pass as a success. It costs one
+      evaluation of l and its gradient per node; False switches it off.
+      Step 0, whose energy change can be small next to the terms at the start, is also checked
+      against two half steps made once at the start
       (by the march's own compiled program; on concrete runs, not under `jit`/`vmap`):
       it fails with `Status.FIRST_STEP` when they do not converge, or when their node differs
       from step 0's by more than `FIRST_STEP_RTOL` (0.5) of their own displacement in both Q and
@@ -480,8 +483,9 @@ def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> N
     `check_model`, `check_group_configuration`), and, when the first step could leave the
     configuration manifold (`first_step_may_leave`: not for the built-in models with their
     default derivative maps), `check_first_step` on one step of this member, marched alone
-    (one compiled step). The keyword options are `integrate`'s; `n_steps` is not used (the
-    caller checks the size of its own run). Skipped where a value is traced or a map closes
+    (one compiled step). Without `P0` the member starts from the multiplier of `xi0` as given:
+    a momentum with no multiplier is reported (`check_initial_momentum`). The keyword options
+    are `integrate`'s; `n_steps` is not used (the caller checks the size of its own run). Skipped where a value is traced or a map closes
     over a traced value. `configuration=False` leaves out `check_configuration` (a sweep checks
     every member's Q0 at once)."""
     options = {key: value for key, value in options.items() if key not in ("n_steps", "throw")}
@@ -492,7 +496,11 @@ def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> N
     stepper, (Q0, xi0, _, dt, t0, closes), _, system = _prepared(
         system, Q0, xi0, n_steps=1, P0=given, configuration=configuration, **options
     )
-    if closes or any_traced(system, Q0, xi0, dt, t0, P0) or not first_step_may_leave(system, Q0, xi0):
+    if closes or any_traced(system, Q0, xi0, dt, t0, P0):
+        return
+    if P0 is None:  # the member's P0 is derived from xi0 as given: say if its momentum has none
+        check_initial_momentum(system, Q0, xi0, as_given=True, stacklevel=3)
+    if not first_step_may_leave(system, Q0, xi0):
         return
     P0 = None if P0 is None else float_array(P0, "P0")
     sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, 1, check_energy=False)

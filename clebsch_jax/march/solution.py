@@ -193,8 +193,8 @@ def failure_message(
         return (
             f"clebsch_jax.integrate: {where}step {step} of {n_steps} (t = {t:.6g}): {what} (residual "
             f"{residual:.3e}). Later states are marked invalid (NaN). Check the model for a singularity "
-            "near the state before this step; a smaller dt may step around it, or integrate(..., "
-            "check_energy=False) accepts the step."
+            "near the state before this step, or try a smaller dt (one that resolves the motion there); "
+            "integrate(..., check_energy=False) accepts the step."
         )
     if code == Status.FIRST_STEP:
         return (

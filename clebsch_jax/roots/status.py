@@ -30,7 +30,7 @@ class Status(enum.IntEnum):
     SKIPPED = 4  # not attempted: an earlier step of this batch member failed
     LEGENDRE = 5  # the nodal velocity could not be recovered from (Q, p)
     DIVERGED = 6  # a fixed-point iteration (Gauss-Legendre step) stopped contracting
-    ENERGY_JUMP = 7  # the step's energy change is orders of magnitude beyond the run's so far
+    ENERGY_JUMP = 7  # the step changed the energy by more than a tenth of its size so far
     INVALID_INPUT = 8  # under jit/vmap: this member's arguments or model parameters are invalid
     NOT_RUN = -1  # a sweep store's member whose batch is not written yet (never produced by a march)
     FIRST_STEP = 9  # the first step converged far from where two half steps arrive (a spurious root)
@@ -51,9 +51,9 @@ _MESSAGES = {
     "relation dl/dxi(xi, Q) = -p<>Q",
     Status.DIVERGED: "the fixed-point iteration of a Gauss-Legendre step stopped contracting or overflowed "
     "(dt too large for it, or the model is not finite at the stage values)",
-    Status.ENERGY_JUMP: "the step converged, but the energy changed in it by orders of magnitude more than in "
-    "any earlier step and by more than the energy's own size (a step across a singularity of the model: "
-    "the solve found a root on the far side)",
+    Status.ENERGY_JUMP: "the step converged, but the energy changed in it by more than ENERGY_STEP_RTOL (a tenth) of "
+    "the size of its terms so far: it does not resolve the motion (a step across a singularity of the model, "
+    "where the solve found a root on the far side, or a step far too large for the motion there)",
     Status.FIRST_STEP: "the first step converged, but far from the node two half steps reach: a root of the "
     "step equations that is not the step of the motion (a spurious root), or a step too large for the motion "
     "at the start",
