@@ -216,7 +216,8 @@ def make_chunk(case: Case, chunk_steps: int, blocks: int = BLOCKS, compiler_opti
             "iterations": jnp.sum(jnp.where(attempted, sol.stats.iterations, 0)),
             "max_residual": jnp.max(jnp.where(good, sol.stats.residual_norm, 0.0)),
         }
-        return cj.continue_from(system, sol), ref, dev, scale, stats
+        # the canonical state only (as the first chunk's): one compiled program for every chunk
+        return cj.continue_from(system, sol)._replace(march_state=None), ref, dev, scale, stats
 
     def probe():  # shapes only (traced, not compiled): the method's facts and the monitors' shapes
         sol = cj.integrate(system, case.Q0, case.xi0, dt=case.dt, n_steps=1, throw=False, **case.options)

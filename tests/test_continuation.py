@@ -41,6 +41,7 @@ def _head(sol: cj.Solution, n: int) -> cj.Solution:
         xi_step=step(sol.xi_step),
         P=step(sol.P),
         stats=jax.tree.map(step, sol.stats),
+        march_state=None,  # the march's state belongs to the last node: cut, it is not handed over
     )
 
 
@@ -125,3 +126,55 @@ def test_refuses_a_batch_and_a_missing_configuration():
     no_Q = jax.eval_shape(lambda x: march(x, reconstruct=False), xi0[0])
     with pytest.raises(ValueError, match="pass the last configuration"):
         cj.continue_from(system, no_Q)
+
+
+def _split_run(system, Q0, xi0, P0, n_first, n_rest, **options):
+    """One run of n_first + n_rest steps, and the same run made as two `integrate` calls, the second
+    continued by `continue_from` from the first's last node; also continued without the march state
+    (the guesses restarted)."""
+    whole = cj.integrate(system, Q0, xi0, P0=P0, n_steps=n_first + n_rest, **options)
+    head = cj.integrate(system, Q0, xi0, P0=P0, n_steps=n_first, **options)
+    start = cj.continue_from(system, head)
+    tail = cj.integrate(system, **start._asdict(), n_steps=n_rest, **options)
+    restarted = cj.integrate(system, **start._replace(march_state=None)._asdict(), n_steps=n_rest, **options)
+    return whole, tail, restarted
+
+
+@pytest.mark.parametrize(
+    "options",
+    [dict(dt=0.1, order=4), dict(dt=0.5, scheme="gauss", order=4)],
+    ids=["reduced-composition", "gauss"],
+)
+def test_march_state_continues_the_very_steps(options):
+    """With `Solution.march_state` (which `continue_from` hands over) the continued run makes the
+    steps of the unbroken run: the same Newton updates from the same guesses, so the same nodes
+    to the bit. Without it the guesses restart (the predictor's history, the Gauss–Legendre
+    stage guess from substeps): other updates, nodes equal only to round-off."""
+    inertia = jnp.array([2.0, 1.0, 2.0 / 3.0])
+    if options.get("scheme") == "gauss":  # the body in Clebsch variables on R³ (a vector space)
+        Pi0 = jnp.array([0.3, -0.8, 0.5])
+        system = models.rigid_body_vector(inertia)
+        Q0, P0 = models.rigid_body_vector_start(Pi0)
+        xi0, field = Pi0 / inertia, "Q"
+    else:  # the reduced march (Cayley), order 4 by composition: μ carried
+        system, Q0, xi0, field = models.rigid_body(inertia), jnp.eye(3), jnp.array([0.4, 1.1, -0.7]), "momentum"
+        P0 = None
+    n_first, n_rest = 17, 23
+    whole, tail, restarted = _split_run(system, Q0, xi0, P0, n_first, n_rest, **options)
+    np.testing.assert_array_equal(getattr(tail, field), getattr(whole, field)[n_first:])
+    np.testing.assert_array_equal(tail.stats.iterations, whole.stats.iterations[n_first:])
+    # the restarted guesses: the same trajectory to round-off, but other Newton updates
+    np.testing.assert_allclose(getattr(restarted, field), getattr(whole, field)[n_first:], rtol=0, atol=1e-13)
+    assert not np.array_equal(restarted.stats.iterations, whole.stats.iterations[n_first:])
+
+
+def test_march_state_is_checked():
+    """A march state of another method, or of another node than Q0, is refused, naming it."""
+    inertia = jnp.array([2.0, 1.0, 2.0 / 3.0])
+    system, xi0 = models.rigid_body(inertia), jnp.array([0.4, 1.1, -0.7])
+    sol = cj.integrate(system, jnp.eye(3), xi0, dt=0.1, n_steps=4, order=4)
+    start = cj.continue_from(system, sol)
+    with pytest.raises(ValueError, match="march_state: expected"):
+        cj.integrate(system, **start._asdict(), dt=0.1, n_steps=4)  # order 2: another method
+    with pytest.raises(ValueError, match="march_state: it is the march's state at another node"):
+        cj.integrate(system, **start._replace(Q0=jnp.eye(3))._asdict(), dt=0.1, n_steps=4, order=4)

@@ -258,7 +258,8 @@ def test_the_lean_probe_gives_the_shapes_of_a_traced_march(monkeypatch, case):
         if lean:
             seen.append(shapes)
             traced = real(cfg, members)
-            assert shapes._replace(invariants=None) == traced._replace(invariants=None)
+            # (the march state is the general chunk's, which the lean path does not carry)
+            assert shapes._replace(invariants=None, march=None) == traced._replace(invariants=None, march=None)
             assert list(shapes.invariants) == list(traced.invariants) == ["energy"]
             for a, b in zip(shapes.invariants.values(), traced.invariants.values()):
                 assert (a.shape, a.dtype) == (b.shape, b.dtype)

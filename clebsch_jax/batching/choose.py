@@ -169,9 +169,10 @@ def native_config(cfg: Config, run: Run, members: Members, backend: str):
     if why is None:
         from ..native import Unsupported
 
-        shapes = probe.member_shapes(cfg, members, lean=True)  # integrate's checks of a member, no march traced
         limit = AUTO_MAX_IR_LINES if backend == "auto" else None
         native = dataclasses.replace(cfg, native=True, native_max_lines=limit)
+        # integrate's checks of a member, no march traced; the per-member program's march state
+        shapes = probe.member_shapes(native, members, lean=True)
         one = start_batch(native, members, shapes, 0, 1, None)
         try:
             chunks_native.native_program(native, one.params, one.shared, chunks_native.as_member(one.carry), one.dt)

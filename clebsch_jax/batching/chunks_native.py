@@ -50,6 +50,7 @@ def as_member(carry: Carry) -> MemberCarry:
         momentum=h(carry.momentum),
         energy_change=h(carry.energy_change),
         energy_size=h(carry.energy_size),
+        march=None if carry.march is None else jax.tree_util.tree_map(h, carry.march),
     )
 
 
@@ -69,6 +70,7 @@ def _from_member(m: MemberCarry, has_xi: bool) -> Carry:
         final_xi=m.xi if has_xi else None,
         energy_change=m.energy_change,
         energy_size=m.energy_size,
+        march=m.march,
     )
 
 

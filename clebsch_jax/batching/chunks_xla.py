@@ -18,7 +18,9 @@ from .. import diagnostics as _diagnostics
 from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, jit_with_options, undifferentiated
 from ..discrete.legendre import initial_multiplier
 from ..march.continuation import continue_from
+from ..march.integrate import prepared_method
 from ..march.scan import energy_jump, node_energies
+from ..march.scan import start as march_start
 from ..roots.status import Status
 from .batch_last import batch
 from .config import Carry, Config, chunk_integrate, system_of
@@ -59,6 +61,21 @@ def _with_start_P(cfg: Config, system, carry: Carry, first) -> Carry:
     return carry._replace(P=jnp.where(first, initial_multiplier(system, carry.Q, carry.xi), carry.P))
 
 
+def _march_state(cfg: Config, system, carry: Carry, dt, first, alive):
+    """The march state a general chunk starts from, and the start-up iterations it counts: the
+    carried one (the last chunk's `Solution.march_state`), or in the run's first chunk — and
+    after a chunk of the fast or lean path — the state `integrate` starts from
+    (`clebsch_jax.march.scan.start`). Both are computed (a member's choice is a value); a
+    failed member makes no step."""
+    stepper, _, _ = prepared_method(
+        system, carry.Q, carry.xi, dt=dt, n_steps=cfg.n, P0=carry.P, t0=carry.t, **dict(cfg.options)
+    )
+    fresh, startup = march_start(stepper, system, carry.Q, carry.xi, carry.P, dt, check_inputs=True)
+    use = ~first & carry.march_ok
+    state = jax.tree_util.tree_map(lambda c, f: jnp.where(use, c, f), carry.march, fresh)
+    return state._replace(alive=state.alive & alive), jnp.where(use, 0, startup)
+
+
 def _member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
     system = system_of(cfg, params, shared)
     carry = _with_start_P(cfg, system, carry, first)
@@ -68,7 +85,10 @@ def _member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
     # program several times slower; `tables.collect` masks the final state of a failed member.)
     alive = carry.status == Status.SUCCESS
     carry = carry._replace(**{k: jnp.where(alive, getattr(carry, k), jnp.nan) for k in ("Q", "xi", "P")})
-    sol = chunk_integrate(cfg, system, carry.Q, carry.xi, carry.P, carry.t, dt, cfg.n)
+    march_state, startup = None, 0
+    if carry.march is not None and cfg.carry_march:  # continue the last chunk's steps exactly
+        march_state, startup = _march_state(cfg, system, carry, dt, first, alive)
+    sol = chunk_integrate(cfg, system, carry.Q, carry.xi, carry.P, carry.t, dt, cfg.n, march_state)
     jumped, jump_step, energy_change, energy_size, E = _energy_check(cfg, system, sol, carry)
     end = jnp.where(jumped, jump_step, cfg.n)  # a jump fails its step: the nodes after it are unknown
     steps, nodes = jnp.arange(cfg.n), jnp.arange(cfg.n + 1)
@@ -89,7 +109,7 @@ def _member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
         new_failure, offset + jnp.where(jumped, jump_step, sol.failed_step), carry.failed_step
     ).astype(jnp.int32)
     attempted = (sol.stats.status != Status.SKIPPED) & (steps <= end)
-    iterations = carry.iterations + jnp.sum(jnp.where(attempted, sol.stats.iterations, 0))
+    iterations = carry.iterations + jnp.sum(jnp.where(attempted, sol.stats.iterations, 0)) + startup
     good = (sol.stats.status == Status.SUCCESS) & (steps < end)
     max_residual = jnp.maximum(carry.max_residual, jnp.max(jnp.where(good, sol.stats.residual_norm, 0.0)))
     # The hand-over: the canonical state (Qⁿ, pⁿ) at the chunk's last node.
@@ -109,6 +129,8 @@ def _member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
         final_xi=None if sol.xi is None else sol.xi[-1],
         energy_change=energy_change,
         energy_size=energy_size,
+        march=carry.march if march_state is None else sol.march_state,
+        march_ok=None if carry.march is None else jnp.asarray(march_state is not None),
     )
     saved = None
     if cfg.save_every is not None:
@@ -173,7 +195,9 @@ def run_fast_chunk(cfg: Config, params, carry, dt, shared, first, offset):
 
 def _fast_chunk(cfg: Config, params, carry, dt, shared, first, offset):
     general = dataclasses.replace(cfg, fast_method=None)
-    fast = dataclasses.replace(general, options=(("check_energy", False), ("method", cfg.fast_method)))
+    fast = dataclasses.replace(
+        general, options=(("check_energy", False), ("method", cfg.fast_method)), carry_march=False
+    )
     new, saved = _batched_chunk(fast, params, carry, dt, shared, first, offset, rows=True)
     ok = (new.status == Status.SUCCESS) | (carry.status != Status.SUCCESS)
     return new, saved, ok

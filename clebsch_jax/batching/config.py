@@ -266,6 +266,13 @@ class Carry(NamedTuple):
     final_xi: jax.Array | None
     energy_change: jax.Array  # the energy check's running maxima (`clebsch_jax.march.scan.energy_jump`)
     energy_size: jax.Array
+    # The march state at the chunk's last node, so that the next chunk makes exactly the steps
+    # of one unbroken `integrate` run: the general chunk's `Solution.march_state` (the stepper's
+    # guesses and predictor history), or the per-member program's `MemberCarry.march` on the
+    # native backend; None where nothing carries it. `march_ok`: whether `march` holds this
+    # member's state (not after a chunk of the fast or lean path, which march with another method).
+    march: object = None
+    march_ok: jax.Array | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -285,10 +292,13 @@ class Config:
     derive_P: bool = False  # the run's first chunk derives the initial multiplier (`chunks_xla._with_start_P`)
     native: bool = False  # the batches run the per-member program as native kernels (`native_call`)
     native_max_lines: int | None = None  # a kernel of more IR lines is not compiled (backend="auto")
+    carry_march: bool = True  # hand the march state from chunk to chunk (not on the fast path)
 
 
-def chunk_integrate(cfg: Config, system, Q, xi, P, t, dt, n):
-    return integrate(system, Q, xi, dt=dt, n_steps=n, P0=P, t0=t, throw=False, **dict(cfg.options))
+def chunk_integrate(cfg: Config, system, Q, xi, P, t, dt, n, march_state=None):
+    return integrate(
+        system, Q, xi, dt=dt, n_steps=n, P0=P, t0=t, throw=False, march_state=march_state, **dict(cfg.options)
+    )
 
 
 def system_of(cfg: Config, params, shared):

@@ -210,6 +210,8 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
         final_xi=red["xin"],
         energy_change=red["change"],
         energy_size=red["size"],
+        # the lean chunk marches with another method: the general chunk's march state is stale
+        march_ok=None if carry.march_ok is None else jnp.zeros_like(carry.march_ok),
     )
     return new, ok | ~alive0
 

@@ -34,7 +34,7 @@ from ..roots.status import Status
 from ..steppers.base import innermost
 from ..steppers.reduced import ReducedStep
 
-__all__ = ["MemberCarry", "member_chunk"]
+__all__ = ["MemberCarry", "march_start_values", "member_chunk"]
 
 
 class MemberCarry(NamedTuple):
@@ -53,6 +53,16 @@ class MemberCarry(NamedTuple):
     momentum: jax.Array  # the momentum map at the last node
     energy_change: jax.Array  # the energy check's running maxima (`clebsch_jax.march.scan.jump_step`)
     energy_size: jax.Array
+    # (stepper state, memory, steps made) at the last node: the next chunk continues from it,
+    # with the stepper's guesses and predictor history, the steps of one unbroken run
+    # (`march_start_values`); None: every chunk starts the stepper afresh
+    march: tuple | None = None
+
+
+def march_start_values(stepper, system, Q0, xi0, P0, dt) -> tuple:
+    """`MemberCarry.march` at the start of a run: (the stepper's initial state, its memory, 0)."""
+    state, _ = stepper.init(system, Q0, xi0, P0, dt)
+    return state, stepper.init_memory(system, state), jnp.zeros((), jnp.int32)
 
 
 def _one(tree):
@@ -103,8 +113,17 @@ def member_chunk(
     degenerate = system.degenerate
     energy_on = check_energy and not degenerate  # as integrate: no energy check without nodal velocities
     ok_in = input_ok(system, Q0, xi0, P0, dt)
-    state0, startup = stepper.init(system, Q0, xi0, P0, dt)
-    memory0 = stepper.init_memory(system, state0)
+
+    def fresh():
+        state, startup = stepper.init(system, Q0, xi0, P0, dt)
+        memory = stepper.init_memory(system, state)
+        return (state, memory, jnp.zeros((), jnp.int32)), jnp.asarray(startup, carry.iterations.dtype)
+
+    if carry.march is None:
+        (state0, memory0, steps0), startup = fresh()
+    else:  # the run's first chunk starts the stepper; a later one continues the last one's march
+        carried = lambda: (carry.march, jnp.zeros((), carry.iterations.dtype))
+        (state0, memory0, steps0), startup = jax.lax.cond(first, fresh, carried)
     mu0 = momentum_map(system, P0, Q0, xi0)
     finder = stepper.nodal_solver
     xin0, ok0, E0, size0 = _node(system, finder, Q0, mu0, xi0, ok_in)
@@ -136,7 +155,7 @@ def member_chunk(
     def body(k, c):
         state_prev, memory, red = c
         alive = red["alive"]
-        state, memory, out, stats = stepper.step(system, state_prev, memory, dt, k, alive)
+        state, memory, out, stats = stepper.step(system, state_prev, memory, dt, steps0 + k, alive)
         ok = alive & (stats.status == Status.SUCCESS)
         state, out = _nan_unless(ok, (state, out))
         nodes = stepper.nodes(system, state_prev, _one(state), _one(out))
@@ -192,7 +211,7 @@ def member_chunk(
         )
         return state, memory, red
 
-    _, _, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
+    state, memory, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
     Qn, mun = red["Q"], red["mu"]
     # the reduced march carries μ, not p: the minimum-norm cotangent with that momentum map
     # (as `continue_from` hands it over)
@@ -217,4 +236,5 @@ def member_chunk(
         momentum=jnp.where(alive0, mun, jnp.nan),
         energy_change=red["change"],
         energy_size=red["size"],
+        march=None if carry.march is None else (state, memory, steps0 + n),
     )

@@ -21,8 +21,10 @@ from ..core.validation import runnable_check as _runnable_check
 from ..march.integrate import check_member as _check_member_eagerly
 from ..march.integrate import prepared_method
 from ..march.scan import node_energy
+from ..march.scan import start as march_start
 from .config import Config, Members, chunk_integrate, first_row, member_slices, system_of
 from .lean import carries_Q as _lean_carries_Q
+from .member import march_start_values
 
 
 def _check_configurations(system, Q0, n_ic):
@@ -97,6 +99,7 @@ class Shapes(NamedTuple):
     has_xi: bool  # False: a degenerate system (no nodal velocity)
     invariants: dict  # {name: shape and dtype of its values on a 1-step solution, (2, …)}
     facts: dict  # form, scheme, order, method
+    march: object = None  # shapes and dtypes of the march state a chunk hands on (`Carry.march`)
 
 
 def _trace_member(cfg: Config, *args):
@@ -132,7 +135,9 @@ _TRACES_MAX = 64
 def _check_member(cfg: Config, *args):
     """`integrate`'s checks of one member's arguments and its choice of method, traced
     (`prepared_method` under `jax.eval_shape`: no march is traced, nothing compiled):
-    (the prepared method's facts, whether the lean chunk carries Q, the energy's dtype)."""
+    (the prepared method's facts, whether the lean chunk carries Q, the energy's dtype, and the
+    shapes of the march state: the per-member program's (`MemberCarry.march`) for the native
+    backend, else the general chunk's, which the reruns of a lean sweep carry)."""
     found = {}
 
     def check(p, s, q, x, d):
@@ -141,11 +146,17 @@ def _check_member(cfg: Config, *args):
             system, q, x, dt=d, n_steps=cfg.n, P0=jnp.zeros_like(q), t0=jnp.zeros((), q.dtype), **dict(cfg.options)
         )
         found["facts"], found["has_Q"] = stepper.facts(system), _lean_carries_Q(stepper, system)
+        P = jnp.zeros_like(q)
+        if cfg.native:  # the per-member program's march state
+            march = march_start_values(stepper, system, q, x, P, d)
+        else:  # the general chunk's, which a lean sweep's reruns carry (`chunks_xla._march_state`)
+            march = march_start(stepper, system, q, x, P, d, check_inputs=True)[0]
+        found["march"] = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), march)
         return node_energy(system, q, x)[0]
 
     def run():
         energy = jax.eval_shape(check, *args)
-        return found["facts"], found["has_Q"], energy.dtype
+        return found["facts"], found["has_Q"], energy.dtype, found["march"]
 
     return memo(_TRACES, ("check",) + trace_key(cfg, args), run, _TRACES_MAX)
 
@@ -164,7 +175,7 @@ def member_shapes(cfg: Config, members: Members, lean: bool = False) -> Shapes:
     args = (p_row, members.shared, q_row, x_row, jnp.asarray(members.dt[0]))
     try:
         if lean:
-            facts, has_Q, energy_dtype = _check_member(cfg, *args)
+            facts, has_Q, energy_dtype, march = _check_member(cfg, *args)
         else:
             sol_shape, inv_shape = _trace_member(cfg, *args)
     except (ValueError, TypeError) as err:
@@ -176,7 +187,7 @@ def member_shapes(cfg: Config, members: Members, lean: bool = False) -> Shapes:
     if lean:  # a regular system (nodal velocities), the energy its only invariant (`lean_applies`)
         invariants = {"energy": jax.ShapeDtypeStruct((cfg.n + 1,), energy_dtype)}
         facts = dict(form=facts.form, scheme=facts.scheme, order=int(facts.order), method=str(facts.name))
-        return Shapes(q_row.shape, x_row.shape, has_Q, True, invariants, facts)
+        return Shapes(q_row.shape, x_row.shape, has_Q, True, invariants, facts, march)
     for name, v in inv_shape.items():
         if v.ndim < 1 or v.shape[0] != cfg.n + 1:
             raise ValueError(
@@ -189,4 +200,5 @@ def member_shapes(cfg: Config, members: Members, lean: bool = False) -> Shapes:
         order=int(sol_shape.order),
         method=str(getattr(sol_shape, "method", "")),
     )
-    return Shapes(q_row.shape, x_row.shape, sol_shape.Q is not None, sol_shape.xi is not None, inv_shape, facts)
+    has_Q, has_xi = sol_shape.Q is not None, sol_shape.xi is not None
+    return Shapes(q_row.shape, x_row.shape, has_Q, has_xi, inv_shape, facts, sol_shape.march_state)

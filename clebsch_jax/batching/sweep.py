@@ -17,14 +17,12 @@ so results differ in the last bits.)
 
 **Continuation is the same map.** A step of the march is the symplectic map
 $(Q^n, p^n) \mapsto (Q^{n+1}, p^{n+1})$ (Lemma 20), so restarting from the last node's
-$(Q^n, p^n)$ (`continue_from`) continues the same trajectory. Only round-off differs: each chunk
-restarts the Newton initial guesses (the predictor's history, the carried inverse Jacobian)
-and, in the reduced march (Theorem 27), the state $\mu^n = -p^n\diamond Q^n$ makes the round
-trip $\mu \to p \to \mu$ through the minimum-norm cotangent (`cotangent_from_momentum`, a
-least-squares solve). Newton iterates every step to round-off (the default `rtol = atol = 0`),
-so a chunked run reproduces the unchunked trajectory to a few ulps per chunk
-(`tests/test_sweep.py` bounds it by 1e-12), not bit for bit. Chunks of tens of steps or more
-keep the cost of the restarts and of a call small against the steps; the measurements behind
+$(Q^n, p^n)$ (`continue_from`) continues the same trajectory, and each chunk also continues the
+last one's march state (`Solution.march_state`: the stepper's guesses, the predictor's history),
+so its steps are solved from the guesses of the unbroken run: a member's steps, updates and
+statuses do not depend on `chunk_steps` (`tests/test_sweep_agreement.py`). The fast and lean
+paths restart their guesses at each chunk (only round-off differs there). Chunks of tens of
+steps or more keep the cost of a call small against the steps; the measurements behind
 the default chunk size are in `benchmarks/README.md` ("Measurements behind the engine's
 choices").
 

@@ -168,7 +168,8 @@ def _chunk_function(system, dt: float, n_steps: int, compiler_options=None):
             "J": diagnostics.noether_momentum(sol, lie.so3_left_generators, system),
             "orth": diagnostics.orthogonality_error(sol.Q),
         }
-        return sol, diag, cj.continue_from(system, sol)
+        # the canonical state only: the first chunk starts from one, so one program serves every chunk
+        return sol, diag, cj.continue_from(system, sol)._replace(march_state=None)
 
     return jax.jit(jax.vmap(one), compiler_options=compiler_options)
 

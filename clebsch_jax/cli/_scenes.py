@@ -777,7 +777,7 @@ def program(name: str, order: int, n_steps: int, compiler_options: tuple = (), s
             scales=scales,
             trajectory=scene.trajectory(system, sol),
             known=known,
-            start=cj.continue_from(system, sol),
+            start=cj.continue_from(system, sol)._replace(march_state=None),  # one program for every chunk
         )
 
     mapped = jax.vmap(one, in_axes=(0, 0, 0, 0, None, None))

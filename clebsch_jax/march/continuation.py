@@ -12,7 +12,7 @@ sol = cj.integrate(system, **start._asdict(), dt=dt, n_steps=n)
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 
@@ -34,12 +34,16 @@ class Start(NamedTuple):
       nodal-velocity solve (see `integrate`).
     - `P0`: the canonical momentum $p^0 \in T^*_{Q^0}M$.
     - `t0`: the initial time.
+    - `march_state`: None, or the march's state at that node (`Solution.march_state`): the
+      stepper's guesses and predictor history, so that the continued run makes exactly the
+      steps of the unbroken one.
     """
 
     Q0: jax.Array
     xi0: jax.Array
     P0: jax.Array
     t0: jax.Array
+    march_state: Any = None
 
 
 def continue_from(system: ClebschSystem, sol: Solution, Q: jax.Array | None = None) -> Start:
@@ -49,11 +53,14 @@ def continue_from(system: ClebschSystem, sol: Solution, Q: jax.Array | None = No
     (Lemma 20): the next node is a function of the current canonical state alone. So
     `integrate(system, **continue_from(system, sol)._asdict(), dt=dt, n_steps=m)` after a run of
     $N$ steps gives nodes $N, \dots, N + m$ of one run of $N + m$ steps with the same `dt` and
-    options. Only round-off differs: the continued run restarts Newton's initial guesses, and
-    the reduced march (Theorem 27), which carries the momentum map $\mu^n = -p^n \diamond Q^n$
-    instead of $p^n$, hands over the minimum-norm cotangent $p$ with $-p \diamond Q^N = \mu^N$
-    (`cotangent_from_momentum`, a least-squares solve) — any $p$ with that momentum map gives
-    the same reduced step.
+    options. `Start.march_state` carries `sol.march_state` — the stepper's state with its guess of
+    the next step and its predictor history — so the continued run makes the very steps of the
+    unbroken one: the same Newton updates from the same guesses. (Built by hand without it, a
+    `Start` restarts the guesses: only round-off and the updates differ, except near a method's
+    step-size limit, where a restarted guess can fail to converge.) The reduced march (Theorem
+    27), which carries the momentum map $\mu^n = -p^n \diamond Q^n$ instead of $p^n$, hands over
+    the minimum-norm cotangent $p$ with $-p \diamond Q^N = \mu^N$ (`cotangent_from_momentum`, a
+    least-squares solve) — any $p$ with that momentum map gives the same reduced step.
 
     **Arguments:**
 
@@ -66,7 +73,13 @@ def continue_from(system: ClebschSystem, sol: Solution, Q: jax.Array | None = No
     **Returns:** a `Start`: `Q0` = `sol.Q[-1]` (or `Q`); `P0` = `sol.p[-1]`, or in the reduced
     march the minimum-norm cotangent with momentum map `sol.momentum[-1]`; `xi0` =
     `sol.xi[-1]`, or for a degenerate system (where `sol.xi` is None) the last step's velocity
-    `sol.xi_step[-1]`, which only seeds the next step's guess; `t0` = `sol.ts[-1]`.
+    `sol.xi_step[-1]`, which only seeds the next step's guess; `t0` = `sol.ts[-1]`;
+    `march_state` = `sol.march_state`.
+
+    Under `jax.jit`, a function of a `Start` is compiled once for `march_state=None` and once for
+    a march state (another pytree): a loop whose first chunk starts from a hand-built `Start`
+    and whose later chunks from `continue_from` compiles twice, unless it hands over
+    `continue_from(system, sol)._replace(march_state=None)` (the guesses then restart).
 
     Raises `ValueError` for a batched `Solution` and when `sol.Q` is None and no `Q` is given.
     A failed march hands over NaN (its nodes after the failure are NaN), so the continued run
@@ -86,4 +99,4 @@ def continue_from(system: ClebschSystem, sol: Solution, Q: jax.Array | None = No
         )
     P = sol.p[-1] if sol.p is not None else cotangent_from_momentum(system, Q, sol.momentum[-1])
     xi = sol.xi[-1] if sol.xi is not None else sol.xi_step[-1]
-    return Start(Q0=Q, xi0=xi, P0=P, t0=sol.ts[-1])
+    return Start(Q0=Q, xi0=xi, P0=P, t0=sol.ts[-1], march_state=sol.march_state)

@@ -35,7 +35,7 @@ from ..steppers.base import AbstractStepper
 from ..steppers.choose import check_scheme, choose_method
 from ..steppers.composition import StepPlan, plan_of
 from ..steppers.principles import check_particle_axis
-from .scan import march, march_chunked
+from .scan import march, march_chunked, start
 from .solution import Solution, check_traced
 
 __all__ = ["integrate", "step_plan"]
@@ -275,6 +275,7 @@ def integrate(
     composition=None,
     throw: bool = True,
     check_energy: bool = True,
+    march_state=None,
 ) -> Solution:
     r"""March the discrete Clebsch equations (Lemma 20) of `system` from $(Q^0, \xi^0)$.
 
@@ -369,6 +370,15 @@ def integrate(
       the momentum map (a spurious root of the step equations).
       Not made for degenerate systems (no nodal velocities).
 
+    - `march_state`: None (default), or the `Solution.march_state` of an earlier run of the same
+      system with the same method, options and shapes, to continue that run: the steps then start
+      from its stepper state, guesses and predictor history, so that chunks of a long run make
+      exactly the steps of one unbroken run (without it a continued run restarts its guesses,
+      which changes the round-off and the Newton updates, and near a method's step-size limit
+      can change whether a step converges). `continue_from` passes it. `Q0`, `xi0` and `P0` are
+      still required (they are node 0 of this `Solution`; pass `continue_from`'s), and the
+      energy check's history and the first-step check start afresh.
+
     **Returns:** a `Solution`, with the method's facts (`form`, `scheme`, `order`, `method`).
 
     Compilation: with concrete arguments the march runs as compiled chunks of steps
@@ -416,6 +426,7 @@ def integrate(
         composition=composition,
         check_energy=check_energy,
     )
+    state = None if march_state is None else _checked_march_state(stepper, system, Q0, xi0, P0, dt, march_state)
     if closes or any_traced(system, Q0, xi0, P0, dt, t0):
         # one scan, in the caller's program (differentiable by it); values unknown until now
         # are checked per member
@@ -424,10 +435,24 @@ def integrate(
             options = dict(method=method, scheme=scheme, reduce=reduce, need_P=need_P, reconstruct=reconstruct)
             options.update(rtol=rtol, atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian)
             calls.append(RecordedCall(given, dict(options, order=order, composition=composition)))
-        sol = _march_jit(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy, check_inputs=True)
+        sol = _march_jit(
+            stepper,
+            system,
+            Q0,
+            xi0,
+            P0,
+            dt,
+            t0,
+            n_steps,
+            check_energy=check_energy,
+            check_inputs=True,
+            march_state=state,
+        )
     else:  # programs reused for any n_steps
         _warn_if_remade(user_system)
-        sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy)
+        sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy, march_state=state)
+        if state is not None:
+            _check_continues(sol, Q0)
         if sol.Q is not None and not any_traced(sol.Q):  # traced when the maps close over tracers
             # on the host: indexing the device array would compile a slice for each n_steps
             check_first_step(system, sol.method, Q0, xi0, np.asarray(sol.Q)[1])
@@ -437,6 +462,39 @@ def integrate(
         else:
             sol.raise_if_failed()
     return sol
+
+
+def _checked_march_state(stepper, system, Q0, xi0, P0, dt, march_state):
+    """`march_state`, after checking that it is one of this method on
+    these shapes (the carry `start` would make, by `jax.eval_shape`: nothing is computed)."""
+    expected = jax.eval_shape(lambda: start(stepper, system, Q0, xi0, P0, dt)[0])
+    leaves, tree = jax.tree_util.tree_flatten(march_state)
+    want, want_tree = jax.tree_util.tree_flatten(expected)
+    describe = lambda xs: [(tuple(np.shape(x)), str(jnp.result_type(x))) for x in xs]
+    if tree != want_tree or describe(leaves) != describe(want):
+        raise ValueError(
+            "march_state: expected the Solution.march_state of a run of this system with the same "
+            f"method, options and shapes ({stepper.facts(system).name}); got one of another structure "
+            "or shapes. Pass the march_state of the run being continued (cj.continue_from does), "
+            "or leave it None to start afresh."
+        )
+    return march_state
+
+
+def _check_continues(sol: Solution, Q0) -> None:
+    """On concrete values: the march continued from `march_state` started at `Q0` (its node 0 is
+    read off the state; a state taken from another node, e.g. of a `Solution` cut by hand, would
+    continue from there)."""
+    if sol.Q is None or any_traced(sol.Q, Q0):
+        return
+    start, given = np.asarray(sol.Q)[0], np.asarray(Q0)
+    gap = float(np.max(np.abs(start - given)))
+    if not gap <= 1e-12 * (1.0 + float(np.max(np.abs(given)))):
+        raise ValueError(
+            f"march_state: it is the march's state at another node than Q0 (they differ by {gap:.3g}); "
+            "pass the march_state of the Solution whose last node is Q0 (cj.continue_from(system, sol) "
+            "does), or march_state=None to start from Q0 afresh."
+        )
 
 
 def prepared_method(system, Q0, xi0, **options):

@@ -20,6 +20,7 @@ chunked march is the same arithmetic as the single scan.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, NamedTuple
 
 import jax
@@ -369,14 +370,32 @@ def march(
     n_steps: int,
     check_energy: bool = False,
     check_inputs: bool = False,
+    march_state: Carry | None = None,
 ) -> Solution:
     """Run `stepper` (prepared for `system`) for `n_steps` steps of size `dt` from
     $(Q^0, \\xi^0)$ (and $P^0$, if not None) in one scan and assemble the `Solution`. With
     `check_energy` a step whose energy jumps fails (`Status.ENERGY_JUMP`); with `check_inputs`
-    an invalid input fails step 0 (`Status.INVALID_INPUT`: `input_ok`)."""
-    carry, startup = start(stepper, system, Q0, xi0, P0, dt, check_inputs)
-    _, chunk = run_chunk(stepper, system, carry, dt, n_steps, jnp.asarray(n_steps, jnp.int32), check_energy, exact=True)
-    return _assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0, carry.alive)
+    an invalid input fails step 0 (`Status.INVALID_INPUT`: `input_ok`). With `march_state`
+    (the `Carry` a march ended with, `Solution.march_state`) the march continues from it
+    (`resume`) instead of starting."""
+    carry, startup, n_total = resume(stepper, system, Q0, xi0, P0, dt, check_inputs, march_state, n_steps)
+    last, chunk = run_chunk(stepper, system, carry, dt, n_steps, n_total, check_energy, exact=True)
+    sol = _assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0, carry.alive)
+    return dataclasses.replace(sol, march_state=last)
+
+
+def resume(stepper: AbstractStepper, system, Q0, xi0, P0, dt, check_inputs: bool, march_state, n_steps: int):
+    """The `Carry` a march of `n_steps` steps starts from, the iterations its start-up took and
+    the step number it stops at: `start`'s, or with `march_state` (the carry an earlier march
+    ended with) that carry — its stepper state, its guesses and predictor history, its step
+    count — so that the steps made are those the unbroken march would make. A member that had
+    failed stays failed (its step 0 reports `Status.INVALID_INPUT`, as for NaN input)."""
+    if march_state is None:
+        carry, startup = start(stepper, system, Q0, xi0, P0, dt, check_inputs)
+        return carry, startup, jnp.asarray(n_steps, jnp.int32)
+    alive = march_state.alive & input_ok(system, Q0, xi0, P0, dt) if check_inputs else march_state.alive
+    carry = march_state._replace(alive=jnp.asarray(alive, bool))
+    return carry, jnp.zeros((), jnp.int32), (carry.n + n_steps).astype(jnp.int32)
 
 
 _PROGRAMS = {
@@ -410,18 +429,24 @@ def march_chunked(
     n_steps: int,
     chunk_steps: int | None = None,
     check_energy: bool = False,
+    march_state: Carry | None = None,
 ) -> Solution:
     """`march` with concrete arguments, as compiled chunks of `chunk_steps` steps (default
     `chunk_length`): the programs depend on the stepper, the system and the shapes, not on
-    `n_steps` or `dt`."""
+    `n_steps` or `dt`. With `march_state` the march continues from it (`resume`); its first
+    step is then not checked as a run's first step (`first_step_probe`)."""
     if chunk_steps is None:
         chunk_steps = chunk_length(Q0, xi0)
     start_jit, chunk_jit = _PROGRAMS[bool(stepper.quick_compile)]
-    carry, startup = start_jit(stepper, system, Q0, xi0, P0, dt)
     probe = None
-    if check_energy and n_steps > 0 and not any_traced(carry):
-        probe = first_step_probe(chunk_jit, stepper, system, carry, dt, chunk_steps, check_energy)
-    total = np.asarray(n_steps, np.int32)  # a NumPy scalar: no conversion program
+    if march_state is None:
+        carry, startup = start_jit(stepper, system, Q0, xi0, P0, dt)
+        if check_energy and n_steps > 0 and not any_traced(carry):
+            probe = first_step_probe(chunk_jit, stepper, system, carry, dt, chunk_steps, check_energy)
+        total = np.asarray(n_steps, np.int32)  # a NumPy scalar: no conversion program
+    else:  # a continued march: its first step is not a run's first step (it has its guesses)
+        carry, startup = march_state, np.zeros((), np.int32)
+        total = np.asarray(np.asarray(carry.n) + n_steps, np.int32)
     chunks = []
     for _ in range(-(-n_steps // chunk_steps)):
         carry, chunk = chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
@@ -429,9 +454,11 @@ def march_chunked(
     if any_traced(chunks, startup, probe):
         # a function the map checks do not call closed over a traced value (the caller is
         # inside jit/vmap; integrate sends maps that close over one to `march`)
-        return _assemble(jnp, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe)
+        sol = _assemble(jnp, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe)
+        return dataclasses.replace(sol, march_state=carry)
     chunks, startup, dt, t0, probe = jax.tree_util.tree_map(np.asarray, (chunks, startup, dt, t0, probe))
-    return jax.device_put(_assemble(np, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe))
+    sol = _assemble(np, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe)
+    return dataclasses.replace(jax.device_put(sol), march_state=carry)
 
 
 def _join(xp, chunks, n_steps: int, node: bool):

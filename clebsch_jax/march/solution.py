@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -60,6 +61,13 @@ class Solution:
       written with the physical velocities $\mathcal L_\xi Q$, `clebsch_jax.core.isotropy`; 0 when
       the system ran as written).
 
+    - `march_state`: what the march hands to a continuation at its last node — the stepper's
+      state (with its guess of the next step), its predictor history, the number of steps
+      made, whether no step failed, and the last step's velocity. `continue_from` passes it on,
+      and `integrate(..., march_state=...)` then makes exactly the steps the unbroken march
+      would have made (`clebsch_jax.march.scan.resume`). A pytree of arrays whose structure
+      depends on the method.
+
     With a composition (`integrate(..., order=k)`) the nodes are those of the whole steps;
     `xi_step` and `P` are those of each step's first sub-step, and `stats` combine the
     sub-steps' solves (updates and Jacobians summed, the worst residual, the first failure).
@@ -86,6 +94,7 @@ class Solution:
     xi_ndim: int = 0
     solves_per_step: int = 1
     isotropy: int = 0
+    march_state: Any = None
 
     @property
     def batch_ndim(self) -> int:
@@ -150,6 +159,7 @@ jax.tree_util.register_dataclass(
         "result",
         "failed_step",
         "valid",
+        "march_state",
     ],
     meta_fields=[
         "scheme",

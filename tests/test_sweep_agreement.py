@@ -1,0 +1,68 @@
+r"""One answer whatever the path: a sweep's member is the `integrate` run of the same arguments,
+also near a method's step-size limit, where a step's convergence depends on its initial guess.
+
+A sweep runs each member in chunks of steps. Each chunk hands the march's state (the stepper's
+guess of the next step and its predictor history) to the next, so a chunk boundary changes
+nothing: the same steps from the same guesses (before, every chunk restarted the guesses — the
+Gauss–Legendre stage guess from substeps, the predictor from scratch — and a member could fail
+at a chunk's first step where `integrate` converges, issue 40 item 11).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax import models
+
+INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
+B, N_STEPS, CHUNK = 16, 39, 3
+DT = 0.8  # near the stage iteration's limit for these momenta: some members fail, at various steps
+
+
+def _members():
+    """Unit body momenta (seed 1) as Clebsch pairs on R³: Gauss–Legendre order 4 at DT fails for
+    some of them, at step 0 and after a chunk boundary."""
+    Pi = np.random.default_rng(1).normal(size=(B, 3))
+    Pi = jnp.asarray(Pi / np.linalg.norm(Pi, axis=1)[:, None])
+    Q0, P0 = jax.vmap(models.rigid_body_vector_start)(Pi)
+    return Q0, Pi / INERTIA, P0
+
+
+@pytest.mark.slow  # two sweeps' and integrate's compiles of the Gauss-Legendre step; CI runs it
+@pytest.mark.parametrize("backend", ["xla", "native"])
+def test_sweep_members_are_integrate_runs_near_the_step_limit(backend):
+    Q0, xi0, P0 = _members()
+    system = models.rigid_body_vector(INERTIA)
+    options = dict(dt=DT, n_steps=N_STEPS, scheme="gauss", order=4)
+    run = jax.jit(lambda q, x, p: cj.integrate(system, q, x, P0=p, throw=False, **options))
+    sols = [run(Q0[m], xi0[m], P0[m]) for m in range(B)]
+    res = cj.sweep(
+        models.rigid_body_vector,
+        jnp.broadcast_to(INERTIA, (B, 3)),
+        Q0,
+        xi0,
+        P0=P0,
+        chunk_steps=CHUNK,
+        backend=backend,
+        **options,
+    )
+    status = np.array([int(s.result) for s in sols])
+    failed_step = np.array([int(s.failed_step) for s in sols])
+    # the scene is hard: members succeed, fail at step 0, and fail after a chunk boundary
+    assert np.any(status == cj.Status.SUCCESS) and np.any(failed_step == 0) and np.any(failed_step >= CHUNK)
+    np.testing.assert_array_equal(res.status, status)
+    np.testing.assert_array_equal(res.failed_step, failed_step)
+    ok = status == cj.Status.SUCCESS
+    final_Q = np.array([np.asarray(s.Q[-1]) for s in sols])
+    final_p = np.array([np.asarray(s.p[-1]) for s in sols])
+    # XLA runs integrate's own program, chunk after chunk: the same numbers. The native kernel
+    # makes the same steps with its own (correctly rounded) arithmetic, in another order.
+    tol = 0.0 if backend == "xla" else 1e-12
+    np.testing.assert_allclose(res.final_Q[ok], final_Q[ok], rtol=0, atol=tol)
+    np.testing.assert_allclose(res.final_p[ok], final_p[ok], rtol=0, atol=tol)
+    assert np.all(np.isnan(res.final_Q[~ok]))
+    if backend == "xla":  # the same updates from the same guesses (a stage iteration's stop is exact)
+        updates = np.array([int(np.sum(s.stats.iterations)) for s in sols])
+        np.testing.assert_array_equal(res.newton_iterations[ok], updates[ok])
