@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from ..core.system import momentum_map
-from ..discrete.legendre import cotangent_from_momentum, initial_multiplier
+from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity, initial_multiplier
 from ..discrete.residual import nodal_residual
 from ..march.scan import input_ok, jump_step, node_energy, zero_nan
 from ..roots.status import Status
@@ -67,12 +67,17 @@ def _nan_unless(ok, tree):
 
 def _node(system, finder, Q, mu, seed, ok):
     """A node's velocity, whether it is known, its energy and the energy's size: the velocity
-    solved from Lemma 7's relation from `seed` (NaN where not `ok`); for a degenerate system
-    the seed itself, and the energy read at ξ = 0 (`clebsch_jax.diagnostics.energy`)."""
+    solved from Lemma 7's relation from `seed` (NaN where not `ok`), or evaluated by the
+    system's inverse Legendre map (Lemma 8) when it gives one, as `integrate` does; for a
+    degenerate system the seed itself, and the energy read at ξ = 0
+    (`clebsch_jax.diagnostics.energy`)."""
     if system.degenerate:
         E, size = node_energy(system, Q, jnp.zeros_like(seed))
         return seed, ok, E, size
-    xi, st = finder.solve(lambda x: nodal_residual(system, Q, mu, x), jnp.where(ok, seed, jnp.nan))
+    if system.inverse_legendre is not None:
+        xi, st = explicit_nodal_velocity(system, Q, jnp.where(ok, mu, jnp.nan))
+    else:
+        xi, st = finder.solve(lambda x: nodal_residual(system, Q, mu, x), jnp.where(ok, seed, jnp.nan))
     known = ok & (st.status == Status.SUCCESS)
     xi = jnp.where(known, xi, jnp.nan)
     E, size = node_energy(system, Q, xi)
