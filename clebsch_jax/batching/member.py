@@ -79,9 +79,11 @@ def _node(system, finder, Q, mu, seed, ok):
     else:
         xi, st = finder.solve(lambda x: nodal_residual(system, Q, mu, x), jnp.where(ok, seed, jnp.nan))
     known = ok & (st.status == Status.SUCCESS)
-    xi = jnp.where(known, xi, jnp.nan)
+    # the energy of the velocity as found, made NaN with it where it is not known (what the
+    # energy of the NaN velocity is): its terms then share the check's evaluation of δl/δξ
     E, size = node_energy(system, Q, xi)
-    return xi, known, E, size
+    unknown = lambda a: jnp.where(known, a, jnp.nan)
+    return unknown(xi), known, unknown(E), unknown(size)
 
 
 def member_chunk(
@@ -175,8 +177,9 @@ def member_chunk(
         residual = jnp.maximum(red["residual"], jnp.where(good, stats.residual_norm, 0.0))
         known = good & nodal_ok
         drift = jnp.maximum(red["drift"], jnp.where(known, jnp.abs(E - ref), 0.0))
-        keep = ok & ~jumped  # the state handed on: NaN after a failure or a jump
-        Qh = jnp.where(keep, nodes.Q[1] if nodes.Q is not None else red["Q"], jnp.nan)
+        # the state handed on, as found: each step overwrites it, and it is made NaN after the
+        # loop where the last step did not keep it (a failure or a jump: `alive` is then False)
+        Qh = nodes.Q[1] if nodes.Q is not None else red["Q"]
         p = nodes.p[1] if nodes.p is not None else red["p"]
         red = dict(
             alive=ok & ~jumped,
@@ -189,15 +192,17 @@ def member_chunk(
             E=E,
             drift=drift,
             Q=Qh,
-            mu=jnp.where(keep, mun, jnp.nan),
-            xin=jnp.where(keep, xin, jnp.nan),
+            mu=mun,
+            xin=xin,
             xstep=xi_step,
             jumped=jumped,
-            p=jnp.where(keep, p, jnp.nan),
+            p=p,
         )
         return state, memory, red
 
     _, _, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
+    if n > 0:  # the state the last step kept (`alive`: no failure or jump up to it), else NaN
+        red.update(_nan_unless(red["alive"], {k: red[k] for k in ("Q", "mu", "xin", "p")}))
     Qn, mun = red["Q"], red["mu"]
     # the reduced march carries μ, not p: the minimum-norm cotangent with that momentum map
     # (as `continue_from` hands it over)
