@@ -16,8 +16,9 @@ __all__ = ["heavy_top"]
 
 
 def _lagrangian(inertia, mgl, chi, xi, Q):
-    # kinetic energy minus the height of the centre of mass, e₃·(Qχ) = (Qᵀe₃)·χ = Γ·χ
-    return 0.5 * jnp.sum(inertia * xi * xi) - mgl * jnp.dot(Q[2], chi)
+    # kinetic energy (ξ² as jnp.square, as the free body's `_kinetic_energy`) minus the height
+    # of the centre of mass, e₃·(Qχ) = (Qᵀe₃)·χ = Γ·χ
+    return 0.5 * jnp.sum(inertia * jnp.square(xi)) - mgl * jnp.dot(Q[2], chi)
 
 
 def heavy_top(

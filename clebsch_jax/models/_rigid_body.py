@@ -98,7 +98,9 @@ def principal_moments(inertia, name: str = "inertia") -> jax.Array:
 
 
 def _kinetic_energy(inertia: jax.Array, xi: jax.Array) -> jax.Array:
-    return 0.5 * jnp.sum(inertia * xi * xi)
+    # ξ² as jnp.square, whose derivative is the one product 2ξ·dξ: δl/δξ = (𝕀/2)(2ξ), exactly 𝕀ξ,
+    # where ξ·ξ's product rule gives two terms (𝕀ξ/2 + 𝕀ξ/2, the same number) in every solve
+    return 0.5 * jnp.sum(inertia * jnp.square(xi))
 
 
 def body_velocity(inertia: jax.Array, mu: jax.Array, Q: jax.Array) -> jax.Array:
