@@ -409,19 +409,31 @@ def test_cayley_polynomial_gives_way_to_the_matrix_form_for_large_algebras(monke
 
 
 def test_predictor_is_exact_on_polynomials_and_falls_back_on_rough_data():
-    from clebsch_jax.steppers.predictor import PREDICTOR_ORDER, degree, predict
+    from clebsch_jax.steppers.predictor import PREDICTOR_ORDER, degree, empty_history, predict, push
 
-    t = np.arange(PREDICTOR_ORDER + 1, 0, -1.0) * 0.1  # history newest first, times 0.6 ... 0.1
+    def table(solutions):
+        """The predictor's memory after the steps that found `solutions` (newest first)."""
+        h = empty_history(solutions.shape[1:], solutions.dtype)
+        for z in solutions[::-1]:
+            h = push(h, z)
+        return h
+
+    t = np.arange(PREDICTOR_ORDER + 1, 0, -1.0) * 0.1  # solutions newest first, times 0.6 ... 0.1
     poly = lambda s: np.stack([1 + s - 2 * s**2 + 3 * s**3, 0.5 * s**2, np.full_like(s, 2.0)], axis=-1)
     n, xi0 = jnp.asarray(PREDICTOR_ORDER + 1), jnp.full(3, 9.0)
-    history = jnp.asarray(poly(t))
+    solutions = jnp.asarray(poly(t))
+    history = table(solutions)
+    # the table holds the backward differences of the solutions, ∇ʲ = j-th difference of the newest
+    oldest_first = np.asarray(solutions)[::-1]
+    for j in range(PREDICTOR_ORDER + 1):
+        np.testing.assert_allclose(history[j], np.diff(oldest_first, n=j, axis=0)[-1], rtol=0, atol=1e-14)
     np.testing.assert_allclose(predict(n, xi0, history), poly(np.array(0.7)), rtol=0, atol=1e-13)
     # fewer steps made: the degree is limited by the history available; at step 0, ξ⁰
     np.testing.assert_allclose(predict(jnp.asarray(0), xi0, history), xi0)
-    np.testing.assert_allclose(predict(jnp.asarray(1), xi0, history), history[0])
-    np.testing.assert_allclose(predict(jnp.asarray(2), xi0, history), 2 * history[0] - history[1])
+    np.testing.assert_allclose(predict(jnp.asarray(1), xi0, history), solutions[0])
+    np.testing.assert_allclose(predict(jnp.asarray(2), xi0, history), 2 * solutions[0] - solutions[1])
     # a sawtooth: the differences grow, so only the linear predictor is used
-    rough = jnp.asarray(np.resize([1.0, -1.0], PREDICTOR_ORDER + 1)[:, None])
+    rough = table(jnp.asarray(np.resize([1.0, -1.0], PREDICTOR_ORDER + 1)[:, None]))
     assert float(predict(n, xi0[:1], rough)[0]) == 3.0
     # the choice made beforehand (a march carries it from the step before) is the same choice
     for k in range(PREDICTOR_ORDER + 2):

@@ -132,3 +132,29 @@ def test_xi0_is_reproduced_and_P0_is_minimum_norm():
     # P0 given directly gives the same run
     sol2 = cj.integrate(system, Q0, np.zeros(3), P0=P0, dt=0.1, n_steps=3, reduce=False)
     np.testing.assert_allclose(np.asarray(sol2.Q), np.asarray(sol.Q), atol=1e-13)
+
+
+@pytest.mark.parametrize(
+    "make, Q",
+    [
+        (lambda I: cj.models.rigid_body(I), cj.lie.so3_exp(jnp.array([0.3, -0.7, 1.1]))),
+        (lambda I: cj.models.rigid_body_vector(I), jnp.array([0.2, -1.0, 0.4])),
+        (lambda I: cj.models.heavy_top(I, 2.5, (0.3, 0.1, 1.0)), cj.lie.so3_exp(jnp.array([0.3, -0.7, 1.1]))),
+    ],
+    ids=["rigid_body", "rigid_body_vector", "heavy_top"],
+)
+def test_inverse_legendre_map_solves_the_legendre_relation(make, Q):
+    """The models' inverse Legendre map (Lemma 8, ξ = 𝕀⁻¹μ) against Newton's solve of Lemma 7's
+    relation δl/δξ(ξ, Q) = μ from a poor guess, for random momenta; the heavy top's potential
+    depends on Q only, so its map is the free body's."""
+    from clebsch_jax.discrete.residual import nodal_residual
+    from clebsch_jax.roots.newton import newton_solve
+
+    system = make(TEST_INERTIA)
+    for mu in np.random.default_rng(3).standard_normal((4, 3)):
+        mu = jnp.asarray(mu)
+        solved, st = newton_solve(
+            lambda x: nodal_residual(system, Q, mu, x), jnp.zeros(3), rtol=0.0, atol=0.0, max_iterations=20
+        )
+        assert int(st.status) == cj.Status.SUCCESS
+        np.testing.assert_allclose(system.inverse_legendre(mu, Q), solved, rtol=1e-15, atol=1e-15)

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 
 from ..core.system import momentum_map
-from ..discrete.legendre import cotangent_from_momentum
+from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity
 from ..discrete.residual import nodal_residual
 from ..march.scan import input_ok, jump_step, node_energy, zero_nan
 from ..roots.implicit import undifferentiated
@@ -95,7 +95,10 @@ def carries_Q(stepper, system) -> bool:
 
 
 def _nodal_velocity(system, finder: FixedNewton, Q, mu, guess):
-    """ξ at a node from its momentum μ, by `NODAL_UPDATES` chord updates and the check."""
+    """ξ at a node from its momentum μ, by `NODAL_UPDATES` chord updates and the check, or by
+    the system's inverse Legendre map when it gives one (as `integrate` evaluates it)."""
+    if system.inverse_legendre is not None:
+        return explicit_nodal_velocity(system, Q, mu)
     xi, stats, _, _ = fixed_newton_solve(
         lambda x: nodal_residual(system, Q, mu, x), guess, updates=NODAL_UPDATES, rtol=finder.rtol, atol=finder.atol
     )

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from ..core.system import momentum_map
-from ..discrete.legendre import cotangent_from_momentum, initial_multiplier
+from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity, initial_multiplier
 from ..discrete.residual import nodal_residual
 from ..march.scan import input_ok, jump_step, node_energy, zero_nan
 from ..roots.status import Status
@@ -77,16 +77,23 @@ def _nan_unless(ok, tree):
 
 def _node(system, finder, Q, mu, seed, ok):
     """A node's velocity, whether it is known, its energy and the energy's size: the velocity
-    solved from Lemma 7's relation from `seed` (NaN where not `ok`); for a degenerate system
-    the seed itself, and the energy read at ξ = 0 (`clebsch_jax.diagnostics.energy`)."""
+    solved from Lemma 7's relation from `seed` (NaN where not `ok`), or evaluated by the
+    system's inverse Legendre map (Lemma 8) when it gives one, as `integrate` does; for a
+    degenerate system the seed itself, and the energy read at ξ = 0
+    (`clebsch_jax.diagnostics.energy`)."""
     if system.degenerate:
         E, size = node_energy(system, Q, jnp.zeros_like(seed))
         return seed, ok, E, size
-    xi, st = finder.solve(lambda x: nodal_residual(system, Q, mu, x), jnp.where(ok, seed, jnp.nan))
+    if system.inverse_legendre is not None:
+        xi, st = explicit_nodal_velocity(system, Q, jnp.where(ok, mu, jnp.nan))
+    else:
+        xi, st = finder.solve(lambda x: nodal_residual(system, Q, mu, x), jnp.where(ok, seed, jnp.nan))
     known = ok & (st.status == Status.SUCCESS)
-    xi = jnp.where(known, xi, jnp.nan)
+    # the energy of the velocity as found, made NaN with it where it is not known (what the
+    # energy of the NaN velocity is): its terms then share the check's evaluation of δl/δξ
     E, size = node_energy(system, Q, xi)
-    return xi, known, E, size
+    unknown = lambda a: jnp.where(known, a, jnp.nan)
+    return unknown(xi), known, unknown(E), unknown(size)
 
 
 def member_chunk(
@@ -189,8 +196,9 @@ def member_chunk(
         residual = jnp.maximum(red["residual"], jnp.where(good, stats.residual_norm, 0.0))
         known = good & nodal_ok
         drift = jnp.maximum(red["drift"], jnp.where(known, jnp.abs(E - ref), 0.0))
-        keep = ok & ~jumped  # the state handed on: NaN after a failure or a jump
-        Qh = jnp.where(keep, nodes.Q[1] if nodes.Q is not None else red["Q"], jnp.nan)
+        # the state handed on, as found: each step overwrites it, and it is made NaN after the
+        # loop where the last step did not keep it (a failure or a jump: `alive` is then False)
+        Qh = nodes.Q[1] if nodes.Q is not None else red["Q"]
         p = nodes.p[1] if nodes.p is not None else red["p"]
         red = dict(
             alive=ok & ~jumped,
@@ -203,15 +211,17 @@ def member_chunk(
             E=E,
             drift=drift,
             Q=Qh,
-            mu=jnp.where(keep, mun, jnp.nan),
-            xin=jnp.where(keep, xin, jnp.nan),
+            mu=mun,
+            xin=xin,
             xstep=xi_step,
             jumped=jumped,
-            p=jnp.where(keep, p, jnp.nan),
+            p=p,
         )
         return state, memory, red
 
     state, memory, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
+    if n > 0:  # the state the last step kept (`alive`: no failure or jump up to it), else NaN
+        red.update(_nan_unless(red["alive"], {k: red[k] for k in ("Q", "mu", "xin", "p")}))
     Qn, mun = red["Q"], red["mu"]
     # the reduced march carries μ, not p: the minimum-norm cotangent with that momentum map
     # (as `continue_from` hands it over)

@@ -10,14 +10,15 @@ from jax.tree_util import Partial
 from ..core.derivative_maps import DerivativeMap, cayley
 from ..core.system import ClebschSystem
 from ..core.validation import is_traced, nan_unless
-from ._rigid_body import right_multiplication, check_rotation, principal_moments
+from ._rigid_body import body_velocity, check_rotation, principal_moments, right_multiplication
 
 __all__ = ["heavy_top"]
 
 
 def _lagrangian(inertia, mgl, chi, xi, Q):
-    # kinetic energy minus the height of the centre of mass, e₃·(Qχ) = (Qᵀe₃)·χ = Γ·χ
-    return 0.5 * jnp.sum(inertia * xi * xi) - mgl * jnp.dot(Q[2], chi)
+    # kinetic energy (ξ² as jnp.square, as the free body's `_kinetic_energy`) minus the height
+    # of the centre of mass, e₃·(Qχ) = (Qᵀe₃)·χ = Γ·χ
+    return 0.5 * jnp.sum(inertia * jnp.square(xi)) - mgl * jnp.dot(Q[2], chi)
 
 
 def heavy_top(
@@ -37,6 +38,9 @@ def heavy_top(
       (finite, nonzero; normalised here; $\ell$ is in `mass_gravity_length`). Gravity points
       along $-e_3$.
     - `derivative_map`: `cayley` (default) or `exponential`.
+
+    The potential does not depend on Ω, so the inverse Legendre map is the free body's,
+    $\Omega = \mathbb I^{-1}\mu$ (`inverse_legendre`).
 
     The reduced equations (Theorem 16) are $\dot\Pi = \Pi\times\Omega + mg\ell\,\Gamma\times\chi$,
     $\dot\Gamma = \Gamma\times\Omega$ with $\Gamma = Q^Te_3$ the advected vertical. Every array
@@ -69,4 +73,5 @@ def heavy_top(
         velocity_map=right_multiplication,
         derivative_map=derivative_map,
         check_Q=check_rotation,
+        inverse_legendre=Partial(body_velocity, inertia),
     )

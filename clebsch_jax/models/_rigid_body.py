@@ -98,7 +98,18 @@ def principal_moments(inertia, name: str = "inertia") -> jax.Array:
 
 
 def _kinetic_energy(inertia: jax.Array, xi: jax.Array) -> jax.Array:
-    return 0.5 * jnp.sum(inertia * xi * xi)
+    # ξ² as jnp.square, whose derivative is the one product 2ξ·dξ: δl/δξ = (𝕀/2)(2ξ), exactly 𝕀ξ,
+    # where ξ·ξ's product rule gives two terms (𝕀ξ/2 + 𝕀ξ/2, the same number) in every solve
+    return 0.5 * jnp.sum(inertia * jnp.square(xi))
+
+
+def body_velocity(inertia: jax.Array, mu: jax.Array, Q: jax.Array) -> jax.Array:
+    r"""The inverse Legendre map (Lemma 8) of $l(\Omega) = \tfrac12\Omega\cdot\mathbb I\Omega$
+    (plus any potential of Q alone): $\delta l/\delta\Omega = \mathbb I\Omega = \mu$ gives
+    $\Omega = \mathbb I^{-1}\mu$, componentwise with the principal moments `inertia`, whatever
+    Q. The `inverse_legendre` of the rigid-body models, held as
+    `Partial(body_velocity, inertia)`."""
+    return mu / inertia
 
 
 def right_multiplication(xi: jax.Array, Q: jax.Array) -> jax.Array:
@@ -116,18 +127,22 @@ def rigid_body(inertia, derivative_map: DerivativeMap = cayley) -> ClebschSystem
       `clebsch_jax.exponential`.
 
     Its momentum map $-P \diamond Q$ (`clebsch_jax.momentum_map`, by autodiff) is the body
-    angular momentum, equal to $\mathbb I\Omega$ on solutions (Lemma 7).
+    angular momentum, equal to $\mathbb I\Omega$ on solutions (Lemma 7); the system gives the
+    inverse Legendre map $\Omega = \mathbb I^{-1}\mu$ (`body_velocity`), so nodal velocities
+    are evaluated, not solved for.
 
     Bad values raise `ValueError` naming the argument: `inertia` not finite and positive
     (checked here when concrete; under `jax.jit`/`jax.vmap` over it a bad one is reported as
     `Status.INVALID_INPUT` at step 0), and, in `integrate`, a `Q0` that is not a rotation
     (`check_rotation`, on a concrete `Q0`; `rotation_ok` under tracing).
     """
+    inertia = principal_moments(inertia)
     return ClebschSystem(
-        lagrangian=Partial(_kinetic_energy, principal_moments(inertia)),
+        lagrangian=Partial(_kinetic_energy, inertia),
         velocity_map=right_multiplication,
         derivative_map=derivative_map,
         check_Q=check_rotation,
+        inverse_legendre=Partial(body_velocity, inertia),
     )
 
 
@@ -139,7 +154,8 @@ def rigid_body_vector(inertia, derivative_map: DerivativeMap = forward_differenc
     r"""The free rigid body in Clebsch variables on $\mathbb R^3$: the same Euler equations as
     `rigid_body`, with a vector in place of the rotation.
 
-    - $\xi = \Omega$ and $l(\Omega) = \tfrac12\Omega\cdot\mathbb I\Omega$ as in `rigid_body`;
+    - $\xi = \Omega$ and $l(\Omega) = \tfrac12\Omega\cdot\mathbb I\Omega$ as in `rigid_body`
+      (and its inverse Legendre map $\Omega = \mathbb I^{-1}\mu$);
     - $Q \in \mathbb R^3$, velocity map $\mathcal L_\Omega Q = Q \times \Omega$ (the
       infinitesimal rotation of a body-fixed vector seen from the body, a Lie algebra action);
     - momentum map $-P\diamond Q = P \times Q = \Pi$, the body angular momentum;
@@ -160,10 +176,12 @@ def rigid_body_vector(inertia, derivative_map: DerivativeMap = forward_differenc
     here) mix Q and P unevenly, do not descend, and let $|\Pi|^2$ wander by the method's
     error, far above round-off.
     """
+    inertia = principal_moments(inertia)
     return ClebschSystem(
-        lagrangian=Partial(_kinetic_energy, principal_moments(inertia)),
+        lagrangian=Partial(_kinetic_energy, inertia),
         velocity_map=_rotated_vector,
         derivative_map=derivative_map,
+        inverse_legendre=Partial(body_velocity, inertia),
     )
 
 

@@ -1,13 +1,9 @@
 """The initial guess of a step's unknowns: polynomial extrapolation of the solutions of the
-same sub-step in earlier steps."""
+same sub-step in earlier steps, carried as their table of backward differences."""
 
 from __future__ import annotations
 
-import functools
-import math
-
 import jax.numpy as jnp
-import numpy as np
 
 from ..roots.newton import max_abs
 
@@ -21,8 +17,8 @@ PREDICTOR_ORDER = 5
 
 def predict(n, first, history, degree=None):
     """Initial guess of step n's unknowns: `first` at n = 0, then the polynomial extrapolation
-    of the solutions of the last steps, `history` (newest first, leading axis p + 1), in
-    Newton's backward-difference form zⁿ ≈ Σⱼ ∇ʲzⁿ⁻¹, j = 0 … p.
+    of the solutions of the last steps in Newton's backward-difference form
+    zⁿ ≈ Σⱼ ∇ʲzⁿ⁻¹, j = 0 … p, from `history`, the table of those differences (`push`).
 
     The degree p is at most min(n − 1, PREDICTOR_ORDER) (the differences the steps made so far
     support) and, beyond 1, a difference is used only while the differences decrease by at
@@ -31,7 +27,7 @@ def predict(n, first, history, degree=None):
     rough one (where high-degree extrapolation amplifies) falls back to low degree.
 
     `degree`, if given, is that choice made beforehand (the function `degree(n, history)`)."""
-    D = _differences(history)
+    D = _rows(history)
     if degree is None:
         degree = _degree(n, D)
     total = D[0]
@@ -48,16 +44,12 @@ def degree(n, history):
     when the components are rows of their own, `clebsch_jax.batching.scalarise`). One number
     rather than a flag per difference: XLA computes each flag, with the chain of tests before
     it, in a computation of its own."""
-    return _degree(n, _differences(history))
+    return _degree(n, _rows(history))
 
 
-def _differences(history):
-    """The backward differences ∇ʲzⁿ⁻¹ = Σᵢ (-1)ⁱ C(j, i) zⁿ⁻¹⁻ⁱ, j = 0 … p, as rows (p + 1, size),
-    each computed in one piece (elementwise, which XLA fuses into one operation)."""
-    p = history.shape[0] - 1
-    H = history.reshape(p + 1, -1)
-    C = np.array([[(-1) ** i * math.comb(j, i) for i in range(p + 1)] for j in range(p + 1)], dtype=float)
-    return functools.reduce(jnp.add, [jnp.asarray(C[:, i : i + 1], H.dtype) * H[i] for i in range(p + 1)])
+def _rows(history):
+    """The differences ∇ʲzⁿ⁻¹, j = 0 … p, as rows (p + 1, size)."""
+    return history.reshape(history.shape[0], -1)
 
 
 def _degree(n, D):
@@ -74,10 +66,17 @@ def _degree(n, D):
 
 
 def push(history, z):
-    """`history` with z in front and the oldest entry dropped."""
-    return jnp.concatenate([z[None], history[:-1]])
+    r"""The difference table after the solution z of a new step: $\nabla^0 = z$ and
+    $\nabla^j z^n = \nabla^{j-1}z^n - \nabla^{j-1}z^{n-1}$, j = 1 … p (the oldest difference
+    drops out). One subtraction per difference, where forming them from the last p + 1
+    solutions with binomial coefficients takes p + 1 products and sums each, in every step."""
+    rows = [z]
+    for j in range(1, history.shape[0]):
+        rows.append(rows[-1] - history[j - 1])
+    return jnp.stack(rows)
 
 
 def empty_history(shape, dtype):
-    """The history `predict` extrapolates from before any step was made (not read at step 0)."""
+    """The difference table `predict` extrapolates from before any step was made (not read at
+    step 0): the differences of solutions that were all zero."""
     return jnp.zeros((PREDICTOR_ORDER + 1,) + tuple(shape), dtype)
