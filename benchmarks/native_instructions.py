@@ -54,7 +54,9 @@ def _instrument(text: str) -> str:
         phis = [x for x in block if x.startswith("  ") and " = phi " in x]
         body = [x for x in block if x.startswith("  ") and " = phi " not in x and not x.strip().startswith(";")]
         k = len(_BLOCKS)
-        _BLOCKS.append((label[0].split(":")[0] if label else "entry", len(body), sum(bool(FLOATING.search(x)) for x in body)))
+        _BLOCKS.append(
+            (label[0].split(":")[0] if label else "entry", len(body), sum(bool(FLOATING.search(x)) for x in body))
+        )
         count = [
             f"  %__p{k} = getelementptr [NBLOCKS x i64], ptr @__blocks, i64 0, i64 {k}",
             f"  %__c{k} = load i64, ptr %__p{k}",
@@ -102,7 +104,9 @@ def _load_counted(obj: bytes) -> int:
     L = K._binding()
     llvm = L["llvm"]
     with K._LOCK:
-        tm = L["target"].create_target_machine(cpu=L["cpu"], features=L["features"], opt=2, codemodel="jitdefault", jit=True)
+        tm = L["target"].create_target_machine(
+            cpu=L["cpu"], features=L["features"], opt=2, codemodel="jitdefault", jit=True
+        )
         engine = llvm.create_mcjit_compiler(llvm.parse_assembly(""), tm)
         ref = llvm.ObjectFileRef.from_data(obj)
         engine.add_object_file(ref)
@@ -156,7 +160,9 @@ def main(argv=None) -> dict:
     print(json.dumps(row))
     if args.profile:
         each = c2 / (n2 * blocks)
-        for cost, count, (label, n, _) in sorted(((each[i] * b[1], each[i], b) for i, b in enumerate(b2)), reverse=True):
+        for cost, count, (label, n, _) in sorted(
+            ((each[i] * b[1], each[i], b) for i, b in enumerate(b2)), reverse=True
+        ):
             if cost >= 1:
                 print(f"{cost:8.1f}  {count:6.3f} x {n:5d}  {label}")
     return row
