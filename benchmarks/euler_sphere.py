@@ -35,8 +35,10 @@ Nothing here asserts a time.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
+import time
 from pathlib import Path
 
 import jax
@@ -155,6 +157,92 @@ class NumpyIsospectralMidpoint:
         return W, float(np.mean(sweeps))
 
 
+# --- the long run --------------------------------------------------------------------------
+
+
+def _invariants(W) -> np.ndarray:
+    """tr W², tr W³, tr W⁴ (`euler_sphere_casimirs`) and the energy of the vorticity matrix W."""
+    return np.append(np.asarray(cj.models.euler_sphere_casimirs(W)), float(cj.models.euler_sphere_energy(W)))
+
+
+def long_run(N: int, n_steps: int, every: int, out: Path, quick: bool = False) -> dict:
+    """`n_steps` steps of Δt = `DT` from `initial_vorticity(N)`, in chunks of `every` steps: each
+    chunk one eager `integrate(..., reconstruct=False)` continued from the last one's end by
+    `continue_from` (Q stays the identity: the reduced march does not carry it). After every chunk
+    the relative errors of tr W², tr W³, tr W⁴ and the energy at its last node are appended, and
+    `euler_sphere_long.json` is rewritten (a partial run keeps what it reached); the PNG at the
+    end."""
+    system = cj.models.euler_sphere(N)
+    W0 = initial_vorticity(N)
+    Q0, xi0 = cj.models.euler_sphere_start(W0)
+    start = dict(Q0=Q0, xi0=xi0, P0=None, t0=0.0)
+    ref = _invariants(W0)
+    names = ("tr W^2", "tr W^3", "tr W^4", "energy")
+    record = {
+        "benchmark": "euler_sphere_long",
+        "config": {"N": N, "dt": DT, "n_steps": n_steps, "every": every, "peak_degree": PEAK, "quick": quick},
+        "machine": harness.machine_info(),
+        "invariants": list(names),
+        "initial_values": ref.tolist(),
+        "error": "relative error |f(W^n) - f(W^0)| / |f(W^0)| at the last node of every chunk",
+        "steps": [0],
+        "relative_errors": {name: [0.0] for name in names},
+        "sweeps_per_step": [],
+        "chunk_seconds": [],
+        "load_average_1min": [harness.load_average()],
+        "status": "running",
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    json_path = out / "euler_sphere_long.json"
+    done = 0
+    tic0 = time.perf_counter()
+    while done < n_steps:
+        m = min(every, n_steps - done)
+        tic = time.perf_counter()
+        sol = cj.integrate(system, dt=DT, n_steps=m, reconstruct=False, **start)
+        jax.block_until_ready(sol.momentum)
+        record["chunk_seconds"].append(time.perf_counter() - tic)
+        done += m
+        W = cj.models.euler_sphere_vorticity(sol.momentum[-1])
+        errors = np.abs(_invariants(W) - ref) / np.abs(ref)
+        for name, e in zip(names, errors):
+            record["relative_errors"][name].append(float(e))
+        record["steps"].append(done)
+        record["sweeps_per_step"].append(float(np.mean(np.asarray(sol.stats.iterations))))
+        record["load_average_1min"].append(harness.load_average())
+        record["elapsed_s"] = time.perf_counter() - tic0
+        record["status"] = "finished" if done >= n_steps else "running"
+        record["max_relative_errors"] = {name: max(v) for name, v in record["relative_errors"].items()}
+        with open(json_path, "w") as fh:
+            json.dump(record, fh, indent=2)
+        print(
+            f"step {done:>6}: " + " ".join(f"{n} {e:.1e}" for n, e in zip(names, errors)) + f" "
+            f"({record['chunk_seconds'][-1]:.1f} s, load {record['load_average_1min'][-1]:.1f})",
+            flush=True,
+        )
+        start = cj.continue_from(system, sol, Q=start["Q0"])._asdict()
+    plot_long(record, out / "euler_sphere_long.png")
+    print(f"wrote {json_path.name} and euler_sphere_long.png in {harness.display_path(out)}")
+    return record
+
+
+def plot_long(record: dict, path: Path) -> None:
+    fig, ax = harness.figure([1], size=(6.5, 4.4))
+    steps = np.array(record["steps"][1:])
+    for name, values in record["relative_errors"].items():
+        ax.semilogy(steps * record["config"]["dt"], np.maximum(values[1:], 1e-17), label=name)
+    ax.set_xlabel("t")
+    ax.set_ylabel("relative error")
+    ax.legend(fontsize=8)
+    cfg, mach = record["config"], record["machine"]
+    ax.set_title(
+        f"Euler-Zeitlin N = {cfg['N']}, dt = {cfg['dt']}, {steps[-1]} of {cfg['n_steps']} steps\n"
+        f"{mach['cpu_count']} CPUs, load {mach['load_average_1min_at_start']:.2f} at start, jax {mach['jax']}",
+        fontsize=8,
+    )
+    fig.savefig(path, dpi=120)
+
+
 # --- the cases -----------------------------------------------------------------------------
 
 
@@ -238,11 +326,28 @@ def _describe(N, n_steps) -> str:
     return f"N={N} n_steps={n_steps}"
 
 
+def _add_arguments(parser) -> None:
+    parser.add_argument(
+        "--long",
+        type=int,
+        default=None,
+        metavar="N",
+        help="instead of timing: the long run at size N (invariants over time, euler_sphere_long.json/png)",
+    )
+    parser.add_argument("--steps", type=int, default=10_000, help="steps of the long run (default 10000)")
+    parser.add_argument("--every", type=int, default=100, help="steps per chunk of the long run (default 100)")
+
+
 def main(argv=None) -> dict:
     """Run the benchmark: the cases, the report, the JSON and the PNG; returns the summary."""
     with harness.Run(
-        RESULTS_NAME, argv, description="Time per step of the Euler-Zeitlin fluid (see module docstring)."
+        RESULTS_NAME,
+        argv,
+        description="Time per step of the Euler-Zeitlin fluid (see module docstring).",
+        add_arguments=_add_arguments,
     ) as run:
+        if run.args.long is not None:
+            return long_run(run.args.long, run.args.steps, run.args.every, Path(run.args.out), run.quick)
         results = run.measure(DEFAULT_CASES, QUICK_CASES, _describe, lambda *case: run_case(*case, run))
     threads = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
     summary = run.summary(
