@@ -4,6 +4,7 @@ Run from the repository root:
 
     python benchmarks/euler_sphere.py            # default run (N = 64, 128, 256)
     python benchmarks/euler_sphere.py --quick    # smoke test, small N (not a measurement)
+    python benchmarks/euler_sphere.py --long 128 --steps 10000   # the long run: invariants over time
 
 Timed with the shared harness (`_timing.py`: the first call compiles and is timed alone, then
 the median of `--repeats` samples, the methods of a case sampled in turn, every call ending in
@@ -16,16 +17,21 @@ its energy near degree 10 and a root-mean-square vorticity of 1, `STEPS[N]` step
 - **numpy**: the isospectral midpoint method written directly in NumPy with complex N×N
   matrices (BLAS `zgemm`), its Poisson solves by a vectorised Thomas algorithm along the
   diagonals, its fixed-point iteration stopped at round-off like ours. An independent
-  implementation of the same scheme, written for this benchmark: the anchor code of the issue
-  (Modin & Viviani's `quflow`, numba-compiled) is not installed here, so it is not run; the
-  JSON says so.
+  implementation of the same scheme, written for this benchmark.
+- **quflow** (when `import quflow` works; otherwise the JSON says "not installed" and the run
+  goes on): the anchor code of the issue, Modin & Viviani's numba-compiled `quflow.isomp`
+  (the isospectral midpoint by fixed-point iterations, Poisson solves by numba Thomas sweeps).
+  Not a dependency of this project: install numba and quflow yourself to run it. Three
+  variants: its own default stopping rule (tolerance √ε·Δt/ħ·|W|, at most 10 iterations) on one
+  numba thread and on numba's default threads, and on one thread stopped at round-off like ours
+  (`_tight`). numba compiles in the first call, timed apart like JAX's compile.
 
 NumPy's BLAS threads compete for the cores with XLA's and with other users: on a loaded
 machine run with `OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1` (the JSON records these variables),
 or the NumPy peer's small products slow down by an order of magnitude.
 
-Reported per N: seconds per step of each, their ratio, sweeps per step, and the largest
-difference between the two final vorticities (they are not the same map to round-off: the
+Reported per N: seconds per step of each, the ratios of ours to each, sweeps per step, and
+the largest difference between the final vorticities (they are not the same map to round-off: the
 centre of u(N) is weighted N² in ours, ∞ in the NumPy method: a difference far below the
 method's error, near round-off). The
 growth of the cost with N is fitted (log-log slope; the matrix products are O(N³)).
@@ -157,6 +163,42 @@ class NumpyIsospectralMidpoint:
         return W, float(np.mean(sweeps))
 
 
+# --- the anchor code: quflow ---------------------------------------------------------------
+
+
+def _import_quflow():
+    """quflow and numba, or (None, the reason) when they are not installed."""
+    try:
+        import numba
+        import quflow
+    except ImportError as error:  # an optional peer: the run goes on without it
+        return None, f"not installed ({error})"
+    return (quflow, numba), None
+
+
+def quflow_calls(quflow, numba, W0, n_steps, tight_tol):
+    """The timed quflow calls: its default isospectral midpoint (`quflow.isomp`, fixed-point
+    iterations, its automatic tolerance) on one numba thread and on numba's default threads, and
+    on one thread with the iteration stopped at `tight_tol` (the round-off rule of ours). Each call
+    marches a copy of W0 (quflow overwrites its argument) and returns (W, iterations per step)."""
+    default_threads = numba.config.NUMBA_NUM_THREADS
+
+    def call(threads, tol):
+        def run():
+            numba.set_num_threads(threads)
+            stats = {"iterations": 0.0}
+            W = quflow.isomp(W0.copy(), DT, steps=n_steps, tol=tol, maxit=50 if tol != "auto" else 10, stats=stats)
+            numba.set_num_threads(default_threads)
+            return W, float(stats["iterations"])
+
+        return run
+
+    calls = {"quflow_1thread": call(1, "auto"), "quflow_tight_1thread": call(1, tight_tol)}
+    if default_threads > 1:
+        calls[f"quflow_{default_threads}threads"] = call(default_threads, "auto")
+    return calls
+
+
 # --- the long run --------------------------------------------------------------------------
 
 
@@ -253,6 +295,9 @@ def run_case(N: int, n_steps: int, run: harness.Run) -> dict:
     march = jax.jit(lambda x: cj.integrate(system, Q0, x, dt=DT, n_steps=n_steps, reconstruct=False, throw=False))
     peer = NumpyIsospectralMidpoint(N, DT)
     calls = {"ours": lambda: jax.block_until_ready(march(xi0)), "numpy": lambda: peer.march(W0, n_steps)}
+    anchor, _ = _import_quflow()
+    if anchor is not None:
+        calls.update(quflow_calls(*anchor, W0, n_steps, 8 * np.finfo(float).eps * np.max(np.abs(W0))))
     timings, outs = run.time(calls, what=f"N={N}")
     sol = outs["ours"]
     if not np.all(np.asarray(sol.result) == cj.Status.SUCCESS):
@@ -261,6 +306,15 @@ def run_case(N: int, n_steps: int, run: harness.Run) -> dict:
     W_numpy, numpy_sweeps = outs["numpy"]
     per_step = {name: t["per_call_s"] / n_steps for name, t in timings.items()}
     spectra = np.linalg.eigvalsh(1j * np.stack([W0, W_ours]))
+    anchor_rows = {}
+    for name in (k for k in calls if k.startswith("quflow")):
+        W_q, iterations = outs[name]
+        anchor_rows[name] = {
+            "iterations_per_step": iterations,
+            "max_difference_of_final_W_from_ours": float(np.max(np.abs(W_q - W_ours))),
+            "max_difference_of_final_W_from_numpy": float(np.max(np.abs(W_q - W_numpy))),
+            "ours_over_it": per_step["ours"] / per_step[name],
+        }
     return {
         "N": N,
         "n_steps": n_steps,
@@ -271,6 +325,7 @@ def run_case(N: int, n_steps: int, run: harness.Run) -> dict:
         "max_difference_of_final_W": float(np.max(np.abs(W_ours - W_numpy))),
         "max_abs_W": float(np.max(np.abs(W0))),
         "spectrum_change_ours": float(np.max(np.abs(spectra[1] - spectra[0]))),
+        "quflow": anchor_rows,
     }
 
 
@@ -285,33 +340,48 @@ def print_report(summary: dict) -> None:
         summary,
         "Euler-Zeitlin: seconds per step",
         "ours: integrate(euler_sphere(N)) under jit; numpy: the isospectral midpoint in NumPy "
-        "(complex BLAS), an independent implementation (quflow is not installed here).",
+        "(complex BLAS), an independent implementation; quflow: the anchor code's isomp "
+        f"(numba), {summary['config']['anchor_code']}.",
     )
     head = (
-        f"{'N':>5}{'steps':>7}{'ours s/step':>14}{'numpy s/step':>14}{'ratio':>8}{'sweeps':>8}"
+        f"{'N':>5}{'steps':>7}{'ours s/step':>14}{'numpy s/step':>14}{'ours/numpy':>11}{'sweeps':>8}"
         f"{'numpy sw.':>10}{'|dW|':>10}"
     )
     lines = [
         f"{r['N']:>5}{r['n_steps']:>7}{r['seconds_per_step']['ours']:>14.4g}"
-        f"{r['seconds_per_step']['numpy']:>14.4g}{r['ours_over_numpy']:>8.3f}"
+        f"{r['seconds_per_step']['numpy']:>14.4g}{r['ours_over_numpy']:>11.3f}"
         f"{r['sweeps_per_step']['ours']:>8.2f}{r['sweeps_per_step']['numpy']:>10.2f}"
         f"{r['max_difference_of_final_W']:>10.1e}"
         for r in summary["results"]
     ]
     harness.print_table(head, lines)
-    print(f"cost growth (log-log slope in N): ours {summary['slopes']['ours']}, numpy {summary['slopes']['numpy']}")
+    anchor = [(r, name, q) for r in summary["results"] for name, q in r["quflow"].items()]
+    if anchor:
+        head = f"{'N':>5}  {'quflow variant':<22}{'s/step':>12}{'ours/it':>9}{'iter.':>7}{'|W - ours|':>12}{'|W - numpy|':>13}"
+        lines = [
+            f"{r['N']:>5}  {name:<22}{r['seconds_per_step'][name]:>12.4g}{q['ours_over_it']:>9.3f}"
+            f"{q['iterations_per_step']:>7.2f}{q['max_difference_of_final_W_from_ours']:>12.1e}"
+            f"{q['max_difference_of_final_W_from_numpy']:>13.1e}"
+            for r, name, q in anchor
+        ]
+        print()
+        harness.print_table(head, lines)
+    slopes = ", ".join(f"{k} {v:.2f}" for k, v in summary["slopes"].items() if v is not None)
+    print(f"cost growth (log-log slope in N): {slopes}")
 
 
 def plot(summary: dict, path: Path) -> None:
     fig, ax = harness.figure([1], size=(6.5, 4.4))
     rows = summary["results"]
     N = np.array([r["N"] for r in rows])
-    for key, marker in (("ours", "o-"), ("numpy", "s--")):
+    markers = iter(("o-", "s--", "^-.", "v:", "d-", "x--"))
+    for key in summary["slopes"]:
+        slope = summary["slopes"][key]
         ax.loglog(
             N,
             [r["seconds_per_step"][key] for r in rows],
-            marker,
-            label=f"{key} (slope {summary['slopes'][key]:.2f})" if summary["slopes"][key] is not None else key,
+            next(markers),
+            label=f"{key} (slope {slope:.2f})" if slope is not None else key,
         )
     ref = rows[-1]["seconds_per_step"]["ours"] * (N / N[-1]) ** 3.0
     ax.loglog(N, ref, ":", color="0.5", label="N^3")
@@ -349,18 +419,29 @@ def main(argv=None) -> dict:
         if run.args.long is not None:
             return long_run(run.args.long, run.args.steps, run.args.every, Path(run.args.out), run.quick)
         results = run.measure(DEFAULT_CASES, QUICK_CASES, _describe, lambda *case: run_case(*case, run))
-    threads = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    threads = {
+        k: os.environ.get(k)
+        for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+    }
+    anchor, missing = _import_quflow()
+    if anchor is not None:
+        quflow, numba = anchor
+        anchor_code = (
+            f"quflow {quflow.__version__} with numba {numba.__version__} "
+            f"(default numba threads {numba.config.NUMBA_NUM_THREADS})"
+        )
+    else:
+        anchor_code = f"quflow (Modin & Viviani): {missing}, not run"
     summary = run.summary(
         config={
             "dt": DT,
             "peak_degree": PEAK,
             "blas_thread_variables": threads,
             "cases": [{"N": N, "n_steps": n} for N, n in run.cases],
-            "anchor_code": "quflow (Modin & Viviani) is not installed here: not run; the "
-            "peer is an independent NumPy implementation of the same scheme",
+            "anchor_code": anchor_code,
         },
         results=results,
-        slopes={"ours": _slope(results, "ours"), "numpy": _slope(results, "numpy")},
+        slopes={key: _slope(results, key) for key in results[0]["seconds_per_step"]},
     )
     return run.finish(summary, print_report, plot)
 
