@@ -13,7 +13,8 @@ $$ \Delta_N P = -\sum_{a=1}^3 [J_a, [J_a, P]] = -2s(s+1)P + 2J_3PJ_3 + J_+PJ_- +
 ($J_a$ the spin-s matrices, $J_3 = \mathrm{diag}(s, s-1, \dots, -s)$: row 0 is the north pole),
 whose eigenvalues are $-l(l+1)$, $l = 0, \dots, N-1$, as for the Laplacian of the sphere. It
 couples the entry $(i, j)$ only with $(i \pm 1, j \pm 1)$: it is tridiagonal along each
-diagonal of the matrix, and is applied and inverted that way (tridiagonal solves: forward and backward substitution along all diagonals at once, their factors computed once per N),
+diagonal of the matrix, and is applied and inverted that way (tridiagonal solves: forward
+and backward substitution along all diagonals at once, with factors computed once per N),
 never as an $N^2 \times N^2$ matrix. Euler's equation $\dot\omega = \{\psi, \omega\}$,
 $\Delta\psi = \omega$, becomes
 
