@@ -378,6 +378,11 @@ def check_euler_sphere(summary: dict) -> None:
         # the same scheme but for the weight of the centre of u(N): far below the method's error
         assert row["max_difference_of_final_W"] < 1e-10 * row["max_abs_W"]
         assert row["spectrum_change_ours"] < 1e-12 * row["max_abs_W"]  # isospectral
+        for name, q in row["quflow"].items():  # the anchor code, when installed
+            _check_timed(row["timings"][name], ("per_call_s",), name)
+            # its default stopping rule is sqrt(eps)-relative: agreement to that level only
+            limit = 1e-10 if "tight" in name else 1e-8
+            assert q["max_difference_of_final_W_from_numpy"] < limit * row["max_abs_W"]
     assert math.isfinite(summary["slopes"]["ours"]) and math.isfinite(summary["slopes"]["numpy"])
 
 

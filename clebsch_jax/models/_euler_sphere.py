@@ -13,7 +13,8 @@ $$ \Delta_N P = -\sum_{a=1}^3 [J_a, [J_a, P]] = -2s(s+1)P + 2J_3PJ_3 + J_+PJ_- +
 ($J_a$ the spin-s matrices, $J_3 = \mathrm{diag}(s, s-1, \dots, -s)$: row 0 is the north pole),
 whose eigenvalues are $-l(l+1)$, $l = 0, \dots, N-1$, as for the Laplacian of the sphere. It
 couples the entry $(i, j)$ only with $(i \pm 1, j \pm 1)$: it is tridiagonal along each
-diagonal of the matrix, and is applied and inverted that way (batched tridiagonal solves),
+diagonal of the matrix, and is applied and inverted that way (tridiagonal solves: forward
+and backward substitution along all diagonals at once, with factors computed once per N),
 never as an $N^2 \times N^2$ matrix. Euler's equation $\dot\omega = \{\psi, \omega\}$,
 $\Delta\psi = \omega$, becomes
 
@@ -121,6 +122,14 @@ def _laplacian_data(N: int):
     T0 = np.diag(d[0]) + np.diag(e[0, :-1], 1) + np.diag(e[0, :-1], -1)
     lam, V0 = np.linalg.eigh(-T0)  # l(l+1) ascending, l = 0 first
     lam_hat = np.concatenate([[_outer_weight(N)], lam[1:]])
+    # The Thomas factors of diagonals 1..N−1 (their matrices are constant): the elimination
+    # T = L U with unit upper U, U[i, i+1] = upper[i], and pivots pivot[i]. Diagonals k ≥ 1 hold
+    # only degrees l ≥ k ≥ 1, so these matrices are definite and need no pivoting.
+    pivot, upper = np.empty((N - 1, N)), np.empty((N - 1, N))
+    pivot[:, 0], upper[:, 0] = d[1:, 0], e[1:, 0] / d[1:, 0]
+    for r in range(1, N):
+        pivot[:, r] = d[1:, r] - e[1:, r - 1] * upper[:, r - 1]
+        upper[:, r] = e[1:, r] / pivot[:, r]
     return dict(
         centre=centre,
         up=up,
@@ -133,6 +142,9 @@ def _laplacian_data(N: int):
         dl=dl,
         V0=V0,
         inv0=(V0 / lam_hat) @ V0.T,
+        pivot=pivot,
+        upper=upper,
+        lower=dl[1:],
     )
 
 
@@ -156,17 +168,36 @@ def _neg_laplacian_hat_inverse(M):
     D = _laplacian_data(N)
     both = jnp.stack([M, jnp.swapaxes(M, -1, -2)], axis=-3)  # (..., 2, N, N)
     skewed = jnp.where(D["valid"], both[..., D["rows"], D["cols"]], 0.0)  # row k: diagonal k
-    lead = skewed.shape[:-2]
-    rhs = -skewed[..., 1:, :]
-    shape = lead + (N - 1, N)
-    dl, d, du = (jnp.broadcast_to(jnp.asarray(D[name][1:], M.dtype), shape) for name in ("dl", "d", "du"))
-    sol = jax.lax.linalg.tridiagonal_solve(dl, d, du, rhs[..., None])[..., 0]
+    sol = _thomas(D, -skewed[..., 1:, :])
     diag0 = skewed[..., 0, :] @ jnp.asarray(D["inv0"], M.dtype)  # inv0 is symmetric
     solved = jnp.concatenate([diag0[..., None, :], sol], axis=-2)  # (..., 2, N, N), row k: diagonal k
     i, j = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
     upper = solved[..., 0, np.clip(j - i, 0, None), i]  # P[i, j] = diagonal j−i at row i, j >= i
     lower = solved[..., 1, np.clip(i - j, 0, None), j]  # from the transposed matrix, i > j
     return jnp.where(j >= i, upper, lower)
+
+
+def _thomas(D, rhs):
+    r"""Solve $\Delta_N$'s tridiagonal systems of diagonals 1..N−1 for `rhs` (..., N − 1, N)
+    (row k: diagonal k), with the constant factors of `_laplacian_data`: a forward and a
+    backward substitution, each one scan over the N entries of every diagonal at once."""
+    along = jnp.moveaxis(rhs, -1, 0)  # (N, ..., N − 1): entry i of every diagonal
+    factors = {name: jnp.asarray(D[name].T, rhs.dtype) for name in ("pivot", "upper", "lower")}
+
+    def forward(y, row):
+        b, lower, pivot = row
+        y = (b - lower * y) / pivot
+        return y, y
+
+    def backward(x, row):
+        y, upper = row
+        x = y - upper * x
+        return x, x
+
+    zero = jnp.zeros_like(along[0])
+    _, y = jax.lax.scan(forward, zero, (along, factors["lower"], factors["pivot"]))
+    _, x = jax.lax.scan(backward, zero, (y, factors["upper"]), reverse=True)
+    return jnp.moveaxis(x, 0, -1)
 
 
 @jax.jit
