@@ -247,8 +247,9 @@ def compile_ir(text: str) -> bytes:
 _ENGINES: list = []
 
 
-def _load(obj: bytes) -> int:
-    """The address of `kernel` in the object code `obj`, loaded by an MCJIT engine of its own.
+def _load(obj: bytes, globals_: tuple = ()) -> int | tuple:
+    """The address of `kernel` in the object code `obj`, loaded by an MCJIT engine of its own
+    (with `globals_`, names of global values: `(address, {name: its address})`).
     The engine and the object are kept for the life of the process and never disposed by
     llvmlite (`detach`): an engine given an object file owns it, and disposing both (as their
     finalisers would, in either order) frees it twice. A process compiles a kernel once per
@@ -266,10 +267,11 @@ def _load(obj: bytes) -> int:
         engine.add_object_file(ref)
         engine.finalize_object()
         address = engine.get_function_address("kernel")
+        found = {name: engine.get_global_value_address(name) for name in globals_}
         ref.detach()
         engine.detach()
         _ENGINES.append((engine, ref, obj, tm))
-    return address
+    return (address, found) if globals_ else address
 
 
 _SIGNATURE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
