@@ -4,7 +4,7 @@ Compilation dominates: every scene program is compiled once, by the `demo --quic
 (each scene with its `quick_steps` and `quick_batch`, XLA optimisation off), and the `run`
 tests reuse it — same scene, steps per call, batch and compiler options; `dt` is traced, so
 the failing run (huge dt) and the chunked run (`--chunk` = the quick steps) compile nothing
-new. Numbers in the JSON are checked against the `Solution` of that program (`_scenes.solve`)
+new. Numbers in the JSON are checked against the `Solution` of that program (`_scene_run.solve`)
 with `clebsch_jax.diagnostics`, and against exact solutions where there are some.
 """
 
@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import clebsch_jax as cj
-from clebsch_jax.cli import _commands, _scenes, main
+from clebsch_jax.cli import _commands, _scene_run, _scenes, main
 from clebsch_jax.cli._scenes import SCENES
 
 from .test_epdiff import two_peakons_exact  # an independent closed form, checked against DOP853 there
@@ -319,7 +319,7 @@ def test_demo_only_one_scene(demo, tmp_path, capsys):
 def _solution(name, *, dt=None):
     scene = SCENES[name]
     setup = scene.setup(scene.quick_batch, np.random.default_rng(0))
-    out = _scenes.solve(scene, setup, dt=scene.dt if dt is None else dt, n_steps=scene.quick_steps)
+    out = _scene_run.solve(scene, setup, dt=scene.dt if dt is None else dt, n_steps=scene.quick_steps)
     return scene, setup, out["sol"]
 
 

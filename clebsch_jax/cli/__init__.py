@@ -3,8 +3,10 @@
 Built on the public API only (`import clebsch_jax as cj`), like any program using the library:
 
 - `_commands`: the parser and the subcommands `demo`, `run SCENE`, `bench`, `sweep` (`main`);
-- `_scenes`: the built-in scenes of `run` and `demo`, as data, and the chunked run that reduces
-  a scene's batch to a summary and a plot;
+- `_scenes`: the built-in scenes of `run` and `demo`, as data (`SCENES`), defined by family in
+  `_scenes_bodies`, `_scenes_particles` and `_scenes_fluid` on the types of `_scene_types`;
+- `_scene_run`: the chunked run that reduces a scene's batch to its tallies, and
+  `_scene_report` its summary and plot;
 - `_demo`: the scene of Figure 1 of the paper (the rigid body of Example 30);
 - `_sweep`: the subcommand `sweep` (a TOML-described `clebsch_jax.sweep` into a Zarr store).
 

@@ -276,7 +276,8 @@ def _run_scene_into(
     scene, out_dir: str, *, dt=None, steps=None, order=None, batch=1, seed=0, chunk=None, progress=None, scheme=None
 ) -> dict:
     """`run_scene`, then write `<scene>.png` and `summary.json` into `out_dir` (which exists)."""
-    from ._scenes import run_scene, write_plot, write_summary
+    from ._scene_report import write_plot, write_summary
+    from ._scene_run import run_scene
 
     summary = run_scene(
         scene,
@@ -416,7 +417,8 @@ def _add_cache_flag(p) -> None:
 
 
 def _run_run(args) -> int:
-    from ._scenes import SCENES, chunk_steps_for
+    from ._scene_run import chunk_steps_for
+    from ._scenes import SCENES
 
     prog = f"{PROG} run"
     scene = SCENES[args.scene]
