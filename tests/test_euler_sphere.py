@@ -220,6 +220,27 @@ def test_casimirs_conserved_to_round_off(long_run):
     assert np.max(np.abs(spectra - spectra[0])) < 1e-12 * np.max(np.abs(spectra[0]))
 
 
+def test_default_sweeps_are_tested_after_each_and_solve_the_same_steps(long_run):
+    """The default sweeps (`MATRIX_FREE_SWEEPS`: a test after every sweep) solve the same
+    steps as `FixedPoint()`'s defaults (4 untested sweeps, then tests of 2) to round-off, in
+    fewer sweeps: counts that are not all of the defaults' parity, and fewer in total."""
+    W, sol, _ = long_run
+    Q0, xi0 = models.euler_sphere_start(W)
+    n = 400
+    paired = cj.integrate(
+        models.euler_sphere(N),
+        Q0,
+        xi0,
+        dt=0.05,
+        n_steps=n,
+        method=cj.ReducedStep(root_finder=cj.FixedPoint(), reconstruct=False),
+    )
+    assert np.max(np.abs(paired.momentum - sol.momentum[: n + 1])) < 1e-13 * np.max(np.abs(sol.momentum[0]))
+    each, pairs = np.asarray(sol.stats.iterations[:n]), np.asarray(paired.stats.iterations)
+    assert np.all(pairs % 2 == 0) and np.any(each % 2 == 1)
+    assert each.sum() < pairs.sum()
+
+
 def test_energy_bounded_without_drift(long_run):
     _, _, Ws = long_run
     E = np.asarray(models.euler_sphere_energy(Ws))
