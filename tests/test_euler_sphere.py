@@ -150,6 +150,25 @@ def test_engine_closure_check_reduces_without_a_basis():
     assert np.max(np.abs(mu0 - models.euler_sphere_real_form(W))) < 1e-13
 
 
+def test_lagrangian_gradient_is_the_symmetric_operator_and_agrees_with_autodiff():
+    """l's derivative is stated (∇l = ħKξ, K symmetric): it agrees to round-off with reverse
+    mode through the quadratic form ½ħ⟨ξ, Kξ⟩ written out here, and its Hessian (forward over
+    reverse, as the model checks and Newton form it) with that of the quadratic form."""
+    from clebsch_jax.models._euler_sphere import _apply_K
+
+    Ns = 3
+    l = models.euler_sphere(Ns).lagrangian
+    hbar = models.euler_sphere_hbar(Ns)
+    quadratic = lambda x: 0.5 * hbar * jnp.sum(x * _apply_K(x, inverse=False))
+    xi = jnp.asarray(np.random.default_rng(3).normal(size=(2 * Ns, 2 * Ns)))
+    scale = np.max(np.abs(jax.grad(quadratic)(xi)))
+    assert np.max(np.abs(jax.grad(l)(xi) - jax.grad(quadratic)(xi))) < 1e-14 * scale
+    flat = lambda f: lambda y: f(y.reshape(xi.shape))
+    H, H_ref = jax.hessian(flat(l))(xi.ravel()), jax.hessian(flat(quadratic))(xi.ravel())
+    assert np.max(np.abs(H - H_ref)) < 1e-14 * np.max(np.abs(H_ref))
+    assert np.max(np.abs(H - H.T)) < 1e-14 * np.max(np.abs(H))
+
+
 def test_closure_check_of_the_velocity_map():
     """The general (dense) closure check agrees: right multiplication by ξ is closed."""
     Ns = 2

@@ -307,7 +307,25 @@ class _Lagrangian(_Operator):
     r"""$l(\xi) = \tfrac\hbar2\langle\xi, K\xi\rangle$ (see the module docstring)."""
 
     def __call__(self, xi):
-        return 0.5 * euler_sphere_hbar(self.N) * jnp.sum(xi * _apply_K(xi, inverse=False))
+        return _kinetic(xi)
+
+
+@jax.custom_jvp
+def _kinetic(xi):
+    r"""$\tfrac\hbar2\langle\xi, K\xi\rangle$, with its derivative $\langle\hbar K\xi, \dot\xi\rangle$
+    stated (`_kinetic_jvp`): K is symmetric (an orthogonal projection onto $R(\mathfrak u(N))$,
+    $-\hat\Delta_N$ on it and κ on its complement), so $\nabla l = \hbar K\xi$ is one
+    application of K, where reverse mode through the quadratic form would apply K and its
+    transpose (the pads and slices of the Laplacian transposed) and average them."""
+    return 0.5 * euler_sphere_hbar(xi.shape[-1] // 2) * jnp.sum(xi * _apply_K(xi, inverse=False))
+
+
+@_kinetic.defjvp
+def _kinetic_jvp(primals, tangents):
+    (xi,), (xi_dot,) = primals, tangents
+    hbar = euler_sphere_hbar(xi.shape[-1] // 2)
+    K_xi = _apply_K(xi, inverse=False)
+    return 0.5 * hbar * jnp.sum(xi * K_xi), hbar * jnp.sum(K_xi * xi_dot)
 
 
 class _InverseLegendre(_Operator):
