@@ -115,6 +115,26 @@ def test_quantisation_round_trip_and_field_against_scipy():
     assert np.max(np.abs(models.euler_sphere_field(W, theta, phi) - reference)) < 1e-12
 
 
+def test_quantisation_is_the_sum_over_the_basis_beyond_one_block_of_diagonals():
+    """Past one batched product (`DIAGONALS_PER_PRODUCT` diagonals): W = −i Σ c_lm T_lm with
+    the T_lm written out entry by entry from `euler_sphere_basis` (T_l,−m = (−1)^m T_lmᴴ), and
+    the coefficients back from W, to round-off."""
+    from clebsch_jax.models._euler_sphere_quantisation import DIAGONALS_PER_PRODUCT
+
+    Nb = 2 * DIAGONALS_PER_PRODUCT + 3
+    c = random_coefficients(Nb, 7)
+    bases = models.euler_sphere_basis(Nb)
+    H = np.zeros((Nb, Nb), complex)
+    for m, V in enumerate(bases):
+        for l in range(m, Nb):
+            T = np.zeros((Nb, Nb))
+            T[np.arange(Nb - m), np.arange(m, Nb)] = np.sqrt(Nb / (4 * np.pi)) * V[:, l - m]
+            H += c[l, m] * T if m == 0 else c[l, m] * T + np.conj(c[l, m]) * T.T
+    W = np.asarray(models.euler_sphere_quantise(c))
+    assert np.max(np.abs(W - (-1j * H))) < 1e-13 * np.max(np.abs(H))
+    assert np.max(np.abs(np.asarray(models.euler_sphere_coefficients(W)) - c)) < 1e-13 * np.max(np.abs(c))
+
+
 def test_commutator_quantises_the_poisson_bracket():
     """(1/ħ)[Ŵ(z), Ŵ(x)] = Ŵ({z, x}) = Ŵ(y) with {f, g} = n·(∇f × ∇g): the model's
     Ẇ = [P, W]/ħ is Euler's ω̇ = {ψ, ω} (exact for degree 1, the spin matrices)."""

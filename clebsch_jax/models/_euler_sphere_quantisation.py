@@ -60,6 +60,39 @@ def euler_sphere_basis(N: int) -> tuple:
     return tuple(bases)
 
 
+DIAGONALS_PER_PRODUCT = 16
+"""Diagonals of the Hoppe basis applied by one batched product in `euler_sphere_quantise` and
+`euler_sphere_coefficients` (`_basis_blocks`): the programs hold about N/16 products instead
+of one per diagonal, each padded to its block's longest diagonal (a few per cent more
+entries than the basis itself)."""
+
+
+@functools.lru_cache(maxsize=8)
+def _basis_blocks(N: int) -> tuple:
+    """`euler_sphere_basis(N)` in blocks of `DIAGONALS_PER_PRODUCT` diagonals: for the block
+    from diagonal m0, an array (b, N − m0, N − m0) whose entry k holds $V_{m_0+k}$ in its
+    top-left corner and zeros elsewhere (NumPy, once per N)."""
+    bases = euler_sphere_basis(N)
+    blocks = []
+    for m0 in range(0, N, DIAGONALS_PER_PRODUCT):
+        ms = range(m0, min(m0 + DIAGONALS_PER_PRODUCT, N))
+        padded = np.zeros((len(ms), N - m0, N - m0))
+        for k, m in enumerate(ms):
+            padded[k, : N - m, : N - m] = bases[m]
+        blocks.append(padded)
+    return tuple(blocks)
+
+
+def _skew_index(N: int):
+    """Index arrays of the skewed layout (row m: diagonal m, entry i at (i, i + m)): `rows`,
+    `cols` and the mask `valid` of its entries, and for each (i, j) of a matrix its diagonal
+    |j − i| and position min(i, j) there."""
+    m, i = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+    valid = i < N - m
+    a, b = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+    return np.where(valid, i, 0), np.where(valid, i + m, 0), valid, np.abs(b - a), np.minimum(a, b)
+
+
 def _check_coefficients(coeffs):
     coeffs = np.asarray(coeffs) if not isinstance(coeffs, jax.Array) else coeffs
     if coeffs.ndim != 2 or coeffs.shape[0] != coeffs.shape[1]:
@@ -76,23 +109,29 @@ def euler_sphere_quantise(coeffs):
     **Arguments:** `coeffs`, complex (N, N): `coeffs[l, m]` for 0 ≤ m ≤ l (entries with m > l
     are ignored; the imaginary part of `coeffs[:, 0]` too, the field being real).
     **Returns:** W, complex (N, N), skew-Hermitian."""
-    return _quantise(_check_coefficients(coeffs))
+    coeffs = _check_coefficients(coeffs)
+    return _quantise(coeffs, _basis_blocks(coeffs.shape[0]))
 
 
 @jax.jit
-def _quantise(coeffs):
+def _quantise(coeffs, blocks):
     N = coeffs.shape[0]
-    bases = euler_sphere_basis(N)
-    scale = np.sqrt(N / (4 * np.pi))
+    rows, _, valid, diagonal, position = _skew_index(N)
     coeffs = jnp.asarray(coeffs, jnp.complex128)
-    H = jnp.zeros((N, N), jnp.complex128)
-    for m, V in enumerate(bases):
-        u = scale * (jnp.asarray(V) @ coeffs[m:, m])  # entries of Σ_l c_lm T_lm on diagonal m
-        if m == 0:
-            H = H + jnp.diag(jnp.real(u))
-        else:
-            H = H + jnp.diag(u, m) + jnp.diag(jnp.conj(u), -m)
-    return -1j * H
+    # column m of the coefficients from l = m on, as row m of a skewed array: c[m + i, m]
+    along = jnp.where(valid, coeffs[np.minimum(rows + np.arange(N)[:, None], N - 1), np.arange(N)[:, None]], 0.0)
+    # row m: the entries of Σ_l c_lm T_lm along diagonal m, by one product per block
+    parts, m0 = [], 0
+    for V in blocks:
+        b, n = V.shape[0], V.shape[1]
+        u = jnp.einsum("kil,kl->ki", jnp.asarray(V), along[m0 : m0 + b, :n])
+        parts.append(jnp.pad(u, ((0, 0), (0, N - n))))
+        m0 += b
+    skewed = np.sqrt(N / (4 * np.pi)) * jnp.concatenate(parts)
+    skewed = skewed.at[0].set(jnp.real(skewed[0]))  # the zonal part is real
+    entries = skewed[diagonal, position]  # the upper triangle's entries, mirrored
+    upper = np.arange(N)[:, None] <= np.arange(N)[None, :]
+    return -1j * jnp.where(upper, entries, jnp.conj(entries))
 
 
 def euler_sphere_coefficients(W):
@@ -102,19 +141,23 @@ def euler_sphere_coefficients(W):
     W = jnp.asarray(W)
     if W.ndim != 2 or W.shape[0] != W.shape[1]:
         raise ValueError(f"W: expected a square N x N vorticity matrix, got shape {W.shape}.")
-    return _coefficients(W)
+    return _coefficients(W, _basis_blocks(W.shape[0]))
 
 
 @jax.jit
-def _coefficients(W):
+def _coefficients(W, blocks):
     N = W.shape[0]
-    H = 1j * W
-    scale = np.sqrt(4 * np.pi / N)
-    rows = []
-    for m, V in enumerate(euler_sphere_basis(N)):
-        col = scale * (jnp.asarray(V).T @ jnp.diagonal(H, m))  # l = m, ..., N-1
-        rows.append(jnp.concatenate([jnp.zeros(m, col.dtype), col]))
-    return jnp.stack(rows, axis=1)
+    rows, cols, valid, _, _ = _skew_index(N)
+    skewed = jnp.where(valid, (1j * W)[rows, cols], 0.0)  # row m: diagonal m of ω̂ = iW
+    parts, m0 = [], 0
+    for V in blocks:  # row m: V_mᵀ (diagonal m), l = m, ..., N − 1 at l − m
+        b, n = V.shape[0], V.shape[1]
+        c = jnp.einsum("kil,ki->kl", jnp.asarray(V), skewed[m0 : m0 + b, :n])
+        parts.append(jnp.pad(c, ((0, 0), (0, N - n))))
+        m0 += b
+    by_order = np.sqrt(4 * np.pi / N) * jnp.concatenate(parts)  # [m, l − m]
+    l, m = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+    return jnp.where(l >= m, by_order[m, np.maximum(l - m, 0)], 0.0)
 
 
 def _legendre(lmax: int, x: np.ndarray) -> np.ndarray:
