@@ -71,7 +71,8 @@ entries than the basis itself)."""
 def _basis_blocks(N: int) -> tuple:
     """`euler_sphere_basis(N)` in blocks of `DIAGONALS_PER_PRODUCT` diagonals: for the block
     from diagonal m0, an array (b, N − m0, N − m0) whose entry k holds $V_{m_0+k}$ in its
-    top-left corner and zeros elsewhere (NumPy, once per N)."""
+    top-left corner and zeros elsewhere. Built in NumPy and moved to the device once per N
+    (concrete even when the call is traced), so that later calls pass them without a copy."""
     bases = euler_sphere_basis(N)
     blocks = []
     for m0 in range(0, N, DIAGONALS_PER_PRODUCT):
@@ -80,7 +81,8 @@ def _basis_blocks(N: int) -> tuple:
         for k, m in enumerate(ms):
             padded[k, : N - m, : N - m] = bases[m]
         blocks.append(padded)
-    return tuple(blocks)
+    with jax.ensure_compile_time_eval():
+        return tuple(jax.device_put(b) for b in blocks)
 
 
 def _skew_index(N: int):
