@@ -87,14 +87,14 @@ def euler_sphere_hbar(N: int) -> float:
     return 2.0 / np.sqrt(N * N - 1.0)
 
 
-def _check_N(N) -> int:
+def check_N(N) -> int:
     if isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2:
         raise ValueError(f"N: expected an integer matrix size N >= 2, got {N!r}.")
     return int(N)
 
 
 @functools.lru_cache(maxsize=16)
-def _laplacian_data(N: int):
+def laplacian_data(N: int):
     r"""NumPy constants of $\Delta_N$ for size N: the coefficients of its entrywise form, its
     tridiagonal matrices along the diagonals 1..N−1 (skewed: row k holds diagonal k, padded with
     identity rows) and the eigen-decomposition of its (singular) matrix on diagonal 0."""
@@ -147,7 +147,7 @@ def _neg_laplacian_hat(M):
     r"""$-\hat\Delta_N M = -\Delta_N M + \kappa\tfrac{\mathrm{tr}\,M}{N}I$ for real (..., N, N) M (the real
     and imaginary parts of a complex matrix separately: $\Delta_N$ has real coefficients)."""
     N = M.shape[-1]
-    D = _laplacian_data(N)
+    D = laplacian_data(N)
     Mp = jnp.pad(M, [(0, 0)] * (M.ndim - 2) + [(0, 1), (0, 1)])
     Mm = jnp.pad(M, [(0, 0)] * (M.ndim - 2) + [(1, 0), (1, 0)])
     lap = D["centre"] * M + D["up"] * Mp[..., 1:, 1:] + D["down"] * Mm[..., :-1, :-1]
@@ -160,7 +160,7 @@ def _neg_laplacian_hat_inverse(M):
     solved along each diagonal (N − 1 tridiagonal systems each, batched), diagonal 0 in its
     eigenbasis (where $\Delta_N$ is singular); O(N²) work per matrix."""
     N = M.shape[-1]
-    D = _laplacian_data(N)
+    D = laplacian_data(N)
     both = jnp.stack([M, jnp.swapaxes(M, -1, -2)], axis=-3)  # (..., 2, N, N)
     skewed = jnp.where(D["valid"], both[..., D["rows"], D["cols"]], 0.0)  # row k: diagonal k
     sol = _thomas(D, -skewed[..., 1:, :])
@@ -174,7 +174,7 @@ def _neg_laplacian_hat_inverse(M):
 
 def _thomas(D, rhs):
     r"""Solve $\Delta_N$'s tridiagonal systems of diagonals 1..N−1 for `rhs` (..., N − 1, N)
-    (row k: diagonal k), with the constant factors of `_laplacian_data`: a forward and a
+    (row k: diagonal k), with the constant factors of `laplacian_data`: a forward and a
     backward substitution, each one scan over the N entries of every diagonal at once."""
     along = jnp.moveaxis(rhs, -1, 0)  # (N, ..., N − 1): entry i of every diagonal
     factors = {name: jnp.asarray(D[name].T, rhs.dtype) for name in ("pivot", "upper", "lower")}
@@ -351,7 +351,7 @@ def euler_sphere(N: int, derivative_map: DerivativeMap = cayley) -> ClebschSyste
 
     Start from `euler_sphere_start(W)`, with W from `euler_sphere_quantise`.
     """
-    N = _check_N(N)
+    N = check_N(N)
     return ClebschSystem(
         lagrangian=_Lagrangian(N),
         velocity_map=_right_multiplication,
@@ -368,7 +368,7 @@ def euler_sphere_start(W):
     if W.ndim != 2 or W.shape[0] != W.shape[1]:
         raise ValueError(f"W: expected a square N x N vorticity matrix, got shape {W.shape}.")
     N = W.shape[0]
-    _check_N(N)
+    check_N(N)
     return _start(W.astype(jnp.complex128))
 
 

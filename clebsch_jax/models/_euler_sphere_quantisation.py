@@ -4,7 +4,7 @@ $T_{lm}$ (`euler_sphere_quantise`) and back (`euler_sphere_coefficients`), and t
 vorticity matrix on a grid or as an orthographic image, for initial conditions and plots.
 
 The $T_{lm}$ are the eigenvectors of the Hoppe–Yau Laplacian $\Delta_N$ along each diagonal
-(`_euler_sphere._laplacian_data`), normalised and phased as the spherical harmonics."""
+(`_euler_sphere.laplacian_data`), normalised and phased as the spherical harmonics."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._euler_sphere import _check_N, _laplacian_data
+from ._euler_sphere import check_N, laplacian_data
 
 __all__ = [
     "euler_sphere_quantise",
@@ -38,8 +38,8 @@ def euler_sphere_basis(N: int) -> tuple:
     pole (entry (0, 0)) and $[J_-, T_{lm}] = \sqrt{(l+m)(l-m+1)}\,T_{l,m-1}$. Negative orders:
     $T_{l,-m} = (-1)^mT_{lm}^H$. Computed once per N in NumPy (eigen-decompositions of the
     N tridiagonal matrices, O(N⁴) flops)."""
-    N = _check_N(N)
-    D = _laplacian_data(N)
+    N = check_N(N)
+    D = laplacian_data(N)
     s = 0.5 * (N - 1)
     c = np.sqrt(np.maximum(s * (s + 1) - (s - np.arange(N)) * (s - np.arange(N) + 1), 0.0))
     bases, previous = [], None
