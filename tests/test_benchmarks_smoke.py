@@ -372,9 +372,11 @@ def check_sweep_scaling(summary: dict) -> None:
 
 def check_euler_sphere(summary: dict) -> None:
     for row in summary["results"]:
-        for m in ("ours", "numpy"):
+        for m in ("ours", "ours_quflow_tol", "numpy"):
             _check_timed(row["timings"][m], ("per_call_s",), m)
             assert _positive_finite(row["seconds_per_step"][m]) and row["sweeps_per_step"][m] >= 1
+        # at quflow's sqrt(eps)-relative tolerance: agreement with the round-off run to that level
+        assert row["max_difference_of_final_W_quflow_tol_from_ours"] < 1e-8 * row["max_abs_W"]
         # the same scheme but for the weight of the centre of u(N): far below the method's error
         assert row["max_difference_of_final_W"] < 1e-10 * row["max_abs_W"]
         assert row["spectrum_change_ours"] < 1e-12 * row["max_abs_W"]  # isospectral
@@ -384,6 +386,14 @@ def check_euler_sphere(summary: dict) -> None:
             limit = 1e-10 if "tight" in name else 1e-8
             assert q["max_difference_of_final_W_from_numpy"] < limit * row["max_abs_W"]
     assert math.isfinite(summary["slopes"]["ours"]) and math.isfinite(summary["slopes"]["numpy"])
+
+
+def check_complex_products(summary: dict) -> None:
+    for row in summary["results"]:
+        for m, t in row["timings"].items():
+            _check_timed(t, ("per_call_s",), m)
+        # the complex product, its four real products and the real form: one product
+        assert row["max_difference_between_forms"] < 1e-12 * row["N"]
 
 
 def check_native(summary):
@@ -413,6 +423,7 @@ CHECKS = {
     "defaults": check_defaults,
     "sweep_scaling": check_sweep_scaling,
     "euler_sphere": check_euler_sphere,
+    "complex_products": check_complex_products,
     "native": check_native,
 }
 

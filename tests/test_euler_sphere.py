@@ -115,6 +115,26 @@ def test_quantisation_round_trip_and_field_against_scipy():
     assert np.max(np.abs(models.euler_sphere_field(W, theta, phi) - reference)) < 1e-12
 
 
+def test_quantisation_is_the_sum_over_the_basis_beyond_one_block_of_diagonals():
+    """Past one batched product (`DIAGONALS_PER_PRODUCT` diagonals): W = −i Σ c_lm T_lm with
+    the T_lm written out entry by entry from `euler_sphere_basis` (T_l,−m = (−1)^m T_lmᴴ), and
+    the coefficients back from W, to round-off."""
+    from clebsch_jax.models._euler_sphere_quantisation import DIAGONALS_PER_PRODUCT
+
+    Nb = 2 * DIAGONALS_PER_PRODUCT + 3
+    c = random_coefficients(Nb, 7)
+    bases = models.euler_sphere_basis(Nb)
+    H = np.zeros((Nb, Nb), complex)
+    for m, V in enumerate(bases):
+        for l in range(m, Nb):
+            T = np.zeros((Nb, Nb))
+            T[np.arange(Nb - m), np.arange(m, Nb)] = np.sqrt(Nb / (4 * np.pi)) * V[:, l - m]
+            H += c[l, m] * T if m == 0 else c[l, m] * T + np.conj(c[l, m]) * T.T
+    W = np.asarray(models.euler_sphere_quantise(c))
+    assert np.max(np.abs(W - (-1j * H))) < 1e-13 * np.max(np.abs(H))
+    assert np.max(np.abs(np.asarray(models.euler_sphere_coefficients(W)) - c)) < 1e-13 * np.max(np.abs(c))
+
+
 def test_commutator_quantises_the_poisson_bracket():
     """(1/ħ)[Ŵ(z), Ŵ(x)] = Ŵ({z, x}) = Ŵ(y) with {f, g} = n·(∇f × ∇g): the model's
     Ẇ = [P, W]/ħ is Euler's ω̇ = {ψ, ω} (exact for degree 1, the spin matrices)."""
@@ -148,6 +168,25 @@ def test_engine_closure_check_reduces_without_a_basis():
     # the Legendre map inverts: momentum of ξ0 is the real form of W
     mu0 = jax.grad(system.lagrangian)(xi0)
     assert np.max(np.abs(mu0 - models.euler_sphere_real_form(W))) < 1e-13
+
+
+def test_lagrangian_gradient_is_the_symmetric_operator_and_agrees_with_autodiff():
+    """l's derivative is stated (∇l = ħKξ, K symmetric): it agrees to round-off with reverse
+    mode through the quadratic form ½ħ⟨ξ, Kξ⟩ written out here, and its Hessian (forward over
+    reverse, as the model checks and Newton form it) with that of the quadratic form."""
+    from clebsch_jax.models._euler_sphere import _apply_K
+
+    Ns = 3
+    l = models.euler_sphere(Ns).lagrangian
+    hbar = models.euler_sphere_hbar(Ns)
+    quadratic = lambda x: 0.5 * hbar * jnp.sum(x * _apply_K(x, inverse=False))
+    xi = jnp.asarray(np.random.default_rng(3).normal(size=(2 * Ns, 2 * Ns)))
+    scale = np.max(np.abs(jax.grad(quadratic)(xi)))
+    assert np.max(np.abs(jax.grad(l)(xi) - jax.grad(quadratic)(xi))) < 1e-14 * scale
+    flat = lambda f: lambda y: f(y.reshape(xi.shape))
+    H, H_ref = jax.hessian(flat(l))(xi.ravel()), jax.hessian(flat(quadratic))(xi.ravel())
+    assert np.max(np.abs(H - H_ref)) < 1e-14 * np.max(np.abs(H_ref))
+    assert np.max(np.abs(H - H.T)) < 1e-14 * np.max(np.abs(H))
 
 
 def test_closure_check_of_the_velocity_map():
@@ -218,6 +257,27 @@ def test_casimirs_conserved_to_round_off(long_run):
     # the spectrum itself (all Casimirs)
     spectra = np.linalg.eigvalsh(1j * Ws)
     assert np.max(np.abs(spectra - spectra[0])) < 1e-12 * np.max(np.abs(spectra[0]))
+
+
+def test_default_sweeps_are_tested_after_each_and_solve_the_same_steps(long_run):
+    """The default sweeps (`MATRIX_FREE_SWEEPS`: a test after every sweep) solve the same
+    steps as `FixedPoint()`'s defaults (4 untested sweeps, then tests of 2) to round-off, in
+    fewer sweeps: counts that are not all of the defaults' parity, and fewer in total."""
+    W, sol, _ = long_run
+    Q0, xi0 = models.euler_sphere_start(W)
+    n = 400
+    paired = cj.integrate(
+        models.euler_sphere(N),
+        Q0,
+        xi0,
+        dt=0.05,
+        n_steps=n,
+        method=cj.ReducedStep(root_finder=cj.FixedPoint(), reconstruct=False),
+    )
+    assert np.max(np.abs(paired.momentum - sol.momentum[: n + 1])) < 1e-13 * np.max(np.abs(sol.momentum[0]))
+    each, pairs = np.asarray(sol.stats.iterations[:n]), np.asarray(paired.stats.iterations)
+    assert np.all(pairs % 2 == 0) and np.any(each % 2 == 1)
+    assert each.sum() < pairs.sum()
 
 
 def test_energy_bounded_without_drift(long_run):

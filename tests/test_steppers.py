@@ -88,11 +88,34 @@ def test_quick_compile_is_a_fact_of_the_base_stepper():
         (lambda: cj.Composed(cj.GaussLegendre(order=4), cj.SUZUKI_4), r"^base: compose"),
         (lambda: cj.Newton(rtol=-1.0), r"^rtol: expected a finite number >= 0"),
         (lambda: cj.FixedPoint(max_iterations=0), r"^max_iterations: expected an int >= 1"),
+        (lambda: cj.FixedPoint(per_test=0), r"^per_test: expected an int >= 1"),
     ],
 )
 def test_bad_steppers_are_refused_when_built(make, match):
     with pytest.raises((ValueError, TypeError), match=match):
         make()
+
+
+DOTTIE = 0.739085133215160641655312087673873404  # the root of z = cos z (Dottie's number)
+
+
+@pytest.mark.parametrize("untested, per_test", [(4, 2), (0, 1), (1, 3)])
+def test_fixed_point_sweeps_stop_at_the_first_test_at_round_off(untested, per_test):
+    """`FixedPoint(untested, per_test)` on z = cos z (contraction factor sin z* = 0.67): the
+    root to round-off against its known value, with the sweeps counted as the options say (the
+    untested ones, then whole tests of `per_test` sweeps), and testing after each sweep stops
+    no later than any other interval does."""
+    z0 = jnp.full(3, 1.0)
+    finder = cj.FixedPoint(untested=untested, per_test=per_test)
+    z, stats = finder.solve(jnp.cos, z0)
+    assert stats.status == cj.Status.SUCCESS
+    # stopped at an update η ≤ 8ε (round-off): the error left is θ/(1 − θ)·η, θ = sin z* the
+    # contraction per sweep, plus the rounding of cos itself
+    theta = np.sin(DOTTIE)
+    assert np.max(np.abs(np.asarray(z) - DOTTIE)) < (theta / (1 - theta) * 8 + 2) * np.finfo(float).eps
+    assert (int(stats.iterations) - untested) % per_test == 0
+    _, each = cj.FixedPoint(untested=0, per_test=1).solve(jnp.cos, z0)
+    assert int(each.iterations) <= int(stats.iterations)
 
 
 def test_a_method_that_cannot_run_the_system_is_refused_before_compiling():

@@ -75,14 +75,9 @@ __all__ = [
     "euler_sphere_complex_form",
     "euler_sphere_start",
     "euler_sphere_vorticity",
-    "euler_sphere_quantise",
-    "euler_sphere_coefficients",
-    "euler_sphere_field",
-    "euler_sphere_basis",
     "euler_sphere_casimirs",
     "euler_sphere_energy",
     "euler_sphere_angular_momentum",
-    "euler_sphere_orthographic",
 ]
 
 
@@ -92,14 +87,14 @@ def euler_sphere_hbar(N: int) -> float:
     return 2.0 / np.sqrt(N * N - 1.0)
 
 
-def _check_N(N) -> int:
+def check_N(N) -> int:
     if isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2:
         raise ValueError(f"N: expected an integer matrix size N >= 2, got {N!r}.")
     return int(N)
 
 
 @functools.lru_cache(maxsize=16)
-def _laplacian_data(N: int):
+def laplacian_data(N: int):
     r"""NumPy constants of $\Delta_N$ for size N: the coefficients of its entrywise form, its
     tridiagonal matrices along the diagonals 1..N−1 (skewed: row k holds diagonal k, padded with
     identity rows) and the eigen-decomposition of its (singular) matrix on diagonal 0."""
@@ -152,7 +147,7 @@ def _neg_laplacian_hat(M):
     r"""$-\hat\Delta_N M = -\Delta_N M + \kappa\tfrac{\mathrm{tr}\,M}{N}I$ for real (..., N, N) M (the real
     and imaginary parts of a complex matrix separately: $\Delta_N$ has real coefficients)."""
     N = M.shape[-1]
-    D = _laplacian_data(N)
+    D = laplacian_data(N)
     Mp = jnp.pad(M, [(0, 0)] * (M.ndim - 2) + [(0, 1), (0, 1)])
     Mm = jnp.pad(M, [(0, 0)] * (M.ndim - 2) + [(1, 0), (1, 0)])
     lap = D["centre"] * M + D["up"] * Mp[..., 1:, 1:] + D["down"] * Mm[..., :-1, :-1]
@@ -165,7 +160,7 @@ def _neg_laplacian_hat_inverse(M):
     solved along each diagonal (N − 1 tridiagonal systems each, batched), diagonal 0 in its
     eigenbasis (where $\Delta_N$ is singular); O(N²) work per matrix."""
     N = M.shape[-1]
-    D = _laplacian_data(N)
+    D = laplacian_data(N)
     both = jnp.stack([M, jnp.swapaxes(M, -1, -2)], axis=-3)  # (..., 2, N, N)
     skewed = jnp.where(D["valid"], both[..., D["rows"], D["cols"]], 0.0)  # row k: diagonal k
     sol = _thomas(D, -skewed[..., 1:, :])
@@ -179,7 +174,7 @@ def _neg_laplacian_hat_inverse(M):
 
 def _thomas(D, rhs):
     r"""Solve $\Delta_N$'s tridiagonal systems of diagonals 1..N−1 for `rhs` (..., N − 1, N)
-    (row k: diagonal k), with the constant factors of `_laplacian_data`: a forward and a
+    (row k: diagonal k), with the constant factors of `laplacian_data`: a forward and a
     backward substitution, each one scan over the N entries of every diagonal at once."""
     along = jnp.moveaxis(rhs, -1, 0)  # (N, ..., N − 1): entry i of every diagonal
     factors = {name: jnp.asarray(D[name].T, rhs.dtype) for name in ("pivot", "upper", "lower")}
@@ -307,7 +302,25 @@ class _Lagrangian(_Operator):
     r"""$l(\xi) = \tfrac\hbar2\langle\xi, K\xi\rangle$ (see the module docstring)."""
 
     def __call__(self, xi):
-        return 0.5 * euler_sphere_hbar(self.N) * jnp.sum(xi * _apply_K(xi, inverse=False))
+        return _kinetic(xi)
+
+
+@jax.custom_jvp
+def _kinetic(xi):
+    r"""$\tfrac\hbar2\langle\xi, K\xi\rangle$, with its derivative $\langle\hbar K\xi, \dot\xi\rangle$
+    stated (`_kinetic_jvp`): K is symmetric (an orthogonal projection onto $R(\mathfrak u(N))$,
+    $-\hat\Delta_N$ on it and κ on its complement), so $\nabla l = \hbar K\xi$ is one
+    application of K, where reverse mode through the quadratic form would apply K and its
+    transpose (the pads and slices of the Laplacian transposed) and average them."""
+    return 0.5 * euler_sphere_hbar(xi.shape[-1] // 2) * jnp.sum(xi * _apply_K(xi, inverse=False))
+
+
+@_kinetic.defjvp
+def _kinetic_jvp(primals, tangents):
+    (xi,), (xi_dot,) = primals, tangents
+    hbar = euler_sphere_hbar(xi.shape[-1] // 2)
+    K_xi = _apply_K(xi, inverse=False)
+    return 0.5 * hbar * jnp.sum(xi * K_xi), hbar * jnp.sum(K_xi * xi_dot)
 
 
 class _InverseLegendre(_Operator):
@@ -338,7 +351,7 @@ def euler_sphere(N: int, derivative_map: DerivativeMap = cayley) -> ClebschSyste
 
     Start from `euler_sphere_start(W)`, with W from `euler_sphere_quantise`.
     """
-    N = _check_N(N)
+    N = check_N(N)
     return ClebschSystem(
         lagrangian=_Lagrangian(N),
         velocity_map=_right_multiplication,
@@ -355,7 +368,7 @@ def euler_sphere_start(W):
     if W.ndim != 2 or W.shape[0] != W.shape[1]:
         raise ValueError(f"W: expected a square N x N vorticity matrix, got shape {W.shape}.")
     N = W.shape[0]
-    _check_N(N)
+    check_N(N)
     return _start(W.astype(jnp.complex128))
 
 
@@ -413,155 +426,3 @@ def _spin_matrices(N: int):
     m = s - np.arange(N)
     Jp = np.diag(np.sqrt(np.maximum(s * (s + 1) - m[1:] * (m[1:] + 1), 0.0)), 1)
     return 0.5 * (Jp + Jp.T), (Jp - Jp.T) / 2j, np.diag(m)
-
-
-# --- quantisation: spherical harmonics <-> the Hoppe basis T_lm -------------------------------
-
-
-@functools.lru_cache(maxsize=8)
-def euler_sphere_basis(N: int) -> tuple:
-    r"""The Hoppe basis of $\mathfrak{gl}(N, \mathbb C)$: a tuple whose entry m (0 ≤ m < N) is the
-    real (N − m, N − m) array $V_m$ whose column l − m holds the entries of $T_{lm}$ along the
-    m-th upper diagonal ($T_{lm}[i, i+m] = \sqrt{N/4\pi}\,V_m[i, l-m]$), for l = m, …, N − 1.
-
-    The $T_{lm}$ are the eigenvectors of $\Delta_N$ (eigenvalue $-l(l+1)$) on each diagonal,
-    normalised as the spherical harmonics, $\langle T_{lm}, T_{l'm'}\rangle = \tfrac{N}{4\pi}
-    \delta_{ll'}\delta_{mm'}$ (so $\hat 1 = I$ and $\tfrac{4\pi}N\mathrm{tr}$ quantises
-    $\int_{S^2}$), with the phases of $Y_{lm}$ (Condon–Shortley): $T_{l0}$ positive at the north
-    pole (entry (0, 0)) and $[J_-, T_{lm}] = \sqrt{(l+m)(l-m+1)}\,T_{l,m-1}$. Negative orders:
-    $T_{l,-m} = (-1)^mT_{lm}^H$. Computed once per N in NumPy (eigen-decompositions of the
-    N tridiagonal matrices, O(N⁴) flops)."""
-    N = _check_N(N)
-    D = _laplacian_data(N)
-    s = 0.5 * (N - 1)
-    c = np.sqrt(np.maximum(s * (s + 1) - (s - np.arange(N)) * (s - np.arange(N) + 1), 0.0))
-    bases, previous = [], None
-    for m in range(N):
-        n = N - m
-        T = np.diag(D["d"][m, :n]) + np.diag(D["du"][m, : n - 1], 1) + np.diag(D["du"][m, : n - 1], -1)
-        _, V = np.linalg.eigh(-T)  # l(l+1) ascending: l = m, ..., N-1
-        if m == 0:
-            V = V * np.sign(V[0])
-        else:
-            # [J-, T] on diagonal m-1 at row i: c_i t_{i-1} - t_i c_{i+m}
-            t = np.vstack([np.zeros((1, n)), V, np.zeros((1, n))])  # t[i + 1] = t_i
-            rows = np.arange(n + 1)
-            lowered = c[rows][:, None] * t[rows] - t[rows + 1] * np.append(c, 0.0)[np.minimum(rows + m, N)][:, None]
-            V = V * np.sign(np.sum(lowered * previous[:, 1:], axis=0))
-        bases.append(V)
-        previous = V
-    return tuple(bases)
-
-
-def _check_coefficients(coeffs):
-    coeffs = np.asarray(coeffs) if not isinstance(coeffs, jax.Array) else coeffs
-    if coeffs.ndim != 2 or coeffs.shape[0] != coeffs.shape[1]:
-        raise ValueError(f"coeffs: expected an (N, N) array c[l, m] (0 <= m <= l < N), got shape {coeffs.shape}.")
-    return coeffs
-
-
-def euler_sphere_quantise(coeffs):
-    r"""The vorticity matrix $W = -i\hat\omega$ of the real field
-    $\omega = \sum_l \big[c_{l0}Y_{l0} + 2\,\mathrm{Re}\sum_{m>0} c_{lm}Y_{lm}\big]$ (orthonormal
-    complex spherical harmonics with the Condon–Shortley phase), $\hat\omega = \sum c_{lm}T_{lm}$
-    over $|m| \le l < N$ with $c_{l,-m} = (-1)^m\bar c_{lm}$.
-
-    **Arguments:** `coeffs`, complex (N, N): `coeffs[l, m]` for 0 ≤ m ≤ l (entries with m > l
-    are ignored; the imaginary part of `coeffs[:, 0]` too, the field being real).
-    **Returns:** W, complex (N, N), skew-Hermitian."""
-    return _quantise(_check_coefficients(coeffs))
-
-
-@jax.jit
-def _quantise(coeffs):
-    N = coeffs.shape[0]
-    bases = euler_sphere_basis(N)
-    scale = np.sqrt(N / (4 * np.pi))
-    coeffs = jnp.asarray(coeffs, jnp.complex128)
-    H = jnp.zeros((N, N), jnp.complex128)
-    for m, V in enumerate(bases):
-        u = scale * (jnp.asarray(V) @ coeffs[m:, m])  # entries of Σ_l c_lm T_lm on diagonal m
-        if m == 0:
-            H = H + jnp.diag(jnp.real(u))
-        else:
-            H = H + jnp.diag(u, m) + jnp.diag(jnp.conj(u), -m)
-    return -1j * H
-
-
-def euler_sphere_coefficients(W):
-    r"""The inverse of `euler_sphere_quantise`: `coeffs[l, m]` (complex (N, N), zero for m > l)
-    of the field whose vorticity matrix is W, $c_{lm} = \tfrac{4\pi}{N}\langle T_{lm},
-    \hat\omega\rangle$, $\hat\omega = iW$ (W skew-Hermitian, complex (N, N))."""
-    W = jnp.asarray(W)
-    if W.ndim != 2 or W.shape[0] != W.shape[1]:
-        raise ValueError(f"W: expected a square N x N vorticity matrix, got shape {W.shape}.")
-    return _coefficients(W)
-
-
-@jax.jit
-def _coefficients(W):
-    N = W.shape[0]
-    H = 1j * W
-    scale = np.sqrt(4 * np.pi / N)
-    rows = []
-    for m, V in enumerate(euler_sphere_basis(N)):
-        col = scale * (jnp.asarray(V).T @ jnp.diagonal(H, m))  # l = m, ..., N-1
-        rows.append(jnp.concatenate([jnp.zeros(m, col.dtype), col]))
-    return jnp.stack(rows, axis=1)
-
-
-def _legendre(lmax: int, x: np.ndarray) -> np.ndarray:
-    r"""$\bar P_{lm}(x)$, (lmax+1, lmax+1, len(x)): the associated Legendre functions normalised
-    so that $Y_{lm}(\theta, \phi) = \bar P_{lm}(\cos\theta)e^{im\phi}$ is orthonormal on the sphere,
-    with the Condon–Shortley phase (the standard stable recursion in l at fixed m)."""
-    x = np.asarray(x, float)
-    sin = np.sqrt(np.maximum(1.0 - x * x, 0.0))
-    P = np.zeros((lmax + 1, lmax + 1) + x.shape)
-    P[0, 0] = np.sqrt(1.0 / (4 * np.pi))
-    for m in range(1, lmax + 1):
-        P[m, m] = -np.sqrt((2 * m + 1) / (2.0 * m)) * sin * P[m - 1, m - 1]
-    for m in range(lmax):
-        P[m + 1, m] = np.sqrt(2 * m + 3.0) * x * P[m, m]
-        for l in range(m + 2, lmax + 1):
-            a = np.sqrt((4.0 * l * l - 1) / (l * l - m * m))
-            b = np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1) ** 2 - 1))
-            P[l, m] = a * (x * P[l - 1, m] - b * P[l - 2, m])
-    return P
-
-
-def euler_sphere_field(W, theta, phi) -> np.ndarray:
-    r"""The field ω of the vorticity matrix W at colatitudes `theta` and longitudes `phi`
-    (1-D arrays, radians): $\omega(\theta_a, \phi_b)$ from its spherical-harmonic coefficients
-    (`euler_sphere_coefficients`), for plots. NumPy (concrete W). **Returns:** (len(theta),
-    len(phi)) real array."""
-    c = np.asarray(euler_sphere_coefficients(W))
-    N = c.shape[0]
-    P = _legendre(N - 1, np.cos(np.asarray(theta, float)))  # (l, m, θ)
-    g = np.einsum("lm,lmt->mt", c, P)  # Σ_l c_lm P_lm(cos θ), per m
-    phase = np.exp(1j * np.outer(np.arange(N), np.asarray(phi, float)))  # (m, φ)
-    weight = np.where(np.arange(N) == 0, 1.0, 2.0)[:, None]
-    return np.real(np.einsum("mt,mp->tp", weight * g, phase))
-
-
-def euler_sphere_orthographic(
-    W, *, colatitude: float = 0.9, longitude: float = 0.4, resolution: int = 181, grid: int = 181
-) -> np.ndarray:
-    r"""The field of W on the hemisphere seen from the direction (`colatitude`, `longitude`)
-    (radians), in orthographic projection: a (resolution, resolution) image over the square
-    $[-1, 1]^2$ (x to the right, y up; NaN outside the disc), for `imshow(..., origin="lower",
-    extent=(-1, 1, -1, 1))`. The field is evaluated on a `grid` × 2`grid` grid in (θ, φ)
-    (`euler_sphere_field`) and read at the nearest grid point. NumPy (concrete W)."""
-    x, y = np.meshgrid(np.linspace(-1, 1, resolution), np.linspace(-1, 1, resolution))
-    z = np.sqrt(np.clip(1 - x**2 - y**2, 0, None))
-    out = np.array([np.sin(colatitude) * np.cos(longitude), np.sin(colatitude) * np.sin(longitude), np.cos(colatitude)])
-    right = np.array([-np.sin(longitude), np.cos(longitude), 0.0])
-    up = np.cross(out, right)
-    p = x[..., None] * right + y[..., None] * up + z[..., None] * out
-    theta, phi = np.arccos(np.clip(p[..., 2], -1, 1)), np.arctan2(p[..., 1], p[..., 0])
-    n_theta, n_phi = grid, 2 * grid - 1
-    f = euler_sphere_field(W, np.linspace(0, np.pi, n_theta), np.linspace(-np.pi, np.pi, n_phi))
-    values = f[
-        np.rint(theta / np.pi * (n_theta - 1)).astype(int),
-        np.rint((phi + np.pi) / (2 * np.pi) * (n_phi - 1)).astype(int),
-    ]
-    return np.where(x**2 + y**2 <= 1, values, np.nan)

@@ -15,7 +15,7 @@ from .newton import converged as is_converged
 from .newton import tolerance
 from .status import NewtonStats, Status
 
-__all__ = ["fixed_point_solve", "STALLED", "SWEEPS_PER_TEST"]
+__all__ = ["fixed_point_solve", "STALLED", "SWEEPS_PER_TEST", "stall_pairs"]
 
 
 STALLED = ((0.5, 1e2), (0.9, 1e4))
@@ -25,23 +25,45 @@ but further out (up to 10⁴ε) only θ ≥ 0.9. Near its limit a sweep contract
 1/2 over a test of two sweeps: a large step of a high order), and Newton's rule would stop it
 at updates far above round-off, which quadratic invariants then show as drift. The sweeps of
 a degenerate system stall a little above round-off (the step divides by h), where θ ≥ 1/2
-still stops them. The history of these choices is in `benchmarks/README.md`."""
+still stops them. The history of these choices is in `benchmarks/README.md`.
+
+The ratios θ are those of a test of `SWEEPS_PER_TEST` sweeps; a test of `per_test` sweeps
+compares its θ with $\theta_0^{\,\texttt{per\_test}/\texttt{SWEEPS\_PER\_TEST}}$, the same
+contraction per sweep (`stall_pairs`)."""
 
 SWEEPS_PER_TEST = 2
-"""Sweeps of `fixed_point_solve` between two convergence tests. Two: the updates of a Gauss
-sweep alternate in size, so pairs of sweeps contract steadily, and a test costs about as much
-as a sweep on the CPU (see `benchmarks/README.md` for the runs behind this choice)."""
+"""Sweeps of `fixed_point_solve` between two convergence tests, by default (`per_test`). Two:
+the updates of a Gauss sweep alternate in size, so pairs of sweeps contract steadily, and a
+test costs about as much as a sweep on the CPU (see `benchmarks/README.md` for the runs behind
+this choice). A sweep that costs far more than a test (matrix products of n² unknowns, against
+one reduction over them) is better tested after every sweep: `per_test=1`."""
+
+
+def stall_pairs(per_test: int) -> tuple:
+    """`STALLED` for tests of `per_test` sweeps: each θ₀ raised to per_test / SWEEPS_PER_TEST
+    (the same pairs at the default interval)."""
+    if per_test == SWEEPS_PER_TEST:
+        return STALLED
+    return tuple((theta ** (per_test / SWEEPS_PER_TEST), m) for theta, m in STALLED)
 
 
 def fixed_point_solve(
-    G: Callable, guess, *, rtol: float, atol: float, max_iterations: int, size=None, untested: int = 0
+    G: Callable,
+    guess,
+    *,
+    rtol: float,
+    atol: float,
+    max_iterations: int,
+    size=None,
+    untested: int = 0,
+    per_test: int = SWEEPS_PER_TEST,
 ):
     r"""Solve $z = G(z)$ for a pytree z by the iteration $z \leftarrow G(z)$ (sweeps), for a
     contraction G with a good guess (a Gauss–Legendre step, `clebsch_jax.discrete.collocation`).
 
     Runs `untested` sweeps (a static count), then tests convergence after every
-    `SWEEPS_PER_TEST` sweeps, on the size η of the last update, by `_converged` with the
-    previous test's η and the stall rule `STALLED` (with `rtol = atol = 0`: at round-off). Sizes are judged against `size`,
+    `per_test` sweeps (default `SWEEPS_PER_TEST`), on the size η of the last update, by `_converged` with the
+    previous test's η and the stall rule `STALLED` (per sweep: `stall_pairs`) (with `rtol = atol = 0`: at round-off). Sizes are judged against `size`,
     the magnitude of the values the iterate is part of or added to (default: max|guess|),
     fixed for the solve: its round-off floor is 8ε·max(1, size) and a positive rtol is
     relative to it. Fails with `Status.DIVERGED` when, from the third test on, η grew since the
@@ -58,7 +80,9 @@ def fixed_point_solve(
     bookkeeping of a batched loop), so there is one reduction per test and none for the size.
     **Returns:** `(z, NewtonStats)`."""
     flat0, unravel = ravel_pytree(guess)
-    untested = max(0, min(int(untested), max_iterations - SWEEPS_PER_TEST))
+    per_test = int(per_test)
+    stalled = stall_pairs(per_test)
+    untested = max(0, min(int(untested), max_iterations - per_test))
 
     def F_flat(x):
         return x - ravel_pytree(G(unravel(x)))[0]
@@ -76,13 +100,13 @@ def fixed_point_solve(
         def body(state):
             k, z, previous, _, _ = state  # k: sweeps since the untested ones
             z_mid = z
-            for _ in range(SWEEPS_PER_TEST - 1):
+            for _ in range(per_test - 1):
                 z_mid = g(z_mid)
             z_new = g(z_mid)
             eta = jnp.max(jnp.abs(z_new - z_mid))
             nonfinite = ~jnp.isfinite(eta)  # a NaN or inf in z_new makes η one
-            converged = ~nonfinite & is_converged(eta, previous, k, tol, z_new, zmax, stalled=STALLED)
-            diverged = (k >= 2 * SWEEPS_PER_TEST) & (eta > previous) & (eta > 1e4 * jnp.finfo(z.dtype).eps * scale)
+            converged = ~nonfinite & is_converged(eta, previous, k, tol, z_new, zmax, stalled=stalled)
+            diverged = (k >= 2 * per_test) & (eta > previous) & (eta > 1e4 * jnp.finfo(z.dtype).eps * scale)
             # sweeps that overflow from a finite start did not contract: DIVERGED too
             status = jnp.where(
                 nonfinite & ~start_finite,
@@ -90,7 +114,7 @@ def fixed_point_solve(
                 jnp.where((diverged & ~converged) | nonfinite, Status.DIVERGED, Status.SUCCESS),
             ).astype(jnp.int32)
             done = converged | nonfinite | diverged
-            return k + SWEEPS_PER_TEST, jnp.where(nonfinite, z, z_new), eta, done, status
+            return k + per_test, jnp.where(nonfinite, z, z_new), eta, done, status
 
         x0 = jax.lax.fori_loop(0, untested, lambda _, x: g(x), x0)
         init = (

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 
 from ..core.validation import nonnegative, positive_int
 from .blocks import block_newton_solve, block_newton_solve_reusing, identity_blocks
-from .fixed_point import fixed_point_solve
+from .fixed_point import SWEEPS_PER_TEST, fixed_point_solve
 import jax
 
 from .newton import fixed_newton_solve, newton_solve, newton_solve_reusing
@@ -169,18 +169,24 @@ class FixedPoint:
       where a Newton update gains many).
     - `untested`: sweeps before the first convergence test (default 4: a test costs about as
       much as a sweep, and a well-predicted step needs more than that).
+    - `per_test`: sweeps between two convergence tests (default `SWEEPS_PER_TEST`, 2). Sweeps
+      that cost far more than a test (matrix products over n² unknowns) are tested after
+      each one, `per_test=1`, with `untested=0`: a well-predicted solve then stops at the
+      first sweep that reaches its tolerance, not at the next multiple of the test interval.
     """
 
     rtol: float = 0.0
     atol: float = 0.0
     max_iterations: int = 100
     untested: int = 4
+    per_test: int = SWEEPS_PER_TEST
 
     def __post_init__(self):
         object.__setattr__(self, "rtol", nonnegative(self.rtol, "rtol"))
         object.__setattr__(self, "atol", nonnegative(self.atol, "atol"))
         object.__setattr__(self, "max_iterations", positive_int(self.max_iterations, "max_iterations"))
         object.__setattr__(self, "untested", positive_int(self.untested, "untested", minimum=0))
+        object.__setattr__(self, "per_test", positive_int(self.per_test, "per_test"))
 
     def solve(self, G, guess, size=None):
         """Solve z = G(z) from `guess`, sizes judged against `size`. **Returns:** `(z, NewtonStats)`."""
@@ -192,4 +198,5 @@ class FixedPoint:
             max_iterations=self.max_iterations,
             size=size,
             untested=self.untested,
+            per_test=self.per_test,
         )

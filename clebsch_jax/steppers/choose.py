@@ -15,7 +15,8 @@ The rules, in order:
    The reduced march of a system that gives its inverse Legendre map
    (`ClebschSystem(inverse_legendre=...)`) with more than `DENSE_NEWTON_MAX` unknowns solves
    by matrix-free sweeps preconditioned with it (`FixedPoint`) instead: a dense Jacobian of
-   dim V = n² unknowns (the Euler–Zeitlin fluid) costs n⁶.
+   dim V = n² unknowns (the Euler–Zeitlin fluid) costs n⁶. Those sweeps are tested after
+   each one (`MATRIX_FREE_SWEEPS`).
 3. The reduced march (`ReducedStep`) runs when `reduce=True`, or with `reduce="auto"` when the
    caller does not need the multipliers and the velocity map is right multiplication on a
    matrix group with a Definition 25 derivative map (`find_reduction`); else `FullStep`.
@@ -42,6 +43,7 @@ from .reduced import ReducedStep
 
 __all__ = [
     "DENSE_NEWTON_MAX",
+    "MATRIX_FREE_SWEEPS",
     "default_scheme",
     "default_method",
     "choose_method",
@@ -52,6 +54,13 @@ __all__ = [
 DENSE_NEWTON_MAX = 64
 """Above this many unknowns per step, the reduced march of a system with an inverse Legendre map
 solves by sweeps (rule 2): forming and factorising a dense Jacobian costs more than the sweeps."""
+
+MATRIX_FREE_SWEEPS = {"untested": 0, "per_test": 1}
+"""The `FixedPoint` options of rule 2's matrix-free sweeps: a convergence test after every
+sweep, from the first. Such a sweep costs matrix products over its unknowns (O(n³) for n²
+unknowns) where a test is one reduction over them (O(n²)), and the reduced step's guess (the
+predictor's extrapolation of earlier steps) is good enough that a few sweeps reach round-off:
+the defaults' untested sweeps and pairs of sweeps per test would only add sweeps."""
 
 COMPOSITION_ORDERS = (2, 4, 6, 8)
 """The orders `integrate(..., order=k)` reaches by composing a principle."""
@@ -178,7 +187,10 @@ def choose_method(
         reduced_finder = newton
         if system.inverse_legendre is not None and _size(xi0) > DENSE_NEWTON_MAX and jacobian == "dense":
             reduced_finder = FixedPoint(
-                rtol=rtol, atol=atol, max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations
+                rtol=rtol,
+                atol=atol,
+                max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations,
+                **MATRIX_FREE_SWEEPS,
             )
         reduced = ReducedStep(
             principle=principle, root_finder=reduced_finder, reconstruct=bool(reconstruct), need_P=bool(need_P)
