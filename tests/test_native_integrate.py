@@ -32,8 +32,8 @@ INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
 XI0 = jnp.array([1.3, 0.8, -0.4])
 TOP = models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5)
 TOP_Q0, TOP_XI0 = cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0])), jnp.array([0.3, -0.2, 2.0])
-GAMMA = jnp.array([1.0, -1.0, 1.0, -1.0])
-VORTEX_Q0 = jnp.array([[0.0, 1.0], [0.0, -1.0], [0.0, 0.5], [0.0, -0.5]])
+GAMMA = jnp.array([1.0, 0.5])  # two vortices: a small full step (the compile is what costs)
+VORTEX_Q0 = jnp.array([[0.0, 1.0], [0.0, -1.0]])
 
 
 def _both(*args, **options):
@@ -108,12 +108,14 @@ def test_point_vortices_full_midpoint_step_matches_xla():
     _same_solution(fast, xla)
 
 
+@pytest.mark.slow  # the Gauss-Legendre step compiled on both backends; CI runs it
 def test_gauss_legendre_matches_xla():
     fast, xla = _both(models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.1, n_steps=60, scheme="gauss", order=4)
     assert fast.scheme == "gauss"
     _same_solution(fast, xla)
 
 
+@pytest.mark.slow  # a Gauss-Legendre step compiled on both backends; the energy check's failure is in the default run
 def test_a_solve_that_fails_mid_run_fails_at_the_same_step():
     """Gauss–Legendre order 4 near its stage iteration's limit (tests/test_sweep_agreement.py's
     scene, member 7): the stage iteration does not converge at step 5 on either backend; the
@@ -167,29 +169,36 @@ def test_continuation_equals_the_unbroken_native_run():
 
 def test_under_jit_integrate_runs_xla_and_says_so_once(monkeypatch):
     monkeypatch.setattr(native, "_WARNED", set())
-    run = jax.jit(lambda xi0: cj.integrate(TOP, TOP_Q0, xi0, dt=0.05, n_steps=5).Q[-1])
+    body = models.rigid_body(INERTIA)
+    march = lambda xi0, backend="auto": cj.integrate(body, jnp.eye(3), xi0, dt=0.1, n_steps=5, backend=backend)
     with pytest.warns(NativeFallbackWarning, match="integrate's march with XLA.*traced"):
-        inside = run(TOP_XI0)
-    np.testing.assert_allclose(inside, cj.integrate(TOP, TOP_Q0, TOP_XI0, dt=0.05, n_steps=5).Q[-1], rtol=0, atol=1e-13)
+        inside = jax.jit(lambda xi0: march(xi0).Q[-1])(XI0)
+    np.testing.assert_allclose(inside, march(XI0).Q[-1], rtol=0, atol=1e-13)
     with warnings.catch_warnings():
         warnings.simplefilter("error", NativeFallbackWarning)  # said once
-        jax.jit(lambda xi0: cj.integrate(TOP, TOP_Q0, xi0, dt=0.05, n_steps=6).Q[-1])(TOP_XI0)
+        jax.jit(lambda xi0: march(xi0).Q[-2])(XI0)  # traced again
     with pytest.raises(ValueError, match="backend='native'.*traced"):
-        jax.jit(lambda xi0: cj.integrate(TOP, TOP_Q0, xi0, dt=0.05, n_steps=5, backend="native").Q[-1])(TOP_XI0)
+        jax.jit(lambda xi0: march(xi0, "native").Q[-1])(XI0)
 
 
-def test_an_uncovered_step_runs_xla_and_names_what_is_not_covered(monkeypatch):
-    """Peakons' step holds a while loop the translation refuses: "auto" says so and runs XLA,
+def _erf_inv_potential(xi, q):
+    """A particle in a potential written with `lax.erf_inv`, a primitive the translation lacks."""
+    return 0.5 * jnp.sum(xi**2) - 0.1 * jnp.sum(jax.lax.erf_inv(0.3 * jnp.tanh(q)))
+
+
+def test_an_uncovered_step_runs_xla_and_names_the_primitive(monkeypatch):
+    """ "auto" says which primitive the translation does not cover and runs XLA's chunk;
     "native" raises with the reason."""
     monkeypatch.setattr(native, "_WARNED", set())
-    q0, p0 = jnp.array([-3.0, 0.0]), jnp.array([2.0, 1.0])
-    args = (models.peakons(1.0), q0, models.peakon_velocity(q0, p0, 1.0))
-    with pytest.warns(NativeFallbackWarning, match="while loop"):
-        auto = cj.integrate(*args, P0=p0, dt=0.1, n_steps=5)
-    xla = cj.integrate(*args, P0=p0, dt=0.1, n_steps=5, backend="xla")
-    _bitwise(auto, xla)
-    with pytest.raises(ValueError, match="backend='native'.*while loop"):
-        cj.integrate(*args, P0=p0, dt=0.1, n_steps=5, backend="native")
+    system = cj.ClebschSystem(
+        lagrangian=_erf_inv_potential, velocity_map=translation, derivative_map=cj.forward_difference
+    )
+    args = (system, jnp.array([0.5, -0.2]), jnp.array([0.1, 0.3]))
+    with pytest.warns(NativeFallbackWarning, match="does not cover the step: primitive 'erf_inv'"):
+        auto = cj.integrate(*args, dt=0.1, n_steps=5)
+    _bitwise(auto, cj.integrate(*args, dt=0.1, n_steps=5, backend="xla"))
+    with pytest.raises(ValueError, match="backend='native'.*'erf_inv'"):
+        cj.integrate(*args, dt=0.1, n_steps=5, backend="native")
 
 
 def test_without_llvmlite_integrate_runs_xla(monkeypatch):

@@ -447,7 +447,7 @@ def integrate(
         # are checked per member
         if backend != "xla":
             why = (
-                "its arguments are traced (inside jit, vmap or grad)"
+                "its arguments are traced (inside jit, vmap, grad or cj.batch)"
                 if not closes
                 else "a map closes over a traced value"
             )

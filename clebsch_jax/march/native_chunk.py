@@ -1,20 +1,21 @@
 r"""A chunk of `integrate`'s march as a native loop kernel (`clebsch_jax.native.compile_loop`).
 
-`run_chunk` on XLA is a `lax.while_loop` of the step (`advance_step`) writing each step's
-record, then the nodes, the nodal velocities and the energies of the chunk's nodes
-(`finish_chunk`), vectorised over the nodes. Here the loop of steps is one call of a native
-kernel: the jaxpr of `advance_step` for one member, compiled with LLVM, run `steps` times with
-the carry in registers, each step's record written to the chunk's arrays. XLA's CPU runtime
-charges each operation of the step's loop body microseconds, whatever its size; a kernel's
-step costs its arithmetic. What follows the steps (`finish_chunk`) is the XLA program's own
-code, compiled once per stepper and shapes: it runs once per chunk, on arrays of the chunk's
-nodes, where XLA's cost per operation is shared by all of them.
+On XLA a chunk (`run_chunk`) is a `lax.while_loop` of the step (`advance_step`) writing each
+step's record, then the nodes, their nodal velocities and energies, vectorised over the chunk's
+nodes; XLA's CPU runtime charges each operation of the loop's body microseconds, whatever its
+size. Here the whole chunk is one call of a kernel compiled with LLVM from one iteration's
+jaxpr (`_stream_body`): the step, and the node it leaves — its configuration and momentum
+(`stepper.nodes`), its nodal velocity from the seed `run_chunk` gives it (`nodal_velocity`), its
+energy — with the carry in registers and every iteration's records stored to the chunk's
+arrays. One more iteration, which makes no step, gives the chunk's last node. The host lays the
+records out as `run_chunk` does (`native_run_chunk`): the steps not made zero, the nodes past the
+last one holding its state, their solves skipped.
 
-The chunk program (`native_run_chunk`) has `run_chunk`'s signature and results, so
-`march_chunked` and its first-step check (`first_step_probe`) run it in place of the XLA
-chunk: the same steps, statuses, Newton statistics and failure handling, the same records;
-the values differ from XLA's only where XLA's own transcendental functions or contractions
-round differently from libm's (the tests compare them to 1e-12).
+`native_run_chunk` has `run_chunk`'s signature and results, so `march_chunked` and its
+first-step check (`first_step_probe`) run it in place of the XLA chunk: the same steps, statuses,
+Newton statistics and failure handling; the values differ from XLA's only where XLA's own
+transcendental functions or contractions round differently from libm's (the tests compare them
+to 1e-12).
 
 A single trajectory is one member: the kernel is compiled with one lane (`LANES`).
 """
