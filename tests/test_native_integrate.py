@@ -214,3 +214,32 @@ def test_without_llvmlite_integrate_runs_xla(monkeypatch):
 def test_a_bad_backend_is_refused_before_compiling():
     with pytest.raises(ValueError, match="backend: expected one of"):
         cj.integrate(models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.1, n_steps=5, backend="llvm")
+
+
+@pytest.mark.parametrize("width, members", [(1, 1), (4, 5)])
+def test_a_loop_kernel_runs_its_body_and_writes_every_iteration(width, members):
+    """`native.compile_loop` against the body run in Python, step by step: the carry after
+    `steps` iterations, the records of each (booleans and stacked arrays too), zero records
+    after them; with several members in lanes of 4, one block padded."""
+
+    def body(a, c):
+        x, n, ok = c
+        y = jnp.sin(x) * a + 0.1
+        return (y, n + 1, ok & jnp.all(y < 1.5)), (y, n, ok, jnp.stack([x, y]))
+
+    c0 = (jnp.ones(3), jnp.int32(0), jnp.asarray(True))
+    loop = native.compile_loop(body, jnp.ones(3), c0, width=width)
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0.5, 1.5, (members, 3))
+    carry = (rng.uniform(size=(members, 3)), np.zeros(members, np.int32), np.ones(members, bool))
+    last, records = loop(a, carry, steps=7, capacity=10)
+    for m in range(members):
+        c, expected = tuple(x[m] for x in carry), []
+        for _ in range(7):
+            c, r = body(a[m], c)
+            expected.append(r)
+        for got, want in zip(last, c):
+            np.testing.assert_allclose(got[m], want, rtol=1e-15)
+        for k, rec in enumerate(records):
+            np.testing.assert_allclose(rec[m, :7], np.stack([r[k] for r in expected]), rtol=1e-15)
+            assert not np.any(rec[m, 7:])

@@ -155,7 +155,8 @@ class NativeLoop:
         self._in_tree = jax.tree_util.tree_structure(member_args)
         self._carry_tree = jax.tree_util.tree_structure(carry_shape)
         self._record_tree = jax.tree_util.tree_structure(record_shape)
-        shapes = lambda tree: [(np.shape(x), np.result_type(x)) for x in jax.tree_util.tree_leaves(tree)]
+        dtype = lambda x: np.dtype(x.dtype) if hasattr(x, "dtype") else np.result_type(x)
+        shapes = lambda tree: [(np.shape(x), dtype(x)) for x in jax.tree_util.tree_leaves(tree)]
         if self._carry_tree != jax.tree_util.tree_structure(member_args[-1]) or shapes(carry_shape) != shapes(
             member_args[-1]
         ):
