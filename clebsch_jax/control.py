@@ -192,7 +192,9 @@ def _scalar_output(fn, name: str, *args):
 
 
 def _shooting_terms(P0, system, Q0, target, xi0, dt, weight, *, n_steps, loss, regularize, options):
-    sol = integrate(system, Q0, xi0, P0=P0, dt=dt, n_steps=n_steps, throw=False, **options)
+    sol = integrate(
+        system, Q0, xi0, P0=P0, dt=dt, n_steps=n_steps, throw=False, backend="xla", **options
+    )  # differentiated
     data = loss(sol.Q[-1], target)
     value = data + weight * node_energy(system, Q0, sol.xi[0]) if regularize else data
     ok = sol.result == Status.SUCCESS
@@ -209,7 +211,9 @@ def _shooting_value_and_grad(P0, system, Q0, target, xi0, dt, weight, n_steps, l
 
 
 def _fit_terms(params, make_system, Q0, xi0, observations, dt, *, n_steps, observe, loss, options):
-    sol = integrate(make_system(params), Q0, xi0, dt=dt, n_steps=n_steps, throw=False, **options)
+    sol = integrate(
+        make_system(params), Q0, xi0, dt=dt, n_steps=n_steps, throw=False, backend="xla", **options
+    )  # differentiated
     predicted = observe(sol)
     if jnp.shape(predicted) != observations.shape:
         raise ValueError(

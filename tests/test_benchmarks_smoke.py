@@ -412,6 +412,15 @@ def check_native(summary):
             assert r["sweep"]["failed_members"] == 0 and r["step_over_rk4_step"]["sweep"] > 0
 
 
+def check_native_integrate(summary):
+    """The single-trajectory benchmark: both backends timed, their Solutions agree."""
+    for r in summary["results"]:
+        for b in ("native", "xla"):
+            assert _positive_finite(r[b]["per_step_s"]), b
+        assert r["max_difference_Q"] < 1e-12  # entries of rotations: round-off apart
+        assert _positive_finite(r["xla_over_native"]["median"])
+
+
 CHECKS = {
     "rigid_body_step_cost": check_rigid_body_step_cost,
     "vortex_step_cost": check_vortex_step_cost,
@@ -425,6 +434,7 @@ CHECKS = {
     "euler_sphere": check_euler_sphere,
     "complex_products": check_complex_products,
     "native": check_native,
+    "native_integrate": check_native_integrate,
 }
 
 

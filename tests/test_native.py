@@ -331,11 +331,10 @@ def test_backend_choice_and_fallback():
 def test_without_llvmlite_the_sweep_runs_xla_and_says_so_once(monkeypatch):
     """Where llvmlite cannot be imported, "auto" runs XLA and warns once, naming the reason;
     "native" is refused with it."""
-    import clebsch_jax.batching.backends as backends
     from clebsch_jax import native
 
     monkeypatch.setattr(native, "available", lambda: False)
-    monkeypatch.setattr(backends, "_WARNED", set())
+    monkeypatch.setattr(native, "_WARNED", set())
     inertias, Q0, omegas = _rigid_body_members(3)
     with pytest.warns(NativeFallbackWarning, match="llvmlite"):
         res = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, **RB)
@@ -353,10 +352,11 @@ def test_auto_leaves_a_kernel_past_its_size_budget_to_xla_and_native_compiles_it
     the two tables agree."""
     import clebsch_jax.batching.backends as backends
     import clebsch_jax.batching.choose as choose
+    from clebsch_jax import native
 
     monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
     monkeypatch.setattr(choose, "AUTO_MAX_IR_LINES", 100)
-    monkeypatch.setattr(backends, "_WARNED", set())
+    monkeypatch.setattr(native, "_WARNED", set())
     monkeypatch.setattr(backends, "_PROGRAMS", {})  # no kernel kept from an earlier test
     inertias, Q0, omegas = _rigid_body_members(3)
     with pytest.warns(NativeFallbackWarning, match=r"a kernel of \d+ lines of LLVM IR, more than the 100"):

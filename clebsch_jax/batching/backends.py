@@ -16,53 +16,16 @@ says why not) and XLA elsewhere, saying once why.
 from __future__ import annotations
 
 import threading
-import warnings
+
+from ..native import (
+    BACKENDS,
+    NativeFallbackWarning,
+    check_backend,
+    native_unavailable,
+    warn_once,
+)
 
 __all__ = ["BACKENDS", "check_backend", "native_unavailable", "warn_once", "NativeProgram", "NativeFallbackWarning"]
-
-BACKENDS = ("auto", "native", "xla")
-
-
-class NativeFallbackWarning(UserWarning):
-    """`backend="auto"` ran XLA where a native kernel was wanted; the message says why."""
-
-
-def check_backend(backend) -> str:
-    if not (isinstance(backend, str) and backend in BACKENDS):
-        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}.")
-    return backend
-
-
-def native_unavailable(devices) -> str | None:
-    """Why native kernels cannot run here (None: they can): llvmlite missing, or a device that
-    is not the host CPU (the native kernels are for CPUs; an accelerator keeps XLA)."""
-    from ..native import available
-
-    if not available():
-        return "llvmlite cannot be imported (pip install llvmlite)"
-    import jax
-
-    for d in devices:
-        device = d if d is not None else jax.devices()[0]
-        if getattr(device, "platform", "cpu") != "cpu":
-            return f"the device {device} is not the host CPU"
-    return None
-
-
-_WARNED: set = set()
-_WARN_LOCK = threading.Lock()
-
-
-def warn_once(reason: str) -> None:
-    """Say once per process and reason that XLA runs where a native kernel was wanted."""
-    with _WARN_LOCK:
-        if reason in _WARNED:
-            return
-        _WARNED.add(reason)
-    warnings.warn(
-        f"clebsch_jax: running the batch with XLA, not a native kernel: {reason}.", NativeFallbackWarning, stacklevel=3
-    )
-
 
 _PROGRAMS: dict = {}
 _PROGRAMS_LOCK = threading.Lock()

@@ -21,6 +21,7 @@ from ..steppers.base import AbstractWrapper
 from ..steppers.choose import choose_method as _choose_method
 from ..steppers.full import FullStep
 from . import chunks_native, probe
+from ..native import AUTO_MAX_IR_LINES
 from .backends import native_unavailable as _native_unavailable
 from .backends import warn_once as _warn_once
 from .config import Config, Members, Run, first_row, system_of
@@ -35,13 +36,6 @@ DEFAULT_BATCH = 1024
 DEFAULT_BATCH_LEAN = 16_384
 """Members per compiled call of the lean chunk (`fast=True`): it records nothing, and its rows
 of many members share XLA's per-operation cost (`benchmarks/throughput.py --sweep-only`)."""
-
-AUTO_MAX_IR_LINES = 50_000
-"""`backend="auto"` compiles a native kernel whose LLVM IR has at most this many lines (a kernel
-in the disk cache is always used): LLVM's time grows with the IR, to tens of seconds for the
-largest programs the translation covers, where XLA compiles in a few. Larger kernels run on
-XLA, with the reason said once; `backend="native"` compiles them.
-(`benchmarks/README.md`, `native.py`, records the sizes and times behind the value.)"""
 
 AUTO_LEAN_MIN_MEMBERS = 1000
 """`fast="auto"` runs the lean chunk only for sweeps of at least this many members: on shorter

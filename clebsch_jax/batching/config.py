@@ -297,7 +297,17 @@ class Config:
 
 def chunk_integrate(cfg: Config, system, Q, xi, P, t, dt, n, march_state=None):
     return integrate(
-        system, Q, xi, dt=dt, n_steps=n, P0=P, t0=t, throw=False, march_state=march_state, **dict(cfg.options)
+        system,
+        Q,
+        xi,
+        dt=dt,
+        n_steps=n,
+        P0=P,
+        t0=t,
+        throw=False,
+        march_state=march_state,
+        backend="xla",  # traced, in the XLA chunk of a batch
+        **dict(cfg.options),
     )
 
 

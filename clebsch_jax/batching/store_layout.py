@@ -115,6 +115,7 @@ def program_digest(plan) -> str:
             t0=jnp.zeros((), q.dtype),
             throw=False,
             check_energy=False,
+            backend="xla",  # traced (shapes only)
             **options,
         )
         return sol, [fn(system, sol) for _, fn in cfg.invariants]

@@ -276,6 +276,7 @@ def integrate(
     throw: bool = True,
     check_energy: bool = True,
     march_state=None,
+    backend: str = "auto",
 ) -> Solution:
     r"""March the discrete Clebsch equations (Lemma 20) of `system` from $(Q^0, \xi^0)$.
 
@@ -379,6 +380,17 @@ def integrate(
       still required (they are node 0 of this `Solution`; pass `continue_from`'s), and the
       energy check's history and the first-step check start afresh.
 
+    - `backend`: `"auto"` (default), `"native"` or `"xla"`: what makes the steps of a concrete
+      call (`clebsch_jax.march.native_chunk`). `"native"`: a kernel compiled from the step's
+      program by LLVM (`clebsch_jax.native`), which runs the chunk's steps without XLA's cost
+      per operation; `"xla"`: XLA's compiled chunk. They make the same steps and give the same
+      `Solution`, up to round-off where XLA's transcendental functions differ from libm's.
+      `"auto"` runs the native kernel wherever it applies (on the CPU, with concrete arguments,
+      for a step the translation covers) and XLA elsewhere — under `jit`, `vmap` or `grad`, for
+      a primitive the translation does not cover, without llvmlite — saying once why (a
+      `clebsch_jax.native.NativeFallbackWarning`); `"native"` raises a `ValueError` with the
+      reason there.
+
     **Returns:** a `Solution`, with the method's facts (`form`, `scheme`, `order`, `method`).
 
     Compilation: with concrete arguments the march runs as compiled chunks of steps
@@ -403,6 +415,9 @@ def integrate(
     Derivatives (forward and reverse mode) flow through the root finders by implicit
     differentiation (`clebsch_jax.roots.implicit`).
     """
+    from ..native import check_backend, warn_once
+
+    backend = check_backend(backend)
     user_system = system
     given = (system, Q0, xi0, P0, dt, t0)
     stepper, (Q0, xi0, P0, dt, t0, closes), n_steps, system = _prepared(
@@ -430,6 +445,15 @@ def integrate(
     if closes or any_traced(system, Q0, xi0, P0, dt, t0):
         # one scan, in the caller's program (differentiable by it); values unknown until now
         # are checked per member
+        if backend != "xla":
+            why = (
+                "its arguments are traced (inside jit, vmap, grad or cj.batch)"
+                if not closes
+                else "a map closes over a traced value"
+            )
+            if backend == "native":
+                raise ValueError(f"backend='native': {why}; the native kernel runs concrete calls only.")
+            warn_once(why, what="integrate's march", stacklevel=3)
         calls = _RECORDED.get()
         if calls is not None and not closes:
             options = dict(method=method, scheme=scheme, reduce=reduce, need_P=need_P, reconstruct=reconstruct)
@@ -450,7 +474,9 @@ def integrate(
         )
     else:  # programs reused for any n_steps
         _warn_if_remade(user_system)
-        sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy, march_state=state)
+        sol = march_chunked(
+            stepper, system, Q0, xi0, P0, dt, t0, n_steps, check_energy=check_energy, march_state=state, backend=backend
+        )
         if state is not None:
             _check_continues(sol, Q0)
         if sol.Q is not None and not any_traced(sol.Q):  # traced when the maps close over tracers

@@ -40,10 +40,12 @@ __all__ = [
     "march",
     "march_chunked",
     "run_chunk",
+    "advance_step",
     "start",
     "gate",
     "failed_to_nan",
     "nodal_velocities",
+    "nodal_velocity",
     "input_ok",
     "energy_terms",
     "node_energy",
@@ -53,6 +55,7 @@ __all__ = [
     "CHUNK_STEPS",
     "CHUNK_VALUES",
     "MIN_CHUNK_STEPS",
+    "NATIVE_CHUNK_FACTOR",
     "ENERGY_STEP_RTOL",
     "FIRST_STEP_RTOL",
     "FIRST_STEP_FLOOR",
@@ -70,6 +73,11 @@ and copy buffers of `CHUNK_STEPS` nodes."""
 
 MIN_CHUNK_STEPS = 64
 """The fewest steps per chunk (`chunk_length`)."""
+
+NATIVE_CHUNK_FACTOR = 8
+"""A chunk of a native march (`clebsch_jax.march.native_chunk`) is this many times
+`chunk_length`: its length compiles nothing (the kernel loops over a run-time count), and each
+chunk costs the host a fixed amount of work around the kernel's call."""
 
 ENERGY_STEP_RTOL = 0.1
 r"""The energy check (`check_energy`), a per-step error indicator: step n fails with
@@ -224,6 +232,14 @@ def first_step_failed(xp, probe: FirstStepProbe, Qs, momenta, status0):
     return converged & (~probe.ok | (far(Qs, probe.Q) & far(momenta, probe.momentum)))
 
 
+def advance_step(stepper: AbstractStepper, system, dt, c: Carry):
+    """One step of the march from `c`, gated (`gate`): (the carry after it, its record: the
+    state, the step's output, its statistics, whether the member was alive before it)."""
+    state, memory, out, stats = stepper.step(system, c.state, c.memory, dt, c.n, c.alive)
+    ok, stats, (state, out) = gate(c.alive, stats, (state, out))
+    return c._replace(state=state, memory=memory, n=c.n + 1, alive=ok), (state, out, stats, c.alive)
+
+
 def run_chunk(
     stepper: AbstractStepper,
     system,
@@ -250,11 +266,7 @@ def run_chunk(
       differentiated.) The nodal velocities of the nodes not reached start from NaN seeds,
       whose solves stop at their first update."""
 
-    def advance(c: Carry):
-        state, memory, out, stats = stepper.step(system, c.state, c.memory, dt, c.n, c.alive)
-        ok, stats, (state, out) = gate(c.alive, stats, (state, out))
-        return c._replace(state=state, memory=memory, n=c.n + 1, alive=ok), (state, out, stats, c.alive)
-
+    advance = lambda c: advance_step(stepper, system, dt, c)
     if exact:
         last, (states, outs, stats, valid) = jax.lax.scan(lambda c, _: advance(c), carry, None, length=length)
     else:
@@ -346,17 +358,22 @@ def _finite_rows(a):
 
 
 def nodal_velocities(system, finder, Qs, mus, guesses, valid):
-    """Solve Lemma 7's relation for ξ at every node (vmapped `finder.solve`), gated by `valid`:
-    a node that is not valid starts from a NaN seed, and its solve stops at the first update."""
-    expand = lambda v, a: v.reshape(v.shape + (1,) * (a.ndim - 1))
-    seeds = jnp.where(expand(valid, guesses), guesses, jnp.nan)
+    """Solve Lemma 7's relation for ξ at every node (`nodal_velocity`, vmapped), gated by
+    `valid`: a node that is not valid starts from a NaN seed, and its solve stops at the first
+    update."""
+    return jax.vmap(lambda q, mu, g, v: nodal_velocity(system, finder, q, mu, g, v))(Qs, mus, guesses, valid)
+
+
+def nodal_velocity(system, finder, Q, mu, guess, valid):
+    """`nodal_velocities` at one node: (ξ, the solve's statistics), ξ NaN where the node is not
+    valid or its solve failed."""
+    seed = jnp.where(valid, guess, jnp.nan)
     if system.inverse_legendre is not None:  # Lemma 8's G is given: evaluated, not solved for
-        solve = jax.vmap(lambda q, mu, g: explicit_nodal_velocity(system, q, jnp.where(jnp.isnan(g), jnp.nan, mu)))
+        xin, st = explicit_nodal_velocity(system, Q, jnp.where(jnp.isnan(seed), jnp.nan, mu))
     else:
-        solve = jax.vmap(lambda q, mu, g: finder.solve(lambda x: nodal_residual(system, q, mu, x), g))
-    xin, st = solve(Qs, mus, seeds)
+        xin, st = finder.solve(lambda x: nodal_residual(system, Q, mu, x), seed)
     ok = valid & (st.status == Status.SUCCESS)  # a failed nodal solve leaves no plausible-looking ξ
-    return jnp.where(expand(ok, xin), xin, jnp.nan), skip_stats(st, valid)
+    return jnp.where(ok, xin, jnp.nan), skip_stats(st, valid)
 
 
 def march(
@@ -430,17 +447,27 @@ def march_chunked(
     chunk_steps: int | None = None,
     check_energy: bool = False,
     march_state: Carry | None = None,
+    backend: str = "xla",
 ) -> Solution:
     """`march` with concrete arguments, as compiled chunks of `chunk_steps` steps (default
     `chunk_length`): the programs depend on the stepper, the system and the shapes, not on
     `n_steps` or `dt`. With `march_state` the march continues from it (`resume`); its first
-    step is then not checked as a run's first step (`first_step_probe`)."""
-    if chunk_steps is None:
-        chunk_steps = chunk_length(Q0, xi0)
+    step is then not checked as a run's first step (`first_step_probe`). `backend` ("xla",
+    "native" or "auto", `integrate`'s): which program makes a chunk's steps
+    (`clebsch_jax.march.native_chunk.native_chunk_program`)."""
+    from .native_chunk import native_chunk_program
+
     start_jit, chunk_jit = _PROGRAMS[bool(stepper.quick_compile)]
     probe = None
     if march_state is None:
         carry, startup = start_jit(stepper, system, Q0, xi0, P0, dt)
+    else:
+        carry = march_state
+    native = native_chunk_program(stepper, system, carry, dt, check_energy, backend)
+    if chunk_steps is None:  # a native chunk costs no compile per step: longer chunks, less host work
+        chunk_steps = chunk_length(Q0, xi0) * (NATIVE_CHUNK_FACTOR if native is not None else 1)
+    chunk_jit = native or chunk_jit
+    if march_state is None:
         if check_energy and n_steps > 0 and not any_traced(carry):
             probe = first_step_probe(chunk_jit, stepper, system, carry, dt, chunk_steps, check_energy)
         total = np.asarray(n_steps, np.int32)  # a NumPy scalar: no conversion program
@@ -458,7 +485,7 @@ def march_chunked(
         return dataclasses.replace(sol, march_state=carry)
     chunks, startup, dt, t0, probe = jax.tree_util.tree_map(np.asarray, (chunks, startup, dt, t0, probe))
     sol = _assemble(np, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe)
-    return dataclasses.replace(jax.device_put(sol), march_state=carry)
+    return dataclasses.replace(jax.device_put(sol), march_state=jax.device_put(carry))
 
 
 def _join(xp, chunks, n_steps: int, node: bool):

@@ -3,13 +3,86 @@
 `compile_member(fun, *member_args)` traces `fun` on one member's arguments and compiles its
 jaxpr (`clebsch_jax.native.kernel.Kernel`); the result runs a batch (arrays with a leading
 member axis) with `W` members per vector, every member's loops masked per lane as under
-`jax.vmap`. `available()` says whether llvmlite can be imported; `Unsupported` is raised for
-programs the translation does not cover (its message names the primitive).
+`jax.vmap`. `compile_loop(body, *member_args)` compiles the body of a loop instead: its
+kernel runs the body a given number of times and writes each iteration's records (a march's
+steps, `clebsch_jax.march.native_chunk`). `available()` says whether llvmlite can be
+imported; `Unsupported` is raised for programs the translation does not cover (its message
+names the primitive).
 """
 
 from __future__ import annotations
 
-__all__ = ["available", "compile_member", "Unsupported", "NativeFunction"]
+import threading
+import warnings
+
+__all__ = [
+    "available",
+    "compile_member",
+    "compile_loop",
+    "Unsupported",
+    "NativeFunction",
+    "NativeLoop",
+    "BACKENDS",
+    "AUTO_MAX_IR_LINES",
+    "check_backend",
+    "native_unavailable",
+    "warn_once",
+    "NativeFallbackWarning",
+]
+
+BACKENDS = ("auto", "native", "xla")
+"""The values of `backend=` (`clebsch_jax.sweep`, `clebsch_jax.integrate`): "native" runs the
+native kernel (an error where it cannot), "xla" XLA's program, "auto" the native kernel wherever
+it applies and XLA elsewhere, saying once why (`warn_once`)."""
+
+AUTO_MAX_IR_LINES = 50_000
+"""`backend="auto"` compiles a native kernel whose LLVM IR has at most this many lines (a kernel
+in the disk cache is always used): LLVM's time grows with the IR, to tens of seconds for the
+largest programs the translation covers, where XLA compiles in a few. Larger kernels run on
+XLA, with the reason said once; `backend="native"` compiles them.
+(`benchmarks/README.md`, `native.py`, records the sizes and times behind the value.)"""
+
+
+class NativeFallbackWarning(UserWarning):
+    """`backend="auto"` ran XLA where a native kernel was wanted; the message says why."""
+
+
+def check_backend(backend) -> str:
+    """`backend` if it is one of `BACKENDS` (a `ValueError` naming `backend` otherwise)."""
+    if not (isinstance(backend, str) and backend in BACKENDS):
+        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}.")
+    return backend
+
+
+def native_unavailable(devices=(None,)) -> str | None:
+    """Why native kernels cannot run here (None: they can): llvmlite missing, or a device that
+    is not the host CPU (the native kernels are for CPUs; an accelerator keeps XLA)."""
+    if not available():
+        return "llvmlite cannot be imported (pip install llvmlite)"
+    import jax
+
+    for d in devices:
+        device = d if d is not None else jax.devices()[0]
+        if getattr(device, "platform", "cpu") != "cpu":
+            return f"the device {device} is not the host CPU"
+    return None
+
+
+_WARNED: set = set()
+_WARN_LOCK = threading.Lock()
+
+
+def warn_once(reason: str, what: str = "the batch", stacklevel: int = 3) -> None:
+    """Say once per process, `what` and reason that XLA runs where a native kernel was wanted."""
+    with _WARN_LOCK:
+        if (what, reason) in _WARNED:
+            return
+        _WARNED.add((what, reason))
+    warnings.warn(
+        f"clebsch_jax: running {what} with XLA, not a native kernel: {reason}.",
+        NativeFallbackWarning,
+        stacklevel=stacklevel,
+    )
 
 
 class Unsupported(NotImplementedError):
@@ -63,3 +136,55 @@ def compile_member(fun, *member_args, width=None, use_cache=True, in_axes=0, max
     whose LLVM IR has more lines than this is refused (`Unsupported`) before LLVM compiles it
     (`clebsch_jax.native.kernel.Kernel`)."""
     return NativeFunction(fun, *member_args, width=width, use_cache=use_cache, in_axes=in_axes, max_lines=max_lines)
+
+
+class NativeLoop:
+    """A loop body of one member compiled for batches (`compile_loop`): `body(*args, carry) ->
+    (carry, record)`, with the carry the last argument. Call it with pytrees whose leaves have a
+    leading member axis, `steps` (the iterations, the same for every member) and `capacity`
+    (the records kept): it returns (the carry after `steps` iterations, the records stacked
+    with shape (B, capacity, …), zero after the `steps` made)."""
+
+    def __init__(self, body, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None):
+        import jax
+        import numpy as np
+
+        from .kernel import Kernel
+
+        closed, (carry_shape, record_shape) = jax.make_jaxpr(body, return_shape=True)(*member_args)
+        self._in_tree = jax.tree_util.tree_structure(member_args)
+        self._carry_tree = jax.tree_util.tree_structure(carry_shape)
+        self._record_tree = jax.tree_util.tree_structure(record_shape)
+        dtype = lambda x: np.dtype(x.dtype) if hasattr(x, "dtype") else np.result_type(x)
+        shapes = lambda tree: [(np.shape(x), dtype(x)) for x in jax.tree_util.tree_leaves(tree)]
+        if self._carry_tree != jax.tree_util.tree_structure(member_args[-1]) or shapes(carry_shape) != shapes(
+            member_args[-1]
+        ):
+            raise TypeError("compile_loop: the body must return a carry of its last argument's structure and shapes")
+        if not isinstance(in_axes, (tuple, list)):
+            in_axes = (in_axes,) * len(member_args)
+        flags = [jax.tree_util.tree_map(lambda _: ax is not None, arg) for ax, arg in zip(in_axes, member_args)]
+        batched = jax.tree_util.tree_leaves(flags)
+        n = self._carry_tree.num_leaves
+        self.kernel = Kernel(closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, carries=n)
+
+    def __call__(self, *args, steps: int, capacity: int):
+        import jax
+        import numpy as np
+
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        if tree != self._in_tree:
+            raise TypeError(f"arguments of structure {tree}, expected {self._in_tree}")
+        outs = self.kernel(*[np.asarray(x) for x in leaves], steps=steps, capacity=capacity)
+        n = self._carry_tree.num_leaves
+        carry = jax.tree_util.tree_unflatten(self._carry_tree, outs[:n])
+        return carry, jax.tree_util.tree_unflatten(self._record_tree, outs[n:])
+
+
+def compile_loop(body, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None) -> NativeLoop:
+    """`NativeLoop(body, *member_args)`: a loop body traced on one member's arguments (the
+    carry last) and compiled to a kernel that runs it a given number of times, writing each
+    iteration's records. `width`: members per vector (default the host's widest; 1 for a
+    single member, whose other lanes would only repeat it). The other arguments are
+    `compile_member`'s."""
+    return NativeLoop(body, *member_args, width=width, use_cache=use_cache, in_axes=in_axes, max_lines=max_lines)

@@ -86,15 +86,23 @@ def _storage(dtype) -> np.dtype:
     return np.dtype(np.uint8) if dtype == np.bool_ else dtype
 
 
-def build_ir(closed, width: int, batched=None) -> str:
+def build_ir(closed, width: int, batched=None, carries: int | None = None) -> str:
     """The LLVM IR (text) of the kernel of `closed` (a closed jaxpr of one member). `batched`
     (one flag per input, default all True): an input that is not batched is one value shared
-    by every member, stored as its entries alone and broadcast to the lanes."""
+    by every member, stored as its entries alone and broadcast to the lanes.
+
+    `carries` (a loop kernel): `closed` is the body of a loop whose last `carries` inputs are
+    its carry and whose outputs are the new carry, then the iteration's records. The kernel
+    takes a fifth argument, the number of iterations `steps` (the same for every member), runs
+    the body that many times (`_loop`) and writes the final carry, then every iteration's
+    records: record `j` of an entry `e` of a record of `size` entries goes to row
+    `j·size + e` of its array (rows of `stride` members, as every array)."""
     module = ir.Module(name="clebsch_jax_native")
     module.triple = _binding()["triple"]
     ptr, i64 = ir.PointerType(), ir.IntType(64)
-    fn = ir.Function(module, ir.FunctionType(ir.VoidType(), [ptr, i64, i64, i64]), "kernel")
-    arrays, stride, first, end = fn.args
+    params = [ptr, i64, i64, i64] + ([i64] if carries is not None else [])
+    fn = ir.Function(module, ir.FunctionType(ir.VoidType(), params), "kernel")
+    arrays, stride, first, end = fn.args[:4]
     entry = fn.append_basic_block("entry")
     b = ir.IRBuilder(entry)
     em = Emitter(module, b, width, entry)
@@ -144,9 +152,12 @@ def build_ir(closed, width: int, batched=None) -> str:
             else:
                 arr[idx] = b.load(row(j, e, dtype), typ=em.vtype(dtype), align=np.dtype(dtype).itemsize)
         args.append(arr)
-    outs = eval_closed(em, closed, args)
     n_in = len(closed.jaxpr.invars)
-    for j, (v, out) in enumerate(zip(closed.jaxpr.outvars, outs)):
+    if carries is None:
+        outs = eval_closed(em, closed, args)
+    else:  # the carry after the loop; the records are written in it
+        outs = _loop(em, closed, args, carries, fn.args[4], lambda j, e, dt: row(n_in + j, e, dt))
+    for j, (v, out) in enumerate(zip(closed.jaxpr.outvars[: len(outs)], outs)):
         dtype = np.dtype(v.aval.dtype)
         for e, idx in enumerate(np.ndindex(v.aval.shape)):
             value = em.vec(out[idx], dtype)
@@ -158,6 +169,61 @@ def build_ir(closed, width: int, batched=None) -> str:
     b.position_at_end(done)
     b.ret_void()
     return str(module)
+
+
+def _loop(em: Emitter, closed, args, carries: int, steps, row) -> list:
+    """`steps` iterations of the loop body `closed` (`build_ir`'s `carries`) from the carry in
+    the last `carries` entries of `args`: the carry lives in allocas (registers, after LLVM's
+    mem2reg), and each iteration's records are stored to their output arrays (`row(j, e,
+    dtype)`: a pointer to entry `e` of output `j`, for the block being run) at the iteration's
+    rows. Returns the carry after the last iteration."""
+    b, i64 = em.b, ir.IntType(64)
+    consts, init = list(args[: len(args) - carries]), list(args[len(args) - carries :])
+    dtypes = [np.dtype(v.aval.dtype) for v in closed.jaxpr.invars[len(consts) :]]
+    slots = []
+    for x, dtype in zip(init, dtypes):
+        arr = np.empty(x.shape, object)
+        for idx in np.ndindex(x.shape):
+            arr[idx] = em.alloca(em.vtype(dtype))
+            b.store(em.vec(x[idx], dtype), arr[idx])
+        slots.append(arr)
+
+    def load():
+        out = []
+        for s, dtype in zip(slots, dtypes):
+            arr = np.empty(s.shape, object)
+            for idx in np.ndindex(s.shape):
+                arr[idx] = b.load(s[idx], typ=em.vtype(dtype))
+            out.append(arr)
+        return out
+
+    counter = em.alloca(i64)
+    b.store(ir.Constant(i64, 0), counter)
+    fn = b.function
+    head, body, done = (fn.append_basic_block(f"loop.{name}") for name in ("head", "body", "done"))
+    b.branch(head)
+    b.position_at_end(head)
+    k = b.load(counter, typ=i64)
+    b.cbranch(b.icmp_signed("<", k, steps), body, done)
+    b.position_at_end(body)
+    outs = eval_closed(em, closed, consts + load())
+    for s, new, dtype in zip(slots, outs[:carries], dtypes):
+        for idx in np.ndindex(s.shape):
+            b.store(em.vec(new[idx], dtype), s[idx])
+    for j, (v, rec) in enumerate(zip(closed.jaxpr.outvars[carries:], outs[carries:])):
+        dtype, size = np.dtype(v.aval.dtype), int(np.prod(v.aval.shape, dtype=int))
+        for e, idx in enumerate(np.ndindex(v.aval.shape)):
+            value = em.vec(rec[idx], dtype)
+            if dtype == np.bool_:
+                value = b.zext(value, ir.VectorType(ir.IntType(8), em.W))
+            # row k·size + e of record j: `row` of entry e, moved on by k·size rows
+            at = row(carries + j, e, dtype)
+            shift = b.mul(b.mul(k, ir.Constant(i64, size)), fn.args[1])
+            b.store(value, b.gep(at, [shift], source_etype=value.type.element), align=_storage(dtype).itemsize)
+    b.store(b.add(k, ir.Constant(i64, 1)), counter)
+    b.branch(head)
+    b.position_at_end(done)
+    return load()
 
 
 _SOURCE: list = []
@@ -176,15 +242,16 @@ def _translator_digest() -> str:
     return _SOURCE[0]
 
 
-def _program_text(closed, width: int, batched) -> str:
-    """What determines a kernel: the jaxpr (its text and its constants' bytes), the lanes and
-    which inputs are batched."""
+def _program_text(closed, width: int, batched, carries=None) -> str:
+    """What determines a kernel: the jaxpr (its text and its constants' bytes), the lanes,
+    which inputs are batched and, for a loop kernel, its carries."""
     consts = hashlib.sha256()
     for c in closed.consts:
         c = np.asarray(c)
         consts.update(f"{c.dtype}{c.shape}".encode())
         consts.update(np.ascontiguousarray(c).tobytes())
-    return f"{closed.jaxpr}\n{consts.hexdigest()}\n{width}\n{list(batched)}"
+    loop = "" if carries is None else f"\nloop of {carries} carries"
+    return f"{closed.jaxpr}\n{consts.hexdigest()}\n{width}\n{list(batched)}{loop}"
 
 
 def _key(text: str) -> str:
@@ -275,25 +342,35 @@ def _load(obj: bytes, globals_: tuple = ()) -> int | tuple:
 
 
 _SIGNATURE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
+_LOOP_SIGNATURE = ctypes.CFUNCTYPE(
+    None, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64
+)
 
 
 class Kernel:
     """The compiled kernel of a closed jaxpr of one member. Call it with the batch's arrays,
     each of shape (B, *the member's shape), in the order of the jaxpr's inputs; it returns the
-    outputs, each (B, *shape)."""
+    outputs, each (B, *shape).
 
-    def __init__(self, closed, width: int | None = None, use_cache: bool = True, batched=None, max_lines=None):
+    A loop kernel (`carries`, `build_ir`) is called with `steps` (its iterations) and
+    `capacity` (the records kept, at least `steps`): it returns the carry's arrays, each
+    (B, *shape), then the records', each (B, capacity, *shape), zero after the `steps` made."""
+
+    def __init__(
+        self, closed, width: int | None = None, use_cache: bool = True, batched=None, max_lines=None, carries=None
+    ):
         self.width = width or host_lanes()
+        self.carries = carries
         self.in_avals = [v.aval for v in closed.jaxpr.invars]
         self.out_avals = [v.aval for v in closed.jaxpr.outvars]
         self.batched = [True] * len(self.in_avals) if batched is None else [bool(x) for x in batched]
         layout = lambda a: (tuple(a.shape), int(np.prod(a.shape, dtype=int)), _storage(a.dtype))
         self._ins, self._outs = [layout(a) for a in self.in_avals], [layout(a) for a in self.out_avals]
-        key = _key(_program_text(closed, self.width, self.batched))
+        key = _key(_program_text(closed, self.width, self.batched, carries))
         obj = _cached(key) if use_cache else None
         self.from_cache = obj is not None
         if obj is None:
-            text = build_ir(closed, self.width, self.batched)
+            text = build_ir(closed, self.width, self.batched, carries)
             lines = text.count("\n")
             if max_lines is not None and lines > max_lines:
                 raise Unsupported(
@@ -303,9 +380,9 @@ class Kernel:
             obj = compile_ir(text)
             if use_cache:
                 _store(key, obj)
-        self._fn = _SIGNATURE(_load(obj))
+        self._fn = (_SIGNATURE if carries is None else _LOOP_SIGNATURE)(_load(obj))
 
-    def __call__(self, *arrays, threads: int = 1):
+    def __call__(self, *arrays, threads: int = 1, steps: int = 0, capacity: int = 0):
         if len(arrays) != len(self.in_avals):
             raise TypeError(f"expected {len(self.in_avals)} arrays, got {len(arrays)}")
         B = next(int(np.shape(a)[0]) for a, bat in zip(arrays, self.batched) if bat)
@@ -325,18 +402,27 @@ class Kernel:
             rows[:, :B] = a.reshape(B, size).T
             rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
             buffers.append(rows)
-        outs = [np.empty((size, stride), storage) for _, size, storage in self._outs]
+        n_carry = len(self._outs) if self.carries is None else self.carries
+        if self.carries is not None and not 0 <= steps <= capacity:
+            raise ValueError(f"a loop kernel of {steps} steps with records for {capacity}")
+        outs = [np.empty((size, stride), storage) for _, size, storage in self._outs[:n_carry]]
+        outs += [np.zeros((capacity * size, stride), storage) for _, size, storage in self._outs[n_carry:]]
         pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[x.ctypes.data for x in buffers + outs])
         address = ctypes.addressof(pointers)
+        loop = () if self.carries is None else (int(steps),)
         threads = max(1, min(int(threads), blocks))
         if threads == 1:
-            self._fn(address, stride, 0, blocks)
+            self._fn(address, stride, 0, blocks, *loop)
         else:
             cuts = np.linspace(0, blocks, threads + 1).astype(int)
             with ThreadPoolExecutor(threads) as pool:
-                list(pool.map(lambda i: self._fn(address, stride, int(cuts[i]), int(cuts[i + 1])), range(threads)))
+                call = lambda i: self._fn(address, stride, int(cuts[i]), int(cuts[i + 1]), *loop)
+                list(pool.map(call, range(threads)))
         result = []
-        for rows, (shape, _, _), aval in zip(outs, self._outs, self.out_avals):
-            r = rows[:, :B].T.reshape((B,) + shape)
+        for j, (rows, (shape, size, _), aval) in enumerate(zip(outs, self._outs, self.out_avals)):
+            if j < n_carry:
+                r = rows[:, :B].T.reshape((B,) + shape)
+            else:  # (capacity·size, stride) -> (B, capacity, *shape)
+                r = np.moveaxis(rows[:, :B].reshape(capacity, size, B), -1, 0).reshape((B, capacity) + shape)
             result.append(r.astype(np.bool_) if aval.dtype == np.bool_ else np.ascontiguousarray(r))
         return result

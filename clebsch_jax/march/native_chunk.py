@@ -1,0 +1,266 @@
+r"""A chunk of `integrate`'s march as a native loop kernel (`clebsch_jax.native.compile_loop`).
+
+On XLA a chunk (`run_chunk`) is a `lax.while_loop` of the step (`advance_step`) writing each
+step's record, then the nodes, their nodal velocities and energies, vectorised over the chunk's
+nodes; XLA's CPU runtime charges each operation of the loop's body microseconds, whatever its
+size. Here the whole chunk is one call of a kernel compiled with LLVM from one iteration's
+jaxpr (`_stream_body`): the step, and the node it leaves — its configuration and momentum
+(`stepper.nodes`), its nodal velocity from the seed `run_chunk` gives it (`nodal_velocity`), its
+energy — with the carry in registers and every iteration's records stored to the chunk's
+arrays. One more iteration, which makes no step, gives the chunk's last node. The host lays the
+records out as `run_chunk` does (`native_run_chunk`): the steps not made zero, the nodes past the
+last one holding its state, their solves skipped.
+
+`native_run_chunk` has `run_chunk`'s signature and results, so `march_chunked` and its
+first-step check (`first_step_probe`) run it in place of the XLA chunk: the same steps, statuses,
+Newton statistics and failure handling; the values differ from XLA's only where XLA's own
+transcendental functions or contractions round differently from libm's (the tests compare them
+to 1e-12).
+
+A single trajectory is one member: the kernel is compiled with one lane (`LANES`).
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..core.jit import undifferentiated
+from ..core.validation import any_traced, is_array
+from ..roots.status import NewtonStats, Status, skip_stats
+from ..steppers.base import AbstractStepper, Nodes
+from .scan import Carry, Chunk, advance_step, node_energy, nodal_velocity
+
+__all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program"]
+
+LANES = 1
+"""Lanes of the kernel of one trajectory: a single member in a vector of one lane. Wider
+vectors would only repeat it in the other lanes, with the same instructions: the libm calls
+(sin, cos, …) and the records' stores are made once per lane."""
+
+_LOOPS: dict = {}
+_LOOPS_LOCK = threading.Lock()
+_LOOPS_MAX = 32
+
+
+class _Dynamic:
+    """The place of an array leaf in a static description of a pytree's leaves."""
+
+
+_DYNAMIC = _Dynamic()
+
+
+def _split(tree):
+    """(treedef, static leaves with `_DYNAMIC` for each array, the arrays on the host)."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    static = tuple(_DYNAMIC if is_array(x) else x for x in leaves)
+    return treedef, static, [np.asarray(x) for x in leaves if is_array(x)]
+
+
+def _aval(x) -> tuple:
+    return np.shape(x), np.asarray(x).dtype
+
+
+def _finite(a):
+    return jnp.all(jnp.isfinite(a))
+
+
+def _stream_body(stepper: AbstractStepper, check_energy: bool, system, dt, stop, loop):
+    """Iteration k of a chunk's loop: step k (`advance_step`) while the run has steps left
+    (`loop` carry's n < `stop`), and the node it leaves — its configuration and momentum from the
+    state before the step (`stepper.nodes`), its velocity solved from the seed `run_chunk`
+    gives it (the velocity of the step leaving it, else of the step arriving at it), its energy.
+    The iteration after the last step (k = steps made) makes no step: its node is the chunk's
+    last, seeded with the last step's velocity. Returns ((carry, arriving velocity), records)."""
+    c, arriving = loop
+    do_step = c.n < stop
+    new, (state, out, stats, _) = advance_step(stepper, system, dt, c)
+    one = lambda tree: jax.tree_util.tree_map(lambda a: a[None], tree)
+    nodes = stepper.nodes(system, c.state, one(state), one(out))
+    leaving = jnp.where(do_step, jnp.where(c.n == 0, nodes.xi_seed, nodes.xi_step[0]), jnp.nan)
+    arriving = jnp.where(c.n == 0, nodes.xi_seed, arriving)  # at the run's first node: the given ξ⁰
+    guess = jnp.where(_finite(leaving), leaving, arriving)
+    at = lambda a: None if a is None else a[0]
+    if system.degenerate:  # as run_chunk: no nodal velocity, statistics of a skipped solve
+        xi, energy = None, None
+        zero = jnp.zeros((), jnp.int32)
+        nodal = skip_stats(
+            NewtonStats(zero, jnp.zeros((), dt.dtype), jnp.asarray(Status.SUCCESS, jnp.int32), zero), c.alive
+        )
+    else:
+        xi, nodal = nodal_velocity(system, stepper.nodal_solver, nodes.nodal_Q[0], nodes.momentum[0], guess, c.alive)
+        energy = node_energy(system, nodes.nodal_Q[0], xi) if check_energy else None
+    keep = lambda a, b: jnp.where(do_step, a, b)
+    records = dict(
+        stats=stats,
+        xi_step=nodes.xi_step[0],
+        P=at(nodes.P),
+        Q=at(nodes.Q),
+        p=at(nodes.p),
+        momentum=nodes.momentum[0],
+        nodal_Q=nodes.nodal_Q[0],
+        xi=xi,
+        nodal=nodal,
+        valid=c.alive,
+        energy=energy,
+    )
+    return (jax.tree_util.tree_map(keep, new, c), keep(nodes.xi_step[0], arriving)), records
+
+
+def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, max_lines=None):
+    """The native loop kernel of `_stream_body` for this stepper, system structure, shapes and
+    energy check (compiled once per process, from the disk cache when another process compiled
+    it), and the system's and Δt's arrays it takes. Raises `clebsch_jax.native.Unsupported`
+    (and remembers it) for a step the translation does not cover, or, with `max_lines`, whose
+    kernel would be larger."""
+    from ..native import Unsupported, compile_loop
+
+    treedef, static, arrays = _split((system, dt))
+    loop = (jax.tree_util.tree_map(np.asarray, carry), np.asarray(carry.xi_last))
+    key = (
+        stepper,
+        bool(check_energy),
+        treedef,
+        static,
+        tuple(_aval(a) for a in arrays),
+        jax.tree_util.tree_structure(loop),
+        tuple(_aval(a) for a in jax.tree_util.tree_leaves(loop)),
+        max_lines,
+    )
+
+    def body(dynamic, stop, c):
+        it = iter(dynamic)
+        leaves = [next(it) if s is _DYNAMIC else s for s in static]
+        sys_, dt_ = jax.tree_util.tree_unflatten(treedef, leaves)
+        with undifferentiated():  # the march's values are not differentiated here
+            return _stream_body(stepper, check_energy, sys_, dt_, stop, c)
+
+    try:
+        with _LOOPS_LOCK:
+            found = _LOOPS.get(key)
+    except TypeError:  # a static part that cannot be hashed: compiled (or read from disk) each time
+        key, found = None, None
+    if found is None:
+        try:
+            found = compile_loop(body, arrays, np.zeros((), np.int32), loop, width=LANES, max_lines=max_lines)
+        except Unsupported as err:
+            found = err
+        if key is not None:
+            with _LOOPS_LOCK:
+                if len(_LOOPS) >= _LOOPS_MAX:
+                    _LOOPS.clear()
+                _LOOPS[key] = found
+    if isinstance(found, Exception):
+        raise found
+    return found, arrays
+
+
+def _steps(a, made: int, length: int):
+    """A step record of `length` entries: the `made` steps, zero after them (`run_chunk`'s)."""
+    out = np.zeros((length,) + a.shape[1:], a.dtype)
+    out[:made] = a[:made]
+    return out
+
+
+def _node_states(a, made: int, length: int):
+    """A node record of `length + 1` entries read off the states: the nodes up to the last
+    step's (entry `made`), which the entries after it repeat (`run_chunk`'s idle steps hold
+    the last state)."""
+    out = np.empty((length + 1,) + a.shape[1:], a.dtype)
+    out[: made + 1] = a[: made + 1]
+    out[made + 1 :] = a[made]
+    return out
+
+
+def _node_solves(a, made: int, length: int, fill):
+    """A node record of the nodal solves, `length + 1` entries: the nodes the steps made leave,
+    `fill` (a skipped solve's) for the nodes not reached, and the last node's, solved from the
+    last step's velocity, at entry `length` (`run_chunk`'s)."""
+    out = np.empty((length + 1,) + a.shape[1:], a.dtype)
+    out[:made] = a[:made]
+    out[made:length] = fill
+    out[length] = a[made]
+    return out
+
+
+def native_run_chunk(
+    stepper: AbstractStepper,
+    system,
+    carry: Carry,
+    dt,
+    length: int,
+    n_total,
+    check_energy: bool = False,
+    max_lines=None,
+) -> tuple[Carry, Chunk]:
+    """`run_chunk` (concrete values, `exact=False`) as one call of the native kernel
+    (`native_loop`, with its `max_lines`): the steps from `carry.n` up to `n_total` (at most
+    `length`) and the nodes they leave, then the chunk's last node, in one loop; the records
+    laid out as `run_chunk` lays them out (host arrays)."""
+    kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, max_lines)
+    n = int(np.asarray(carry.n))
+    made = int(np.clip(int(np.asarray(n_total)) - n, 0, length))
+    host = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], carry)
+    (last, _), rec = kernel(
+        [a[None] for a in arrays],
+        np.asarray([n + made], np.int32),
+        (host, np.asarray(carry.xi_last)[None]),
+        steps=made + 1,
+        capacity=length + 1,
+    )
+    last = jax.tree_util.tree_map(lambda a: a[0], last)
+    rec = jax.tree_util.tree_map(lambda a: a[0], rec)
+    steps = lambda a: None if a is None else _steps(a, made, length)
+    states = lambda a: None if a is None else _node_states(a, made, length)
+    nodes = Nodes(
+        Q=states(rec["Q"]),
+        p=states(rec["p"]),
+        P=steps(rec["P"]),
+        momentum=states(rec["momentum"]),
+        xi_step=steps(rec["xi_step"]),
+        nodal_Q=states(rec["nodal_Q"]),
+        xi_seed=None,
+    )
+    nodal = rec["nodal"]
+    nodal = NewtonStats(
+        iterations=_node_solves(nodal.iterations, made, length, 0),
+        residual_norm=_node_solves(nodal.residual_norm, made, length, np.nan),
+        status=_node_solves(nodal.status, made, length, Status.SKIPPED),
+        jacobians=_node_solves(nodal.jacobians, made, length, 0),
+    )
+    xi = None if rec["xi"] is None else _node_solves(rec["xi"], made, length, np.nan)
+    energy = None if rec["energy"] is None else tuple(_node_solves(e, made, length, np.nan) for e in rec["energy"])
+    valid = _node_solves(rec["valid"], made, length, False)
+    xi_last = nodes.xi_step[made - 1] if made > 0 else np.asarray(carry.xi_last)
+    stats = NewtonStats(*(steps(x) for x in rec["stats"]))
+    return last._replace(xi_last=xi_last), Chunk(nodes, stats, xi, nodal, valid, energy)
+
+
+def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, backend: str):
+    """The chunk program of a concrete march for `backend` ("auto", "native" or "xla"):
+    `native_run_chunk` where the native kernel applies, else None (XLA's `run_chunk`).
+    `"auto"` says once why not (`clebsch_jax.native.warn_once`, a `NativeFallbackWarning`
+    naming the reason: llvmlite missing, a primitive the translation does not cover, a kernel
+    past `AUTO_MAX_IR_LINES`); `"native"` raises a `ValueError` with the reason."""
+    if backend == "xla":
+        return None
+    from ..native import AUTO_MAX_IR_LINES, Unsupported, native_unavailable, warn_once
+
+    why = native_unavailable()
+    if why is None and any_traced(system, carry, dt):
+        why = "a map closes over a value traced by the caller"
+    if why is None:
+        limit = AUTO_MAX_IR_LINES if backend == "auto" else None
+        try:
+            native_loop(stepper, system, carry, dt, check_energy, limit)
+            return functools.partial(native_run_chunk, max_lines=limit)
+        except Unsupported as err:
+            why = f"the native translation does not cover the step: {err}"
+    if backend == "native":
+        raise ValueError(f"backend='native': {why}.")
+    warn_once(why, what="integrate's march", stacklevel=4)
+    return None

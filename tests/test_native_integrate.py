@@ -1,0 +1,245 @@
+r"""`integrate` on the native backend (issue "Native kernels", item 3): the chunk's steps, the
+nodes they leave, their nodal velocities and energies made by one native loop kernel
+(`clebsch_jax.march.native_chunk`), the rest of the march unchanged.
+
+The XLA chunk (`backend="xla"`) is an independent evaluator of the same program: the two must
+give the same `Solution` — values to 1e-12 relative, the same statuses, failed steps, valid
+nodes and NaN after a failure — and the native one the same bits from run to run. Newton
+updates are compared with a tolerance: both iterate to round-off (rtol = atol = 0), and where
+the two evaluators' last bits differ (XLA's own contractions and transcendental functions), a
+solve can stop one update earlier or later.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax import models, native
+from clebsch_jax.native import NativeFallbackWarning
+
+from .systems import kepler, translation
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="llvmlite cannot be imported")
+
+FIELDS = ("Q", "p", "xi", "xi_step", "momentum", "P")
+INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
+XI0 = jnp.array([1.3, 0.8, -0.4])
+TOP = models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5)
+TOP_Q0, TOP_XI0 = cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0])), jnp.array([0.3, -0.2, 2.0])
+GAMMA = jnp.array([1.0, 0.5])  # two vortices: a small full step (the compile is what costs)
+VORTEX_Q0 = jnp.array([[0.0, 1.0], [0.0, -1.0]])
+
+
+def _both(*args, **options):
+    """The run on each backend, no fallback warning on the native one."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NativeFallbackWarning)
+        fast = cj.integrate(*args, backend="native", throw=False, **options)
+    return fast, cj.integrate(*args, backend="xla", throw=False, **options)
+
+
+def _same_solution(fast, xla, rtol=1e-12, update_slack=0.05):
+    """The two runs' `Solution`s agree: facts, statuses, failed step, valid nodes, NaN where
+    XLA's is NaN, values to `rtol` relative to each field's size, and Newton updates within
+    `update_slack` of XLA's in total (module docstring)."""
+    assert (fast.form, fast.method, fast.order) == (xla.form, xla.method, xla.order)
+    assert int(fast.result) == int(xla.result) and int(fast.failed_step) == int(xla.failed_step)
+    for stats in ("stats", "nodal_stats"):
+        np.testing.assert_array_equal(getattr(fast, stats).status, getattr(xla, stats).status)
+        a, b = (np.asarray(getattr(s, stats).iterations).sum() for s in (fast, xla))
+        assert abs(int(a) - int(b)) <= update_slack * max(int(b), 1), (stats, a, b)
+    np.testing.assert_array_equal(fast.valid, xla.valid)
+    np.testing.assert_array_equal(fast.ts, xla.ts)
+    for name in FIELDS:
+        a, b = getattr(fast, name), getattr(xla, name)
+        assert (a is None) == (b is None), name
+        if b is None:
+            continue
+        a, b = np.asarray(a), np.asarray(b)
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
+        if np.all(np.isnan(b)):
+            continue
+        size = np.nanmax(np.abs(b))
+        np.testing.assert_allclose(a, b, rtol=0, atol=rtol * size, equal_nan=True, err_msg=name)
+
+
+def _bitwise(a, b):
+    for name in FIELDS + ("valid",):
+        x, y = getattr(a, name), getattr(b, name)
+        if x is not None:
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=name)
+    for x, y in zip(jax.tree_util.tree_leaves(a.stats), jax.tree_util.tree_leaves(b.stats)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_heavy_top_default_is_xlas_solution_and_repeats_bit_for_bit():
+    """The heavy top's default (the reduced left step paired with its adjoint), over more steps
+    than one native chunk holds (several kernel calls, the carry handed over between them)."""
+    n = 3 * 1024 + 17
+    fast, xla = _both(TOP, TOP_Q0, TOP_XI0, dt=0.01, n_steps=n)
+    assert fast.form == "reduced" and int(fast.result) == cj.Status.SUCCESS
+    assert np.asarray(fast.Q).shape == (n + 1, 3, 3)
+    _same_solution(fast, xla)
+    again = cj.integrate(TOP, TOP_Q0, TOP_XI0, dt=0.01, n_steps=n, backend="native")
+    _bitwise(fast, again)
+    # the march the Solution records conserves what the method conserves: |μ|² (a Casimir of the
+    # heavy top's reduced equations is |Γ|², here Γ = Qᵀe₃ with Q orthogonal) to round-off
+    Q = np.asarray(fast.Q)
+    np.testing.assert_allclose(np.einsum("nij,nik->njk", Q, Q), np.broadcast_to(np.eye(3), Q.shape), atol=1e-12)
+
+
+def test_rigid_body_reduced_step_matches_xla():
+    fast, xla = _both(models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.1, n_steps=200)
+    assert fast.form == "reduced"
+    _same_solution(fast, xla)
+
+
+def test_point_vortices_full_midpoint_step_matches_xla():
+    """A degenerate Lagrangian (no nodal velocities solved) with the full midpoint step."""
+    system = models.point_vortices(GAMMA)
+    fast, xla = _both(system, VORTEX_Q0, models.vortex_velocity(GAMMA, VORTEX_Q0), dt=0.05, n_steps=60)
+    assert fast.form == "full" and fast.xi is None  # degenerate: Lemma 7 gives no nodal velocity
+    _same_solution(fast, xla)
+
+
+@pytest.mark.slow  # the Gauss-Legendre step compiled on both backends; CI runs it
+def test_gauss_legendre_matches_xla():
+    fast, xla = _both(models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.1, n_steps=60, scheme="gauss", order=4)
+    assert fast.scheme == "gauss"
+    _same_solution(fast, xla)
+
+
+@pytest.mark.slow  # a Gauss-Legendre step compiled on both backends; the energy check's failure is in the default run
+def test_a_solve_that_fails_mid_run_fails_at_the_same_step():
+    """Gauss–Legendre order 4 near its stage iteration's limit (tests/test_sweep_agreement.py's
+    scene, member 7): the stage iteration does not converge at step 5 on either backend; the
+    later steps are SKIPPED and the nodes after it NaN."""
+    Pi = np.random.default_rng(1).normal(size=(16, 3))
+    Pi = jnp.asarray(Pi[7] / np.linalg.norm(Pi[7]))
+    Q0, P0 = models.rigid_body_vector_start(Pi)
+    system = models.rigid_body_vector(INERTIA)
+    fast, xla = _both(system, Q0, Pi / INERTIA, P0=P0, dt=0.8, n_steps=12, scheme="gauss", order=4)
+    step = int(xla.failed_step)
+    assert int(xla.result) not in (cj.Status.SUCCESS, cj.Status.ENERGY_JUMP) and step > 0
+    _same_solution(fast, xla)
+    assert np.all(np.isnan(np.asarray(fast.Q)[step + 1 :]))
+    assert np.all(np.asarray(fast.stats.status)[step + 1 :] == cj.Status.SKIPPED)
+
+
+def test_the_energy_check_fails_the_same_step():
+    """A particle falling into a 1/r singularity with the left principle (tests/test_step_error.py):
+    ENERGY_JUMP at the step that leaves the motion, on both backends."""
+    system = cj.ClebschSystem(lagrangian=kepler, velocity_map=translation, derivative_map=cj.forward_difference)
+    fast, xla = _both(system, np.array([2.0, 0.0]), np.array([0.0, 0.1]), dt=0.1, n_steps=60, scheme="left")
+    assert int(xla.result) == cj.Status.ENERGY_JUMP and int(xla.failed_step) == 30
+    _same_solution(fast, xla)
+
+
+def test_the_first_step_probe_runs_on_the_native_chunk():
+    """Kepler at the perihelion of e = 0.95 with a step far longer than the passage: step 0
+    converges to a spurious root that only the two half steps reveal (tests/test_spheres.py)."""
+    system = cj.ClebschSystem(lagrangian=kepler, velocity_map=translation, derivative_map=cj.forward_difference)
+    e = 0.95
+    q0, v0 = np.array([1.0 - e, 0.0]), np.array([0.0, np.sqrt((1.0 + e) / (1.0 - e))])
+    fast, xla = _both(system, q0, v0, dt=0.05, n_steps=3)
+    assert int(fast.result) == cj.Status.FIRST_STEP and int(fast.failed_step) == 0
+    _same_solution(fast, xla)
+
+
+def test_continuation_equals_the_unbroken_native_run():
+    """`continue_from` hands the march state over: two native calls make the steps of one."""
+    whole = cj.integrate(TOP, TOP_Q0, TOP_XI0, dt=0.05, n_steps=80, backend="native")
+    first = cj.integrate(TOP, TOP_Q0, TOP_XI0, dt=0.05, n_steps=30, backend="native")
+    start = cj.continue_from(TOP, first)
+    continued = lambda backend: cj.integrate(
+        TOP, start.Q0, start.xi0, P0=start.P0, t0=start.t0, dt=0.05, n_steps=50,
+        march_state=start.march_state, backend=backend,
+    )  # fmt: skip
+    second, xla = continued("native"), continued("xla")
+    np.testing.assert_array_equal(np.asarray(second.Q), np.asarray(whole.Q)[30:])
+    np.testing.assert_array_equal(np.asarray(second.stats.iterations), np.asarray(whole.stats.iterations)[30:])
+    _same_solution(second, xla)
+
+
+def test_under_jit_integrate_runs_xla_and_says_so_once(monkeypatch):
+    monkeypatch.setattr(native, "_WARNED", set())
+    body = models.rigid_body(INERTIA)
+    march = lambda xi0, backend="auto": cj.integrate(body, jnp.eye(3), xi0, dt=0.1, n_steps=5, backend=backend)
+    with pytest.warns(NativeFallbackWarning, match="integrate's march with XLA.*traced"):
+        inside = jax.jit(lambda xi0: march(xi0).Q[-1])(XI0)
+    np.testing.assert_allclose(inside, march(XI0).Q[-1], rtol=0, atol=1e-13)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NativeFallbackWarning)  # said once
+        jax.jit(lambda xi0: march(xi0).Q[-2])(XI0)  # traced again
+    with pytest.raises(ValueError, match="backend='native'.*traced"):
+        jax.jit(lambda xi0: march(xi0, "native").Q[-1])(XI0)
+
+
+def _erf_inv_potential(xi, q):
+    """A particle in a potential written with `lax.erf_inv`, a primitive the translation lacks."""
+    return 0.5 * jnp.sum(xi**2) - 0.1 * jnp.sum(jax.lax.erf_inv(0.3 * jnp.tanh(q)))
+
+
+def test_an_uncovered_step_runs_xla_and_names_the_primitive(monkeypatch):
+    """ "auto" says which primitive the translation does not cover and runs XLA's chunk;
+    "native" raises with the reason."""
+    monkeypatch.setattr(native, "_WARNED", set())
+    system = cj.ClebschSystem(
+        lagrangian=_erf_inv_potential, velocity_map=translation, derivative_map=cj.forward_difference
+    )
+    args = (system, jnp.array([0.5, -0.2]), jnp.array([0.1, 0.3]))
+    with pytest.warns(NativeFallbackWarning, match="does not cover the step: primitive 'erf_inv'"):
+        auto = cj.integrate(*args, dt=0.1, n_steps=5)
+    _bitwise(auto, cj.integrate(*args, dt=0.1, n_steps=5, backend="xla"))
+    with pytest.raises(ValueError, match="backend='native'.*'erf_inv'"):
+        cj.integrate(*args, dt=0.1, n_steps=5, backend="native")
+
+
+def test_without_llvmlite_integrate_runs_xla(monkeypatch):
+    monkeypatch.setattr(native, "available", lambda: False)
+    monkeypatch.setattr(native, "_WARNED", set())
+    with pytest.warns(NativeFallbackWarning, match="llvmlite"):
+        sol = cj.integrate(models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.1, n_steps=5)
+    assert int(sol.result) == cj.Status.SUCCESS
+    with pytest.raises(ValueError, match="backend='native'.*llvmlite"):
+        cj.integrate(models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.1, n_steps=5, backend="native")
+
+
+def test_a_bad_backend_is_refused_before_compiling():
+    with pytest.raises(ValueError, match="backend: expected one of"):
+        cj.integrate(models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.1, n_steps=5, backend="llvm")
+
+
+@pytest.mark.parametrize("width, members", [(1, 1), (4, 5)])
+def test_a_loop_kernel_runs_its_body_and_writes_every_iteration(width, members):
+    """`native.compile_loop` against the body run in Python, step by step: the carry after
+    `steps` iterations, the records of each (booleans and stacked arrays too), zero records
+    after them; with several members in lanes of 4, one block padded."""
+
+    def body(a, c):
+        x, n, ok = c
+        y = jnp.sin(x) * a + 0.1
+        return (y, n + 1, ok & jnp.all(y < 1.5)), (y, n, ok, jnp.stack([x, y]))
+
+    c0 = (jnp.ones(3), jnp.int32(0), jnp.asarray(True))
+    loop = native.compile_loop(body, jnp.ones(3), c0, width=width)
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0.5, 1.5, (members, 3))
+    carry = (rng.uniform(size=(members, 3)), np.zeros(members, np.int32), np.ones(members, bool))
+    last, records = loop(a, carry, steps=7, capacity=10)
+    for m in range(members):
+        c, expected = tuple(x[m] for x in carry), []
+        for _ in range(7):
+            c, r = body(a[m], c)
+            expected.append(r)
+        for got, want in zip(last, c):
+            np.testing.assert_allclose(got[m], want, rtol=1e-15)
+        for k, rec in enumerate(records):
+            np.testing.assert_allclose(rec[m, :7], np.stack([r[k] for r in expected]), rtol=1e-15)
+            assert not np.any(rec[m, 7:])
