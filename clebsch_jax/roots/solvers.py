@@ -182,8 +182,9 @@ class FixedPoint:
         object.__setattr__(self, "max_iterations", positive_int(self.max_iterations, "max_iterations"))
         object.__setattr__(self, "untested", positive_int(self.untested, "untested", minimum=0))
 
-    def solve(self, G, guess, size=None):
-        """Solve z = G(z) from `guess`, sizes judged against `size`. **Returns:** `(z, NewtonStats)`."""
+    def solve(self, G, guess, size=None, until_stalled: bool = False):
+        """Solve z = G(z) from `guess`, sizes judged against `size`; with `until_stalled`, to the
+        round-off of z's own entries (`fixed_point_solve`). **Returns:** `(z, NewtonStats)`."""
         return fixed_point_solve(
             G,
             guess,
@@ -192,4 +193,5 @@ class FixedPoint:
             max_iterations=self.max_iterations,
             size=size,
             untested=self.untested,
+            until_stalled=until_stalled,
         )
