@@ -50,6 +50,13 @@ the stored μ satisfy exactly in floating point ($\mu_{ii} = 1/2$; of each pair 
 1/2 is stored as 1 minus the other, exact by Sterbenz's lemma). The drift then becomes a
 random walk of round-off (`tests/test_gauss.py`, `test_invariants_rigid_body`: |Q|², |P|², Q·P
 and |Π|² over 4000 steps of order 8).
+Two more sources of round-off are the state update and the iteration's leftover:
+`gauss_update` with a compensation adds the increments by compensated summation (the state is
+rounded at the size of the increment, not of the state), and the stepper then sweeps the
+increments to their own round-off (`steppers.gauss.GaussLegendre(compensated=True)`, the
+default). A leftover at the state's round-off is a smooth function of the state, so it drifts
+the energy linearly (over 10⁶ steps, `benchmarks/README.md`); the energy error is then a random
+walk of about εΔt√n (`test_compensated_summation_energy_round_off_is_a_small_random_walk`).
 """
 
 from __future__ import annotations
