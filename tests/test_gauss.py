@@ -245,10 +245,10 @@ def test_compensated_summation_energy_round_off_is_a_small_random_walk():
     n_mid = np.array([steps[b - 1] for b in edges[1:]])
     eps = np.finfo(float).eps
     # a walk of ε·Δt per step (the increments' round-off) over ε for evaluating E; measured at
-    # 0.42 of this bound, the uncompensated march at 4 times it
+    # 0.26 of this bound, the uncompensated march at 4 times it
     assert np.all(rms(new) <= eps * (1 + dt * np.sqrt(n_mid))), rms(new)
     # growth exponent of the rms over the windows: 1/2 for a random walk, 1 for a drift; loose
-    # (measured 0.70): the early windows sit near the floor of evaluating E, which steepens it
+    # (measured 0.36): the windows sit near the floor of evaluating E
     slope = np.polyfit(np.log(n_mid), np.log(rms(new)), 1)[0]
     assert slope < 0.85, slope
     # the uncompensated march, same bodies: a walk at ε|Q| per step, several times larger
