@@ -224,7 +224,7 @@ def _energy_errors(compensated: bool, momenta, dt: float, n_steps: int):
     return np.asarray(errors)
 
 
-@pytest.mark.slow  # two vmapped marches of 2·10⁴ steps (~3 min at load 12); in CI's slow run
+@pytest.mark.slow  # ~30 s (two vmapped marches of 2·10⁴ steps); in CI's slow run
 def test_compensated_summation_energy_round_off_is_a_small_random_walk():
     """At Δt = 0.05 order 8's energy error is far below round-off, so what the energy shows is
     round-off alone. Rounding the state at ε|Q| each step makes a random walk of ~ε√n; with the
