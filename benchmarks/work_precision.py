@@ -13,6 +13,8 @@ Run from the repository root:
     python benchmarks/work_precision.py --ensembles     # issue 41: long ensembles against heyoka and
                                                         # diffrax, ours by `cj.sweep` on the native path
     python benchmarks/work_precision.py --long-horizon  # issue 41: energy error over T = 1e5 (--horizon)
+    python benchmarks/work_precision.py --sphere-vortices  # issue 44: 4 vortices on the sphere against
+                                                           # diffrax (work_precision_sphere.py)
 
 `--ensembles` and `--long-horizon` are run by `work_precision_ensembles.py` (its docstring
 describes them: scenes, peers, measures, targets); the rest of this docstring is about the
@@ -1346,6 +1348,10 @@ def main(argv=None) -> dict:
         import work_precision_ensembles
 
         return work_precision_ensembles.main(argv)
+    if "--sphere-vortices" in argv:  # issue 44: its own module
+        import work_precision_sphere
+
+        return work_precision_sphere.main(argv)
     name = (
         "work_precision_long"
         if "--long" in argv

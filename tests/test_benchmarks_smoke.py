@@ -280,6 +280,19 @@ def check_work_precision_ensembles(summary: dict) -> None:
             assert bool(tg["heyoka"]) == with_heyoka and tg["diffrax"]
 
 
+def check_work_precision_sphere(summary: dict) -> None:
+    (sc,) = summary["results"]
+    assert sc["reference"]["valid"] and 0 <= sc["reference"]["check"] < 1e-8
+    assert {p["family"] for p in sc["points"]} == {"ours", "diffrax"}
+    for p in sc["points"]:
+        assert p["valid"] and _positive_finite(p["wall_s"]), p["method"]
+        for key in ("global_error", "energy_error", "moment_error", "sphere_error"):
+            assert math.isfinite(p[key]) and p[key] >= 0, (p["method"], key)
+        if p["family"] == "ours":  # Gauss-Legendre keeps the sphere's quadratic invariant |z|^2
+            assert p["sphere_error"] < 1e-13, p
+    assert len(sc["dominance"]) == sum(p["family"] == "diffrax" for p in sc["points"])
+
+
 def check_soak(summary: dict) -> None:
     cases = {r["case"]: r for r in summary["results"]}
     assert set(cases) == {"rigid_body", "rigid_body_order4", "vortices_4"}
@@ -428,6 +441,7 @@ CHECKS = {
     "work_precision": check_work_precision,
     "work_precision_clusters": check_work_precision_clusters,
     "work_precision_ensembles": check_work_precision_ensembles,
+    "work_precision_sphere": check_work_precision_sphere,
     "soak": check_soak,
     "defaults": check_defaults,
     "sweep_scaling": check_sweep_scaling,
@@ -441,6 +455,7 @@ CHECKS = {
 SCRIPTS = {  # name -> (script, extra arguments)
     "work_precision_clusters": ("work_precision", ["--clusters"]),
     "work_precision_ensembles": ("work_precision", ["--ensembles"]),
+    "work_precision_sphere": ("work_precision", ["--sphere-vortices"]),
 }
 
 

@@ -57,6 +57,7 @@ def fixed_point_solve(
     size=None,
     untested: int = 0,
     per_test: int = SWEEPS_PER_TEST,
+    until_stalled: bool = False,
 ):
     r"""Solve $z = G(z)$ for a pytree z by the iteration $z \leftarrow G(z)$ (sweeps), for a
     contraction G with a good guess (a Gauss–Legendre step, `clebsch_jax.discrete.collocation`).
@@ -75,6 +76,13 @@ def fixed_point_solve(
     (max|G(z) − z| at the iterate before the last: the residual the loop already has, not one
     more evaluation). Derivatives by the implicit function theorem on $F(z) = z - G(z)$ with a
     dense tangent solve.
+
+    With `until_stalled` an update at round-off of `size` does not stop the sweeps: they go on
+    until the update is zero or stops shrinking (the stall rule), i.e. to the round-off of the
+    iterate's own entries — the rule of Hairer, McLachlan & Razakarivony (BIT 48 (2008) 231).
+    An iterate of increments much smaller than the state they are added to (a Gauss–Legendre
+    step) otherwise keeps an error of ~ε·size per step, a smooth function of the state, which
+    a compensated update does not round away and which drifts the energy linearly.
 
     A test costs about as much as a sweep on the CPU (a reduction over the unknowns and the
     bookkeeping of a batched loop), so there is one reduction per test and none for the size.
@@ -105,7 +113,9 @@ def fixed_point_solve(
             z_new = g(z_mid)
             eta = jnp.max(jnp.abs(z_new - z_mid))
             nonfinite = ~jnp.isfinite(eta)  # a NaN or inf in z_new makes η one
-            converged = ~nonfinite & is_converged(eta, previous, k, tol, z_new, zmax, stalled=stalled)
+            converged = ~nonfinite & is_converged(
+                eta, previous, k, tol, z_new, zmax, stalled=stalled, roundoff_floor=0.0 if until_stalled else 8.0
+            )
             diverged = (k >= 2 * per_test) & (eta > previous) & (eta > 1e4 * jnp.finfo(z.dtype).eps * scale)
             # sweeps that overflow from a finite start did not contract: DIVERGED too
             status = jnp.where(

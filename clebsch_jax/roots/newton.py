@@ -96,10 +96,13 @@ def _static_zero(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and x == 0
 
 
-def converged(eta, eta_prev, k, tol, z, zmax=None, stalled=((0.5, 1e4),)):
+def converged(eta, eta_prev, k, tol, z, zmax=None, stalled=((0.5, 1e4),), roundoff_floor=8.0):
     """Whether the iterate after an update of size η is final.
 
-    - the update is at round-off size, η ≤ 8ε·max(1, |z|): nothing left to gain;
+    - the update is at round-off size, η ≤ 8ε·max(1, |z|) (`roundoff_floor` = 8): nothing left
+      to gain at the size of |z|; with `roundoff_floor` = 0 only a zero update, so that an
+      iterate whose parts are smaller than |z| converges to their own round-off, which the
+      stall rule below then recognises;
     - the estimated remaining error is below tol: with θ = η/η_prev, θ/(1-θ)·η ≤ tol (with
       tol = 0, the default, this never triggers before round-off);
     - a first update below tol/100;
@@ -118,7 +121,7 @@ def converged(eta, eta_prev, k, tol, z, zmax=None, stalled=((0.5, 1e4),)):
     eps = jnp.finfo(z.dtype).eps
     scale = jnp.maximum(1.0, jnp.max(jnp.abs(z)) if zmax is None else zmax)
     theta = jnp.where(k == 0, jnp.inf, eta / eta_prev)
-    roundoff = eta <= 8.0 * eps * scale
+    roundoff = eta <= roundoff_floor * eps * scale
     stalls = [(theta >= t) & (eta <= m * eps * scale) for t, m in stalled]
     stagnant = (k > 0) & functools.reduce(jnp.logical_or, stalls)
     if _static_zero(tol):

@@ -188,8 +188,9 @@ class FixedPoint:
         object.__setattr__(self, "untested", positive_int(self.untested, "untested", minimum=0))
         object.__setattr__(self, "per_test", positive_int(self.per_test, "per_test"))
 
-    def solve(self, G, guess, size=None):
-        """Solve z = G(z) from `guess`, sizes judged against `size`. **Returns:** `(z, NewtonStats)`."""
+    def solve(self, G, guess, size=None, until_stalled: bool = False):
+        """Solve z = G(z) from `guess`, sizes judged against `size`; with `until_stalled`, to the
+        round-off of z's own entries (`fixed_point_solve`). **Returns:** `(z, NewtonStats)`."""
         return fixed_point_solve(
             G,
             guess,
@@ -199,4 +200,5 @@ class FixedPoint:
             size=size,
             untested=self.untested,
             per_test=self.per_test,
+            until_stalled=until_stalled,
         )
