@@ -210,6 +210,11 @@ class Case:
     # emitters, d3afbfd), the block chord updates of the midpoint vortex case round differently
     # too: 7 of its 30 steps stop one update earlier or later, every float array within RTOL.
     counts_at_round_off: bool = False
+    # Gauss–Legendre sweeps go on to the increments' own round-off (until the update stops
+    # shrinking, the stall rule): where they stop is decided by the last bits, which differ
+    # between the native kernel `integrate` runs by default and XLA, and a test comes every
+    # `SWEEPS_PER_TEST` = 2 sweeps, so a count may move by one test (2 sweeps).
+    counts_atol: int = 1
 
 
 CASES = (
@@ -309,6 +314,8 @@ CASES = (
             order=4,
         ),
         slow=True,
+        counts_at_round_off=True,
+        counts_atol=2,
     ),
     # 6. the rigid body in Clebsch variables on R³, Gauss order 8 from a given P0
     Case(
@@ -316,6 +323,8 @@ CASES = (
         lambda: _integrate(
             RIGID_VECTOR, VECTOR_Q0, XI0, dt=0.25, n_steps=20, P0=VECTOR_P0, scheme="gauss", reduce=False, order=8
         ),
+        counts_at_round_off=True,
+        counts_atol=2,
     ),
     # 7. two overtaking peakons, midpoint, from given momenta
     Case(
@@ -494,6 +503,6 @@ def test_public_behaviour_is_unchanged(case):
         if key in RESIDUAL_FIELDS and case.to_round_off:
             _check_residual(f"{case.name}/{key}", new_arrays[key], old_arrays[key], scale)
         elif case.counts_at_round_off and key in ("stats.iterations", "stats.jacobians"):
-            np.testing.assert_allclose(new_arrays[key], old_arrays[key], rtol=0, atol=1, err_msg=key)
+            np.testing.assert_allclose(new_arrays[key], old_arrays[key], rtol=0, atol=case.counts_atol, err_msg=key)
         else:
             _check_array(f"{case.name}/{key}", new_arrays[key], old_arrays[key])
