@@ -93,20 +93,23 @@ COINCIDENT_RTOL = float(np.finfo(np.float64).eps)
 size (the largest coordinate, at least 1) in every coordinate: equal to round-off."""
 
 
-def coincident_pairs(xs) -> tuple[int, int, int] | None:
+def coincident_pairs(xs, block: int = 4096) -> tuple[int, int, int] | None:
     """The first (configuration, a, b), a < b, of a stack `xs` (B, N, d) of vortex positions
-    whose vortices a and b coincide (`COINCIDENT_RTOL`), or None. NaN never coincides."""
+    whose vortices a and b coincide (`COINCIDENT_RTOL`), or None. NaN never coincides. Checked
+    `block` configurations at a time (the pairwise gaps of a whole sweep's stack could be large)."""
     xs = np.asarray(xs, dtype=np.float64)
     if xs.ndim != 3 or xs.shape[1] < 2:
         return None
-    with np.errstate(invalid="ignore"):
-        gap = np.max(np.abs(xs[:, :, None, :] - xs[:, None, :, :]), axis=-1)  # (B, N, N)
-        scale = np.maximum(1.0, np.max(np.abs(xs), axis=(1, 2)))[:, None, None]
-        same = np.triu(gap <= COINCIDENT_RTOL * scale, k=1)
-    if not np.any(same):
-        return None
-    j, a, b = (int(i) for i in np.argwhere(same)[0])
-    return j, a, b
+    for start in range(0, xs.shape[0], block):
+        x = xs[start : start + block]
+        with np.errstate(invalid="ignore"):
+            gap = np.max(np.abs(x[:, :, None, :] - x[:, None, :, :]), axis=-1)  # (block, N, N)
+            scale = np.maximum(1.0, np.max(np.abs(x), axis=(1, 2)))[:, None, None]
+            same = np.triu(gap <= COINCIDENT_RTOL * scale, k=1)
+        if np.any(same):
+            j, a, b = (int(i) for i in np.argwhere(same)[0])
+            return start + j, a, b
+    return None
 
 
 def _coincident_sentence(x, a: int, b: int) -> str:
