@@ -21,12 +21,25 @@ PROG = "clebsch-jax"
 INTERRUPTED = 130
 
 
-def _is_cli() -> bool:
-    """Whether this process runs the command line (read from the interpreter's own arguments)."""
-    argv = list(getattr(sys, "orig_argv", []))
-    if "-m" in argv[:-1]:
-        return argv[argv.index("-m") + 1] in ("clebsch_jax", "clebsch_jax.cli")
-    return any(os.path.basename(a) == PROG for a in argv[1:2])
+_WITH_VALUE = ("-W", "-X", "--check-hash-based-pycs")
+"""Interpreter options followed by a value."""
+
+
+def _is_cli(argv: list[str] | None = None) -> bool:
+    """Whether this process runs the command line, read from the interpreter's own arguments
+    (`sys.orig_argv`): its options, then `-m MODULE`, `-c CODE` or a script (the `clebsch-jax`
+    script), after which come the program's own arguments."""
+    args = iter((list(sys.orig_argv) if argv is None else argv)[1:])
+    for arg in args:
+        if arg == "-m":
+            return next(args, None) in ("clebsch_jax", "clebsch_jax.cli")
+        if arg == "-c" or arg == "-":
+            return False
+        if arg in _WITH_VALUE:
+            next(args, None)
+        elif not arg.startswith("-"):
+            return os.path.splitext(os.path.basename(arg))[0] == PROG
+    return False
 
 
 def _exit_interrupted(*_) -> None:

@@ -189,6 +189,26 @@ def test_ctrl_c_while_jax_is_imported_exits_with_130_and_one_line(tmp_path):
     assert code == 130 and _one_line_error(err) == "clebsch-jax: interrupted"
 
 
+@pytest.mark.parametrize(
+    "argv, cli",
+    [
+        (["python", "-m", "clebsch_jax", "run"], True),
+        (["python", "-X", "importtime", "-W", "ignore", "-m", "clebsch_jax.cli", "sweep"], True),
+        (["python", "/usr/local/bin/clebsch-jax", "demo"], True),
+        (["python", "script.py", "-m", "clebsch_jax"], False),  # a program's own arguments
+        (["python", "-c", "import clebsch_jax", "-m", "clebsch_jax"], False),
+        (["python", "-m", "pytest", "-m", "slow"], False),
+        (["python"], False),
+    ],
+)
+def test_only_the_command_line_takes_ctrl_c_while_starting(argv, cli):
+    """The start-up guard (exit at once on SIGINT) is for the command line's processes only: a
+    program importing the package keeps its own Ctrl-C."""
+    from clebsch_jax import _startup
+
+    assert _startup._is_cli(argv) is cli
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("after", [0.05, 0.3, 1.0, 3.0])
 def test_ctrl_c_at_any_moment_of_the_start_exits_with_130_and_one_line(after, tmp_path):
