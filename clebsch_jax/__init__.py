@@ -12,7 +12,11 @@ rule that picks one) → `march` (one `lax.scan` over `stepper.step`, `integrate
 `cli` the command line, a client of this public API. The public API is this flat namespace.
 """
 
-import jax as _jax
+from ._startup import guard_startup as _guard_startup
+
+_guard_startup()  # the command line only: Ctrl-C while JAX is imported exits cleanly
+
+import jax as _jax  # noqa: E402
 
 _jax.config.update("jax_enable_x64", True)
 

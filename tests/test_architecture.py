@@ -36,7 +36,7 @@ KNOWN_PRIVATE_IMPORTS = {
 
 BATCHING_LAYERS = """
 rules batch_last rows scalarise member fast lean backends config probe chunks_xla chunks_native tables schedule
-store_layout store distributed choose sweep
+store_layout store_lock store distributed choose sweep
 """.split()
 """The modules of `clebsch_jax.batching` in the order of `docs/architecture.md`: each imports only
 modules before it."""

@@ -150,6 +150,74 @@ def test_python_dash_m_bad_steps():
     assert proc.stdout == ""
 
 
+def _interrupt(argv, after: float = 0.0):
+    """`python -m clebsch_jax ARGV`, sent SIGINT `after` seconds past the moment it maps jaxlib's
+    extension (inside `import jax`, the first seconds of every command): (exit code, stderr)."""
+    import os
+    import signal
+    import time
+
+    if not os.path.exists("/proc/self/maps"):
+        pytest.skip("needs Linux's /proc to see when JAX is being imported")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "clebsch_jax", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while proc.poll() is None and time.monotonic() < deadline:
+            try:
+                with open(f"/proc/{proc.pid}/maps") as f:
+                    if "jaxlib" in f.read():
+                        break
+            except OSError:
+                pass
+            time.sleep(0.002)
+        time.sleep(after)
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+        proc.wait()
+    return proc.returncode, err
+
+
+def test_ctrl_c_while_jax_is_imported_exits_with_130_and_one_line(tmp_path):
+    """Issue 40: a Ctrl-C in the first fraction of a second (JAX being imported) was swallowed by
+    a callback of jaxlib's, crashed its initialisation or printed a traceback of the import."""
+    code, err = _interrupt(["run", "heavy-top", "--steps", "200000", "--out", str(tmp_path / "out")])
+    assert code == 130 and _one_line_error(err) == "clebsch-jax: interrupted"
+
+
+@pytest.mark.parametrize(
+    "argv, cli",
+    [
+        (["python", "-m", "clebsch_jax", "run"], True),
+        (["python", "-X", "importtime", "-W", "ignore", "-m", "clebsch_jax.cli", "sweep"], True),
+        (["python", "/usr/local/bin/clebsch-jax", "demo"], True),
+        (["python", "script.py", "-m", "clebsch_jax"], False),  # a program's own arguments
+        (["python", "-c", "import clebsch_jax", "-m", "clebsch_jax"], False),
+        (["python", "-m", "pytest", "-m", "slow"], False),
+        (["python"], False),
+    ],
+)
+def test_only_the_command_line_takes_ctrl_c_while_starting(argv, cli):
+    """The start-up guard (exit at once on SIGINT) is for the command line's processes only: a
+    program importing the package keeps its own Ctrl-C."""
+    from clebsch_jax import _startup
+
+    assert _startup._is_cli(argv) is cli
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("after", [0.05, 0.3, 1.0, 3.0])
+def test_ctrl_c_at_any_moment_of_the_start_exits_with_130_and_one_line(after, tmp_path):
+    """From JAX's import through the first compilations: the command's own KeyboardInterrupt
+    handling, or the start-up guard, and never an interrupt lost in a callback."""
+    code, err = _interrupt(["run", "heavy-top", "--steps", "200000", "--out", str(tmp_path / "out")], after)
+    assert code == 130 and _one_line_error(err) == "clebsch-jax: interrupted"
+
+
 def test_help_does_not_import_matplotlib():
     script = textwrap.dedent("""
         import sys

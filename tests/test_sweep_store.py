@@ -344,6 +344,71 @@ def test_a_store_another_process_is_creating_is_refused_naming_it(reference, tmp
         stored(elsewhere, overwrite=True)
 
 
+def _lock(path, host, pid, started="2026-11-28T23:00:00+00:00"):
+    import json
+
+    from clebsch_jax.batching.store_lock import LOCK_NAME
+
+    path.mkdir(exist_ok=True)
+    (path / LOCK_NAME).write_text(json.dumps({"host": host, "pid": pid, "started": started}))
+    return path / LOCK_NAME
+
+
+def test_a_store_another_live_process_writes_is_refused_naming_it_even_with_overwrite(reference, tmp_path):
+    """The writer lock: a store whose lock names a live process is neither resumed nor replaced
+    (overwrite=True would wipe that process's batches); the message names the writer and the
+    ways out. A writer on another host cannot be checked: refused too. Nothing is changed."""
+    import socket
+
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    before = {p: p.read_bytes() for p in path.rglob("*") if p.is_file()}
+    host = socket.gethostname()
+    with subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"]) as alive:
+        try:
+            lock = _lock(path, host, alive.pid)
+            before[lock] = lock.read_bytes()
+            for overwrite in (False, True):
+                with pytest.raises(
+                    cj.SweepStoreError,
+                    match=rf"is being written by process {alive.pid} on host {host} \(writing since "
+                    r"2026-11-28T23:00:00\+00:00\)\. .*wait for that run to finish.*resumes",
+                ):
+                    stored(path, overwrite=overwrite)
+                assert {p: p.read_bytes() for p in path.rglob("*") if p.is_file()} == before
+        finally:
+            alive.kill()
+    _lock(path, "node-17", 4242)
+    with pytest.raises(
+        cj.SweepStoreError, match="process 4242 on host node-17.*delete the file 'clebsch_jax_writer.lock'"
+    ):
+        stored(path, overwrite=True)
+
+
+def test_a_stale_lock_of_a_dead_process_is_taken_over_and_the_store_resumed(reference, tmp_path):
+    """A lock left by a process of this host that is gone (killed) is taken over; the store is
+    resumed (nothing recomputed), and the lock is released at the end. Also on a new store path
+    holding only a stale lock (a writer killed while creating it), and an empty lock file."""
+    import socket
+
+    from clebsch_jax.batching.store_lock import LOCK_NAME
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    pid = int(dead.stdout)  # reaped: no process has this id now (ids are not reused this soon)
+    path = tmp_path / "sweep.zarr"
+    stored(path)
+    _lock(path, socket.gethostname(), pid)
+    assert_same_table(stored(path), reference)
+    np.testing.assert_array_equal(np.asarray(zarr.open_group(str(path), mode="r")["batch_run"][:]), 1)
+    assert not (path / LOCK_NAME).exists()
+    fresh = _lock(tmp_path / "fresh.zarr", socket.gethostname(), pid).parent
+    assert_same_table(stored(fresh), reference)
+    assert not (fresh / LOCK_NAME).exists()
+    (path / LOCK_NAME).write_text("")  # a writer killed between creating its lock and filling it
+    assert_same_table(stored(path), reference)
+    assert sorted(p.name for p in path.iterdir() if "lock" in p.name) == []
+
+
 def test_an_unfinished_store_is_not_read_as_a_result(reference, tmp_path):
     path = tmp_path / "sweep.zarr"
     stored(path)
@@ -422,7 +487,7 @@ SCRIPT = textwrap.dedent("""
     data = np.load(sys.argv[2])
     cj.sweep(cj.models.rigid_body, data["inertias"], data["eyes"], data["omegas"], dt=0.05, n_steps=16,
              chunk_steps=8, batch_size=2, save_every=4, grid=True, invariants={"casimir": casimir},
-             store=sys.argv[1], progress=lambda info: time.sleep(0.5))  # slow enough to be killed mid-run
+             store=sys.argv[1], progress=lambda info: time.sleep(1.0))  # slow enough to be met and killed mid-run
 """)
 
 
@@ -448,6 +513,12 @@ def test_a_sweep_killed_after_some_batches_resumes_with_the_same_table(reference
                 break
             time.sleep(0.05)
         assert proc.poll() is None, proc.communicate()[1].decode()[-2000:]
+        # a second process on the store while the first writes it: refused, naming the writer,
+        # also with overwrite=True (which would wipe the first one's batches)
+        for overwrite in (False, True):
+            with pytest.raises(cj.SweepStoreError, match=rf"is being written by process {proc.pid} on host .*resumes"):
+                stored(path, overwrite=overwrite)
+        assert proc.poll() is None  # the writer was not disturbed
         proc.send_signal(signal.SIGKILL)
     finally:
         proc.kill()
@@ -455,9 +526,14 @@ def test_a_sweep_killed_after_some_batches_resumes_with_the_same_table(reference
     done = np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:])
     assert 1 <= done.sum() < N_BATCHES, done
     written_before = done.copy()
+    # the killed writer's lock is left behind; its process is gone, so the next run takes it over
+    from clebsch_jax.batching.store_lock import LOCK_NAME, writer_of
+
+    assert writer_of(str(path))["pid"] == proc.pid
 
     capsys.readouterr()
     res = stored(path)
+    assert not (path / LOCK_NAME).exists()  # released at the end
     skipped = sum(min(KW["batch_size"], N_MEMBERS - b * KW["batch_size"]) for b in np.flatnonzero(written_before))
     assert f"skipped {skipped} of {N_MEMBERS} members" in capsys.readouterr().err
     assert_same_table(res, reference)
@@ -490,6 +566,35 @@ def killing_casimir(flag: str, driver: int):
         return jnp.sum(sol.momentum**2, axis=-1)
 
     return f
+
+
+def test_a_client_closed_mid_run_says_the_run_can_be_resumed_and_it_is(reference, tmp_path, capsys):
+    """`client.close()` while the tasks run (here from the progress callback, after the first
+    batch): an error that says whether the run can be resumed and how; with a store, running the
+    same sweep again resumes it to the in-process table. Workers are threads of this process,
+    which share its compiled programs."""
+    distributed = pytest.importorskip("distributed")
+    path = tmp_path / "sweep.zarr"
+    for store in (str(path), None):
+        with distributed.LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+        ) as cluster:
+            client = distributed.Client(cluster)
+            closing = {"progress": lambda info: client.close()}
+            if store is None:
+                expected = r"client was closed during the run .*lost\). .*pass store=PATH to make a run resumable"
+            else:
+                expected = rf"store '{path}' holds the batches .* It can be resumed: run the same sweep again"
+            with pytest.raises(RuntimeError, match=expected):
+                cj.sweep(
+                    rigid_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, store=store,
+                    client=client, **KW, **closing,
+                )  # fmt: skip
+    done = np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:])
+    assert 1 <= done.sum() < N_BATCHES
+    capsys.readouterr()
+    assert_same_table(stored(path), reference)
+    assert "skipped" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -235,3 +235,42 @@ def test_a_thousand_vortices_run_and_match_the_implicit_midpoint_rule():
     np.testing.assert_allclose(sol.Q, ref, rtol=0, atol=1e-11)
     lin = models.vortex_linear_impulse(gamma, sol.Q)
     assert float(jnp.max(jnp.abs(lin - lin[0]))) < 1e-10 * float(jnp.max(jnp.abs(Q0)))
+
+
+# ------------------------------------------------------------------------------------------
+# Coincident vortices: a singular configuration, refused naming the pair (issue 40)
+
+
+def test_coincident_vortices_are_refused_naming_the_pair_on_every_path():
+    """Vortices 0 and 3 of four at one point: H and the velocities are infinite there, which no
+    time step can cure. Refused before compiling by `integrate`, `vortex_velocity` and
+    `cj.sweep` (naming the row), on the sphere too; under `jax.vmap` the member reports
+    `INVALID_INPUT` at step 0 and the others run. Vortices close but apart are accepted."""
+    gamma = np.array([1.0, -0.5, 0.8, 1.2])
+    Q = np.array([[0.3, -0.2], [1.0, 0.5], [-0.7, 0.4], [0.3, -0.2]])
+    system = models.point_vortices(gamma)
+    singular = r"vortices 0 and 3 coincide \(both at \(0\.3, -0\.2\)\): the configuration is singular"
+    with pytest.raises(ValueError, match=rf"^Q0: {singular}.*no time step"):
+        cj.integrate(system, Q, np.zeros_like(Q), dt=0.01, n_steps=5)
+    apart = np.zeros_like(Q)
+    apart[3, 0] = 1.0
+    assert models.check_distinct_vortices(Q + 1e-6 * apart) is None  # close, yet apart: accepted
+    Qs = np.stack([Q + 0.5 * apart, Q])
+    with pytest.raises(ValueError, match=rf"^Q\[1\]: {singular}"):
+        models.vortex_velocity(gamma, Qs)
+    with pytest.raises(ValueError, match=rf"^Q0\[1\]: {singular}"):
+        cj.sweep(models.point_vortices, gamma[None], Qs, np.zeros_like(Qs), dt=0.01, n_steps=5, grid=True)
+
+    x = np.array([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0], [0.0, 1.0, 0.0], [0.6, 0.8, 0.0]])  # 1 and 3 on the sphere
+    on_sphere = r"vortices 1 and 3 coincide .*: the configuration is singular"
+    with pytest.raises(ValueError, match=rf"^Q0: {on_sphere}"):
+        cj.integrate(
+            models.point_vortices_sphere(gamma), models.sphere_vortex_lift(x), np.zeros((4, 4)), dt=0.01, n_steps=5
+        )
+    with pytest.raises(ValueError, match=rf"^x: {on_sphere}"):
+        models.sphere_vortex_xi(gamma, x)
+
+    run = lambda q: cj.integrate(system, q, jnp.zeros_like(q), dt=0.01, n_steps=5, throw=False)
+    sols = jax.vmap(run)(jnp.asarray(Qs))
+    assert [cj.Status(int(r)) for r in sols.result] == [cj.Status.SUCCESS, cj.Status.INVALID_INPUT]
+    assert int(sols.failed_step[1]) == 0

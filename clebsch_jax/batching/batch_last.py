@@ -41,6 +41,7 @@ from jax import lax
 
 from ..core.validation import check_memory, is_traced
 from ..march.integrate import check_member, recording_calls
+from ..march.solution import member_offset, raised_in_callback
 from .rules import batch_members, bind, eval_closed, flat_axes, to_batched
 
 __all__ = ["batch"]
@@ -118,8 +119,9 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
         if calls:
             _check_first_member(closed, calls, n_out, leaves, flags, B)
 
-        def run(chunk_leaves):  # batched leaves batch-last, (…, c)
-            outs, out_flags = eval_closed(closed, chunk_leaves, flags, c)
+        def run(chunk_leaves, first=0):  # batched leaves batch-last, (…, c); `first`: its first member
+            with member_offset(first):  # a failure under integrate(throw=True) names the batch's member
+                outs, out_flags = eval_closed(closed, chunk_leaves, flags, c)
             return [to_batched(o, f, c) for o, f in zip(outs[:n_out], out_flags[:n_out])]
 
         def split(x, a):  # (B, …) -> (n_chunks, …, c)
@@ -130,16 +132,23 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
             return jnp.moveaxis(x.reshape((n_chunks, c) + x.shape[1:]), 1, -1)
 
         chunked = [split(x, a) for x, a in zip(leaves, axes)]
-        if n_chunks == 1:
-            outs = [o[None] for o in run([x[0] if f else x for x, f in zip(chunked, flags)])]
-        else:
-            dyn = [x for x, f in zip(chunked, flags) if f]
+        try:
+            if n_chunks == 1:
+                outs = [o[None] for o in run([x[0] if f else x for x, f in zip(chunked, flags)])]
+            else:
+                dyn = [x for x, f in zip(chunked, flags) if f]
 
-            def one(dyn_chunk):
-                it = iter(dyn_chunk)
-                return run([next(it) if f else x for x, f in zip(chunked, flags)])
+                def one(indexed):
+                    index, dyn_chunk = indexed
+                    it = iter(dyn_chunk)
+                    return run([next(it) if f else x for x, f in zip(chunked, flags)], index * c)
 
-            outs = lax.map(one, dyn)
+                outs = lax.map(one, (jnp.arange(n_chunks), dyn))
+        except jax.errors.JaxRuntimeError as err:  # integrate(throw=True) inside the compiled chunks
+            found = raised_in_callback(err)
+            if found is None:
+                raise
+            raise found from None
         outs = [jnp.moveaxis(o, -1, 1).reshape((n_chunks * c,) + o.shape[1:-1])[:B] for o in outs]
         return jax.tree_util.tree_unflatten(out_tree, outs)
 

@@ -30,7 +30,7 @@ import uuid
 import numpy as np
 
 from .schedule import Plan, run_batches
-from .store import open_group, write_rows, zarr_module
+from .store import open_group, store_name, write_rows, zarr_module
 from .tables import SweepProgress
 
 __all__ = ["run_on_client", "check_client"]
@@ -75,6 +75,24 @@ def _batch_task(static, token: str, b: int, members, store, run_id: int):
         return rows
     write_rows(open_group(zarr_module(), store, "r+"), plan, rows, run_id)
     return b
+
+
+class ClientClosedError(RuntimeError):
+    """The Dask client of a sweep was closed while the sweep ran (`client.close()`)."""
+
+
+def _closed_message(store, done: int, B: int) -> str:
+    if store is None:
+        return (
+            f"sweep: the Dask client was closed during the run ({done} of {B} members done, kept in memory "
+            "only, and lost). Run the sweep again with an open client; pass store=PATH to make a run "
+            "resumable."
+        )
+    return (
+        f"sweep: the Dask client was closed during the run; the store {store_name(store)!r} holds the batches "
+        f"finished so far (at least {done} of {B} members). It can be resumed: run the same sweep again with the same "
+        "store (with an open client, or none), and the written batches are skipped."
+    )
 
 
 def check_client(client):
@@ -131,7 +149,12 @@ def run_on_client(client, plan, batches: list, store, run_id: int, progress):
             elif progress is not False:
                 progress(info)
             yield result
+    except Exception as err:  # distributed raises ClosedClientError, or CancelledError for the tasks
+        if client.status not in ("closing", "closed"):
+            raise
+        raise ClientClosedError(_closed_message(store, done, B)) from err
     finally:
-        client.cancel([f for f in futures if not f.done()])
+        if client.status not in ("closing", "closed"):
+            client.cancel([f for f in futures if not f.done()])
         if progress is True:
             print(file=sys.stderr, flush=True)

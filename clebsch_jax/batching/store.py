@@ -24,15 +24,16 @@ naming it, with or without `overwrite`; so is a store whose root metadata cannot
 reported as damaged, and left as it is). An empty folder, an empty group, and a store of ours
 whose creation was interrupted (no configuration yet, hence no result) are (re)created — unless
 the process creating it (`created_by`: host and process id) may still be running, which is
-refused naming it. Two processes running the same sweep on one store share its batches: each
-skips the batches written when it starts; a batch both compute holds one run's rows (a chunk
-garbled by two writers at once fails its checksum, and is computed again by the next run).
+refused naming it. One process writes a store at a time (`locked`: the writer lock of
+`clebsch_jax.batching.store_lock`, on local folders); a second is refused naming the first.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import sys
 import warnings
 
@@ -53,15 +54,12 @@ from .store_layout import (
     write_inputs,
     written_by_batches,
 )
+from .store_lock import LOCK_NAME, SweepStoreError, may_run, writer_lock
 from .tables import SweepResult
 
 __all__ = ["open_sweep", "SweepStoreError"]
 
 _EXTRA = 'pip install "clebsch-jax[sweep]"'
-
-
-class SweepStoreError(ValueError):
-    """A sweep store that cannot be used: another configuration, unfinished, truncated or corrupted."""
 
 
 def zarr_module():
@@ -91,10 +89,17 @@ def _plain(store):
 
 
 def _create(zarr, store, plan, config: dict):
+    path, mode = _local_path(store), "w"
+    if path is not None and os.path.isdir(path):  # new or ours (`_inspect`): emptied but for the writer lock
+        for entry in os.listdir(path):
+            full = os.path.join(path, entry)
+            if entry != LOCK_NAME:
+                shutil.rmtree(full) if os.path.isdir(full) and not os.path.islink(full) else os.remove(full)
+        mode = "a"
     with zarr.config.set({"array.write_empty_chunks": True}):
         # the owner first, in the group's own metadata: a store whose creation is interrupted is ours
         return fill(
-            zarr.open_group(_plain(store), mode="w", attributes={OWNER: OWNER_VALUE, "created_by": _creator()}),
+            zarr.open_group(_plain(store), mode=mode, attributes={OWNER: OWNER_VALUE, "created_by": _creator()}),
             plan,
             config,
         )
@@ -152,7 +157,7 @@ def _inspect(zarr, store):
             raise SweepStoreError(f"store {name!r}: is a file, not a folder: a sweep store is a Zarr folder. {keep}")
         if not os.path.isdir(path):
             return "new", None
-        entries = sorted(os.listdir(path))
+        entries = sorted(e for e in os.listdir(path) if e != LOCK_NAME)  # the lock: `locked`
         if not entries:
             return "new", None
         if "zarr.json" not in entries:
@@ -186,8 +191,8 @@ def _inspect(zarr, store):
         creator = _live_creator(attrs.get("created_by"))
         if creator is not None:  # another process is creating it now: recreating it would wipe its work
             raise SweepStoreError(
-                f"store {name!r}: is being created by {creator}. Wait for it to start its "
-                "batches and run the same sweep again to share them, or give another path. "
+                f"store {name!r}: is being created by {creator}. Wait for it to finish, then run "
+                "the same sweep again to resume the store, or give another path. "
                 "If that process is gone, delete the store yourself."
             )
         return "unfinished", root
@@ -213,16 +218,19 @@ def _live_creator(created_by) -> str | None:
         return None
     me = _creator()
     host, pid = created_by.get("host"), created_by.get("pid")
-    if host == me["host"]:
-        if pid == me["pid"] or not isinstance(pid, int):
-            return None
-        try:
-            os.kill(pid, 0)  # signal 0: only whether the process exists
-        except ProcessLookupError:
-            return None
-        except PermissionError:  # it exists, under another user
-            pass
+    if host == me["host"] and (pid == me["pid"] or not may_run(created_by)):
+        return None
     return f"process {pid} on host {host}"
+
+
+@contextlib.contextmanager
+def locked(store):
+    """Hold the store's writer lock (`clebsch_jax.batching.store_lock`; local folders only) for
+    the `with` block, after refusing a path that is not a sweep's store (nothing is written into
+    it, not even the lock)."""
+    _inspect(zarr_module(), store)
+    with writer_lock(_local_path(store), store_name(store)) as me:
+        yield me
 
 
 def open_for_run(store, plan, overwrite: bool):

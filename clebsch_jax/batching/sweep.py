@@ -169,15 +169,18 @@ def sweep(
       `clebsch_jax.open_sweep(store)` gives the `SweepResult` back. Running the same sweep with
       the same store again skips the batches already written (and says how many members it
       skipped): a sweep killed at any moment resumes where it stopped, with the same table to
-      the bit. A store written by another configuration is refused (`clebsch_jax.batching.store`).
-      Needs the optional extra `pip install "clebsch-jax[sweep]"`.
+      the bit. A store written by another configuration is refused (`clebsch_jax.batching.store`),
+      and so is a local store another live process is writing (its writer lock names it:
+      `clebsch_jax.batching.store_lock`). Needs the optional extra `pip install "clebsch-jax[sweep]"`.
     - `client`: None, or a `dask.distributed.Client`: batches run as Dask tasks on its workers
       (a `LocalCluster` of processes, or any cluster with a scheduler address), each worker
       compiling the batch program once; with `store`, workers write their batches to it (it must
       be reachable from every worker). A task whose worker dies is rerun by Dask elsewhere.
       The table is identical to the bit to the in-process one (`clebsch_jax.batching.distributed`).
+      A client closed during the run stops it with a `RuntimeError` that says whether and how it
+      can be resumed (with `store`: run the same sweep again).
     - `overwrite`: with `store`, replace a store written by another configuration instead of
-      refusing it.
+      refusing it (never one that another live process is writing).
     - `fast`: "auto" (default), True or False. False: the general Newton loop. True: where the
       method has a fast path (`clebsch_jax.batching.fast`: the reduced march, possibly composed), each chunk
       first solves every step by a fixed number of Newton updates with a check per member and
@@ -288,8 +291,6 @@ def _run_stored(plan: Plan, run, tables, *, store, client, overwrite: bool, repo
     """`sweep` with `store=` and/or `client=`: the batches a store holds are skipped, the others
     run here (each group's rows written to the store from a writer thread while the next group
     computes) or as Dask tasks (`clebsch_jax.batching.distributed`), which write their own."""
-    from concurrent.futures import ThreadPoolExecutor
-
     from . import store as stores  # zarr, dask: the optional extra [sweep]
     from .distributed import run_on_client
 
@@ -301,6 +302,19 @@ def _run_stored(plan: Plan, run, tables, *, store, client, overwrite: bool, repo
             place(tables, rows.tables, rows.rows)
             chunks += rows.fast_chunks
         return result(plan, tables, 1, chunks)
+    with stores.locked(store):  # one writer at a time (local folders), named to the others
+        return _run_in_store(plan, run, tables, store, client, overwrite, report)
+
+
+def _run_in_store(plan: Plan, run, tables, store, client, overwrite: bool, report) -> SweepResult:
+    """`_run_stored`'s run, under the store's writer lock."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from . import store as stores
+    from .distributed import run_on_client
+
+    B, bs = plan.members.B, plan.batch_size
+    n_batches = -(-B // bs)
     name = stores.store_name(store)
     root = stores.open_for_run(store, plan, overwrite)
     done = stores.done_batches(root, name)

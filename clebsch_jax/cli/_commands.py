@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 import clebsch_jax as cj
+from clebsch_jax._startup import release_startup
 
 __all__ = ["main"]
 
@@ -902,6 +903,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, or a one-line error already printed
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     try:
+        release_startup()  # Ctrl-C raises KeyboardInterrupt from here on (clebsch_jax._startup)
         return args.handler(args)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)

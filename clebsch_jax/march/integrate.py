@@ -352,10 +352,14 @@ def integrate(
     - `composition`: a `Composition` (or the name of one in `clebsch_jax.COMPOSITIONS`)
       instead of the default coefficients of its order.
     - `throw`: if True (default) a failed step raises `IntegrationError` once, at the end,
-      naming the step (and batch member under `jax.vmap`), the reason and what to try. Under
-      `jit`/`vmap` the error is raised from a host callback. If False, failures are only
-      recorded in the `Solution` (`result`, `failed_step`, per-step `stats.status`, `valid`);
-      call `Solution.raise_if_failed()` later.
+      naming the step (and batch member under `jax.vmap`), the reason, its `Status` and what to
+      try; the error carries them as `member`, `step` and `status`. So it does under `jax.grad`,
+      `jax.jacfwd`, `jax.vmap` and `clebsch_jax.batch` (whose members are named by their index
+      in the batch, whatever its chunks). Inside a program compiled by `jax.jit` it is raised
+      from a host callback, and JAX reports it as `jax.errors.JaxRuntimeError`, whose message
+      holds the `IntegrationError`'s and says how to read the statuses instead. If False,
+      failures are only recorded in the `Solution` (`result`, `failed_step`, per-step
+      `stats.status`, `valid`); call `Solution.raise_if_failed()` later.
     - `check_energy`: if True (default) every step is checked by a per-step error indicator, its
       relative energy change: step n fails with `Status.ENERGY_JUMP` when
       $|E^{n+1} - E^n|$ exceeds `ENERGY_STEP_RTOL` (0.1) times the energy's size so far,
@@ -483,11 +487,17 @@ def integrate(
             # on the host: indexing the device array would compile a slice for each n_steps
             check_first_step(system, sol.method, Q0, xi0, np.asarray(sol.Q)[1])
     if throw:
-        if is_traced(sol.result):
+        # under an eager jax.grad/jacfwd the values are known: stop_gradient gives them
+        seen = jax.lax.stop_gradient({name: getattr(sol, name) for name in _CHECKED})
+        if any_traced(seen):
             sol = dataclasses.replace(sol, result=check_traced(sol))
         else:
-            sol.raise_if_failed()
+            dataclasses.replace(sol, **seen).raise_if_failed()
     return sol
+
+
+_CHECKED = ("result", "failed_step", "ts", "stats", "nodal_stats")
+"""The fields of a `Solution` that `Solution.raise_if_failed` reads."""
 
 
 def _checked_march_state(stepper, system, Q0, xi0, P0, dt, march_state):

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
+import logging
+import threading
 from typing import Any
 
 import jax
@@ -15,7 +19,20 @@ __all__ = ["Solution", "IntegrationError"]
 
 
 class IntegrationError(RuntimeError):
-    """Raised (once, at the end) when a step of the march fails."""
+    """Raised (once, at the end) when a step of the march fails.
+
+    Besides its message it carries where and why as attributes: `member` (the failing batch
+    member's index, a tuple of ints under nested `vmap`, None for a single run), `step` (the
+    failing step, or node for `Status.LEGENDRE`) and `status` (a `Status`; None when raised
+    without one, as by `SweepResult.raise_if_failed`, whose message names every failed member).
+    """
+
+    def __init__(self, message: str, *, member=None, step=None, status=None):
+        super().__init__(message)
+        self.member, self.step, self.status = member, step, status
+
+    def __reduce__(self):  # pickled (Dask, processes) with its attributes
+        return (type(self), (self.args[0],), dict(self.__dict__))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,7 +158,7 @@ class Solution:
         )
         if len(failed) > 1:
             msg += f" ({len(failed)} batch members failed in all.)"
-        raise IntegrationError(msg)
+        raise IntegrationError(msg, member=_member_of(member), step=step, status=Status(code))
 
 
 jax.tree_util.register_dataclass(
@@ -183,7 +200,7 @@ def failure_message(
     `jacobians` the Newton matrices they formed, the unit of `max_newton_iterations` (None:
     not known)."""
     where = f"batch member {member if len(member) > 1 else member[0]}, " if member else ""
-    what = Status.MESSAGES.get(code, f"status {code}")
+    what = f"{Status.MESSAGES[code]} (Status.{Status(code).name})" if code in Status.MESSAGES else f"status {code}"
     if code == Status.LEGENDRE:
         return (
             f"clebsch_jax.integrate: {where}node {step} (t = {t:.6g}): {what} "
@@ -241,7 +258,67 @@ def failure_message(
     )
 
 
-def _host_check(result, failed_step, iterations, residual, t, n_steps, jacobians, batched, scheme=None, solves=1):
+def _member_of(index: tuple):
+    """A failing member's index as `IntegrationError.member` gives it: None for a single run, an
+    int for one batch axis, a tuple under nested `vmap`."""
+    if not index:
+        return None
+    return index[0] if len(index) == 1 else index
+
+
+_MEMBER_OFFSET = contextvars.ContextVar("clebsch_jax_member_offset", default=None)
+
+
+@contextlib.contextmanager
+def member_offset(offset):
+    """While tracing inside this context, a failure found by `integrate(..., throw=True)` under
+    `jax.vmap` names its member plus `offset` (an int or a traced integer): for an evaluator that
+    batches members in chunks (`clebsch_jax.batch`), whose `vmap` sees one chunk at a time."""
+    token = _MEMBER_OFFSET.set(offset)
+    try:
+        yield
+    finally:
+        _MEMBER_OFFSET.reset(token)
+
+
+_RAISED = threading.local()
+_RAISED_ANYWHERE: list = [None]  # XLA may run a host callback on a thread of its own
+
+
+COMPILED_HINT = (
+    " (Raised inside a compiled program, where JAX reports it as jax.errors.JaxRuntimeError with this "
+    "message. To read the statuses instead, pass throw=False and read Solution.result, .failed_step and "
+    ".stats.status, or call Solution.raise_if_failed() outside jax.jit; clebsch_jax.batch called outside "
+    "jax.jit raises the IntegrationError itself.)"
+)
+
+
+def raised_in_callback(err: BaseException) -> "IntegrationError | None":
+    """The `IntegrationError` that a host callback of `integrate(..., throw=True)` raised inside a
+    compiled program, if `err` (JAX's `JaxRuntimeError`) reports it; else None. An evaluator that
+    calls the compiled program itself (`clebsch_jax.batch`) re-raises it, with its member,
+    step and status, in place of JAX's error."""
+    found = getattr(_RAISED, "error", None) or _RAISED_ANYWHERE[0]
+    if found is not None and str(found) + COMPILED_HINT in str(err):
+        return found
+    return None
+
+
+class _HideOurCallbackErrors(logging.Filter):
+    """JAX logs an exception raised in a host callback, with its traceback, before it re-raises
+    it: for an `IntegrationError` that is the error twice (its message is in what is raised)."""
+
+    def filter(self, record):
+        return not (record.exc_info and isinstance(record.exc_info[1], IntegrationError))
+
+
+for _name in ("jax._src.debugging", "jax._src.callback"):
+    logging.getLogger(_name).addFilter(_HideOurCallbackErrors())
+
+
+def _host_check(
+    result, failed_step, iterations, residual, t, n_steps, jacobians, offset, batched, compiled, scheme=None, solves=1
+):
     result = np.asarray(result)
     if not np.any(result != Status.SUCCESS):
         return
@@ -250,40 +327,51 @@ def _host_check(result, failed_step, iterations, residual, t, n_steps, jacobians
     else:
         member = ()
     pick = (lambda a: np.asarray(a)[member]) if member else np.asarray
-    raise IntegrationError(
-        failure_message(
-            int(pick(result)),
-            int(pick(failed_step)),
-            int(np.asarray(n_steps).ravel()[0]),
-            float(pick(t)),
-            int(pick(iterations)),
-            float(pick(residual)),
-            member or None,
-            scheme,
-            1 if int(pick(result)) == Status.LEGENDRE else solves,
-            int(pick(jacobians)),
-        )
+    code, step = int(pick(result)), int(pick(failed_step))
+    named = (member[0] + int(np.asarray(offset)),) + member[1:] if member else member
+    msg = failure_message(
+        code,
+        step,
+        int(np.asarray(n_steps).ravel()[0]),
+        float(pick(t)),
+        int(pick(iterations)),
+        float(pick(residual)),
+        named or None,
+        scheme,
+        1 if code == Status.LEGENDRE else solves,
+        int(pick(jacobians)),
     )
+    error = IntegrationError(msg, member=_member_of(named), step=step, status=Status(code))
+    if not compiled:
+        raise error
+    _RAISED.error = _RAISED_ANYWHERE[0] = error
+    raise IntegrationError(msg + COMPILED_HINT, member=error.member, step=step, status=error.status)
 
 
 def _traced_checker(scheme, solves):
     """The end-of-run check as a function of traced values, for a method's `scheme` and
-    `solves` per step (what its failure message says)."""
+    `solves` per step (what its failure message says). Called with concrete values (the
+    batching rule under an eager `jax.vmap`), it raises at once; else from a host callback."""
 
     def host(*args, batched):
-        _host_check(*args, batched=batched, scheme=scheme, solves=solves)
+        concrete = not any(isinstance(a, jax.core.Tracer) for a in args)
+        if concrete:
+            _host_check(*args, batched=batched, compiled=False, scheme=scheme, solves=solves)
+        else:
+            jax.debug.callback(
+                lambda *a: _host_check(*a, batched=batched, compiled=True, scheme=scheme, solves=solves), *args
+            )
 
     @jax.custom_batching.custom_vmap
     def check(result, failed_step, iterations, residual, t, n_steps, jacobians):
-        jax.debug.callback(
-            lambda *a: host(*a, batched=False), result, failed_step, iterations, residual, t, n_steps, jacobians
-        )
+        host(result, failed_step, iterations, residual, t, n_steps, jacobians, jnp.asarray(0), batched=False)
         return result
 
     @check.def_vmap
     def check_vmap(axis_size, in_batched, *args):
         args = [a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a)) for a, b in zip(args, in_batched)]
-        jax.debug.callback(lambda *a: host(*a, batched=True), *args)
+        offset = _MEMBER_OFFSET.get()
+        host(*args, jnp.asarray(0 if offset is None else offset), batched=True)
         return args[0], True
 
     return check
@@ -292,7 +380,9 @@ def _traced_checker(scheme, solves):
 def check_traced(sol: Solution) -> jax.Array:
     """Insert the end-of-run failure check into a traced computation (jit/vmap).
 
-    A failure raises from a host callback; under `jax.vmap` the message names the member.
+    A failure raises `IntegrationError` (under `jax.vmap` naming the member); inside a
+    compiled program it is raised from a host callback, and JAX reports it as its
+    `JaxRuntimeError` with the same message (`COMPILED_HINT` says how to read the statuses).
     """
     stats_at = lambda s: jnp.take(s, jnp.clip(sol.failed_step, 0, s.shape[-1] - 1), axis=-1)
     is_nodal = sol.result == Status.LEGENDRE

@@ -36,6 +36,7 @@ from ._euler_sphere import euler_sphere_energy as euler_sphere_energy
 from ._euler_sphere import euler_sphere_angular_momentum as euler_sphere_angular_momentum
 from ._euler_sphere_quantisation import euler_sphere_orthographic as euler_sphere_orthographic
 from ._heavy_top import heavy_top as heavy_top
+from ._point_vortices import check_distinct_vortices as check_distinct_vortices
 from ._point_vortices import point_vortices as point_vortices
 from ._point_vortices import vortex_angular_impulse as vortex_angular_impulse
 from ._point_vortices import vortex_hamiltonian as vortex_hamiltonian
@@ -62,6 +63,7 @@ __all__ = [
     "ROTATION_TOLERANCE",
     "heavy_top",
     "point_vortices",
+    "check_distinct_vortices",
     "vortex_hamiltonian",
     "vortex_velocity",
     "vortex_linear_impulse",

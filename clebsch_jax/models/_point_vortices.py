@@ -88,6 +88,73 @@ def _circulations(circulations, *, nonzero: bool = False) -> jax.Array:
     return gamma
 
 
+COINCIDENT_RTOL = float(np.finfo(np.float64).eps)
+"""Two vortices coincide when their positions differ by at most this times the configuration's
+size (the largest coordinate, at least 1) in every coordinate: equal to round-off."""
+
+
+def coincident_pairs(xs, block: int = 4096) -> tuple[int, int, int] | None:
+    """The first (configuration, a, b), a < b, of a stack `xs` (B, N, d) of vortex positions
+    whose vortices a and b coincide (`COINCIDENT_RTOL`), or None. NaN never coincides. Checked
+    `block` configurations at a time (the pairwise gaps of a whole sweep's stack could be large)."""
+    xs = np.asarray(xs, dtype=np.float64)
+    if xs.ndim != 3 or xs.shape[1] < 2:
+        return None
+    for start in range(0, xs.shape[0], block):
+        x = xs[start : start + block]
+        with np.errstate(invalid="ignore"):
+            gap = np.max(np.abs(x[:, :, None, :] - x[:, None, :, :]), axis=-1)  # (block, N, N)
+            scale = np.maximum(1.0, np.max(np.abs(x), axis=(1, 2)))[:, None, None]
+            same = np.triu(gap <= COINCIDENT_RTOL * scale, k=1)
+        if np.any(same):
+            j, a, b = (int(i) for i in np.argwhere(same)[0])
+            return start + j, a, b
+    return None
+
+
+def _coincident_sentence(x, a: int, b: int) -> str:
+    where = ", ".join(f"{v:.6g}" for v in np.asarray(x, np.float64))
+    return (
+        f"vortices {a} and {b} coincide (both at ({where})): the configuration is singular (the "
+        "Hamiltonian's log|x_a - x_b| and the velocities are infinite there), so no time step can march "
+        "it. Give distinct positions."
+    )
+
+
+def distinct_check(positions=None):
+    """A `check_Q` (with its `batched` and `traced` forms) refusing coincident vortices; the
+    configuration's positions are `positions(Q)` ((…, N, d); None: Q itself)."""
+    at = (lambda Q: Q) if positions is None else positions
+
+    def check_distinct(Q) -> str | None:
+        found = check_distinct.batched(np.asarray(Q)[None])
+        return None if found is None else found[1]
+
+    def batched(Qs) -> tuple[int, str] | None:
+        x = np.asarray(Qs if positions is None else positions(jnp.asarray(Qs)), dtype=np.float64)
+        found = coincident_pairs(x)
+        if found is None:
+            return None
+        j, a, b = found
+        return j, _coincident_sentence(x[j, a], a, b)
+
+    def traced(Q) -> jax.Array:
+        x = at(jnp.asarray(Q))
+        gap = jnp.max(jnp.abs(x[:, None, :] - x[None, :, :]), axis=-1)
+        scale = jnp.maximum(1.0, jnp.max(jnp.abs(x)))
+        off_diagonal = ~jnp.eye(x.shape[0], dtype=bool)
+        return ~jnp.any(off_diagonal & (gap <= COINCIDENT_RTOL * scale))
+
+    check_distinct.batched, check_distinct.traced = batched, traced
+    return check_distinct
+
+
+check_distinct_vortices = distinct_check()
+"""`point_vortices`' `check_Q`: None unless two vortices coincide (`COINCIDENT_RTOL`), else a
+sentence naming the pair; `.batched` checks a stack for `cj.sweep`, `.traced` a member under
+`jax.jit`/`jax.vmap` (`Status.INVALID_INPUT`)."""
+
+
 def point_vortices(circulations, derivative_map: DerivativeMap = forward_difference) -> ClebschSystem:
     r"""N planar point vortices as a degenerate Clebsch system (see the module docstring).
 
@@ -103,6 +170,10 @@ def point_vortices(circulations, derivative_map: DerivativeMap = forward_differe
     angular impulses (`vortex_linear_impulse`, `vortex_angular_impulse`) to round-off and keeps
     H (`vortex_hamiltonian`) bounded. `Solution.xi` is None (the Legendre map is degenerate);
     `Solution.xi_step` are the velocities at the step midpoints.
+
+    Coincident vortices (a singular configuration) are refused before compiling, naming the pair
+    (`check_distinct_vortices`, the system's `check_Q`; under `jax.jit`/`jax.vmap`
+    `Status.INVALID_INPUT`).
     """
     gamma = _circulations(circulations, nonzero=True)
     return ClebschSystem(
@@ -110,11 +181,13 @@ def point_vortices(circulations, derivative_map: DerivativeMap = forward_differe
         velocity_map=_translation,
         derivative_map=derivative_map,
         degenerate=True,
+        check_Q=check_distinct_vortices,
     )
 
 
-def _on_configurations(fn, circulations, Q, dim: int = 2, name: str = "Q"):
-    """`fn(circulations, q)` on every configuration q (N, `dim`) of `Q` (..., N, `dim`), vmapped."""
+def _on_configurations(fn, circulations, Q, dim: int = 2, name: str = "Q", distinct: bool = False):
+    """`fn(circulations, q)` on every configuration q (N, `dim`) of `Q` (..., N, `dim`), vmapped.
+    With `distinct`, a concrete `Q` with coincident vortices (where `fn` is infinite) is refused."""
     gamma = _circulations(circulations)
     Q = jnp.asarray(Q, dtype=jnp.result_type(float))
     if Q.ndim < 2 or Q.shape[-2:] != (gamma.shape[0], dim):
@@ -122,6 +195,11 @@ def _on_configurations(fn, circulations, Q, dim: int = 2, name: str = "Q"):
             f"{name}: expected shape (..., {gamma.shape[0]}, {dim}) for {gamma.shape[0]} vortices, got {Q.shape}."
         )
     flat = Q.reshape((-1,) + Q.shape[-2:])
+    found = None if is_traced(flat) or not distinct else coincident_pairs(flat)
+    if found is not None:
+        j, a, b = found
+        at = f"[{', '.join(str(int(i)) for i in np.unravel_index(j, Q.shape[:-2]))}]" if Q.ndim > 2 else ""
+        raise ValueError(f"{name}{at}: " + _coincident_sentence(np.asarray(flat[j, a]), a, b))
     out = jax.vmap(lambda q: fn(gamma, q))(flat)
     return out.reshape(Q.shape[:-2] + out.shape[1:])
 
@@ -139,8 +217,9 @@ def _velocity(gamma, Q):
 def vortex_velocity(circulations, Q) -> jax.Array:
     r"""The velocities $\dot Q_a = (\partial H/\partial y_a, -\partial H/\partial x_a)/\Gamma_a$ at
     positions Q (by autodiff of H): the consistent initial `xi0` for `integrate`, and the
-    right-hand side for a reference ODE solve. Shape of Q."""
-    return _on_configurations(_velocity, circulations, Q)
+    right-hand side for a reference ODE solve. Shape of Q. Coincident vortices are refused (a
+    `ValueError` naming the pair)."""
+    return _on_configurations(_velocity, circulations, Q, distinct=True)
 
 
 def vortex_linear_impulse(circulations, Q) -> jax.Array:

@@ -38,7 +38,7 @@ from jax.tree_util import Partial
 
 from ..core.derivative_maps import DerivativeMap, forward_difference
 from ..core.system import ClebschSystem
-from ._point_vortices import _circulations, _on_configurations
+from ._point_vortices import _circulations, distinct_check, _on_configurations
 
 __all__ = [
     "point_vortices_sphere",
@@ -105,7 +105,8 @@ def point_vortices_sphere(circulations, derivative_map: DerivativeMap = forward_
 
     `integrate` runs the midpoint principle. The positions are `sphere_vortex_positions(sol.Q)`;
     $\sum_a \Gamma_a x_a$ (`sphere_vortex_moment`) is conserved to round-off and H
-    (`sphere_vortex_hamiltonian`) stays bounded.
+    (`sphere_vortex_hamiltonian`) stays bounded. Coincident vortices (a singular configuration)
+    are refused before compiling, naming the pair, as by `point_vortices`.
     """
     gamma = _circulations(circulations, nonzero=True)
     return ClebschSystem(
@@ -113,7 +114,12 @@ def point_vortices_sphere(circulations, derivative_map: DerivativeMap = forward_
         velocity_map=_velocity_map,
         derivative_map=derivative_map,
         degenerate=True,
+        check_Q=_CHECK_DISTINCT,
     )
+
+
+_CHECK_DISTINCT = distinct_check(_hopf)
+"""`point_vortices_sphere`'s `check_Q`: no two vortices at one point of the sphere."""
 
 
 def sphere_vortex_lift(x) -> jax.Array:
@@ -142,8 +148,8 @@ def sphere_vortex_positions(Z) -> jax.Array:
     return _hopf(Z)
 
 
-def _on_positions(fn, circulations, x):
-    return _on_configurations(fn, circulations, x, dim=3, name="x")
+def _on_positions(fn, circulations, x, distinct: bool = False):
+    return _on_configurations(fn, circulations, x, dim=3, name="x", distinct=distinct)
 
 
 def sphere_vortex_hamiltonian(circulations, x) -> jax.Array:
@@ -153,23 +159,23 @@ def sphere_vortex_hamiltonian(circulations, x) -> jax.Array:
 
 def sphere_vortex_velocity(circulations, x) -> jax.Array:
     r"""$\dot x_a = \nabla_a H \times x_a / \Gamma_a$ (by autodiff of H): the right-hand side for a
-    reference ODE solve. Shape of x."""
+    reference ODE solve. Shape of x. Coincident vortices are refused (a `ValueError` naming the pair)."""
 
     def velocity(gamma, q):
         return jnp.cross(jax.grad(_hamiltonian, argnums=1)(gamma, q) / gamma[:, None], q)
 
-    return _on_positions(velocity, circulations, x)
+    return _on_positions(velocity, circulations, x, distinct=True)
 
 
 def sphere_vortex_xi(circulations, x) -> jax.Array:
     r"""The consistent ξ at positions x: $\omega_a = \nabla_a H / \Gamma_a$ (the collective velocity),
-    $s_a = 0$; shape (..., N, 4). The seed `xi0` for `integrate`."""
+    $s_a = 0$; shape (..., N, 4). The seed `xi0` for `integrate`. Coincident vortices are refused."""
 
     def xi(gamma, q):
         omega = jax.grad(_hamiltonian, argnums=1)(gamma, q) / gamma[:, None]
         return jnp.concatenate([omega, jnp.zeros_like(omega[:, :1])], axis=-1)
 
-    return _on_positions(xi, circulations, x)
+    return _on_positions(xi, circulations, x, distinct=True)
 
 
 def sphere_vortex_moment(circulations, x) -> jax.Array:
