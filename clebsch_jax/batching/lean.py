@@ -40,7 +40,7 @@ import jax.numpy as jnp
 from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity
 from ..discrete.residual import nodal_residual
-from ..march.scan import input_ok, jump_step, node_energy, zero_nan
+from ..march.scan import first_step_failed, half_steps, input_ok, jump_step, node_energy, zero_nan
 from ..roots.implicit import undifferentiated
 from ..roots.newton import fixed_newton_solve
 from ..roots.solvers import FixedNewton
@@ -162,6 +162,10 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
     # warm-up steps by WARMUP_ROUNDS rounds, the others by one round of LEAN_UPDATES (module docstring)
     method = _with_finder(stepper, warmup=min(finder.warmup, n), updates=LEAN_UPDATES, warmup_rounds=WARMUP_ROUNDS)
 
+    # integrate's first-step check, in the run's first chunk: a step 0 far from where two half
+    # steps arrive (or whose half steps fail) fails the chunk, which the general path then reruns
+    probe = half_steps(method, system, state0, memory0, ok, dt, jnp.where(first, 2, 0))
+
     def body(k, c):
         state_prev, memory, red = c
         state, memory, out, stats = method.step(system, state_prev, memory, dt, k, jnp.asarray(True))
@@ -177,6 +181,7 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
         change, _, jumped = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
         size_max = jnp.maximum(red["size"], zero_nan(size))
         good = (stats.status == Status.SUCCESS) & (nst.status == Status.SUCCESS) & ~jumped
+        good = good & ~(first & (k == 0) & first_step_failed(jnp, probe, nodes.nodal_Q, nodes.momentum, Status.SUCCESS))
         red = dict(
             ok=red["ok"] & good,
             iterations=red["iterations"] + stats.iterations,

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity, initial_multiplier
 from ..discrete.residual import nodal_residual
-from ..march.scan import input_ok, jump_step, node_energy, zero_nan
+from ..march.scan import first_step_failed, half_steps, input_ok, jump_step, node_energy, zero_nan
 from ..roots.status import Status
 from ..steppers.base import innermost
 from ..steppers.reduced import ReducedStep
@@ -57,6 +57,7 @@ class MemberCarry(NamedTuple):
     # with the stepper's guesses and predictor history, the steps of one unbroken run
     # (`march_start_values`); None: every chunk starts the stepper afresh
     march: tuple | None = None
+    gauge: jax.Array | None = None  # the weight of the member's isotropy gauge (`config.Carry.gauge`)
 
 
 def march_start_values(stepper, system, Q0, xi0, P0, dt) -> tuple:
@@ -131,6 +132,11 @@ def member_chunk(
     else:  # the run's first chunk starts the stepper; a later one continues the last one's march
         carried = lambda: (carry.march, jnp.zeros((), carry.iterations.dtype))
         (state0, memory0, steps0), startup = jax.lax.cond(first, fresh, carried)
+    # integrate's first-step check (`clebsch_jax.march.scan.first_step_probe`): two half steps
+    # from the start, made in the run's first chunk only (a loop of 0 iterations in the others)
+    probe = None
+    if check_energy:
+        probe = half_steps(stepper, system, state0, memory0, ok_in, dt, jnp.where(first, 2, 0))
     mu0 = momentum_map(system, P0, Q0, xi0)
     finder = stepper.nodal_solver
     xin0, ok0, E0, size0 = _node(system, finder, Q0, mu0, xi0, ok_in)
@@ -180,11 +186,17 @@ def member_chunk(
             new_jump = jumped & ~red["jumped"]
         else:
             change, size_max, jumped, new_jump = red["change"], red["size"], red["jumped"], jnp.asarray(False)
+        jump_code = Status.ENERGY_JUMP
+        if probe is not None:  # step 0 of the run, converged and not failed by the energy check
+            step0 = jnp.where(ok & ~new_jump, Status.SUCCESS, Status.ENERGY_JUMP)
+            spurious = first & (k == 0) & first_step_failed(jnp, probe, nodes.nodal_Q, nodes.momentum, step0)
+            jumped, new_jump = jumped | spurious, new_jump | spurious
+            jump_code = jnp.where(spurious, Status.FIRST_STEP, Status.ENERGY_JUMP)
         still = red["status"] == Status.SUCCESS
         step_failed = alive & ~ok
         code = jnp.where(
             new_jump,
-            Status.ENERGY_JUMP,
+            jump_code,
             jnp.where(step_failed, stats.status, jnp.where(ok & ~nodal_ok, Status.LEGENDRE, Status.SUCCESS)),
         )
         # a step's failure or a jump outranks an earlier node's (LEGENDRE), as integrate ranks them
@@ -247,4 +259,5 @@ def member_chunk(
         energy_change=red["change"],
         energy_size=red["size"],
         march=None if carry.march is None else (state, memory, steps0 + n),
+        gauge=carry.gauge,
     )
