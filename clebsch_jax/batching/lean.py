@@ -157,6 +157,8 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
         mu=mu0,
         xstep=xin0,
         **({"Q": Q0} if carries else {}),
+        Q1=jnp.full_like(Q0, jnp.nan),
+        mu1=jnp.full_like(mu0, jnp.nan),
     )
 
     # warm-up steps by WARMUP_ROUNDS rounds, the others by one round of LEAN_UPDATES (module docstring)
@@ -181,7 +183,6 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
         change, _, jumped = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
         size_max = jnp.maximum(red["size"], zero_nan(size))
         good = (stats.status == Status.SUCCESS) & (nst.status == Status.SUCCESS) & ~jumped
-        good = good & ~(first & (k == 0) & first_step_failed(jnp, probe, nodes.nodal_Q, nodes.momentum, Status.SUCCESS))
         red = dict(
             ok=red["ok"] & good,
             iterations=red["iterations"] + stats.iterations,
@@ -194,6 +195,9 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
             mu=mun,
             xstep=xi_step,
             **({"Q": nodes.Q[1]} if carries else {}),
+            # step 0's node, for the first-step check after the loop
+            Q1=jnp.where(k == 0, Qn, red["Q1"]),
+            mu1=jnp.where(k == 0, mun, red["mu1"]),
         )
         return state, memory, red
 
@@ -201,6 +205,9 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
     red = c[2]
     Qn, mun = red.get("Q", Q0), red["mu"]
     ok = alive0 & red["ok"] & jnp.isfinite(red["drift"])
+    if n > 0:  # integrate's first-step check (the general path's rerun reports it)
+        nodes0 = (jnp.stack([Q0, red["Q1"]]), jnp.stack([mu0, red["mu1"]]))
+        ok = ok & ~(first & first_step_failed(jnp, probe, *nodes0, Status.SUCCESS))
     status = jnp.where(alive0 & ~ok, Status.MAX_ITERATIONS, carry.status).astype(carry.status.dtype)
     initial = {**carry.initial, "energy": ref}
     drift = {**carry.drift, "energy": jnp.maximum(carry.drift["energy"], red["drift"])}

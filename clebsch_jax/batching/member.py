@@ -186,17 +186,11 @@ def member_chunk(
             new_jump = jumped & ~red["jumped"]
         else:
             change, size_max, jumped, new_jump = red["change"], red["size"], red["jumped"], jnp.asarray(False)
-        jump_code = Status.ENERGY_JUMP
-        if probe is not None:  # step 0 of the run, converged and not failed by the energy check
-            step0 = jnp.where(ok & ~new_jump, Status.SUCCESS, Status.ENERGY_JUMP)
-            spurious = first & (k == 0) & first_step_failed(jnp, probe, nodes.nodal_Q, nodes.momentum, step0)
-            jumped, new_jump = jumped | spurious, new_jump | spurious
-            jump_code = jnp.where(spurious, Status.FIRST_STEP, Status.ENERGY_JUMP)
         still = red["status"] == Status.SUCCESS
         step_failed = alive & ~ok
         code = jnp.where(
             new_jump,
-            jump_code,
+            Status.ENERGY_JUMP,
             jnp.where(step_failed, stats.status, jnp.where(ok & ~nodal_ok, Status.LEGENDRE, Status.SUCCESS)),
         )
         # a step's failure or a jump outranks an earlier node's (LEGENDRE), as integrate ranks them
@@ -229,9 +223,36 @@ def member_chunk(
             jumped=jumped,
             p=p,
         )
+        if probe is not None:  # step 0's node and outcome, for the first-step check after the loop
+            at0 = k == 0
+            kept = lambda now, before: jnp.where(at0, now, before)  # noqa: E731
+            red.update(
+                Q1=kept(Qn, c[2]["Q1"]),
+                mu1=kept(mun, c[2]["mu1"]),
+                ok1=kept(ok & ~new_jump, c[2]["ok1"]),
+                iterations1=kept(iterations, c[2]["iterations1"]),
+            )
         return state, memory, red
 
+    if probe is not None:
+        red0.update(Q1=jnp.full_like(Q0, jnp.nan), mu1=jnp.full_like(mu0, jnp.nan), ok1=jnp.asarray(False))
+        red0.update(iterations1=red0["iterations"])
     state, memory, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
+    if probe is not None and n > 0:
+        # integrate's first-step check (after its energy check): step 0 converged, was not failed
+        # by the energy check, and lies far from the half steps' node. It fails the member at
+        # step 0 as a jump there would: what the loop reduced after step 0 is dropped. (Made
+        # here, on the node recorded at step 0, rather than in every step of the loop.)
+        nodes0 = (jnp.stack([red0["Q"], red["Q1"]]), jnp.stack([mu0, red["mu1"]]))
+        spurious = first & red["ok1"] & first_step_failed(jnp, probe, *nodes0, Status.SUCCESS)
+        red.update(
+            status=jnp.where(spurious, Status.FIRST_STEP, red["status"]).astype(jnp.int32),
+            step=jnp.where(spurious, 0, red["step"]).astype(jnp.int32),
+            iterations=jnp.where(spurious, red["iterations1"], red["iterations"]),
+            residual=jnp.where(spurious, red0["residual"], red["residual"]),
+            drift=jnp.where(spurious, red0["drift"], red["drift"]),
+            alive=red["alive"] & ~spurious,
+        )
     if n > 0:  # the state the last step kept (`alive`: no failure or jump up to it), else NaN
         red.update(_nan_unless(red["alive"], {k: red[k] for k in ("Q", "mu", "xin", "p")}))
     Qn, mun = red["Q"], red["mu"]
