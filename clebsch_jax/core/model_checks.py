@@ -161,15 +161,16 @@ def traced_isotropy(system, q_shape, xi_shape) -> tuple | None:
     not see the isotropy of the velocity map (`ModelFacts.gauge`) and `gauge_isotropy` finds the
     rank. Returns `(rank, kernel dimension, degenerate)` (the arguments of
     `clebsch_jax.core.isotropy.gauged`), or None: no isotropy at the example, l sees it, the
-    system's own arrays are traced (parameters under `vmap`: no concrete example), or its maps
-    fail there.
+    system's own arrays are traced (parameters under `vmap`: no concrete example), ξ has more
+    than `ISOTROPY_MAX_DIM` components, or its maps fail there.
 
     The example has the generic rank of the velocity map; a member whose $Q^0$ is of another
     orbit type (a larger isotropy, e.g. q = 0 for ξ × q) is refused in the program itself as an
     invalid input (`clebsch_jax.march.scan.input_ok`, `rank_holds`), never marched with a wrong
     gauge."""
-    if any_traced(system) or isinstance(system.lagrangian, IsotropyGauge):
-        return None
+    size = int(np.prod(xi_shape))
+    if any_traced(system) or isinstance(system.lagrangian, IsotropyGauge) or size > ISOTROPY_MAX_DIM:
+        return None  # (as on concrete values, no isotropy is looked for above ISOTROPY_MAX_DIM)
     rng = np.random.default_rng(0)
     Q, xi = rng.normal(size=q_shape), rng.normal(size=xi_shape)
     try:
