@@ -16,7 +16,7 @@ import numpy as np
 from ..core.jit import undifferentiated
 from ..march.integrate import prepared_method
 from .backends import NativeProgram
-from .config import Carry, Config, system_of
+from .config import Carry, Config, member_system
 from .member import MemberCarry, member_chunk
 from .probe import trace_key
 
@@ -24,7 +24,8 @@ from .probe import trace_key
 def _native_member(cfg: Config, params, shared, carry: MemberCarry, dt, first, offset) -> MemberCarry:
     """One member's chunk as the per-member program (`clebsch_jax.batching.member`): the method
     `integrate` chooses for it, its solves to their own stopping rule, the reductions in the loop."""
-    system = system_of(cfg, params, shared)
+    system, xi, gauge = member_system(cfg, params, shared, carry.Q, carry.xi, carry.gauge, first)
+    carry = carry._replace(xi=xi, gauge=gauge)
     stepper, _, _ = prepared_method(
         system, carry.Q, carry.xi, dt=dt, n_steps=cfg.n, P0=carry.P, t0=carry.t, **dict(cfg.options)
     )
@@ -51,6 +52,7 @@ def as_member(carry: Carry) -> MemberCarry:
         energy_change=h(carry.energy_change),
         energy_size=h(carry.energy_size),
         march=None if carry.march is None else jax.tree_util.tree_map(h, carry.march),
+        gauge=None if carry.gauge is None else h(carry.gauge),
     )
 
 
@@ -71,6 +73,7 @@ def _from_member(m: MemberCarry, has_xi: bool) -> Carry:
         energy_change=m.energy_change,
         energy_size=m.energy_size,
         march=m.march,
+        gauge=m.gauge,
     )
 
 

@@ -19,11 +19,11 @@ from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, jit_with_options, undifferen
 from ..discrete.legendre import initial_multiplier
 from ..march.continuation import continue_from
 from ..march.integrate import prepared_method
-from ..march.scan import energy_jump, node_energies
+from ..march.scan import energy_jump, first_step_failed, half_steps, node_energies
 from ..march.scan import start as march_start
 from ..roots.status import Status
 from .batch_last import batch
-from .config import Carry, Config, chunk_integrate, system_of
+from .config import Carry, Config, chunk_integrate, member_system
 from .lean import lean_chunk
 from .scalarise import scalarise
 
@@ -76,9 +76,23 @@ def _march_state(cfg: Config, system, carry: Carry, dt, first, alive):
     return state._replace(alive=state.alive & alive), jnp.where(use, 0, startup)
 
 
+def _first_step(cfg: Config, system, carry: Carry, dt, first, sol, jumped, jump_step):
+    """`integrate`'s first-step check (`clebsch_jax.march.scan.first_step_probe`) in the run's
+    first chunk: whether step 0 converged, was not failed by the energy check, and lies far from
+    the node two half steps from the start reach (`first_step_failed`). The half steps run in a
+    loop of two iterations in the first chunk and none in the others (`half_steps`)."""
+    stepper, _, _ = prepared_method(
+        system, carry.Q, carry.xi, dt=dt, n_steps=cfg.n, P0=carry.P, t0=carry.t, **dict(cfg.options)
+    )
+    fresh, _ = march_start(stepper, system, carry.Q, carry.xi, carry.P, dt, check_inputs=True)
+    probe = half_steps(stepper, system, fresh.state, fresh.memory, fresh.alive, dt, jnp.where(first, 2, 0))
+    step0 = jnp.where(jumped & (jump_step == 0), Status.ENERGY_JUMP, sol.stats.status[0])
+    return first & first_step_failed(jnp, probe, _node_Q(cfg, sol, carry)[:2], sol.momentum[:2], step0)
+
+
 def _member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
-    system = system_of(cfg, params, shared)
-    carry = _with_start_P(cfg, system, carry, first)
+    system, xi, gauge = member_system(cfg, params, shared, carry.Q, carry.xi, carry.gauge, first)
+    carry = _with_start_P(cfg, system, carry._replace(xi=xi, gauge=gauge), first)
     # A member that failed before starts the chunk failed (a NaN state): a failed step made its
     # state NaN already, a jump found by the energy check did not. (Masking the state handed on
     # by the chunk that found the jump instead, on a value computed in that chunk, makes XLA's
@@ -90,6 +104,9 @@ def _member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
         march_state, startup = _march_state(cfg, system, carry, dt, first, alive)
     sol = chunk_integrate(cfg, system, carry.Q, carry.xi, carry.P, carry.t, dt, cfg.n, march_state)
     jumped, jump_step, energy_change, energy_size, E = _energy_check(cfg, system, sol, carry)
+    spurious = _first_step(cfg, system, carry, dt, first, sol, jumped, jump_step) if cfg.check_energy else False
+    # a spurious step 0 fails as a jump there does (integrate checks it after the energy)
+    jumped, jump_step = jumped | spurious, jnp.where(spurious, 0, jump_step)
     end = jnp.where(jumped, jump_step, cfg.n)  # a jump fails its step: the nodes after it are unknown
     steps, nodes = jnp.arange(cfg.n), jnp.arange(cfg.n + 1)
     # Nodes whose state is known: before any failure, with the nodal velocity recovered.
@@ -102,7 +119,7 @@ def _member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
         dev = jnp.where(known, _deviation(v, ref), -jnp.inf)
         d = jnp.maximum(carry.drift[name], jnp.max(dev))
         initial[name], drift[name] = ref, jnp.where(jnp.all(jnp.isfinite(ref)), d, jnp.nan)
-    result = jnp.where(jumped, Status.ENERGY_JUMP, sol.result)
+    result = jnp.where(jumped, jnp.where(spurious, Status.FIRST_STEP, Status.ENERGY_JUMP), sol.result)
     new_failure = (carry.status == Status.SUCCESS) & (result != Status.SUCCESS)
     status = jnp.where(new_failure, result, carry.status).astype(jnp.int32)
     failed_step = jnp.where(
@@ -131,6 +148,7 @@ def _member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
         energy_size=energy_size,
         march=carry.march if march_state is None else sol.march_state,
         march_ok=None if carry.march is None else jnp.asarray(march_state is not None),
+        gauge=carry.gauge,
     )
     saved = None
     if cfg.save_every is not None:
@@ -148,7 +166,8 @@ def _member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
 def _lean_member_chunk(cfg: Config, params, shared, carry: Carry, dt, first, offset):
     """A member's chunk on the lean path (`clebsch_jax.batching.lean`): the fast method's steps
     with the sweep's reductions in the loop, no records."""
-    system = system_of(cfg, params, shared)
+    system, xi, gauge = member_system(cfg, params, shared, carry.Q, carry.xi, carry.gauge, first)
+    carry = carry._replace(xi=xi, gauge=gauge)
     stepper = dict(cfg.options)["method"].prepare(system, carry.Q, carry.xi)  # the fast method: `run_fast_chunk`
     # the lean chunk uses P⁰ only for its momentum μ⁰ = δl/δξ(ξ⁰, Q⁰) (Lemma 7): derived directly
     new, _ = lean_chunk(stepper, system, carry, dt, cfg.n, first, derive_momentum=first if cfg.derive_P else False)

@@ -13,9 +13,13 @@ import numbers
 from typing import Callable, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .. import diagnostics as _diagnostics
+from ..core.isotropy import gauge_weight as _gauge_weight
+from ..core.isotropy import gauged as _gauged
+from ..core.isotropy import physical_part as _physical_part
 from ..core.system import ClebschSystem
 from ..core.validation import check_memory as _check_memory
 from ..core.validation import host_float_array as _float_array
@@ -273,6 +277,9 @@ class Carry(NamedTuple):
     # member's state (not after a chunk of the fast or lean path, which march with another method).
     march: object = None
     march_ok: jax.Array | None = None
+    # the weight of the member's isotropy gauge (`Config.isotropy`), found in the first chunk at
+    # (Q⁰, ξ⁰) as `integrate` finds it (`clebsch_jax.core.isotropy.gauge_weight`); None: no gauge
+    gauge: jax.Array | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -293,6 +300,9 @@ class Config:
     native: bool = False  # the batches run the per-member program as native kernels (`native_call`)
     native_max_lines: int | None = None  # a kernel of more IR lines is not compiled (backend="auto")
     carry_march: bool = True  # hand the march state from chunk to chunk (not on the fast path)
+    # (rank, kernel dimension, degenerate) of the isotropy gauge `integrate` fixes for the first
+    # member (`probe.check_first_member`), which every member's system gets (`member_system`)
+    isotropy: tuple | None = None
 
 
 def chunk_integrate(cfg: Config, system, Q, xi, P, t, dt, n, march_state=None):
@@ -311,14 +321,37 @@ def chunk_integrate(cfg: Config, system, Q, xi, P, t, dt, n, march_state=None):
     )
 
 
-def system_of(cfg: Config, params, shared):
+def system_of(cfg: Config, params, shared, weight=None):
     """Member's system: `make_system(params)`, or the shared system rebuilt from its array
-    leaves `shared` (traced) and its other leaves (static, in `cfg`)."""
+    leaves `shared` (traced) and its other leaves (static, in `cfg`); with `cfg.isotropy`, with
+    its isotropy gauge fixed as `integrate` fixes it, with `weight` (default 1: for traces that
+    need the system's structure, not its values; a chunk's member has its own, `member_system`)."""
     if cfg.make_system is not None:
-        return cfg.make_system(params)
-    treedef, static = cfg.shared_def
-    it = iter(shared)
-    return jax.tree_util.tree_unflatten(treedef, [next(it) if x is None else x for x in static])
+        system = cfg.make_system(params)
+    else:
+        treedef, static = cfg.shared_def
+        it = iter(shared)
+        system = jax.tree_util.tree_unflatten(treedef, [next(it) if x is None else x for x in static])
+    if cfg.isotropy is None:
+        return system
+    rank, kernel_dim, degenerate = cfg.isotropy
+    return _gauged(system, rank, kernel_dim, jnp.ones(()) if weight is None else weight, degenerate)
+
+
+def member_system(cfg: Config, params, shared, Q, xi, weight, first):
+    """(system, ξ, gauge weight) of a member in a chunk that starts from (Q, ξ): `system_of`, and
+    with `cfg.isotropy` what `integrate` does for a Lagrangian blind to the isotropy — the gauge
+    weight found in the run's first chunk at (Q⁰, ξ⁰ as given) and `weight` (the carried one)
+    in the others; and, in the first chunk of a run given no P0, ξ⁰ taken as its physical
+    velocity (its isotropy component dropped: `clebsch_jax.core.isotropy.physical_part`)."""
+    if cfg.isotropy is None:
+        return system_of(cfg, params, shared), xi, weight
+    rank, kernel_dim, degenerate = cfg.isotropy
+    base = system_of(dataclasses.replace(cfg, isotropy=None), params, shared)
+    weight = jnp.where(first, _gauge_weight(base, Q, xi), weight)
+    if cfg.derive_P:
+        xi = jnp.where(first, _physical_part(base.velocity_map, Q, xi, rank), xi)
+    return _gauged(base, rank, kernel_dim, weight, degenerate), xi, weight
 
 
 def _split_system(system: ClebschSystem):

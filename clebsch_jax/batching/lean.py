@@ -40,7 +40,7 @@ import jax.numpy as jnp
 from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity
 from ..discrete.residual import nodal_residual
-from ..march.scan import input_ok, jump_step, node_energy, zero_nan
+from ..march.scan import first_step_failed, half_steps, input_ok, jump_step, node_energy, zero_nan
 from ..roots.implicit import undifferentiated
 from ..roots.newton import fixed_newton_solve
 from ..roots.solvers import FixedNewton
@@ -157,10 +157,16 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
         mu=mu0,
         xstep=xin0,
         **({"Q": Q0} if carries else {}),
+        Q1=jnp.full_like(Q0, jnp.nan),
+        mu1=jnp.full_like(mu0, jnp.nan),
     )
 
     # warm-up steps by WARMUP_ROUNDS rounds, the others by one round of LEAN_UPDATES (module docstring)
     method = _with_finder(stepper, warmup=min(finder.warmup, n), updates=LEAN_UPDATES, warmup_rounds=WARMUP_ROUNDS)
+
+    # integrate's first-step check, in the run's first chunk: a step 0 far from where two half
+    # steps arrive (or whose half steps fail) fails the chunk, which the general path then reruns
+    probe = half_steps(method, system, state0, memory0, ok, dt, jnp.where(first, 2, 0))
 
     def body(k, c):
         state_prev, memory, red = c
@@ -189,6 +195,9 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
             mu=mun,
             xstep=xi_step,
             **({"Q": nodes.Q[1]} if carries else {}),
+            # step 0's node, for the first-step check after the loop
+            Q1=jnp.where(k == 0, Qn, red["Q1"]),
+            mu1=jnp.where(k == 0, mun, red["mu1"]),
         )
         return state, memory, red
 
@@ -196,6 +205,9 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
     red = c[2]
     Qn, mun = red.get("Q", Q0), red["mu"]
     ok = alive0 & red["ok"] & jnp.isfinite(red["drift"])
+    if n > 0:  # integrate's first-step check (the general path's rerun reports it)
+        nodes0 = (jnp.stack([Q0, red["Q1"]]), jnp.stack([mu0, red["mu1"]]))
+        ok = ok & ~(first & first_step_failed(jnp, probe, *nodes0, Status.SUCCESS))
     status = jnp.where(alive0 & ~ok, Status.MAX_ITERATIONS, carry.status).astype(carry.status.dtype)
     initial = {**carry.initial, "energy": ref}
     drift = {**carry.drift, "energy": jnp.maximum(carry.drift["energy"], red["drift"])}

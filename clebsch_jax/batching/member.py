@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity, initial_multiplier
 from ..discrete.residual import nodal_residual
-from ..march.scan import input_ok, jump_step, node_energy, zero_nan
+from ..march.scan import first_step_failed, half_steps, input_ok, jump_step, node_energy, zero_nan
 from ..roots.status import Status
 from ..steppers.base import innermost
 from ..steppers.reduced import ReducedStep
@@ -57,6 +57,7 @@ class MemberCarry(NamedTuple):
     # with the stepper's guesses and predictor history, the steps of one unbroken run
     # (`march_start_values`); None: every chunk starts the stepper afresh
     march: tuple | None = None
+    gauge: jax.Array | None = None  # the weight of the member's isotropy gauge (`config.Carry.gauge`)
 
 
 def march_start_values(stepper, system, Q0, xi0, P0, dt) -> tuple:
@@ -131,6 +132,11 @@ def member_chunk(
     else:  # the run's first chunk starts the stepper; a later one continues the last one's march
         carried = lambda: (carry.march, jnp.zeros((), carry.iterations.dtype))
         (state0, memory0, steps0), startup = jax.lax.cond(first, fresh, carried)
+    # integrate's first-step check (`clebsch_jax.march.scan.first_step_probe`): two half steps
+    # from the start, made in the run's first chunk only (a loop of 0 iterations in the others)
+    probe = None
+    if check_energy:
+        probe = half_steps(stepper, system, state0, memory0, ok_in, dt, jnp.where(first, 2, 0))
     mu0 = momentum_map(system, P0, Q0, xi0)
     finder = stepper.nodal_solver
     xin0, ok0, E0, size0 = _node(system, finder, Q0, mu0, xi0, ok_in)
@@ -217,9 +223,36 @@ def member_chunk(
             jumped=jumped,
             p=p,
         )
+        if probe is not None:  # step 0's node and outcome, for the first-step check after the loop
+            at0 = k == 0
+            kept = lambda now, before: jnp.where(at0, now, before)  # noqa: E731
+            red.update(
+                Q1=kept(Qn, c[2]["Q1"]),
+                mu1=kept(mun, c[2]["mu1"]),
+                ok1=kept(ok & ~new_jump, c[2]["ok1"]),
+                iterations1=kept(iterations, c[2]["iterations1"]),
+            )
         return state, memory, red
 
+    if probe is not None:
+        red0.update(Q1=jnp.full_like(Q0, jnp.nan), mu1=jnp.full_like(mu0, jnp.nan), ok1=jnp.asarray(False))
+        red0.update(iterations1=red0["iterations"])
     state, memory, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
+    if probe is not None and n > 0:
+        # integrate's first-step check (after its energy check): step 0 converged, was not failed
+        # by the energy check, and lies far from the half steps' node. It fails the member at
+        # step 0 as a jump there would: what the loop reduced after step 0 is dropped. (Made
+        # here, on the node recorded at step 0, rather than in every step of the loop.)
+        nodes0 = (jnp.stack([red0["Q"], red["Q1"]]), jnp.stack([mu0, red["mu1"]]))
+        spurious = first & red["ok1"] & first_step_failed(jnp, probe, *nodes0, Status.SUCCESS)
+        red.update(
+            status=jnp.where(spurious, Status.FIRST_STEP, red["status"]).astype(jnp.int32),
+            step=jnp.where(spurious, 0, red["step"]).astype(jnp.int32),
+            iterations=jnp.where(spurious, red["iterations1"], red["iterations"]),
+            residual=jnp.where(spurious, red0["residual"], red["residual"]),
+            drift=jnp.where(spurious, red0["drift"], red["drift"]),
+            alive=red["alive"] & ~spurious,
+        )
     if n > 0:  # the state the last step kept (`alive`: no failure or jump up to it), else NaN
         red.update(_nan_unless(red["alive"], {k: red[k] for k in ("Q", "mu", "xin", "p")}))
     Qn, mun = red["Q"], red["mu"]
@@ -247,4 +280,5 @@ def member_chunk(
         energy_change=red["change"],
         energy_size=red["size"],
         march=None if carry.march is None else (state, memory, steps0 + n),
+        gauge=carry.gauge,
     )

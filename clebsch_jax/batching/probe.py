@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..core.isotropy import IsotropyGauge as _IsotropyGauge
 from ..core.jit import memo, undifferentiated
 from ..core.validation import check_configuration as _check_configuration
 from ..core.validation import runnable_check as _runnable_check
@@ -54,7 +55,7 @@ FIRST_MEMBER_TRIES = 8
 `make_system` builds from its concrete parameter row, among the first this many such members."""
 
 
-def check_first_member(cfg: Config, members: Members) -> None:
+def check_first_member(cfg: Config, members: Members) -> tuple | None:
     """`integrate`'s checks of a member, with its concrete values, before any batch is traced or
     compiled (`clebsch_jax.march.integrate.check_member`): the batches march traced members, on
     which `integrate` skips the checks that need values — the model by autodiff (`check_model`),
@@ -63,7 +64,11 @@ def check_first_member(cfg: Config, members: Members) -> None:
     functions), which the members share. It is the first member that can run: one with
     non-finite inputs, or whose parameter row the model's constructor refuses, is reported in
     the table instead (`Status.INVALID_INPUT`), as before. The system's own check of its
-    configurations (`check_Q`) runs on every Q0[j], first (`_check_configurations`)."""
+    configurations (`check_Q`) runs on every Q0[j], first (`_check_configurations`).
+
+    Returns the isotropy gauge `integrate` fixes for that member, `(rank, kernel dimension,
+    degenerate)` (`Config.isotropy`: every member's system gets it, with its own weight), or
+    None (no gauge, or no member checked)."""
     _check_configurations(system_of(cfg, first_row(members), members.shared), members.Q0, members.n_ic)
     finite = lambda a: np.all(np.isfinite(np.reshape(a, (len(a), -1))), axis=1)  # noqa: E731
     ok_ic = finite(members.Q0) & finite(members.xi0) & (True if members.P0 is None else finite(members.P0))
@@ -81,13 +86,17 @@ def check_first_member(cfg: Config, members: Members) -> None:
             continue
         P0 = None if members.P0 is None else members.P0[j]
         try:
-            _check_member_eagerly(
+            checked = _check_member_eagerly(
                 system, members.Q0[j], members.xi0[j], dt=members.dt[m], P0=P0, configuration=False, **options
             )
         except (ValueError, TypeError) as err:
             where = (f"make_system(params[{i}]), " if members.builder is not None else "") + f"Q0[{j}], xi0[{j}]"
             raise type(err)(f"sweep: member {m} ({where}) is rejected by integrate's checks: {err}") from err
-        return
+        gauge = checked.lagrangian
+        if not isinstance(gauge, _IsotropyGauge):
+            return None
+        return gauge.rank, gauge.kernel_dim, bool(checked.degenerate)
+    return None
 
 
 class Shapes(NamedTuple):

@@ -126,6 +126,7 @@ def start_batch(cfg: Config, members: Members, shapes: Shapes, b: int, batch_siz
         energy_size=zeros(()),
         march=None if shapes.march is None else jax.tree_util.tree_map(lambda s: zeros(s.shape, s.dtype), shapes.march),
         march_ok=None if shapes.march is None else zeros((), bool),
+        gauge=None if cfg.isotropy is None else zeros(()),
     )
     rows = slice(b * batch_size, b * batch_size + n_real)
     return Batch(b, rows, n_real, params, put(members.dt[member]), shared, carry)

@@ -214,7 +214,14 @@ def sweep(
       block Newton loop solves to the same round-off. Pass `jacobian="dense"` for the dense
       one. `check_energy` (default True) is `integrate`'s energy check made over the
       whole run rather than per chunk: the sweep carries its running maxima from chunk to
-      chunk, so a member fails with `Status.ENERGY_JUMP` at the step `integrate` would report.
+      chunk, so a member fails with `Status.ENERGY_JUMP` at the step `integrate` would report;
+      with it, the first chunk makes `integrate`'s first-step check (two half steps from the
+      start: `Status.FIRST_STEP` at step 0 for a spurious root), on both backends.
+      A system whose Lagrangian does not see the isotropy of its velocity map (`integrate`
+      fixes its gauge, `clebsch_jax.gauge_isotropy`) is gauged for every member as `integrate`
+      gauges it: the rank found on the first member checked, each member's weight at its own
+      (Q0, xi0), and, without `P0`, xi0 taken as its physical velocity; a member whose Q0 has
+      another isotropy reports `Status.INVALID_INPUT`.
 
     **Returns:** a `SweepResult`.
 
@@ -252,7 +259,8 @@ def sweep(
     n_threads = schedule.thread_count(threads, run.devices, B)  # checked also where a Dask client's tasks take 1
     run = run._replace(threads=n_threads if client is None else 1)
     cfg = choose.particle_defaults(chunk_config(run, members, options), members)
-    probe.check_first_member(cfg, members)  # integrate's checks that need values, before any trace
+    # integrate's checks that need values, before any trace; the isotropy gauge integrate fixes
+    cfg = dataclasses.replace(cfg, isotropy=probe.check_first_member(cfg, members))
     fast, batch_size, backend = choose.resumed(fast, batch_size, store, overwrite, backend)
     if batch_size is not None:
         batch_size = positive_int(batch_size, "batch_size")

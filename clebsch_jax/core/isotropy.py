@@ -45,6 +45,10 @@ __all__ = [
     "row_space_basis",
     "IsotropyGauge",
     "gauge_isotropy",
+    "gauged",
+    "gauge_weight",
+    "physical_part",
+    "rank_holds",
     "physical_velocity",
     "isotropy_dimension",
     "MULTIPLIER_RTOL",
@@ -142,6 +146,62 @@ jax.tree_util.register_pytree_node(
 )
 
 
+def gauge_weight(system, Q, xi) -> jax.Array:
+    r"""The gauge term's weight w at $(\xi, Q)$: the size of l's Hessian in ξ there (its Frobenius
+    norm), 1 where that is zero or not finite. Plain XLA operations (traced or not: `integrate`
+    evaluates it on concrete values, a sweep in its members' programs, a traced `integrate`
+    in the caller's), so that every path gauges a member with the same weight."""
+    xi = jnp.asarray(xi)
+    H = jax.hessian(lambda x: system.l(x.reshape(xi.shape), Q))(xi.reshape(-1))
+    size = jnp.sqrt(jnp.sum(H * H))
+    return jnp.where(jnp.isfinite(size) & (size > 0), size, 1.0)
+
+
+def gauged(system: ClebschSystem, rank: int, kernel_dim: int, weight, degenerate: bool) -> ClebschSystem:
+    """`system` with its isotropy gauge fixed (`IsotropyGauge`), the velocity map's `rank` (a
+    Python int) decided before, e.g. on a concrete member (`gauge_isotropy`), and `weight` an
+    array (traced or not: `gauge_weight`). `degenerate`: whether the gauged system is still
+    degenerate in ξ."""
+    if isinstance(system.lagrangian, IsotropyGauge):
+        return system
+    lag = IsotropyGauge(system.lagrangian, system.velocity_map, system.has_potential, rank, kernel_dim, weight)
+    return _rebuilt(system, lag, degenerate=degenerate)
+
+
+def physical_part(velocity_map, Q, xi, rank: int) -> jax.Array:
+    r"""ξ with its isotropy component at Q dropped: its orthogonal projection $UU^T\xi$ onto the
+    row space of $A = \partial_\xi\mathcal L_\xi Q$ (`row_space_basis`, of the given rank), the
+    same physical velocity $\mathcal L_\xi Q$. For a system whose gauge is fixed this is the ξ
+    `physical_velocity` starts from (the gauge term makes the momentum's kernel component
+    $wK^T\xi$), here in plain XLA operations, traced or not."""
+    U = row_space_basis(velocity_jacobian(velocity_map, Q, xi.shape), rank)
+    flat = xi.reshape(-1)
+    return (U @ (U.T @ flat)).reshape(xi.shape)
+
+
+def rank_holds(velocity_map, Q, xi_shape, rank: int, rtol: float = ISOTROPY_RTOL) -> jax.Array:
+    """Whether the velocity map's Jacobian at Q has the given rank (to `rtol`, as `kernel_basis`
+    counts it), as a traced boolean: Gram–Schmidt with column pivoting (`row_space_basis`) finds
+    `rank` rows each above `rtol` times the largest, and nothing above that left. A member whose
+    isotropy differs from the one its gauge was built for (another orbit type) is then refused
+    as an invalid input instead of marching a wrong gauge."""
+    W = velocity_jacobian(velocity_map, Q, xi_shape).T
+    norms = jnp.sum(W * W, axis=0)
+    top = jnp.max(norms)
+    ok = jnp.isfinite(top) & (top > 0) if rank > 0 else jnp.asarray(True)
+    for _ in range(rank):
+        norms = jnp.sum(W * W, axis=0)
+        pick = jax.nn.one_hot(jnp.argmax(norms), W.shape[1], dtype=W.dtype)
+        largest = norms @ pick
+        ok = ok & (largest > rtol**2 * top)
+        u = (W @ pick) / jnp.sqrt(largest)
+        for _ in range(2):
+            W = W - jnp.outer(u, u @ W)
+    if W.size:
+        ok = ok & (jnp.max(jnp.sum(W * W, axis=0)) <= rtol**2 * jnp.maximum(top, jnp.finfo(W.dtype).tiny))
+    return ok
+
+
 def isotropy_dimension(system) -> int:
     """The dimension of the isotropy whose gauge `system` fixes (0: none, the system as written)."""
     lag = system.lagrangian
@@ -157,8 +217,8 @@ def gauge_isotropy(system: ClebschSystem, Q0, xi0, *, weight=None, regular=None)
     to integrate under `jax.jit`/`jax.vmap` over `Q0`, where the engine cannot inspect values.
 
     **Arguments:** `system`, a concrete `Q0` and `xi0` (the rank of the velocity map is read
-    there); `weight` (default: the largest singular value of l's Hessian in ξ at $(\xi^0, Q^0)$,
-    1 if it is zero); `regular` (default: True unless `system.degenerate` and the gauged Hessian
+    there); `weight` (default: `gauge_weight`, the size — Frobenius norm — of l's Hessian in ξ
+    at $(\xi^0, Q^0)$, 1 if it is zero); `regular` (default: True unless `system.degenerate` and the gauged Hessian
     is still singular): whether the gauged system is regular in ξ — a system built with
     `degenerate=True` whose only degeneracy was the isotropy becomes regular.
 
@@ -170,22 +230,14 @@ def gauge_isotropy(system: ClebschSystem, Q0, xi0, *, weight=None, regular=None)
     A = np.asarray(velocity_jacobian(system.velocity_map, Q0, xi0.shape))
     K = kernel_basis(A)
     H = np.asarray(jax.hessian(lambda x: system.l(x.reshape(xi0.shape), Q0))(xi0.reshape(-1)))
-    if weight is None:
-        top = float(np.linalg.norm(H, 2)) if np.all(np.isfinite(H)) and H.size else 0.0
-        weight = top if top > 0 else 1.0
+    if weight is None:  # the weight every path computes (`gauge_weight`), here on concrete values
+        weight = float(gauge_weight(system, Q0, xi0))
     if regular is None:
-        gauged = H + weight * K @ K.T
-        s = np.linalg.svd(gauged, compute_uv=False)
+        fixed = H + weight * K @ K.T
+        s = np.linalg.svd(fixed, compute_uv=False)
         regular = (not system.degenerate) or bool(s.size and s[-1] > 1e-14 * s[0])
-    lag = IsotropyGauge(
-        system.lagrangian,
-        system.velocity_map,
-        system.has_potential,
-        xi0.size - K.shape[1],
-        K.shape[1],
-        jnp.asarray(weight, float),
-    )
-    return _rebuilt(system, lag, degenerate=system.degenerate and not regular)
+    rank, kernel_dim = xi0.size - K.shape[1], K.shape[1]
+    return gauged(system, rank, kernel_dim, jnp.asarray(weight, float), system.degenerate and not regular)
 
 
 def _rebuilt(system, lagrangian, degenerate):

@@ -27,11 +27,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from .derivative_maps import MatrixGroupDifference
-from .isotropy import kernel_basis
+from .isotropy import IsotropyGauge, gauge_isotropy, kernel_basis, velocity_jacobian
 from .jit import QUICK_COMPILE, filter_jit
 from .validation import any_traced, is_traced, runnable_check
 
-__all__ = ["check_model", "check_first_step", "first_step_may_leave", "check_group_configuration", "ModelFacts"]
+__all__ = [
+    "check_model",
+    "check_first_step",
+    "first_step_may_leave",
+    "check_group_configuration",
+    "ModelFacts",
+    "traced_isotropy",
+]
 
 SINGULAR_RTOL = 1e-14
 """A Hessian is singular when its smallest singular value is at most this times its largest.
@@ -145,6 +152,40 @@ def check_model(system, Q0, xi0, dt) -> ModelFacts | None:
     except _Traced:
         return None
     return ModelFacts(K, gauge)
+
+
+def traced_isotropy(system, q_shape, xi_shape) -> tuple | None:
+    r"""The isotropy gauge `integrate` fixes for `system` when its `Q0` and `xi0` are traced
+    (under `jax.jit`/`jax.vmap`), decided at trace time from a concrete example: a fixed
+    pseudo-random point $(\xi, Q)$ of those shapes, where `check_model` answers whether l does
+    not see the isotropy of the velocity map (`ModelFacts.gauge`) and `gauge_isotropy` finds the
+    rank. Returns `(rank, kernel dimension, degenerate)` (the arguments of
+    `clebsch_jax.core.isotropy.gauged`), or None: no isotropy at the example, l sees it, the
+    system's own arrays are traced (parameters under `vmap`: no concrete example), ξ has more
+    than `ISOTROPY_MAX_DIM` components, or its maps fail there.
+
+    The example has the generic rank of the velocity map; a member whose $Q^0$ is of another
+    orbit type (a larger isotropy, e.g. q = 0 for ξ × q) is refused in the program itself as an
+    invalid input (`clebsch_jax.march.scan.input_ok`, `rank_holds`), never marched with a wrong
+    gauge."""
+    size = int(np.prod(xi_shape))
+    if any_traced(system) or isinstance(system.lagrangian, IsotropyGauge) or size > ISOTROPY_MAX_DIM:
+        return None  # (as on concrete values, no isotropy is looked for above ISOTROPY_MAX_DIM)
+    rng = np.random.default_rng(0)
+    Q, xi = rng.normal(size=q_shape), rng.normal(size=xi_shape)
+    try:
+        with jax.ensure_compile_time_eval():  # evaluated now, not staged into the caller's trace
+            A = np.asarray(velocity_jacobian(system.velocity_map, jnp.asarray(Q), xi.shape))
+            if _isotropy(A, xi.size).shape[1] == 0:
+                return None
+            facts = check_model(system, jnp.asarray(Q), jnp.asarray(xi), jnp.asarray(1.0))
+            if facts is None or not facts.gauge:
+                return None
+            fixed = gauge_isotropy(system, Q, xi)
+    except (ValueError, TypeError, ArithmeticError, np.linalg.LinAlgError):
+        return None  # the maps do not run at the example: no decision, the system as written
+    lag = fixed.lagrangian
+    return lag.rank, lag.kernel_dim, bool(fixed.degenerate)
 
 
 ISOTROPY_MAX_DIM = 256

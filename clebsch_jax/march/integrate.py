@@ -15,9 +15,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.isotropy import check_initial_momentum, gauge_isotropy, physical_velocity
+from ..core.isotropy import check_initial_momentum, gauge_isotropy, gauge_weight, gauged, physical_part
+from ..core.isotropy import physical_velocity
 from ..core.jit import filter_jit
-from ..core.model_checks import check_first_step, check_group_configuration, check_model, first_step_may_leave
+from ..core.model_checks import (
+    check_first_step,
+    check_group_configuration,
+    check_model,
+    first_step_may_leave,
+    traced_isotropy,
+)
 from ..core.system import ClebschSystem
 from ..core.validation import (
     any_traced,
@@ -110,6 +117,16 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0, configuration: bool = True):
         if P0 is None:
             xi0 = physical_velocity(system, Q0, xi0, facts.isotropy, stacklevel=5)
             check_initial_momentum(system, Q0, xi0, as_given=False, stacklevel=5)
+    elif not closes and any_traced(Q0, xi0):
+        # values known only in the program: the gauge's rank decided on a concrete example, its
+        # weight and ξ⁰'s physical part computed in the program (the same functions as above)
+        found = traced_isotropy(system, Q0.shape, xi0.shape)
+        if found is not None:
+            rank, kernel_dim, degenerate = found
+            base = system
+            system = gauged(base, rank, kernel_dim, gauge_weight(base, Q0, xi0), degenerate)
+            if P0 is None:
+                xi0 = physical_part(base.velocity_map, Q0, xi0, rank)
     return Q0, xi0, P0, dt, t0.astype(dt.dtype), closes, system
 
 
@@ -312,7 +329,12 @@ def integrate(
       used (`clebsch_jax.core.isotropy.physical_velocity`). A Lagrangian that does not see the
       isotropy (written with the physical velocities $\mathcal L_\xi Q$) is accepted as written:
       the engine adds the gauge term $\frac w2|\Pi_{\ker}\xi|^2$, which vanishes along solutions
-      (`clebsch_jax.gauge_isotropy`), and `Solution.isotropy` says so.
+      (`clebsch_jax.gauge_isotropy`), and `Solution.isotropy` says so. Under `jit`/`vmap` over
+      `Q0`/`xi0` too: the gauge's rank is then decided at trace time on a concrete example
+      (`clebsch_jax.core.model_checks.traced_isotropy`), the weight and ξ⁰'s physical part
+      (`clebsch_jax.core.isotropy.physical_part`, no warning) computed in the program, and a
+      member of another isotropy reports `Status.INVALID_INPUT`; not for systems whose own arrays
+      are traced.
     - `dt`: time step (> 0). `n_steps`: number of steps (a Python int >= 1).
     - `P0`: optional initial multiplier (the canonical momentum at $Q^0$), shape of `Q0`.
     - `t0`: initial time (only used for `Solution.ts`).
@@ -369,7 +391,8 @@ def integrate(
       evaluation of l and its gradient per node; False switches it off.
       Step 0, whose energy change can be small next to the terms at the start, is also checked
       against two half steps made once at the start
-      (by the march's own compiled program; on concrete runs, not under `jit`/`vmap`):
+      (by the march's own compiled program; on concrete runs and in `clebsch_jax.sweep`'s
+      first chunk, not under `jit`/`vmap`):
       it fails with `Status.FIRST_STEP` when they do not converge, or when their node differs
       from step 0's by more than `FIRST_STEP_RTOL` (0.5) of their own displacement in both Q and
       the momentum map (a spurious root of the step equations).
@@ -568,7 +591,7 @@ def recording_calls():
         _RECORDED.reset(token)
 
 
-def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> None:
+def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> ClebschSystem:
     """`integrate`'s checks of one member with concrete values, for callers that march it
     traced, where `integrate` itself cannot make them (`clebsch_jax.sweep` and
     `clebsch_jax.batch` call it on their first member before compiling the batch). Raises the
@@ -581,7 +604,8 @@ def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> N
     a momentum with no multiplier is reported (`check_initial_momentum`). The keyword options
     are `integrate`'s; `n_steps` is not used (the caller checks the size of its own run). Skipped where a value is traced or a map closes
     over a traced value. `configuration=False` leaves out `check_configuration` (a sweep checks
-    every member's Q0 at once)."""
+    every member's Q0 at once). Returns the system `integrate` would march: `system`, or with
+    its isotropy gauge fixed (`clebsch_jax.gauge_isotropy`; a sweep gives every member that gauge)."""
     options = {key: value for key, value in options.items() if key not in ("n_steps", "throw")}
     P0 = options.pop("P0", None)
     # the isotropy's adjustment of xi0 (and its warning) is integrate's, when P0 is not given:
@@ -591,15 +615,16 @@ def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> N
         system, Q0, xi0, n_steps=1, P0=given, configuration=configuration, **options
     )
     if closes or any_traced(system, Q0, xi0, dt, t0, P0):
-        return
+        return system
     if P0 is None:  # the member's P0 is derived from xi0 as given: say if its momentum has none
         check_initial_momentum(system, Q0, xi0, as_given=True, stacklevel=3)
     if not first_step_may_leave(system, Q0, xi0):
-        return
+        return system
     P0 = None if P0 is None else float_array(P0, "P0")
     sol = march_chunked(stepper, system, Q0, xi0, P0, dt, t0, 1, check_energy=False)
     if sol.Q is not None and not any_traced(sol.Q):
         check_first_step(system, sol.method, Q0, xi0, np.asarray(sol.Q)[1])
+    return system
 
 
 def _prepared(

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.isotropy import isotropy_dimension
+from ..core.isotropy import IsotropyGauge, isotropy_dimension, rank_holds
 from ..core.jit import QUICK_COMPILE, filter_jit
 from ..core.validation import any_traced, nan_unless
 from ..discrete.legendre import explicit_nodal_velocity
@@ -61,6 +61,7 @@ __all__ = [
     "FIRST_STEP_FLOOR",
     "first_step_probe",
     "first_step_failed",
+    "half_steps",
 ]
 
 CHUNK_STEPS = 1024
@@ -179,7 +180,10 @@ def input_ok(system, Q0, xi0, P0, dt):
     on the manifold, when `system.check_Q` has a
     traced form (`check_Q.traced(Q) -> bool`, as the SO(n) models' rotation check has); the
     Lagrangian and the velocity map finite at $(\xi^0, Q^0)$ (the built-in models make their
-    Lagrangian NaN for parameters out of range when these are traced)."""
+    Lagrangian NaN for parameters out of range when these are traced); for a system whose
+    isotropy gauge is fixed (`clebsch_jax.core.isotropy.IsotropyGauge`), the velocity map of
+    the rank the gauge was built for at $Q^0$ (`rank_holds`: a sweep's member of another orbit
+    type than the member its gauge was found on)."""
     finite = lambda a: jnp.all(jnp.isfinite(a))
     ok = finite(dt) & (dt > 0) & finite(Q0) & finite(xi0)
     if P0 is not None:
@@ -191,6 +195,9 @@ def input_ok(system, Q0, xi0, P0, dt):
     traced_check = getattr(system.check_Q, "traced", None)
     if traced_check is not None:
         ok = ok & jnp.asarray(traced_check(Q0), bool)
+    gauge = system.lagrangian
+    if isinstance(gauge, IsotropyGauge):  # the isotropy its gauge was built for (`rank_holds`)
+        ok = ok & rank_holds(gauge.velocity_map, Q0, xi0.shape, gauge.rank)
     return ok
 
 
@@ -238,6 +245,34 @@ def advance_step(stepper: AbstractStepper, system, dt, c: Carry):
     state, memory, out, stats = stepper.step(system, c.state, c.memory, dt, c.n, c.alive)
     ok, stats, (state, out) = gate(c.alive, stats, (state, out))
     return c._replace(state=state, memory=memory, n=c.n + 1, alive=ok), (state, out, stats, c.alive)
+
+
+def half_steps(stepper: AbstractStepper, system, state, memory, alive, dt, count) -> FirstStepProbe:
+    """`first_step_probe` traced into the caller's program (a sweep's per-member program): up to
+    two steps of size dt/2 from the start (`state`, `memory`, `alive`: `start`'s carry), each
+    with the stepper's own guesses, gated as the march gates its steps. `count` (an int32 array,
+    2 or 0) is the trip count of their loop, so that a program that makes them only in a run's
+    first chunk costs nothing in the others (a loop of 0 iterations). Returns the
+    `FirstStepProbe` of the node they reach; `ok` is False where `count` is 0."""
+    half = dt / 2
+    probe_of = lambda s, prev, out: stepper.nodes(system, prev, _one(s), _one(out))
+
+    def body(k, c):
+        s, m, ok, _, _ = c
+        new, m, out, stats = stepper.step(system, s, m, half, k, ok)
+        ok, _, (new, out) = gate(ok, stats, (new, out))
+        nodes = probe_of(new, s, out)
+        return new, m, ok, nodes.nodal_Q[1], nodes.momentum[1]
+
+    shapes = jax.eval_shape(lambda: body(0, (state, memory, alive, None, None))[3:])
+    nan = jax.tree_util.tree_map(lambda a: jnp.full(a.shape, jnp.nan, a.dtype), shapes)
+    count = jnp.asarray(count, jnp.int32)
+    _, _, ok, Q, momentum = jax.lax.fori_loop(0, count, body, (state, memory, jnp.asarray(alive), *nan))
+    return FirstStepProbe(Q, momentum, ok & (count > 0))
+
+
+def _one(tree):
+    return jax.tree_util.tree_map(lambda a: a[None], tree)
 
 
 def run_chunk(
