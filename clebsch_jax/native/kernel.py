@@ -26,15 +26,13 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from llvmlite import ir
 
-from . import control as _control  # registers the loop and branch rules
-from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
-from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
-from .lower import eval_closed
-from .values import Emitter, Unsupported, llvm_type
+from . import Unsupported
+from .fingerprint import cache_dir
+from .fingerprint import read as _read
+from .fingerprint import write as _write
 
-__all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir"]
+__all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir", "cache_key"]
 
 _LOCK = threading.Lock()
 _LLVM: dict = {}
@@ -71,16 +69,6 @@ def host_lanes(dtype=np.float64) -> int:
     return max(2, bits // (8 * np.dtype(dtype).itemsize))
 
 
-def cache_dir() -> str:
-    """Where compiled kernels are kept: `$CLEBSCH_JAX_NATIVE_CACHE`, else
-    `~/.cache/clebsch-jax/native` (`$XDG_CACHE_HOME` honoured)."""
-    path = os.environ.get("CLEBSCH_JAX_NATIVE_CACHE")
-    if path:
-        return path
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "clebsch-jax", "native")
-
-
 def _storage(dtype) -> np.dtype:
     dtype = np.dtype(dtype)
     return np.dtype(np.uint8) if dtype == np.bool_ else dtype
@@ -90,6 +78,15 @@ def build_ir(closed, width: int, batched=None) -> str:
     """The LLVM IR (text) of the kernel of `closed` (a closed jaxpr of one member). `batched`
     (one flag per input, default all True): an input that is not batched is one value shared
     by every member, stored as its entries alone and broadcast to the lanes."""
+    # the translation, imported here: a kernel loaded from the disk cache needs none of it
+    from llvmlite import ir
+
+    from . import control as _control  # registers the loop and branch rules
+    from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
+    from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
+    from .lower import eval_closed
+    from .values import Emitter, llvm_type
+
     module = ir.Module(name="clebsch_jax_native")
     module.triple = _binding()["triple"]
     ptr, i64 = ir.PointerType(), ir.IntType(64)
@@ -187,7 +184,9 @@ def _program_text(closed, width: int, batched) -> str:
     return f"{closed.jaxpr}\n{consts.hexdigest()}\n{width}\n{list(batched)}"
 
 
-def _key(text: str) -> str:
+def cache_key(text: str) -> str:
+    """The disk cache's key of `text` on this host: its hash with llvmlite's version, the
+    target, the CPU and its features, and the translation's source."""
     L = _binding()
     h = hashlib.sha256()
     for part in (L["version"], L["triple"], L["cpu"], L["features"], _translator_digest(), text):
@@ -196,29 +195,13 @@ def _key(text: str) -> str:
     return h.hexdigest()
 
 
-def _path(key: str) -> str:
-    return os.path.join(cache_dir(), key[:2], key + ".o")
-
-
 def _cached(key: str):
     """The cached object code of `key`, or None."""
-    try:
-        with open(_path(key), "rb") as f:
-            return f.read()
-    except OSError:
-        return None
+    return _read(key, ".o")
 
 
 def _store(key: str, obj: bytes) -> None:
-    path = _path(key)
-    try:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.tmp"
-        with open(tmp, "wb") as f:
-            f.write(obj)
-        os.replace(tmp, path)  # atomic: a reader sees the whole object or none
-    except OSError:
-        pass  # a cache that cannot be written only costs the next compile
+    _write(key, ".o", obj)
 
 
 LARGE_IR_LINES = 15_000
@@ -283,17 +266,15 @@ class Kernel:
     outputs, each (B, *shape)."""
 
     def __init__(self, closed, width: int | None = None, use_cache: bool = True, batched=None, max_lines=None):
-        self.width = width or host_lanes()
-        self.in_avals = [v.aval for v in closed.jaxpr.invars]
-        self.out_avals = [v.aval for v in closed.jaxpr.outvars]
-        self.batched = [True] * len(self.in_avals) if batched is None else [bool(x) for x in batched]
-        layout = lambda a: (tuple(a.shape), int(np.prod(a.shape, dtype=int)), _storage(a.dtype))
-        self._ins, self._outs = [layout(a) for a in self.in_avals], [layout(a) for a in self.out_avals]
-        key = _key(_program_text(closed, self.width, self.batched))
-        obj = _cached(key) if use_cache else None
+        width = width or host_lanes()
+        ins = [(tuple(v.aval.shape), np.dtype(v.aval.dtype)) for v in closed.jaxpr.invars]
+        outs = [(tuple(v.aval.shape), np.dtype(v.aval.dtype)) for v in closed.jaxpr.outvars]
+        batched = [True] * len(ins) if batched is None else [bool(x) for x in batched]
+        self.key = cache_key(_program_text(closed, width, batched))
+        obj = _cached(self.key) if use_cache else None
         self.from_cache = obj is not None
         if obj is None:
-            text = build_ir(closed, self.width, self.batched)
+            text = build_ir(closed, width, batched)
             lines = text.count("\n")
             if max_lines is not None and lines > max_lines:
                 raise Unsupported(
@@ -302,12 +283,43 @@ class Kernel:
                 )
             obj = compile_ir(text)
             if use_cache:
-                _store(key, obj)
+                _store(self.key, obj)
+        self._setup(width, ins, outs, batched, obj)
+
+    def _setup(self, width: int, ins: list, outs: list, batched: list, obj: bytes) -> None:
+        self.width, self.batched = width, batched
+        self.in_dtypes, self.out_dtypes = [d for _, d in ins], [d for _, d in outs]
+        layout = lambda shape, dtype: (shape, int(np.prod(shape, dtype=int)), _storage(dtype))
+        self._ins, self._outs = [layout(*a) for a in ins], [layout(*a) for a in outs]
         self._fn = _SIGNATURE(_load(obj))
 
+    def record(self) -> dict:
+        """What `from_record` needs to load this kernel again without its jaxpr."""
+        layout = lambda x, dtypes: [(list(shape), str(d)) for (shape, _, _), d in zip(x, dtypes)]
+        return {
+            "key": self.key,
+            "width": self.width,
+            "batched": self.batched,
+            "ins": layout(self._ins, self.in_dtypes),
+            "outs": layout(self._outs, self.out_dtypes),
+        }
+
+    @classmethod
+    def from_record(cls, record: dict):
+        """The kernel a `record` names, loaded from the disk cache (no jaxpr, no translation), or
+        None when its object code is not there."""
+        obj = _cached(record["key"])
+        if obj is None:
+            return None
+        k = cls.__new__(cls)
+        k.key, k.from_cache = record["key"], True
+        avals = lambda x: [(tuple(shape), np.dtype(d)) for shape, d in x]
+        k._setup(record["width"], avals(record["ins"]), avals(record["outs"]), list(record["batched"]), obj)
+        return k
+
     def __call__(self, *arrays, threads: int = 1):
-        if len(arrays) != len(self.in_avals):
-            raise TypeError(f"expected {len(self.in_avals)} arrays, got {len(arrays)}")
+        if len(arrays) != len(self._ins):
+            raise TypeError(f"expected {len(self._ins)} arrays, got {len(arrays)}")
         B = next(int(np.shape(a)[0]) for a, bat in zip(arrays, self.batched) if bat)
         blocks = -(-B // self.width)
         stride = blocks * self.width
@@ -336,7 +348,7 @@ class Kernel:
             with ThreadPoolExecutor(threads) as pool:
                 list(pool.map(lambda i: self._fn(address, stride, int(cuts[i]), int(cuts[i + 1])), range(threads)))
         result = []
-        for rows, (shape, _, _), aval in zip(outs, self._outs, self.out_avals):
+        for rows, (shape, _, _), dtype in zip(outs, self._outs, self.out_dtypes):
             r = rows[:, :B].T.reshape((B,) + shape)
-            result.append(r.astype(np.bool_) if aval.dtype == np.bool_ else np.ascontiguousarray(r))
+            result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))
         return result
