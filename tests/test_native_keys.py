@@ -144,6 +144,7 @@ def _fresh_process(monkeypatch):
     monkeypatch.setattr(backends, "_PROGRAMS", {})
     monkeypatch.setattr(probe, "_TRACES", {})
     monkeypatch.setattr(probe, "_PASSED", set())
+    monkeypatch.setattr(probe, "_FINGERPRINTS", {})
     monkeypatch.setattr(chunks_native, "_DISK_KEYS", {})
 
 

@@ -108,8 +108,12 @@ def _record(kind: str, cfg: Config, digest: str | None) -> str | None:
     always run."""
     from ..native.fingerprint import record_key
 
-    found = fingerprint((kind, cfg))
+    # per configuration in a process, as the traces and compiled programs are (`trace_key`)
+    found = memo(_FINGERPRINTS, (kind, cfg), lambda: fingerprint((kind, cfg)), _TRACES_MAX)
     return None if found is None or digest is None else record_key(kind, found, digest)
+
+
+_FINGERPRINTS: dict = {}
 
 
 def _found(key: str | None, load=None) -> tuple | None:

@@ -55,7 +55,7 @@ class NativeFunction:
             return
         closed, out_shape = jax.make_jaxpr(fun, return_shape=True)(*member_args)
         self._out_tree = jax.tree_util.tree_structure(out_shape)
-        self.kernel = Kernel(closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines)
+        self.kernel = Kernel(closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, key=record)
         if record is not None:
             self._save(record)
 

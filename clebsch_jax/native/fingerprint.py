@@ -197,6 +197,7 @@ class _Walk:
         )
         self.put(c.co_freevars, c.co_cellvars)
         self.h.update(c.co_code)
+        self.h.update(getattr(c, "co_exceptiontable", b""))  # Python 3.11+: where handlers start
         for k in c.co_consts:
             if isinstance(k, types.CodeType):
                 self.code(k)

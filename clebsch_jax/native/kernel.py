@@ -265,12 +265,16 @@ class Kernel:
     each of shape (B, *the member's shape), in the order of the jaxpr's inputs; it returns the
     outputs, each (B, *shape)."""
 
-    def __init__(self, closed, width: int | None = None, use_cache: bool = True, batched=None, max_lines=None):
+    def __init__(
+        self, closed, width: int | None = None, use_cache: bool = True, batched=None, max_lines=None, key=None
+    ):
         width = width or host_lanes()
         ins = [(tuple(v.aval.shape), np.dtype(v.aval.dtype)) for v in closed.jaxpr.invars]
         outs = [(tuple(v.aval.shape), np.dtype(v.aval.dtype)) for v in closed.jaxpr.outvars]
         batched = [True] * len(ins) if batched is None else [bool(x) for x in batched]
-        self.key = cache_key(_program_text(closed, width, batched))
+        # `key`: a key that determines the jaxpr (`NativeFunction`'s record key), which spares
+        # printing a large jaxpr to hash it
+        self.key = key or cache_key(_program_text(closed, width, batched))
         obj = _cached(self.key) if use_cache else None
         self.from_cache = obj is not None
         if obj is None:
