@@ -272,6 +272,11 @@ def test_native_sweep_of_rigid_bodies_equals_the_xla_sweep_with_failures_reporte
     again = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
     for a, b in zip(jax.tree_util.tree_leaves(native), jax.tree_util.tree_leaves(again)):
         assert np.array_equal(a, b, equal_nan=True)
+    # batches of 3 from two threads, each marching its batch through the chunks on its own
+    one = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", batch_size=3, threads=1, **RB)
+    two = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", batch_size=3, threads=2, **RB)
+    for a, b, c in zip(*(jax.tree_util.tree_leaves(r) for r in (native, one, two))):
+        assert np.array_equal(a, b, equal_nan=True) and np.array_equal(b, c, equal_nan=True)
 
 
 def test_native_sweep_reports_a_failure_in_a_later_chunk_at_the_step_xla_reports():

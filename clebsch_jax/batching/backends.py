@@ -36,18 +36,20 @@ class NativeProgram:
     """A per-member function compiled once per key (`get`), called on host arrays."""
 
     @staticmethod
-    def get(key, fun, member_args, in_axes, max_lines=None):
+    def get(key, fun, member_args, in_axes, max_lines=None, disk_key=None):
         """The compiled program of `fun` for `key` (compiled on first use, then kept; a
         `clebsch_jax.native.Unsupported` is raised, and remembered, for a program the
         translation does not cover, or, with `max_lines`, whose kernel would be larger;
-        `key` must tell those limits apart)."""
+        `key` must tell those limits apart). `disk_key`: a fingerprint of what `fun` is made
+        from, under which a new process finds the kernel without tracing `fun`
+        (`clebsch_jax.native.NativeFunction`)."""
         with _PROGRAMS_LOCK:
             found = _PROGRAMS.get(key)
         if found is None:
             from ..native import Unsupported, compile_member
 
             try:
-                found = compile_member(fun, *member_args, in_axes=in_axes, max_lines=max_lines)
+                found = compile_member(fun, *member_args, in_axes=in_axes, max_lines=max_lines, key=disk_key)
             except Unsupported as err:
                 found = err
             with _PROGRAMS_LOCK:

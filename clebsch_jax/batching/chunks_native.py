@@ -13,7 +13,7 @@ import functools
 import jax
 import numpy as np
 
-from ..core.jit import undifferentiated
+from ..core.jit import memo, undifferentiated
 from ..march.integrate import prepared_method
 from .backends import NativeProgram
 from .config import Carry, Config, member_system
@@ -98,7 +98,20 @@ def native_program(cfg: Config, params, shared, carry: MemberCarry, dt):
         with undifferentiated():  # a sweep is never differentiated: no derivative rules traced
             return fun(*a)
 
-    return NativeProgram.get(("sweep", trace_key(cfg, args)), traced, args, _NATIVE_AXES, cfg.native_max_lines)
+    key = ("sweep", trace_key(cfg, args))
+    return NativeProgram.get(key, traced, args, _NATIVE_AXES, cfg.native_max_lines, disk_key=_disk_key(cfg))
+
+
+_DISK_KEYS: dict = {}
+
+
+def _disk_key(cfg: Config) -> str | None:
+    """The fingerprint of the per-member program of `cfg` (`clebsch_jax.native.fingerprint`):
+    `make_system`, the options, the steps of a chunk, the energy check; None where it cannot be
+    read (the kernel is then found by its jaxpr, traced). Kept per configuration in a process."""
+    from ..native.fingerprint import fingerprint
+
+    return memo(_DISK_KEYS, cfg, lambda: fingerprint(("sweep-member", cfg)), 64)
 
 
 def native_call(c: Config, one, st: int) -> Carry:

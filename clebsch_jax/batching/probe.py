@@ -9,6 +9,10 @@ cached by the configuration and the member's shapes (`trace_key`).
 
 from __future__ import annotations
 
+import json
+
+import pickle
+import warnings
 from typing import NamedTuple
 
 import jax
@@ -23,6 +27,7 @@ from ..march.integrate import check_member as _check_member_eagerly
 from ..march.integrate import prepared_method
 from ..march.scan import node_energy
 from ..march.scan import start as march_start
+from ..native.fingerprint import fingerprint, values_digest
 from .config import Config, Members, chunk_integrate, first_row, member_slices, system_of
 from .lean import carries_Q as _lean_carries_Q
 from .member import march_start_values
@@ -79,24 +84,113 @@ def check_first_member(cfg: Config, members: Members) -> tuple | None:
     options = {k: v for k, v in cfg.options if k != "check_energy"}
     for m in np.flatnonzero(ok)[:FIRST_MEMBER_TRIES]:
         i, j = int(members.param_index[m]), int(members.ic_index[m])
+        row = None if members.builder is None else member_slices(members.params, i)
+        P0 = None if members.P0 is None else members.P0[j]
+        values = (row, members.shared, members.Q0[j], members.xi0[j], members.dt[m], P0)
+        key = _record("first member", cfg, values_digest(values))
+        found = _found(key, load=_load_gauge)
+        if found is not None:  # this member passed before (so its system was built)
+            return found[0]
         try:
-            row = None if members.builder is None else member_slices(members.params, i)
             system = system_of(cfg, row, members.shared)
         except (ValueError, TypeError):  # a row the constructor refuses: that member reports it
             continue
-        P0 = None if members.P0 is None else members.P0[j]
-        try:
+
+        def check():
             checked = _check_member_eagerly(
                 system, members.Q0[j], members.xi0[j], dt=members.dt[m], P0=P0, configuration=False, **options
             )
+            gauge = checked.lagrangian
+            if not isinstance(gauge, _IsotropyGauge):
+                return None
+            return int(gauge.rank), int(gauge.kernel_dim), bool(checked.degenerate)
+
+        try:
+            return once(key, check, load=_load_gauge, dump=_dump_gauge)
         except (ValueError, TypeError) as err:
             where = (f"make_system(params[{i}]), " if members.builder is not None else "") + f"Q0[{j}], xi0[{j}]"
             raise type(err)(f"sweep: member {m} ({where}) is rejected by integrate's checks: {err}") from err
-        gauge = checked.lagrangian
-        if not isinstance(gauge, _IsotropyGauge):
-            return None
-        return gauge.rank, gauge.kernel_dim, bool(checked.degenerate)
     return None
+
+
+def _dump_gauge(gauge: tuple | None) -> bytes:
+    """The first member's isotropy gauge (`check_first_member`'s result) as a passed check keeps it."""
+    return json.dumps(None if gauge is None else list(gauge)).encode()
+
+
+def _load_gauge(data: bytes) -> tuple | None:
+    gauge = json.loads(data.decode())
+    return None if gauge is None else (int(gauge[0]), int(gauge[1]), bool(gauge[2]))
+
+
+_PASSED: set = set()
+_PASSED_MAX = 1024
+
+
+def _record(kind: str, cfg: Config, digest: str | None) -> str | None:
+    """The key of a check of `cfg`'s member on what `digest` names (values' bytes, or shapes),
+    or None when `cfg` cannot be fingerprinted (`clebsch_jax.native.fingerprint`): such checks
+    always run."""
+    from ..native.fingerprint import record_key
+
+    # per configuration in a process, as the traces and compiled programs are (`trace_key`)
+    found = memo(_FINGERPRINTS, (kind, cfg), lambda: fingerprint((kind, cfg)), _TRACES_MAX)
+    return None if found is None or digest is None else record_key(kind, found, digest)
+
+
+_FINGERPRINTS: dict = {}
+
+
+def _found(key: str | None, load=None) -> tuple | None:
+    """`(result,)` of a check that passed under `key` before (`once`), or None."""
+    from ..native.fingerprint import read
+
+    if key is None:
+        return None
+    if load is None and key in _PASSED:
+        return (None,)
+    data = read(key, ".passed")
+    if data is None:
+        return None
+    try:
+        result = None if load is None else load(data)
+    except Exception:  # a record of another version: check again
+        return None
+    if load is None:
+        _PASSED.add(key)
+    return (result,)
+
+
+def once(key: str | None, check, load=None, dump=None):
+    """`check()` (a check that raises, warns or returns a result), unless it passed under `key`
+    before, in this process or (a record on disk, `clebsch_jax.native.fingerprint`) in another:
+    the checks a sweep makes before it runs depend only on what `key` names (the code of the
+    member's functions, the configuration, the values checked), so a pass stays a pass. Only
+    a clean pass is kept: a check that raised or warned runs again next time (its warnings
+    are recorded, then given to the caller's filters again, as if not recorded). With `load`
+    and `dump`, the check's result is kept too (`dump(result) -> bytes`, `load(bytes)`)."""
+    from ..native.fingerprint import write
+
+    found = _found(key, load)
+    if found is not None:
+        return found[0]
+    with warnings.catch_warnings(record=True) as caught:
+        try:
+            result = check()
+        finally:
+            for w in caught:  # to the caller's filters again (they were shown to them once already)
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    if key is not None and not caught:
+        if load is None:
+            if len(_PASSED) >= _PASSED_MAX:
+                _PASSED.clear()
+            _PASSED.add(key)
+        try:
+            data = b"" if dump is None else dump(result)
+        except Exception:  # a result that cannot be kept: checked again next time
+            return result
+        write(key, ".passed", data)
+    return result
 
 
 class Shapes(NamedTuple):
@@ -167,7 +261,13 @@ def _check_member(cfg: Config, *args):
         energy = jax.eval_shape(check, *args)
         return found["facts"], found["has_Q"], energy.dtype, found["march"]
 
-    return memo(_TRACES, ("check",) + trace_key(cfg, args), run, _TRACES_MAX)
+    def checked():  # a fresh process finds a pass of the same configuration and shapes on disk
+        leaves, tree = jax.tree_util.tree_flatten(args)
+        signature = [(np.shape(x), str(np.result_type(x)), getattr(x, "weak_type", False)) for x in leaves]
+        key = _record("member", cfg, fingerprint((tree, signature)))
+        return once(key, run, load=pickle.loads, dump=pickle.dumps)
+
+    return memo(_TRACES, ("check",) + trace_key(cfg, args), checked, _TRACES_MAX)
 
 
 def member_shapes(cfg: Config, members: Members, lean: bool = False) -> Shapes:
@@ -179,9 +279,10 @@ def member_shapes(cfg: Config, members: Members, lean: bool = False) -> Shapes:
     values were made before, on concrete values (`check_first_member`)."""
     p_row = first_row(members)
     j = members.ic_index[0]
-    q_row, x_row = jnp.asarray(members.Q0[j]), jnp.asarray(members.xi0[j])
+    # host arrays: traced as JAX's would be (same dtypes, not weak), with no program compiled to convert them
+    q_row, x_row = np.asarray(members.Q0[j]), np.asarray(members.xi0[j])
 
-    args = (p_row, members.shared, q_row, x_row, jnp.asarray(members.dt[0]))
+    args = (p_row, members.shared, q_row, x_row, np.asarray(members.dt[0]))
     try:
         if lean:
             facts, has_Q, energy_dtype, march = _check_member(cfg, *args)

@@ -101,8 +101,9 @@ def start_batch(cfg: Config, members: Members, shapes: Shapes, b: int, batch_siz
     member = np.minimum(np.arange(b * batch_size, (b + 1) * batch_size), members.B - 1)
     n_real = min(batch_size, members.B - b * batch_size)
     ic = members.ic_index[member]
-    # host arrays moved to the device as they are: a transfer each, no JAX operation to compile
-    put = functools.partial(jax.device_put, device=device)
+    # host arrays moved to the device as they are: a transfer each, no JAX operation to compile;
+    # a native kernel reads host arrays, so they stay there
+    put = np.asarray if cfg.native else functools.partial(jax.device_put, device=device)
     params = None if members.builder is None else put(member_slices(members.params, members.param_index[member]))
     Q, xi = put(members.Q0[ic]), put(members.xi0[ic])
     shared = None if members.shared is None else put(members.shared)
@@ -229,6 +230,15 @@ def _run_chunks(cfg: Config, group: list, run: Run, saved: dict | None, report: 
             return call(one)
 
     try:
+        if cfg.native and pool is not None and getattr(report, "silent", False):
+            # native kernels of a group share nothing and report nothing: each thread marches its
+            # batch through every chunk, without waiting for the others at each chunk's end
+            def march(one):
+                for st, n in run.chunks:
+                    _call(cfg, _steps(cfg, run, n), run, [(st, n)], st, n, saved, True, one)
+
+            list(pool.map(march, group))
+            return
         for chunks in _calls(run, cfg.lean):
             st, n = chunks[0][0], sum(k for _, k in chunks)
             c = _steps(cfg, run, n)
@@ -273,10 +283,12 @@ def reporter(progress, n_batches: int, n_steps: int, B: int, batch_size: int) ->
     """`report(group, step)` after each chunk: nothing (progress False), a line on stderr (True),
     or a `SweepProgress` to the callable. Reporting waits for the chunk to finish."""
     start_time = time.perf_counter()
+    if progress is False:
+        silent = lambda group, step: None  # noqa: E731
+        silent.silent = True  # the schedule need not wait for a group's chunks to report them
+        return silent
 
     def report(group, step):
-        if progress is False:
-            return
         jax.block_until_ready([one.carry for one in group])
         done = group[0].index * batch_size + (sum(one.n_real for one in group) if step == n_steps else 0)
         info = SweepProgress(

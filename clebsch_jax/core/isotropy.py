@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .jit import QUICK_COMPILE, filter_jit
 from .system import ClebschSystem
 
 __all__ = [
@@ -311,18 +312,24 @@ def momentum_defect(system, Q0, xi0) -> tuple[float, int]:
     or when not measured (dim V above `MULTIPLIER_CHECK_MAX_DIM`, or values not finite)."""
     if isinstance(system.lagrangian, IsotropyGauge) or np.size(xi0) > MULTIPLIER_CHECK_MAX_DIM:
         return 0.0, 0
-    Q0, xi0 = jnp.asarray(Q0), jnp.asarray(xi0)
-    A = np.asarray(velocity_jacobian(system.velocity_map, Q0, xi0.shape))
+    # one compiled program each (concrete values: a check before marching), not an XLA compile
+    # per operation of the velocity map and of l's gradient run eagerly
+    Q0, xi0 = np.asarray(Q0), np.asarray(xi0)
+    A = np.asarray(_velocity_jacobian_compiled(system.velocity_map, Q0, xi0.shape))
     if not np.all(np.isfinite(A)):
         return 0.0, 0
     K = kernel_basis(A)
     if K.shape[1] == 0:
         return 0.0, 0
-    g = np.asarray(jax.grad(lambda x: system.l(x, Q0))(xi0)).reshape(-1)
+    g = np.asarray(_lagrangian_gradient(system, xi0, Q0)).reshape(-1)
     size = float(np.linalg.norm(g))
     if not np.all(np.isfinite(g)) or size == 0.0:
         return 0.0, K.shape[1]
     return float(np.linalg.norm(K.T @ g)) / size, K.shape[1]
+
+
+_velocity_jacobian_compiled = filter_jit(velocity_jacobian, QUICK_COMPILE)
+_lagrangian_gradient = filter_jit(lambda system, xi, Q: jax.grad(lambda x: system.l(x, Q))(xi), QUICK_COMPILE)
 
 
 def check_initial_momentum(system, Q0, xi0, *, as_given: bool, stacklevel: int = 2) -> float:

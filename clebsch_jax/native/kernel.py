@@ -26,15 +26,13 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from llvmlite import ir
 
-from . import control as _control  # registers the loop and branch rules
-from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
-from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
-from .lower import eval_closed
-from .values import Emitter, Unsupported, llvm_type
+from . import Unsupported
+from .fingerprint import cache_dir
+from .fingerprint import read as _read
+from .fingerprint import write as _write
 
-__all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir"]
+__all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir", "cache_key"]
 
 _LOCK = threading.Lock()
 _LLVM: dict = {}
@@ -71,16 +69,6 @@ def host_lanes(dtype=np.float64) -> int:
     return max(2, bits // (8 * np.dtype(dtype).itemsize))
 
 
-def cache_dir() -> str:
-    """Where compiled kernels are kept: `$CLEBSCH_JAX_NATIVE_CACHE`, else
-    `~/.cache/clebsch-jax/native` (`$XDG_CACHE_HOME` honoured)."""
-    path = os.environ.get("CLEBSCH_JAX_NATIVE_CACHE")
-    if path:
-        return path
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "clebsch-jax", "native")
-
-
 def _storage(dtype) -> np.dtype:
     dtype = np.dtype(dtype)
     return np.dtype(np.uint8) if dtype == np.bool_ else dtype
@@ -97,6 +85,15 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     the body that many times (`_loop`) and writes the final carry, then every iteration's
     records: record `j` of an entry `e` of a record of `size` entries goes to row
     `j·size + e` of its array (rows of `stride` members, as every array)."""
+    # the translation, imported here: a kernel loaded from the disk cache needs none of it
+    from llvmlite import ir
+
+    from . import control as _control  # registers the loop and branch rules
+    from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
+    from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
+    from .lower import eval_closed
+    from .values import Emitter, llvm_type
+
     module = ir.Module(name="clebsch_jax_native")
     module.triple = _binding()["triple"]
     ptr, i64 = ir.PointerType(), ir.IntType(64)
@@ -171,12 +168,19 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     return str(module)
 
 
-def _loop(em: Emitter, closed, args, carries: int, steps, row) -> list:
+_SOURCE: list = []
+
+
+def _loop(em, closed, args, carries: int, steps, row) -> list:
     """`steps` iterations of the loop body `closed` (`build_ir`'s `carries`) from the carry in
     the last `carries` entries of `args`: the carry lives in allocas (registers, after LLVM's
     mem2reg), and each iteration's records are stored to their output arrays (`row(j, e,
     dtype)`: a pointer to entry `e` of output `j`, for the block being run) at the iteration's
     rows. Returns the carry after the last iteration."""
+    from llvmlite import ir
+
+    from .lower import eval_closed
+
     b, i64 = em.b, ir.IntType(64)
     consts, init = list(args[: len(args) - carries]), list(args[len(args) - carries :])
     dtypes = [np.dtype(v.aval.dtype) for v in closed.jaxpr.invars[len(consts) :]]
@@ -254,7 +258,9 @@ def _program_text(closed, width: int, batched, carries=None) -> str:
     return f"{closed.jaxpr}\n{consts.hexdigest()}\n{width}\n{list(batched)}{loop}"
 
 
-def _key(text: str) -> str:
+def cache_key(text: str) -> str:
+    """The disk cache's key of `text` on this host: its hash with llvmlite's version, the
+    target, the CPU and its features, and the translation's source."""
     L = _binding()
     h = hashlib.sha256()
     for part in (L["version"], L["triple"], L["cpu"], L["features"], _translator_digest(), text):
@@ -263,29 +269,13 @@ def _key(text: str) -> str:
     return h.hexdigest()
 
 
-def _path(key: str) -> str:
-    return os.path.join(cache_dir(), key[:2], key + ".o")
-
-
 def _cached(key: str):
     """The cached object code of `key`, or None."""
-    try:
-        with open(_path(key), "rb") as f:
-            return f.read()
-    except OSError:
-        return None
+    return _read(key, ".o")
 
 
 def _store(key: str, obj: bytes) -> None:
-    path = _path(key)
-    try:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.tmp"
-        with open(tmp, "wb") as f:
-            f.write(obj)
-        os.replace(tmp, path)  # atomic: a reader sees the whole object or none
-    except OSError:
-        pass  # a cache that cannot be written only costs the next compile
+    _write(key, ".o", obj)
 
 
 LARGE_IR_LINES = 15_000
@@ -357,20 +347,26 @@ class Kernel:
     (B, *shape), then the records', each (B, capacity, *shape), zero after the `steps` made."""
 
     def __init__(
-        self, closed, width: int | None = None, use_cache: bool = True, batched=None, max_lines=None, carries=None
+        self,
+        closed,
+        width: int | None = None,
+        use_cache: bool = True,
+        batched=None,
+        max_lines=None,
+        key=None,
+        carries=None,
     ):
-        self.width = width or host_lanes()
-        self.carries = carries
-        self.in_avals = [v.aval for v in closed.jaxpr.invars]
-        self.out_avals = [v.aval for v in closed.jaxpr.outvars]
-        self.batched = [True] * len(self.in_avals) if batched is None else [bool(x) for x in batched]
-        layout = lambda a: (tuple(a.shape), int(np.prod(a.shape, dtype=int)), _storage(a.dtype))
-        self._ins, self._outs = [layout(a) for a in self.in_avals], [layout(a) for a in self.out_avals]
-        key = _key(_program_text(closed, self.width, self.batched, carries))
-        obj = _cached(key) if use_cache else None
+        width = width or host_lanes()
+        ins = [(tuple(v.aval.shape), np.dtype(v.aval.dtype)) for v in closed.jaxpr.invars]
+        outs = [(tuple(v.aval.shape), np.dtype(v.aval.dtype)) for v in closed.jaxpr.outvars]
+        batched = [True] * len(ins) if batched is None else [bool(x) for x in batched]
+        # `key`: a key that determines the jaxpr (`NativeFunction`'s record key), which spares
+        # printing a large jaxpr to hash it
+        self.key = key or cache_key(_program_text(closed, width, batched, carries))
+        obj = _cached(self.key) if use_cache else None
         self.from_cache = obj is not None
         if obj is None:
-            text = build_ir(closed, self.width, self.batched, carries)
+            text = build_ir(closed, width, batched, carries)
             lines = text.count("\n")
             if max_lines is not None and lines > max_lines:
                 raise Unsupported(
@@ -379,12 +375,51 @@ class Kernel:
                 )
             obj = compile_ir(text)
             if use_cache:
-                _store(key, obj)
+                _store(self.key, obj)
+        self._setup(width, ins, outs, batched, obj, carries)
+
+    def _setup(self, width: int, ins: list, outs: list, batched: list, obj: bytes, carries=None) -> None:
+        self.width, self.batched, self.carries = width, batched, carries
+        self.in_dtypes, self.out_dtypes = [d for _, d in ins], [d for _, d in outs]
+        layout = lambda shape, dtype: (shape, int(np.prod(shape, dtype=int)), _storage(dtype))
+        self._ins, self._outs = [layout(*a) for a in ins], [layout(*a) for a in outs]
         self._fn = (_SIGNATURE if carries is None else _LOOP_SIGNATURE)(_load(obj))
 
+    def record(self) -> dict:
+        """What `from_record` needs to load this kernel again without its jaxpr."""
+        layout = lambda x, dtypes: [(list(shape), str(d)) for (shape, _, _), d in zip(x, dtypes)]
+        return {
+            "key": self.key,
+            "width": self.width,
+            "batched": self.batched,
+            "ins": layout(self._ins, self.in_dtypes),
+            "outs": layout(self._outs, self.out_dtypes),
+            "carries": self.carries,
+        }
+
+    @classmethod
+    def from_record(cls, record: dict):
+        """The kernel a `record` names, loaded from the disk cache (no jaxpr, no translation), or
+        None when its object code is not there."""
+        obj = _cached(record["key"])
+        if obj is None:
+            return None
+        k = cls.__new__(cls)
+        k.key, k.from_cache = record["key"], True
+        avals = lambda x: [(tuple(shape), np.dtype(d)) for shape, d in x]
+        k._setup(
+            record["width"],
+            avals(record["ins"]),
+            avals(record["outs"]),
+            list(record["batched"]),
+            obj,
+            record.get("carries"),
+        )
+        return k
+
     def __call__(self, *arrays, threads: int = 1, steps: int = 0, capacity: int = 0):
-        if len(arrays) != len(self.in_avals):
-            raise TypeError(f"expected {len(self.in_avals)} arrays, got {len(arrays)}")
+        if len(arrays) != len(self._ins):
+            raise TypeError(f"expected {len(self._ins)} arrays, got {len(arrays)}")
         B = next(int(np.shape(a)[0]) for a, bat in zip(arrays, self.batched) if bat)
         blocks = -(-B // self.width)
         stride = blocks * self.width
@@ -419,10 +454,10 @@ class Kernel:
                 call = lambda i: self._fn(address, stride, int(cuts[i]), int(cuts[i + 1]), *loop)
                 list(pool.map(call, range(threads)))
         result = []
-        for j, (rows, (shape, size, _), aval) in enumerate(zip(outs, self._outs, self.out_avals)):
+        for j, (rows, (shape, size, _), dtype) in enumerate(zip(outs, self._outs, self.out_dtypes)):
             if j < n_carry:
                 r = rows[:, :B].T.reshape((B,) + shape)
             else:  # (capacity·size, stride) -> (B, capacity, *shape)
                 r = np.moveaxis(rows[:, :B].reshape(capacity, size, B), -1, 0).reshape((B, capacity) + shape)
-            result.append(r.astype(np.bool_) if aval.dtype == np.bool_ else np.ascontiguousarray(r))
+            result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))
         return result

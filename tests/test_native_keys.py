@@ -1,0 +1,239 @@
+"""Kernels found without tracing: the fingerprint of what a program is made from
+(`clebsch_jax.native.fingerprint`) names it on disk, and what changes the program changes the key.
+
+A changed closure constant, function body, default or global value must miss the cache (a
+stale kernel would compute another model); an unchanged configuration in a fresh process must
+find its kernel, and the checks that passed, without tracing anything.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import types
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clebsch_jax as cj
+from clebsch_jax.native import compile_member
+from clebsch_jax.native.fingerprint import fingerprint
+
+pytest.importorskip("llvmlite")
+
+MODEL = """
+import jax.numpy as jnp
+from jax.tree_util import Partial
+import clebsch_jax as cj
+
+OFFSET = {offset}
+
+
+def kinetic(inertia, xi):
+    return {body}
+
+
+def velocity(xi, Q):
+    return Q @ cj.lie.hat(xi)
+
+
+def factory(scale):
+    def make_system(inertia):
+        return cj.ClebschSystem(
+            lagrangian=Partial(kinetic, scale * inertia),
+            velocity_map=velocity,
+            derivative_map=cj.cayley,
+            check_Q=cj.models.check_rotation,
+        )
+
+    return make_system
+"""
+BODY = "0.5 * jnp.sum(inertia * jnp.square(xi)) + OFFSET"
+OTHER_BODY = "0.5 * jnp.sum(inertia * xi**2) + OFFSET"  # the same number, another jaxpr (integer_pow)
+
+
+def _model(body=BODY, offset=0.0, name="user_model"):
+    """A user's module (its functions' globals are its namespace, as a script's would be)."""
+    module = types.ModuleType(name)
+    exec(compile(MODEL.format(body=body, offset=offset), f"<{name}>", "exec"), module.__dict__)
+    return module
+
+
+def test_the_fingerprint_reads_code_closures_defaults_and_globals():
+    """Equal for an equal function made again; different for a changed closure constant,
+    default, global value read (directly or by a helper it calls) and function body."""
+    m = _model()
+    assert fingerprint(m.factory(1.0)) == fingerprint(m.factory(1.0)) == fingerprint(_model().factory(1.0))
+    assert fingerprint(m.factory(1.0)) != fingerprint(m.factory(2.0))  # closure constant
+    assert fingerprint(m.kinetic) != fingerprint(_model(body=OTHER_BODY).kinetic)  # body
+    assert fingerprint(m.kinetic) != fingerprint(_model(offset=1.0).kinetic)  # global value
+    # a helper's global, reached through the function that calls it
+    namespace = {"__name__": "user_script", "jnp": jnp, "A": np.ones(3)}
+    exec("def helper(x):\n    return A * x\n\ndef f(x):\n    return helper(x) + 1.0\n", namespace)
+    before = fingerprint(namespace["f"])
+    namespace["A"] = np.array([1.0, 1.0, 1.0 + 2**-52])  # one bit of one entry
+    assert fingerprint(namespace["f"]) != before
+
+    def with_default(x, c=2.0):
+        return c * x
+
+    def with_other_default(x, c=3.0):
+        return c * x
+
+    assert fingerprint(with_default) != fingerprint(with_other_default)
+    # a library function is named, its closures and defaults read: the same object twice is equal
+    assert fingerprint(cj.models.rigid_body) == fingerprint(cj.models.rigid_body) is not None
+
+
+def test_the_fingerprint_refuses_what_it_cannot_read():
+    """An object of a user class, a user module read by attribute and a tracer: None (the
+    caller then traces, as without a key)."""
+
+    class Settings:
+        scale = 2.0
+
+    settings = Settings()
+    assert fingerprint(lambda x: settings.scale * x) is None
+    user_module = types.ModuleType("user_helpers")
+    namespace = {"__name__": "user_script", "helpers": user_module}
+    exec("def f(x):\n    return helpers.g(x)\n", namespace)
+    assert fingerprint(namespace["f"]) is None
+    seen = []
+    jax.jit(lambda x: seen.append(fingerprint(lambda y: x * y)) or x)(1.0)
+    assert seen == [None]
+
+
+def test_a_kernel_named_by_its_key_loads_without_a_trace_and_what_changes_it_misses(tmp_path, monkeypatch):
+    """`compile_member(..., key=fingerprint(f))`: the same function made again loads its kernel
+    from the disk without tracing; a changed closure constant or body is traced and compiled
+    again, and computes its own numbers."""
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+
+    def make(c, square):
+        def f(x):
+            return jnp.sin(c * jnp.square(x)) if square else jnp.sin(c * x * x)
+
+        return f
+
+    x = np.linspace(-1.0, 1.0, 16)
+    first = compile_member(make(2.0, True), x[0], key=fingerprint(make(2.0, True)))
+    assert not first.from_record
+    traced = jax.make_jaxpr
+
+    def no_trace(*a, **k):
+        raise AssertionError("traced")
+
+    monkeypatch.setattr(jax, "make_jaxpr", no_trace)
+    again = compile_member(make(2.0, True), x[0], key=fingerprint(make(2.0, True)))
+    assert again.from_record and again.kernel.key == first.kernel.key
+    np.testing.assert_array_equal(again(x), first(x))
+    monkeypatch.setattr(jax, "make_jaxpr", traced)
+    for other in (make(3.0, True), make(2.0, False)):  # a closure constant, a body
+        miss = compile_member(other, x[0], key=fingerprint(other))
+        assert not miss.from_record and miss.kernel.key != first.kernel.key
+        np.testing.assert_allclose(miss(x), jax.vmap(other)(x), rtol=1e-15, atol=0)
+
+
+def _fresh_process(monkeypatch):
+    """Forget what this process compiled, traced and checked, as a new process would."""
+    from clebsch_jax.batching import backends, chunks_native, probe
+
+    monkeypatch.setattr(backends, "_PROGRAMS", {})
+    monkeypatch.setattr(probe, "_TRACES", {})
+    monkeypatch.setattr(probe, "_PASSED", set())
+    monkeypatch.setattr(probe, "_FINGERPRINTS", {})
+    monkeypatch.setattr(chunks_native, "_DISK_KEYS", {})
+
+
+def _members(n=8):
+    rng = np.random.default_rng(3)
+    return rng.uniform(0.5, 3.0, size=(n, 3)), np.broadcast_to(np.eye(3), (n, 3, 3)), rng.standard_normal((n, 3))
+
+
+RUN = dict(dt=0.05, n_steps=20, backend="native")
+
+
+def test_a_sweep_from_the_disk_cache_traces_and_checks_nothing_and_a_changed_model_misses(tmp_path, monkeypatch):
+    """A user's model swept once; then, with the in-process caches forgotten, the same sweep
+    neither traces (no `make_jaxpr`, no `eval_shape`) nor runs `integrate`'s value checks,
+    and gives the same table to the bit; with a changed closure constant it traces again and
+    gives that model's table."""
+    from clebsch_jax.batching import backends, probe
+
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+    model, (inertias, Q0, omegas) = _model(), _members()
+    _fresh_process(monkeypatch)
+    first = cj.sweep(model.factory(1.0), inertias, Q0, omegas, **RUN)
+    assert [p.from_record for p in backends._PROGRAMS.values()] == [False]
+
+    _fresh_process(monkeypatch)
+    traced = {}
+    for where, name in ((jax, "make_jaxpr"), (jax, "eval_shape"), (probe, "_check_member_eagerly")):
+        traced[(where, name)] = getattr(where, name)
+        monkeypatch.setattr(where, name, lambda *a, _n=name, **k: pytest.fail(f"{_n} ran on the cached path"))
+    again = cj.sweep(_model().factory(1.0), inertias, Q0, omegas, **RUN)  # the model's module made again
+    assert [p.from_record for p in backends._PROGRAMS.values()] == [True]
+    for key in ("status", "final_Q", "final_p", "final_momentum", "energy_error", "newton_iterations"):
+        np.testing.assert_array_equal(getattr(again, key), getattr(first, key))
+
+    for (where, name), fn in traced.items():
+        monkeypatch.setattr(where, name, fn)
+    _fresh_process(monkeypatch)
+    doubled = cj.sweep(model.factory(2.0), inertias, Q0, omegas, **RUN)
+    assert [p.from_record for p in backends._PROGRAMS.values()] == [False]
+    assert not np.allclose(doubled.final_momentum, first.final_momentum)
+    xla = cj.sweep(model.factory(2.0), inertias, Q0, omegas, **{**RUN, "backend": "xla"})
+    np.testing.assert_allclose(doubled.final_momentum, xla.final_momentum, rtol=1e-12, atol=1e-14)
+
+
+_CHILD = """
+import json, sys, types
+import numpy as np
+import jax
+import clebsch_jax as cj
+from clebsch_jax.batching import backends, probe
+
+body, scale, forbid = sys.argv[1], float(sys.argv[2]), sys.argv[3] == "1"
+module = types.ModuleType("user_model")
+exec(compile(MODEL.format(body=body, offset=0.0), "<user_model>", "exec"), module.__dict__)
+ran = []
+if forbid:
+    for where, name in ((jax, "make_jaxpr"), (jax, "eval_shape"), (probe, "_check_member_eagerly")):
+        setattr(where, name, lambda *a, _n=name, **k: ran.append(_n))
+rng = np.random.default_rng(3)
+inertias, omegas = rng.uniform(0.5, 3.0, size=(8, 3)), rng.standard_normal((8, 3))
+try:
+    res = cj.sweep(module.factory(scale), inertias, np.broadcast_to(np.eye(3), (8, 3, 3)), omegas,
+                   dt=0.05, n_steps=20, backend="native")
+    out = res.final_momentum.tolist()
+except Exception as err:  # a forbidden call that broke the run
+    out = repr(err)
+print(json.dumps({"from_record": [p.from_record for p in backends._PROGRAMS.values()], "ran": ran, "out": out}))
+"""
+
+
+@pytest.mark.slow  # three fresh processes, each importing JAX; the test above covers the same in-process
+def test_fresh_processes_hit_the_disk_cache_without_tracing_and_miss_on_a_changed_body(tmp_path):
+    env = {**os.environ, "CLEBSCH_JAX_NATIVE_CACHE": str(tmp_path)}
+    script = f"MODEL = {MODEL!r}\n" + textwrap.dedent(_CHILD)
+
+    def child(body, scale, forbid):
+        out = subprocess.run(
+            [sys.executable, "-c", script, body, str(scale), "1" if forbid else "0"],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    cold = child(BODY, 1.0, False)
+    assert cold["from_record"] == [False]
+    warm = child(BODY, 1.0, True)
+    assert warm == {"from_record": [True], "ran": [], "out": cold["out"]}
+    other = child(OTHER_BODY, 1.0, False)  # the same numbers from another jaxpr: traced and compiled
+    assert other["from_record"] == [False]
+    np.testing.assert_allclose(other["out"], cold["out"], rtol=1e-13, atol=1e-15)
