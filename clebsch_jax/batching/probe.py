@@ -174,12 +174,15 @@ def once(key: str | None, check, load=None, dump=None):
     found = _found(key, load)
     if found is not None:
         return found[0]
-    with warnings.catch_warnings(record=True) as caught:
-        try:
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")  # every warning recorded, whatever was shown before
             result = check()
-        finally:
-            for w in caught:  # to the caller's filters again (they were shown to them once already)
-                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+    finally:
+        # to the caller's filters again, outside the recording (re-emitted inside it, each
+        # would be recorded again while the list is read: a loop that never ends)
+        for w in caught:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
     if key is not None and not caught:
         if load is None:
             if len(_PASSED) >= _PASSED_MAX:
