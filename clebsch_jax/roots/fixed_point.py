@@ -19,7 +19,7 @@ __all__ = ["fixed_point_solve", "STALLED", "SWEEPS_PER_TEST", "stall_pairs"]
 
 
 STALLED = ((0.5, 1e2), (0.9, 1e4))
-"""When `fixed_point_solve` takes an update that stopped shrinking as its noise floor (the
+r"""When `fixed_point_solve` takes an update that stopped shrinking as its noise floor (the
 `stalled` pairs of `converged`): θ ≥ 1/2 over a test within 100ε of the size, as in Newton,
 but further out (up to 10⁴ε) only θ ≥ 0.9. Near its limit a sweep contracts slowly (θ above
 1/2 over a test of two sweeps: a large step of a high order), and Newton's rule would stop it
