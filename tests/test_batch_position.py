@@ -70,8 +70,17 @@ def fields(sol):
 
 
 def rigid_body(inertia, Q0, omega0, **kw):
+    # backend="xla": the claim is about XLA's program alone and under vmap (a concrete call
+    # would otherwise run the native kernel, which equals it to round-off, not bit for bit)
     return cj.integrate(
-        cj.models.rigid_body(inertia), Q0, omega0, dt=np.float64(0.1), n_steps=N_STEPS, throw=False, **kw
+        cj.models.rigid_body(inertia),
+        Q0,
+        omega0,
+        dt=np.float64(0.1),
+        n_steps=N_STEPS,
+        throw=False,
+        backend="xla",
+        **kw,
     )
 
 
@@ -84,6 +93,7 @@ def vortices(gamma, Q0):
         n_steps=N_STEPS,
         jacobian="blocks",
         throw=False,
+        backend="xla",
     )
 
 
