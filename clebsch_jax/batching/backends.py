@@ -43,19 +43,12 @@ class NativeProgram:
         `key` must tell those limits apart). `disk_key`: a fingerprint of what `fun` is made
         from, under which a new process finds the kernel without tracing `fun`
         (`clebsch_jax.native.NativeFunction`)."""
-        with _PROGRAMS_LOCK:
-            found = _PROGRAMS.get(key)
-        if found is None:
-            from ..native import Unsupported, compile_member
+        from ..native import compile_member, compiled_once
 
-            try:
-                found = compile_member(fun, *member_args, in_axes=in_axes, max_lines=max_lines, key=disk_key)
-            except Unsupported as err:
-                found = err
-            with _PROGRAMS_LOCK:
-                if len(_PROGRAMS) >= _PROGRAMS_MAX:
-                    _PROGRAMS.clear()
-                _PROGRAMS[key] = found
-        if isinstance(found, Exception):
-            raise found
-        return found
+        return compiled_once(
+            _PROGRAMS,
+            _PROGRAMS_LOCK,
+            _PROGRAMS_MAX,
+            key,
+            lambda: compile_member(fun, *member_args, in_axes=in_axes, max_lines=max_lines, key=disk_key),
+        )

@@ -117,7 +117,7 @@ def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy
     it), and the system's and Δt's arrays it takes. Raises `clebsch_jax.native.Unsupported`
     (and remembers it) for a step the translation does not cover, or, with `max_lines`, whose
     kernel would be larger."""
-    from ..native import Unsupported, compile_loop
+    from ..native import compile_loop, compiled_once
 
     treedef, static, arrays = _split((system, dt))
     loop = (jax.tree_util.tree_map(np.asarray, carry), np.asarray(carry.xi_last))
@@ -139,23 +139,13 @@ def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy
         with undifferentiated():  # the march's values are not differentiated here
             return _stream_body(stepper, check_energy, sys_, dt_, stop, c)
 
-    try:
-        with _LOOPS_LOCK:
-            found = _LOOPS.get(key)
-    except TypeError:  # a static part that cannot be hashed: compiled (or read from disk) each time
-        key, found = None, None
-    if found is None:
-        try:
-            found = compile_loop(body, arrays, np.zeros((), np.int32), loop, width=LANES, max_lines=max_lines)
-        except Unsupported as err:
-            found = err
-        if key is not None:
-            with _LOOPS_LOCK:
-                if len(_LOOPS) >= _LOOPS_MAX:
-                    _LOOPS.clear()
-                _LOOPS[key] = found
-    if isinstance(found, Exception):
-        raise found
+    found = compiled_once(
+        _LOOPS,
+        _LOOPS_LOCK,
+        _LOOPS_MAX,
+        key,
+        lambda: compile_loop(body, arrays, np.zeros((), np.int32), loop, width=LANES, max_lines=max_lines),
+    )
     return found, arrays
 
 

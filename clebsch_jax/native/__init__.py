@@ -28,6 +28,7 @@ __all__ = [
     "native_unavailable",
     "warn_once",
     "NativeFallbackWarning",
+    "compiled_once",
 ]
 
 BACKENDS = ("auto", "native", "xla")
@@ -258,3 +259,29 @@ def compile_loop(body, *member_args, width=None, use_cache=True, in_axes=0, max_
     single member, whose other lanes would only repeat it). The other arguments are
     `compile_member`'s."""
     return NativeLoop(body, *member_args, width=width, use_cache=use_cache, in_axes=in_axes, max_lines=max_lines)
+
+
+def compiled_once(cache: dict, lock, limit: int, key, compile):
+    """`compile()` (a native program), kept in `cache` under `key` behind `lock` (cleared when it
+    holds `limit` entries): an `Unsupported` it raises is kept too and raised again, so a program
+    the translation refuses is not translated again. A key that cannot be hashed compiles each
+    time (the disk cache may still spare LLVM's work)."""
+    try:
+        with lock:
+            found = cache.get(key)
+        hashable = True
+    except TypeError:
+        found, hashable = None, False
+    if found is None:
+        try:
+            found = compile()
+        except Unsupported as err:
+            found = err
+        if hashable:
+            with lock:
+                if len(cache) >= limit:
+                    cache.clear()
+                cache[key] = found
+    if isinstance(found, Exception):
+        raise found
+    return found
