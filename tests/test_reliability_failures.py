@@ -214,12 +214,6 @@ def test_an_injected_failure_is_reported_at_its_step_and_member(march, kind):
 
 
 @pytest.mark.slow  # compiling sweep's chunk program costs ~12 s of the suite's budget
-@pytest.mark.xfail(
-    strict=True,
-    reason="known regression of this session's merge (isotropy gauge in sweeps): on the native path "
-    "`config.member_system` rebuilds this builder's system from a parameter row of the wrong length "
-    "(ValueError in `particles`); to be fixed first next session",
-)
 def test_sweep_reports_each_fault_at_its_global_step():
     """`cj.sweep` over faulty particle systems (the full march, chunks of 5 steps, batches of 3):
     every member's status and first failed step, counted from the start of the run, are those of

@@ -103,7 +103,9 @@ def start_batch(cfg: Config, members: Members, shapes: Shapes, b: int, batch_siz
     ic = members.ic_index[member]
     # host arrays moved to the device as they are: a transfer each, no JAX operation to compile;
     # a native kernel reads host arrays, so they stay there
-    put = np.asarray if cfg.native else functools.partial(jax.device_put, device=device)
+    # (leaf by leaf: np.asarray of a tuple of parameter arrays would stack them into one array)
+    put_leaf = np.asarray if cfg.native else functools.partial(jax.device_put, device=device)
+    put = lambda tree: jax.tree_util.tree_map(put_leaf, tree)  # noqa: E731
     params = None if members.builder is None else put(member_slices(members.params, members.param_index[member]))
     Q, xi = put(members.Q0[ic]), put(members.xi0[ic])
     shared = None if members.shared is None else put(members.shared)
