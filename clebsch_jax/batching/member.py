@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity, initial_multiplier
 from ..discrete.residual import nodal_residual
-from ..march.scan import first_step_failed, half_steps, input_ok, jump_step, node_energy, zero_nan
+from ..march.scan import FirstStepProbe, first_step_failed, input_ok, jump_step, node_energy, zero_nan
 from ..roots.status import Status
 from ..steppers.base import innermost
 from ..steppers.reduced import ReducedStep
@@ -133,10 +133,10 @@ def member_chunk(
         carried = lambda: (carry.march, jnp.zeros((), carry.iterations.dtype))
         (state0, memory0, steps0), startup = jax.lax.cond(first, fresh, carried)
     # integrate's first-step check (`clebsch_jax.march.scan.first_step_probe`): two half steps
-    # from the start, made in the run's first chunk only (a loop of 0 iterations in the others)
-    probe = None
-    if check_energy:
-        probe = half_steps(stepper, system, state0, memory0, ok_in, dt, jnp.where(first, 2, 0))
+    # from the start, in the run's first chunk only. They are the loop's first two iterations
+    # (`probes` of them: 2 or 0), made by the loop's own step, so that the program holds one
+    # copy of the step (a second would double the native kernel, and its compile time)
+    probes = jnp.where(first, 2, 0).astype(jnp.int32) if check_energy else None
     mu0 = momentum_map(system, P0, Q0, xi0)
     finder = stepper.nodal_solver
     xin0, ok0, E0, size0 = _node(system, finder, Q0, mu0, xi0, ok_in)
@@ -165,10 +165,12 @@ def member_chunk(
         p=jnp.full_like(Q0, jnp.nan),
     )
 
-    def body(k, c):
-        state_prev, memory, red = c
-        alive = red["alive"]
-        state, memory, out, stats = stepper.step(system, state_prev, memory, dt, steps0 + k, alive)
+    def reduce(k, state_prev, red, alive, stepped):
+        """Step k of the chunk (`stepped`: the stepper's step from `state_prev`) and the
+        reductions after it: (the state, the memory, the new reductions, and the node the step
+        reaches with its outcome: (Q, momentum, ok))."""
+        state, memory, out, stats = stepped
+        before = red
         ok = alive & (stats.status == Status.SUCCESS)
         state, out = _nan_unless(ok, (state, out))
         nodes = stepper.nodes(system, state_prev, _one(state), _one(out))
@@ -223,22 +225,51 @@ def member_chunk(
             jumped=jumped,
             p=p,
         )
-        if probe is not None:  # step 0's node and outcome, for the first-step check after the loop
+        if probes is not None:  # step 0's node and outcome, for the first-step check after the loop
             at0 = k == 0
-            kept = lambda now, before: jnp.where(at0, now, before)  # noqa: E731
+            kept = lambda now, old: jnp.where(at0, now, old)  # noqa: E731
             red.update(
-                Q1=kept(Qn, c[2]["Q1"]),
-                mu1=kept(mun, c[2]["mu1"]),
-                ok1=kept(ok & ~new_jump, c[2]["ok1"]),
-                iterations1=kept(iterations, c[2]["iterations1"]),
+                Q1=kept(Qn, before["Q1"]),
+                mu1=kept(mun, before["mu1"]),
+                ok1=kept(ok & ~new_jump, before["ok1"]),
+                iterations1=kept(iterations, before["iterations1"]),
             )
+        return state, memory, red, (Qn, mun, ok)
+
+    def body(k, c):
+        state_prev, memory, red = c
+        alive = red["alive"]
+        stepped = stepper.step(system, state_prev, memory, dt, steps0 + k, alive)
+        state, memory, red, _ = reduce(k, state_prev, red, alive, stepped)
         return state, memory, red
 
-    if probe is not None:
+    def body_with_probe(j, c):
+        """Iteration j: a half step of the probe from (state, memory) while j < probes (their
+        node kept in `probe`, the reductions left as they are), then step j - probes of the
+        chunk, the first from the start again."""
+        state, memory, red, probe = c
+        in_probe = j < probes
+        restart = j == probes
+        pick = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(restart, x, y), a, b)  # noqa: E731
+        state_prev, memory = pick(state0, state), pick(memory0, memory)
+        alive = jnp.where(in_probe, probe[2], red["alive"])
+        k = j - probes
+        step_dt, index = jnp.where(in_probe, dt / 2, dt), jnp.where(in_probe, j, steps0 + k)
+        stepped = stepper.step(system, state_prev, memory, step_dt, index, alive)
+        state, memory, new, node = reduce(k, state_prev, red, alive, stepped)
+        keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(in_probe, x, y), a, b)  # noqa: E731
+        return state, memory, keep(red, new), keep(node, probe)
+
+    if probes is None:
+        state, memory, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
+    else:
         red0.update(Q1=jnp.full_like(Q0, jnp.nan), mu1=jnp.full_like(mu0, jnp.nan), ok1=jnp.asarray(False))
         red0.update(iterations1=red0["iterations"])
-    state, memory, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
-    if probe is not None and n > 0:
+        probe0 = (jnp.full_like(Q0, jnp.nan), jnp.full_like(mu0, jnp.nan), jnp.asarray(ok_in))
+        start = (state0, memory0, red0, probe0)
+        state, memory, red, (probe_Q, probe_mu, probe_ok) = jax.lax.fori_loop(0, n + probes, body_with_probe, start)
+        probe = FirstStepProbe(probe_Q, probe_mu, probe_ok & (probes > 0))
+    if probes is not None and n > 0:
         # integrate's first-step check (after its energy check): step 0 converged, was not failed
         # by the energy check, and lies far from the half steps' node. It fails the member at
         # step 0 as a jump there would: what the loop reduced after step 0 is dropped. (Made
