@@ -58,8 +58,10 @@ def test_sweep_members_are_integrate_runs_near_the_step_limit(backend):
     final_Q = np.array([np.asarray(s.Q[-1]) for s in sols])
     final_p = np.array([np.asarray(s.p[-1]) for s in sols])
     # XLA runs integrate's own program, chunk after chunk: the same numbers. The native kernel
-    # makes the same steps with its own (correctly rounded) arithmetic, in another order.
-    tol = 0.0 if backend == "xla" else 1e-12
+    # makes the same steps with its own (correctly rounded) arithmetic, in another order. Loosened
+    # from 1e-12: near the stage iteration's limit (DT) a step amplifies its input's round-off,
+    # and over the 39 steps the two orders of operations part by up to ~1.5e-12 (seen in CI).
+    tol = 0.0 if backend == "xla" else 1e-11
     np.testing.assert_allclose(res.final_Q[ok], final_Q[ok], rtol=0, atol=tol)
     np.testing.assert_allclose(res.final_p[ok], final_p[ok], rtol=0, atol=tol)
     assert np.all(np.isnan(res.final_Q[~ok]))

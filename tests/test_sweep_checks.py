@@ -65,7 +65,10 @@ def test_a_sweep_checks_the_first_step_as_integrate_does(case, backend):
     system, es, dts = CASES[case]
     Q0, xi0 = map(np.stack, zip(*[_perihelion(e) for e in es]))
     dts = np.asarray(dts)
-    sols = [cj.integrate(system, Q0[m], xi0[m], dt=dts[m], n_steps=N_STEPS, throw=False) for m in range(len(es))]
+    sols = [
+        cj.integrate(system, Q0[m], xi0[m], dt=dts[m], n_steps=N_STEPS, throw=False, backend=backend)
+        for m in range(len(es))
+    ]
     status = np.array([int(s.result) for s in sols])
     failed_step = np.array([int(s.failed_step) for s in sols])
     assert status[0] == cj.Status.FIRST_STEP and failed_step[0] == 0  # the case the sweep missed
@@ -75,8 +78,9 @@ def test_a_sweep_checks_the_first_step_as_integrate_does(case, backend):
     np.testing.assert_array_equal(res.failed_step, failed_step)
     ok = status == cj.Status.SUCCESS
     assert np.all(np.isnan(res.final_Q[~ok]))
-    # XLA runs integrate's own program chunk after chunk; the native kernel the same steps in
-    # its own (correctly rounded) arithmetic
+    # integrate on the same backend: XLA's sweep runs integrate's own program chunk after chunk
+    # (the same numbers); the native sweep's kernel is another program than integrate's native
+    # loop kernel, with the same steps in another order of (correctly rounded) operations
     tol = 0.0 if backend == "xla" else 1e-12
     final_Q = np.array([np.asarray(s.Q[-1]) for s in sols])
     np.testing.assert_allclose(res.final_Q[ok], final_Q[ok], rtol=0, atol=tol)

@@ -100,7 +100,11 @@ def program(name: str, order: int, n_steps: int, compiler_options: tuple = (), s
 
     def one(Q0, xi0, P0, derive_P0, t0, dt):
         P0 = jnp.where(derive_P0, cj.initial_multiplier(system, Q0, xi0), P0)
-        sol = cj.integrate(system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, order=order, throw=False, **options)
+        # traced (under vmap and jit), where integrate's march is XLA's: asked for by name, so
+        # that "auto" does not warn that it cannot run a native kernel here
+        sol = cj.integrate(
+            system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, order=order, throw=False, backend="xla", **options
+        )
         values, scales = {}, {}
         for inv in invariants:
             v = jnp.asarray(inv.values(system, sol))
