@@ -155,6 +155,7 @@ def test_reduced_rigid_body_march_is_bit_identical_to_vmap():
     assert np.max(np.abs(C - C[:, :1])) < 50 * EPS * np.max(C)
 
 
+@pytest.mark.slow  # vortex programs under vmap and cj.batch
 def test_point_vortex_batch_agrees_with_vmap():
     """The full march with block Newton (midpoint principle) over 6 clusters of 4 vortices:
     reductions over vortex pairs may round differently in the two layouts (see

@@ -316,6 +316,7 @@ def demo(tmp_path_factory):
     return code, printed, err, out
 
 
+@pytest.mark.slow  # the quick demo runs every scene (CI also runs the full demo)
 def test_quick_demo(demo):
     code, printed, err, out = demo
     assert code == 0, err
@@ -352,6 +353,7 @@ def test_quick_demo(demo):
         assert orbit["period_measured"] == pytest.approx(orbit["period_exact"], rel=0.03)
 
 
+@pytest.mark.slow  # the quick demo runs every scene (CI also runs the full demo)
 def test_quick_demo_runs_every_scene_into_a_subfolder(demo):
     code, printed, err, out = demo
     assert code == 0, err

@@ -80,6 +80,7 @@ def central_differences(f, x, h):
 # Gradients through the full march and through a composition.
 
 
+@pytest.mark.slow  # landmark gradients by autodiff and central differences
 def test_landmark_gradients_wrt_momenta_and_width_match_central_differences():
     """jit(grad) through the full march (Newton solves differentiated implicitly) against central
     differences, with respect to the initial momenta P0 (10 numbers) and the kernel width."""

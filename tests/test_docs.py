@@ -29,6 +29,7 @@ SLOW_PAGES = {
     "docs/how-to/control.md",  # shooting by L-BFGS through the landmarks' march
     "docs/how-to/failures.md",  # the full march's compilation, for a failure to read
     "docs/how-to/sweeps.md",  # a sweep of 2000 members, then the same on a two-worker Dask cluster
+    "docs/architecture.md",  # a stepper written out and marched, a sweep, each compiled
 }
 
 _BLOCK = re.compile(r"^( *)```(\w*)[^\n]*\n(.*?)^\1```", re.MULTILINE | re.DOTALL)

@@ -14,7 +14,11 @@ from clebsch_jax import diagnostics as dg
 INERTIA = np.array([2.0, 1.0, 2.0 / 3.0])
 
 
-@pytest.mark.parametrize("scheme", cj.SCHEMES)
+@pytest.mark.parametrize(
+    # the one-sided principles mirror each other: the default run checks the right and the midpoint
+    "scheme",
+    [pytest.param(s, marks=pytest.mark.slow) if s == "left" else s for s in cj.SCHEMES],
+)
 def test_trajectory_is_stationary_for_the_whole_discrete_action(scheme):
     """Lemma 20 checked without the step assembly: the gradient of Σₙ L_d(ξⁿ, Pⁿ, Qⁿ, Qⁿ⁺¹)
     with respect to every ξⁿ, every Pⁿ and every interior Qⁿ vanishes on the trajectory."""
@@ -437,6 +441,7 @@ def test_batched_marches_call_no_lapack_kernel():
         assert "lapack" not in text, name
 
 
+@pytest.mark.slow  # its own compiled programs; Lemma 7's multiplier is also checked by test_sweep's P0 tests in the slow run
 def test_minimum_norm_cotangent_of_a_rank_deficient_map_matches_least_squares():
     """The dense solve (no LAPACK: Gram–Schmidt) against NumPy's least squares: full-rank and
     rank-deficient A (a velocity map with isotropy), written out (up to STRAIGHT_MAX columns) and

@@ -396,6 +396,7 @@ def test_skew_collision_fails_at_the_step_that_would_cross():
 # Gaussian landmarks in the plane.
 
 
+@pytest.mark.slow  # landmark marches at several step sizes and a tight SciPy reference
 def test_landmarks_match_dop853_at_order_two_and_conserve_linear_and_angular_momentum():
     T = 3.0
     q_ref, p_ref = dop853(landmark_rhs(LANDMARK_WIDTH, 3, 2), LANDMARK_Q0, LANDMARK_P0, np.array([0.0, T]))
@@ -433,6 +434,7 @@ def test_landmarks_match_dop853_at_order_two_and_conserve_linear_and_angular_mom
 # vmap over the kernel width and the initial data, with no change to the model code.
 
 
+@pytest.mark.slow  # peakon marches under vmap, compiled apart from the other tests'
 def test_vmap_peakons_over_width_and_initial_data_with_one_failing_member():
     widths = jnp.array([0.7, 1.3, 1.0])
     q_col, p_col = peakon_antipeakon_exact(0.0, **COLLISION)

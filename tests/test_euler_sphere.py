@@ -222,6 +222,7 @@ def test_matrix_free_model_checks_refuse_a_wrong_inverse_legendre_map(monkeypatc
         check_model(affine, Q0, xi0, 0.1)
 
 
+@pytest.mark.slow  # N = 16 fluid sweeps on both solvers: the default run's costliest test
 def test_sweeps_and_newton_give_the_same_steps():
     """The matrix-free sweeps solve the same equations as dense Newton (N = 4: 64 unknowns)."""
     Ns = 4

@@ -56,6 +56,7 @@ def test_rigid_bodies_agree_with_integrate_and_keep_invariants():
     assert np.max(res.drift["casimir"]) < 1e-13
 
 
+@pytest.mark.slow  # the fast and the general path both compiled
 def test_forced_fallback_large_dt_gives_the_general_answer(monkeypatch):
     # Δt = 0.6 with |ω| ~ 3: the predictor is poor, K fixed updates do not reach round-off,
     # every chunk is rerun with the general loop; the answers are the general loop's
@@ -141,6 +142,7 @@ def _assert_same_table(a, b):
         np.testing.assert_array_equal(a.saved[key], b.saved[key], err_msg=key)
 
 
+@pytest.mark.slow  # a threaded sweep beside a plain one, each compiled
 def test_threads_run_batches_side_by_side_with_the_same_table(monkeypatch):
     # batches of 2 members, three at a time from host threads (sweep's threads), with hard
     # members rerun on the general path and saved nodes written from those threads: the table
@@ -301,6 +303,7 @@ def test_heavy_tops_agree_with_integrate():
         np.testing.assert_allclose(res.energy_error[m], np.max(np.abs(E - E[0])), rtol=0, atol=1e-13)
 
 
+@pytest.mark.slow  # cluster programs on two paths
 def test_vortex_cluster_has_no_fast_path_and_agrees():
     # the midpoint full step of point vortices has no fixed-update form yet: the sweep runs the
     # general path (fast_chunks 0) and its answers are integrate's

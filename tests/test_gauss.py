@@ -307,6 +307,7 @@ def test_symplectic_and_differentiable():
     assert np.max(np.abs(J - Jr)) < 1e-12
 
 
+@pytest.mark.slow  # Gauss–Legendre under vmap and cj.batch, each compiled
 def test_batch_vmap_and_failure_report():
     """cj.batch equals vmap; a step too large for the fixed-point iteration fails with the
     DIVERGED status, named with its step and batch member, never as a silent NaN trajectory."""

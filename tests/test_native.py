@@ -160,6 +160,7 @@ def test_lanes_stop_their_loops_independently_and_inactive_lanes_keep_their_valu
     assert len(set(np.asarray(native[1]).tolist())) > 2  # the lanes did stop at different counts
 
 
+@pytest.mark.slow  # a long scan's kernel; shorter scans stay in the default run
 def test_a_long_scan_with_inputs_and_outputs_agrees_with_xla():
     """A scan too long to unroll, with per-iteration inputs and outputs (held in arrays on the
     stack, indexed by the counter), forwards and in reverse."""
@@ -279,6 +280,7 @@ def test_native_sweep_of_rigid_bodies_equals_the_xla_sweep_with_failures_reporte
         assert np.array_equal(a, b, equal_nan=True) and np.array_equal(b, c, equal_nan=True)
 
 
+@pytest.mark.slow  # two sweep programs compiled; the default run checks native statuses in test_sweep_checks
 def test_native_sweep_reports_a_failure_in_a_later_chunk_at_the_step_xla_reports():
     """Peakons (the full march, midpoint scheme): a peakon–antipeakon pair collides at t* = 3,
     where the step fails in the third chunk; an overtaking pair runs through; a NaN member
@@ -295,6 +297,7 @@ def test_native_sweep_reports_a_failure_in_a_later_chunk_at_the_step_xla_reports
     assert native.status[2] == Status.INVALID_INPUT
 
 
+@pytest.mark.slow  # the heavy top's full-march kernel and XLA's sweep, both compiled
 def test_native_sweep_of_heavy_tops_equals_the_xla_sweep():
     """A potential (the heavy top: the reduced march with Q reconstructed, composed as a
     symmetric pair) on both backends."""
@@ -391,6 +394,7 @@ def _diverging_rigid_bodies():
     return inertias, np.broadcast_to(np.eye(3), (6, 3, 3)), omegas
 
 
+@pytest.mark.slow  # Gauss–Legendre's kernel and XLA's sweep, both compiled
 def test_native_gauss_legendre_sweep_equals_the_xla_sweep_with_its_failures():
     """Gauss–Legendre of order 6 (three stages, fixed-point sweeps; its first step's substeps
     and untested sweeps would pass the entry limit unrolled, so they run as loops): the same
@@ -418,6 +422,7 @@ def _exponential_rigid_body(inertia):
     return cj.models.rigid_body(inertia, derivative_map=cj.exponential)
 
 
+@pytest.mark.slow  # an order-8 composition's kernel and XLA's sweep, both compiled
 def test_native_composition_sweep_equals_the_xla_sweep():
     """The triple jump (a composition of the reduced step of the exponential map, three stages;
     unrolled, its stages would pass the entry limit) with a negative inertia (INVALID_INPUT):

@@ -100,6 +100,7 @@ def test_rigid_body_reduced_step_matches_xla():
     _same_solution(fast, xla)
 
 
+@pytest.mark.slow  # the full march's native loop kernel; the rigid body's stays in the default run
 def test_point_vortices_full_midpoint_step_matches_xla():
     """A degenerate Lagrangian (no nodal velocities solved) with the full midpoint step."""
     system = models.point_vortices(GAMMA)

@@ -107,6 +107,7 @@ def _wall_system(strength):
     )
 
 
+@pytest.mark.slow  # sweep programs of their own
 def test_a_sweep_finds_the_same_jump_across_its_chunks():
     """Variant: a sweep checks the energy over the whole run, chunk by chunk (its running
     maxima carried from chunk to chunk), and finds the jump at the step `integrate` finds, in
@@ -461,6 +462,7 @@ def members(draw):
     return params, dt, Q0, xi0, spoil
 
 
+@pytest.mark.slow  # many marches of distinct shapes
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(members(), min_size=MEMBERS, max_size=MEMBERS), st.sampled_from(sorted(_PROPERTY_RUNS)))
 def test_every_run_succeeds_within_tolerance_or_reports_a_failure(rows, scheme):

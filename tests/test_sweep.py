@@ -97,6 +97,7 @@ def test_chunked_diagnostics_equal_those_of_the_stored_trajectory():
     assert np.all(res.newton_iterations >= n) and np.all(res.max_residual < 1e-14)
 
 
+@pytest.mark.slow  # a sweep program of its own
 def test_without_P0_the_first_chunk_derives_the_minimum_norm_multiplier():
     """Without P0 the batch starts from a placeholder and the first chunk's program derives P⁰
     (`_with_start_P`); given P0 it is used as it is. The minimum-norm multipliers passed as
@@ -183,6 +184,7 @@ def total_momentum(system, sol):
     return jnp.sum(sol.momentum, axis=-1)
 
 
+@pytest.mark.slow  # a full-march sweep program of its own; the reduced march's case stays in the default run
 def test_a_member_failing_mid_run_is_reported_at_its_global_step_full_march():
     """Peakons (full march, midpoint scheme, 20-step chunks): a symmetric peakon–antipeakon
     pair collides at t* = 3, where the step fails (a later chunk: the failing step is counted
@@ -380,6 +382,7 @@ def test_a_check_without_a_batched_form_runs_on_every_row():
     assert len(seen) == 2 and np.array_equal(seen[1], Q0[1])
 
 
+@pytest.mark.slow  # block-Newton cluster programs on both paths
 def test_a_sweep_of_vortex_clusters_defaults_to_block_newton_and_agrees_with_integrate():
     """Degenerate particle systems (point vortices) sweep with the block Newton matrix by
     default (`jacobian="dense"` keeps the dense one): the same trajectories to round-off as
