@@ -1,10 +1,10 @@
 """The `clebsch-jax` command line: `demo` (Figure 1 and every scene), `run SCENE`, `bench`.
 
-Compilation dominates: every scene program is compiled once, by the `demo --quick` fixture
-(each scene with its `quick_steps` and `quick_batch`, XLA optimisation off), and the `run`
-tests reuse it — same scene, steps per call, batch and compiler options; `dt` is traced, so
-the failing run (huge dt) and the chunked run (`--chunk` = the quick steps) compile nothing
-new. Numbers in the JSON are checked against the `Solution` of that program (`_scene_run.solve`)
+Compilation dominates. The `demo --quick` fixture compiles every scene program (each with its
+`quick_steps` and `quick_batch`, XLA optimisation off); the tests that use it are slow-marked
+(CI also runs the full demo). The default run's `run` tests compile only the scenes they run,
+once each: same scene, steps per call, batch and compiler options; `dt` is traced, so the
+failing run (huge dt) and the chunked run (`--chunk` = the quick steps) share one program. Numbers in the JSON are checked against the `Solution` of that program (`_scene_run.solve`)
 with `clebsch_jax.diagnostics`, and against exact solutions where there are some.
 """
 
@@ -369,7 +369,7 @@ def test_quick_demo_runs_every_scene_into_a_subfolder(demo):
         assert f"{summary['errors']['energy_rel_max']:.2e}" in rows[name]
 
 
-def test_demo_only_one_scene(demo, tmp_path, capsys):
+def test_demo_only_one_scene(tmp_path, capsys):
     out = tmp_path / "only"
     assert main(["demo", "--only", "peakons", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
@@ -519,7 +519,7 @@ def test_run_scene_writes_files_and_its_json_matches_the_solution(name, demo, tm
     assert demo_summary["errors"] == summary["errors"]
 
 
-def test_failing_member_is_reported_with_its_step_and_exit_1(demo, tmp_path, capsys):
+def test_failing_member_is_reported_with_its_step_and_exit_1(tmp_path, capsys):
     """dt = 100 on the rigid body: Newton's method fails for some member; the others run on.
     (Newton from a fresh Jacobian at every step solves all four members even at dt = 50 or
     2000; at dt = 100 member 1 reaches the iteration cap at step 1, the others converge.)"""
@@ -559,7 +559,7 @@ def test_failing_member_is_reported_with_its_step_and_exit_1(demo, tmp_path, cap
     assert all(x is not None for x in summary["invariants"]["casimir"]["per_member"])
 
 
-def test_chunked_run_continues_the_march_with_a_progress_bar(demo, tmp_path, capsys):
+def test_chunked_run_continues_the_march_with_a_progress_bar(tmp_path, capsys):
     """Three calls of the demo's compiled 400-step program (the last one cut at 1000 steps),
     each continued from the last node's (Q, p). A wrong hand-over would break the spatial
     angular momentum, a function of (Q, p), at the chunk boundaries."""

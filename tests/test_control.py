@@ -102,6 +102,7 @@ def test_landmark_gradients_wrt_momenta_and_width_match_central_differences():
     assert np.max(np.abs(fd_P)) > 0.1 and abs(float(fd_w)) > 0.1  # not a vanishing derivative
 
 
+@pytest.mark.slow  # landmark derivatives in both modes; the default run keeps test_reverse_mode_does_not_unroll_the_newton_iterations
 def test_forward_and_reverse_mode_agree_on_landmarks():
     """jvp (forward mode through custom_root) equals the reverse-mode gradient · tangent."""
     rng = np.random.default_rng(3)

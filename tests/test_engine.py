@@ -15,9 +15,9 @@ INERTIA = np.array([2.0, 1.0, 2.0 / 3.0])
 
 
 @pytest.mark.parametrize(
-    # the one-sided principles mirror each other: the default run checks the right and the midpoint
+    # the default run checks the midpoint principle; the one-sided ones, each its own program, are slow
     "scheme",
-    [pytest.param(s, marks=pytest.mark.slow) if s == "left" else s for s in cj.SCHEMES],
+    [pytest.param(s, marks=pytest.mark.slow) if s != "midpoint" else s for s in cj.SCHEMES],
 )
 def test_trajectory_is_stationary_for_the_whole_discrete_action(scheme):
     """Lemma 20 checked without the step assembly: the gradient of Σₙ L_d(ξⁿ, Pⁿ, Qⁿ, Qⁿ⁺¹)

@@ -43,6 +43,7 @@ def reference(system, Q0, xi0, dt, n_steps, **options):
     return np.asarray(sol.momentum[-1]), float(np.max(np.abs(E - E[0])))
 
 
+@pytest.mark.slow  # the fast path, the general path and integrate, each compiled
 def test_rigid_bodies_agree_with_integrate_and_keep_invariants():
     res = cj.sweep(rigid_body, INERTIAS, EYES, OMEGAS, dt=0.05, **RB)
     assert res.fast_chunks == 2 and res.fallback_chunks == 0  # one batch, two chunks, all checks passed

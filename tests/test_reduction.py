@@ -232,6 +232,7 @@ def lagrange_top():
     return cj.models.heavy_top(I, mgl, chi), (I, mgl, chi), Q0, w0
 
 
+@pytest.mark.slow  # the heavy top's full and reduced marches, each compiled
 def test_heavy_top_full_and_reduced_agree_and_conserve(lagrange_top):
     system, _, Q0, w0 = lagrange_top
     # the left principle by name (the default with a potential is second order: test_defaults.py)
@@ -332,7 +333,8 @@ _FOUR_BY_FOUR = pytest.mark.slow
         pytest.param("SO(4)", marks=_FOUR_BY_FOUR),
     ],
 )
-@pytest.mark.parametrize("scheme", ["left", "right"])
+# the left principle mirrors the right: the default run checks the right one
+@pytest.mark.parametrize("scheme", [pytest.param("left", marks=pytest.mark.slow), "right"])
 def test_closed_form_cayley_step_equals_the_autodiff_step(name, scheme):
     """`reduced_step` uses the Cayley map's explicit derivative; `reduced_residual` and
     `outgoing_body_momentum` differentiate exp̄/loḡ by autodiff. Same numbers."""

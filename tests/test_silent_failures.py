@@ -194,7 +194,8 @@ def test_the_energy_check_passes_a_long_smooth_run():
 # -- 3. the gradient of a failed march ----------------------------------------------------------
 
 
-@pytest.mark.parametrize("reduce", [False, pytest.param(True, marks=pytest.mark.slow)])
+@pytest.mark.slow  # a gradient program of the march per case; test_engine's gradient tests stay in the default run
+@pytest.mark.parametrize("reduce", [False, True])
 def test_the_gradient_of_a_failed_march_is_nan_not_zero(reduce):
     def final(x):
         sol = cj.integrate(RB, I3, x, dt=5.0, n_steps=10, throw=False, reduce=reduce, max_newton_iterations=2)
