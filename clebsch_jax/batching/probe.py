@@ -9,8 +9,8 @@ cached by the configuration and the member's shapes (`trace_key`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
-
 import pickle
 import warnings
 from typing import NamedTuple
@@ -20,6 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.isotropy import IsotropyGauge as _IsotropyGauge
+from ..core.isotropy import physical_part as _physical_part
+from ..core.isotropy import rank_holds as _rank_holds
 from ..core.jit import memo, undifferentiated
 from ..core.validation import check_configuration as _check_configuration
 from ..core.validation import runnable_check as _runnable_check
@@ -315,3 +317,36 @@ def member_shapes(cfg: Config, members: Members, lean: bool = False) -> Shapes:
     )
     has_Q, has_xi = sol_shape.Q is not None, sol_shape.xi is not None
     return Shapes(q_row.shape, x_row.shape, has_Q, has_xi, inv_shape, facts, sol_shape.march_state)
+
+
+def warn_isotropic_xi0(cfg: Config, members: Members, stacklevel: int = 3) -> None:
+    """Say once, as `integrate` says for its one ξ⁰ (`clebsch_jax.core.isotropy.physical_velocity`),
+    when members' ξ⁰ have a component along the isotropy of their Q⁰ (`cfg.isotropy`): a run
+    given no P0 starts each member from its physical part, which moves Q⁰ as ξ⁰ does
+    (`config.member_system`). Every member is looked at, in one program over all of them;
+    non-finite ones are reported in the table instead."""
+    if cfg.isotropy is None or not cfg.derive_P:
+        return
+    rank = cfg.isotropy[0]
+    plain = dataclasses.replace(cfg, isotropy=None)
+
+    def moved(row, Q, xi):
+        velocity_map = system_of(plain, row, members.shared).velocity_map
+        change = jnp.linalg.norm((_physical_part(velocity_map, Q, xi, rank) - xi).reshape(-1))
+        big = change > 1e-12 * jnp.maximum(jnp.linalg.norm(xi.reshape(-1)), jnp.finfo(xi.dtype).tiny)
+        return big & _rank_holds(velocity_map, Q, xi.shape, rank)  # another orbit type is refused instead
+
+    ic = members.ic_index
+    rows = None if members.builder is None else member_slices(members.params, members.param_index)
+    axes = (None if rows is None else 0, 0, 0)
+    found = np.asarray(jax.jit(jax.vmap(moved, in_axes=axes))(rows, members.Q0[ic], members.xi0[ic]))
+    if found.any():
+        first = int(np.argmax(found))
+        warnings.warn(
+            f"xi0: {int(found.sum())} of {members.B} members (the first: member {first}) have a component "
+            f"along the isotropy of their Q0 (the {cfg.isotropy[1]}-dimensional kernel of xi -> L_xi Q0, "
+            "directions that move Q0 not at all). The sweep takes each xi0 as the physical velocity L_xi0 Q0, "
+            "as integrate does, and starts from xi0 with that component dropped.",
+            UserWarning,
+            stacklevel=stacklevel,
+        )

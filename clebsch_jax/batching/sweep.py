@@ -261,6 +261,7 @@ def sweep(
     cfg = choose.particle_defaults(chunk_config(run, members, options), members)
     # integrate's checks that need values, before any trace; the isotropy gauge integrate fixes
     cfg = dataclasses.replace(cfg, isotropy=probe.check_first_member(cfg, members))
+    probe.warn_isotropic_xi0(cfg, members)
     fast, batch_size, backend = choose.resumed(fast, batch_size, store, overwrite, backend)
     if batch_size is not None:
         batch_size = positive_int(batch_size, "batch_size")
