@@ -47,7 +47,6 @@ KNOWN_LONG_FILES = {
     "core/model_checks.py",
     "discrete/reduction.py",
     "march/integrate.py",
-    "march/scan.py",
     "native/lower.py",
 }
 """Files above `MAX_LINES` still to split."""

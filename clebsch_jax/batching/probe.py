@@ -10,7 +10,6 @@ cached by the configuration and the member's shapes (`trace_key`).
 from __future__ import annotations
 
 import json
-
 import pickle
 import warnings
 from typing import NamedTuple
@@ -23,10 +22,10 @@ from ..core.isotropy import IsotropyGauge as _IsotropyGauge
 from ..core.jit import memo, undifferentiated
 from ..core.validation import check_configuration as _check_configuration
 from ..core.validation import runnable_check as _runnable_check
+from ..march.carry import start as march_start
+from ..march.energy_check import node_energy
 from ..march.integrate import check_member as _check_member_eagerly
 from ..march.integrate import prepared_method
-from ..march.scan import node_energy
-from ..march.scan import start as march_start
 from ..native.fingerprint import fingerprint, values_digest
 from .config import Config, Members, chunk_integrate, first_row, member_slices, system_of
 from .lean import carries_Q as _lean_carries_Q

@@ -113,7 +113,7 @@ def sweep(
       one, `jnp.broadcast_to` to share one). Non-finite rows are *not* rejected: such members
       fail (status `INVALID_INPUT` at step 0) and are reported, so random samples need no cleaning;
       so do members whose parameter row is invalid (each row is checked in the member's program:
-      `clebsch_jax.march.scan.input_ok`).
+      `clebsch_jax.march.carry.input_ok`).
     - `dt`: the time step, a positive scalar or one per member, shape (B,).
     - `n_steps`: steps per member (an int >= 1).
     - `P0`: optional initial multipliers, shape of `Q0`. Default: `initial_multiplier` of each

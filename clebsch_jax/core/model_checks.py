@@ -166,7 +166,7 @@ def traced_isotropy(system, q_shape, xi_shape) -> tuple | None:
 
     The example has the generic rank of the velocity map; a member whose $Q^0$ is of another
     orbit type (a larger isotropy, e.g. q = 0 for ξ × q) is refused in the program itself as an
-    invalid input (`clebsch_jax.march.scan.input_ok`, `rank_holds`), never marched with a wrong
+    invalid input (`clebsch_jax.march.carry.input_ok`, `rank_holds`), never marched with a wrong
     gauge."""
     size = int(np.prod(xi_shape))
     if any_traced(system) or isinstance(system.lagrangian, IsotropyGauge) or size > ISOTROPY_MAX_DIM:

@@ -42,7 +42,8 @@ from ..steppers.base import AbstractStepper
 from ..steppers.choose import check_scheme, choose_method
 from ..steppers.composition import StepPlan, plan_of
 from ..steppers.principles import check_particle_axis
-from .scan import march, march_chunked, start
+from .carry import start
+from .scan import march, march_chunked
 from .solution import Solution, check_traced
 
 __all__ = ["integrate", "step_plan"]
