@@ -22,15 +22,9 @@ MAX_LINES = 500
 """500 lines per file at most: one concern per module."""
 
 KNOWN_PRIVATE_IMPORTS = {
-    # models/ and native/ are being changed elsewhere (issue 39); to be made public there
+    # models/ is being changed elsewhere (issue 39); to be made public there
     ("clebsch_jax.models._sphere_vortices", "clebsch_jax.models._point_vortices", "_circulations"),
     ("clebsch_jax.models._sphere_vortices", "clebsch_jax.models._point_vortices", "_on_configurations"),
-    ("clebsch_jax.native.indexing", "clebsch_jax.native.lower", "_copy"),
-    ("clebsch_jax.native.indexing", "clebsch_jax.native.lower", "_emit_float"),
-    ("clebsch_jax.native.indexing", "clebsch_jax.native.lower", "_emit_int"),
-    ("clebsch_jax.native.indexing", "clebsch_jax.native.lower", "_out_dtype"),
-    ("clebsch_jax.native.linalg", "clebsch_jax.native.lower", "_emit_float"),
-    ("clebsch_jax.native.linalg", "clebsch_jax.native.lower", "_emit_int"),
 }
 """(importer, module, name) of the private imports still to remove."""
 
@@ -47,7 +41,6 @@ KNOWN_LONG_FILES = {
     "core/model_checks.py",
     "discrete/reduction.py",
     "march/integrate.py",
-    "native/lower.py",
 }
 """Files above `MAX_LINES` still to split."""
 
