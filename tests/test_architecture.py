@@ -40,7 +40,6 @@ KNOWN_LONG_FILES = {
     "control.py",
     "core/model_checks.py",
     "discrete/reduction.py",
-    "march/integrate.py",
 }
 """Files above `MAX_LINES` still to split."""
 

@@ -22,7 +22,7 @@ from ..march.carry import start as march_start
 from ..march.continuation import continue_from
 from ..march.energy_check import energy_jump, node_energies
 from ..march.first_step import first_step_failed, half_steps
-from ..march.integrate import prepared_method
+from ..march.arguments import prepared_method
 from ..roots.status import Status
 from .batch_last import batch
 from .config import Carry, Config, chunk_integrate, member_system
