@@ -23,7 +23,8 @@ from ..core.isotropy import (
     physical_part,
     physical_velocity,
 )
-from ..core.model_checks import check_group_configuration, check_model, traced_isotropy
+from ..core.manifold_checks import check_group_configuration
+from ..core.model_checks import check_model, traced_isotropy
 from ..core.system import ClebschSystem
 from ..core.validation import (
     any_traced,

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..core.isotropy import check_initial_momentum
 from ..core.jit import filter_jit
-from ..core.model_checks import check_first_step, first_step_may_leave
+from ..core.manifold_checks import check_first_step, first_step_may_leave
 from ..core.system import ClebschSystem
 from ..core.validation import any_traced, float_array
 from ..steppers.base import AbstractStepper
