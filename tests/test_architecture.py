@@ -38,7 +38,6 @@ modules before it."""
 KNOWN_LONG_FILES = {
     "batching/store.py",
     "control.py",
-    "discrete/reduction.py",
 }
 """Files above `MAX_LINES` still to split."""
 

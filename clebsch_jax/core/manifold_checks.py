@@ -38,7 +38,7 @@ def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
     march actually made:
 
     - the velocity map is right multiplication on a matrix group, $\mathcal L_\xi Q = Q X(\xi)$
-      with $X(V)$ a Lie algebra (`clebsch_jax.discrete.reduction.matrix_group_basis`), and the
+      with $X(V)$ a Lie algebra (`clebsch_jax.discrete.matrix_group.matrix_group_basis`), and the
       derivative map is not of Definition 25's form (which keeps Q on the group by
       construction): $\log((Q^0)^{-1}Q^1)$ must lie in $X(V)$ to `GROUP_RTOL`. This measures the
       step's own defect whatever $Q^0$'s (a $Q^0$ that only just passes `check_Q` is not blamed
@@ -115,7 +115,7 @@ def first_step_may_leave(system, Q0, xi0) -> bool:
 def check_group_configuration(system, Q0, xi0) -> None:
     r"""For a system without `check_Q` whose velocity map is right multiplication on a matrix
     group, $\mathcal L_\xi Q = Q X(\xi)$: warn when $Q^0$ is not in the group the engine reads off
-    $X(V)$ (`clebsch_jax.discrete.reduction.matrix_group_basis`). Recognised: $X(V) \subset so(n)$
+    $X(V)$ (`clebsch_jax.discrete.matrix_group.matrix_group_basis`). Recognised: $X(V) \subset so(n)$
     (the group is in SO(n): $Q^0$ must be a rotation) and $X(V) \subset se(n-1)$ (last row zero,
     antisymmetric block: $Q^0$ a rigid motion, last row $(0, \dots, 0, 1)$). A `UserWarning`, not
     an error: the march is well defined on the orbit $Q^0 G$ of any invertible $Q^0$, but a user
@@ -166,9 +166,9 @@ def _name(fn) -> str:
 
 
 def _group_basis(system, Q0, xi0):
-    """`clebsch_jax.discrete.reduction.matrix_group_basis` (imported here: the reduction sits
+    """`clebsch_jax.discrete.matrix_group.matrix_group_basis` (imported here: the reduction sits
     above this module on the data path)."""
-    from ..discrete.reduction import matrix_group_basis
+    from ..discrete.matrix_group import matrix_group_basis
 
     return matrix_group_basis(system, Q0, xi0)
 
