@@ -37,7 +37,6 @@ modules before it."""
 
 KNOWN_LONG_FILES = {
     "batching/store.py",
-    "control.py",
 }
 """Files above `MAX_LINES` still to split."""
 
