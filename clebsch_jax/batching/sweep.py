@@ -320,6 +320,7 @@ def _run_in_store(plan: Plan, run, tables, store, client, overwrite: bool, repor
 
     from . import store as stores
     from .distributed import run_on_client
+    from .store_read import open_sweep
 
     B, bs = plan.members.B, plan.batch_size
     n_batches = -(-B // bs)
@@ -341,7 +342,7 @@ def _run_in_store(plan: Plan, run, tables, store, client, overwrite: bool, repor
     if client is not None:
         for _ in run_on_client(client, plan, pending, store, run_id, run.progress):
             pass
-        return stores.open_sweep(store)
+        return open_sweep(store)
     # The table is kept in memory too. Leaving the `with` (also on Ctrl-C) waits for the writes under way.
     slots, used, chunks = run.slots, set(), np.zeros(3, int)
     with ThreadPoolExecutor(1, thread_name_prefix="clebsch-jax-sweep-store") as writer:
@@ -360,5 +361,5 @@ def _run_in_store(plan: Plan, run, tables, store, client, overwrite: bool, repor
     if run.progress is True:
         print(file=sys.stderr, flush=True)
     if len(pending) < n_batches:  # resumed: the skipped batches' rows are in the store only
-        return stores.open_sweep(store)
+        return open_sweep(store)
     return result(plan, tables, len(used), chunks)
