@@ -21,11 +21,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "clebsch_jax"
 MAX_LINES = 500
 """500 lines per file at most: one concern per module."""
 
-KNOWN_PRIVATE_IMPORTS = {
-    # models/ is being changed elsewhere (issue 39); to be made public there
-    ("clebsch_jax.models._sphere_vortices", "clebsch_jax.models._point_vortices", "_circulations"),
-    ("clebsch_jax.models._sphere_vortices", "clebsch_jax.models._point_vortices", "_on_configurations"),
-}
+KNOWN_PRIVATE_IMPORTS: set = set()
 """(importer, module, name) of the private imports still to remove."""
 
 BATCHING_LAYERS = """
