@@ -6,8 +6,8 @@ entry (or fold known entries in NumPy, for the exactly rounded ones: their rules
 `clebsch_jax.native.elementwise`); structural primitives re-index the entry arrays; contractions
 and reductions are unrolled in index order. Loops and branches are in
 `clebsch_jax.native.control`, dynamic indexing in `clebsch_jax.native.indexing`, small dense
-linear algebra in `clebsch_jax.native.linalg`: each adds its rules to `RULES`. A primitive without a rule raises `Unsupported`
-with its name.
+linear algebra in `clebsch_jax.native.linalg`: each adds its rules to `RULES`. A primitive
+without a rule raises `Unsupported` with its name.
 """
 
 from __future__ import annotations
