@@ -46,14 +46,10 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
-from .core.jit import filter_jit
 from .core.validation import float_array, nonnegative, positive_scalar
-from .diagnostics import node_energy
-from .march.integrate import integrate
-from .roots.status import Status
 from .core.system import ClebschSystem
+from ._optimisation import fit_terms, fit_value_and_grad, minimize, shooting_terms, shooting_value_and_grad
 
 __all__ = ["shoot", "fit_parameters", "ShootingResult", "FitResult", "squared_distance", "mean_squared_error"]
 
@@ -188,120 +184,6 @@ def _scalar_output(fn, name: str, *args):
 
 
 # --------------------------------------------------------------------------------------------
-# The objectives (one jitted value-and-gradient program each, cached across calls).
-
-
-def _shooting_terms(P0, system, Q0, target, xi0, dt, weight, *, n_steps, loss, regularize, options):
-    sol = integrate(
-        system, Q0, xi0, P0=P0, dt=dt, n_steps=n_steps, throw=False, backend="xla", **options
-    )  # differentiated
-    data = loss(sol.Q[-1], target)
-    value = data + weight * node_energy(system, Q0, sol.xi[0]) if regularize else data
-    ok = sol.result == Status.SUCCESS
-    nan = jnp.asarray(jnp.nan, value.dtype)
-    return jnp.where(ok, value, nan), (jnp.where(ok, data, nan), (sol.Q, sol.momentum), sol.result, sol.failed_step)
-
-
-@filter_jit
-def _shooting_value_and_grad(P0, system, Q0, target, xi0, dt, weight, n_steps, loss, regularize, options):
-    terms = lambda P: _shooting_terms(
-        P, system, Q0, target, xi0, dt, weight, n_steps=n_steps, loss=loss, regularize=regularize, options=options
-    )
-    return jax.value_and_grad(terms, has_aux=True)(P0)
-
-
-def _fit_terms(params, make_system, Q0, xi0, observations, dt, *, n_steps, observe, loss, options):
-    sol = integrate(
-        make_system(params), Q0, xi0, dt=dt, n_steps=n_steps, throw=False, backend="xla", **options
-    )  # differentiated
-    predicted = observe(sol)
-    if jnp.shape(predicted) != observations.shape:
-        raise ValueError(
-            f"observe: returned shape {jnp.shape(predicted)}, but observations have shape {observations.shape}."
-        )
-    value = loss(predicted, observations)
-    if jnp.shape(value) != ():
-        raise ValueError(f"loss: must return a scalar, returned shape {jnp.shape(value)}.")
-    ok = sol.result == Status.SUCCESS
-    return jnp.where(ok, value, jnp.nan), (value, predicted, sol.result, sol.failed_step)
-
-
-@filter_jit
-def _fit_value_and_grad(params, make_system, Q0, xi0, observations, dt, n_steps, observe, loss, options):
-    terms = lambda p: _fit_terms(
-        p, make_system, Q0, xi0, observations, dt, n_steps=n_steps, observe=observe, loss=loss, options=options
-    )
-    return jax.value_and_grad(terms, has_aux=True)(params)
-
-
-# --------------------------------------------------------------------------------------------
-# The optimisation loop: jitted gradient, jitted update, Python loop with early stopping.
-
-
-def _update_step(optimizer, value_fn):
-    extra = isinstance(optimizer, optax.GradientTransformationExtraArgs)
-
-    @jax.jit
-    def step(params, state, value, grad):
-        if extra:
-            updates, state = optimizer.update(grad, state, params, value=value, grad=grad, value_fn=value_fn)
-        else:
-            updates, state = optimizer.update(grad, state, params)
-        return optax.apply_updates(params, updates), state
-
-    return step
-
-
-def _max_norm(tree) -> float:
-    leaves = jax.tree_util.tree_leaves(tree)
-    return max((float(jnp.max(jnp.abs(x))) for x in leaves), default=0.0)
-
-
-def _minimize(value_and_grad, value_fn, params, optimizer, n_iterations, tol, gtol, what):
-    """Python loop of (jitted) gradient evaluations and optimiser updates.
-
-    `value_and_grad(params) -> ((value, (data, extra, result, failed_step)), grad)`.
-    Returns ((params, aux, value, grad) of the last iterate whose integration succeeded, losses,
-    datas, iterations, converged, message)."""
-    state = optimizer.init(params)
-    step = _update_step(optimizer, value_fn)
-    losses = np.full(n_iterations + 1, np.nan)
-    datas = np.full(n_iterations + 1, np.nan)
-    last = None
-    converged, message, k = False, f"reached n_iterations = {n_iterations}", 0
-    for k in range(n_iterations + 1):
-        (value, aux), grad = value_and_grad(params)
-        value, data = float(value), float(aux[0])
-        if not np.isfinite(value) or not all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grad)):
-            result, failed = int(aux[2]), int(aux[3])
-            if result != Status.SUCCESS:
-                what_failed = f"the integration failed at step {failed} ({Status.MESSAGES.get(result, result)})"
-            else:
-                what_failed = "the objective or its gradient is not finite"
-            message = (
-                f"stopped at iteration {k}: {what_failed}; returning the iterate before. "
-                "Try a smaller learning rate or time step."
-            )
-            break
-        losses[k], datas[k] = value, data
-        last = (params, aux, value, grad)
-        if data <= tol:
-            converged, message = True, f"converged: {what} {data:.3e} <= tol = {tol:.3e} after {k} iterations"
-            break
-        gnorm = _max_norm(grad)
-        if gnorm <= gtol:
-            converged = True
-            message = f"converged: gradient max-norm {gnorm:.3e} <= gtol = {gtol:.3e} after {k} iterations"
-            break
-        if k == n_iterations:
-            break
-        params, state = step(params, state, value, grad)
-    if last is None:
-        raise ValueError(f"the initial guess already fails: {message}")
-    return last, losses, datas, k, converged, message
-
-
-# --------------------------------------------------------------------------------------------
 # Public entry points.
 
 
@@ -406,14 +288,14 @@ def shoot(
     weight = jnp.asarray(weight, Q0.dtype)
 
     def value_and_grad(P):
-        return _shooting_value_and_grad(P, system, Q0, target, xi0, dt, weight, n_steps, loss, regularize, options)
+        return shooting_value_and_grad(P, system, Q0, target, xi0, dt, weight, n_steps, loss, regularize, options)
 
     def value_fn(P):  # for line searches, traced into the optimiser's update
-        return _shooting_terms(
+        return shooting_terms(
             P, system, Q0, target, xi0, dt, weight, n_steps=n_steps, loss=loss, regularize=regularize, options=options
         )[0]
 
-    last, losses, datas, k, converged, message = _minimize(
+    last, losses, datas, k, converged, message = minimize(
         value_and_grad, value_fn, P0_init, optimizer, n_iterations, tol, gtol, "mismatch"
     )
     P0, (data, (path, momentum), _, _), value, grad = last
@@ -512,14 +394,14 @@ def fit_parameters(
     options = dict(integrate_options)
 
     def value_and_grad(p):
-        return _fit_value_and_grad(p, make_system, Q0, xi0, observations, dt, n_steps, observe, loss, options)
+        return fit_value_and_grad(p, make_system, Q0, xi0, observations, dt, n_steps, observe, loss, options)
 
     def value_fn(p):
-        return _fit_terms(
+        return fit_terms(
             p, make_system, Q0, xi0, observations, dt, n_steps=n_steps, observe=observe, loss=loss, options=options
         )[0]
 
-    last, losses, _, k, converged, message = _minimize(
+    last, losses, _, k, converged, message = minimize(
         value_and_grad, value_fn, params0, optimizer, n_iterations, tol, gtol, "loss"
     )
     params, (_, predicted, _, _), value, grad = last

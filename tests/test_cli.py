@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import clebsch_jax as cj
-from clebsch_jax.cli import _commands, _scene_run, _scenes, main
+from clebsch_jax.cli import _bench_command, _commands, _progress, _scene_run, _scenes, main
 from clebsch_jax.cli._scenes import SCENES
 
 from .test_epdiff import two_peakons_exact  # an independent closed form, checked against DOP853 there
@@ -232,7 +232,7 @@ def test_help_does_not_import_matplotlib():
 
 def test_progress_bar_one_line_on_a_terminal_and_tenths_in_a_log():
     stream = io.StringIO()
-    bar = _commands._ProgressBar("scene", stream=stream, tty=False)
+    bar = _progress.ProgressBar("scene", stream=stream, tty=False)
     for done in range(0, 1001, 10):  # 0: before the first (compiling) call
         bar(done, 1000, done / 100)
     bar.close()
@@ -242,7 +242,7 @@ def test_progress_bar_one_line_on_a_terminal_and_tenths_in_a_log():
     assert lines[-1].startswith("scene [" + "#" * 28 + "] 100% 1,000/1,000 steps")
     assert "s left" in lines[len(lines) // 2]  # an estimate once the first (compiling) call is past
     stream = io.StringIO()
-    bar = _commands._ProgressBar("scene", stream=stream, tty=True)
+    bar = _progress.ProgressBar("scene", stream=stream, tty=True)
     bar(500, 1000, 1.0)
     bar(1000, 1000, 2.0)
     bar.close()
@@ -258,7 +258,7 @@ def test_progress_bar_one_line_on_a_terminal_and_tenths_in_a_log():
 def test_bench_list_names_every_script(capsys):
     assert main(["bench", "--list"]) == 0
     out = capsys.readouterr().out
-    folder = _commands._benchmarks_dir()
+    folder = _bench_command._benchmarks_dir()
     expected = sorted(p.stem for p in folder.glob("*.py") if not p.name.startswith("_"))
     assert {"rigid_body_step_cost", "vortex_step_cost", "throughput", "work_precision"} <= set(expected)
     lines = {line.split()[0]: line for line in out.strip().splitlines()}
@@ -276,7 +276,7 @@ def test_bench_unknown_name_exit_2_lists_names(capsys):
 
 
 def test_bench_without_the_folder_is_one_line_exit_1(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(_commands, "_benchmarks_dir", lambda: tmp_path / "benchmarks")
+    monkeypatch.setattr(_bench_command, "_benchmarks_dir", lambda: tmp_path / "benchmarks")
     assert main(["bench", "--list"]) == 1
     assert "clone" in _one_line_error(capsys.readouterr().err)
 
@@ -292,7 +292,7 @@ def test_bench_runs_scripts_with_this_python_passing_quick_and_out(tmp_path, cap
             f"sys.exit({code})\n"
         )
     (folder / "_helper.py").write_text("raise SystemExit('not a benchmark')\n")
-    monkeypatch.setattr(_commands, "_benchmarks_dir", lambda: folder)
+    monkeypatch.setattr(_bench_command, "_benchmarks_dir", lambda: folder)
     out_dir = tmp_path / "results"
     assert main(["bench", "alpha", "--quick", "--out", str(out_dir)]) == 0
     called = json.loads(record.read_text().splitlines()[-1])

@@ -13,7 +13,7 @@ import sys
 import pytest
 
 import clebsch_jax as cj
-from clebsch_jax.cli import _commands
+from clebsch_jax.cli import _commands, _setup
 
 SCRIPT = r"""
 import json, sys
@@ -96,10 +96,10 @@ def test_command_line_switch(monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(cj, "enable_compilation_cache", lambda: calls.append(1))
     monkeypatch.delenv("CLEBSCH_JAX_NO_CACHE", raising=False)
-    _commands._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
-    _commands._use_compilation_cache(_Args(no_cache=True), "clebsch-jax run")
+    _setup.use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
+    _setup.use_compilation_cache(_Args(no_cache=True), "clebsch-jax run")
     monkeypatch.setenv("CLEBSCH_JAX_NO_CACHE", "1")
-    _commands._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
+    _setup.use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
     assert calls == [1]
 
     def refuse():
@@ -107,7 +107,7 @@ def test_command_line_switch(monkeypatch, capsys):
 
     monkeypatch.setattr(cj, "enable_compilation_cache", refuse)
     monkeypatch.delenv("CLEBSCH_JAX_NO_CACHE")
-    _commands._use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
+    _setup.use_compilation_cache(_Args(no_cache=False), "clebsch-jax run")
     assert "compiling without the cache" in capsys.readouterr().err
     for command in ("run", "demo"):
         args = _commands._build_parser().parse_args(

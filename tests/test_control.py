@@ -317,8 +317,8 @@ def no_compilation(monkeypatch):
     def boom(*args, **kwargs):
         raise AssertionError("the objective was compiled for invalid input")
 
-    monkeypatch.setattr(control, "_shooting_value_and_grad", boom)
-    monkeypatch.setattr(control, "_fit_value_and_grad", boom)
+    monkeypatch.setattr(control, "shooting_value_and_grad", boom)
+    monkeypatch.setattr(control, "fit_value_and_grad", boom)
 
 
 SHOOT_ARGS = dict(

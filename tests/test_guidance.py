@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import clebsch_jax as cj
+from clebsch_jax.march import arguments as _arguments
 from clebsch_jax.march import integrate as _integrate
 from clebsch_jax.march.solution import failure_message
 
@@ -81,8 +82,8 @@ def test_a_hand_written_so3_system_warns_about_a_q0_off_the_group(Q0, problem, m
 
 
 def test_a_function_remade_for_each_value_of_a_python_number_is_said_to_recompile(monkeypatch):
-    monkeypatch.setattr(_integrate, "_CLOSED_NUMBERS", {})
-    monkeypatch.setattr(_integrate, "_REMADE_WARNED", set())
+    monkeypatch.setattr(_arguments, "_CLOSED_NUMBERS", {})
+    monkeypatch.setattr(_arguments, "_REMADE_WARNED", set())
     monkeypatch.setattr(_integrate, "march_chunked", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("marched")))
 
     def attempt(g):

@@ -18,6 +18,7 @@ import clebsch_jax as cj
 from clebsch_jax.batching import batch_last as _batch_last
 from clebsch_jax.batching import choose as _choose
 from clebsch_jax.batching import probe as _probe
+from clebsch_jax.march import arguments as _arguments
 from clebsch_jax.march import integrate as _integrate
 
 XI0 = jnp.array([1.3, 0.8, -0.4])
@@ -80,8 +81,8 @@ def test_a_lagrangian_of_the_physical_velocity_is_accepted_with_its_isotropy_gau
     """l = ½|ξ×Q|² does not see the component of ξ along Q (the isotropy of Q): accepted as written,
     the gauge fixed by the engine."""
     seen = {}
-    original = _integrate.gauge_isotropy
-    monkeypatch.setattr(_integrate, "gauge_isotropy", lambda *a, **k: seen.setdefault("gauged", original(*a, **k)))
+    original = _arguments.gauge_isotropy
+    monkeypatch.setattr(_arguments, "gauge_isotropy", lambda *a, **k: seen.setdefault("gauged", original(*a, **k)))
     system = _on_r3(lambda xi, Q: 0.5 * jnp.sum(jnp.cross(xi, Q) ** 2))
     assert accepted(system, E3, jnp.array([1.3, 0.8, 0.0]))
     assert seen["gauged"].lagrangian.kernel_dim == 1

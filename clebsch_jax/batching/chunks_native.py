@@ -14,7 +14,7 @@ import jax
 import numpy as np
 
 from ..core.jit import memo, undifferentiated
-from ..march.integrate import prepared_method
+from ..march.arguments import prepared_method
 from .backends import NativeProgram
 from .config import Carry, Config, member_system
 from .member import MemberCarry, member_chunk

@@ -11,16 +11,18 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+
 import jax
 import jax.numpy as jnp
 
 from .. import diagnostics as _diagnostics
 from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, jit_with_options, undifferentiated
 from ..discrete.legendre import initial_multiplier
+from ..march.carry import start as march_start
 from ..march.continuation import continue_from
-from ..march.integrate import prepared_method
-from ..march.scan import energy_jump, first_step_failed, half_steps, node_energies
-from ..march.scan import start as march_start
+from ..march.energy_check import energy_jump, node_energies
+from ..march.first_step import first_step_failed, half_steps
+from ..march.arguments import prepared_method
 from ..roots.status import Status
 from .batch_last import batch
 from .config import Carry, Config, chunk_integrate, member_system
@@ -65,7 +67,7 @@ def _march_state(cfg: Config, system, carry: Carry, dt, first, alive):
     """The march state a general chunk starts from, and the start-up iterations it counts: the
     carried one (the last chunk's `Solution.march_state`), or in the run's first chunk — and
     after a chunk of the fast or lean path — the state `integrate` starts from
-    (`clebsch_jax.march.scan.start`). Both are computed (a member's choice is a value); a
+    (`clebsch_jax.march.carry.start`). Both are computed (a member's choice is a value); a
     failed member makes no step."""
     stepper, _, _ = prepared_method(
         system, carry.Q, carry.xi, dt=dt, n_steps=cfg.n, P0=carry.P, t0=carry.t, **dict(cfg.options)
@@ -77,7 +79,7 @@ def _march_state(cfg: Config, system, carry: Carry, dt, first, alive):
 
 
 def _first_step(cfg: Config, system, carry: Carry, dt, first, sol, jumped, jump_step):
-    """`integrate`'s first-step check (`clebsch_jax.march.scan.first_step_probe`) in the run's
+    """`integrate`'s first-step check (`clebsch_jax.march.first_step.first_step_probe`) in the run's
     first chunk: whether step 0 converged, was not failed by the energy check, and lies far from
     the node two half steps from the start reach (`first_step_failed`). The half steps run in a
     loop of two iterations in the first chunk and none in the others (`half_steps`)."""

@@ -268,7 +268,7 @@ class Carry(NamedTuple):
     drift: dict
     momentum: jax.Array
     final_xi: jax.Array | None
-    energy_change: jax.Array  # the energy check's running maxima (`clebsch_jax.march.scan.energy_jump`)
+    energy_change: jax.Array  # the energy check's running maxima (`clebsch_jax.march.energy_check.energy_jump`)
     energy_size: jax.Array
     # The march state at the chunk's last node, so that the next chunk makes exactly the steps
     # of one unbroken `integrate` run: the general chunk's `Solution.march_state` (the stepper's

@@ -10,7 +10,7 @@ Newton updates and a check per member and step) and, at each new node, in the sa
   from $\tfrac32\xi^n - \tfrac12\xi^{n-1}$ (the velocities of the two steps before the node,
   extrapolated to it) and a check;
 - the energy $E = \langle\delta l/\delta\xi, \xi\rangle - l$, its running drift from the
-  run's first node, and `integrate`'s energy check (`clebsch_jax.march.scan.jump_step`);
+  run's first node, and `integrate`'s energy check (`clebsch_jax.march.energy_check.jump_step`);
 - whether anything failed: a step or nodal solve that its check does not accept, a
   non-finite value, an energy jump, an invalid input.
 
@@ -40,7 +40,9 @@ import jax.numpy as jnp
 from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity
 from ..discrete.residual import nodal_residual
-from ..march.scan import first_step_failed, half_steps, input_ok, jump_step, node_energy, zero_nan
+from ..march.carry import input_ok
+from ..march.energy_check import jump_step, node_energy, zero_nan
+from ..march.first_step import first_step_failed, half_steps
 from ..roots.implicit import undifferentiated
 from ..roots.newton import fixed_newton_solve
 from ..roots.solvers import FixedNewton

@@ -7,7 +7,7 @@ their own stopping rule, as in `integrate` — and at each new node, in the same
 - the nodal velocity (Lemma 7: $\delta l/\delta\xi(\xi, Q) = \mu$), solved by the stepper's
   nodal solver from the velocity of the step arriving at the node;
 - the energy $E = \langle\delta l/\delta\xi, \xi\rangle - l$, its drift from the run's first
-  node, and `integrate`'s energy check (`clebsch_jax.march.scan.jump_step`);
+  node, and `integrate`'s energy check (`clebsch_jax.march.energy_check.jump_step`);
 - the member's status: the status and step of its first failure (a step's solve, a node's
   velocity, an energy jump, an invalid input), after which its values are NaN.
 
@@ -29,7 +29,9 @@ import jax.numpy as jnp
 from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity, initial_multiplier
 from ..discrete.residual import nodal_residual
-from ..march.scan import FirstStepProbe, first_step_failed, input_ok, jump_step, node_energy, zero_nan
+from ..march.carry import input_ok
+from ..march.energy_check import jump_step, node_energy, zero_nan
+from ..march.first_step import FirstStepProbe, first_step_failed
 from ..roots.status import Status
 from ..steppers.base import innermost
 from ..steppers.reduced import ReducedStep
@@ -51,7 +53,7 @@ class MemberCarry(NamedTuple):
     energy0: jax.Array  # the energy at the run's first node
     drift: jax.Array  # max |E - E⁰| over the nodes made
     momentum: jax.Array  # the momentum map at the last node
-    energy_change: jax.Array  # the energy check's running maxima (`clebsch_jax.march.scan.jump_step`)
+    energy_change: jax.Array  # the energy check's running maxima (`clebsch_jax.march.energy_check.jump_step`)
     energy_size: jax.Array
     # (stepper state, memory, steps made) at the last node: the next chunk continues from it,
     # with the stepper's guesses and predictor history, the steps of one unbroken run
@@ -132,7 +134,7 @@ def member_chunk(
     else:  # the run's first chunk starts the stepper; a later one continues the last one's march
         carried = lambda: (carry.march, jnp.zeros((), carry.iterations.dtype))
         (state0, memory0, steps0), startup = jax.lax.cond(first, fresh, carried)
-    # integrate's first-step check (`clebsch_jax.march.scan.first_step_probe`): two half steps
+    # integrate's first-step check (`clebsch_jax.march.first_step.first_step_probe`): two half steps
     # from the start, in the run's first chunk only. They are the loop's first two iterations
     # (`probes` of them: 2 or 0), made by the loop's own step, so that the program holds one
     # copy of the step (a second would double the native kernel, and its compile time)

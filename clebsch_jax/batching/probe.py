@@ -25,10 +25,10 @@ from ..core.isotropy import rank_holds as _rank_holds
 from ..core.jit import memo, undifferentiated
 from ..core.validation import check_configuration as _check_configuration
 from ..core.validation import runnable_check as _runnable_check
+from ..march.carry import start as march_start
+from ..march.energy_check import node_energy
 from ..march.integrate import check_member as _check_member_eagerly
-from ..march.integrate import prepared_method
-from ..march.scan import node_energy
-from ..march.scan import start as march_start
+from ..march.arguments import prepared_method
 from ..native.fingerprint import fingerprint, values_digest
 from .config import Config, Members, chunk_integrate, first_row, member_slices, system_of
 from .lean import carries_Q as _lean_carries_Q

@@ -30,7 +30,8 @@ damaged chunk of the inputs is written again. `open_sweep` names the damaged bat
 Per-member arrays are chunked by the sweep's `batch_size` along `member`, so each batch writes
 whole chunks of its own and batches written at once by different processes never share one.
 
-Creating, checking, resuming and reading a store: `clebsch_jax.batching.store`.
+Creating, checking, resuming and writing a store: `clebsch_jax.batching.store`; reading it back:
+`clebsch_jax.batching.store_read`.
 """
 
 from __future__ import annotations

@@ -113,7 +113,7 @@ def sweep(
       one, `jnp.broadcast_to` to share one). Non-finite rows are *not* rejected: such members
       fail (status `INVALID_INPUT` at step 0) and are reported, so random samples need no cleaning;
       so do members whose parameter row is invalid (each row is checked in the member's program:
-      `clebsch_jax.march.scan.input_ok`).
+      `clebsch_jax.march.carry.input_ok`).
     - `dt`: the time step, a positive scalar or one per member, shape (B,).
     - `n_steps`: steps per member (an int >= 1).
     - `P0`: optional initial multipliers, shape of `Q0`. Default: `initial_multiplier` of each
@@ -321,6 +321,7 @@ def _run_in_store(plan: Plan, run, tables, store, client, overwrite: bool, repor
 
     from . import store as stores
     from .distributed import run_on_client
+    from .store_read import open_sweep
 
     B, bs = plan.members.B, plan.batch_size
     n_batches = -(-B // bs)
@@ -342,7 +343,7 @@ def _run_in_store(plan: Plan, run, tables, store, client, overwrite: bool, repor
     if client is not None:
         for _ in run_on_client(client, plan, pending, store, run_id, run.progress):
             pass
-        return stores.open_sweep(store)
+        return open_sweep(store)
     # The table is kept in memory too. Leaving the `with` (also on Ctrl-C) waits for the writes under way.
     slots, used, chunks = run.slots, set(), np.zeros(3, int)
     with ThreadPoolExecutor(1, thread_name_prefix="clebsch-jax-sweep-store") as writer:
@@ -361,5 +362,5 @@ def _run_in_store(plan: Plan, run, tables, store, client, overwrite: bool, repor
     if run.progress is True:
         print(file=sys.stderr, flush=True)
     if len(pending) < n_batches:  # resumed: the skipped batches' rows are in the store only
-        return stores.open_sweep(store)
+        return open_sweep(store)
     return result(plan, tables, len(used), chunks)

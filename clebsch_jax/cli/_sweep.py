@@ -267,7 +267,8 @@ def _summary(res, store: str, wall: float, members_run: int) -> str:
 
 
 def run(args) -> int:
-    from ._commands import PROG, fail
+    from ._arguments import PROG
+    from ._setup import fail
 
     prog = f"{PROG} sweep"
     try:
@@ -355,7 +356,7 @@ def run(args) -> int:
 
 
 def add(subparsers) -> None:
-    from ._commands import paragraphs
+    from ._arguments import paragraphs
 
     p = subparsers.add_parser(
         "sweep",

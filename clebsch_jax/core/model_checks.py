@@ -14,22 +14,24 @@ a smaller dt") or, worse, as a wrong answer:
   stays on the manifold depends on the principle as well as on the derivative map): on a matrix
   group acted on by right multiplication, or when the system checks its configurations
   (`ClebschSystem.check_Q`), the step must stay on the configuration manifold.
+
+The checks of the configurations — `check_first_step`, `first_step_may_leave` and
+`check_group_configuration` — are in `clebsch_jax.core.manifold_checks`, and importable from here.
 """
 
 from __future__ import annotations
 
 import functools
-import warnings
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .derivative_maps import MatrixGroupDifference
 from .isotropy import IsotropyGauge, gauge_isotropy, kernel_basis, velocity_jacobian
 from .jit import QUICK_COMPILE, filter_jit
-from .validation import any_traced, is_traced, runnable_check
+from .manifold_checks import check_first_step, check_group_configuration, first_step_may_leave
+from .validation import any_traced, is_traced
 
 __all__ = [
     "check_model",
@@ -56,8 +58,6 @@ LINEAR_RTOL = 1e-8
 r"""A velocity map is linear when $|\mathcal L_\xi Q - J\xi| \le$ this $\times (|\mathcal L_\xi Q| + |J||\xi|)$
 at every probe ξ (round-off of a linear map is far below it, any genuine nonlinearity far above)."""
 
-SQRT_TOL = 0.25
-r"""`_log` takes square roots of $g$ until $|g - I| \le$ this, then sums 60 terms of the series."""
 
 DENSE_CHECK_MAX = 400
 r"""Above this many unknowns ξ, `check_model` forms no Hessian and no Jacobian (their size grows
@@ -67,11 +67,6 @@ velocity map's linearity on the probes alone and the Legendre map through the sy
 
 INVERSE_RTOL = 1e-8
 r"""`inverse_legendre` passes when $|\nabla l(G(\mu)) - \mu| \le$ this $\times|\mu|$ at the probes."""
-
-GROUP_RTOL = 1e-8
-r"""A step leaves the group when the component of $\log((Q^0)^{-1}Q^1)$ outside the algebra $X(V)$
-is more than this fraction of it (round-off for a step that stays on the group; of the order of
-$\Delta t|\xi|$ for the forward difference with the left principle)."""
 
 
 class ModelFacts(NamedTuple):
@@ -166,7 +161,7 @@ def traced_isotropy(system, q_shape, xi_shape) -> tuple | None:
 
     The example has the generic rank of the velocity map; a member whose $Q^0$ is of another
     orbit type (a larger isotropy, e.g. q = 0 for ξ × q) is refused in the program itself as an
-    invalid input (`clebsch_jax.march.scan.input_ok`, `rank_holds`), never marched with a wrong
+    invalid input (`clebsch_jax.march.carry.input_ok`, `rank_holds`), never marched with a wrong
     gauge."""
     size = int(np.prod(xi_shape))
     if any_traced(system) or isinstance(system.lagrangian, IsotropyGauge) or size > ISOTROPY_MAX_DIM:
@@ -454,181 +449,3 @@ def _check_linear(xi0, found):
         "which xi moves Q: every term must be linear in xi (e.g. Q @ hat(xi), with no products of xi's "
         "components and no constant term); put any nonlinear dependence on xi in the Lagrangian."
     )
-
-
-def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
-    r"""After a march: did its first step, $Q^0 \to Q^1$, stay on the configuration manifold?
-
-    Which principle keeps Q on M depends on the method that ran, not on the derivative map
-    alone (the forward difference leaves SO(3) with the left principle, but with the midpoint
-    principle the step is a Cayley transform and stays on it), so this looks at the step the
-    march actually made:
-
-    - the velocity map is right multiplication on a matrix group, $\mathcal L_\xi Q = Q X(\xi)$
-      with $X(V)$ a Lie algebra (`clebsch_jax.discrete.reduction.matrix_group_basis`), and the
-      derivative map is not of Definition 25's form (which keeps Q on the group by
-      construction): $\log((Q^0)^{-1}Q^1)$ must lie in $X(V)$ to `GROUP_RTOL`. This measures the
-      step's own defect whatever $Q^0$'s (a $Q^0$ that only just passes `check_Q` is not blamed
-      on the step). A defect is a `ValueError` naming `derivative_map` when the system checks
-      its configurations (`check_Q`), else a `UserWarning` (its configurations may then be any
-      matrices: the step is allowed, but Q drifts off the group);
-    - otherwise, when the system has a `check_Q`, it must accept $Q^1$ (`ValueError`).
-
-    Skipped when `Q1` is not finite (a failed step is reported by the march) or traced."""
-    if any_traced(Q0, Q1, system) or not np.all(np.isfinite(np.asarray(Q1))):
-        return
-    Q0, Q1 = np.asarray(Q0), np.asarray(Q1)
-    checks = runnable_check(system, Q0) is not None
-    if isinstance(system.derivative_map, MatrixGroupDifference):
-        # on a group it keeps Q there (Definition 25): the system's own check (if any) decides,
-        # with no need to find the group
-        basis = None
-    else:
-        basis = _group_basis(system, Q0, xi0) if Q0.ndim == 2 and Q0.shape[0] == Q0.shape[1] else None
-    if basis is not None:
-        defect = _outside_algebra(np.linalg.solve(Q0, Q1), basis)
-        if not defect > GROUP_RTOL:
-            return
-        problem = system.check_Q(Q1) if checks else None
-        how = (
-            f"(Q0^-1 Q1 is not in the group of the algebra X(V) by which velocity_map moves Q: the part of "
-            f"its logarithm outside X(V) is {defect:.1e} of it.)"
-        )
-    elif checks:
-        problem = system.check_Q(Q1)
-        if not isinstance(problem, str):
-            return
-        how = ""
-    else:
-        return
-    name = _name(system.derivative_map)
-    fix = (
-        f'Use a method whose steps keep Q on M (with {name}, e.g. scheme="midpoint"), or, on a matrix group '
-        "with L(xi, Q) = Q X(xi), the derivative map clebsch_jax.cayley or clebsch_jax.exponential, which keep "
-        "Q on the group with every principle (Definition 25); forward_difference is for vector spaces."
-    )
-    where = f"one step of {name} from Q0 ({method}) leaves the configuration manifold"
-    if checks:
-        found = f"{problem} " if isinstance(problem, str) else ""
-        raise ValueError(f"derivative_map: {where}: {found}{how} {fix}".replace("  ", " "))
-    warnings.warn(
-        f"derivative_map: {where} on which velocity_map acts, a matrix group, so Q drifts off it at "
-        f"every step {how} {fix} Give the system a check_Q to make this an error.",
-        UserWarning,
-        stacklevel=3,
-    )  # the caller of integrate
-
-
-def first_step_may_leave(system, Q0, xi0) -> bool:
-    r"""Whether `check_first_step` has anything to look at for a march from $Q^0$ that a caller
-    would have to make first (`sweep` and `batch` march their first member one step for it):
-    False when there is nothing to check (no `check_Q` and no matrix group read off the velocity
-    map), and False when the derivative map is of Definition 25's form (`MatrixGroupDifference`)
-    on the group of a velocity map that is right multiplication by a closed algebra, whose steps
-    $Q^0 \to Q^0\,\overline{\exp}(\Delta t\,X(\xi))$ stay in $Q^0 G$ by construction (the built-in
-    SO(3) models with `cayley` or `exponential`). True otherwise, and False for traced values."""
-    if any_traced(Q0, xi0, system):
-        return False
-    checks = runnable_check(system, Q0) is not None
-    square = np.ndim(Q0) == 2 and np.shape(Q0)[0] == np.shape(Q0)[1]
-    if isinstance(system.derivative_map, MatrixGroupDifference):
-        if not checks:
-            return False  # check_first_step looks only at check_Q for these maps
-        small = np.size(xi0) <= GROUP_CHECK_MAX_DIM
-        return not (square and small and _group_basis(system, Q0, xi0) is not None)
-    return checks or (square and _group_basis(system, Q0, xi0) is not None)
-
-
-GROUP_CHECK_MAX_DIM = 64
-"""`check_group_configuration` looks at algebras of at most this many dimensions (so(n) up to
-n = 11, se(n) up to n = 10): it forms their basis and its commutators."""
-
-
-def check_group_configuration(system, Q0, xi0) -> None:
-    r"""For a system without `check_Q` whose velocity map is right multiplication on a matrix
-    group, $\mathcal L_\xi Q = Q X(\xi)$: warn when $Q^0$ is not in the group the engine reads off
-    $X(V)$ (`clebsch_jax.discrete.reduction.matrix_group_basis`). Recognised: $X(V) \subset so(n)$
-    (the group is in SO(n): $Q^0$ must be a rotation) and $X(V) \subset se(n-1)$ (last row zero,
-    antisymmetric block: $Q^0$ a rigid motion, last row $(0, \dots, 0, 1)$). A `UserWarning`, not
-    an error: the march is well defined on the orbit $Q^0 G$ of any invertible $Q^0$, but a user
-    who wrote SO(3) meant a rotation. Skipped for traced values."""
-    if system.check_Q is not None or any_traced(Q0, xi0, system.velocity_map):
-        return
-    Q = np.asarray(Q0)
-    if Q.ndim != 2 or Q.shape[0] != Q.shape[1] or not np.all(np.isfinite(Q)):
-        return
-    if np.size(xi0) > GROUP_CHECK_MAX_DIM or np.shape(xi0) == Q.shape:
-        # a large algebra (the fluid's gl(2N), whose basis and commutators would take gigabytes)
-        # or ξ the matrix itself: not the small SO(n) or SE(n) this check is for
-        return
-    basis = _group_basis(system, Q0, xi0)
-    if basis is None:
-        return
-    from ..models._rigid_body import check_rotation  # the models' rotation test (a layer above)
-
-    size = max(float(np.max(np.abs(basis))), np.finfo(float).tiny)
-    antisymmetric = lambda X: float(np.max(np.abs(X + np.swapaxes(X, -1, -2)))) <= 1e-12 * size
-    n = Q.shape[0]
-    if antisymmetric(basis):
-        group, problem = f"SO({n})", check_rotation(Q)
-    elif n > 1 and not np.any(basis[:, -1, :]) and antisymmetric(basis[:, :-1, :-1]):
-        group = f"SE({n - 1})"
-        last = np.zeros(n)
-        last[-1] = 1.0
-        problem = (
-            f"its last row is {np.array2string(Q[-1], precision=4)}, not {np.array2string(last)}."
-            if np.max(np.abs(Q[-1] - last)) > 1e-8
-            else check_rotation(Q[:-1, :-1])
-        )
-    else:
-        return
-    if problem is None:
-        return
-    warnings.warn(
-        f"Q0: velocity_map moves Q by right multiplication with the Lie algebra of {group}, but Q0 is "
-        f"not in {group}: {problem} The march keeps Q in Q0 {group}. Give the system a check_Q (e.g. "
-        "clebsch_jax.models.check_rotation) to make this an error.",
-        UserWarning,
-        stacklevel=5,
-    )
-
-
-def _name(fn) -> str:
-    return getattr(fn, "name", None) or getattr(fn, "__name__", None) or type(fn).__name__
-
-
-def _group_basis(system, Q0, xi0):
-    """`clebsch_jax.discrete.reduction.matrix_group_basis` (imported here: the reduction sits
-    above this module on the data path)."""
-    from ..discrete.reduction import matrix_group_basis
-
-    return matrix_group_basis(system, Q0, xi0)
-
-
-def _outside_algebra(g: np.ndarray, basis: np.ndarray) -> float:
-    """The part of log g outside span(basis), relative to |log g| (0 when g = I)."""
-    log = _log(g).reshape(-1)
-    size = np.linalg.norm(log)
-    if not size > 0:
-        return 0.0
-    B = basis.reshape(basis.shape[0], -1).T
-    return float(np.linalg.norm(log - B @ np.linalg.lstsq(B, log, rcond=None)[0]) / size)
-
-
-def _log(g: np.ndarray) -> np.ndarray:
-    """The principal matrix logarithm of g near the identity, by inverse scaling and squaring:
-    Denman–Beavers square roots until |g − I| <= `SQRT_TOL`, then 60 terms of the series of
-    log(I + A) (far below round-off at that size)."""
-    eye = np.eye(g.shape[0])
-    roots = 0
-    while np.linalg.norm(g - eye) > SQRT_TOL and roots < 30:
-        Y, Z = g, eye
-        for _ in range(30):
-            Y, Z = 0.5 * (Y + np.linalg.inv(Z)), 0.5 * (Z + np.linalg.inv(Y))
-        g, roots = Y, roots + 1
-    A = g - eye
-    power, log = A, A.copy()
-    for k in range(2, 61):
-        power = power @ A
-        log += (-1.0) ** (k + 1) / k * power
-    return log * 2.0**roots

@@ -33,7 +33,9 @@ from ..core.jit import undifferentiated
 from ..core.validation import any_traced, is_array
 from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper, Nodes
-from .scan import Carry, Chunk, advance_step, node_energy, nodal_velocity
+from .carry import Carry, Chunk, advance_step
+from .energy_check import node_energy
+from .scan import nodal_velocity
 
 __all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program"]
 

@@ -82,7 +82,7 @@ class Solution:
       state (with its guess of the next step), its predictor history, the number of steps
       made, whether no step failed, and the last step's velocity. `continue_from` passes it on,
       and `integrate(..., march_state=...)` then makes exactly the steps the unbroken march
-      would have made (`clebsch_jax.march.scan.resume`). A pytree of arrays whose structure
+      would have made (`clebsch_jax.march.carry.resume`). A pytree of arrays whose structure
       depends on the method.
 
     With a composition (`integrate(..., order=k)`) the nodes are those of the whole steps;

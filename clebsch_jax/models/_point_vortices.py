@@ -37,6 +37,8 @@ __all__ = [
     "vortex_velocity",
     "vortex_linear_impulse",
     "vortex_angular_impulse",
+    "checked_circulations",
+    "on_configurations",
 ]
 
 
@@ -64,7 +66,7 @@ def _translation(xi: jax.Array, Q: jax.Array) -> jax.Array:
     return xi
 
 
-def _circulations(circulations, *, nonzero: bool = False) -> jax.Array:
+def checked_circulations(circulations, *, nonzero: bool = False) -> jax.Array:
     """`circulations` as a float array (N,), checked when concrete: finite, and with `nonzero`
     no zero entry (a vortex of zero circulation drops out of l: its velocity is not determined
     and the step's Newton matrix is singular). Negative circulations are meaningful (opposite
@@ -175,7 +177,7 @@ def point_vortices(circulations, derivative_map: DerivativeMap = forward_differe
     (`check_distinct_vortices`, the system's `check_Q`; under `jax.jit`/`jax.vmap`
     `Status.INVALID_INPUT`).
     """
-    gamma = _circulations(circulations, nonzero=True)
+    gamma = checked_circulations(circulations, nonzero=True)
     return ClebschSystem(
         lagrangian=Partial(_lagrangian, gamma),
         velocity_map=_translation,
@@ -185,10 +187,10 @@ def point_vortices(circulations, derivative_map: DerivativeMap = forward_differe
     )
 
 
-def _on_configurations(fn, circulations, Q, dim: int = 2, name: str = "Q", distinct: bool = False):
+def on_configurations(fn, circulations, Q, dim: int = 2, name: str = "Q", distinct: bool = False):
     """`fn(circulations, q)` on every configuration q (N, `dim`) of `Q` (..., N, `dim`), vmapped.
     With `distinct`, a concrete `Q` with coincident vortices (where `fn` is infinite) is refused."""
-    gamma = _circulations(circulations)
+    gamma = checked_circulations(circulations)
     Q = jnp.asarray(Q, dtype=jnp.result_type(float))
     if Q.ndim < 2 or Q.shape[-2:] != (gamma.shape[0], dim):
         raise ValueError(
@@ -206,7 +208,7 @@ def _on_configurations(fn, circulations, Q, dim: int = 2, name: str = "Q", disti
 
 def vortex_hamiltonian(circulations, Q) -> jax.Array:
     r"""$H(Q) = -\frac{1}{4\pi}\sum_{a<b}\Gamma_a\Gamma_b\log|Q_a - Q_b|^2$; shape of Q's leading axes."""
-    return _on_configurations(_hamiltonian, circulations, Q)
+    return on_configurations(_hamiltonian, circulations, Q)
 
 
 def _velocity(gamma, Q):
@@ -219,14 +221,14 @@ def vortex_velocity(circulations, Q) -> jax.Array:
     positions Q (by autodiff of H): the consistent initial `xi0` for `integrate`, and the
     right-hand side for a reference ODE solve. Shape of Q. Coincident vortices are refused (a
     `ValueError` naming the pair)."""
-    return _on_configurations(_velocity, circulations, Q, distinct=True)
+    return on_configurations(_velocity, circulations, Q, distinct=True)
 
 
 def vortex_linear_impulse(circulations, Q) -> jax.Array:
     r"""$\sum_a \Gamma_a Q_a$, shape (..., 2). Conserved (translation invariance of H)."""
-    return _on_configurations(lambda g, q: jnp.sum(g[:, None] * q, axis=0), circulations, Q)
+    return on_configurations(lambda g, q: jnp.sum(g[:, None] * q, axis=0), circulations, Q)
 
 
 def vortex_angular_impulse(circulations, Q) -> jax.Array:
     r"""$\sum_a \Gamma_a |Q_a|^2$. Conserved (rotation invariance of H)."""
-    return _on_configurations(lambda g, q: jnp.sum(g * jnp.sum(q * q, axis=-1)), circulations, Q)
+    return on_configurations(lambda g, q: jnp.sum(g * jnp.sum(q * q, axis=-1)), circulations, Q)

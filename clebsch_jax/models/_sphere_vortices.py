@@ -38,7 +38,7 @@ from jax.tree_util import Partial
 
 from ..core.derivative_maps import DerivativeMap, forward_difference
 from ..core.system import ClebschSystem
-from ._point_vortices import _circulations, distinct_check, _on_configurations
+from ._point_vortices import checked_circulations, distinct_check, on_configurations
 
 __all__ = [
     "point_vortices_sphere",
@@ -108,7 +108,7 @@ def point_vortices_sphere(circulations, derivative_map: DerivativeMap = forward_
     (`sphere_vortex_hamiltonian`) stays bounded. Coincident vortices (a singular configuration)
     are refused before compiling, naming the pair, as by `point_vortices`.
     """
-    gamma = _circulations(circulations, nonzero=True)
+    gamma = checked_circulations(circulations, nonzero=True)
     return ClebschSystem(
         lagrangian=Partial(_lagrangian, gamma),
         velocity_map=_velocity_map,
@@ -149,7 +149,7 @@ def sphere_vortex_positions(Z) -> jax.Array:
 
 
 def _on_positions(fn, circulations, x, distinct: bool = False):
-    return _on_configurations(fn, circulations, x, dim=3, name="x", distinct=distinct)
+    return on_configurations(fn, circulations, x, dim=3, name="x", distinct=distinct)
 
 
 def sphere_vortex_hamiltonian(circulations, x) -> jax.Array:

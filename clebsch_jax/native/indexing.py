@@ -20,7 +20,8 @@ import itertools
 import numpy as np
 from llvmlite import ir
 
-from .lower import RULES, _copy, _emit_float, _emit_int, _out_dtype
+from .elementwise import emit_float, emit_int, out_dtype
+from .lower import RULES, copy_array
 from .values import Emitter, Unsupported, is_known
 
 __all__ = ["SELECT_STARTS", "SCATTER_SELECTS"]
@@ -140,7 +141,7 @@ def _dynamic_slice(em: Emitter, eqn, args):
     a, *starts = args
     starts = [s[()] for s in starts]
     sizes = eqn.params["slice_sizes"]
-    dtype = _out_dtype(eqn)
+    dtype = out_dtype(eqn)
     his = [n - k for n, k in zip(a.shape, sizes)]
     ranges = _ranges(starts, his)
     if _n_combos(ranges) <= SELECT_STARTS:
@@ -149,7 +150,7 @@ def _dynamic_slice(em: Emitter, eqn, args):
             cond = _conds(em, starts, combo, his)
             piece = a[tuple(slice(c, c + k) for c, k in zip(combo, sizes))]
             if out is None:
-                out = _copy(piece)
+                out = copy_array(piece)
             else:
                 for idx in np.ndindex(piece.shape):
                     out[idx] = em.select(cond, piece[idx], out[idx], dtype)
@@ -168,10 +169,10 @@ def _dynamic_slice(em: Emitter, eqn, args):
 def _dynamic_update_slice(em: Emitter, eqn, args):
     a, update, *starts = args
     starts = [s[()] for s in starts]
-    dtype = _out_dtype(eqn)
+    dtype = out_dtype(eqn)
     his = [n - k for n, k in zip(a.shape, update.shape)]
     ranges = _ranges(starts, his)
-    out = _copy(a)
+    out = copy_array(a)
     if _n_combos(ranges) <= SELECT_STARTS:
         for combo in itertools.product(*ranges):
             cond = _conds(em, starts, combo, his)
@@ -254,7 +255,7 @@ def _place(vector, index_dims, bpos, batching_dims, index_batching_dims, his, dr
 
 
 def _fill_value(eqn):
-    dtype = _out_dtype(eqn)
+    dtype = out_dtype(eqn)
     value = eqn.params.get("fill_value")
     if value is None:
         value = (
@@ -273,7 +274,7 @@ def _gather(em: Emitter, eqn, args):
     a, indices = args
     flat = a.reshape(-1)
     idx_dtype = np.dtype(eqn.invars[1].aval.dtype)
-    dtype = _out_dtype(eqn)
+    dtype = out_dtype(eqn)
     fill = _fill_value(eqn)
     dnums = eqn.params["dimension_numbers"]
     # batching dimensions need nothing of their own: the index maps of the primitive itself
@@ -368,12 +369,12 @@ def _scatter_targets(eqn, operand_shape, updates_shape, idx) -> np.ndarray:
 def _scatter(combine: str | None):
     def rule(em: Emitter, eqn, args):
         a, indices, updates = args
-        dtype = _out_dtype(eqn)
+        dtype = out_dtype(eqn)
         dnums = eqn.params["dimension_numbers"]
         if dnums.operand_batching_dims:
             raise Unsupported("scatter with batching dimensions")
         idx_dtype = np.dtype(eqn.invars[1].aval.dtype)
-        emit = _emit_float if dtype.kind == "f" else _emit_int
+        emit = emit_float if dtype.kind == "f" else emit_int
         flat_u = updates.reshape(-1)
         comps = list(indices.reshape(-1))
         ranges = [[int(c)] if is_known(c) else None for c in comps]
@@ -386,8 +387,8 @@ def _scatter(combine: str | None):
             n = _n_combos(ranges)
             if n > SELECT_STARTS and n * max(1, flat_u.size) > SCATTER_SELECTS:
                 raise Unsupported(f"scatter with indices computed at run time ({_n_combos(ranges)} places)")
-        out = _copy(a)
-        base = _copy(a)
+        out = copy_array(a)
+        base = copy_array(a)
         combos = list(itertools.product(*ranges))
         if len(combos) > 1:  # a select per place and update: counted against the program's size
             em.count(len(combos) * flat_u.size)

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .lower import RULES, _emit_float, _emit_int, eval_closed
+from .elementwise import emit_float, emit_int
+from .lower import RULES, eval_closed
 from .values import Emitter, Unsupported, is_known
 
 __all__: list = []
@@ -22,7 +23,7 @@ class _Ops:
 
     def __init__(self, em: Emitter, dtype):
         self.em, self.dtype = em, np.dtype(dtype)
-        self._emit = _emit_float if self.dtype.kind == "f" else _emit_int
+        self._emit = emit_float if self.dtype.kind == "f" else emit_int
 
     def op(self, name, *xs):
         if all(is_known(x) for x in xs):

@@ -1,11 +1,13 @@
 """The translation of a jaxpr of one member into LLVM IR, entry by entry (`values`).
 
 `eval_jaxpr(em, jaxpr, consts, args)` walks the equations and applies each primitive's rule
-to the entries of its operands: elementwise primitives emit one vector instruction per entry
-(or fold known entries in NumPy, for the exactly rounded ones); structural primitives
-re-index the entry arrays; contractions and reductions are unrolled in index order. Loops and
-branches are in `clebsch_jax.native.control`. A primitive without a rule raises `Unsupported`
-with its name.
+(`RULES`) to the entries of its operands: elementwise primitives emit one vector instruction per
+entry (or fold known entries in NumPy, for the exactly rounded ones: their rules are in
+`clebsch_jax.native.elementwise`); structural primitives re-index the entry arrays; contractions
+and reductions are unrolled in index order. Loops and branches are in
+`clebsch_jax.native.control`, dynamic indexing in `clebsch_jax.native.indexing`, small dense
+linear algebra in `clebsch_jax.native.linalg`: each adds its rules to `RULES`. A primitive
+without a rule raises `Unsupported` with its name.
 """
 
 from __future__ import annotations
@@ -13,9 +15,23 @@ from __future__ import annotations
 import numpy as np
 from jax.extend import core as jcore
 
+from .elementwise import (
+    ELEMENTWISE,
+    FOLD,
+    clamp,
+    convert,
+    convert_array,
+    elementwise_rule,
+    emit_bool,
+    emit_float,
+    emit_int,
+    in_dtype,
+    out_dtype,
+    select_n,
+)
 from .values import Emitter, Unsupported, is_known, known_array
 
-__all__ = ["eval_jaxpr", "RULES"]
+__all__ = ["eval_jaxpr", "RULES", "copy_array"]
 
 
 def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
@@ -50,342 +66,11 @@ def eval_closed(em: Emitter, closed, args) -> list:
     return eval_jaxpr(em, closed.jaxpr, [known_array(np.asarray(c)) for c in closed.consts], args)
 
 
-def _out_dtype(eqn, i: int = 0):
-    return np.dtype(eqn.outvars[i].aval.dtype)
-
-
-def _in_dtype(eqn, i: int = 0):
-    return np.dtype(eqn.invars[i].aval.dtype)
-
-
-# ---------------------------------------------------------------------------------------------
-# Elementwise primitives: a fold in NumPy (exactly rounded operations only) and an emitter.
-
-
-def _trunc_div(a, b):
-    q = np.abs(a) // np.abs(b)
-    return np.where((a < 0) != (b < 0), -q, q)
-
-
-def _trunc_rem(a, b):
-    return a - _trunc_div(a, b) * b
-
-
-_FOLD = {
-    "add": np.add,
-    "sub": np.subtract,
-    "mul": np.multiply,
-    "neg": np.negative,
-    "max": np.maximum,
-    "min": np.minimum,
-    "abs": np.abs,
-    "sqrt": np.sqrt,
-    "eq": np.equal,
-    "ne": np.not_equal,
-    "lt": np.less,
-    "le": np.less_equal,
-    "gt": np.greater,
-    "ge": np.greater_equal,
-    "and": np.bitwise_and,
-    "or": np.bitwise_or,
-    "xor": np.bitwise_xor,
-    "not": lambda a: ~a if a.dtype != np.bool_ else np.logical_not(a),
-    "floor": np.floor,
-    "ceil": np.ceil,
-    "is_finite": np.isfinite,
-    "sign": np.sign,
-    "square": np.square,
-    "copy": lambda a: a,
-    "copy_p": lambda a: a,
-    "stop_gradient": lambda a: a,
-}
-
-
-def _fold_div(a, b):
-    return _trunc_div(a, b) if a.dtype.kind in "iu" else np.divide(a, b)
-
-
-def _fold_rem(a, b):
-    return _trunc_rem(a, b) if a.dtype.kind in "iu" else np.fmod(a, b)
-
-
-_FOLD.update(div=_fold_div, rem=_fold_rem)
-
-_FCMP = {"eq": "==", "ne": "!=", "lt": "<", "le": "<=", "gt": ">", "ge": ">="}
-_LIBM = {
-    "exp": "exp",
-    "log": "log",
-    "sin": "sin",
-    "cos": "cos",
-    "tan": "tan",
-    "tanh": "tanh",
-    "atan": "atan",
-    "asin": "asin",
-    "acos": "acos",
-    "sinh": "sinh",
-    "cosh": "cosh",
-    "asinh": "asinh",
-    "acosh": "acosh",
-    "atanh": "atanh",
-    "expm1": "expm1",
-    "log1p": "log1p",
-    "cbrt": "cbrt",
-    "erf": "erf",
-    "erfc": "erfc",
-    "exp2": "exp2",
-    "atan2": "atan2",
-    "pow": "pow",
-}
-
-
-def _emit_float(em: Emitter, name: str, dtype, xs, eqn):
-    b = em.b
-    v = [em.vec(x, dtype) for x in xs]
-    if name == "add":
-        return b.fadd(*v)
-    if name == "sub":
-        return b.fsub(*v)
-    if name == "mul":
-        return b.fmul(*v)
-    if name == "div":
-        return b.fdiv(*v)
-    if name == "rem":
-        return b.frem(*v)
-    if name == "neg":
-        return b.fneg(v[0])
-    if name == "max":
-        return em.call_intrinsic("llvm.maximum", dtype, *v)
-    if name == "min":
-        return em.call_intrinsic("llvm.minimum", dtype, *v)
-    if name == "abs":
-        return em.call_intrinsic("llvm.fabs", dtype, v[0])
-    if name == "sqrt":
-        return em.call_intrinsic("llvm.sqrt", dtype, v[0])
-    if name == "rsqrt":
-        return b.fdiv(em.const(1.0, dtype), em.call_intrinsic("llvm.sqrt", dtype, v[0]))
-    if name in ("floor", "ceil"):
-        return em.call_intrinsic(f"llvm.{name}", dtype, v[0])
-    if name == "round":
-        method = int(eqn.params.get("rounding_method", 0))
-        return em.call_intrinsic("llvm.roundeven" if method == 1 else "llvm.round", dtype, v[0])
-    if name == "square":
-        return b.fmul(v[0], v[0])
-    if name == "sign":
-        zero, one = em.const(0.0, dtype), em.const(1.0, dtype)
-        pos = b.select(b.fcmp_ordered(">", v[0], zero), one, zero)
-        neg = b.select(b.fcmp_ordered("<", v[0], zero), em.const(-1.0, dtype), pos)
-        return b.select(b.fcmp_ordered("==", v[0], zero), v[0], neg)  # ±0 and NaN as they are
-    if name == "is_finite":
-        return b.fcmp_ordered("!=", em.call_intrinsic("llvm.fabs", dtype, v[0]), em.const(np.inf, dtype))
-    if name in _FCMP:
-        return (b.fcmp_unordered if name == "ne" else b.fcmp_ordered)(_FCMP[name], *v)
-    if name == "integer_pow":
-        return _integer_pow(em, v[0], int(eqn.params["y"]), dtype)
-    if name in _LIBM:
-        return em.libm(_LIBM[name], dtype, *v)
-    if name == "logistic":
-        one = em.const(1.0, dtype)
-        return b.fdiv(one, b.fadd(one, em.libm("exp", dtype, b.fneg(v[0]))))
-    if name in ("copy", "copy_p", "stop_gradient", "reduce_precision"):
-        return v[0]
-    raise Unsupported(f"primitive {name!r} on {dtype}")
-
-
-def _integer_pow(em: Emitter, x, y: int, dtype):
-    """x**y by repeated squaring (XLA's expansion of integer_pow)."""
-    b = em.b
-    if y == 0:
-        return em.const(1, dtype)
-    n, acc, base = abs(y), None, x
-    while n:
-        if n & 1:
-            acc = base if acc is None else (b.fmul(acc, base) if np.dtype(dtype).kind == "f" else b.mul(acc, base))
-        n >>= 1
-        if n:
-            base = b.fmul(base, base) if np.dtype(dtype).kind == "f" else b.mul(base, base)
-    return b.fdiv(em.const(1.0, dtype), acc) if y < 0 else acc
-
-
-def _emit_int(em: Emitter, name: str, dtype, xs, eqn):
-    b = em.b
-    signed = np.dtype(dtype).kind == "i"
-    v = [em.vec(x, dtype) for x in xs]
-    if name == "add":
-        return b.add(*v)
-    if name == "sub":
-        return b.sub(*v)
-    if name == "mul":
-        return b.mul(*v)
-    if name == "div":
-        return b.sdiv(*v) if signed else b.udiv(*v)
-    if name == "rem":
-        return b.srem(*v) if signed else b.urem(*v)
-    if name == "neg":
-        return b.neg(v[0])
-    if name in ("max", "min"):
-        cmp = b.icmp_signed if signed else b.icmp_unsigned
-        return b.select(cmp(">" if name == "max" else "<", v[0], v[1]), v[0], v[1])
-    if name == "abs":
-        return b.select(b.icmp_signed("<", v[0], em.const(0, dtype)), b.neg(v[0]), v[0])
-    if name in _FCMP:
-        return (b.icmp_signed if signed else b.icmp_unsigned)(_FCMP[name], *v)
-    if name == "and":
-        return b.and_(*v)
-    if name == "or":
-        return b.or_(*v)
-    if name == "xor":
-        return b.xor(*v)
-    if name == "not":
-        return b.not_(v[0])
-    if name == "shift_left":
-        return b.shl(*v)
-    if name == "shift_right_arithmetic":
-        return b.ashr(*v)
-    if name == "shift_right_logical":
-        return b.lshr(*v)
-    if name == "sign":
-        zero = em.const(0, dtype)
-        pos = b.zext(b.icmp_signed(">", v[0], zero), em.vtype(dtype))
-        return b.select(b.icmp_signed("<", v[0], zero), em.const(-1, dtype), pos)
-    if name == "integer_pow":
-        return _integer_pow(em, v[0], int(eqn.params["y"]), dtype)
-    if name in ("copy", "copy_p", "stop_gradient"):
-        return v[0]
-    raise Unsupported(f"primitive {name!r} on {dtype}")
-
-
-def _emit_bool(em: Emitter, name: str, dtype, xs, eqn):
-    b = em.b
-    v = [em.vec(x, np.bool_) for x in xs]
-    ops = {"and": b.and_, "or": b.or_, "xor": b.xor}
-    if name in ops:
-        return ops[name](*v)
-    if name == "not":
-        return b.not_(v[0])
-    if name in ("eq", "ne"):
-        return b.icmp_unsigned(_FCMP[name], *v)
-    if name in ("copy", "copy_p", "stop_gradient"):
-        return v[0]
-    if name in ("max", "min"):
-        return (b.or_ if name == "max" else b.and_)(*v)
-    raise Unsupported(f"primitive {name!r} on bool")
-
-
-def _elementwise(em: Emitter, eqn, args):
-    name = _ALIASES.get(eqn.primitive.name, eqn.primitive.name)
-    dtype = _in_dtype(eqn)
-    out_dtype = _out_dtype(eqn)
-    shape = eqn.outvars[0].aval.shape
-    args = [np.broadcast_to(a, shape) for a in args]
-    out = np.empty(shape, object)
-    fold = _FOLD.get(name)
-    emit = _emit_float if dtype.kind == "f" else _emit_bool if dtype == np.bool_ else _emit_int
-    for idx in np.ndindex(shape):
-        xs = [a[idx] for a in args]
-        if fold is not None and all(is_known(x) for x in xs):
-            with np.errstate(all="ignore"):
-                out[idx] = np.asarray(fold(*[np.asarray(x, dtype) for x in xs])).astype(out_dtype)[()]
-        else:
-            out[idx] = emit(em, name, dtype, xs, eqn)
-    return out
-
-
-_ALIASES = {"add_any": "add"}
-
-_ELEMENTWISE = """add add_any sub mul div rem neg max min abs sqrt rsqrt floor ceil round square sign is_finite eq ne
-lt le
-gt ge integer_pow exp log sin cos tan tanh atan asin acos sinh cosh asinh acosh atanh expm1 log1p cbrt erf erfc exp2
-atan2 pow logistic and or xor not shift_left shift_right_arithmetic shift_right_logical copy copy_p
-stop_gradient""".split()
-
-
-# ---------------------------------------------------------------------------------------------
-# Selects, conversions, clamps.
-
-
-def _select_n(em: Emitter, eqn, args):
-    which, *cases = args
-    dtype = _out_dtype(eqn)
-    shape = eqn.outvars[0].aval.shape
-    which = np.broadcast_to(which, shape)
-    cases = [np.broadcast_to(c, shape) for c in cases]
-    out = np.empty(shape, object)
-    pred_bool = _in_dtype(eqn) == np.bool_
-    for idx in np.ndindex(shape):
-        w = which[idx]
-        if is_known(w):
-            out[idx] = cases[int(w)][idx]
-            continue
-        if pred_bool:
-            out[idx] = em.select(w, cases[1][idx], cases[0][idx], dtype)
-            continue
-        r = cases[-1][idx]
-        for k in range(len(cases) - 2, -1, -1):
-            r = em.select(em.b.icmp_signed("==", w, em.const(k, _in_dtype(eqn))), cases[k][idx], r, dtype)
-        out[idx] = r
-    return out
-
-
-def _convert_entry(em: Emitter, x, src, dst):
-    src, dst = np.dtype(src), np.dtype(dst)
-    if is_known(x):
-        with np.errstate(all="ignore"):
-            return np.asarray(x, src).astype(dst)[()]
-    b, t = em.b, em.vtype(dst)
-    if src == dst:
-        return x
-    if dst == np.bool_:
-        return (
-            b.fcmp_unordered("!=", x, em.const(0.0, src))
-            if src.kind == "f"
-            else b.icmp_unsigned("!=", x, em.const(0, src))
-        )
-    if src == np.bool_:
-        return b.uitofp(x, t) if dst.kind == "f" else b.zext(x, t)
-    if src.kind == "f" and dst.kind == "f":
-        return b.fpext(x, t) if dst.itemsize > src.itemsize else b.fptrunc(x, t)
-    if src.kind == "f":
-        return b.fptosi(x, t) if dst.kind == "i" else b.fptoui(x, t)
-    if dst.kind == "f":
-        return b.sitofp(x, t) if src.kind == "i" else b.uitofp(x, t)
-    if dst.itemsize > src.itemsize:
-        return b.sext(x, t) if src.kind == "i" else b.zext(x, t)
-    if dst.itemsize < src.itemsize:
-        return b.trunc(x, t)
-    return x
-
-
-def _convert_array(em: Emitter, a, src, dst):
-    out = np.empty(a.shape, object)
-    for idx in np.ndindex(a.shape):
-        out[idx] = _convert_entry(em, a[idx], src, dst)
-    return out
-
-
-def _convert(em: Emitter, eqn, args):
-    return _convert_array(em, args[0], _in_dtype(eqn), _out_dtype(eqn))
-
-
-def _clamp(em: Emitter, eqn, args):
-    lo, x, hi = args
-    dtype = _out_dtype(eqn)
-    shape = eqn.outvars[0].aval.shape
-    lo, x, hi = (np.broadcast_to(a, shape) for a in (lo, x, hi))
-    emit = _emit_float if dtype.kind == "f" else _emit_int
-    out = np.empty(shape, object)
-    for idx in np.ndindex(shape):
-        if all(is_known(a[idx]) for a in (lo, x, hi)):
-            out[idx] = np.minimum(np.maximum(np.asarray(x[idx], dtype), lo[idx]), hi[idx])[()]
-        else:
-            out[idx] = emit(em, "min", dtype, [emit(em, "max", dtype, [x[idx], lo[idx]], eqn), hi[idx]], eqn)
-    return out
-
-
 # ---------------------------------------------------------------------------------------------
 # Re-indexing primitives (no code).
 
 
-def _copy(a):
+def copy_array(a):
     out = np.empty(a.shape, object)
     out[...] = a
     return out
@@ -396,30 +81,30 @@ def _broadcast_in_dim(em, eqn, args):
     tmp = [1] * len(shape)
     for i, d in enumerate(dims):
         tmp[d] = a.shape[i]
-    return _copy(np.broadcast_to(a.reshape(tmp), shape))
+    return copy_array(np.broadcast_to(a.reshape(tmp), shape))
 
 
 def _reshape(em, eqn, args):
-    return _copy(args[0].reshape(eqn.params["new_sizes"]))
+    return copy_array(args[0].reshape(eqn.params["new_sizes"]))
 
 
 def _squeeze(em, eqn, args):
-    return _copy(np.squeeze(args[0], axis=tuple(eqn.params["dimensions"])))
+    return copy_array(np.squeeze(args[0], axis=tuple(eqn.params["dimensions"])))
 
 
 def _expand_dims(em, eqn, args):
-    return _copy(np.expand_dims(args[0], tuple(eqn.params["dimensions"])))
+    return copy_array(np.expand_dims(args[0], tuple(eqn.params["dimensions"])))
 
 
 def _transpose(em, eqn, args):
-    return _copy(np.transpose(args[0], eqn.params["permutation"]))
+    return copy_array(np.transpose(args[0], eqn.params["permutation"]))
 
 
 def _slice(em, eqn, args):
     p = eqn.params
     strides = p["strides"] or (1,) * len(p["start_indices"])
     idx = tuple(slice(s, e, st) for s, e, st in zip(p["start_indices"], p["limit_indices"], strides))
-    return _copy(args[0][idx])
+    return copy_array(args[0][idx])
 
 
 def _concatenate(em, eqn, args):
@@ -432,16 +117,16 @@ def _stack(em, eqn, args):
 
 def _unstack(em, eqn, args):
     moved = np.moveaxis(args[0], eqn.params["axis"], 0)
-    return [_copy(moved[i, ...]) for i in range(moved.shape[0])]
+    return [copy_array(moved[i, ...]) for i in range(moved.shape[0])]
 
 
 def _rev(em, eqn, args):
-    return _copy(np.flip(args[0], axis=tuple(eqn.params["dimensions"])))
+    return copy_array(np.flip(args[0], axis=tuple(eqn.params["dimensions"])))
 
 
 def _split(em, eqn, args):
     cuts = np.cumsum(eqn.params["sizes"])[:-1]
-    return [_copy(x) for x in np.split(args[0], cuts, axis=eqn.params["axis"])]
+    return [copy_array(x) for x in np.split(args[0], cuts, axis=eqn.params["axis"])]
 
 
 def _pad(em, eqn, args):
@@ -482,7 +167,7 @@ def _iota(em, eqn, args):
 
 
 def _identity(em, eqn, args):
-    return [_copy(a) for a in args] if eqn.primitive.multiple_results else _copy(args[0])
+    return [copy_array(a) for a in args] if eqn.primitive.multiple_results else copy_array(args[0])
 
 
 def _nothing(em, eqn, args):
@@ -515,25 +200,25 @@ def _sum_products(em: Emitter, pairs, dtype):
             p = a
         else:
             p = (
-                _emit_float(em, "mul", dtype, [a, c], None)
+                emit_float(em, "mul", dtype, [a, c], None)
                 if dtype.kind == "f"
-                else _emit_int(em, "mul", dtype, [a, c], None)
+                else emit_int(em, "mul", dtype, [a, c], None)
             )
         if acc is None:
             acc = p
         elif is_known(acc) and is_known(p):
             acc = (np.asarray(acc, dtype) + np.asarray(p, dtype))[()]
         else:
-            acc = (_emit_float if dtype.kind == "f" else _emit_int)(em, "add", dtype, [acc, p], None)
+            acc = (emit_float if dtype.kind == "f" else emit_int)(em, "add", dtype, [acc, p], None)
     return np.zeros((), dtype)[()] if acc is None else acc
 
 
 def _dot_general(em, eqn, args):
     lhs, rhs = args
     (lc, rc), (lb, rb) = eqn.params["dimension_numbers"]
-    dtype = _out_dtype(eqn)
-    lhs = _convert_array(em, lhs, _in_dtype(eqn), dtype) if _in_dtype(eqn) != dtype else lhs
-    rhs = _convert_array(em, rhs, _in_dtype(eqn, 1), dtype) if _in_dtype(eqn, 1) != dtype else rhs
+    dtype = out_dtype(eqn)
+    lhs = convert_array(em, lhs, in_dtype(eqn), dtype) if in_dtype(eqn) != dtype else lhs
+    rhs = convert_array(em, rhs, in_dtype(eqn, 1), dtype) if in_dtype(eqn, 1) != dtype else rhs
     lf = [d for d in range(lhs.ndim) if d not in lc and d not in lb]
     rf = [d for d in range(rhs.ndim) if d not in rc and d not in rb]
     L = np.transpose(lhs, list(lb) + lf + list(lc))
@@ -556,7 +241,7 @@ def _reduce(op: str):
     def rule(em, eqn, args):
         (a,) = args
         axes = tuple(eqn.params["axes"])
-        dtype = _out_dtype(eqn)
+        dtype = out_dtype(eqn)
         keep = [d for d in range(a.ndim) if d not in axes]
         moved = np.transpose(a, keep + list(axes))
         rest = moved.shape[: len(keep)]
@@ -569,9 +254,9 @@ def _reduce(op: str):
                 if acc is None:
                     acc = x
                 elif is_known(acc) and is_known(x):
-                    acc = np.asarray(_FOLD[op](np.asarray(acc, dtype), np.asarray(x, dtype))).astype(dtype)[()]
+                    acc = np.asarray(FOLD[op](np.asarray(acc, dtype), np.asarray(x, dtype))).astype(dtype)[()]
                 else:
-                    emit = _emit_float if dtype.kind == "f" else _emit_bool if dtype == np.bool_ else _emit_int
+                    emit = emit_float if dtype.kind == "f" else emit_bool if dtype == np.bool_ else emit_int
                     acc = emit(em, op, dtype, [acc, x], fake)
             out[idx] = acc if acc is not None else _IDENTITY[op](dtype)
         return out
@@ -597,7 +282,7 @@ def _argminmax(greater: bool):
     def rule(em, eqn, args):
         (a,) = args
         (axis,) = eqn.params["axes"]
-        src, idx_dtype = _in_dtype(eqn), np.dtype(eqn.params["index_dtype"])
+        src, idx_dtype = in_dtype(eqn), np.dtype(eqn.params["index_dtype"])
         moved = np.moveaxis(a, axis, -1)
         out = np.empty(moved.shape[:-1], object)
         b = em.b
@@ -629,10 +314,10 @@ def _cumulative(op: str):
     def rule(em, eqn, args):
         (a,) = args
         axis, reverse = eqn.params["axis"], eqn.params.get("reverse", False)
-        dtype = _out_dtype(eqn)
+        dtype = out_dtype(eqn)
         moved = np.moveaxis(a, axis, -1)
         out = np.empty(moved.shape, object)
-        emit = _emit_float if dtype.kind == "f" else _emit_int
+        emit = emit_float if dtype.kind == "f" else emit_int
         order = range(moved.shape[-1] - 1, -1, -1) if reverse else range(moved.shape[-1])
         for idx in np.ndindex(moved.shape[:-1]):
             acc = None
@@ -660,11 +345,11 @@ def _custom_vjp(em, eqn, args):
     return eval_closed(em, closed, args)
 
 
-RULES = {name: _elementwise for name in _ELEMENTWISE}
+RULES = {name: elementwise_rule for name in ELEMENTWISE}
 RULES.update(
-    select_n=_select_n,
-    convert_element_type=_convert,
-    clamp=_clamp,
+    select_n=select_n,
+    convert_element_type=convert,
+    clamp=clamp,
     broadcast_in_dim=_broadcast_in_dim,
     reshape=_reshape,
     squeeze=_squeeze,

@@ -32,7 +32,7 @@ import dataclasses
 import numpy as np
 
 from ..discrete.collocation import GAUSS_ORDERS
-from ..discrete.reduction import find_reduction
+from ..discrete.matrix_group import find_reduction
 from ..roots.solvers import BlockNewton, FixedPoint, Newton
 from .base import Principle
 from .composition import COMPOSITIONS, DEFAULT_COMPOSITIONS, Composed, Composition, SymmetricPair

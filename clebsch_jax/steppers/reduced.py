@@ -29,7 +29,8 @@ import jax.numpy as jnp
 from ..core.derivative_maps import CayleyDifference
 from ..core.system import momentum_map
 from ..discrete.legendre import initial_multiplier
-from ..discrete.reduction import MatrixAlgebraReduction, MatrixGroupReduction, find_reduction, reduced_step
+from ..discrete.matrix_group import MatrixAlgebraReduction, MatrixGroupReduction, find_reduction
+from ..discrete.reduction import reduced_step
 from ..roots.solvers import FixedNewton, FixedPoint, Newton
 from .base import Nodes, Principle
 from .full import seed_velocity

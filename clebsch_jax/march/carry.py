@@ -1,0 +1,122 @@
+"""What a chunk of the march hands the next (`Carry`) and what it records (`Chunk`); how a march
+starts (`start`, with the input check `input_ok`) or continues (`resume`); and one step of it,
+gated (`advance_step`, `gate`): after a failed step a member's values are NaN, with NaN
+derivatives (`failed_to_nan`), and its later steps `Status.SKIPPED`."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..core.isotropy import IsotropyGauge, rank_holds
+from ..core.validation import nan_unless
+from ..roots.status import NewtonStats, Status, skip_stats
+from ..steppers.base import AbstractStepper, Nodes
+
+__all__ = ["Carry", "Chunk", "failed_to_nan", "gate", "input_ok", "start", "resume", "advance_step"]
+
+
+class Carry(NamedTuple):
+    """What one chunk hands to the next: the stepper's `state` and `memory`, the number `n`
+    of the next step, `alive` (no step failed yet) and `xi_last`, the velocity of the last
+    step made (the seed of the nodal solve at the node it arrives at)."""
+
+    state: Any
+    memory: Any
+    n: jax.Array
+    alive: jax.Array
+    xi_last: jax.Array
+
+
+class Chunk(NamedTuple):
+    """The record of a chunk of C steps starting at step n₀: the nodes n₀ … n₀ + C (node
+    fields have C + 1 entries; the last is the node after the last step actually made), the
+    step fields (C entries), the nodal velocities and their statistics, and `valid` per node."""
+
+    nodes: Nodes
+    stats: NewtonStats
+    xi: Any
+    nodal_stats: NewtonStats
+    valid: jax.Array
+    energy: Any = None  # (E, size) at the nodes, when the energy check is on (`node_energies`)
+
+
+def failed_to_nan(a, ok):
+    """`a` where `ok`, NaN elsewhere — and NaN derivatives there too (`nan_unless`): a value
+    computed from a failed step's state has a NaN gradient, never a zero one (a plain `where`
+    would give the NaN a zero derivative, and an optimiser would stall with no clue)."""
+    return nan_unless(a, ok)
+
+
+def gate(alive, stats: NewtonStats, values):
+    """After a failed step a member's values become NaN (with NaN derivatives:
+    `failed_to_nan`) and later steps are marked SKIPPED, with no Newton updates or Jacobians
+    counted (the loop only ran over NaNs beside the live members) and a NaN residual. Returns
+    (ok, stats with statuses, gated values)."""
+    ok = alive & (stats.status == Status.SUCCESS)
+    values = jax.tree_util.tree_map(
+        lambda a: failed_to_nan(a, ok) if jnp.issubdtype(a.dtype, jnp.inexact) else jnp.where(ok, a, jnp.nan), values
+    )
+    return ok, skip_stats(stats, alive), values
+
+
+def input_ok(system, Q0, xi0, P0, dt):
+    r"""Whether a member's input is valid, as a traced boolean: the checks `integrate` makes
+    before compiling on concrete values, for values only known inside jit/vmap. `dt` finite and
+    positive; `Q0`, `xi0`, `P0` and the system's array leaves (its parameters) finite; `Q0`
+    on the manifold, when `system.check_Q` has a
+    traced form (`check_Q.traced(Q) -> bool`, as the SO(n) models' rotation check has); the
+    Lagrangian and the velocity map finite at $(\xi^0, Q^0)$ (the built-in models make their
+    Lagrangian NaN for parameters out of range when these are traced); for a system whose
+    isotropy gauge is fixed (`clebsch_jax.core.isotropy.IsotropyGauge`), the velocity map of
+    the rank the gauge was built for at $Q^0$ (`rank_holds`: a sweep's member of another orbit
+    type than the member its gauge was found on)."""
+    finite = lambda a: jnp.all(jnp.isfinite(a))
+    ok = finite(dt) & (dt > 0) & finite(Q0) & finite(xi0)
+    if P0 is not None:
+        ok = ok & finite(P0)
+    for leaf in jax.tree_util.tree_leaves(system):  # the model's parameters
+        if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.inexact):
+            ok = ok & finite(leaf)
+    ok = ok & finite(system.l(xi0, Q0)) & finite(system.velocity_map(xi0, Q0))
+    traced_check = getattr(system.check_Q, "traced", None)
+    if traced_check is not None:
+        ok = ok & jnp.asarray(traced_check(Q0), bool)
+    gauge = system.lagrangian
+    if isinstance(gauge, IsotropyGauge):  # the isotropy its gauge was built for (`rank_holds`)
+        ok = ok & rank_holds(gauge.velocity_map, Q0, xi0.shape, gauge.rank)
+    return ok
+
+
+def start(stepper: AbstractStepper, system, Q0, xi0, P0, dt, check_inputs: bool = False):
+    """The stepper's initial state as a `Carry`, and the iterations its start-up took. With
+    `check_inputs` a member whose input is not valid (`input_ok`) starts failed: it makes no
+    step and its step 0 is reported `Status.INVALID_INPUT`."""
+    state0, startup_iterations = stepper.init(system, Q0, xi0, P0, dt)
+    alive = input_ok(system, Q0, xi0, P0, dt) if check_inputs else jnp.asarray(True)
+    carry = Carry(state0, stepper.init_memory(system, state0), jnp.asarray(0, jnp.int32), alive, jnp.zeros_like(xi0))
+    return carry, jnp.asarray(startup_iterations, jnp.int32)
+
+
+def resume(stepper: AbstractStepper, system, Q0, xi0, P0, dt, check_inputs: bool, march_state, n_steps: int):
+    """The `Carry` a march of `n_steps` steps starts from, the iterations its start-up took and
+    the step number it stops at: `start`'s, or with `march_state` (the carry an earlier march
+    ended with) that carry — its stepper state, its guesses and predictor history, its step
+    count — so that the steps made are those the unbroken march would make. A member that had
+    failed stays failed (its step 0 reports `Status.INVALID_INPUT`, as for NaN input)."""
+    if march_state is None:
+        carry, startup = start(stepper, system, Q0, xi0, P0, dt, check_inputs)
+        return carry, startup, jnp.asarray(n_steps, jnp.int32)
+    alive = march_state.alive & input_ok(system, Q0, xi0, P0, dt) if check_inputs else march_state.alive
+    carry = march_state._replace(alive=jnp.asarray(alive, bool))
+    return carry, jnp.zeros((), jnp.int32), (carry.n + n_steps).astype(jnp.int32)
+
+
+def advance_step(stepper: AbstractStepper, system, dt, c: Carry):
+    """One step of the march from `c`, gated (`gate`): (the carry after it, its record: the
+    state, the step's output, its statistics, whether the member was alive before it)."""
+    state, memory, out, stats = stepper.step(system, c.state, c.memory, dt, c.n, c.alive)
+    ok, stats, (state, out) = gate(c.alive, stats, (state, out))
+    return c._replace(state=state, memory=memory, n=c.n + 1, alive=ok), (state, out, stats, c.alive)
