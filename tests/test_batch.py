@@ -243,3 +243,15 @@ def test_rules_cover_the_reduced_march():
     walk(jaxpr.jaxpr)
     missing = {n for n in names if n not in RULES} - {"iota"}
     assert missing <= {"gather", "dynamic_slice"}, missing
+
+
+@pytest.mark.slow  # the march's programs (the batch's and vmap's reference) compile for over 10 s
+def test_an_integrate_call_inside_a_jit_of_the_function_is_not_checked_and_runs():
+    """`integrate` inside a `jax.jit` of the batched function's own: its arguments are values of
+    that inner trace, which the first-member check cannot evaluate (JAX kept the one made inside
+    the jit, the identity matrix, as a constant of the outer program); the batch runs unchecked."""
+    system = models.rigid_body(jnp.array([2.0, 1.0, 2.0 / 3.0]))
+    run = jax.jit(lambda x: cj.integrate(system, jnp.eye(3), x, dt=0.1, n_steps=5, throw=False).momentum[-1])
+    omegas = jnp.asarray(RNG.normal(size=(3, 3)))
+    out = cj.batch(lambda x: run(x))(omegas)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(jax.vmap(run)(omegas)), rtol=0, atol=1e-13)

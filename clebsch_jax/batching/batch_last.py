@@ -161,8 +161,9 @@ def _trace(flat_fun, member, record: bool):
     calls inside are recorded (`clebsch_jax.march.integrate.recording_calls`) and their array
     arguments added as extra outputs of the jaxpr, after the function's own, so that they can
     be evaluated for the first member (`_check_first_member`). Calls whose arguments belong to
-    a trace inside the function (its own `jit`, `vmap`, `scan`) cannot be outputs: the function
-    is then traced again without recording (and those calls are not checked)."""
+    a trace inside the function (its own `jit`, `vmap`, `scan`) cannot be outputs (JAX raises,
+    or keeps them as constants of the jaxpr): the function is then traced again without
+    recording (and those calls are not checked)."""
     if record:
         found = []
 
@@ -174,9 +175,11 @@ def _trace(flat_fun, member, record: bool):
 
         try:
             closed, (out_shapes, _) = jax.make_jaxpr(probe, return_shape=True)(*member)
-            return closed, out_shapes, found
+            if not any(is_traced(c) for c in closed.consts):  # a leaked inner tracer becomes a constant
+                return closed, out_shapes, found
         except jax.errors.UnexpectedTracerError:
             pass
+        found.clear()
     closed, out_shapes = jax.make_jaxpr(flat_fun, return_shape=True)(*member)
     return closed, out_shapes, []
 
