@@ -63,7 +63,7 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK, backen
     batch-last and in chunks.
 
     ```python
-    march = cj.batch(lambda Q0, xi0: cj.integrate(body, Q0, xi0, dt=0.05, n_steps=200, throw=False))
+    march = cj.batch(lambda Q0, xi0: cj.integrate(body, Q0, xi0, dt=0.05, n_steps=50, throw=False))
     sol = march(Q0s, xi0s)    # the Solution jax.vmap would give, batch axis first
     ```
 
@@ -110,6 +110,11 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK, backen
     closes over other values, or new member shapes, compiles again. A program the translation
     refused is remembered too. Compiled kernels are also kept on disk by their program
     (`clebsch_jax.native.fingerprint.cache_dir`), so that another process skips LLVM's work.
+    The kernel's size, and LLVM's time, grow with the entries the member's program computes
+    (the translation writes each out, used or not): `integrate`'s traced march computes its
+    nodes for all steps at once, so its kernel grows with `n_steps`, and a long march passes
+    the translation's limits (`"auto"` then runs the batch-last evaluation, saying so;
+    `clebsch_jax.sweep`'s kernels do not depend on the number of steps).
 
     Checks, before anything is evaluated or compiled: the outputs of all members, estimated
     from one member's trace, must fit in memory (twice: batch-last and in `jax.vmap`'s layout;
