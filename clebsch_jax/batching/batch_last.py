@@ -147,8 +147,9 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK, backen
         leaves, tree = jax.tree_util.tree_flatten(args)
         axes = flat_axes(in_axes, args)
         B, leaves, member = batch_members(leaves, axes)
-        if B == 0:  # an empty batch: jax.vmap's empty outputs (no chunk to run)
-            return jax.vmap(fun, in_axes=in_axes)(*args)
+        if B == 0:  # an empty batch: jax.vmap's empty outputs (no chunk to run, nothing to say)
+            with caller_backend():
+                return jax.vmap(fun, in_axes=in_axes)(*args)
         flags = [a == 0 for a in axes]
 
         def flat_fun(*flat):
