@@ -22,7 +22,7 @@ import pytest
 
 import clebsch_jax as cj
 from clebsch_jax import models, native
-from clebsch_jax.batching import batch_native
+from clebsch_jax.batching import batch_native, prune
 from clebsch_jax.native import NativeFallbackWarning
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="llvmlite cannot be imported")
@@ -224,3 +224,24 @@ def test_a_bad_backend_is_refused_before_anything_is_traced(monkeypatch, backend
     with pytest.raises(ValueError, match="backend: expected one of"):
         cj.batch(lambda x: traced.append(1) or x, backend=backend)
     assert not traced
+
+
+def _partly_used(x):
+    """A call whose second output, of 250 000 entries (past the translation's limit), is not used."""
+
+    @jax.jit
+    def both(v):
+        grid = jnp.outer(jnp.tile(v, 100), jnp.tile(v, 100)) ** 2
+        return jnp.sum(jax.nn.softplus(v)), jnp.tanh(grid)
+
+    return both(x)[0] * 2.0
+
+
+def test_the_kernel_is_compiled_without_what_the_outputs_do_not_need():
+    x = jnp.asarray(np.random.default_rng(5).normal(size=(6, 5)))
+    closed = jax.make_jaxpr(_partly_used)(x[0])
+    kept = jax.make_jaxpr(prune.pruned(closed))(x[0])
+    names = lambda j: {e.primitive.name for e in j.jaxpr.eqns}
+    assert "tanh" not in names(kept) and "jit" not in names(kept)  # entered, the unused output dropped
+    out = _no_fallback(lambda: cj.batch(_partly_used, backend="native")(x))  # within the limits
+    np.testing.assert_allclose(np.asarray(out), np.asarray(jax.vmap(_partly_used)(x)), rtol=1e-14)

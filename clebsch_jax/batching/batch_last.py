@@ -111,10 +111,11 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK, backen
     refused is remembered too. Compiled kernels are also kept on disk by their program
     (`clebsch_jax.native.fingerprint.cache_dir`), so that another process skips LLVM's work.
     The kernel's size, and LLVM's time, grow with the entries the member's program computes
-    (the translation writes each out, used or not): `integrate`'s traced march computes its
-    nodes for all steps at once, so its kernel grows with `n_steps`, and a long march passes
-    the translation's limits (`"auto"` then runs the batch-last evaluation, saying so;
-    `clebsch_jax.sweep`'s kernels do not depend on the number of steps).
+    (the translation writes each out; what the outputs do not need is left out first,
+    `clebsch_jax.batching.prune`): `integrate`'s traced march computes its nodes for all steps
+    at once, so its kernel grows with `n_steps`, and a long march passes the translation's
+    limits (`"auto"` then runs the batch-last evaluation, saying so; `clebsch_jax.sweep`'s
+    kernels do not depend on the number of steps).
 
     Checks, before anything is evaluated or compiled: the outputs of all members, estimated
     from one member's trace, must fit in memory (twice: batch-last and in `jax.vmap`'s layout;

@@ -18,6 +18,10 @@ naming the first failed member, after the run. Where that is not possible (the c
 a trace of the function's own, a `jax.jit`, `vmap` or loop, whose values cannot be outputs) or
 the function makes host callbacks of its own (`jax.debug.print`), the translation is refused
 (`Unsupported`, with the reason) and the batch-last interpreter runs it.
+
+The kernel is compiled from the member's program without the equations its outputs do not
+need (`clebsch_jax.batching.prune`): a function that returns part of a `Solution` does not
+translate the rest of the march's work.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from ..native import (
     native_unavailable,
     warn_once,
 )
+from .prune import pruned
 
 __all__ = ["wants_native", "native_program", "NativeBatch", "CALLBACKS"]
 
@@ -139,7 +144,7 @@ def _compile(flat_fun, member: list, axes: list, limit) -> NativeBatch:
         checks[:] = [c._replace(args=None) for c in found]
         return jax.tree_util.tree_leaves(out), [c.args for c in found]
 
-    closed = jax.make_jaxpr(member_fun)(*member)
+    closed, shape = jax.make_jaxpr(member_fun, return_shape=True)(*member)
     called = sorted(_primitives(closed.jaxpr) & set(CALLBACKS))
     if called:
         raise Unsupported(
@@ -147,7 +152,11 @@ def _compile(flat_fun, member: list, axes: list, limit) -> NativeBatch:
             "callbacks, or integrate(throw=True) inside a jit, vmap or loop of fun's own (pass throw=False "
             "and read Solution.result there)"
         )
-    program = compile_member(member_fun, *member, in_axes=tuple(axes), max_lines=limit)
+    # only what the outputs need: the translation writes out every entry it is given
+    needed, tree = pruned(closed), jax.tree_util.tree_structure(shape)
+    program = compile_member(
+        lambda *a: jax.tree_util.tree_unflatten(tree, needed(*a)), *member, in_axes=tuple(axes), max_lines=limit
+    )
     return NativeBatch(program, list(checks))
 
 
