@@ -6,6 +6,9 @@ the batch axis last, so it performs the same floating-point operations on the sa
 the tests assert equality to the bit where XLA compiles both layouts to the same scalar code
 (elementwise programs, the reduced march) and to a few ulps where it may sum in another order
 (reductions, contractions).
+
+These are tests of the interpreter: concrete calls ask for it with `backend="xla"` (by default
+they run a native kernel, `tests/test_batch_native.py`); calls inside `jax.jit` always run it.
 """
 
 import dataclasses
@@ -93,7 +96,7 @@ def test_predicate_and_index_batched_or_shared():
     for n in (jnp.int32(3), jnp.arange(6, dtype=jnp.int32)):
         in_axes = (None if n.ndim == 0 else 0, 0)
         ref = jax.vmap(f, in_axes=in_axes)(n, v)
-        out = cj.batch(f, in_axes=in_axes)(n, v)
+        out = cj.batch(f, in_axes=in_axes, backend="xla")(n, v)
         assert_trees_close(out, ref)
 
 
@@ -104,7 +107,7 @@ def test_chunks_and_padding_change_nothing(B, chunk):
     def f(v):
         return jnp.tanh(v) * jnp.sum(v * v), jnp.linalg.norm(v)
 
-    assert_trees_close(cj.batch(f, chunk=chunk)(x), jax.vmap(f)(x), atol=4 * EPS)
+    assert_trees_close(cj.batch(f, chunk=chunk, backend="xla")(x), jax.vmap(f)(x), atol=4 * EPS)
 
 
 @settings(max_examples=8, deadline=None)  # each example compiles a program
@@ -118,8 +121,8 @@ def test_each_member_independent_of_batch_and_chunk(B, chunk, seed):
             lambda s: s[1] < 3 + (s[0][0, 0] > 0), lambda s: (s[0] @ s[0] * 0.5, s[1] + 1), (m, 0)
         )[0]
 
-    out = np.asarray(cj.batch(f, chunk=chunk)(x))
-    alone = np.stack([np.asarray(cj.batch(f)(x[i : i + 1]))[0] for i in range(min(B, 3))])
+    out = np.asarray(cj.batch(f, chunk=chunk, backend="xla")(x))
+    alone = np.stack([np.asarray(cj.batch(f, backend="xla")(x[i : i + 1]))[0] for i in range(min(B, 3))])
     np.testing.assert_array_equal(out[: len(alone)], alone)
 
 
@@ -244,3 +247,15 @@ def test_rules_cover_the_reduced_march():
     walk(jaxpr.jaxpr)
     missing = {n for n in names if n not in RULES} - {"iota"}
     assert missing <= {"gather", "dynamic_slice"}, missing
+
+
+@pytest.mark.slow  # the march's programs (the batch's and vmap's reference) compile for over 10 s
+def test_an_integrate_call_inside_a_jit_of_the_function_is_not_checked_and_runs():
+    """`integrate` inside a `jax.jit` of the batched function's own: its arguments are values of
+    that inner trace, which the first-member check cannot evaluate (JAX kept the one made inside
+    the jit, the identity matrix, as a constant of the outer program); the batch runs unchecked."""
+    system = models.rigid_body(jnp.array([2.0, 1.0, 2.0 / 3.0]))
+    run = jax.jit(lambda x: cj.integrate(system, jnp.eye(3), x, dt=0.1, n_steps=5, throw=False).momentum[-1])
+    omegas = jnp.asarray(RNG.normal(size=(3, 3)))
+    out = cj.batch(lambda x: run(x))(omegas)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(jax.vmap(run)(omegas)), rtol=0, atol=1e-13)

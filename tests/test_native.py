@@ -160,6 +160,24 @@ def test_lanes_stop_their_loops_independently_and_inactive_lanes_keep_their_valu
     assert len(set(np.asarray(native[1]).tolist())) > 2  # the lanes did stop at different counts
 
 
+def test_a_vmapped_loop_inside_the_member_stops_each_element_on_its_own():
+    """`jax.vmap` of a while loop inside the member's program (integrate's nodal solves over
+    the nodes): its condition has an entry per element, the loop runs while any holds, and an
+    element whose entry is false keeps its value, as XLA's loop does."""
+
+    def count(a):
+        def one(x):
+            return jax.lax.while_loop(lambda c: (c[1] < 40) & (c[0] > 1e-3), lambda c: (0.5 * c[0], c[1] + 1), (x, 0))
+
+        return jax.vmap(one)(a * jnp.asarray([1.0, 10.0, 1e3]))
+
+    a = np.linspace(0.5, 4.0, B)
+    native = compile_member(count, a[0], use_cache=False)(a)
+    xla = jax.vmap(count)(a)
+    _agree(native, xla, rtol=0, atol=0)
+    assert len(set(np.asarray(native[1])[0].tolist())) == 3  # the elements stopped at different counts
+
+
 @pytest.mark.slow  # a long scan's kernel; shorter scans stay in the default run
 def test_a_long_scan_with_inputs_and_outputs_agrees_with_xla():
     """A scan too long to unroll, with per-iteration inputs and outputs (held in arrays on the

@@ -26,6 +26,11 @@ grows. (The measurements behind the layout and the chunks: `benchmarks/README.md
 The result is `jax.vmap`'s up to round-off: the same operations on the same numbers; XLA may
 fuse them differently for another layout. Each member's result does not depend on the other
 members (padding members of the last chunk are copies of the last member, dropped).
+
+That is the evaluation under tracing (inside `jax.jit`) and with `backend="xla"`. Called on
+concrete arrays, `batch` compiles the member's program to a native kernel instead
+(`clebsch_jax.batching.batch_native`, `clebsch_jax.native`) and runs all members through it
+in one call, where the translation covers the program.
 """
 
 from __future__ import annotations
@@ -40,8 +45,10 @@ import numpy as np
 from jax import lax
 
 from ..core.validation import check_memory, is_traced
-from ..march.integrate import check_member, recording_calls
+from ..march.integrate import caller_backend, check_member, recording_calls
 from ..march.solution import member_offset, raised_in_callback
+from ..native import check_backend
+from .batch_native import native_program, wants_native
 from .rules import batch_members, bind, eval_closed, flat_axes, to_batched
 
 __all__ = ["batch"]
@@ -50,13 +57,13 @@ DEFAULT_CHUNK = 1024
 """Members per chunk: the working set of the built-in models' steps stays in the L2 cache."""
 
 
-def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Callable:
-    r"""`jax.vmap(fun, in_axes)` evaluated batch-last and in chunks: the fast way to run many
-    small independent systems (a sweep of rigid bodies, a batch of vortex clusters) on the CPU.
+def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK, backend: str = "auto") -> Callable:
+    r"""`jax.vmap(fun, in_axes)` for many small independent systems on the CPU (a sweep of rigid
+    bodies, a batch of vortex clusters): a native kernel on concrete calls, else evaluated
+    batch-last and in chunks.
 
     ```python
-    march = jax.jit(cj.batch(lambda Q0, xi0: cj.integrate(body, Q0, xi0, dt=0.05, n_steps=200,
-                                                          throw=False)))
+    march = cj.batch(lambda Q0, xi0: cj.integrate(body, Q0, xi0, dt=0.05, n_steps=50, throw=False))
     sol = march(Q0s, xi0s)    # the Solution jax.vmap would give, batch axis first
     ```
 
@@ -66,16 +73,49 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
     - `in_axes`: 0 (batched along the leading axis) or None (shared), for all positional
       arguments or as a tuple with one entry per positional argument (which applies to every
       array in that argument).
-    - `chunk`: members per chunk (default `DEFAULT_CHUNK`), or None for one chunk. Chunks run
-      one after the other; the last is padded with copies of the last member. A loop in
-      `fun` (Newton's) runs, in each chunk, until the chunk's slowest member stops: members
-      that need very different numbers of iterations (clusters of point vortices, where a
-      few members need many times the mean) run faster in small chunks (e.g. 64), while
-      uniform ones (rigid bodies) prefer large chunks, where each operation's fixed cost is
-      shared by more members (the runs: `benchmarks/README.md`, `throughput.py`).
+    - `chunk`: members per chunk of the batch-last evaluation (default `DEFAULT_CHUNK`), or
+      None for one chunk. Chunks run one after the other; the last is padded with copies of
+      the last member. A loop in `fun` (Newton's) runs, in each chunk, until the chunk's
+      slowest member stops: members that need very different numbers of iterations (clusters
+      of point vortices, where a few members need many times the mean) run faster in small
+      chunks (e.g. 64), while uniform ones (rigid bodies) prefer large chunks, where each
+      operation's fixed cost is shared by more members (the runs: `benchmarks/README.md`,
+      `throughput.py`). It does not apply to the native kernel, which runs a few members at
+      a time, one per SIMD lane, each stopping its loops on its own.
+    - `backend`: `"auto"` (default), `"native"` or `"xla"` (`clebsch_jax.native.BACKENDS`),
+      checked when `batch` is called. A concrete call (no tracers among the arguments) with
+      `"auto"` or `"native"` traces `fun` for one member, compiles it to a native kernel with
+      LLVM (`clebsch_jax.native.compile_member`) and runs every member through it in one
+      call, on the host CPU. `"xla"`, and a call traced by `jax.jit`, `jax.grad` or
+      `jax.vmap`, run the batch-last evaluation in chunks, compiled by XLA (under tracing
+      `"auto"` says so once, `"native"` raises a `ValueError`). Where the native translation
+      does not cover `fun` (a primitive it lacks; a program past its size limits, for
+      `"auto"` one of more than `clebsch_jax.native.AUTO_MAX_IR_LINES` lines of LLVM IR; a
+      host callback such as `jax.debug.print`) or llvmlite cannot be imported, `"auto"`
+      runs the batch-last evaluation and says once why (a
+      `clebsch_jax.native.NativeFallbackWarning` naming the reason, e.g. the primitive), and
+      `"native"` raises a `ValueError` with the reason.
+      The two give the same results up to round-off (libm's transcendental functions and
+      XLA's may differ in the last bits), and the native kernel the same bits from run to run.
+      `integrate` calls in `fun` run on this backend: their own `backend=` is not consulted.
 
     **Returns:** a function with `jax.vmap(fun, in_axes)`'s signature and outputs (every output
     batched along axis 0).
+
+    Compilation: the native kernel is kept for the process under `fun`'s fingerprint (its code,
+    closures, defaults and globals: `clebsch_jax.native.fingerprint`; a function whose
+    fingerprint cannot be read is kept by the cache itself, so another function never finds
+    its kernel), the arguments' structure, the member's shapes and dtypes and `in_axes`: a
+    later call with new values or another batch size compiles nothing; a function that
+    closes over other values, or new member shapes, compiles again. A program the translation
+    refused is remembered too. Compiled kernels are also kept on disk by their program
+    (`clebsch_jax.native.fingerprint.cache_dir`), so that another process skips LLVM's work.
+    The kernel's size, and LLVM's time, grow with the entries the member's program computes
+    (the translation writes each out; what the outputs do not need is left out first,
+    `clebsch_jax.batching.prune`): `integrate`'s traced march computes its nodes for all steps
+    at once, so its kernel grows with `n_steps`, and a long march passes the translation's
+    limits (`"auto"` then runs the batch-last evaluation, saying so; `clebsch_jax.sweep`'s
+    kernels do not depend on the number of steps).
 
     Checks, before anything is evaluated or compiled: the outputs of all members, estimated
     from one member's trace, must fit in memory (twice: batch-last and in `jax.vmap`'s layout;
@@ -86,30 +126,40 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
     which under tracing it cannot do itself; not when its arguments are computed by a loop or
     inside a transformation of `fun`'s own.
 
-    Transformations: jit-compatible (trace it inside `jax.jit`; it is not jitted itself).
-    Not for differentiation: the program is evaluated primitive by primitive, so custom
-    derivative rules (`custom_jvp`, the implicit differentiation of `integrate`'s Newton
-    solves) are not seen by an outer `jax.grad`, which then meets the Newton `while_loop`s
-    themselves and raises JAX's error for reverse mode through them; differentiate with
-    `jax.vmap` instead. Not batchable again by `jax.vmap` in a useful way (flatten the batch
-    instead).
+    Failures: `integrate(..., throw=True)` in `fun` raises the `IntegrationError` of the first
+    failed member, named by its index in the batch, on both evaluations (the native kernel
+    returns the check's values and the error is raised after the run; inside a `jax.jit` or
+    loop of `fun`'s own the check stays a host callback, and the batch-last evaluation runs).
+
+    Transformations: jit-compatible (trace it inside `jax.jit`; it is not jitted itself; the
+    batch-last evaluation then runs). Not for differentiation: the program is evaluated
+    primitive by primitive, so custom derivative rules (`custom_jvp`, the implicit
+    differentiation of `integrate`'s Newton solves) are not seen by an outer `jax.grad`,
+    which then meets the Newton `while_loop`s themselves and raises JAX's error for reverse
+    mode through them; differentiate with `jax.vmap` instead. Not batchable again by
+    `jax.vmap` in a useful way (flatten the batch instead).
     """
     if chunk is not None and (not isinstance(chunk, int) or isinstance(chunk, bool) or chunk < 1):
         raise ValueError(f"chunk: expected a whole number >= 1 or None, got {chunk!r}.")
+    backend = check_backend(backend)
 
     @functools.wraps(fun)
     def batched(*args):
         leaves, tree = jax.tree_util.tree_flatten(args)
         axes = flat_axes(in_axes, args)
         B, leaves, member = batch_members(leaves, axes)
-        if B == 0:  # an empty batch: jax.vmap's empty outputs (no chunk to run)
-            return jax.vmap(fun, in_axes=in_axes)(*args)
+        if B == 0:  # an empty batch: jax.vmap's empty outputs (no chunk to run, nothing to say)
+            with caller_backend():
+                return jax.vmap(fun, in_axes=in_axes)(*args)
         flags = [a == 0 for a in axes]
 
         def flat_fun(*flat):
             return fun(*jax.tree_util.tree_unflatten(tree, flat))
 
-        closed, out_shapes, calls = _trace(flat_fun, member, record=not any(is_traced(x) for x in leaves))
+        traced = any(is_traced(x) for x in leaves)
+        native = wants_native(backend, traced)
+        with caller_backend():  # integrate's calls in fun run on batch's backend: they say nothing of their own
+            closed, out_shapes, calls = _trace(flat_fun, member, record=not traced)
         out_tree = jax.tree_util.tree_structure(out_shapes)
         n_out = out_tree.num_leaves
         c = B if chunk is None else min(chunk, B)
@@ -118,6 +168,9 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK) -> Cal
         _check_outputs(out_shapes, B, pad)
         if calls:
             _check_first_member(closed, calls, n_out, leaves, flags, B)
+        program = native_program(fun, flat_fun, tree, member, axes, backend) if native else None
+        if program is not None:  # all members in one call of the kernel
+            return jax.tree_util.tree_unflatten(out_tree, program(leaves))
 
         def run(chunk_leaves, first=0):  # batched leaves batch-last, (…, c); `first`: its first member
             with member_offset(first):  # a failure under integrate(throw=True) names the batch's member
@@ -161,8 +214,9 @@ def _trace(flat_fun, member, record: bool):
     calls inside are recorded (`clebsch_jax.march.integrate.recording_calls`) and their array
     arguments added as extra outputs of the jaxpr, after the function's own, so that they can
     be evaluated for the first member (`_check_first_member`). Calls whose arguments belong to
-    a trace inside the function (its own `jit`, `vmap`, `scan`) cannot be outputs: the function
-    is then traced again without recording (and those calls are not checked)."""
+    a trace inside the function (its own `jit`, `vmap`, `scan`) cannot be outputs (JAX raises,
+    or keeps them as constants of the jaxpr): the function is then traced again without
+    recording (and those calls are not checked)."""
     if record:
         found = []
 
@@ -174,9 +228,11 @@ def _trace(flat_fun, member, record: bool):
 
         try:
             closed, (out_shapes, _) = jax.make_jaxpr(probe, return_shape=True)(*member)
-            return closed, out_shapes, found
+            if not any(is_traced(c) for c in closed.consts):  # a leaked inner tracer becomes a constant
+                return closed, out_shapes, found
         except jax.errors.UnexpectedTracerError:
             pass
+        found.clear()
     closed, out_shapes = jax.make_jaxpr(flat_fun, return_shape=True)(*member)
     return closed, out_shapes, []
 

@@ -191,7 +191,7 @@ def _batched_chunk(cfg: Config, params, carry, dt, shared, first, offset, rows: 
     if rows:  # the lean chunk's start and end compute on small values only (one node each)
         run = scalarise(one, in_axes=axes, loops_only=not cfg.lean)
     else:
-        run = batch(one, in_axes=axes, chunk=cfg.member_chunk)
+        run = batch(one, in_axes=axes, chunk=cfg.member_chunk, backend="xla")  # the sweep chose XLA
     with undifferentiated():
         return run(params, carry, dt, shared, first, offset)
 

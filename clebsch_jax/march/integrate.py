@@ -196,7 +196,8 @@ def integrate(
       for a step the translation covers) and XLA elsewhere — under `jit`, `vmap` or `grad`, for
       a primitive the translation does not cover, without llvmlite — saying once why (a
       `clebsch_jax.native.NativeFallbackWarning`); `"native"` raises a `ValueError` with the
-      reason there.
+      reason there. Inside `clebsch_jax.batch`, `batch`'s own `backend` decides for the whole
+      batched function, this call included: this one is not consulted.
 
     **Returns:** a `Solution`, with the method's facts (`form`, `scheme`, `order`, `method`).
 
@@ -252,9 +253,9 @@ def integrate(
     if closes or any_traced(system, Q0, xi0, P0, dt, t0):
         # one scan, in the caller's program (differentiable by it); values unknown until now
         # are checked per member
-        if backend != "xla":
+        if backend != "xla" and not _CALLER_BACKEND.get():
             why = (
-                "its arguments are traced (inside jit, vmap, grad or cj.batch)"
+                "its arguments are traced (inside jit, vmap or grad)"
                 if not closes
                 else "a map closes over a traced value"
             )
@@ -360,6 +361,22 @@ def recording_calls():
         yield calls
     finally:
         _RECORDED.reset(token)
+
+
+_CALLER_BACKEND: contextvars.ContextVar = contextvars.ContextVar("clebsch_jax_caller_backend", default=False)
+
+
+@contextlib.contextmanager
+def caller_backend():
+    """Within this context (in this thread), `integrate` calls on traced values are traced into a
+    program whose backend the caller chose as a whole (`clebsch_jax.batch`: a native kernel
+    compiled from the trace, or XLA, having said why where "auto" could not run the kernel):
+    they neither warn that their march runs with XLA nor refuse `backend="native"`."""
+    token = _CALLER_BACKEND.set(True)
+    try:
+        yield
+    finally:
+        _CALLER_BACKEND.reset(token)
 
 
 def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> ClebschSystem:

@@ -7,7 +7,7 @@ import contextvars
 import dataclasses
 import logging
 import threading
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -383,6 +383,7 @@ def check_traced(sol: Solution) -> jax.Array:
     A failure raises `IntegrationError` (under `jax.vmap` naming the member); inside a
     compiled program it is raised from a host callback, and JAX reports it as its
     `JaxRuntimeError` with the same message (`COMPILED_HINT` says how to read the statuses).
+    Inside `collecting_checks` no check is inserted: its arguments are collected instead.
     """
     stats_at = lambda s: jnp.take(s, jnp.clip(sol.failed_step, 0, s.shape[-1] - 1), axis=-1)
     is_nodal = sol.result == Status.LEGENDRE
@@ -392,4 +393,56 @@ def check_traced(sol: Solution) -> jax.Array:
     t = stats_at(sol.ts)
     n_steps = jnp.asarray(sol.ts.shape[-1] - 1)
     args = jax.lax.stop_gradient((sol.result, sol.failed_step, iters, res, t, n_steps, matrices))
+    collected = _COLLECTED.get()
+    if collected is not None and collected[0] == _trace_state():  # the collecting trace, not one inside it
+        collected[1].append(CollectedCheck(sol.scheme, sol.solves_per_step, args))
+        return sol.result
     return _traced_checker(sol.scheme, sol.solves_per_step)(*args)
+
+
+class CollectedCheck(NamedTuple):
+    """An end-of-run check of `integrate(..., throw=True)` met inside `collecting_checks`: what
+    its message says (`scheme`, `solves` per step) and its traced arguments `args` (result,
+    failed step, the failed step's iterations, residual norm and time, the number of steps,
+    the Jacobians made)."""
+
+    scheme: Any
+    solves: int
+    args: tuple
+
+
+_COLLECTED: contextvars.ContextVar = contextvars.ContextVar("clebsch_jax_collected_checks", default=None)
+
+
+def _trace_state():
+    import jax.extend.core as jex
+
+    return jex.get_opaque_trace_state(convention="flax")
+
+
+@contextlib.contextmanager
+def collecting_checks():
+    """Within this context (in this thread), `integrate(..., throw=True)` on values of the
+    trace the context is entered in does not insert its end-of-run check into the trace (a
+    host callback, which a native kernel cannot make): it appends a `CollectedCheck` to the
+    list this yields, for a caller that makes the check's arguments outputs of its program and
+    checks them on the host after the run (`raise_collected`: `clebsch_jax.batch` on a native
+    kernel). Calls inside a trace of their own (a `jax.jit`, `vmap` or `scan` inside the
+    traced function) insert their check as always: JAX may keep such a trace and reuse it
+    outside the context."""
+    found: list = []
+    token = _COLLECTED.set((_trace_state(), found))
+    try:
+        yield found
+    finally:
+        _COLLECTED.reset(token)
+
+
+def raise_collected(checks: list, values: list) -> None:
+    """Raise the `IntegrationError` that the checks of `collecting_checks` would have raised
+    under `jax.vmap`: `values[i]` holds the arguments of `checks[i]` computed for every member
+    (a leading member axis); the first check with a failed member names its first failed
+    member, its step and status."""
+    for check, args in zip(checks, values):
+        args = [np.asarray(a) for a in args]
+        _host_check(*args, np.asarray(0), batched=True, compiled=False, scheme=check.scheme, solves=check.solves)

@@ -32,9 +32,9 @@ __all__ = [
 ]
 
 BACKENDS = ("auto", "native", "xla")
-"""The values of `backend=` (`clebsch_jax.sweep`, `clebsch_jax.integrate`): "native" runs the
-native kernel (an error where it cannot), "xla" XLA's program, "auto" the native kernel wherever
-it applies and XLA elsewhere, saying once why (`warn_once`)."""
+"""The values of `backend=` (`clebsch_jax.sweep`, `clebsch_jax.integrate`, `clebsch_jax.batch`):
+"native" runs the native kernel (an error where it cannot), "xla" XLA's program, "auto" the
+native kernel wherever it applies and XLA elsewhere, saying once why (`warn_once`)."""
 
 AUTO_MAX_IR_LINES = 50_000
 """`backend="auto"` compiles a native kernel whose LLVM IR has at most this many lines (a kernel

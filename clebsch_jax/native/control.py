@@ -3,7 +3,9 @@
 - `while`: a loop that runs while any lane of the current mask still satisfies its condition.
   A lane whose condition is false keeps its carry (a select per entry), as `vmap` of a while
   loop does; its body is emitted under the mask of the lanes still iterating, so that loops
-  nested in it stop when those lanes are done.
+  nested in it stop when those lanes are done. A condition with an entry per element of the
+  carries' leading axes (`jax.vmap` of a loop inside the member's program) holds while any
+  entry does, and an element whose entry is false keeps its carry, as XLA's loop does.
 - `scan`: a counted loop (the count is the same in every lane); the carry lives in allocas
   (promoted to registers by LLVM), the per-iteration inputs and outputs in arrays indexed by
   the counter. Short scans are unrolled, unless unrolling would take the program past
@@ -158,23 +160,44 @@ def _while(em: Emitter, eqn, args):
     b.position_at_end(head)
     cur = _load(em, slots, init, dtypes)
     (pred,) = eval_closed(em, cond_j, list(cconsts) + cur)
-    pred = pred[()]
-    if is_known(pred):
-        if bool(pred):
-            raise Unsupported("a while loop whose condition is always true")
+    elements = np.asarray(pred, object)
+    unknown = [e for e in elements.reshape(-1) if not is_known(e)]
+    if any(bool(e) for e in elements.reshape(-1) if is_known(e)):
+        raise Unsupported("a while loop whose condition is always true")
+    if not unknown:
         b.branch(done)
         b.position_at_end(done)
         return list(init)
-    active = em.mask_and(pred)
+    anywhere = unknown[0]
+    for e in unknown[1:]:  # a predicate per element (jax.vmap of a loop): while any holds
+        anywhere = b.or_(anywhere, e)
+    active = em.mask_and(anywhere)
     b.cbranch(em.any_lane(active), body, done)
     b.position_at_end(body)
     outer, em.mask = em.mask, active
     new = eval_closed(em, body_j, list(bconsts) + cur)
     em.mask = outer
+    if elements.shape:
+        new = [_held(em, elements, n, c, dtype) for n, c, dtype in zip(new, cur, dtypes)]
     _store(em, slots, new, cur, dtypes, active)
     b.branch(head)
     b.position_at_end(done)
     return _load(em, slots, init, dtypes)
+
+
+def _held(em: Emitter, elements, new, cur, dtype):
+    """A carry of a while loop whose predicate has one entry per element of the carry's
+    leading axes (`elements`, as `jax.vmap` of a loop makes it): the body's value where the
+    element's predicate holds, else the carry as it was (XLA's select)."""
+    k = elements.ndim
+    if np.shape(new)[:k] != elements.shape:
+        raise Unsupported(
+            f"a while loop with a predicate of shape {elements.shape} on a carry of shape {np.shape(new)}"
+        )
+    out = np.empty(np.shape(new), object)
+    for idx in np.ndindex(out.shape):
+        out[idx] = em.select(elements[idx[:k]], new[idx], cur[idx], dtype)
+    return out
 
 
 def _array_slots(em: Emitter, length: int, shape, dtype):
