@@ -441,7 +441,10 @@ class Kernel:
         if self.carries is not None and not 0 <= steps <= capacity:
             raise ValueError(f"a loop kernel of {steps} steps with records for {capacity}")
         outs = [np.empty((size, stride), storage) for _, size, storage in self._outs[:n_carry]]
-        outs += [np.zeros((capacity * size, stride), storage) for _, size, storage in self._outs[n_carry:]]
+        for _, size, storage in self._outs[n_carry:]:  # the rows of the `steps` records are all written
+            rows = np.empty((capacity * size, stride), storage)
+            rows[steps * size :] = 0
+            outs.append(rows)
         pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[x.ctypes.data for x in buffers + outs])
         address = ctypes.addressof(pointers)
         loop = () if self.carries is None else (int(steps),)
@@ -458,6 +461,6 @@ class Kernel:
             if j < n_carry:
                 r = rows[:, :B].T.reshape((B,) + shape)
             else:  # (capacity·size, stride) -> (B, capacity, *shape)
-                r = np.moveaxis(rows[:, :B].reshape(capacity, size, B), -1, 0).reshape((B, capacity) + shape)
+                r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
             result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))
         return result
