@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import threading
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -36,7 +37,7 @@ from .carry import Carry, Chunk, advance_step
 from .energy_check import node_energy
 from .scan import nodal_velocity
 
-__all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program"]
+__all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program", "BoundLoop"]
 
 LANES = 1
 """Lanes of the kernel of one trajectory: a single member in a vector of one lane. Wider
@@ -150,6 +151,32 @@ def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy
     return found, arrays
 
 
+class BoundLoop(NamedTuple):
+    """The kernel `native_loop` found for a march (`native_chunk_program`) and the host arrays of
+    its system and Δt: the march's chunks and its first-step probe (Δt/2) take them instead of
+    looking the kernel up again, which flattens and hashes the system and the carry each time.
+    The carry they pass is the march's start or the kernel's own, of the shapes it was found for."""
+
+    stepper: AbstractStepper
+    system: object
+    kernel: object
+    arrays: list
+    dt_aval: tuple
+    check_energy: bool
+
+    def takes(self, stepper, system, dt, check_energy: bool) -> bool:
+        """Whether a chunk of `stepper` on `system` with this `dt` and energy check runs this
+        kernel: the same stepper and system objects, a Δt array of the shape and dtype it was
+        found for (Δt is the last of `arrays`, after the system's) and the same energy check."""
+        return (
+            stepper is self.stepper
+            and system is self.system
+            and bool(check_energy) == self.check_energy
+            and is_array(dt)
+            and _aval(dt) == self.dt_aval
+        )
+
+
 def native_run_chunk(
     stepper: AbstractStepper,
     system,
@@ -159,10 +186,12 @@ def native_run_chunk(
     n_total,
     check_energy: bool = False,
     max_lines=None,
+    bound: "BoundLoop | None" = None,
 ) -> tuple[Carry, Chunk]:
     """`run_chunk` (concrete values, `exact=False`) as one call of the native kernel
-    (`native_loop`, with its `max_lines`): the steps from `carry.n` up to `n_total` (at most
-    `length`) and the nodes they leave, then the chunk's last node, in one loop (host arrays).
+    (`native_loop`, with its `max_lines`; or `bound`'s, when it was found for this stepper and
+    system, `BoundLoop.takes`): the steps from `carry.n` up to `n_total` (at most `length`) and
+    the nodes they leave, then the chunk's last node, in one loop (host arrays).
 
     The records are those of the steps made alone, as the kernel writes them: `made` step
     entries and `made + 1` node entries, the last the chunk's last node (`run_chunk`'s entry
@@ -170,7 +199,10 @@ def native_run_chunk(
     last one repeating it, their solves skipped), which `assemble` cuts off again: every chunk
     of a run but its last makes `length` steps, and of the last it keeps the steps made and
     the last node. The first-step check (`first_step_probe`) reads the first two steps."""
-    kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, max_lines)
+    if bound is not None and bound.takes(stepper, system, dt, check_energy):
+        kernel, arrays = bound.kernel, [*bound.arrays[:-1], np.asarray(dt)]
+    else:
+        kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, max_lines)
     n = int(np.asarray(carry.n))
     made = int(np.clip(int(np.asarray(n_total)) - n, 0, length))
     host = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], carry)
@@ -214,8 +246,9 @@ def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, che
     if why is None:
         limit = AUTO_MAX_IR_LINES if backend == "auto" else None
         try:
-            native_loop(stepper, system, carry, dt, check_energy, limit)
-            return functools.partial(native_run_chunk, max_lines=limit)
+            kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, limit)
+            bound = BoundLoop(stepper, system, kernel, arrays, _aval(dt), bool(check_energy))
+            return functools.partial(native_run_chunk, max_lines=limit, bound=bound)
         except Unsupported as err:
             why = f"the native translation does not cover the step: {err}"
     if backend == "native":

@@ -433,6 +433,9 @@ class Kernel:
                 continue
             if a.shape != (B,) + shape:
                 raise ValueError(f"expected an array of shape {(B,) + shape}, got {a.shape}")
+            if stride == 1:  # one member, one lane: its rows are its entries in order (the kernel only reads them)
+                buffers.append(np.ascontiguousarray(a, storage))
+                continue
             rows = np.empty((size, stride), storage)
             rows[:, :B] = a.reshape(B, size).T
             rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
@@ -458,7 +461,9 @@ class Kernel:
                 list(pool.map(call, range(threads)))
         result = []
         for j, (rows, (shape, size, _), dtype) in enumerate(zip(outs, self._outs, self.out_dtypes)):
-            if j < n_carry:
+            if stride == 1:  # the rows in order are the member's entries, record after record
+                r = rows.reshape(((1,) if j < n_carry else (1, capacity)) + shape)
+            elif j < n_carry:
                 r = rows[:, :B].T.reshape((B,) + shape)
             else:  # (capacity·size, stride) -> (B, capacity, *shape)
                 r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
