@@ -94,6 +94,56 @@ def test_heavy_top_default_is_xlas_solution_and_repeats_bit_for_bit():
     np.testing.assert_allclose(np.einsum("nij,nik->njk", Q, Q), np.broadcast_to(np.eye(3), Q.shape), atol=1e-12)
 
 
+def test_a_run_of_several_native_chunks_is_xlas():
+    """More steps than two native chunks hold: full chunks and a short last one, whose records
+    are those of its steps alone, joined into the Solution as XLA's chunks are."""
+    from clebsch_jax.march.scan import NATIVE_CHUNK_FACTOR, chunk_length
+
+    chunk = chunk_length(TOP_Q0, TOP_XI0) * NATIVE_CHUNK_FACTOR
+    n = 2 * chunk + 3
+    fast, xla = _both(TOP, TOP_Q0, TOP_XI0, dt=0.01, n_steps=n)
+    assert np.asarray(fast.Q).shape == (n + 1, 3, 3) and np.asarray(fast.stats.status).shape == (n,)
+    _same_solution(fast, xla, rtol=1e-9)  # the two evaluators' last bits drift apart over 16 000 steps
+    shorter = cj.integrate(TOP, TOP_Q0, TOP_XI0, dt=0.01, n_steps=chunk + 5, backend="native")
+    for name in ("Q", "xi", "momentum", "valid"):  # its first chunk and node are the longer run's, bit for bit
+        np.testing.assert_array_equal(np.asarray(getattr(shorter, name)), np.asarray(getattr(fast, name))[: chunk + 6])
+    np.testing.assert_array_equal(np.asarray(shorter.stats.iterations), np.asarray(fast.stats.iterations)[: chunk + 5])
+
+
+def _kepler_of(k):
+    """Kepler's problem with the constant `k` held in the Lagrangian's closure (a Python number)."""
+    return cj.ClebschSystem(
+        lagrangian=lambda xi, q: 0.5 * jnp.sum(xi**2) + k / jnp.sqrt(jnp.sum(q**2)),
+        velocity_map=translation,
+        derivative_map=cj.forward_difference,
+    )
+
+
+def test_nothing_found_for_one_system_is_used_for_another_of_the_same_shapes():
+    """What a call finds once (the march's kernel, the map checks) is not handed to another
+    system of the same shapes: another heavy top, and a Lagrangian whose closure holds another
+    number, each give their own XLA Solution; and the value checks still refuse bad values
+    after those calls."""
+    other = models.heavy_top(jnp.array([1.0, 2.0, 0.5]), 0.7)
+    first, _ = _both(TOP, TOP_Q0, TOP_XI0, dt=0.01, n_steps=50)
+    fast, xla = _both(other, TOP_Q0, TOP_XI0, dt=0.01, n_steps=50)
+    assert not np.allclose(np.asarray(first.Q), np.asarray(fast.Q))
+    _same_solution(fast, xla)
+    q0, v0 = np.array([1.0, 0.0]), np.array([0.0, 1.1])
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="lagrangian: a function with the code")  # remade: compiled again
+        weak, _ = _both(_kepler_of(1.0), q0, v0, dt=0.05, n_steps=40)
+        strong, strong_xla = _both(_kepler_of(2.0), q0, v0, dt=0.05, n_steps=40)
+    assert not np.allclose(np.asarray(weak.Q), np.asarray(strong.Q))
+    _same_solution(strong, strong_xla)
+    with pytest.raises(ValueError, match="dt: must be positive"):
+        cj.integrate(other, TOP_Q0, TOP_XI0, dt=-0.01, n_steps=50)
+    with pytest.raises(ValueError, match="xi0: contains non-finite"):
+        cj.integrate(other, TOP_Q0, TOP_XI0.at[0].set(jnp.nan), dt=0.01, n_steps=50)
+    with pytest.raises(ValueError, match="Q0"):
+        cj.integrate(other, 2.0 * TOP_Q0, TOP_XI0, dt=0.01, n_steps=50)
+
+
 def test_rigid_body_reduced_step_matches_xla():
     fast, xla = _both(models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.1, n_steps=200)
     assert fast.form == "reduced"
