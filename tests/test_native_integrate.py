@@ -294,3 +294,21 @@ def test_a_loop_kernel_runs_its_body_and_writes_every_iteration(width, members):
         for k, rec in enumerate(records):
             np.testing.assert_allclose(rec[m, :7], np.stack([r[k] for r in expected]), rtol=1e-15)
             assert not np.any(rec[m, 7:])
+
+
+def test_a_kernel_of_one_member_in_one_lane_leaves_its_inputs_as_they_were():
+    """One member in a kernel of one lane (a single trajectory's layout): its arrays are passed
+    as they are, not copied into row buffers; the kernel gives the function's values (booleans
+    too) and leaves its inputs unchanged."""
+
+    def f(a, ok):
+        return a * 2.0 + 1.0, ok & jnp.all(a > 0), jnp.sum(a, axis=0)
+
+    kernel = native.compile_member(f, jnp.ones((2, 3)), jnp.asarray(True), width=1, use_cache=False)
+    a, ok = np.arange(6.0).reshape(1, 2, 3) - 1.0, np.array([True])
+    before = a.copy()
+    got = kernel(a, ok)
+    for x, y in zip(got, f(a[0], ok[0])):
+        assert x.shape == (1,) + np.shape(y) and x.dtype == np.asarray(y).dtype
+        np.testing.assert_array_equal(x[0], y)
+    np.testing.assert_array_equal(a, before)
