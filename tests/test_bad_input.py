@@ -406,3 +406,22 @@ def test_the_vectorised_rotation_check_agrees_with_the_single_one():
         found = check_rotations(stack)
         assert found is not None and found[0] == j, (j, found)
         assert found[1] == check_rotation(stack[j])
+
+
+def test_python_numbers_kept_on_the_device_are_their_own_values():
+    """`float_array` keeps the device arrays of Python numbers it converted (dt and t0 repeat
+    from call to call): each value gets its own, -0.0 is not 0.0, an int is its float, and a
+    bad value is still refused after good ones (tests/test_native_integrate.py marches with
+    several)."""
+    from clebsch_jax.core.validation import float_array, positive_scalar
+
+    assert np.signbit(float_array(-0.0, "t0")) and not np.signbit(float_array(0.0, "t0"))
+    for x in (0.01, 0.02, 3, 0.01):
+        got = float_array(x, "t0")
+        assert isinstance(got, jax.Array) and got.dtype == jnp.float64 and float(got) == float(x)
+    system = cj.ClebschSystem(lagrangian=_oscillator, velocity_map=_translation, derivative_map=cj.forward_difference)
+    run = lambda **kw: cj.integrate(system, jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0]), n_steps=3, **kw)
+    with pytest.raises(ValueError, match="dt: must be positive"):
+        positive_scalar(-0.1, "dt")
+    with pytest.raises(ValueError, match="t0: contains non-finite"):
+        run(dt=0.1, t0=float("nan"))

@@ -94,6 +94,67 @@ def test_heavy_top_default_is_xlas_solution_and_repeats_bit_for_bit():
     np.testing.assert_allclose(np.einsum("nij,nik->njk", Q, Q), np.broadcast_to(np.eye(3), Q.shape), atol=1e-12)
 
 
+def test_a_run_of_several_native_chunks_is_xlas():
+    """More steps than two native chunks hold: full chunks and a short last one, whose records
+    are those of its steps alone, joined into the Solution as XLA's chunks are."""
+    from clebsch_jax.march.scan import NATIVE_CHUNK_FACTOR, chunk_length
+
+    chunk = chunk_length(TOP_Q0, TOP_XI0) * NATIVE_CHUNK_FACTOR
+    n = 2 * chunk + 3
+    fast, xla = _both(TOP, TOP_Q0, TOP_XI0, dt=0.01, n_steps=n)
+    assert np.asarray(fast.Q).shape == (n + 1, 3, 3) and np.asarray(fast.stats.status).shape == (n,)
+    _same_solution(fast, xla, rtol=1e-9)  # the two evaluators' last bits drift apart over 16 000 steps
+    shorter = cj.integrate(TOP, TOP_Q0, TOP_XI0, dt=0.01, n_steps=chunk + 5, backend="native")
+    for name in ("Q", "xi", "momentum", "valid"):  # its first chunk and node are the longer run's, bit for bit
+        np.testing.assert_array_equal(np.asarray(getattr(shorter, name)), np.asarray(getattr(fast, name))[: chunk + 6])
+    np.testing.assert_array_equal(np.asarray(shorter.stats.iterations), np.asarray(fast.stats.iterations)[: chunk + 5])
+
+
+def _kepler_of(k):
+    """Kepler's problem with the constant `k` held in the Lagrangian's closure (a Python number)."""
+    return cj.ClebschSystem(
+        lagrangian=lambda xi, q: 0.5 * jnp.sum(xi**2) + k / jnp.sqrt(jnp.sum(q**2)),
+        velocity_map=translation,
+        derivative_map=cj.forward_difference,
+    )
+
+
+def test_nothing_found_for_one_system_is_used_for_another_of_the_same_shapes():
+    """What a call finds once (the march's kernel, the map checks) is not handed to another
+    system of the same shapes: another heavy top, and a Lagrangian whose closure holds another
+    number, each give their own XLA Solution; and the value checks still refuse bad values
+    after those calls."""
+    other = models.heavy_top(jnp.array([1.0, 2.0, 0.5]), 0.7)
+    first, _ = _both(TOP, TOP_Q0, TOP_XI0, dt=0.01, n_steps=50)
+    fast, xla = _both(other, TOP_Q0, TOP_XI0, dt=0.01, n_steps=50)
+    assert not np.allclose(np.asarray(first.Q), np.asarray(fast.Q))
+    _same_solution(fast, xla)
+    q0, v0 = np.array([1.0, 0.0]), np.array([0.0, 1.1])
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="lagrangian: a function with the code")  # remade: compiled again
+        weak, _ = _both(_kepler_of(1.0), q0, v0, dt=0.05, n_steps=40)
+        strong, strong_xla = _both(_kepler_of(2.0), q0, v0, dt=0.05, n_steps=40)
+    assert not np.allclose(np.asarray(weak.Q), np.asarray(strong.Q))
+    _same_solution(strong, strong_xla)
+    with pytest.raises(ValueError, match="dt: must be positive"):
+        cj.integrate(other, TOP_Q0, TOP_XI0, dt=-0.01, n_steps=50)
+    with pytest.raises(ValueError, match="xi0: contains non-finite"):
+        cj.integrate(other, TOP_Q0, TOP_XI0.at[0].set(jnp.nan), dt=0.01, n_steps=50)
+    with pytest.raises(ValueError, match="Q0"):
+        cj.integrate(other, 2.0 * TOP_Q0, TOP_XI0, dt=0.01, n_steps=50)
+
+
+def test_each_calls_dt_and_t0_are_its_own():
+    """dt and t0 given as Python numbers (kept on the device by value, `float_array`): each call
+    marches with its own, on both backends."""
+    for dt, t0 in ((0.01, 0.0), (0.02, 1.0), (0.01, -0.0), (0.02, 1.0)):
+        fast, xla = _both(TOP, TOP_Q0, TOP_XI0, dt=dt, t0=t0, n_steps=20)
+        np.testing.assert_allclose(np.asarray(fast.ts), t0 + dt * np.arange(21), rtol=1e-15)
+        _same_solution(fast, xla)
+    slower, _ = _both(TOP, TOP_Q0, TOP_XI0, dt=0.01, n_steps=20)
+    assert not np.allclose(np.asarray(slower.Q)[-1], np.asarray(fast.Q)[-1])
+
+
 def test_rigid_body_reduced_step_matches_xla():
     fast, xla = _both(models.rigid_body(INERTIA), jnp.eye(3), XI0, dt=0.1, n_steps=200)
     assert fast.form == "reduced"
@@ -244,3 +305,21 @@ def test_a_loop_kernel_runs_its_body_and_writes_every_iteration(width, members):
         for k, rec in enumerate(records):
             np.testing.assert_allclose(rec[m, :7], np.stack([r[k] for r in expected]), rtol=1e-15)
             assert not np.any(rec[m, 7:])
+
+
+def test_a_kernel_of_one_member_in_one_lane_leaves_its_inputs_as_they_were():
+    """One member in a kernel of one lane (a single trajectory's layout): its arrays are passed
+    as they are, not copied into row buffers; the kernel gives the function's values (booleans
+    too) and leaves its inputs unchanged."""
+
+    def f(a, ok):
+        return a * 2.0 + 1.0, ok & jnp.all(a > 0), jnp.sum(a, axis=0)
+
+    kernel = native.compile_member(f, jnp.ones((2, 3)), jnp.asarray(True), width=1, use_cache=False)
+    a, ok = np.arange(6.0).reshape(1, 2, 3) - 1.0, np.array([True])
+    before = a.copy()
+    got = kernel(a, ok)
+    for x, y in zip(got, f(a[0], ok[0])):
+        assert x.shape == (1,) + np.shape(y) and x.dtype == np.asarray(y).dtype
+        np.testing.assert_array_equal(x[0], y)
+    np.testing.assert_array_equal(a, before)

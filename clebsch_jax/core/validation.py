@@ -104,10 +104,32 @@ def _float_array(x, name: str, allow_bool: bool):
         arr = x
     else:
         host = host.astype(f64)
-        arr = jnp.asarray(host)  # a NumPy array: strongly typed
+        arr = None
     if not np.all(np.isfinite(host)):
         raise ValueError(f"{name}: contains non-finite values (NaN or inf).")
+    if arr is None:
+        arr = _device_scalar(x, f64, host) if type(x) in (float, int) else jnp.asarray(host)  # strongly typed
     return arr, host
+
+
+_SCALARS: dict = {}
+"""Device arrays of Python numbers given to `float_array` (a run's dt and t0, the same from call
+to call), by type, exact value and dtype: a JAX array is immutable, and each conversion is a
+transfer of its own."""
+
+_SCALARS_MAX = 64
+
+
+def _device_scalar(x, dtype, host: np.ndarray) -> jax.Array:
+    """`jnp.asarray(host)` for the Python number `x` (`host`: it as a NumPy array of `dtype`), kept
+    in `_SCALARS` under its exact value (`float.hex`: -0.0 is not 0.0)."""
+    key = (type(x), x.hex() if isinstance(x, float) else x, np.dtype(dtype))
+    found = _SCALARS.get(key)
+    if found is None:
+        if len(_SCALARS) >= _SCALARS_MAX:
+            _SCALARS.clear()
+        found = _SCALARS[key] = jnp.asarray(host)
+    return found
 
 
 def host_float_array(x, name: str) -> np.ndarray:

@@ -124,7 +124,7 @@ def _check_arrays(system, Q0, xi0, P0, dt, t0, configuration: bool = True):
             system = gauged(base, rank, kernel_dim, gauge_weight(base, Q0, xi0), degenerate)
             if P0 is None:
                 xi0 = physical_part(base.velocity_map, Q0, xi0, rank)
-    return Q0, xi0, P0, dt, t0.astype(dt.dtype), closes, system
+    return Q0, xi0, P0, dt, t0 if t0.dtype == dt.dtype else t0.astype(dt.dtype), closes, system
 
 
 def _check_maps(system, Q0, xi0, dt) -> bool:
@@ -171,7 +171,8 @@ def _check_maps_once(system, Q0, xi0, dt) -> bool:
     leaves, treedef = jax.tree_util.tree_flatten(system)
     # arrays by shape and dtype (weak types included), anything else (functions) as itself
     avals = tuple(
-        (np.shape(x), jnp.result_type(x)) if is_array(x) or is_traced(x) else x for x in (*leaves, Q0, xi0, dt)
+        (np.shape(x), np.dtype(x.dtype), bool(getattr(x, "weak_type", False))) if is_array(x) or is_traced(x) else x
+        for x in (*leaves, Q0, xi0, dt)
     )
     try:
         key = (treedef, avals)

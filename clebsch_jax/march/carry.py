@@ -33,7 +33,9 @@ class Carry(NamedTuple):
 class Chunk(NamedTuple):
     """The record of a chunk of C steps starting at step n₀: the nodes n₀ … n₀ + C (node
     fields have C + 1 entries; the last is the node after the last step actually made), the
-    step fields (C entries), the nodal velocities and their statistics, and `valid` per node."""
+    step fields (C entries), the nodal velocities and their statistics, and `valid` per node.
+    C is the chunk's length for XLA's chunk (`run_chunk`: the steps not made padded), the steps
+    it made for the native one (`clebsch_jax.march.native_chunk.native_run_chunk`)."""
 
     nodes: Nodes
     stats: NewtonStats

@@ -58,10 +58,16 @@ def first_step_probe(
     by the march's own compiled chunk (`chunk_program`, `run_chunk`: dt is one of its arguments,
     so nothing is compiled for them): the node they reach, to check the first step against
     (`first_step_failed`)."""
-    half = jnp.asarray(np.asarray(dt) / 2)
+    half = np.asarray(np.asarray(dt) / 2)  # a host array: the programs take it as a device one
     _, chunk = chunk_program(stepper, system, carry, half, chunk_steps, np.asarray(2, np.int32), check_energy)
     ok = np.all(np.asarray(chunk.stats.status)[:2] == Status.SUCCESS)
-    return FirstStepProbe(chunk.nodes.nodal_Q[2], chunk.nodes.momentum[2], ok)
+    return FirstStepProbe(_node_2(chunk.nodes.nodal_Q), _node_2(chunk.nodes.momentum), ok)
+
+
+def _node_2(a):
+    """Entry 2 of a chunk's node record, read on the host unless it is traced (indexing a device
+    array is a program of its own)."""
+    return a[2] if isinstance(a, jax.core.Tracer) else np.asarray(a)[2]
 
 
 def first_step_failed(xp, probe: FirstStepProbe, Qs, momenta, status0):

@@ -291,8 +291,12 @@ def integrate(
             # on the host: indexing the device array would compile a slice for each n_steps
             check_first_step(system, sol.method, Q0, xi0, np.asarray(sol.Q)[1])
     if throw:
+        seen = {name: getattr(sol, name) for name in _CHECKED}
+        if not any_traced(seen):  # concrete: read as they are (stop_gradient would dispatch per field)
+            sol.raise_if_failed()
+            return sol
         # under an eager jax.grad/jacfwd the values are known: stop_gradient gives them
-        seen = jax.lax.stop_gradient({name: getattr(sol, name) for name in _CHECKED})
+        seen = jax.lax.stop_gradient(seen)
         if any_traced(seen):
             sol = dataclasses.replace(sol, result=check_traced(sol))
         else:

@@ -7,12 +7,11 @@ size. Here the whole chunk is one call of a kernel compiled with LLVM from one i
 jaxpr (`_stream_body`): the step, and the node it leaves — its configuration and momentum
 (`stepper.nodes`), its nodal velocity from the seed `run_chunk` gives it (`nodal_velocity`), its
 energy — with the carry in registers and every iteration's records stored to the chunk's
-arrays. One more iteration, which makes no step, gives the chunk's last node. The host lays the
-records out as `run_chunk` does (`native_run_chunk`): the steps not made zero, the nodes past the
-last one holding its state, their solves skipped.
+arrays. One more iteration, which makes no step, gives the chunk's last node. The host takes the
+records as the kernel writes them, those of the steps made (`native_run_chunk`).
 
-`native_run_chunk` has `run_chunk`'s signature and results, so `march_chunked` and its
-first-step check (`first_step_probe`) run it in place of the XLA chunk: the same steps, statuses,
+`native_run_chunk` has `run_chunk`'s signature and results (without the padding of a chunk's
+steps not made, which `assemble` drops), so `march_chunked` and its first-step check (`first_step_probe`) run it in place of the XLA chunk: the same steps, statuses,
 Newton statistics and failure handling; the values differ from XLA's only where XLA's own
 transcendental functions or contractions round differently from libm's (the tests compare them
 to 1e-12).
@@ -24,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import threading
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -37,7 +37,7 @@ from .carry import Carry, Chunk, advance_step
 from .energy_check import node_energy
 from .scan import nodal_velocity
 
-__all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program"]
+__all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program", "BoundLoop"]
 
 LANES = 1
 """Lanes of the kernel of one trajectory: a single member in a vector of one lane. Wider
@@ -151,32 +151,30 @@ def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy
     return found, arrays
 
 
-def _steps(a, made: int, length: int):
-    """A step record of `length` entries: the `made` steps, zero after them (`run_chunk`'s)."""
-    out = np.zeros((length,) + a.shape[1:], a.dtype)
-    out[:made] = a[:made]
-    return out
+class BoundLoop(NamedTuple):
+    """The kernel `native_loop` found for a march (`native_chunk_program`) and the host arrays of
+    its system and Δt: the march's chunks and its first-step probe (Δt/2) take them instead of
+    looking the kernel up again, which flattens and hashes the system and the carry each time.
+    The carry they pass is the march's start or the kernel's own, of the shapes it was found for."""
 
+    stepper: AbstractStepper
+    system: object
+    kernel: object
+    arrays: list
+    dt_aval: tuple
+    check_energy: bool
 
-def _node_states(a, made: int, length: int):
-    """A node record of `length + 1` entries read off the states: the nodes up to the last
-    step's (entry `made`), which the entries after it repeat (`run_chunk`'s idle steps hold
-    the last state)."""
-    out = np.empty((length + 1,) + a.shape[1:], a.dtype)
-    out[: made + 1] = a[: made + 1]
-    out[made + 1 :] = a[made]
-    return out
-
-
-def _node_solves(a, made: int, length: int, fill):
-    """A node record of the nodal solves, `length + 1` entries: the nodes the steps made leave,
-    `fill` (a skipped solve's) for the nodes not reached, and the last node's, solved from the
-    last step's velocity, at entry `length` (`run_chunk`'s)."""
-    out = np.empty((length + 1,) + a.shape[1:], a.dtype)
-    out[:made] = a[:made]
-    out[made:length] = fill
-    out[length] = a[made]
-    return out
+    def takes(self, stepper, system, dt, check_energy: bool) -> bool:
+        """Whether a chunk of `stepper` on `system` with this `dt` and energy check runs this
+        kernel: the same stepper and system objects, a Δt array of the shape and dtype it was
+        found for (Δt is the last of `arrays`, after the system's) and the same energy check."""
+        return (
+            stepper is self.stepper
+            and system is self.system
+            and bool(check_energy) == self.check_energy
+            and is_array(dt)
+            and _aval(dt) == self.dt_aval
+        )
 
 
 def native_run_chunk(
@@ -188,12 +186,23 @@ def native_run_chunk(
     n_total,
     check_energy: bool = False,
     max_lines=None,
+    bound: "BoundLoop | None" = None,
 ) -> tuple[Carry, Chunk]:
     """`run_chunk` (concrete values, `exact=False`) as one call of the native kernel
-    (`native_loop`, with its `max_lines`): the steps from `carry.n` up to `n_total` (at most
-    `length`) and the nodes they leave, then the chunk's last node, in one loop; the records
-    laid out as `run_chunk` lays them out (host arrays)."""
-    kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, max_lines)
+    (`native_loop`, with its `max_lines`; or `bound`'s, when it was found for this stepper and
+    system, `BoundLoop.takes`): the steps from `carry.n` up to `n_total` (at most `length`) and
+    the nodes they leave, then the chunk's last node, in one loop (host arrays).
+
+    The records are those of the steps made alone, as the kernel writes them: `made` step
+    entries and `made + 1` node entries, the last the chunk's last node (`run_chunk`'s entry
+    `length`). `run_chunk` pads them to `length` (the steps not made zero, the nodes past the
+    last one repeating it, their solves skipped), which `assemble` cuts off again: every chunk
+    of a run but its last makes `length` steps, and of the last it keeps the steps made and
+    the last node. The first-step check (`first_step_probe`) reads the first two steps."""
+    if bound is not None and bound.takes(stepper, system, dt, check_energy):
+        kernel, arrays = bound.kernel, [*bound.arrays[:-1], np.asarray(dt)]
+    else:
+        kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, max_lines)
     n = int(np.asarray(carry.n))
     made = int(np.clip(int(np.asarray(n_total)) - n, 0, length))
     host = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], carry)
@@ -202,34 +211,23 @@ def native_run_chunk(
         np.asarray([n + made], np.int32),
         (host, np.asarray(carry.xi_last)[None]),
         steps=made + 1,
-        capacity=length + 1,
+        capacity=made + 1,
     )
     last = jax.tree_util.tree_map(lambda a: a[0], last)
     rec = jax.tree_util.tree_map(lambda a: a[0], rec)
-    steps = lambda a: None if a is None else _steps(a, made, length)
-    states = lambda a: None if a is None else _node_states(a, made, length)
+    steps = lambda a: None if a is None else a[:made]  # the iteration after the last step made none
     nodes = Nodes(
-        Q=states(rec["Q"]),
-        p=states(rec["p"]),
+        Q=rec["Q"],
+        p=rec["p"],
         P=steps(rec["P"]),
-        momentum=states(rec["momentum"]),
+        momentum=rec["momentum"],
         xi_step=steps(rec["xi_step"]),
-        nodal_Q=states(rec["nodal_Q"]),
+        nodal_Q=rec["nodal_Q"],
         xi_seed=None,
     )
-    nodal = rec["nodal"]
-    nodal = NewtonStats(
-        iterations=_node_solves(nodal.iterations, made, length, 0),
-        residual_norm=_node_solves(nodal.residual_norm, made, length, np.nan),
-        status=_node_solves(nodal.status, made, length, Status.SKIPPED),
-        jacobians=_node_solves(nodal.jacobians, made, length, 0),
-    )
-    xi = None if rec["xi"] is None else _node_solves(rec["xi"], made, length, np.nan)
-    energy = None if rec["energy"] is None else tuple(_node_solves(e, made, length, np.nan) for e in rec["energy"])
-    valid = _node_solves(rec["valid"], made, length, False)
     xi_last = nodes.xi_step[made - 1] if made > 0 else np.asarray(carry.xi_last)
     stats = NewtonStats(*(steps(x) for x in rec["stats"]))
-    return last._replace(xi_last=xi_last), Chunk(nodes, stats, xi, nodal, valid, energy)
+    return last._replace(xi_last=xi_last), Chunk(nodes, stats, rec["xi"], rec["nodal"], rec["valid"], rec["energy"])
 
 
 def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, backend: str):
@@ -248,8 +246,9 @@ def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, che
     if why is None:
         limit = AUTO_MAX_IR_LINES if backend == "auto" else None
         try:
-            native_loop(stepper, system, carry, dt, check_energy, limit)
-            return functools.partial(native_run_chunk, max_lines=limit)
+            kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, limit)
+            bound = BoundLoop(stepper, system, kernel, arrays, _aval(dt), bool(check_energy))
+            return functools.partial(native_run_chunk, max_lines=limit, bound=bound)
         except Unsupported as err:
             why = f"the native translation does not cover the step: {err}"
     if backend == "native":

@@ -310,4 +310,5 @@ def march_chunked(
         return dataclasses.replace(sol, march_state=carry)
     chunks, startup, dt, t0, probe = jax.tree_util.tree_map(np.asarray, (chunks, startup, dt, t0, probe))
     sol = assemble(np, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe)
-    return dataclasses.replace(jax.device_put(sol), march_state=jax.device_put(carry))
+    sol, carry = jax.device_put((sol, carry))  # one transfer of all the leaves
+    return dataclasses.replace(sol, march_state=carry)

@@ -433,6 +433,9 @@ class Kernel:
                 continue
             if a.shape != (B,) + shape:
                 raise ValueError(f"expected an array of shape {(B,) + shape}, got {a.shape}")
+            if stride == 1:  # one member, one lane: its rows are its entries in order (the kernel only reads them)
+                buffers.append(np.ascontiguousarray(a, storage))
+                continue
             rows = np.empty((size, stride), storage)
             rows[:, :B] = a.reshape(B, size).T
             rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
@@ -441,7 +444,10 @@ class Kernel:
         if self.carries is not None and not 0 <= steps <= capacity:
             raise ValueError(f"a loop kernel of {steps} steps with records for {capacity}")
         outs = [np.empty((size, stride), storage) for _, size, storage in self._outs[:n_carry]]
-        outs += [np.zeros((capacity * size, stride), storage) for _, size, storage in self._outs[n_carry:]]
+        for _, size, storage in self._outs[n_carry:]:  # the rows of the `steps` records are all written
+            rows = np.empty((capacity * size, stride), storage)
+            rows[steps * size :] = 0
+            outs.append(rows)
         pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[x.ctypes.data for x in buffers + outs])
         address = ctypes.addressof(pointers)
         loop = () if self.carries is None else (int(steps),)
@@ -455,9 +461,11 @@ class Kernel:
                 list(pool.map(call, range(threads)))
         result = []
         for j, (rows, (shape, size, _), dtype) in enumerate(zip(outs, self._outs, self.out_dtypes)):
-            if j < n_carry:
+            if stride == 1:  # the rows in order are the member's entries, record after record
+                r = rows.reshape(((1,) if j < n_carry else (1, capacity)) + shape)
+            elif j < n_carry:
                 r = rows[:, :B].T.reshape((B,) + shape)
             else:  # (capacity·size, stride) -> (B, capacity, *shape)
-                r = np.moveaxis(rows[:, :B].reshape(capacity, size, B), -1, 0).reshape((B, capacity) + shape)
+                r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
             result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))
         return result
