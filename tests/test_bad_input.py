@@ -425,3 +425,14 @@ def test_python_numbers_kept_on_the_device_are_their_own_values():
         positive_scalar(-0.1, "dt")
     with pytest.raises(ValueError, match="t0: contains non-finite"):
         run(dt=0.1, t0=float("nan"))
+
+
+def test_a_python_number_first_converted_inside_a_trace_is_not_kept():
+    """A Python number first met inside a trace (a caller's jax.jit closing over dt) becomes a
+    tracer there; kept, it would leak into later calls, which would take it for traced input
+    and skip the checks made on values (the first-step check, the guidance warnings)."""
+    from clebsch_jax.core.validation import float_array, is_traced
+
+    value = 0.012345678901234  # a number no other test converts
+    jax.jit(lambda x: x * float_array(value, "dt"))(1.0)
+    assert not is_traced(float_array(value, "dt"))

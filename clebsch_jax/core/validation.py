@@ -122,13 +122,17 @@ _SCALARS_MAX = 64
 
 def _device_scalar(x, dtype, host: np.ndarray) -> jax.Array:
     """`jnp.asarray(host)` for the Python number `x` (`host`: it as a NumPy array of `dtype`), kept
-    in `_SCALARS` under its exact value (`float.hex`: -0.0 is not 0.0)."""
+    in `_SCALARS` under its exact value (`float.hex`: -0.0 is not 0.0), unless it was made inside a
+    trace: a tracer kept would leak into later calls, which would then take it for traced input."""
     key = (type(x), x.hex() if isinstance(x, float) else x, np.dtype(dtype))
     found = _SCALARS.get(key)
     if found is None:
+        found = jnp.asarray(host)
+        if is_traced(found):  # made inside a trace (a jit of the caller's): a tracer, never kept
+            return found
         if len(_SCALARS) >= _SCALARS_MAX:
             _SCALARS.clear()
-        found = _SCALARS[key] = jnp.asarray(host)
+        _SCALARS[key] = found
     return found
 
 
