@@ -148,6 +148,7 @@ def test_expm_matches_scipy_and_jax_scipy_derivatives():
         np.testing.assert_allclose(jax.jit(d(cj.lie.expm))(X), jax.jit(d(jax.scipy.linalg.expm))(X), rtol=0, atol=1e-14)
 
 
+@pytest.mark.slow  # vmap over parameters, compiled per case; vmap of integrate is covered by test_batch and test_silent_failures
 @pytest.mark.parametrize("reduce", [False, True])
 def test_vmap_over_parameters_and_initial_data_matches_single_runs(reduce):
     """A member's trajectory is the same whether run alone or inside a vmapped batch."""

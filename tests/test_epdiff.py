@@ -470,6 +470,7 @@ def test_vmap_peakons_over_width_and_initial_data_with_one_failing_member():
     assert np.max(np.abs(np.asarray(other.Q) - np.asarray(batch.Q[0]))) > 1e-2
 
 
+@pytest.mark.slow  # landmark marches under vmap, compiled apart
 def test_vmap_landmarks_over_width_and_initial_data():
     widths = np.array([0.5, LANDMARK_WIDTH, 1.0, 1.2])
     rng = np.random.default_rng(7)

@@ -170,6 +170,7 @@ def test_engine_closure_check_reduces_without_a_basis():
     assert np.max(np.abs(mu0 - models.euler_sphere_real_form(W))) < 1e-13
 
 
+@pytest.mark.slow  # reverse-mode gradients and forward-over-reverse Hessians of the fluid's Lagrangian, each compiled
 def test_lagrangian_gradient_is_the_symmetric_operator_and_agrees_with_autodiff():
     """l's derivative is stated (∇l = ħKξ, K symmetric): it agrees to round-off with reverse
     mode through the quadratic form ½ħ⟨ξ, Kξ⟩ written out here, and its Hessian (forward over

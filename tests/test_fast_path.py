@@ -78,6 +78,7 @@ def test_forced_fallback_large_dt_gives_the_general_answer(monkeypatch):
         np.testing.assert_allclose(res.final_momentum[m], mu, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow  # the fast path's failure report, compiled apart (the sweep's failure reports stay in test_sweep_checks)
 def test_failing_member_reported_with_step_and_member():
     omegas = OMEGAS.copy()
     omegas[2] = np.nan  # member 2 is invalid input, reported at step 0; the others are unaffected

@@ -24,6 +24,7 @@ def _same(a, b):
     assert (a.form, a.scheme, a.order, a.method) == (b.form, b.scheme, b.order, b.method)
 
 
+@pytest.mark.slow  # a march per method; the defaults' choice is checked by test_defaults
 @pytest.mark.parametrize(
     "options, method",
     [

@@ -459,6 +459,7 @@ def test_a_sweep_compiles_only_its_programs():
     assert set(compiled) <= {"jit(run_chunk)", "jit(stage)"}, compiled
 
 
+@pytest.mark.slow  # two sweeps on XLA's path, compiled for this test
 def test_a_repeated_sweep_traces_its_member_once(monkeypatch):
     """The probe of a member's shapes (a trace of `integrate`) depends only on one member's
     shapes and dtypes and the sweep's options: a second sweep reuses it (with other values,

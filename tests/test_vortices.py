@@ -200,6 +200,7 @@ def _random_vortices(n, seed):
     return gamma, rng.normal(size=(n, 2)) * np.sqrt(n)
 
 
+@pytest.mark.slow  # dense and block Newton marches of a cluster, both compiled
 def test_block_jacobian_gives_the_dense_newton_trajectory():
     gamma, Q0 = _random_vortices(8, 11)
     dense = _run(gamma, Q0, 0.01, 100)
