@@ -78,6 +78,11 @@ def _nan_unless(ok, tree):
     )
 
 
+def _where(cond, a, b):
+    """`jnp.where(cond, a, b)` leaf by leaf over two pytrees of one structure."""
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(cond, x, y), a, b)
+
+
 def _node(system, finder, Q, mu, seed, ok):
     """A node's velocity, whether it is known, its energy and the energy's size: the velocity
     solved from Lemma 7's relation from `seed` (NaN where not `ok`), or evaluated by the
@@ -252,15 +257,13 @@ def member_chunk(
         state, memory, red, probe = c
         in_probe = j < probes
         restart = j == probes
-        pick = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(restart, x, y), a, b)  # noqa: E731
-        state_prev, memory = pick(state0, state), pick(memory0, memory)
+        state_prev, memory = _where(restart, state0, state), _where(restart, memory0, memory)
         alive = jnp.where(in_probe, probe[2], red["alive"])
         k = j - probes
         step_dt, index = jnp.where(in_probe, dt / 2, dt), jnp.where(in_probe, j, steps0 + k)
         stepped = stepper.step(system, state_prev, memory, step_dt, index, alive)
         state, memory, new, node = reduce(k, state_prev, red, alive, stepped)
-        keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(in_probe, x, y), a, b)  # noqa: E731
-        return state, memory, keep(red, new), keep(node, probe)
+        return state, memory, _where(in_probe, red, new), _where(in_probe, node, probe)
 
     if probes is None:
         state, memory, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
