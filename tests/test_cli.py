@@ -357,7 +357,7 @@ def test_quick_demo(demo):
 
 
 @pytest.mark.slow  # the quick demo runs every scene (CI also runs the full demo)
-def test_quick_demo_runs_every_scene_into_a_subfolder(demo):
+def test_quick_demo_runs_every_scene_into_a_subfolder(demo, tmp_path):
     code, printed, err, out = demo
     assert code == 0, err
     table = printed[printed.index("Built-in scenes") :].splitlines()
@@ -370,19 +370,22 @@ def test_quick_demo_runs_every_scene_into_a_subfolder(demo):
         assert summary["run"]["n_steps"] == scene.quick_steps and summary["scene"]["members"] == scene.quick_batch
         assert _png_ok(out / name / f"{name}.png")
         assert f"{summary['errors']['energy_rel_max']:.2e}" in rows[name]
+        # `run` of the scene repeats the demo's run (same data, same compiled program).
+        assert _run_quick(name, tmp_path / name) == 0
+        assert json.loads((tmp_path / name / "summary.json").read_text())["errors"] == summary["errors"]
 
 
 def test_demo_only_one_scene(tmp_path, capsys):
     out = tmp_path / "only"
-    assert main(["demo", "--only", "peakons", "--out", str(out)]) == 0
+    assert main(["demo", "--only", "rigid-body", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "Figure 1" not in printed and not (out / "summary.json").exists()
     rows = printed[printed.index("Built-in scenes") :].splitlines()[2:]
-    assert [r.split()[0] for r in rows] == ["peakons"]
-    assert sorted(p.name for p in out.iterdir()) == ["peakons"]
-    assert _png_ok(out / "peakons" / "peakons.png")
-    summary = json.loads((out / "peakons" / "summary.json").read_text())
-    assert summary["run"]["n_steps"] == SCENES["peakons"].quick_steps  # the demo's short run
+    assert [r.split()[0] for r in rows] == ["rigid-body"]
+    assert sorted(p.name for p in out.iterdir()) == ["rigid-body"]
+    assert _png_ok(out / "rigid-body" / "rigid-body.png")
+    summary = json.loads((out / "rigid-body" / "summary.json").read_text())
+    assert summary["run"]["n_steps"] == SCENES["rigid-body"].quick_steps  # the demo's short run
 
 
 # --------------------------------------------------------------------------------------------
@@ -437,26 +440,21 @@ def _independent_invariants(name, setup, sol):
     raise AssertionError(name)
 
 
-@pytest.mark.parametrize("name", list(SCENES))
-def test_run_scene_writes_files_and_its_json_matches_the_solution(name, demo, tmp_path, capsys):
+# Peakons and landmarks compile the largest scene programs: slow-marked (CI runs them).
+RUN_CASES = [pytest.param(n, marks=pytest.mark.slow) if n in ("peakons", "landmarks") else n for n in SCENES]
+
+
+def _run_quick(name, out):
+    scene = SCENES[name]
+    argv = ["run", name, "--steps", str(scene.quick_steps), "--batch", str(scene.quick_batch), "--out", str(out)]
+    return main([*argv, "--quiet"])
+
+
+@pytest.mark.parametrize("name", RUN_CASES)
+def test_run_scene_writes_files_and_its_json_matches_the_solution(name, tmp_path, capsys):
     scene = SCENES[name]
     out = tmp_path / name
-    assert (
-        main(
-            [
-                "run",
-                name,
-                "--steps",
-                str(scene.quick_steps),
-                "--batch",
-                str(scene.quick_batch),
-                "--out",
-                str(out),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert _run_quick(name, out) == 0
     captured = capsys.readouterr()
     assert captured.err == ""  # --quiet: no bar, no status line
     for row in (
@@ -515,11 +513,6 @@ def test_run_scene_writes_files_and_its_json_matches_the_solution(name, demo, tm
             np.testing.assert_allclose(np.asarray(sol.momentum[b, 0]), p_ex[0], rtol=1e-13)  # P0 given
         np.testing.assert_allclose(summary["reference"]["per_member"], err, rtol=1e-9)
         assert summary["errors"]["reference_max"] < 1e-4  # second order at dt = 0.02 over t = 6
-
-    # The run repeats the demo's run of this scene (same data, same compiled program).
-    _, _, _, demo_out = demo
-    demo_summary = json.loads((demo_out / name / "summary.json").read_text())
-    assert demo_summary["errors"] == summary["errors"]
 
 
 def test_failing_member_is_reported_with_its_step_and_exit_1(tmp_path, capsys):
