@@ -11,6 +11,7 @@ called again with a new `n_steps`, `dt` or model parameters (a count, not a time
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -368,6 +369,19 @@ def check_defaults(summary: dict) -> None:
     assert all(t["met"] in (True, False) for t in targets.values())
 
 
+def check_scale_out(summary: dict) -> None:
+    assert summary["config"]["worker_env"]["OMP_NUM_THREADS"] == "1"
+    (row,) = summary["results"]
+    assert row["n_batches"] == -(-row["members"] // row["batch_size"]) >= 2
+    for n in (1, 2):
+        entry = row[f"workers_{n}"]
+        assert _positive_finite(entry["per_sweep_s"]) and _positive_finite(entry["member_steps_per_second"])
+        assert entry["samples_s"] and all(_positive_finite(s) for s in entry["samples_s"])
+    q = row["scaling"]
+    assert 0 < q["min"] <= q["median"] <= q["max"]
+    assert row["stores_identical"] is True  # the same sweep on one worker or two: the same bits
+
+
 def check_sweep_scaling(summary: dict) -> None:
     methods = ("in_process", "in_process_zarr", "cluster_zarr", "cluster")
     assert summary["config"]["methods"] == list(methods)
@@ -445,6 +459,7 @@ CHECKS = {
     "soak": check_soak,
     "defaults": check_defaults,
     "sweep_scaling": check_sweep_scaling,
+    "scale_out": check_scale_out,
     "euler_sphere": check_euler_sphere,
     "complex_products": check_complex_products,
     "native": check_native,
@@ -465,9 +480,11 @@ def test_benchmark_quick(name, tmp_path):
     script, extra = SCRIPTS.get(name, (name, []))
     if script == "work_precision":  # diffrax is a benchmark peer only: the optional extra [bench]
         pytest.importorskip("diffrax", reason="work_precision needs diffrax: pip install -e '.[bench]'")
-    if name == "sweep_scaling":  # Dask and Zarr are the optional extra [sweep]
-        pytest.importorskip("distributed", reason="sweep_scaling needs dask.distributed: pip install -e '.[sweep]'")
-        pytest.importorskip("zarr", reason="sweep_scaling needs zarr: pip install -e '.[sweep]'")
+    if name in ("sweep_scaling", "scale_out"):  # Dask and Zarr are the optional extra [sweep]
+        pytest.importorskip("distributed", reason=f"{name} needs dask.distributed: pip install -e '.[sweep]'")
+        pytest.importorskip("zarr", reason=f"{name} needs zarr: pip install -e '.[sweep]'")
+    if name == "scale_out" and shutil.which("taskset") is None:
+        pytest.skip("scale_out pins workers with Linux's taskset")
     subprocess.run(
         [sys.executable, str(BENCHMARKS / f"{script}.py"), "--quick", *extra, "--out", str(tmp_path), "--timeout", "0"],
         check=True,

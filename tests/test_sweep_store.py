@@ -786,3 +786,16 @@ def test_the_command_line_on_local_workers_stops_on_ctrl_c_and_resumes(tmp_path)
         rigid_body, INERTIAS, EYES, OMEGAS, invariants={"body_momentum": cj.diagnostics.body_momentum}, **long
     )
     assert_same_table(cj.open_sweep(path), whole)
+
+
+def test_sweep_workers_get_one_xla_and_one_blas_thread():
+    """`worker_environment`: a one-thread Dask worker's XLA runs on one intra-op thread and BLAS on
+    one thread; the user's own XLA flags and thread counts are kept."""
+    from clebsch_jax.batching.distributed import SINGLE_THREAD_XLA_FLAGS, worker_environment
+
+    env = worker_environment({"XLA_FLAGS": "--xla_dump_to=somewhere", "OMP_NUM_THREADS": "3", "PATH": "p"})
+    assert env["XLA_FLAGS"] == f"--xla_dump_to=somewhere {SINGLE_THREAD_XLA_FLAGS}"
+    assert env["OMP_NUM_THREADS"] == "3" and env["OPENBLAS_NUM_THREADS"] == env["MKL_NUM_THREADS"] == "1"
+    assert env["PATH"] == "p"
+    assert worker_environment(env) == env  # the flags are not added twice
+    assert worker_environment({})["XLA_FLAGS"] == SINGLE_THREAD_XLA_FLAGS

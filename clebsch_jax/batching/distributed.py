@@ -33,9 +33,30 @@ from .schedule import Plan, run_batches
 from .store import open_group, store_name, write_rows, zarr_module
 from .tables import SweepProgress
 
-__all__ = ["run_on_client", "check_client"]
+__all__ = ["run_on_client", "check_client", "worker_environment", "SINGLE_THREAD_XLA_FLAGS"]
 
 _PLANS: dict = {}  # token -> (cfg, shapes, run, batch_size), per worker: one static configuration per sweep
+
+
+SINGLE_THREAD_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+"""XLA's CPU flags for one intra-op thread: a sweep's task runs its batch on one host thread
+(`threads=1`), so a worker with one Dask thread should not start XLA threads on other cores."""
+
+
+def worker_environment(environ=None) -> dict:
+    """The environment of a single-threaded sweep worker: `environ` (default `os.environ`) with
+    XLA's CPU work on one thread (`SINGLE_THREAD_XLA_FLAGS` added to `XLA_FLAGS`) and one
+    OpenMP/BLAS thread. `clebsch-jax sweep --workers N` starts its local workers with it; for a
+    deployment of your own, start each `dask worker --nthreads 1` in it (the sweeps how-to)."""
+    import os
+
+    env = dict(os.environ if environ is None else environ)
+    flags = env.get("XLA_FLAGS", "")
+    if "intra_op_parallelism_threads" not in flags:
+        env["XLA_FLAGS"] = f"{flags} {SINGLE_THREAD_XLA_FLAGS}".strip()
+    for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        env.setdefault(name, "1")
+    return env
 
 
 def _batch_members(members, b: int, batch_size: int):

@@ -295,8 +295,12 @@ def run(args) -> int:
             if args.scheduler:
                 client = distributed.Client(args.scheduler)
             else:
+                from ..batching.distributed import worker_environment
+
+                # one XLA and BLAS thread per one-thread worker (the user's own XLA_FLAGS kept)
+                single = {k: v for k, v in worker_environment().items() if os.environ.get(k) != v}
                 cluster = distributed.LocalCluster(
-                    n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=None
+                    n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=None, env=single
                 )
                 client = distributed.Client(cluster)
         where = (
