@@ -190,7 +190,7 @@ def _row_plan(eqn, n: int):
         if 0 not in dims and len(shapes) == 1:
             return dict(p, shape=tuple(p["shape"][1:]), broadcast_dimensions=tuple(d - 1 for d in dims)), [False]
         return None
-    if not lead[0] or any(lead[1:]) and name not in ("concatenate", "dot_general"):
+    if not lead[0] or (any(lead[1:]) and name not in ("concatenate", "dot_general")):
         return None
     if name == "reshape" and p.get("dimensions") is None and p["new_sizes"][0] == n:
         return dict(p, new_sizes=tuple(p["new_sizes"][1:])), lead
@@ -210,11 +210,13 @@ def _row_plan(eqn, n: int):
         return dict(p, axes=tuple(a - 1 for a in p["axes"])), lead
     if name in ("cumsum", "cumprod", "cummax", "cummin", "cumlogsumexp") and p["axis"] != 0:
         return dict(p, axis=p["axis"] - 1), lead
-    if name == "dot_general" and all(lead):
+    if name == "dot_general":
         (lc, rc), (lb, rb) = p["dimension_numbers"]
-        if lb and rb and lb[0] == 0 and rb[0] == 0:
-            sub = lambda ds: tuple(d - 1 for d in ds)
+        sub = lambda ds: tuple(d - 1 for d in ds)
+        if all(lead) and lb and rb and lb[0] == 0 and rb[0] == 0:  # batched over the rows
             return dict(p, dimension_numbers=((sub(lc), sub(rc)), (sub(lb[1:]), sub(rb[1:])))), lead
+        if not lb and not rb and 0 not in lc:  # the rows a free axis of the left operand, the right one whole
+            return dict(p, dimension_numbers=((sub(lc), tuple(rc)), ((), ()))), [True, False]
     return None
 
 
