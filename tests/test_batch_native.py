@@ -22,7 +22,7 @@ import pytest
 
 import clebsch_jax as cj
 from clebsch_jax import models, native
-from clebsch_jax.batching import batch_native, prune
+from clebsch_jax.batching import batch_last, batch_native, prune
 from clebsch_jax.native import NativeFallbackWarning
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="llvmlite cannot be imported")
@@ -93,6 +93,18 @@ def test_the_native_batch_equals_xla_on_every_leaf_of_the_solution(fast_runs, xl
     # the failing members: the same statuses and steps
     np.testing.assert_array_equal(np.asarray(fast.result), np.asarray(xla.result))
     np.testing.assert_array_equal(np.asarray(fast.failed_step), np.asarray(xla.failed_step))
+
+
+def test_a_second_call_traces_nothing_and_checks_new_values(monkeypatch):
+    traces = []
+    trace = batch_last._trace
+    monkeypatch.setattr(batch_last, "_trace", lambda *a, **k: traces.append(1) or trace(*a, **k))
+    march = cj.batch(_march, backend="native")
+    march(Q0, XI0, DTS)
+    march(Q0, 1.1 * XI0, DTS)  # new values: the kept trace
+    assert len(traces) <= 1
+    with pytest.raises(ValueError, match="member 0 is rejected by integrate's checks"):
+        march(Q0.at[0].multiply(2.0), XI0, DTS)  # not a rotation: checked, not taken as seen
 
 
 def _throwing(xi0, dt):

@@ -144,8 +144,15 @@ def traced_once(key, trace):
     """`trace()` (a concrete call's trace of one member, with what its checks need) computed
     once per `key` (`member_key`) and kept: a concrete call of a batch again with new values
     traces nothing. The value is a list, to which the caller may add (the first members
-    already checked)."""
-    return compiled_once(_TRACES, _TRACES_LOCK, _KERNELS_MAX, key, lambda: [trace(), set()])
+    already checked). A trace holding a value traced by an enclosing transformation (a
+    function that closes over one) is not kept."""
+    from ..core.validation import is_traced
+
+    found = compiled_once(_TRACES, _TRACES_LOCK, _KERNELS_MAX, key, lambda: [trace(), set()])
+    if any(is_traced(c) for c in found[0][0].consts):
+        with _TRACES_LOCK:
+            _TRACES.pop(key, None)
+    return found
 
 
 def _compile(flat_fun, member: list, axes: list, limit) -> NativeBatch:
