@@ -33,7 +33,7 @@ from .values import Emitter, is_known, llvm_type
 
 __all__ = ["ROWS_MIN", "Rows", "wants_rows", "apply", "row_at", "memory", "store_row", "materialize", "loop"]
 
-ROWS_MIN = 64
+ROWS_MIN = 32
 """The shortest leading axis held as `Rows` (and the shortest scan that turns them on)."""
 
 _ROWWISE = set(ELEMENTWISE) | {"select_n", "convert_element_type", "clamp", "erf_inv", "nextafter"}
