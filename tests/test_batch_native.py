@@ -321,3 +321,30 @@ def test_a_long_native_march_equals_xla(long_run):
             continue
         atol = 1e-12 if "residual_norm" in name else 1e-12 * np.nanmax(np.abs(b))
         np.testing.assert_allclose(a, b, rtol=0, atol=atol, equal_nan=True, err_msg=name)
+
+
+def _rows_program(x, k, n=200):
+    """A scan of n steps and what is computed from its records along their long axis: rows
+    (elementwise, broadcasts, contractions, slices, concatenations, reductions over and along
+    the axis, a row at a run-time index) in loops."""
+    ys = jax.lax.scan(lambda c, _: (jnp.sin(c) + 0.1 * c[::-1], (c, jnp.sum(c * c))), x, None, length=n)[1]
+    rows, sq = ys
+    t = jnp.arange(n + 1.0)[:, None]
+    shifted = jnp.concatenate([rows[:1], rows[1:] - rows[:-1], x[None]])  # (201, 3)
+    sq1 = jnp.concatenate([sq, sq[-1:]])
+    w = jnp.where(sq1[:, None] > 0.5, shifted * t, -shifted) @ jnp.array([1.0, -2.0, 0.5])
+    first = jnp.argmax(sq > 1.0)
+    return w, jnp.cumsum(rows, axis=1), jnp.max(sq), jnp.sum(w), rows[k], first, jnp.any(jnp.isnan(w))
+
+
+def test_long_arrays_are_rows_in_loops_and_equal_vmap():
+    x = jnp.asarray(np.random.default_rng(3).normal(size=(6, 3)))
+    k = jnp.asarray([0, 5, 199, 250, -3, 17])  # out of range: clamped, as XLA does
+    out = _no_fallback(lambda: cj.batch(_rows_program, backend="native")(x, k))
+    ref = jax.vmap(_rows_program)(x, k)
+    for a, b in zip(out, ref):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-13)
+    from clebsch_jax.native.kernel import build_ir
+
+    lines = lambda n: build_ir(jax.make_jaxpr(lambda a, b: _rows_program(a, b, n))(x[0], k[0]), 4).count("\n")
+    assert lines(200) == lines(2000)  # no row written out

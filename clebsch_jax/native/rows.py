@@ -178,8 +178,9 @@ def _row_plan(eqn, n: int):
     out = tuple(eqn.outvars[0].aval.shape) if len(eqn.outvars) == 1 else None
     if out is None or not out or out[0] != n:
         return None
-    if name in _ROWWISE:  # operands of the output's shape, or of one row broadcast along the axis
-        if any(len(s) > 0 and s != out and s != (1,) + out[1:] for s in shapes):
+    if name in _ROWWISE:  # operands of the output's shape, or broadcast to it along axes of size 1
+        fits = lambda s: len(s) == len(out) and s[0] in (1, n) and all(a in (1, b) for a, b in zip(s[1:], out[1:]))
+        if any(len(s) > 0 and not fits(s) for s in shapes):
             return None
         return dict(p), [True if len(s) > 0 and s[0] == n else "one" if len(s) > 0 else False for s in shapes]
     if name == "broadcast_in_dim":
