@@ -16,8 +16,9 @@ A second part (`"part": "batch"` rows): `cj.batch` of the same march over member
 differ a little, called on concrete arrays with `backend="native"` (one native kernel call for
 all members, `clebsch_jax.batching.batch_native`) against `jax.jit(cj.batch(...,
 backend="xla"))` (the batch-last evaluation compiled by XLA); seconds per member-step after
-the first call, and the first call's (compile) time. The march is short: the kernel of
-`integrate`'s traced march grows with its number of steps.
+the first call, and the first call's (compile) time: many members on a short march, and long
+marches (the kernel of `integrate`'s traced march does not grow with its number of steps:
+`clebsch_jax.native.rows`). `--batch-only` runs this part alone.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ DT = 0.01
 TOP = cj.models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5)
 Q0, XI0 = cj.lie.so3_exp(jnp.array([0.5, 0.0, 0.0])), jnp.array([0.3, -0.2, 2.0])
 BACKENDS = ("native", "xla")
-BATCH_CASES = ((1_000, 30),)  # (members, steps)
+BATCH_CASES = ((1_000, 30), (64, 1_000), (1_024, 200))  # (members, steps)
 QUICK_BATCH_CASES = ((8, 5),)
 
 
@@ -105,7 +106,7 @@ def _timed(row: dict, timings: dict, steps: int) -> dict:
 def print_report(summary: dict) -> None:
     harness.print_header(
         summary,
-        f"integrate on the heavy top ({_trajectories(summary)[0]['method']}), dt = {DT}",
+        f"integrate on the heavy top ({summary['results'][0]['method']}), dt = {DT}",
         "native: backend='native' (one loop kernel per chunk); xla: backend='xla' (XLA's chunk)",
     )
     head = (
@@ -157,8 +158,11 @@ def plot(summary: dict, path: Path) -> None:
 
 
 def main(argv=None) -> dict:
-    with harness.Run(RESULTS_NAME, argv, description=__doc__.splitlines()[0]) as run:
-        rows = run.measure(DEFAULT_CASES, QUICK_CASES, lambda n: f"{n} steps", lambda n: case(n, run))
+    only = lambda parser: parser.add_argument("--batch-only", action="store_true", help="the cj.batch part alone")
+    with harness.Run(RESULTS_NAME, argv, description=__doc__.splitlines()[0], add_arguments=only) as run:
+        rows = []
+        if not run.args.batch_only:
+            rows += run.measure(DEFAULT_CASES, QUICK_CASES, lambda n: f"{n} steps", lambda n: case(n, run))
         rows += run.measure(
             BATCH_CASES, QUICK_BATCH_CASES, lambda b, n: f"batch of {b} x {n} steps", lambda b, n: batch_case(b, n, run)
         )

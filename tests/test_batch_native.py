@@ -22,7 +22,7 @@ import pytest
 
 import clebsch_jax as cj
 from clebsch_jax import models, native
-from clebsch_jax.batching import batch_native, prune
+from clebsch_jax.batching import batch_last, batch_native, prune
 from clebsch_jax.native import NativeFallbackWarning
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="llvmlite cannot be imported")
@@ -93,6 +93,18 @@ def test_the_native_batch_equals_xla_on_every_leaf_of_the_solution(fast_runs, xl
     # the failing members: the same statuses and steps
     np.testing.assert_array_equal(np.asarray(fast.result), np.asarray(xla.result))
     np.testing.assert_array_equal(np.asarray(fast.failed_step), np.asarray(xla.failed_step))
+
+
+def test_a_second_call_traces_nothing_and_checks_new_values(monkeypatch):
+    traces = []
+    trace = batch_last._trace
+    monkeypatch.setattr(batch_last, "_trace", lambda *a, **k: traces.append(1) or trace(*a, **k))
+    march = cj.batch(_march, backend="native")
+    march(Q0, XI0, DTS)
+    march(Q0, 1.1 * XI0, DTS)  # new values: the kept trace
+    assert len(traces) <= 1
+    with pytest.raises(ValueError, match="member 0 is rejected by integrate's checks"):
+        march(Q0.at[0].multiply(2.0), XI0, DTS)  # not a rotation: checked, not taken as seen
 
 
 def _throwing(xi0, dt):
@@ -245,3 +257,94 @@ def test_the_kernel_is_compiled_without_what_the_outputs_do_not_need():
     assert "tanh" not in names(kept) and "jit" not in names(kept)  # entered, the unused output dropped
     out = _no_fallback(lambda: cj.batch(_partly_used, backend="native")(x))  # within the limits
     np.testing.assert_allclose(np.asarray(out), np.asarray(jax.vmap(_partly_used)(x)), rtol=1e-14)
+
+
+# Long marches: the records of the march's scan and what the Solution computes from them are
+# held as rows in memory and computed in loops (`clebsch_jax.native.rows`): the kernel's size
+# does not depend on n_steps.
+
+N_LONG = 600
+DTS_LONG = jnp.asarray([0.05, 0.03, 0.05, -0.05, 0.04])  # member 2: NaN ξ⁰, member 3: dt <= 0
+
+
+def _long_march(Q0, xi0, dt):
+    return cj.integrate(BODY, Q0, xi0, dt=dt, n_steps=N_LONG, throw=False)
+
+
+def _kernel_lines(n_steps: int) -> int:
+    """Lines of LLVM IR of cj.batch's kernel of the rigid body's march of `n_steps` steps (its
+    member program as `batch_native` prunes it; emitted, not compiled)."""
+    from clebsch_jax.march.integrate import caller_backend
+    from clebsch_jax.native.kernel import build_ir
+
+    def member(Q0, xi0):
+        with caller_backend():
+            return jax.tree_util.tree_leaves(cj.integrate(BODY, Q0, xi0, dt=0.05, n_steps=n_steps, throw=False))
+
+    closed = jax.make_jaxpr(member)(Q0[0], XI0[0])
+    return build_ir(jax.make_jaxpr(prune.pruned(closed))(Q0[0], XI0[0]), 4).count("\n")
+
+
+def test_the_kernel_of_a_long_march_does_not_grow_with_its_steps():
+    lines = _kernel_lines(100)
+    assert _kernel_lines(2000) == lines
+    assert lines < native.AUTO_MAX_IR_LINES
+
+
+@pytest.fixture(scope="module")
+def long_run():
+    """A native run of 600 steps under "auto": no warning, no fallback."""
+    return _no_fallback(lambda: cj.batch(_long_march)(Q0, XI0, DTS_LONG))
+
+
+def test_a_long_march_runs_natively_under_auto(long_run):
+    sol = long_run
+    assert np.asarray(sol.Q).shape == (B, N_LONG + 1, 3, 3)
+    result = np.asarray(sol.result)
+    assert result[2] == cj.Status.INVALID_INPUT and result[3] == cj.Status.INVALID_INPUT
+    assert np.all(result[[0, 1, 4]] == cj.Status.SUCCESS)
+    np.testing.assert_array_equal(np.asarray(sol.ts)[0, [0, -1]], [0.0, 0.05 * N_LONG])
+    C = np.sum(np.asarray(sol.momentum)[[0, 1, 4]] ** 2, axis=-1)  # |μ|² of the rigid body
+    assert np.max(np.abs(C - C[:, :1])) < 1e-12 * np.max(C)
+
+
+@pytest.mark.slow  # the interpreter's program of the march compiles in XLA for over 10 s
+def test_a_long_native_march_equals_xla(long_run):
+    xla = _no_fallback(lambda: cj.batch(_long_march, backend="xla")(Q0, XI0, DTS_LONG))
+    for (name, a), (_, b) in zip(_leaves(long_run), _leaves(xla)):
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        if a.dtype.kind != "f":  # statuses, iterations, failed steps, valid nodes: exactly
+            np.testing.assert_array_equal(a, b, err_msg=name)
+            continue
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
+        if np.all(np.isnan(b)):
+            continue
+        atol = 1e-12 if "residual_norm" in name else 1e-12 * np.nanmax(np.abs(b))
+        np.testing.assert_allclose(a, b, rtol=0, atol=atol, equal_nan=True, err_msg=name)
+
+
+def _rows_program(x, k, n=200):
+    """A scan of n steps and what is computed from its records along their long axis: rows
+    (elementwise, broadcasts, contractions, slices, concatenations, reductions over and along
+    the axis, a row at a run-time index) in loops."""
+    ys = jax.lax.scan(lambda c, _: (jnp.sin(c) + 0.1 * c[::-1], (c, jnp.sum(c * c))), x, None, length=n)[1]
+    rows, sq = ys
+    t = jnp.arange(n + 1.0)[:, None]
+    shifted = jnp.concatenate([rows[:1], rows[1:] - rows[:-1], x[None]])  # (201, 3)
+    sq1 = jnp.concatenate([sq, sq[-1:]])
+    w = jnp.where(sq1[:, None] > 0.5, shifted * t, -shifted) @ jnp.array([1.0, -2.0, 0.5])
+    first = jnp.argmax(sq > 1.0)
+    return w, jnp.cumsum(rows, axis=1), jnp.max(sq), jnp.sum(w), rows[k], first, jnp.any(jnp.isnan(w))
+
+
+def test_long_arrays_are_rows_in_loops_and_equal_vmap():
+    x = jnp.asarray(np.random.default_rng(3).normal(size=(6, 3)))
+    k = jnp.asarray([0, 5, 199, 250, -3, 17])  # out of range: clamped, as XLA does
+    out = _no_fallback(lambda: cj.batch(_rows_program, backend="native")(x, k))
+    ref = jax.vmap(_rows_program)(x, k)
+    for a, b in zip(out, ref):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-13)
+    from clebsch_jax.native.kernel import build_ir
+
+    lines = lambda n: build_ir(jax.make_jaxpr(lambda a, b: _rows_program(a, b, n))(x[0], k[0]), 4).count("\n")
+    assert lines(200) == lines(2000)  # no row written out

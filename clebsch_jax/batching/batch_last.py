@@ -48,7 +48,7 @@ from ..core.validation import check_memory, is_traced
 from ..march.integrate import caller_backend, check_member, recording_calls
 from ..march.solution import member_offset, raised_in_callback
 from ..native import check_backend
-from .batch_native import native_program, wants_native
+from .batch_native import member_key, native_program, traced_once, wants_native
 from .rules import batch_members, bind, eval_closed, flat_axes, to_batched
 
 __all__ = ["batch"]
@@ -158,8 +158,13 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK, backen
 
         traced = any(is_traced(x) for x in leaves)
         native = wants_native(backend, traced)
+        trace = lambda: _trace(flat_fun, member, record=not traced)
+        checked = None  # first members' check values already checked (concrete calls)
         with caller_backend():  # integrate's calls in fun run on batch's backend: they say nothing of their own
-            closed, out_shapes, calls = _trace(flat_fun, member, record=not traced)
+            if traced:
+                closed, out_shapes, calls = trace()
+            else:  # a concrete call: the trace depends on the function and the shapes alone
+                (closed, out_shapes, calls), checked = traced_once(member_key(fun, tree, member, axes), trace)
         out_tree = jax.tree_util.tree_structure(out_shapes)
         n_out = out_tree.num_leaves
         c = B if chunk is None else min(chunk, B)
@@ -167,7 +172,7 @@ def batch(fun: Callable, in_axes=0, *, chunk: int | None = DEFAULT_CHUNK, backen
         pad = n_chunks * c - B
         _check_outputs(out_shapes, B, pad)
         if calls:
-            _check_first_member(closed, calls, n_out, leaves, flags, B)
+            _check_first_member(closed, calls, n_out, leaves, flags, B, checked)
         program = native_program(fun, flat_fun, tree, member, axes, backend) if native else None
         if program is not None:  # all members in one call of the kernel
             return jax.tree_util.tree_unflatten(out_tree, program(leaves))
@@ -276,13 +281,15 @@ MEMBER_CHECK_TRIES = 8
 among the first this many members."""
 
 
-def _check_first_member(closed, calls: list, n_out: int, leaves: list, flags: list, B: int) -> None:
+def _check_first_member(closed, calls: list, n_out: int, leaves: list, flags: list, B: int, checked=None) -> None:
     """`integrate`'s checks that need values (`clebsch_jax.march.integrate.check_member`: the model
     by autodiff, the configuration, Q0 in the velocity map's group, the first step on the
     manifold) of each recorded `integrate` call, for the batch's first member whose arguments are
     valid (a member with non-finite values or dt <= 0 reports `Status.INVALID_INPUT` in the
     batch, as under `jax.vmap`), before the batch is compiled: its arguments are the jaxpr's
-    extra outputs (after the `n_out` outputs of the function), evaluated for that member."""
+    extra outputs (after the `n_out` outputs of the function), evaluated for that member.
+    `checked` (a concrete call's, kept with its trace): those arguments' values that passed
+    the checks before, which are not checked again."""
     jaxpr = closed.jaxpr
     extras = jaxpr.outvars[n_out:]
     needed = {v for v in extras if not isinstance(v, jex.Literal)}
@@ -306,6 +313,9 @@ def _check_first_member(closed, calls: list, n_out: int, leaves: list, flags: li
             break
     else:
         return
+    seen = tuple((v.dtype.str, v.shape, v.tobytes()) for v in values)
+    if checked is not None and seen in checked:  # these values passed the checks before
+        return
     values = iter(values)
     for call in calls:
         flat, tree = jax.tree_util.tree_flatten(call.args)
@@ -317,3 +327,7 @@ def _check_first_member(closed, calls: list, n_out: int, leaves: list, flags: li
             check_member(system, Q0, xi0, dt=dt, P0=P0, t0=t0, **call.options)
         except (ValueError, TypeError) as err:
             raise type(err)(f"batch: member {m} is rejected by integrate's checks: {err}") from err
+    if checked is not None:  # a concrete call's cached trace keeps the last few values checked
+        if len(checked) >= MEMBER_CHECK_TRIES:
+            checked.clear()
+        checked.add(seen)

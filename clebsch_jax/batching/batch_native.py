@@ -43,7 +43,7 @@ from ..native import (
 )
 from .prune import pruned
 
-__all__ = ["wants_native", "native_program", "NativeBatch", "CALLBACKS"]
+__all__ = ["wants_native", "native_program", "NativeBatch", "CALLBACKS", "member_key", "traced_once"]
 
 WHAT = "cj.batch"
 """How the fallback warnings name the caller (`clebsch_jax.native.warn_once`)."""
@@ -120,15 +120,39 @@ def native_program(fun, flat_fun, tree, member: list, axes: list, backend: str):
 
 
 def _key(fun, tree, member: list, axes: list, limit):
-    """The cache key of `fun`'s kernel: its fingerprint, or (where the fingerprint cannot be
-    read) the function itself, held by the cache; the arguments' structure, the member's
-    shapes and dtypes, the axes, the IR limit and the environment (JAX's options)."""
+    """The cache key of `fun`'s kernel: `member_key` and the IR limit."""
+    return member_key(fun, tree, member, axes) + (limit,)
+
+
+def member_key(fun, tree, member: list, axes: list) -> tuple:
+    """What determines `fun`'s program of one member: its fingerprint, or (where the
+    fingerprint cannot be read) the function itself, held by the caches; the arguments'
+    structure, the member's shapes and dtypes, the axes and the environment (JAX's options)."""
     from ..native.fingerprint import environment, fingerprint
 
     found = fingerprint(fun)
     who = ("fingerprint", found) if found is not None else ("function", fun)
     shapes = tuple((tuple(x.shape), str(np.dtype(x.dtype))) for x in member)
-    return (who, tree, shapes, tuple(axes), limit, environment())
+    return (who, tree, shapes, tuple(axes), environment())
+
+
+_TRACES: dict = {}
+_TRACES_LOCK = threading.Lock()
+
+
+def traced_once(key, trace):
+    """`trace()` (a concrete call's trace of one member, with what its checks need) computed
+    once per `key` (`member_key`) and kept: a concrete call of a batch again with new values
+    traces nothing. The value is a list, to which the caller may add (the first members
+    already checked). A trace holding a value traced by an enclosing transformation (a
+    function that closes over one) is not kept."""
+    from ..core.validation import is_traced
+
+    found = compiled_once(_TRACES, _TRACES_LOCK, _KERNELS_MAX, key, lambda: [trace(), set()])
+    if any(is_traced(c) for c in found[0][0].consts):
+        with _TRACES_LOCK:
+            _TRACES.pop(key, None)
+    return found
 
 
 def _compile(flat_fun, member: list, axes: list, limit) -> NativeBatch:

@@ -20,7 +20,9 @@ from __future__ import annotations
 import numpy as np
 from llvmlite import ir
 
+from . import rows as _rows
 from .lower import RULES, eval_closed
+from .rows import ROWS_MIN
 from .values import MAX_ENTRIES, Emitter, Unsupported, is_known
 
 __all__ = ["SHORT_SCAN", "UNROLL_BUDGET", "ROLLED_BUDGET", "POLICIES", "unroll_policy", "entries"]
@@ -66,7 +68,15 @@ def _unrolled(length: int, body, policy) -> bool:
     return length <= short or length * _size(body) <= budget
 
 
-def entries(jaxpr, policy) -> int:
+def _entries_held(shape, rows: bool) -> int:
+    """Entries of an array of `shape`; with `rows`, a long leading axis counted once (`Rows`)."""
+    shape = tuple(shape)
+    if rows and shape and shape[0] >= ROWS_MIN:
+        shape = shape[1:]
+    return int(np.prod(shape, dtype=int))
+
+
+def entries(jaxpr, policy, rows: bool = False) -> int:
     """The entries the translation of `jaxpr` counts (`Emitter.count`) with the unrolling
     `policy`: an unrolled scan's body once per iteration, every branch of a `cond`, a
     `custom_linear_solve` its solve, any other nested jaxpr once (a bound: a branch known
@@ -75,7 +85,7 @@ def entries(jaxpr, policy) -> int:
 
     n = 0
     for eqn in jaxpr.eqns:
-        n += sum(int(np.prod(v.aval.shape, dtype=int)) for v in eqn.outvars if hasattr(v.aval, "shape"))
+        n += sum(_entries_held(v.aval.shape, rows) for v in eqn.outvars if hasattr(v.aval, "shape"))
         p = eqn.params
         if eqn.primitive.name == "scan":
             body = p["jaxpr"].jaxpr
@@ -93,12 +103,13 @@ def entries(jaxpr, policy) -> int:
     return n
 
 
-def unroll_policy(jaxpr):
+def unroll_policy(jaxpr, rows: bool = False):
     """The most unrolled of `POLICIES` whose program stays within `MAX_ENTRIES` (the last,
     the least unrolled, when none does: the translation then refuses the program). A function
-    of the jaxpr alone, so the kernel of a program is always the same code."""
+    of the jaxpr alone, so the kernel of a program is always the same code. With `rows` (long
+    arrays held as `Rows`), a long leading axis counts once: the policy does not depend on it."""
     for policy in POLICIES:
-        if entries(jaxpr, policy) <= MAX_ENTRIES:
+        if entries(jaxpr, policy, rows) <= MAX_ENTRIES:
             return policy
     return POLICIES[-1]
 
@@ -222,7 +233,17 @@ def _scan(em: Emitter, eqn, args):
     closed = p["jaxpr"]
     consts, init, xs = list(args[:nc]), list(args[nc : nc + ncar]), list(args[nc + ncar :])
     order = range(length - 1, -1, -1) if reverse else range(length)
-    if _unrolled(length, closed.jaxpr, em.unroll or POLICIES[0]):
+    long = em.rows and length >= ROWS_MIN  # records kept as rows in memory (`rows`)
+    outer_rows, em.rows = em.rows, False  # the body reads and makes entries
+    try:
+        return _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, long)
+    finally:
+        em.rows = outer_rows
+
+
+def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, long):
+    if not long and _unrolled(length, closed.jaxpr, em.unroll or POLICIES[0]):  # a long one: rows
+        xs = [_rows.materialize(em, x) for x in xs]
         carry, ys = init, []
         for i in order:
             outs = eval_closed(em, closed, consts + carry + [x[i, ...] for x in xs])
@@ -245,13 +266,19 @@ def _scan(em: Emitter, eqn, args):
     x_dtypes = [np.dtype(v.aval.dtype) for v in jaxpr.invars[nc + ncar :]]
     x_slots = []
     for x, dtype in zip(xs, x_dtypes):
+        if isinstance(x, _rows.Rows):  # read row by row where they are
+            x_slots.append(x)
+            continue
         arr = _array_slots(em, length, x.shape[1:], dtype)
         for idx in np.ndindex(x.shape[1:]):
             for i in range(length):
                 b.store(em.vec(x[(i,) + idx], dtype), _at(em, arr[idx], ir.Constant(i64, i)))
         x_slots.append(arr)
     y_avals = [v.aval for v in jaxpr.outvars[ncar:]]
-    y_slots = [_array_slots(em, length, a.shape, a.dtype) for a in y_avals]
+    if long:
+        y_slots = [_rows.memory(em, length, tuple(a.shape), a.dtype) for a in y_avals]
+    else:
+        y_slots = [_array_slots(em, length, a.shape, a.dtype) for a in y_avals]
 
     counter = em.alloca(i64)
     b.store(ir.Constant(i64, 0), counter)
@@ -270,6 +297,9 @@ def _scan(em: Emitter, eqn, args):
     cur = _load(em, slots, init, dtypes)
     x_now = []
     for arr, dtype in zip(x_slots, x_dtypes):
+        if isinstance(arr, _rows.Rows):
+            x_now.append(_rows.row_at(em, arr, i))
+            continue
         v = np.empty(arr.shape, object)
         for idx in np.ndindex(arr.shape):
             v[idx] = b.load(_at(em, arr[idx], i), typ=em.vtype(dtype))
@@ -277,12 +307,17 @@ def _scan(em: Emitter, eqn, args):
     outs = eval_closed(em, closed, consts + cur + x_now)
     _store(em, slots, outs[:ncar], cur, dtypes, None)
     for arr, y, a in zip(y_slots, outs[ncar:], y_avals):
+        if long:
+            _rows.store_row(em, arr, i, y)
+            continue
         for idx in np.ndindex(arr.shape):
             b.store(em.vec(y[idx], a.dtype), _at(em, arr[idx], i))
     b.store(b.add(b.load(counter, typ=i64), ir.Constant(i64, 1)), counter)
     b.branch(head)
     b.position_at_end(done)
     carry = _load(em, slots, init, dtypes)
+    if long:
+        return carry + y_slots
     ys = []
     for arr, a in zip(y_slots, y_avals):
         out = np.empty((length,) + tuple(a.shape), object)

@@ -91,6 +91,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     from . import control as _control  # registers the loop and branch rules
     from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
     from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
+    from . import rows as _rows
     from .lower import eval_closed
     from .values import Emitter, llvm_type
 
@@ -103,7 +104,8 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     entry = fn.append_basic_block("entry")
     b = ir.IRBuilder(entry)
     em = Emitter(module, b, width, entry)
-    em.unroll = _control.unroll_policy(closed.jaxpr)
+    em.rows = carries is None and _rows.wants_rows(closed.jaxpr)  # long arrays as rows in memory
+    em.unroll = _control.unroll_policy(closed.jaxpr, em.rows)
     counter = b.alloca(i64)
     b.store(first, counter)
     head, body, done = (
@@ -154,16 +156,34 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
         outs = eval_closed(em, closed, args)
     else:  # the carry after the loop; the records are written in it
         outs = _loop(em, closed, args, carries, fn.args[4], lambda j, e, dt: row(n_in + j, e, dt))
+
+    def write(j, e, value, dtype, shift=None):
+        value = em.vec(value, dtype)
+        if dtype == np.bool_:
+            value = b.zext(value, ir.VectorType(ir.IntType(8), width))
+        at = row(n_in + j, e, dtype)
+        if shift is not None:  # entry e of a later row of a `Rows` output
+            at = b.gep(at, [shift], source_etype=value.type.element)
+        b.store(value, at, align=_storage(dtype).itemsize)
+
     for j, (v, out) in enumerate(zip(closed.jaxpr.outvars[: len(outs)], outs)):
         dtype = np.dtype(v.aval.dtype)
+        if isinstance(out, _rows.Rows):  # written row by row, in a loop
+            size = int(np.prod(out.row, dtype=int))
+
+            def put(i, j=j, out=out, size=size, dtype=dtype):
+                shift = b.mul(b.mul(i, ir.Constant(i64, size)), stride)
+                for e, value in enumerate(_rows.row_at(em, out, i).reshape(-1)):
+                    write(j, e, value, dtype, shift)
+
+            _rows.loop(em, out.n, put)
+            continue
         for e, idx in enumerate(np.ndindex(v.aval.shape)):
-            value = em.vec(out[idx], dtype)
-            if dtype == np.bool_:
-                value = b.zext(value, ir.VectorType(ir.IntType(8), width))
-            b.store(value, row(n_in + j, e, dtype), align=_storage(dtype).itemsize)
+            write(j, e, out[idx], dtype)
     b.store(b.add(b.load(counter, typ=i64), ir.Constant(i64, 1)), counter)
     b.branch(head)
     b.position_at_end(done)
+    em.finish()
     b.ret_void()
     return str(module)
 

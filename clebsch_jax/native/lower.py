@@ -29,6 +29,7 @@ from .elementwise import (
     out_dtype,
     select_n,
 )
+from . import rows as _rows
 from .values import Emitter, Unsupported, is_known, known_array
 
 __all__ = ["eval_jaxpr", "RULES", "copy_array"]
@@ -51,8 +52,11 @@ def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
         rule = RULES.get(eqn.primitive.name)
         if rule is None:
             raise Unsupported(f"primitive {eqn.primitive.name!r}")
-        em.count(sum(int(np.prod(v.aval.shape, dtype=int)) for v in eqn.outvars if hasattr(v.aval, "shape")))
-        outs = rule(em, eqn, [read(v) for v in eqn.invars])
+        args = [read(v) for v in eqn.invars]
+        outs = _rows.apply(em, eqn, args, RULES) if em.rows else None  # long arrays held as rows
+        if outs is None:
+            em.count(sum(int(np.prod(v.aval.shape, dtype=int)) for v in eqn.outvars if hasattr(v.aval, "shape")))
+            outs = rule(em, eqn, args)
         if not eqn.primitive.multiple_results:
             outs = [outs]
         for v, x in zip(eqn.outvars, outs):

@@ -87,6 +87,8 @@ class Emitter:
         self._decls: dict = {}
         self._consts: dict = {}
         self.entries = 0
+        self.rows = False  # whether long arrays are held as `clebsch_jax.native.rows.Rows`
+        self._arena = None  # (pointer, size constant patched by `finish`, bytes used)
 
     def count(self, entries: int) -> None:
         """Entries translated so far: a program past `MAX_ENTRIES` is refused (`Unsupported`)."""
@@ -135,6 +137,29 @@ class Emitter:
         ptr = b.alloca(ty, name=name)
         b.position_at_end(block)
         return ptr
+
+    def arena(self, n: int):
+        """A pointer to room for `n` vectors in the kernel call's heap buffer (allocated in the
+        entry block, its size fixed by `finish`; `Rows` in memory)."""
+        i64, i8 = ir.IntType(64), ir.IntType(8)
+        if self._arena is None:
+            malloc = ir.Function(self.module, ir.FunctionType(ir.PointerType(), [i64]), "malloc")
+            size = ir.Constant(i64, 0)
+            block = self.b.block
+            self.b.position_at_start(self.entry)
+            self._arena = [self.b.call(malloc, [size]), size, 0]
+            self.b.position_at_end(block)
+        ptr, _, used = self._arena
+        self._arena[2] = used + n * 8 * self.W  # room for a vector of any type
+        return self.b.gep(ptr, [ir.Constant(i64, used)], source_etype=i8)
+
+    def finish(self) -> None:
+        """At the kernel's return: free the buffer of `arena`, whose size is now known."""
+        if self._arena is not None:
+            ptr, size, used = self._arena
+            size.constant = max(used, 1)
+            free = ir.Function(self.module, ir.FunctionType(ir.VoidType(), [ir.PointerType()]), "free")
+            self.b.call(free, [ptr])
 
     # -- lane operations --------------------------------------------------------------------
     def select(self, cond, a, b, dtype):
