@@ -95,6 +95,51 @@ def test_a_sweep_fails_the_same_member_at_the_same_step(backend):
     np.testing.assert_allclose(res.final_Q[1], np.asarray(ref[1].Q)[-1], rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("backend", ["xla", "native"])
+def test_a_tolerance_of_ones_own_fails_the_first_step_above_it_on_every_path(backend):
+    """`check_energy=` a number is the check's tolerance: the falling particle fails at the first
+    step whose relative change passes it (here some steps before the default's), in `integrate`
+    and in a sweep alike (each member as its own `integrate` run)."""
+    if backend == "native":
+        pytest.importorskip("llvmlite")
+    unchecked = cj.integrate(KEPLER, Q0, FALLING, dt=DT, n_steps=N, scheme="right", check_energy=False)
+    relative = _relative_changes(*_energies(KEPLER, unchecked))
+    tol = 1e-2
+    step = int(np.argmax(relative > tol))
+    assert 0 < step < int(np.argmax(relative > ENERGY_STEP_RTOL))  # earlier than the default's
+    assert np.min(np.abs(relative[: step + 1] - tol)) > 1e-3 * tol  # not decided by round-off
+    xi0 = np.stack([FALLING, RESOLVED])
+    runs = [
+        cj.integrate(KEPLER, Q0, x, dt=DT, n_steps=N, scheme="right", check_energy=tol, backend=backend, throw=False)
+        for x in xi0
+    ]
+    assert int(runs[0].result) == Status.ENERGY_JUMP and int(runs[0].failed_step) == step
+    res = cj.sweep(
+        KEPLER,
+        None,
+        np.stack([Q0, Q0]),
+        xi0,
+        dt=DT,
+        n_steps=N,
+        scheme="right",
+        chunk_steps=10,
+        backend=backend,
+        check_energy=tol,
+    )
+    np.testing.assert_array_equal(res.status, [int(r.result) for r in runs])
+    np.testing.assert_array_equal(res.failed_step, [int(r.failed_step) for r in runs])
+
+
+@pytest.mark.parametrize(
+    "bad, error", [(0.0, ValueError), (-0.1, ValueError), (np.nan, ValueError), ("yes", TypeError)]
+)
+def test_a_bad_energy_tolerance_is_refused_naming_it(bad, error):
+    with pytest.raises(error, match="check_energy"):
+        cj.integrate(KEPLER, Q0, RESOLVED, dt=DT, n_steps=3, check_energy=bad)
+    with pytest.raises(error, match="check_energy"):
+        cj.sweep(KEPLER, None, Q0[None], RESOLVED[None], dt=DT, n_steps=3, check_energy=bad)
+
+
 def test_a_jump_from_rest_is_caught_too():
     """Variant: the particle starts at rest beside a line singularity (potential -1/|5 - x|) and
     falls into it; the changes grow steadily over a hundred steps until it crosses."""

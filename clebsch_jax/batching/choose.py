@@ -133,8 +133,8 @@ def fast_method_of(cfg: Config, members: Members):
 def lean_applies(cfg: Config, members: Members, method) -> bool:
     """Whether the fast path can run the lean chunk: a method it supports, no node saved, no
     invariant but the energy (the others are functions of a chunk's `Solution`), the energy
-    check on (the lean chunk always makes it)."""
-    if method is None or cfg.save_every is not None or not cfg.check_energy:
+    check on with its default tolerance (the lean chunk always makes it)."""
+    if method is None or cfg.save_every is not None or cfg.check_energy is not True:
         return False
     if [name for name, _ in cfg.invariants] != ["energy"] or cfg.invariants[0][1] is not _diagnostics.energy:
         return False

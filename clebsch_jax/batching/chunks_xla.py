@@ -20,7 +20,7 @@ from ..core.jit import LEAN_COMPILE, QUICK_COMPILE, jit_with_options, undifferen
 from ..discrete.legendre import initial_multiplier
 from ..march.carry import start as march_start
 from ..march.continuation import continue_from
-from ..march.energy_check import energy_jump, node_energies
+from ..march.energy_check import energy_jump, energy_rtol, node_energies
 from ..march.first_step import first_step_failed, half_steps
 from ..march.arguments import prepared_method
 from ..roots.status import Status
@@ -50,7 +50,8 @@ def _energy_check(cfg: Config, system, sol, carry: Carry):
     if not cfg.check_energy or sol.xi is None:  # degenerate systems are not checked (as in integrate)
         return jnp.asarray(False), jnp.asarray(cfg.n), carry.energy_change, carry.energy_size, None
     E, size = node_energies(system, _node_Q(cfg, sol, carry), sol.xi)
-    return (*energy_jump(jnp, E, size, sol.stats.status, carry.energy_change, carry.energy_size), E)
+    rtol = energy_rtol(cfg.check_energy)
+    return (*energy_jump(jnp, E, size, sol.stats.status, carry.energy_change, carry.energy_size, rtol), E)
 
 
 def _with_start_P(cfg: Config, system, carry: Carry, first) -> Carry:

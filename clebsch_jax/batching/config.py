@@ -25,6 +25,7 @@ from ..core.validation import check_memory as _check_memory
 from ..core.validation import host_float_array as _float_array
 from ..core.validation import is_array as _is_array
 from ..core.validation import positive_int
+from ..march.energy_check import energy_rtol
 from ..march.integrate import integrate
 
 _RESERVED = ("P0", "t0", "throw", "dt", "n_steps")
@@ -294,7 +295,9 @@ class Config:
     shared_def: tuple | None = None  # (treedef, leaves with None for arrays) of a shared system
     member_chunk: int | None = None  # members per cj.batch chunk inside a batch (None: one)
     fast_method: object = None  # the fast path's stepper (clebsch_jax.batching.fast), None: none
-    check_energy: bool = True  # the energy check, made by the sweep over the whole run (`chunks_xla._energy_check`)
+    # the energy check (True, False or its tolerance, `energy_check.energy_rtol`), made by the
+    # sweep over the whole run (`chunks_xla._energy_check`)
+    check_energy: bool | float = True
     lean: bool = False  # the fast path runs the lean chunk (`clebsch_jax.batching.lean`)
     derive_P: bool = False  # the run's first chunk derives the initial multiplier (`chunks_xla._with_start_P`)
     native: bool = False  # the batches run the per-member program as native kernels (`native_call`)
@@ -368,8 +371,8 @@ def chunk_config(run: Run, members: Members, options: dict) -> Config:
     energy check (`check_energy`, on by default as in `integrate`) is the sweep's own, over
     the whole run (`chunks_xla._energy_check`): the chunks' `integrate` calls run without it."""
     check_energy = options.get("check_energy", True)
-    if not isinstance(check_energy, bool):
-        raise TypeError(f"check_energy: expected True or False, got {check_energy!r}.")
+    rtol = energy_rtol(check_energy)  # refused here if it is not True, False or a tolerance
+    check_energy = check_energy if isinstance(check_energy, bool) else rtol
     options = {**options, "check_energy": False}
     cfg = Config(
         members.builder,

@@ -30,7 +30,7 @@ from ..core.system import momentum_map
 from ..discrete.legendre import cotangent_from_momentum, explicit_nodal_velocity, initial_multiplier
 from ..discrete.residual import nodal_residual
 from ..march.carry import input_ok
-from ..march.energy_check import jump_step, node_energy, zero_nan
+from ..march.energy_check import energy_rtol, jump_step, node_energy, zero_nan
 from ..march.first_step import FirstStepProbe, first_step_failed
 from ..roots.status import Status
 from ..steppers.base import innermost
@@ -105,14 +105,23 @@ def _node(system, finder, Q, mu, seed, ok):
 
 
 def member_chunk(
-    stepper, system, carry: MemberCarry, dt, n: int, first, offset, *, check_energy: bool = True, derive_P: bool = False
+    stepper,
+    system,
+    carry: MemberCarry,
+    dt,
+    n: int,
+    first,
+    offset,
+    *,
+    check_energy: bool | float = True,
+    derive_P: bool = False,
 ) -> MemberCarry:
     r"""`n` steps of one member from `carry`, with the sweep's reductions made in the loop.
 
     **Arguments:** `stepper`, prepared for `system` (`integrate`'s choice: `prepared_method`);
     `carry` the member's `MemberCarry`; `dt`; `n` the chunk's steps (static); `first` (bool)
     whether this is the run's first chunk; `offset` (int) the run's step number of the chunk's
-    first step; `check_energy` `integrate`'s energy check; `derive_P` whether the carry's P is
+    first step; `check_energy` `integrate`'s energy check (True, False or its tolerance); `derive_P` whether the carry's P is
     a placeholder to be replaced, in the first chunk, by the minimum-norm multiplier of
     $(Q^0, \xi^0)$ (Lemma 7, `initial_multiplier`).
 
@@ -126,7 +135,8 @@ def member_chunk(
         P0 = jnp.where(first, initial_multiplier(system, Q0, xi0), P0)
     P0 = jnp.where(alive0, P0, jnp.nan)
     degenerate = system.degenerate
-    energy_on = check_energy and not degenerate  # as integrate: no energy check without nodal velocities
+    rtol = energy_rtol(check_energy)
+    energy_on = rtol is not None and not degenerate  # as integrate: no energy check without nodal velocities
     ok_in = input_ok(system, Q0, xi0, P0, dt)
 
     def fresh():
@@ -188,7 +198,7 @@ def member_chunk(
         iterations = red["iterations"] + jnp.where(counted, stats.iterations, 0).astype(int_dtype)
         if energy_on:
             # the step leaves the node whose size red["size"] already holds (`jump_step`)
-            change, size_max, jump = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
+            change, size_max, jump = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"], rtol)
             size_max = jnp.maximum(size_max, zero_nan(size))
             # checked up to the first failed step, as integrate does: a node's failure does not stop it
             jumped = red["jumped"] | (jump & ok)

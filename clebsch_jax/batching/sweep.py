@@ -212,7 +212,8 @@ def sweep(
       full step get `jacobian="blocks"` and, unless given, `member_chunk=16`. A dense Jacobian of
       3·N·d unknowns factored per member and step costs tens of times a batch's RK4 step; the
       block Newton loop solves to the same round-off. Pass `jacobian="dense"` for the dense
-      one. `check_energy` (default True) is `integrate`'s energy check made over the
+      one. `check_energy` (default True; or a positive tolerance, as in `integrate`) is
+      `integrate`'s energy check made over the
       whole run rather than per chunk: the sweep carries its running maxima from chunk to
       chunk, so a member fails with `Status.ENERGY_JUMP` at the step `integrate` would report;
       with it, the first chunk makes `integrate`'s first-step check (two half steps from the

@@ -39,6 +39,7 @@ from ..core.validation import (
     positive_scalar,
 )
 from ..steppers.base import AbstractStepper
+from .energy_check import energy_rtol
 from ..steppers.choose import check_scheme, choose_method
 from ..steppers.principles import check_particle_axis
 
@@ -289,8 +290,7 @@ def prepare(
     """`prepared_method`, and the system to march (the gauged one, when `_check_arrays` fixed
     the isotropy's gauge)."""
     _check_options(system, n_steps, rtol, atol, max_newton_iterations)
-    if not isinstance(check_energy, bool):
-        raise TypeError(f"check_energy: expected True or False, got {check_energy!r}.")
+    energy_rtol(check_energy)  # True, False or a positive tolerance
     n_steps = int(n_steps)  # a NumPy integer is accepted and becomes the static Python int
     if method is None:
         check_scheme(system, scheme)

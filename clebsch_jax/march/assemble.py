@@ -12,7 +12,7 @@ import numpy as np
 from ..core.isotropy import isotropy_dimension
 from ..roots.status import NewtonStats, Status, skip_stats
 from .carry import Chunk, failed_to_nan
-from .energy_check import energy_jump
+from .energy_check import ENERGY_STEP_RTOL, energy_jump
 from .first_step import FirstStepProbe, first_step_failed
 from .solution import Solution
 
@@ -71,11 +71,13 @@ def assemble(
     xi0,
     input_ok=None,
     probe: FirstStepProbe | None = None,
+    energy_rtol: float | None = None,
 ) -> Solution:
     """The `Solution` from the chunks' records (`xp`: `numpy` or `jax.numpy`, as they are).
     `input_ok` (traced runs with `check_inputs`): False makes step 0 `Status.INVALID_INPUT`.
     `probe` (concrete runs with the energy check): step 0, unless the energy check failed it,
-    checked against two half steps (`first_step_failed`)."""
+    checked against two half steps (`first_step_failed`). `energy_rtol`: the energy check's
+    tolerance, for chunks that recorded their energies (default `ENERGY_STEP_RTOL`)."""
 
     def join(get, node):
         fields = [get(c) for c in chunks]
@@ -105,7 +107,8 @@ def assemble(
         (P, False),
     ]
     energy = join(lambda c: c.energy, True)
-    jumped, step = energy_jump(xp, *energy, stats.status)[:2] if energy is not None else (False, None)
+    rtol = ENERGY_STEP_RTOL if energy_rtol is None else energy_rtol
+    jumped, step = energy_jump(xp, *energy, stats.status, rtol=rtol)[:2] if energy is not None else (False, None)
     if energy is not None and (xp is jnp or bool(jumped)):  # on the host, only a jump costs a pass
         step = xp.where(jumped, step, n_steps)
         stats, nodal, valid, out = _fail_from(xp, step, Status.ENERGY_JUMP, stats, nodal, valid, fields_of())

@@ -11,7 +11,16 @@ import numpy as np
 
 from ..roots.status import Status
 
-__all__ = ["ENERGY_STEP_RTOL", "energy_terms", "node_energies", "node_energy", "energy_jump", "zero_nan", "jump_step"]
+__all__ = [
+    "ENERGY_STEP_RTOL",
+    "energy_rtol",
+    "energy_terms",
+    "node_energies",
+    "node_energy",
+    "energy_jump",
+    "zero_nan",
+    "jump_step",
+]
 
 
 ENERGY_STEP_RTOL = 0.1
@@ -34,7 +43,27 @@ principle), stay far below it, and a particle that crosses a $1/r$ singularity w
 right principle exceeds it within a step or two of the crossing (`tests/test_step_error.py`).
 The size is taken up to the node the step leaves, not the one it arrives at: a spurious root
 near a singularity arrives where l is huge. It is the size of the energy's terms as written: a
-constant added to l makes the check looser."""
+constant added to l makes the check looser. It is the default: `check_energy=` a positive
+number takes that fraction instead (`energy_rtol`)."""
+
+
+def energy_rtol(check_energy) -> float | None:
+    """The energy check's tolerance that `check_energy` asks for: True `ENERGY_STEP_RTOL`, a
+    positive finite number that fraction, False None (no check). Anything else is refused,
+    naming the argument."""
+    if isinstance(check_energy, (bool, np.bool_)):
+        return ENERGY_STEP_RTOL if check_energy else None
+    if not isinstance(check_energy, (int, float, np.integer, np.floating)):
+        raise TypeError(
+            f"check_energy: expected True, False or a positive tolerance, got {type(check_energy).__name__}."
+        )
+    rtol = float(check_energy)
+    if np.isfinite(rtol) and rtol > 0:
+        return rtol
+    raise ValueError(
+        "check_energy: expected True, False or a positive finite tolerance (the largest energy change "
+        f"of a step as a fraction of the energy's size so far; True means {ENERGY_STEP_RTOL}), got {check_energy!r}."
+    )
 
 
 def energy_terms(system, Q, xi):
@@ -64,8 +93,8 @@ def _running_max(a):
     return np.maximum.accumulate(np.where(np.isnan(a), 0.0, a))
 
 
-def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0):
-    """The first step that fails the energy check (`ENERGY_STEP_RTOL`) before any other
+def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0, rtol=ENERGY_STEP_RTOL):
+    """The first step that fails the energy check (tolerance `rtol`) before any other
     failure, and whether there is one, for nodes `energy`, `size` (`node_energies`) and steps
     `status`. Non-finite energies (after a failure, or at a node whose velocity was not
     recovered) are not compared. `largest` and `size_max` are the running maxima of the steps'
@@ -79,7 +108,7 @@ def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0):
     if xp is np:
         running_change, running_size = _running_max(change), _running_max(size)
         size_before = np.maximum(size_max, running_size[:-1])
-        jumped = change > ENERGY_STEP_RTOL * size_before
+        jumped = change > rtol * size_before
         jumped = jumped & (np.cumsum(status != Status.SUCCESS) == 0)  # before any other failure
         return (
             np.any(jumped),
@@ -92,7 +121,7 @@ def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0):
         largest, size_max, clean, first, n = c
         d, s, st = x
         clean = clean & (st == Status.SUCCESS)
-        largest, size_max, jumped = jump_step(largest, size_max, d, s)
+        largest, size_max, jumped = jump_step(largest, size_max, d, s, rtol)
         jumped = clean & jumped
         first = jnp.where(jumped & (first < 0), n, first)
         return (largest, size_max, clean, first, n + 1), None
@@ -114,11 +143,11 @@ def zero_nan(a):
     return jnp.where(jnp.isnan(a), 0.0, a)
 
 
-def jump_step(largest, size_max, change, size):
-    """One step of the energy check (`ENERGY_STEP_RTOL`): (running largest change, running
+def jump_step(largest, size_max, change, size, rtol=ENERGY_STEP_RTOL):
+    """One step of the energy check (tolerance `rtol`): (running largest change, running
     largest size after the step, whether the step failed it), for the step's energy change and
     the size at the node it leaves (`node_energies`); `size_max` holds the sizes of the nodes
     before that one."""
     size_max = jnp.maximum(size_max, zero_nan(size))
-    jumped = change > ENERGY_STEP_RTOL * size_max
+    jumped = change > rtol * size_max
     return jnp.maximum(largest, zero_nan(change)), size_max, jumped

@@ -164,7 +164,8 @@ def integrate(
       `stats.status`, `valid`); call `Solution.raise_if_failed()` later.
     - `check_energy`: if True (default) every step is checked by a per-step error indicator, its
       relative energy change: step n fails with `Status.ENERGY_JUMP` when
-      $|E^{n+1} - E^n|$ exceeds `ENERGY_STEP_RTOL` (0.1) times the energy's size so far,
+      $|E^{n+1} - E^n|$ exceeds `ENERGY_STEP_RTOL` (0.1) — or, when `check_energy` is a positive
+      number, that number — times the energy's size so far,
       $\max_{k \le n} |\langle\delta l/\delta\xi, \xi^k\rangle| + |l(\xi^k, Q^k)|$
       (`clebsch_jax.march.scan`): a converged step across a singularity of the model, or one far
       too large for the motion there, which would otherwise pass as a success. It costs one

@@ -38,7 +38,16 @@ from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper
 from .assemble import assemble
 from .carry import Carry, Chunk, advance_step, failed_to_nan, gate, input_ok, resume, start
-from .energy_check import ENERGY_STEP_RTOL, energy_jump, energy_terms, jump_step, node_energies, node_energy, zero_nan
+from .energy_check import (
+    ENERGY_STEP_RTOL,
+    energy_jump,
+    energy_rtol,
+    energy_terms,
+    jump_step,
+    node_energies,
+    node_energy,
+    zero_nan,
+)
 from .first_step import (
     FIRST_STEP_FLOOR,
     FIRST_STEP_RTOL,
@@ -224,19 +233,21 @@ def march(
     dt,
     t0,
     n_steps: int,
-    check_energy: bool = False,
+    check_energy: bool | float = False,
     check_inputs: bool = False,
     march_state: Carry | None = None,
 ) -> Solution:
     """Run `stepper` (prepared for `system`) for `n_steps` steps of size `dt` from
     $(Q^0, \\xi^0)$ (and $P^0$, if not None) in one scan and assemble the `Solution`. With
-    `check_energy` a step whose energy jumps fails (`Status.ENERGY_JUMP`); with `check_inputs`
+    `check_energy` (True or a tolerance, `energy_rtol`) a step whose energy jumps fails
+    (`Status.ENERGY_JUMP`); with `check_inputs`
     an invalid input fails step 0 (`Status.INVALID_INPUT`: `input_ok`). With `march_state`
     (the `Carry` a march ended with, `Solution.march_state`) the march continues from it
     (`resume`) instead of starting."""
+    rtol = energy_rtol(check_energy)
     carry, startup, n_total = resume(stepper, system, Q0, xi0, P0, dt, check_inputs, march_state, n_steps)
-    last, chunk = run_chunk(stepper, system, carry, dt, n_steps, n_total, check_energy, exact=True)
-    sol = assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0, carry.alive)
+    last, chunk = run_chunk(stepper, system, carry, dt, n_steps, n_total, rtol is not None, exact=True)
+    sol = assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0, carry.alive, energy_rtol=rtol)
     return dataclasses.replace(sol, march_state=last)
 
 
@@ -270,7 +281,7 @@ def march_chunked(
     t0,
     n_steps: int,
     chunk_steps: int | None = None,
-    check_energy: bool = False,
+    check_energy: bool | float = False,
     march_state: Carry | None = None,
     backend: str = "xla",
 ) -> Solution:
@@ -282,6 +293,8 @@ def march_chunked(
     (`clebsch_jax.march.native_chunk.native_chunk_program`)."""
     from .native_chunk import native_chunk_program
 
+    rtol = energy_rtol(check_energy)
+    check_energy = rtol is not None  # the programs see whether, the assembly how much
     start_jit, chunk_jit = _PROGRAMS[bool(stepper.quick_compile)]
     probe = None
     if march_state is None:
@@ -306,9 +319,9 @@ def march_chunked(
     if any_traced(chunks, startup, probe):
         # a function the map checks do not call closed over a traced value (the caller is
         # inside jit/vmap; integrate sends maps that close over one to `march`)
-        sol = assemble(jnp, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe)
+        sol = assemble(jnp, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe, energy_rtol=rtol)
         return dataclasses.replace(sol, march_state=carry)
     chunks, startup, dt, t0, probe = jax.tree_util.tree_map(np.asarray, (chunks, startup, dt, t0, probe))
-    sol = assemble(np, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe)
+    sol = assemble(np, stepper, system, chunks, n_steps, startup, dt, t0, Q0, xi0, probe=probe, energy_rtol=rtol)
     sol, carry = jax.device_put((sol, carry))  # one transfer of all the leaves
     return dataclasses.replace(sol, march_state=carry)

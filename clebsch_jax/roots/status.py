@@ -51,7 +51,7 @@ _MESSAGES = {
     "relation dl/dxi(xi, Q) = -p<>Q",
     Status.DIVERGED: "the fixed-point iteration of a Gauss-Legendre step stopped contracting or overflowed "
     "(dt too large for it, or the model is not finite at the stage values)",
-    Status.ENERGY_JUMP: "the step converged, but the energy changed in it by more than ENERGY_STEP_RTOL (a tenth) of "
+    Status.ENERGY_JUMP: "the step converged, but the energy changed in it by more than the energy check's tolerance (by default a tenth) of "
     "the size of its terms so far: it does not resolve the motion (a step across a singularity of the model, "
     "where the solve found a root on the far side, or a step far too large for the motion there)",
     Status.FIRST_STEP: "the first step converged, but far from the node two half steps reach: a root of the "
