@@ -1,0 +1,139 @@
+"""The native translation's looped linear algebra (`clebsch_jax.native.loops`): factorisations,
+solves and contractions of matrices past `LOOP_MIN_SIZE` run as loops over stack arrays and
+give XLA's values to round-off, and the unrolled form's bit for bit."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from clebsch_jax.native import compile_member, loops
+
+B = 6  # two blocks of lanes, the second padded
+SMALL = 6  # the threshold the default tests set (small programs compile fast); slow ones use the real one
+
+
+def _program(a, b):
+    """LU with its pivots and permutation, a general solve (custom_linear_solve over lu and two
+    triangular solves), a Cholesky factor and solves with it (lower, transposed upper, unit
+    diagonal, right side), and a matrix product."""
+    lu, piv, perm = jax.lax.linalg.lu(a)
+    spd = a @ a.T + jnp.eye(a.shape[0])
+    c = jnp.linalg.cholesky(spd)
+    return (
+        lu,
+        piv,
+        perm,
+        jnp.linalg.solve(a, b),
+        c,
+        jsl.solve_triangular(c, b, lower=True),
+        jsl.solve_triangular(c, b, lower=True, trans=1),
+        jsl.solve_triangular(a, b, lower=False, unit_diagonal=True),
+        jax.lax.linalg.triangular_solve(c, b.T, left_side=False, lower=True),
+        a @ a,
+    )
+
+
+_KERNELS: dict = {}
+
+
+def _kernel(n: int, looped_from: int):
+    """`_program`'s kernel for n×n matrices, with loops from order `looped_from` (products: its cube)."""
+    key = (n, looped_from)
+    if key not in _KERNELS:
+        a, b = np.eye(n), np.ones((n, 2))
+        saved = loops.LOOP_MIN_SIZE, loops.DOT_LOOP_PRODUCTS
+        loops.LOOP_MIN_SIZE, loops.DOT_LOOP_PRODUCTS = looped_from, looped_from**3
+        try:
+            _KERNELS[key] = compile_member(_program, a, b, use_cache=False)
+        finally:
+            loops.LOOP_MIN_SIZE, loops.DOT_LOOP_PRODUCTS = saved
+    return _KERNELS[key]
+
+
+def test_which_forms_loop_is_a_function_of_the_shapes():
+    n = loops.LOOP_MIN_SIZE
+    for size, want in ((n - 1, False), (n, True)):
+        eqns = jax.make_jaxpr(_program)(np.eye(size), np.ones((size, 2))).jaxpr.eqns
+        lus = [e for e in eqns if e.primitive.name in ("lu", "cholesky", "triangular_solve")]
+        assert lus and all(loops.looped(e) == want for e in lus)
+        assert all(loops.extra_entries(e) == 0 for e in lus) != want
+
+
+_CASES = dict(
+    side=st.sampled_from(["below", "at"]),
+    seed=st.integers(0, 2**31 - 1),
+    scale=st.floats(1e-3, 1e3),
+    ties=st.booleans(),
+)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(**_CASES)
+def test_looped_and_unrolled_linear_algebra_agree_with_xla(side, seed, scale, ties):
+    """Random matrices on both sides of a threshold (`SMALL`): see `_agrees`."""
+    _agrees(SMALL, side, seed, scale, ties)
+
+
+@pytest.mark.slow
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(**_CASES)
+def test_linear_algebra_on_both_sides_of_the_real_threshold_agrees_with_xla(side, seed, scale, ties):
+    _agrees(loops.LOOP_MIN_SIZE, side, seed, scale, ties)
+
+
+def _agrees(threshold, side, seed, scale, ties):
+    """Random matrices on both sides of `threshold` (with ties of magnitude in a column, so
+    that the first of equal pivots must win, and each lane its own pivots): XLA's values to
+    round-off relative to the solution's size, the same pivots and permutations."""
+    n = threshold - 1 if side == "below" else threshold
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal((B, n, n)) * scale
+    if ties:  # the first column's entries of equal magnitude: the first row of them is the pivot
+        a[:, :, 0] = scale * rng.choice([-1.0, 1.0], (B, n))
+    b = rng.standard_normal((B, n, 2))
+    native = _kernel(n, looped_from=threshold)(a, b)
+    xla = jax.vmap(_program)(a, b)
+    for k, (x, y) in enumerate(zip(native, xla)):
+        x, y = np.asarray(x), np.asarray(y)
+        if k in (1, 2):  # pivots and permutation
+            np.testing.assert_array_equal(x, y)
+            continue
+        size = np.max(np.abs(y), axis=tuple(range(1, y.ndim)), keepdims=True)
+        # XLA's to round-off times the condition number of the matrix (the Cholesky factor's
+        # values carry its product a aᵀ + 1, summed in XLA's order, not ours)
+        spd = a @ np.swapaxes(a, 1, 2) + np.eye(n)
+        matrix = a if k in (3, 7) else spd if k in (4, 5, 6, 8) else None
+        cond = 1.0 if matrix is None else np.linalg.cond(matrix)
+        tol = np.maximum(1e-12, 1e-15 * np.reshape(cond, (-1,) + (1,) * (y.ndim - 1)))
+        assert np.all(np.abs(x - y) <= tol * size), (k, np.max(np.abs(x - y) / size))
+
+
+def test_the_looped_forms_are_the_unrolled_ones_bit_for_bit():
+    n = SMALL
+    rng = np.random.default_rng(1)
+    a, b = rng.standard_normal((B, n, n)), rng.standard_normal((B, n, 2))
+    looped, unrolled = _kernel(n, looped_from=SMALL)(a, b), _kernel(n, looped_from=10**6)(a, b)
+    for x, y in zip(looped, unrolled):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+@pytest.mark.parametrize("n", [loops.LOOP_MIN_SIZE + 4])
+def test_a_looped_factorisation_counts_fewer_lines_than_unrolled(n):
+    """The point of the loops: the code of a large factorisation does not grow as n³."""
+    from clebsch_jax.native.kernel import build_ir
+
+    closed = jax.make_jaxpr(lambda a: jax.lax.linalg.lu(a)[0])(np.eye(n))
+    looped = build_ir(closed, 4).count("\n")
+    saved = loops.LOOP_MIN_SIZE
+    loops.LOOP_MIN_SIZE = 10**6
+    try:
+        unrolled = build_ir(closed, 4).count("\n")
+    finally:
+        loops.LOOP_MIN_SIZE = saved
+    assert looped < 0.6 * unrolled, (looped, unrolled)
