@@ -12,6 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import clebsch_jax as cj
 from clebsch_jax.native import compile_member, loops
 
 B = 6  # two blocks of lanes, the second padded
@@ -73,7 +74,7 @@ _CASES = dict(
 )
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(**_CASES)
 def test_looped_and_unrolled_linear_algebra_agree_with_xla(side, seed, scale, ties):
     """Random matrices on both sides of a threshold (`SMALL`): see `_agrees`."""
@@ -137,3 +138,103 @@ def test_a_looped_factorisation_counts_fewer_lines_than_unrolled(n):
     finally:
         loops.LOOP_MIN_SIZE = saved
     assert looped < 0.6 * unrolled, (looped, unrolled)
+
+
+# ---------------------------------------------------------------------------------------------
+# Refusals for size, remembered on disk.
+
+
+def _wide(x):
+    """70 000 entries counted (a broadcast: entries, no code), three of them returned."""
+    return jnp.broadcast_to(x, (70_000,))[:3] * 2.0
+
+
+def test_a_refusal_for_size_is_recorded_and_a_new_process_does_not_trace_again(tmp_path, monkeypatch):
+    """Past the entries of a kernel not asked for (a budget of IR lines: backend="auto") the
+    program is refused and the refusal kept under its key; a fresh `NativeFunction` (as a new
+    process makes it) with that key and those shapes refuses without tracing. Asked for
+    (`max_lines=None`, backend="native"), the same program translates. Another key (another
+    program) or other shapes do not hit the record."""
+    from clebsch_jax.native import AUTO_MAX_IR_LINES, TooLarge
+
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+    traced = []
+
+    def compile(x, key, **options):  # a new function each time: JAX keeps the traces of one
+        def fun(x):
+            traced.append(np.shape(x))
+            return _wide(x)
+
+        return compile_member(fun, x, key=key, **options)
+
+    x = np.ones(B)
+    with pytest.raises(TooLarge, match="more than 60000 entries"):
+        compile(x[0], "wide", max_lines=AUTO_MAX_IR_LINES)
+    assert traced == [()] and list(tmp_path.rglob("*.refused"))
+    with pytest.raises(TooLarge, match="more than 60000 entries"):
+        compile(x[0], "wide", max_lines=AUTO_MAX_IR_LINES)
+    assert traced == [()]  # not traced again
+    with pytest.raises(TooLarge):
+        compile(x[0], "another program", max_lines=AUTO_MAX_IR_LINES)
+    with pytest.raises(TooLarge):
+        compile(np.float32(1.0), "wide", max_lines=AUTO_MAX_IR_LINES)
+    assert traced == [(), (), ()]  # another key, another dtype: traced
+    asked = compile(x[0], "wide")  # asked for: translated
+    np.testing.assert_array_equal(asked(x), np.asarray(jax.vmap(_wide)(x)))
+
+
+def test_integrate_remembers_a_march_refused_for_its_size_on_disk(tmp_path, monkeypatch):
+    """`integrate`'s native loop kernel refused for its size under "auto" is recorded under the
+    fingerprint of the stepper and the system's structure: with the process's own caches
+    cleared (as in a new process), the step is neither traced nor translated again, and XLA
+    runs with the same warning."""
+    from clebsch_jax.march import native_chunk
+    from clebsch_jax.native import NativeFallbackWarning, kernel, values
+
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+    monkeypatch.setattr(values, "MAX_ENTRIES", 500)  # the rigid body's step is past it
+    monkeypatch.setattr(native_chunk, "_LOOPS", {})
+    monkeypatch.setattr("clebsch_jax.native._WARNED", set())
+    system = cj.models.rigid_body(jnp.array([2.0, 1.0, 2 / 3]))
+    run = lambda: cj.integrate(system, jnp.eye(3), jnp.array([0.4, -1.0, 0.7]), dt=0.1, n_steps=4)
+    with pytest.warns(NativeFallbackWarning, match="more than 500 entries"):
+        first = run()
+    assert len(list(tmp_path.rglob("*.refused"))) == 1
+    monkeypatch.setattr(native_chunk, "_LOOPS", {})
+    monkeypatch.setattr("clebsch_jax.native._WARNED", set())
+    traced = []
+    body = native_chunk._stream_body
+    monkeypatch.setattr(native_chunk, "_stream_body", lambda *a: traced.append(1) or body(*a))
+    monkeypatch.setattr(kernel, "build_ir", lambda *a, **k: pytest.fail("translated"))
+    with pytest.warns(NativeFallbackWarning, match="more than 500 entries"):
+        second = run()
+    assert not traced
+    np.testing.assert_array_equal(np.asarray(first.Q), np.asarray(second.Q))
+
+
+@pytest.mark.slow
+def test_a_native_sweep_of_clusters_of_ten_vortices_equals_the_xla_sweep():
+    """Clusters of ten point vortices (the block Newton matrix per particle): past the entries
+    of a kernel not asked for, so "auto" runs XLA; asked for, the native kernel translates
+    (LLVM takes tens of seconds) and gives XLA's values to 1e-12 relative."""
+    import warnings
+
+    from clebsch_jax.native import NativeFallbackWarning
+
+    rng = np.random.default_rng(3)
+    n, members = 10, 8
+    G = rng.uniform(0.5, 1.5, (members, n)) * rng.choice([-1.0, 1.0], (members, n))
+    Q0 = rng.normal(size=(members, n, 2)) * np.sqrt(n)
+    xi0 = np.asarray(jax.vmap(cj.models.vortex_velocity)(jnp.asarray(G), jnp.asarray(Q0)))
+    run = lambda backend: cj.sweep(cj.models.point_vortices, G, Q0, xi0, dt=0.01, n_steps=6, backend=backend)
+    xla = run("xla")
+    native = run("native")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run("auto")
+    assert any(issubclass(w.category, NativeFallbackWarning) and "entries" in str(w.message) for w in caught)
+    np.testing.assert_array_equal(native.status, xla.status)
+    for a, b in ((native.final_Q, xla.final_Q), (native.final_p, xla.final_p), (native.energy_error, xla.energy_error)):
+        a, b = np.asarray(a), np.asarray(b)
+        scale = np.maximum(np.abs(b), np.max(np.abs(b)))
+        assert np.nanmax(np.abs(a - b) / scale) < 1e-12

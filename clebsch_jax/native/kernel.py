@@ -27,7 +27,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from . import Unsupported
+from . import TooLarge
 from .fingerprint import cache_dir
 from .fingerprint import read as _read
 from .fingerprint import write as _write
@@ -74,7 +74,7 @@ def _storage(dtype) -> np.dtype:
     return np.dtype(np.uint8) if dtype == np.bool_ else dtype
 
 
-def build_ir(closed, width: int, batched=None, carries: int | None = None) -> str:
+def build_ir(closed, width: int, batched=None, carries: int | None = None, limit: int | None = None) -> str:
     """The LLVM IR (text) of the kernel of `closed` (a closed jaxpr of one member). `batched`
     (one flag per input, default all True): an input that is not batched is one value shared
     by every member, stored as its entries alone and broadcast to the lanes.
@@ -84,7 +84,9 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     takes a fifth argument, the number of iterations `steps` (the same for every member), runs
     the body that many times (`_loop`) and writes the final carry, then every iteration's
     records: record `j` of an entry `e` of a record of `size` entries goes to row
-    `j·size + e` of its array (rows of `stride` members, as every array)."""
+    `j·size + e` of its array (rows of `stride` members, as every array).
+
+    `limit`: the most entries translated (default `values.MAX_ENTRIES`; past it `TooLarge`)."""
     # the translation, imported here: a kernel loaded from the disk cache needs none of it
     from llvmlite import ir
 
@@ -92,7 +94,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
     from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
     from .lower import eval_closed
-    from .values import Emitter, llvm_type
+    from .values import MAX_ENTRIES, Emitter, llvm_type
 
     module = ir.Module(name="clebsch_jax_native")
     module.triple = _binding()["triple"]
@@ -102,7 +104,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     arrays, stride, first, end = fn.args[:4]
     entry = fn.append_basic_block("entry")
     b = ir.IRBuilder(entry)
-    em = Emitter(module, b, width, entry)
+    em = Emitter(module, b, width, entry, MAX_ENTRIES if limit is None else limit)
     em.unroll = _control.unroll_policy(closed.jaxpr)
     counter = b.alloca(i64)
     b.store(first, counter)
@@ -366,12 +368,15 @@ class Kernel:
         obj = _cached(self.key) if use_cache else None
         self.from_cache = obj is not None
         if obj is None:
-            text = build_ir(closed, width, batched, carries)
+            from .values import entries_limit
+
+            text = build_ir(closed, width, batched, carries, entries_limit(max_lines))
             lines = text.count("\n")
             if max_lines is not None and lines > max_lines:
-                raise Unsupported(
+                raise TooLarge(
                     f"a kernel of {lines} lines of LLVM IR, more than the {max_lines} compiled without being "
-                    "asked (LLVM's time grows with them; backend='native' compiles it)"
+                    "asked (LLVM's time grows with them; backend='native' compiles it)",
+                    lines,
                 )
             obj = compile_ir(text)
             if use_cache:
