@@ -124,6 +124,25 @@ def test_the_looped_forms_are_the_unrolled_ones_bit_for_bit():
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+def test_a_looped_lu_of_a_rectangular_matrix_is_the_unrolled_one_and_xlas():
+    rng = np.random.default_rng(2)
+    lu = lambda x: jax.lax.linalg.lu(x)
+    saved = loops.LOOP_MIN_SIZE
+    for shape in ((SMALL + 1, SMALL + 3), (SMALL + 3, SMALL + 1)):
+        a = rng.standard_normal((B,) + shape)
+        outs = []
+        for looped_from in (SMALL, 10**6):
+            loops.LOOP_MIN_SIZE = looped_from
+            try:
+                outs.append(compile_member(lu, a[0], use_cache=False)(a))
+            finally:
+                loops.LOOP_MIN_SIZE = saved
+        xla = jax.vmap(lu)(a)
+        for x, y, z in zip(*outs, xla):
+            np.testing.assert_array_equal(x, y)
+            np.testing.assert_allclose(x, np.asarray(z), rtol=0, atol=1e-13)
+
+
 @pytest.mark.parametrize("n", [loops.LOOP_MIN_SIZE + 4])
 def test_a_looped_factorisation_counts_fewer_lines_than_unrolled(n):
     """The point of the loops: the code of a large factorisation does not grow as n³."""
