@@ -202,6 +202,19 @@ def test_a_refusal_for_size_is_recorded_and_a_new_process_does_not_trace_again(t
     np.testing.assert_array_equal(asked(x), np.asarray(jax.vmap(_wide)(x)))
 
 
+def test_a_traced_program_refused_for_its_size_is_not_translated_again(tmp_path, monkeypatch):
+    """Without a key (cj.batch's kernels), the refusal is kept under the jaxpr's key: traced
+    again, the program is not translated again."""
+    from clebsch_jax.native import AUTO_MAX_IR_LINES, TooLarge, kernel
+
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+    with pytest.raises(TooLarge):
+        compile_member(_wide, 1.0, max_lines=AUTO_MAX_IR_LINES)
+    monkeypatch.setattr(kernel, "build_ir", lambda *a, **k: pytest.fail("translated"))
+    with pytest.raises(TooLarge, match="more than 60000 entries"):
+        compile_member(_wide, 1.0, max_lines=AUTO_MAX_IR_LINES)
+
+
 def test_integrate_remembers_a_march_refused_for_its_size_on_disk(tmp_path, monkeypatch):
     """`integrate`'s native loop kernel refused for its size under "auto" is recorded under the
     fingerprint of the stepper and the system's structure: with the process's own caches
@@ -218,7 +231,7 @@ def test_integrate_remembers_a_march_refused_for_its_size_on_disk(tmp_path, monk
     run = lambda: cj.integrate(system, jnp.eye(3), jnp.array([0.4, -1.0, 0.7]), dt=0.1, n_steps=4)
     with pytest.warns(NativeFallbackWarning, match="more than 500 entries"):
         first = run()
-    assert len(list(tmp_path.rglob("*.refused"))) == 1
+    assert len(list(tmp_path.rglob("*.refused"))) == 2  # under the fingerprint and under the jaxpr
     monkeypatch.setattr(native_chunk, "_LOOPS", {})
     monkeypatch.setattr("clebsch_jax.native._WARNED", set())
     traced = []

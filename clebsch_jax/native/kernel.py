@@ -13,7 +13,8 @@ The IR is optimised by LLVM's default pipeline (O2, no fast-math: every floating
 operation is the one the jaxpr names, in its order) for the host's CPU and features, and the
 object code is cached on disk under the hash of the jaxpr (its text and constants), the
 lanes, the CPU, its features, the llvmlite version and the translation's own source
-(`cache_dir`): a program found there is neither translated nor compiled again. A call of
+(`cache_dir`): a program found there is neither translated nor compiled again, and a program
+refused for its size (`TooLarge`) is recorded under the same key and not translated again. A call of
 the kernel from ctypes releases the GIL, so threads run blocks side by side.
 """
 
@@ -27,7 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from . import TooLarge
+from . import TooLarge, refused, remember_refusal
 from .fingerprint import cache_dir
 from .fingerprint import read as _read
 from .fingerprint import write as _write
@@ -370,14 +371,21 @@ class Kernel:
         if obj is None:
             from .values import entries_limit
 
-            text = build_ir(closed, width, batched, carries, entries_limit(max_lines))
-            lines = text.count("\n")
-            if max_lines is not None and lines > max_lines:
-                raise TooLarge(
-                    f"a kernel of {lines} lines of LLVM IR, more than the {max_lines} compiled without being "
-                    "asked (LLVM's time grows with them; backend='native' compiles it)",
-                    lines,
-                )
+            # a program refused for its size before, in any process: not translated again
+            refused(self.key if use_cache else None, max_lines)
+            try:
+                text = build_ir(closed, width, batched, carries, entries_limit(max_lines))
+                lines = text.count("\n")
+                if max_lines is not None and lines > max_lines:
+                    raise TooLarge(
+                        f"a kernel of {lines} lines of LLVM IR, more than the {max_lines} compiled without being "
+                        "asked (LLVM's time grows with them; backend='native' compiles it)",
+                        lines,
+                    )
+            except TooLarge as err:
+                if use_cache:
+                    remember_refusal(self.key, err)
+                raise
             obj = compile_ir(text)
             if use_cache:
                 _store(self.key, obj)
