@@ -266,7 +266,9 @@ def test_a_native_sweep_of_clusters_of_ten_vortices_equals_the_xla_sweep():
         run("auto")
     assert any(issubclass(w.category, NativeFallbackWarning) and "entries" in str(w.message) for w in caught)
     np.testing.assert_array_equal(native.status, xla.status)
-    for a, b in ((native.final_Q, xla.final_Q), (native.final_p, xla.final_p), (native.energy_error, xla.energy_error)):
+    for a, b in ((native.final_Q, xla.final_Q), (native.final_p, xla.final_p)):
         a, b = np.asarray(a), np.asarray(b)
         scale = np.maximum(np.abs(b), np.max(np.abs(b)))
         assert np.nanmax(np.abs(a - b) / scale) < 1e-12
+    # the energy error is a difference of energies of order one: round-off of them, absolutely
+    assert np.nanmax(np.abs(np.asarray(native.energy_error) - np.asarray(xla.energy_error))) < 1e-12
