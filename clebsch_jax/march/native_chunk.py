@@ -118,7 +118,9 @@ def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy
     energy check (compiled once per process, from the disk cache when another process compiled
     it), and the system's and Δt's arrays it takes. Raises `clebsch_jax.native.Unsupported`
     (and remembers it) for a step the translation does not cover, or, with `max_lines`, whose
-    kernel would be larger."""
+    kernel would be larger; a refusal for its size is remembered on disk too, under the
+    fingerprint of the stepper and the system's structure (`clebsch_jax.native.TooLarge`), so
+    that a new process does not trace the step again."""
     from ..native import compile_loop, compiled_once
 
     treedef, static, arrays = _split((system, dt))
@@ -141,13 +143,15 @@ def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy
         with undifferentiated():  # the march's values are not differentiated here
             return _stream_body(stepper, check_energy, sys_, dt_, stop, c)
 
-    found = compiled_once(
-        _LOOPS,
-        _LOOPS_LOCK,
-        _LOOPS_MAX,
-        key,
-        lambda: compile_loop(body, arrays, np.zeros((), np.int32), loop, width=LANES, max_lines=max_lines),
-    )
+    def compile():
+        # what the body is made from, under which a refusal for its size is kept on disk
+        # (the arrays' shapes and dtypes are added to it by `compile_loop`)
+        from ..native.fingerprint import fingerprint
+
+        disk = fingerprint(("integrate-loop", stepper, bool(check_energy), treedef, static))
+        return compile_loop(body, arrays, np.zeros((), np.int32), loop, width=LANES, max_lines=max_lines, key=disk)
+
+    found = compiled_once(_LOOPS, _LOOPS_LOCK, _LOOPS_MAX, key, compile)
     return found, arrays
 
 

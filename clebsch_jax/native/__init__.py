@@ -20,6 +20,7 @@ __all__ = [
     "compile_member",
     "compile_loop",
     "Unsupported",
+    "TooLarge",
     "NativeFunction",
     "NativeLoop",
     "BACKENDS",
@@ -92,6 +93,54 @@ class Unsupported(NotImplementedError):
     beside the translation, so that it can be named where llvmlite cannot be imported.)"""
 
 
+class TooLarge(Unsupported):
+    """A program refused for its size: past the translation's limit of `entries`
+    (`values.entries_limit`) or a kernel of `lines` lines of LLVM IR, past the budget it was
+    built under. Recorded on disk under the program's record key (`refused`,
+    `remember_refusal`), so that a new process falls back without tracing and translating it."""
+
+    def __init__(self, message: str, lines: int | None = None, entries: int | None = None):
+        super().__init__(message)
+        self.lines, self.entries = lines, entries
+
+
+def refused(record: str | None, max_lines) -> None:
+    """Raise the `TooLarge` recorded under `record` (a program's record key) if it applies
+    under the budget of `max_lines` lines of IR (None: the kernel was asked for): a refusal
+    for the entries where this budget's limit of entries is at most the one refused, one for
+    the lines of IR where `max_lines` is below those lines."""
+    if record is None:
+        return
+    import json
+
+    from .fingerprint import read
+    from .values import entries_limit
+
+    data = read(record, ".refused")
+    if data is None:
+        return
+    try:
+        found = json.loads(data)
+        reason, lines, entries = str(found["reason"]), found["lines"], found["entries"]
+    except Exception:  # a damaged record: translate again
+        return
+    if entries is not None and entries_limit(max_lines) <= int(entries):
+        raise TooLarge(reason, entries=entries)
+    if lines is not None and max_lines is not None and int(lines) > max_lines:
+        raise TooLarge(reason, lines=lines)
+
+
+def remember_refusal(record: str | None, err: Exception) -> None:
+    """Keep a `TooLarge` refusal under `record` (other exceptions are not recorded)."""
+    if record is None or not isinstance(err, TooLarge):
+        return
+    import json
+
+    from .fingerprint import write
+
+    write(record, ".refused", json.dumps({"reason": str(err), "lines": err.lines, "entries": err.entries}).encode())
+
+
 def available() -> bool:
     """Whether native kernels can be built here (llvmlite imports)."""
     try:
@@ -110,7 +159,9 @@ class NativeFunction:
     configuration `fun` is made from). A kernel compiled before under the same key, the same
     arguments' signature and the same environment (`fingerprint.environment`: this package's
     source, the versions, JAX's options) is then loaded from the disk cache without tracing
-    `fun` (`from_record` is True); without a key `fun` is traced, and its jaxpr names the kernel."""
+    `fun` (`from_record` is True); without a key `fun` is traced, and its jaxpr names the kernel.
+    A program refused for its size (`TooLarge`) is recorded under the same key, and refused
+    again without tracing (`refused`)."""
 
     def __init__(self, fun, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None, key=None):
         import jax
@@ -127,9 +178,16 @@ class NativeFunction:
         self.from_record = record is not None and self._load(record)
         if self.from_record:
             return
+        refused(record, max_lines)  # a program refused for its size before: not traced again
         closed, out_shape = jax.make_jaxpr(fun, return_shape=True)(*member_args)
         self._out_tree = jax.tree_util.tree_structure(out_shape)
-        self.kernel = Kernel(closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, key=record)
+        try:
+            self.kernel = Kernel(
+                closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, key=record
+            )
+        except TooLarge as err:
+            remember_refusal(record, err)
+            raise
         if record is not None:
             self._save(record)
 
@@ -201,8 +259,9 @@ def compile_member(
     """`NativeFunction(fun, *member_args)`: `fun` traced on one member's arguments and compiled.
     `in_axes` (0 or None per argument, as `jax.vmap`'s): an argument with None is shared by
     all members (passed without the member axis). `max_lines`: a kernel not in the disk cache
-    whose LLVM IR has more lines than this is refused (`Unsupported`) before LLVM compiles it
-    (`clebsch_jax.native.kernel.Kernel`). `key`: see `NativeFunction` (a kernel found by it is
+    whose LLVM IR has more lines than this is refused (`TooLarge`) before LLVM compiles it
+    (`clebsch_jax.native.kernel.Kernel`); None (the kernel asked for) also lets the program
+    translate to more entries (`values.entries_limit`). `key`: see `NativeFunction` (a kernel found by it is
     loaded without tracing `fun`)."""
     return NativeFunction(
         fun, *member_args, width=width, use_cache=use_cache, in_axes=in_axes, max_lines=max_lines, key=key
@@ -216,12 +275,19 @@ class NativeLoop:
     (the records kept): it returns (the carry after `steps` iterations, the records stacked
     with shape (B, capacity, …), zero after the `steps` made)."""
 
-    def __init__(self, body, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None):
+    def __init__(self, body, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None, key=None):
         import jax
         import numpy as np
 
-        from .kernel import Kernel
+        from .kernel import Kernel, host_lanes
 
+        if not isinstance(in_axes, (tuple, list)):
+            in_axes = (in_axes,) * len(member_args)
+        flags = [jax.tree_util.tree_map(lambda _: ax is not None, arg) for ax, arg in zip(in_axes, member_args)]
+        batched = jax.tree_util.tree_leaves(flags)
+        width = width or host_lanes()
+        record = _record_key("loop\n" + key, member_args, batched, width) if key is not None and use_cache else None
+        refused(record, max_lines)  # a body refused for its size before: not traced again
         closed, (carry_shape, record_shape) = jax.make_jaxpr(body, return_shape=True)(*member_args)
         self._in_tree = jax.tree_util.tree_structure(member_args)
         self._carry_tree = jax.tree_util.tree_structure(carry_shape)
@@ -232,12 +298,14 @@ class NativeLoop:
             member_args[-1]
         ):
             raise TypeError("compile_loop: the body must return a carry of its last argument's structure and shapes")
-        if not isinstance(in_axes, (tuple, list)):
-            in_axes = (in_axes,) * len(member_args)
-        flags = [jax.tree_util.tree_map(lambda _: ax is not None, arg) for ax, arg in zip(in_axes, member_args)]
-        batched = jax.tree_util.tree_leaves(flags)
         n = self._carry_tree.num_leaves
-        self.kernel = Kernel(closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, carries=n)
+        try:
+            self.kernel = Kernel(
+                closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, carries=n
+            )
+        except TooLarge as err:
+            remember_refusal(record, err)
+            raise
 
     def __call__(self, *args, steps: int, capacity: int):
         import jax
@@ -252,13 +320,16 @@ class NativeLoop:
         return carry, jax.tree_util.tree_unflatten(self._record_tree, outs[n:])
 
 
-def compile_loop(body, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None) -> NativeLoop:
+def compile_loop(body, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None, key=None) -> NativeLoop:
     """`NativeLoop(body, *member_args)`: a loop body traced on one member's arguments (the
     carry last) and compiled to a kernel that runs it a given number of times, writing each
     iteration's records. `width`: members per vector (default the host's widest; 1 for a
     single member, whose other lanes would only repeat it). The other arguments are
-    `compile_member`'s."""
-    return NativeLoop(body, *member_args, width=width, use_cache=use_cache, in_axes=in_axes, max_lines=max_lines)
+    `compile_member`'s; `key` here only names a refusal for the body's size (`TooLarge`),
+    recorded on disk so that a new process does not trace the body again."""
+    return NativeLoop(
+        body, *member_args, width=width, use_cache=use_cache, in_axes=in_axes, max_lines=max_lines, key=key
+    )
 
 
 def compiled_once(cache: dict, lock, limit: int, key, compile):

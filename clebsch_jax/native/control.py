@@ -21,6 +21,7 @@ import numpy as np
 from llvmlite import ir
 
 from . import rows as _rows
+from .loops import extra_entries
 from .lower import RULES, eval_closed
 from .rows import ROWS_MIN
 from .values import MAX_ENTRIES, Emitter, Unsupported, is_known
@@ -79,13 +80,15 @@ def _entries_held(shape, rows: bool) -> int:
 def entries(jaxpr, policy, rows: bool = False) -> int:
     """The entries the translation of `jaxpr` counts (`Emitter.count`) with the unrolling
     `policy`: an unrolled scan's body once per iteration, every branch of a `cond`, a
-    `custom_linear_solve` its solve, any other nested jaxpr once (a bound: a branch known
-    while translating is the only one translated)."""
+    `custom_linear_solve` its solve, a factorisation, solve or contraction that runs as loops
+    what it stores and its loop bodies (`loops.extra_entries`), any other nested jaxpr once
+    (a bound: a branch known while translating is the only one translated)."""
     from jax.extend import core as jcore
 
     n = 0
     for eqn in jaxpr.eqns:
         n += sum(_entries_held(v.aval.shape, rows) for v in eqn.outvars if hasattr(v.aval, "shape"))
+        n += extra_entries(eqn)
         p = eqn.params
         if eqn.primitive.name == "scan":
             body = p["jaxpr"].jaxpr

@@ -13,7 +13,8 @@ The IR is optimised by LLVM's default pipeline (O2, no fast-math: every floating
 operation is the one the jaxpr names, in its order) for the host's CPU and features, and the
 object code is cached on disk under the hash of the jaxpr (its text and constants), the
 lanes, the CPU, its features, the llvmlite version and the translation's own source
-(`cache_dir`): a program found there is neither translated nor compiled again. A call of
+(`cache_dir`): a program found there is neither translated nor compiled again, and a program
+refused for its size (`TooLarge`) is recorded under the same key and not translated again. A call of
 the kernel from ctypes releases the GIL, so threads run blocks side by side.
 """
 
@@ -27,7 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from . import Unsupported
+from . import TooLarge, refused, remember_refusal
 from .fingerprint import cache_dir
 from .fingerprint import read as _read
 from .fingerprint import write as _write
@@ -74,7 +75,7 @@ def _storage(dtype) -> np.dtype:
     return np.dtype(np.uint8) if dtype == np.bool_ else dtype
 
 
-def build_ir(closed, width: int, batched=None, carries: int | None = None) -> str:
+def build_ir(closed, width: int, batched=None, carries: int | None = None, limit: int | None = None) -> str:
     """The LLVM IR (text) of the kernel of `closed` (a closed jaxpr of one member). `batched`
     (one flag per input, default all True): an input that is not batched is one value shared
     by every member, stored as its entries alone and broadcast to the lanes.
@@ -84,7 +85,9 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     takes a fifth argument, the number of iterations `steps` (the same for every member), runs
     the body that many times (`_loop`) and writes the final carry, then every iteration's
     records: record `j` of an entry `e` of a record of `size` entries goes to row
-    `j·size + e` of its array (rows of `stride` members, as every array)."""
+    `j·size + e` of its array (rows of `stride` members, as every array).
+
+    `limit`: the most entries translated (default `values.MAX_ENTRIES`; past it `TooLarge`)."""
     # the translation, imported here: a kernel loaded from the disk cache needs none of it
     from llvmlite import ir
 
@@ -93,7 +96,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
     from . import rows as _rows
     from .lower import eval_closed
-    from .values import Emitter, llvm_type
+    from .values import MAX_ENTRIES, Emitter, llvm_type
 
     module = ir.Module(name="clebsch_jax_native")
     module.triple = _binding()["triple"]
@@ -103,7 +106,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None) -> st
     arrays, stride, first, end = fn.args[:4]
     entry = fn.append_basic_block("entry")
     b = ir.IRBuilder(entry)
-    em = Emitter(module, b, width, entry)
+    em = Emitter(module, b, width, entry, MAX_ENTRIES if limit is None else limit)
     em.rows = carries is None and _rows.wants_rows(closed.jaxpr)  # long arrays as rows in memory
     em.unroll = _control.unroll_policy(closed.jaxpr, em.rows)
     counter = b.alloca(i64)
@@ -386,13 +389,23 @@ class Kernel:
         obj = _cached(self.key) if use_cache else None
         self.from_cache = obj is not None
         if obj is None:
-            text = build_ir(closed, width, batched, carries)
-            lines = text.count("\n")
-            if max_lines is not None and lines > max_lines:
-                raise Unsupported(
-                    f"a kernel of {lines} lines of LLVM IR, more than the {max_lines} compiled without being "
-                    "asked (LLVM's time grows with them; backend='native' compiles it)"
-                )
+            from .values import entries_limit
+
+            # a program refused for its size before, in any process: not translated again
+            refused(self.key if use_cache else None, max_lines)
+            try:
+                text = build_ir(closed, width, batched, carries, entries_limit(max_lines))
+                lines = text.count("\n")
+                if max_lines is not None and lines > max_lines:
+                    raise TooLarge(
+                        f"a kernel of {lines} lines of LLVM IR, more than the {max_lines} compiled without being "
+                        "asked (LLVM's time grows with them; backend='native' compiles it)",
+                        lines,
+                    )
+            except TooLarge as err:
+                if use_cache:
+                    remember_refusal(self.key, err)
+                raise
             obj = compile_ir(text)
             if use_cache:
                 _store(self.key, obj)

@@ -1,16 +1,19 @@
-"""Small dense linear algebra of the native translation, unrolled entry by entry.
+"""Dense linear algebra of the native translation: small matrices unrolled entry by entry.
 
-The primitives `jax.numpy.linalg` and `jax.scipy.linalg` use for a member's small matrices:
+The primitives `jax.numpy.linalg` and `jax.scipy.linalg` use for a member's matrices:
 `lu` (partial pivoting, the pivot chosen per lane by selects), `triangular_solve`,
 `cholesky` and `custom_linear_solve` (its `solve` jaxpr). Each is written as XLA's CPU
 backend computes it (LAPACK's algorithms) to round-off: the same pivots, the same
-substitutions, in index order.
+substitutions, in index order. Matrices of `loops.LOOP_MIN_SIZE` rows or more run the same
+algorithms as loops over stack arrays (`clebsch_jax.native.loops`), which count the entries
+they store and their loop bodies on top of their outputs (`loops.extra_entries`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from . import loops
 from .elementwise import emit_float, emit_int
 from .lower import RULES, eval_closed
 from .values import Emitter, Unsupported, is_known
@@ -54,6 +57,9 @@ def _lu(em: Emitter, eqn, args):
         raise Unsupported("lu of a batch of matrices")
     dtype = np.dtype(eqn.outvars[0].aval.dtype)
     idx_dtype = np.dtype(eqn.outvars[1].aval.dtype)
+    if loops.looped(eqn):
+        em.count(loops.extra_entries(eqn))
+        return loops.lu(em, a, dtype, idx_dtype)
     o = _Ops(em, dtype)
     A = a.copy()
     perm = np.empty(m, object)
@@ -111,6 +117,10 @@ def _triangular_solve(em: Emitter, eqn, args):
     if not left:
         A, lower, b = A.T, not lower, b.T
     n = A.shape[0]
+    if loops.looped(eqn):
+        em.count(loops.extra_entries(eqn))
+        X = loops.triangular_solve(em, A, b, dtype, lower, unit)
+        return X if left else X.T
     X = np.empty(b.shape, object)
     order = range(n) if lower else range(n - 1, -1, -1)
     for c in range(b.shape[1]):
@@ -128,6 +138,9 @@ def _cholesky(em: Emitter, eqn, args):
     if a.ndim != 2:
         raise Unsupported("cholesky of a batch of matrices")
     dtype = np.dtype(eqn.outvars[0].aval.dtype)
+    if loops.looped(eqn):
+        em.count(loops.extra_entries(eqn))
+        return loops.cholesky(em, a, dtype)
     o = _Ops(em, dtype)
     n = a.shape[0]
     L = np.empty((n, n), object)

@@ -4,7 +4,8 @@
 (`RULES`) to the entries of its operands: elementwise primitives emit one vector instruction per
 entry (or fold known entries in NumPy, for the exactly rounded ones: their rules are in
 `clebsch_jax.native.elementwise`); structural primitives re-index the entry arrays; contractions
-and reductions are unrolled in index order. Loops and branches are in
+and reductions are unrolled in index order (large contractions run as loops over stack arrays,
+`clebsch_jax.native.loops`). Loops and branches are in
 `clebsch_jax.native.control`, dynamic indexing in `clebsch_jax.native.indexing`, small dense
 linear algebra in `clebsch_jax.native.linalg`: each adds its rules to `RULES`. A primitive
 without a rule raises `Unsupported` with its name.
@@ -29,6 +30,7 @@ from .elementwise import (
     out_dtype,
     select_n,
 )
+from . import loops
 from . import rows as _rows
 from .values import Emitter, Unsupported, is_known, known_array
 
@@ -233,6 +235,11 @@ def _dot_general(em, eqn, args):
     K = int(np.prod(L.shape[L.ndim - nk :], dtype=int))
     L = L.reshape(bshape + lfs + (K,))
     R = R.reshape(bshape + rfs + (K,))
+    if loops.looped(eqn):  # a large contraction: loops over stack arrays, the same sums
+        em.count(loops.extra_entries(eqn))
+        size = lambda s: int(np.prod(s, dtype=int))
+        flat = lambda x, free: x.reshape((size(bshape), size(free), K))
+        return loops.dot(em, flat(L, lfs), flat(R, rfs), dtype).reshape(bshape + lfs + rfs)
     out = np.empty(bshape + lfs + rfs, object)
     for bi in np.ndindex(bshape):
         for i in np.ndindex(lfs):

@@ -14,9 +14,20 @@ from __future__ import annotations
 import numpy as np
 from llvmlite import ir
 
-from . import Unsupported
+from . import TooLarge, Unsupported
 
-__all__ = ["Unsupported", "Emitter", "llvm_type", "is_known", "known_array", "FLOATS", "INTS"]
+__all__ = [
+    "Unsupported",
+    "MAX_ENTRIES",
+    "ASKED_MAX_ENTRIES",
+    "entries_limit",
+    "Emitter",
+    "llvm_type",
+    "is_known",
+    "known_array",
+    "FLOATS",
+    "INTS",
+]
 
 
 FLOATS = {np.dtype(np.float64): ir.DoubleType(), np.dtype(np.float32): ir.FloatType()}
@@ -70,7 +81,20 @@ def known_array(a) -> np.ndarray:
 
 MAX_ENTRIES = 60_000
 """The most entries (values of one member, each an instruction or a known number) a program
-may translate to: beyond it the code, unrolled entry by entry, compiles too slowly to pay."""
+compiled without being asked for may translate to (`backend="auto"`: a kernel with a budget of
+IR lines): beyond it the code, unrolled entry by entry, compiles too slowly to pay. The unroll
+policy (`control.unroll_policy`) is chosen against it, whatever the limit."""
+
+ASKED_MAX_ENTRIES = 250_000
+"""The limit where the native kernel was asked for (`backend="native"`: no budget of IR
+lines): members with many components (clusters of ten vortices) translate, and LLVM compiles
+them in tens of seconds; past it the program is refused even so."""
+
+
+def entries_limit(max_lines) -> int:
+    """The entries a program may translate to under a budget of `max_lines` lines of IR (None:
+    the kernel was asked for)."""
+    return ASKED_MAX_ENTRIES if max_lines is None else MAX_ENTRIES
 
 
 class Emitter:
@@ -80,8 +104,9 @@ class Emitter:
     emitted under the mask of the lanes still iterating, so that loops nested in it stop when
     those lanes have stopped)."""
 
-    def __init__(self, module: ir.Module, builder: ir.IRBuilder, width: int, entry: ir.Block):
+    def __init__(self, module: ir.Module, builder: ir.IRBuilder, width: int, entry: ir.Block, limit=MAX_ENTRIES):
         self.module, self.b, self.W, self.entry = module, builder, width, entry
+        self.limit = limit  # the most entries translated (`entries_limit`)
         self.mask = None
         self.unroll = None  # which scans are unrolled (`control.unroll_policy`; None: the first)
         self._decls: dict = {}
@@ -91,12 +116,13 @@ class Emitter:
         self._arena = None  # (pointer, size constant patched by `finish`, bytes used)
 
     def count(self, entries: int) -> None:
-        """Entries translated so far: a program past `MAX_ENTRIES` is refused (`Unsupported`)."""
+        """Entries translated so far: a program past `limit` is refused (`TooLarge`)."""
         self.entries += entries
-        if self.entries > MAX_ENTRIES:
-            raise Unsupported(
-                f"a program of more than {MAX_ENTRIES} entries (members with many components: "
-                "their matrices unrolled entry by entry outgrow a kernel)"
+        if self.entries > self.limit:
+            raise TooLarge(
+                f"a program of more than {self.limit} entries (members with many components: "
+                "their arrays unrolled entry by entry outgrow a kernel)",
+                entries=self.limit,
             )
 
     # -- types and constants -------------------------------------------------------------
