@@ -292,15 +292,6 @@ def cache_key(text: str) -> str:
     return h.hexdigest()
 
 
-def _cached(key: str):
-    """The cached object code of `key`, or None."""
-    return _read(key, ".o")
-
-
-def _store(key: str, obj: bytes) -> None:
-    _write(key, ".o", obj)
-
-
 LARGE_IR_LINES = 15_000
 """IR of more lines than this is given LLVM's basic register allocator instead of the greedy
 one: the greedy allocator's time grows steeply with the long straight-line blocks of a large
@@ -386,7 +377,7 @@ class Kernel:
         # `key`: a key that determines the jaxpr (`NativeFunction`'s record key), which spares
         # printing a large jaxpr to hash it
         self.key = key or cache_key(_program_text(closed, width, batched, carries))
-        obj = _cached(self.key) if use_cache else None
+        obj = _read(self.key, ".o") if use_cache else None
         self.from_cache = obj is not None
         if obj is None:
             from .values import entries_limit
@@ -408,7 +399,7 @@ class Kernel:
                 raise
             obj = compile_ir(text)
             if use_cache:
-                _store(self.key, obj)
+                _write(self.key, ".o", obj)
         self._setup(width, ins, outs, batched, obj, carries)
 
     def _setup(self, width: int, ins: list, outs: list, batched: list, obj: bytes, carries=None) -> None:
@@ -434,7 +425,7 @@ class Kernel:
     def from_record(cls, record: dict):
         """The kernel a `record` names, loaded from the disk cache (no jaxpr, no translation), or
         None when its object code is not there."""
-        obj = _cached(record["key"])
+        obj = _read(record["key"], ".o")  # the object code, or None
         if obj is None:
             return None
         k = cls.__new__(cls)
