@@ -228,3 +228,47 @@ def test_a_hand_gauged_system_runs_under_jit_as_integrate_runs_it():
     concrete = cj.integrate(DOUBLE, Q0_DOUBLE, xi0, dt=0.05, n_steps=5)
     assert concrete.isotropy == 2
     np.testing.assert_allclose(np.asarray(traced), np.asarray(concrete.Q), atol=1e-13)
+
+
+def _fresh_single_pendulum():
+    """A spherical pendulum written with its physical velocity, made of functions no other test
+    has compiled (each call makes new ones): its checks and march are compiled afresh."""
+
+    def lagrangian(xi, q):
+        v = jnp.cross(xi, q)
+        return 0.5 * jnp.sum(v * v) - G * q[2]
+
+    return cj.ClebschSystem(
+        lagrangian=lagrangian, velocity_map=lambda xi, q: jnp.cross(xi, q), derivative_map=cj.forward_difference
+    )
+
+
+SINGLE_Q0, SINGLE_XI0 = np.array([0.6, 0.0, -0.8]), np.array([0.3, 1.0, 0.2])  # ξ0 has a component along q0
+
+
+def test_the_checks_of_a_sphere_system_compile_a_few_programs():
+    """The value checks and the isotropy gauge of a new sphere system (the model checks, the
+    gauge's values, the physical velocity's derivatives) are one compiled program each, not an
+    XLA compile per operation run eagerly (issue 44: about 160 programs before)."""
+    from clebsch_jax.march.arguments import prepared_method
+
+    from .helpers import compiles_recorded
+
+    with compiles_recorded() as compiled, pytest.warns(UserWarning, match="isotropy of Q0"):
+        prepared_method(_fresh_single_pendulum(), SINGLE_Q0, SINGLE_XI0, dt=0.05, n_steps=4)
+    assert len(compiled) <= 4, compiled
+
+
+@pytest.mark.slow  # compiles a new march
+def test_the_first_call_of_a_sphere_system_compiles_a_few_programs():
+    """A new sphere system's first `integrate` call: its checks and the march's start and chunk
+    (the first-step probe is that chunk); a second call compiles nothing."""
+    from .helpers import compiles_recorded
+
+    system = _fresh_single_pendulum()
+    with compiles_recorded() as compiled:
+        sol = _quiet(cj.integrate, system, SINGLE_Q0, SINGLE_XI0, dt=0.05, n_steps=4, backend="xla")
+    assert sol.isotropy == 1 and len(compiled) <= 6, compiled
+    with compiles_recorded() as again:
+        _quiet(cj.integrate, system, SINGLE_Q0, SINGLE_XI0, dt=0.05, n_steps=7, backend="xla")
+    assert again == []
