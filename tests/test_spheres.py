@@ -200,6 +200,38 @@ def test_a_spurious_first_step_is_reported(dt, status, message):
         cj.integrate(KEPLER, q0, v0, dt=dt, n_steps=3)
 
 
+def test_a_spurious_first_step_is_reported_under_vmap():
+    """Under `jax.vmap` the march is traced: its first-step check's two half steps are the first
+    iterations of the traced scan, and the member whose step 0 is the spurious root reports
+    `Status.FIRST_STEP` in its `Solution` (with NaN after step 0); its neighbour runs."""
+    import jax
+
+    (q_bad, v_bad), (q_ok, v_ok) = _perihelion(0.95), _perihelion(0.5)
+    run = jax.vmap(lambda q, v: cj.integrate(KEPLER, q, v, dt=0.05, n_steps=3, throw=False))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cj.native.NativeFallbackWarning)
+        sol = run(np.stack([q_bad, q_ok]), np.stack([v_bad, v_ok]))
+    assert np.asarray(sol.result).tolist() == [cj.Status.FIRST_STEP, cj.Status.SUCCESS]
+    assert np.asarray(sol.failed_step).tolist() == [0, -1]
+    Q = np.asarray(sol.Q)
+    assert np.all(np.isnan(Q[0, 1:])) and np.all(np.isfinite(Q[1]))
+
+
+@pytest.mark.slow  # compiles the traced march with its error callback
+def test_a_spurious_first_step_is_raised_under_jit():
+    """Under `jax.jit` with `throw=True` the first-step check's failure is raised from the
+    program, as any traced failure is (`jax.errors.JaxRuntimeError` holding the
+    `IntegrationError`'s message)."""
+    import jax
+
+    q0, v0 = _perihelion(0.95)
+    run = jax.jit(lambda q, v: cj.integrate(KEPLER, q, v, dt=0.05, n_steps=3).Q)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cj.native.NativeFallbackWarning)
+        with pytest.raises(jax.errors.JaxRuntimeError, match="step 0 of 3.*two half steps.*FIRST_STEP"):
+            jax.block_until_ready(run(q0, v0))
+
+
 def test_kepler_in_the_plane_is_second_order_with_its_angular_momentum_to_round_off():
     """A resolved run passes the first-step check; against the exact Kepler orbit (e = 0.5, one
     period from perihelion), order 2, and the angular momentum q × ξ to round-off."""
