@@ -193,27 +193,34 @@ def _where(cond, a, b):
 def _half_step(advance, carry: Carry, dt, j, probes, c: Carry, probe):
     """Iteration `j` of a loop whose first `probes` iterations are the first-step check's half
     steps: the step from `c` (with Δt/2 while `j < probes`), the carry the next iteration starts
-    from (`carry` again after the last half step) and `probe` (the half steps' states and outputs,
-    and whether both converged) with this iteration's record kept where it is a half step."""
+    from (`carry` again after the last half step) and `probe` (the two half steps' states and
+    outputs, and whether both converged) with this iteration's kept where it is a half step.
+    Selects only (no indexing by the iteration), which every evaluator of the program covers."""
     in_probe = j < probes
     new, y = advance(c, jnp.where(in_probe, dt / 2, dt))
     if probe is not None:
-        states, outs, _ = probe
-        row = jnp.clip(j, 0, 1)
-        keep = lambda buf, v: buf.at[row].set(jnp.where(in_probe, v, buf[row]))  # noqa: E731
-        states = jax.tree_util.tree_map(keep, states, y[0])
-        outs = jax.tree_util.tree_map(keep, outs, y[1])
-        probe = (states, outs, jnp.where(j == probes - 1, new.alive, probe[2]))
+        first, second, ok = probe
+        made = y[:2]  # the step's state and output
+        first = _where(in_probe & (j == 0), made, first)
+        second = _where(in_probe & (j == 1), made, second)
+        probe = (first, second, jnp.where(j == probes - 1, new.alive, ok))
     return _where(j == probes - 1, carry, new), y, probe
 
 
 def _probe_start(advance, carry: Carry, dt, probes: int):
-    """The loop's first-step record before its half steps: zero states and outputs for two
-    steps, `ok` False (None without half steps)."""
+    """The loop's first-step record before its half steps: zero states and outputs of the two
+    half steps, `ok` False (None without half steps)."""
     if not probes:
         return None
-    state, out = jax.eval_shape(lambda c: advance(c, dt)[1][:2], carry)
-    return _zeros(state, (2,)), _zeros(out, (2,)), jnp.asarray(False)
+    made = _zeros(jax.eval_shape(lambda c: advance(c, dt)[1][:2], carry))
+    return made, made, jnp.asarray(False)
+
+
+def _probe_records(probe):
+    """The half steps' (states, outputs) stacked as a march's records, and `ok`."""
+    first, second, ok = probe
+    states, outs = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), first, second)
+    return states, outs, ok
 
 
 def _scan_steps(advance, carry: Carry, dt, length: int, probes: int):
@@ -231,7 +238,7 @@ def _scan_steps(advance, carry: Carry, dt, length: int, probes: int):
 
     start = (carry, _probe_start(advance, carry, dt, probes))
     (last, probe), records = jax.lax.scan(body, start, jnp.arange(length + probes, dtype=jnp.int32))
-    return last, jax.tree_util.tree_map(lambda a: a[probes:], records), probe
+    return last, jax.tree_util.tree_map(lambda a: a[probes:], records), _probe_records(probe)
 
 
 def _steps_until(advance, carry: Carry, dt, length: int, n_total, probes: int = 0):
@@ -260,7 +267,8 @@ def _steps_until(advance, carry: Carry, dt, length: int, n_total, probes: int = 
     last, made, (states, *records), probe = jax.lax.while_loop(going, body, start)
     if count is not None:
         made = made - count
-        probe = (*probe[:2], probe[2] & (count > 0))
+        states2, outs2, ok = _probe_records(probe)
+        probe = (states2, outs2, ok & (count > 0))
     idle = jnp.arange(length) >= made
     states = jax.tree_util.tree_map(
         lambda a, s: jnp.where(idle.reshape((-1,) + (1,) * s.ndim), s, a), states, last.state
