@@ -190,85 +190,68 @@ def _where(cond, a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.where(cond, x, y), a, b)
 
 
-def _half_step(advance, carry: Carry, dt, j, probes, c: Carry, probe):
-    """Iteration `j` of a loop whose first `probes` iterations are the first-step check's half
-    steps: the step from `c` (with Δt/2 while `j < probes`), the carry the next iteration starts
-    from (`carry` again after the last half step) and `probe` (the two half steps' states and
-    outputs, and whether both converged) with this iteration's kept where it is a half step.
-    Selects only (no indexing by the iteration), which every evaluator of the program covers."""
-    in_probe = j < probes
-    new, y = advance(c, jnp.where(in_probe, dt / 2, dt))
-    if probe is not None:
-        first, second, ok = probe
-        made = y[:2]  # the step's state and output
-        first = _where(in_probe & (j == 0), made, first)
-        second = _where(in_probe & (j == 1), made, second)
-        probe = (first, second, jnp.where(j == probes - 1, new.alive, ok))
-    return _where(j == probes - 1, carry, new), y, probe
-
-
-def _probe_start(advance, carry: Carry, dt, probes: int):
-    """The loop's first-step record before its half steps: zero states and outputs of the two
-    half steps, `ok` False (None without half steps)."""
-    if not probes:
-        return None
-    made = _zeros(jax.eval_shape(lambda c: advance(c, dt)[1][:2], carry))
-    return made, made, jnp.asarray(False)
-
-
-def _probe_records(probe):
-    """The half steps' (states, outputs) stacked as a march's records, and `ok`."""
-    first, second, ok = probe
-    states, outs = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), first, second)
-    return states, outs, ok
+def _probe_of(records, probes: int):
+    """The half steps' record from a loop's records whose first `probes` rows are theirs: their
+    states and outputs, and whether both converged (as `first_step_probe` reads them)."""
+    states, outs, stats, _ = jax.tree_util.tree_map(lambda a: a[:probes], records)
+    return states, outs, jnp.all(stats.status == Status.SUCCESS)
 
 
 def _scan_steps(advance, carry: Carry, dt, length: int, probes: int):
     """(last carry, records of `length` steps, half steps' record) as one `lax.scan`, of
-    `length + probes` iterations: the first `probes` the first-step check's half steps
-    (`_half_step`), whose records are dropped."""
+    `length + probes` iterations: the first `probes` the first-step check's half steps (Δt/2),
+    after which the loop starts again from `carry`; their records are the half steps'."""
     if not probes:
         last, records = jax.lax.scan(lambda c, _: advance(c, dt), carry, None, length=length)
         return last, records, None
 
-    def body(state, j):
-        c, probe = state
-        c, y, probe = _half_step(advance, carry, dt, j, probes, c, probe)
-        return (c, probe), y
+    def body(c, j):
+        new, y = advance(c, jnp.where(j < probes, dt / 2, dt))
+        return _where(j == probes - 1, carry, new), y
 
-    start = (carry, _probe_start(advance, carry, dt, probes))
-    (last, probe), records = jax.lax.scan(body, start, jnp.arange(length + probes, dtype=jnp.int32))
-    return last, jax.tree_util.tree_map(lambda a: a[probes:], records), _probe_records(probe)
+    last, records = jax.lax.scan(body, carry, jnp.arange(length + probes, dtype=jnp.int32))
+    return last, jax.tree_util.tree_map(lambda a: a[probes:], records), _probe_of(records, probes)
 
 
 def _steps_until(advance, carry: Carry, dt, length: int, n_total, probes: int = 0):
     """(last carry, outputs of `length` steps, half steps' record) as a scan of `advance` would
     give them, with the steps from `n_total` on not made: their records are zero (`valid`
     False) and their states the last state, which the node after the run's last step (the
-    chunk's last node) holds. With `probes` (2), a chunk starting the run (`carry.n` 0) makes
-    the first-step check's two half steps first (`_half_step`); the others make none."""
+    chunk's last node) holds.
+
+    With `probes` (2) the loop runs twice, from `carry` both times: first the first-step
+    check's half steps (Δt/2), in a chunk starting the run (`carry.n` 0; none in the others),
+    recorded in the first `probes` rows, then the chunk's steps. The loop (one copy of the step
+    in the program) is the same as without them: the two runs differ only in their step size,
+    where they stop and the row they record at."""
     stop = jnp.minimum(n_total, carry.n + length)
-    out0 = _zeros(jax.eval_shape(lambda c: advance(c, dt)[1], carry), (length,))
-    count = jnp.where(carry.n == 0, probes, 0).astype(jnp.int32) if probes else None
+    out0 = _zeros(jax.eval_shape(lambda c: advance(c, dt)[1], carry), (length + probes,))
 
-    def body(state):
-        c, i, out, probe = state
-        if count is None:
-            c, y = advance(c, dt)
-            row = i
-        else:
-            c, y, probe = _half_step(advance, carry, dt, i, count, c, probe)
-            row = jnp.maximum(i - count, 0)
-            y = _where(i < count, jax.tree_util.tree_map(lambda o: o[row], out), y)  # a half step records nothing
-        return c, i + 1, jax.tree_util.tree_map(lambda o, v: o.at[row].set(v), out, y), probe
+    def steps(c, row, out, h, until):
+        def body(state):
+            c, i, out = state
+            c, y = advance(c, h)
+            return c, i + 1, jax.tree_util.tree_map(lambda o, v: o.at[i].set(v), out, y)
 
-    going = lambda st: st[0].n < stop if count is None else (st[1] < count) | (st[0].n < stop)  # noqa: E731
-    start = (carry, jnp.asarray(0, jnp.int32), out0, _probe_start(advance, carry, dt, probes))
-    last, made, (states, *records), probe = jax.lax.while_loop(going, body, start)
-    if count is not None:
-        made = made - count
-        states2, outs2, ok = _probe_records(probe)
-        probe = (states2, outs2, ok & (count > 0))
+        return jax.lax.while_loop(lambda st: st[0].n < until, body, (c, row, out))
+
+    if not probes:
+        last, made, (states, *records) = steps(carry, jnp.asarray(0, jnp.int32), out0, dt, stop)
+        probe = None
+    else:
+        count = jnp.where(carry.n == 0, probes, 0).astype(jnp.int32)
+
+        def run(k, state):  # k = 0: the half steps (rows from 0), k = 1: the chunk's steps (rows from probes)
+            out, _, _ = state
+            half = k == 0
+            row = jnp.where(half, 0, probes).astype(jnp.int32)
+            return steps(carry, row, out, jnp.where(half, dt / 2, dt), jnp.where(half, count, stop))[::-1]
+
+        out, made, last = jax.lax.fori_loop(0, 2, run, (out0, jnp.asarray(0, jnp.int32), carry))
+        states, outs, ok = _probe_of(out, probes)
+        probe = (states, outs, ok & (count > 0))
+        states, *records = jax.tree_util.tree_map(lambda a: a[probes:], out)
+        made = made - probes
     idle = jnp.arange(length) >= made
     states = jax.tree_util.tree_map(
         lambda a, s: jnp.where(idle.reshape((-1,) + (1,) * s.ndim), s, a), states, last.state
