@@ -132,10 +132,11 @@ def run_chunk(
       whose solves stop at their first update.
 
     With `first_step_check` the run's first chunk (`carry.n` 0; with `exact`, the chunk is the
-    run) also makes the first-step check's two half steps (`first_step_probe`): they are the
-    loop's first two iterations, made by the loop's own step with Δt/2, after which the loop
-    starts again from `carry` — one copy of the step in the program. The node they reach is
-    the chunk's `probe` (`ok` False in a chunk that did not make them)."""
+    run) also makes the first-step check's two half steps (`first_step_probe`), by the loop's
+    own step with Δt/2 before the chunk's steps, which start again from `carry`: the scan's
+    first two iterations (`_scan_steps`), or a first run of the while loop (`_steps_until`) —
+    one copy of the step in the program. The node they reach is the chunk's `probe` (`ok`
+    False in a chunk that did not make them)."""
     probes = 2 if first_step_check else 0  # the most half steps a chunk of this program makes
     advance = lambda c, h: advance_step(stepper, system, h, c)
     if exact:
