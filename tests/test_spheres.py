@@ -200,6 +200,38 @@ def test_a_spurious_first_step_is_reported(dt, status, message):
         cj.integrate(KEPLER, q0, v0, dt=dt, n_steps=3)
 
 
+def test_a_spurious_first_step_is_reported_under_vmap():
+    """Under `jax.vmap` the march is traced: its first-step check's two half steps are the first
+    iterations of the traced scan, and the member whose step 0 is the spurious root reports
+    `Status.FIRST_STEP` in its `Solution` (with NaN after step 0); its neighbour runs."""
+    import jax
+
+    (q_bad, v_bad), (q_ok, v_ok) = _perihelion(0.95), _perihelion(0.5)
+    run = jax.vmap(lambda q, v: cj.integrate(KEPLER, q, v, dt=0.05, n_steps=3, throw=False))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cj.native.NativeFallbackWarning)
+        sol = run(np.stack([q_bad, q_ok]), np.stack([v_bad, v_ok]))
+    assert np.asarray(sol.result).tolist() == [cj.Status.FIRST_STEP, cj.Status.SUCCESS]
+    assert np.asarray(sol.failed_step).tolist() == [0, -1]
+    Q = np.asarray(sol.Q)
+    assert np.all(np.isnan(Q[0, 1:])) and np.all(np.isfinite(Q[1]))
+
+
+@pytest.mark.slow  # compiles the traced march with its error callback
+def test_a_spurious_first_step_is_raised_under_jit():
+    """Under `jax.jit` with `throw=True` the first-step check's failure is raised from the
+    program, as any traced failure is (`jax.errors.JaxRuntimeError` holding the
+    `IntegrationError`'s message)."""
+    import jax
+
+    q0, v0 = _perihelion(0.95)
+    run = jax.jit(lambda q, v: cj.integrate(KEPLER, q, v, dt=0.05, n_steps=3).Q)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cj.native.NativeFallbackWarning)
+        with pytest.raises(jax.errors.JaxRuntimeError, match="step 0 of 3.*two half steps.*FIRST_STEP"):
+            jax.block_until_ready(run(q0, v0))
+
+
 def test_kepler_in_the_plane_is_second_order_with_its_angular_momentum_to_round_off():
     """A resolved run passes the first-step check; against the exact Kepler orbit (e = 0.5, one
     period from perihelion), order 2, and the angular momentum q × ξ to round-off."""
@@ -228,3 +260,47 @@ def test_a_hand_gauged_system_runs_under_jit_as_integrate_runs_it():
     concrete = cj.integrate(DOUBLE, Q0_DOUBLE, xi0, dt=0.05, n_steps=5)
     assert concrete.isotropy == 2
     np.testing.assert_allclose(np.asarray(traced), np.asarray(concrete.Q), atol=1e-13)
+
+
+def _fresh_single_pendulum():
+    """A spherical pendulum written with its physical velocity, made of functions no other test
+    has compiled (each call makes new ones): its checks and march are compiled afresh."""
+
+    def lagrangian(xi, q):
+        v = jnp.cross(xi, q)
+        return 0.5 * jnp.sum(v * v) - G * q[2]
+
+    return cj.ClebschSystem(
+        lagrangian=lagrangian, velocity_map=lambda xi, q: jnp.cross(xi, q), derivative_map=cj.forward_difference
+    )
+
+
+SINGLE_Q0, SINGLE_XI0 = np.array([0.6, 0.0, -0.8]), np.array([0.3, 1.0, 0.2])  # ξ0 has a component along q0
+
+
+def test_the_checks_of_a_sphere_system_compile_a_few_programs():
+    """The value checks and the isotropy gauge of a new sphere system (the model checks, the
+    gauge's values, the physical velocity's derivatives) are one compiled program each, not an
+    XLA compile per operation run eagerly (issue 44: about 160 programs before)."""
+    from clebsch_jax.march.arguments import prepared_method
+
+    from .helpers import compiles_recorded
+
+    with compiles_recorded() as compiled, pytest.warns(UserWarning, match="isotropy of Q0"):
+        prepared_method(_fresh_single_pendulum(), SINGLE_Q0, SINGLE_XI0, dt=0.05, n_steps=4)
+    assert len(compiled) <= 4, compiled
+
+
+@pytest.mark.slow  # compiles a new march
+def test_the_first_call_of_a_sphere_system_compiles_a_few_programs():
+    """A new sphere system's first `integrate` call: its checks and the march's start and chunk
+    (the first-step probe is that chunk); a second call compiles nothing."""
+    from .helpers import compiles_recorded
+
+    system = _fresh_single_pendulum()
+    with compiles_recorded() as compiled:
+        sol = _quiet(cj.integrate, system, SINGLE_Q0, SINGLE_XI0, dt=0.05, n_steps=4, backend="xla")
+    assert sol.isotropy == 1 and len(compiled) <= 6, compiled
+    with compiles_recorded() as again:
+        _quiet(cj.integrate, system, SINGLE_Q0, SINGLE_XI0, dt=0.05, n_steps=7, backend="xla")
+    assert again == []

@@ -152,8 +152,16 @@ def gauge_weight(system, Q, xi) -> jax.Array:
     norm), 1 where that is zero or not finite. Plain XLA operations (traced or not: `integrate`
     evaluates it on concrete values, a sweep in its members' programs, a traced `integrate`
     in the caller's), so that every path gauges a member with the same weight."""
-    xi = jnp.asarray(xi)
-    H = jax.hessian(lambda x: system.l(x.reshape(xi.shape), Q))(xi.reshape(-1))
+    return _weight_of(_lagrangian_hessian(system, Q, jnp.asarray(xi)))
+
+
+def _lagrangian_hessian(system, Q, xi) -> jax.Array:
+    """l's Hessian in ξ at (ξ, Q), flattened to (ξ.size, ξ.size)."""
+    return jax.hessian(lambda x: system.l(x.reshape(xi.shape), Q))(xi.reshape(-1))
+
+
+def _weight_of(H) -> jax.Array:
+    """`gauge_weight` from l's Hessian `H`: its Frobenius norm, 1 where that is zero or not finite."""
     size = jnp.sqrt(jnp.sum(H * H))
     return jnp.where(jnp.isfinite(size) & (size > 0), size, 1.0)
 
@@ -228,17 +236,29 @@ def gauge_isotropy(system: ClebschSystem, Q0, xi0, *, weight=None, regular=None)
     if isinstance(system.lagrangian, IsotropyGauge):
         return system
     Q0, xi0 = jnp.asarray(Q0, float), jnp.asarray(xi0, float)
-    A = np.asarray(velocity_jacobian(system.velocity_map, Q0, xi0.shape))
+    A, H, found = _gauge_values(system, Q0, xi0)
+    A, H = np.asarray(A), np.asarray(H)
     K = kernel_basis(A)
-    H = np.asarray(jax.hessian(lambda x: system.l(x.reshape(xi0.shape), Q0))(xi0.reshape(-1)))
     if weight is None:  # the weight every path computes (`gauge_weight`), here on concrete values
-        weight = float(gauge_weight(system, Q0, xi0))
+        weight = found
     if regular is None:
-        fixed = H + weight * K @ K.T
+        fixed = H + float(weight) * K @ K.T
         s = np.linalg.svd(fixed, compute_uv=False)
         regular = (not system.degenerate) or bool(s.size and s[-1] > 1e-14 * s[0])
     rank, kernel_dim = xi0.size - K.shape[1], K.shape[1]
     return gauged(system, rank, kernel_dim, jnp.asarray(weight, float), system.degenerate and not regular)
+
+
+def _evaluate_gauge(system, Q0, xi0):
+    """What `gauge_isotropy` reads at (ξ⁰, Q⁰): the velocity map's Jacobian, l's Hessian in ξ and
+    the gauge's weight computed from it as `gauge_weight` computes it."""
+    H = _lagrangian_hessian(system, Q0, xi0)
+    return velocity_jacobian(system.velocity_map, Q0, xi0.shape), H, _weight_of(H)
+
+
+_gauge_values = filter_jit(_evaluate_gauge, QUICK_COMPILE)
+"""`_evaluate_gauge` as one compiled program per system and shapes (a check before marching: one
+compile, not one per operation of the user's maps and their derivatives run eagerly)."""
 
 
 def _rebuilt(system, lagrangian, degenerate):
@@ -263,14 +283,12 @@ def physical_velocity(system, Q0, xi0, K: np.ndarray, *, warn: bool = True, stac
     if K.shape[1] == 0:
         return xi0
     x0 = np.asarray(xi0, float).reshape(-1)
-    shape = np.shape(xi0)
-    grad = jax.grad(lambda x: system.l(x.reshape(shape), Q0))
-    hess = jax.jacfwd(grad)
+    shape = tuple(np.shape(xi0))
     c = -K.T @ x0
     for _ in range(3):
-        x = jnp.asarray(x0 + K @ c)
-        g = K.T @ np.asarray(grad(x))
-        Hk = K.T @ np.asarray(hess(x)) @ K
+        gradient, hessian = _gradient_and_hessian(system, Q0, x0 + K @ c, shape)
+        g = K.T @ np.asarray(gradient)
+        Hk = K.T @ np.asarray(hessian) @ K
         scale = max(1.0, float(np.linalg.norm(Hk)))
         if not np.all(np.isfinite(g)) or not np.linalg.norm(g) > 1e-14 * scale:
             break
@@ -286,7 +304,18 @@ def physical_velocity(system, Q0, xi0, K: np.ndarray, *, warn: bool = True, stac
             UserWarning,
             stacklevel=stacklevel,
         )
-    return jnp.asarray(x.reshape(shape))
+    return jax.device_put(x.reshape(shape))  # a transfer: `jnp.asarray` would compile a program
+
+
+def _evaluate_gradient_and_hessian(system, Q0, x, shape):
+    """l's gradient and Hessian in ξ at (ξ, Q⁰), ξ = x (flat) of shape `shape`, both flat."""
+    grad = jax.grad(lambda y: system.l(y.reshape(shape), Q0))
+    return grad(x), jax.jacfwd(grad)(x)
+
+
+_gradient_and_hessian = filter_jit(_evaluate_gradient_and_hessian, QUICK_COMPILE)
+"""`physical_velocity`'s derivatives, one compiled program per system and shapes for its
+Newton updates (each an evaluation of this program on the host's iterate)."""
 
 
 MULTIPLIER_RTOL = 1e-8

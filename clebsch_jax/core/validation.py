@@ -108,7 +108,8 @@ def _float_array(x, name: str, allow_bool: bool):
     if not np.all(np.isfinite(host)):
         raise ValueError(f"{name}: contains non-finite values (NaN or inf).")
     if arr is None:
-        arr = _device_scalar(x, f64, host) if type(x) in (float, int) else jnp.asarray(host)  # strongly typed
+        # strongly typed; a transfer (`jnp.asarray` of a NumPy array compiles a program per shape)
+        arr = _device_scalar(x, f64, host) if type(x) in (float, int) else jax.device_put(host)
     return arr, host
 
 
@@ -127,7 +128,7 @@ def _device_scalar(x, dtype, host: np.ndarray) -> jax.Array:
     key = (type(x), x.hex() if isinstance(x, float) else x, np.dtype(dtype))
     found = _SCALARS.get(key)
     if found is None:
-        found = jnp.asarray(host)
+        found = jax.device_put(host)
         if is_traced(found):  # made inside a trace (a jit of the caller's): a tracer, never kept
             return found
         if len(_SCALARS) >= _SCALARS_MAX:

@@ -109,19 +109,19 @@ def assemble(
     energy = join(lambda c: c.energy, True)
     rtol = ENERGY_STEP_RTOL if energy_rtol is None else energy_rtol
     jumped, step = energy_jump(xp, *energy, stats.status, rtol=rtol)[:2] if energy is not None else (False, None)
-    if energy is not None and (xp is jnp or bool(jumped)):  # on the host, only a jump costs a pass
-        step = xp.where(jumped, step, n_steps)
-        stats, nodal, valid, out = _fail_from(xp, step, Status.ENERGY_JUMP, stats, nodal, valid, fields_of())
-        Qn, pn, mun, xin, xi_step, P = out
-        nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
+    first = False
     if probe is not None:  # after the energy check, which every path makes: a step 0 it fails keeps its status
         first = first_step_failed(xp, probe, nodes.nodal_Q[:2], nodes.momentum[:2], stats.status[0])
-        if xp is jnp or bool(first):  # on the host, only a failure costs a pass
-            stats, nodal, valid, out = _fail_from(
-                xp, xp.where(first, 0, n_steps), Status.FIRST_STEP, stats, nodal, valid, fields_of()
-            )
-            Qn, pn, mun, xin, xi_step, P = out
-            nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
+        if energy is not None:
+            first = first & ~(jumped & (step == 0))
+    # one pass for both checks: a first step failed by its check fails the run from step 0, which
+    # covers a later jump (the energy check's nodes up to step 0 are the ones the check reads)
+    if (energy is not None or probe is not None) and (xp is jnp or bool(jumped) or bool(first)):
+        fail = xp.where(first, 0, xp.where(jumped, step, n_steps) if energy is not None else n_steps)
+        code = xp.where(first, Status.FIRST_STEP, Status.ENERGY_JUMP)
+        stats, nodal, valid, out = _fail_from(xp, fail, code, stats, nodal, valid, fields_of())
+        Qn, pn, mun, xin, xi_step, P = out
+        nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)
     facts = stepper.facts(system)
     failed = stats.status != Status.SUCCESS
     any_step, first_step = xp.any(failed), xp.argmax(failed)

@@ -43,6 +43,7 @@ class Chunk(NamedTuple):
     nodal_stats: NewtonStats
     valid: jax.Array
     energy: Any = None  # (E, size) at the nodes, when the energy check is on (`node_energies`)
+    probe: Any = None  # the first-step check's half steps made in XLA's chunk (`run_chunk`), or None
 
 
 def failed_to_nan(a, ok):

@@ -1,6 +1,8 @@
-"""The first-step check of concrete runs (`FIRST_STEP_RTOL`): step 0 against two half steps of
-size Δt/2 from the start, made by the march's own compiled chunk (`first_step_probe`) or traced
-into a sweep's per-member program (`half_steps`); a spurious root of step 0's equations differs
+"""The first-step check (`FIRST_STEP_RTOL`): step 0 against two half steps of size Δt/2 from the
+start, made as the first iterations of the march's own loop (`clebsch_jax.march.scan.run_chunk`,
+concrete or traced, and a sweep's `clebsch_jax.batching.member.member_chunk`), by a call of the
+native march's chunk (`first_step_probe`) or traced into a sweep's XLA fast paths
+(`half_steps`); a spurious root of step 0's equations differs
 from them by as much as it moves (`first_step_failed`)."""
 
 from __future__ import annotations
@@ -26,7 +28,8 @@ __all__ = [
 
 
 FIRST_STEP_RTOL = 0.5
-r"""The first-step check (with `check_energy`, on concrete runs — `march_chunked`; a spurious root
+r"""The first-step check (with `check_energy`, at a run's start — not when continuing from a
+`march_state`; a spurious root
 in step 0 can change E by little compared with the sizes of its terms, which are largest there,
 as at the perihelion of an eccentric orbit):
 step 0 fails with `Status.FIRST_STEP` when it converged but two half steps from the start do
@@ -55,7 +58,8 @@ def first_step_probe(
     chunk_program, stepper: AbstractStepper, system, carry: Carry, dt, chunk_steps: int, check_energy: bool
 ) -> FirstStepProbe:
     """Two steps of size dt/2 from the start (`carry`), each with the stepper's own guesses, made
-    by the march's own compiled chunk (`chunk_program`, `run_chunk`: dt is one of its arguments,
+    by the march's own compiled chunk where it does not make them in its loop (the native
+    kernel's, `clebsch_jax.march.native_chunk`) (`chunk_program`, `run_chunk`: dt is one of its arguments,
     so nothing is compiled for them): the node they reach, to check the first step against
     (`first_step_failed`)."""
     half = np.asarray(np.asarray(dt) / 2)  # a host array: the programs take it as a device one

@@ -172,8 +172,10 @@ def integrate(
       evaluation of l and its gradient per node; False switches it off.
       Step 0, whose energy change can be small next to the terms at the start, is also checked
       against two half steps made once at the start
-      (by the march's own compiled program; on concrete runs and in `clebsch_jax.sweep`'s
-      first chunk, not under `jit`/`vmap`):
+      (by the march's own loop and step, before its steps, or on the native backend by a call
+      of its compiled chunk with Δt/2. So on concrete runs, under `jit`/`vmap`, where a failure
+      is reported as any traced failure is, and in `clebsch_jax.sweep`'s first chunk; not when
+      continuing from `march_state`):
       it fails with `Status.FIRST_STEP` when they do not converge, or when their node differs
       from step 0's by more than `FIRST_STEP_RTOL` (0.5) of their own displacement in both Q and
       the momentum map (a spurious root of the step equations).

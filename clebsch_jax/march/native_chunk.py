@@ -11,7 +11,7 @@ arrays. One more iteration, which makes no step, gives the chunk's last node. Th
 records as the kernel writes them, those of the steps made (`native_run_chunk`).
 
 `native_run_chunk` has `run_chunk`'s signature and results (without the padding of a chunk's
-steps not made, which `assemble` drops), so `march_chunked` and its first-step check (`first_step_probe`) run it in place of the XLA chunk: the same steps, statuses,
+steps not made, which `assemble` drops), so `march_chunked` and its first-step check (`first_step_probe`, which XLA's chunk makes in its loop instead) run it in place of the XLA chunk: the same steps, statuses,
 Newton statistics and failure handling; the values differ from XLA's only where XLA's own
 transcendental functions or contractions round differently from libm's (the tests compare them
 to 1e-12).

@@ -19,12 +19,15 @@ number of steps (`n_total`, an argument), so a new `n_steps` or `dt` reuses both
 Under a JAX transformation (`jit`, `vmap`, `grad`) the march is one `lax.scan` of exactly
 `n_steps` steps (`march`), traced into the caller's program. Both assemble the `Solution`
 with the same code, on NumPy arrays or traced ones, and the carry is handed over exactly: the
-chunked march is the same arithmetic as the single scan.
+chunked march is the same arithmetic as the single scan. With the energy check both make the
+first-step check's two half steps as their loop's first iterations (`run_chunk`'s
+`first_step_check`): one copy of the step in each program, traced or not.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -119,6 +122,7 @@ def run_chunk(
     n_total,
     check_energy: bool = False,
     exact: bool = False,
+    first_step_check: bool = False,
 ) -> tuple[Carry, Chunk]:
     """`length` steps from `carry`, their nodes and nodal velocities (and, with `check_energy`,
     their energies: `node_energies`); the steps numbered `n_total` (an int32 array: the run's
@@ -134,14 +138,27 @@ def run_chunk(
       a chunk that runs past the end of a run costs nothing for those steps. (A loop whose trip
       count depends on the data cannot be transposed: this shape is for values that are not
       differentiated.) The nodal velocities of the nodes not reached start from NaN seeds,
-      whose solves stop at their first update."""
+      whose solves stop at their first update.
 
-    advance = lambda c: advance_step(stepper, system, dt, c)
+    With `first_step_check` the run's first chunk (`carry.n` 0; with `exact`, the chunk is the
+    run) also makes the first-step check's two half steps (`first_step_probe`), by the loop's
+    own step with Δt/2 before the chunk's steps, which start again from `carry`: the scan's
+    first two iterations (`_scan_steps`), or a first run of the while loop (`_steps_until`) —
+    one copy of the step in the program. The node they reach is the chunk's `probe` (`ok`
+    False in a chunk that did not make them)."""
+    probes = 2 if first_step_check else 0  # the most half steps a chunk of this program makes
+    advance = lambda c, h: advance_step(stepper, system, h, c)
     if exact:
-        last, (states, outs, stats, valid) = jax.lax.scan(lambda c, _: advance(c), carry, None, length=length)
+        last, (states, outs, stats, valid), probe = _scan_steps(advance, carry, dt, length, probes)
     else:
         # jitted (inlined) so that it is traced once, for the records' shapes and the loop body
-        last, (states, outs, stats, valid) = _steps_until(jax.jit(advance, inline=True), carry, length, n_total)
+        last, (states, outs, stats, valid), probe = _steps_until(
+            jax.jit(advance, inline=True), carry, dt, length, n_total, probes
+        )
+    if probe is not None:  # the half steps' node, read as `first_step_probe` reads it
+        probe_states, probe_outs, probe_ok = probe
+        half = stepper.nodes(system, carry.state, probe_states, probe_outs)
+        probe = FirstStepProbe(half.nodal_Q[2], half.momentum[2], probe_ok)
     nodes = stepper.nodes(system, carry.state, states, outs)
     made = jnp.clip(n_total - carry.n, 0, length)
     xi_last = jnp.where(made > 0, nodes.xi_step[jnp.maximum(made - 1, 0)], carry.xi_last)
@@ -169,7 +186,7 @@ def run_chunk(
     else:
         xi, nodal = nodal_velocities(system, stepper.nodal_solver, nodes.nodal_Q, nodes.momentum, guesses, valid)
     energy = node_energies(system, nodes.nodal_Q, xi) if check_energy and xi is not None else None
-    return last._replace(xi_last=xi_last), Chunk(nodes, stats, xi, nodal, valid, energy)
+    return last._replace(xi_last=xi_last), Chunk(nodes, stats, xi, nodal, valid, energy, probe)
 
 
 def _zeros(shapes, lead: tuple = ()):
@@ -178,26 +195,78 @@ def _zeros(shapes, lead: tuple = ()):
     return jax.tree_util.tree_map(lambda s: jnp.zeros(lead + s.shape, s.dtype), shapes)
 
 
-def _steps_until(advance, carry: Carry, length: int, n_total):
-    """(last carry, outputs of `length` steps) as a scan of `advance` would give them, with the
-    steps from `n_total` on not made: their records are zero (`valid` False) and their states
-    the last state, which the node after the run's last step (the chunk's last node) holds."""
+def _where(cond, a, b):
+    """`jnp.where(cond, a, b)` leaf by leaf over two pytrees of one structure."""
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(cond, x, y), a, b)
+
+
+def _probe_of(records, probes: int):
+    """The half steps' record from a loop's records whose first `probes` rows are theirs: their
+    states and outputs, and whether both converged (as `first_step_probe` reads them)."""
+    states, outs, stats, _ = jax.tree_util.tree_map(lambda a: a[:probes], records)
+    return states, outs, jnp.all(stats.status == Status.SUCCESS)
+
+
+def _scan_steps(advance, carry: Carry, dt, length: int, probes: int):
+    """(last carry, records of `length` steps, half steps' record) as one `lax.scan`, of
+    `length + probes` iterations: the first `probes` the first-step check's half steps (Δt/2),
+    after which the loop starts again from `carry`; their records are the half steps'."""
+    if not probes:
+        last, records = jax.lax.scan(lambda c, _: advance(c, dt), carry, None, length=length)
+        return last, records, None
+
+    def body(c, j):
+        new, y = advance(c, jnp.where(j < probes, dt / 2, dt))
+        return _where(j == probes - 1, carry, new), y
+
+    last, records = jax.lax.scan(body, carry, jnp.arange(length + probes, dtype=jnp.int32))
+    return last, jax.tree_util.tree_map(lambda a: a[probes:], records), _probe_of(records, probes)
+
+
+def _steps_until(advance, carry: Carry, dt, length: int, n_total, probes: int = 0):
+    """(last carry, outputs of `length` steps, half steps' record) as a scan of `advance` would
+    give them, with the steps from `n_total` on not made: their records are zero (`valid`
+    False) and their states the last state, which the node after the run's last step (the
+    chunk's last node) holds.
+
+    With `probes` (2) the loop runs twice, from `carry` both times: first the first-step
+    check's half steps (Δt/2), in a chunk starting the run (`carry.n` 0; none in the others),
+    recorded in the first `probes` rows, then the chunk's steps. The loop (one copy of the step
+    in the program) is the same as without them: the two runs differ only in their step size,
+    where they stop and the row they record at."""
     stop = jnp.minimum(n_total, carry.n + length)
-    out0 = _zeros(jax.eval_shape(lambda c: advance(c)[1], carry), (length,))
+    out0 = _zeros(jax.eval_shape(lambda c: advance(c, dt)[1], carry), (length + probes,))
 
-    def body(state):
-        c, i, out = state
-        c, y = advance(c)
-        return c, i + 1, jax.tree_util.tree_map(lambda o, v: o.at[i].set(v), out, y)
+    def steps(c, row, out, h, until):
+        def body(state):
+            c, i, out = state
+            c, y = advance(c, h)
+            return c, i + 1, jax.tree_util.tree_map(lambda o, v: o.at[i].set(v), out, y)
 
-    last, made, (states, *records) = jax.lax.while_loop(
-        lambda st: st[0].n < stop, body, (carry, jnp.asarray(0, jnp.int32), out0)
-    )
+        return jax.lax.while_loop(lambda st: st[0].n < until, body, (c, row, out))
+
+    if not probes:
+        last, made, (states, *records) = steps(carry, jnp.asarray(0, jnp.int32), out0, dt, stop)
+        probe = None
+    else:
+        count = jnp.where(carry.n == 0, probes, 0).astype(jnp.int32)
+
+        def run(k, state):  # k = 0: the half steps (rows from 0), k = 1: the chunk's steps (rows from probes)
+            out, _, _ = state
+            half = k == 0
+            row = jnp.where(half, 0, probes).astype(jnp.int32)
+            return steps(carry, row, out, jnp.where(half, dt / 2, dt), jnp.where(half, count, stop))[::-1]
+
+        out, made, last = jax.lax.fori_loop(0, 2, run, (out0, jnp.asarray(0, jnp.int32), carry))
+        states, outs, ok = _probe_of(out, probes)
+        probe = (states, outs, ok & (count > 0))
+        states, *records = jax.tree_util.tree_map(lambda a: a[probes:], out)
+        made = made - probes
     idle = jnp.arange(length) >= made
     states = jax.tree_util.tree_map(
         lambda a, s: jnp.where(idle.reshape((-1,) + (1,) * s.ndim), s, a), states, last.state
     )
-    return last, (states, *records)
+    return last, (states, *records), probe
 
 
 def _finite_rows(a):
@@ -246,8 +315,25 @@ def march(
     (`resume`) instead of starting."""
     rtol = energy_rtol(check_energy)
     carry, startup, n_total = resume(stepper, system, Q0, xi0, P0, dt, check_inputs, march_state, n_steps)
-    last, chunk = run_chunk(stepper, system, carry, dt, n_steps, n_total, rtol is not None, exact=True)
-    sol = assemble(jnp, stepper, system, [chunk], n_steps, startup, dt, t0, Q0, xi0, carry.alive, energy_rtol=rtol)
+    probe = rtol is not None and march_state is None  # the first-step check, in the scan's first iterations
+    last, chunk = run_chunk(
+        stepper, system, carry, dt, n_steps, n_total, rtol is not None, exact=True, first_step_check=probe
+    )
+    sol = assemble(
+        jnp,
+        stepper,
+        system,
+        [chunk],
+        n_steps,
+        startup,
+        dt,
+        t0,
+        Q0,
+        xi0,
+        carry.alive,
+        probe=chunk.probe,
+        energy_rtol=rtol,
+    )
     return dataclasses.replace(sol, march_state=last)
 
 
@@ -288,7 +374,8 @@ def march_chunked(
     """`march` with concrete arguments, as compiled chunks of `chunk_steps` steps (default
     `chunk_length`): the programs depend on the stepper, the system and the shapes, not on
     `n_steps` or `dt`. With `march_state` the march continues from it (`resume`); its first
-    step is then not checked as a run's first step (`first_step_probe`). `backend` ("xla",
+    step is then not checked as a run's first step (the half steps of `run_chunk`'s
+    `first_step_check`, or the native chunk's `first_step_probe`). `backend` ("xla",
     "native" or "auto", `integrate`'s): which program makes a chunk's steps
     (`clebsch_jax.march.native_chunk.native_chunk_program`)."""
     from .native_chunk import native_chunk_program
@@ -304,9 +391,15 @@ def march_chunked(
     native = native_chunk_program(stepper, system, carry, dt, check_energy, backend)
     if chunk_steps is None:  # a native chunk costs no compile per step: longer chunks, less host work
         chunk_steps = chunk_length(Q0, xi0) * (NATIVE_CHUNK_FACTOR if native is not None else 1)
-    chunk_jit = native or chunk_jit
+    # the first-step check: XLA's chunk makes its half steps in its loop, in the run's first chunk
+    # (`run_chunk`); the native kernel, by a call of its own (`first_step_probe`)
+    half_steps_in_loop = check_energy and native is None
+    if native is not None:
+        chunk_jit = native
+    elif half_steps_in_loop:
+        chunk_jit = functools.partial(chunk_jit, first_step_check=True)
     if march_state is None:
-        if check_energy and n_steps > 0 and not any_traced(carry):
+        if check_energy and n_steps > 0 and native is not None:
             probe = first_step_probe(chunk_jit, stepper, system, carry, dt, chunk_steps, check_energy)
         total = np.asarray(n_steps, np.int32)  # a NumPy scalar: no conversion program
     else:  # a continued march: its first step is not a run's first step (it has its guesses)
@@ -316,6 +409,8 @@ def march_chunked(
     for _ in range(-(-n_steps // chunk_steps)):
         carry, chunk = chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
         chunks.append(chunk)
+    if march_state is None and half_steps_in_loop and n_steps > 0:
+        probe = chunks[0].probe
     if any_traced(chunks, startup, probe):
         # a function the map checks do not call closed over a traced value (the caller is
         # inside jit/vmap; integrate sends maps that close over one to `march`)
