@@ -516,9 +516,10 @@ def test_run_scene_writes_files_and_its_json_matches_the_solution(name, tmp_path
 
 
 def test_failing_member_is_reported_with_its_step_and_exit_1(tmp_path, capsys):
-    """dt = 100 on the rigid body: Newton's method fails for some member; the others run on.
-    (Newton from a fresh Jacobian at every step solves all four members even at dt = 50 or
-    2000; at dt = 100 member 1 reaches the iteration cap at step 1, the others converge.)"""
+    """dt = 10 on the rigid body: some member fails; the others run on. (The scene's traced
+    march makes the first-step check: at dt = 10 member 1's first step is far from the node two
+    half steps reach, `Status.FIRST_STEP` at step 0, and the other three pass; at dt >= 20 most
+    members fail it.)"""
     scene = SCENES["rigid-body"]
     out = tmp_path / "fail"
     code = main(
@@ -526,7 +527,7 @@ def test_failing_member_is_reported_with_its_step_and_exit_1(tmp_path, capsys):
             "run",
             "rigid-body",
             "--dt",
-            "100",
+            "10",
             "--steps",
             str(scene.quick_steps),
             "--batch",
@@ -537,7 +538,7 @@ def test_failing_member_is_reported_with_its_step_and_exit_1(tmp_path, capsys):
         ]
     )
     captured = capsys.readouterr()
-    _, _, sol = _solution("rigid-body", dt=100.0)
+    _, _, sol = _solution("rigid-body", dt=10.0)
     result, failed_step = np.asarray(sol.result), np.asarray(sol.failed_step)
     failing = np.flatnonzero(result != 0)
     assert 1 <= len(failing) < scene.quick_batch  # the test needs a failing and a surviving member
