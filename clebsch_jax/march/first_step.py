@@ -58,10 +58,11 @@ def first_step_probe(
     chunk_program, stepper: AbstractStepper, system, carry: Carry, dt, chunk_steps: int, check_energy: bool
 ) -> FirstStepProbe:
     """Two steps of size dt/2 from the start (`carry`), each with the stepper's own guesses, made
-    by the march's own compiled chunk where it does not make them in its loop (the native
-    kernel's, `clebsch_jax.march.native_chunk`) (`chunk_program`, `run_chunk`: dt is one of its arguments,
-    so nothing is compiled for them): the node they reach, to check the first step against
-    (`first_step_failed`)."""
+    by a concrete march's own compiled chunk (`chunk_program`: XLA's `run_chunk` or the native
+    kernel of `clebsch_jax.march.native_chunk`; dt is one of its arguments, so nothing is
+    compiled for them): the node they reach, to check the first step against
+    (`first_step_failed`). A traced `march` makes them in its scan instead (`run_chunk`'s
+    `first_step_check`)."""
     half = np.asarray(np.asarray(dt) / 2)  # a host array: the programs take it as a device one
     _, chunk = chunk_program(stepper, system, carry, half, chunk_steps, np.asarray(2, np.int32), check_energy)
     ok = np.all(np.asarray(chunk.stats.status)[:2] == Status.SUCCESS)

@@ -20,14 +20,14 @@ Under a JAX transformation (`jit`, `vmap`, `grad`) the march is one `lax.scan` o
 `n_steps` steps (`march`), traced into the caller's program. Both assemble the `Solution`
 with the same code, on NumPy arrays or traced ones, and the carry is handed over exactly: the
 chunked march is the same arithmetic as the single scan. With the energy check both make the
-first-step check's two half steps as their loop's first iterations (`run_chunk`'s
-`first_step_check`): one copy of the step in each program, traced or not.
+first-step check: the single scan as its first iterations (`run_chunk`'s `first_step_check`:
+one copy of the step in the program), the chunked march by a call of its chunk's own program
+with dt/2 (`first_step_probe`: nothing compiled for it).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -374,8 +374,7 @@ def march_chunked(
     """`march` with concrete arguments, as compiled chunks of `chunk_steps` steps (default
     `chunk_length`): the programs depend on the stepper, the system and the shapes, not on
     `n_steps` or `dt`. With `march_state` the march continues from it (`resume`); its first
-    step is then not checked as a run's first step (the half steps of `run_chunk`'s
-    `first_step_check`, or the native chunk's `first_step_probe`). `backend` ("xla",
+    step is then not checked as a run's first step (`first_step_probe`). `backend` ("xla",
     "native" or "auto", `integrate`'s): which program makes a chunk's steps
     (`clebsch_jax.march.native_chunk.native_chunk_program`)."""
     from .native_chunk import native_chunk_program
@@ -391,15 +390,13 @@ def march_chunked(
     native = native_chunk_program(stepper, system, carry, dt, check_energy, backend)
     if chunk_steps is None:  # a native chunk costs no compile per step: longer chunks, less host work
         chunk_steps = chunk_length(Q0, xi0) * (NATIVE_CHUNK_FACTOR if native is not None else 1)
-    # the first-step check: XLA's chunk makes its half steps in its loop, in the run's first chunk
-    # (`run_chunk`); the native kernel, by a call of its own (`first_step_probe`)
-    half_steps_in_loop = check_energy and native is None
+    # the first-step check of a concrete march: a call of the chunk's own program with dt/2
+    # (`first_step_probe`: nothing compiled for it); a traced `march` makes its half steps in its
+    # scan's first iterations instead (`run_chunk`'s `first_step_check`)
     if native is not None:
         chunk_jit = native
-    elif half_steps_in_loop:
-        chunk_jit = functools.partial(chunk_jit, first_step_check=True)
     if march_state is None:
-        if check_energy and n_steps > 0 and native is not None:
+        if check_energy and n_steps > 0:
             probe = first_step_probe(chunk_jit, stepper, system, carry, dt, chunk_steps, check_energy)
         total = np.asarray(n_steps, np.int32)  # a NumPy scalar: no conversion program
     else:  # a continued march: its first step is not a run's first step (it has its guesses)
@@ -409,8 +406,6 @@ def march_chunked(
     for _ in range(-(-n_steps // chunk_steps)):
         carry, chunk = chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
         chunks.append(chunk)
-    if march_state is None and half_steps_in_loop and n_steps > 0:
-        probe = chunks[0].probe
     if any_traced(chunks, startup, probe):
         # a function the map checks do not call closed over a traced value (the caller is
         # inside jit/vmap; integrate sends maps that close over one to `march`)
