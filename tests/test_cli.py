@@ -440,8 +440,10 @@ def _independent_invariants(name, setup, sol):
     raise AssertionError(name)
 
 
-# Peakons and landmarks compile the largest scene programs: slow-marked (CI runs them).
-RUN_CASES = [pytest.param(n, marks=pytest.mark.slow) if n in ("peakons", "landmarks") else n for n in SCENES]
+# Peakons, landmarks and the fluid compile the largest scene programs: slow-marked (CI runs them).
+RUN_CASES = [
+    pytest.param(n, marks=pytest.mark.slow) if n in ("peakons", "landmarks", "euler-sphere") else n for n in SCENES
+]
 
 
 def _run_quick(name, out):

@@ -42,6 +42,7 @@ def _run(gamma, Q0, dt, n_steps, **kw):
     )
 
 
+@pytest.mark.slow  # two vortex programs of their own; the orders against DOP853 run by default
 def test_one_stage_is_the_midpoint_principle():
     """One stage: the implicit midpoint rule, as the midpoint principle's Newton solve gives it
     (measured 2e-15 apart after 80 steps)."""

@@ -128,6 +128,7 @@ def test_euler_poincare_field_with_advected_quantity_is_the_heavy_top():
 # Reduced march
 
 
+@pytest.mark.slow  # 2000 steps of the full march (its own programs); test_rigid_body checks the full march by default
 def test_reduced_and_full_marches_agree_on_the_rigid_body():
     system = cj.models.rigid_body(INERTIA)
     m0 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
@@ -326,7 +327,7 @@ _FOUR_BY_FOUR = pytest.mark.slow
 @pytest.mark.parametrize(
     "name",
     [
-        "rigid body",
+        pytest.param("rigid body", marks=pytest.mark.slow),  # the heavy top covers SO(3) by default
         "heavy top",
         "SE(2)",
         pytest.param("SE(3) with potential", marks=_FOUR_BY_FOUR),

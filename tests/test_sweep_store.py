@@ -103,6 +103,7 @@ def quartic(system, sol):
     return jnp.sum(sol.momentum**2, axis=-1) ** 2
 
 
+@pytest.mark.slow  # a sweep per changed body; test_a_store_of_another_configuration_is_refused runs by default
 def test_a_sweep_that_computes_something_else_under_the_same_names_is_refused(reference, tmp_path, monkeypatch):
     # the store keeps a digest of one member's traced program: same names, other bodies are refused
     path = tmp_path / "sweep.zarr"
