@@ -124,6 +124,7 @@ def test_reduced_rigid_body_is_bit_identical_alone_and_at_any_position():
         np.testing.assert_array_equal(sol.stats.iterations, alone.stats.iterations)
 
 
+@pytest.mark.slow  # a block-Newton vortex batch of its own; the rigid bodies' position test runs by default
 def test_vortices_with_blocks_differ_from_alone_only_by_bounded_round_off():
     alone, at = alone_and_placed(vortices, [GAMMAS, POSITIONS_Q])
     assert int(alone.result) == cj.Status.SUCCESS

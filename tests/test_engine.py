@@ -132,6 +132,7 @@ def test_matrix_maps_are_inverse_pairs():
     assert np.max(np.abs(cj.lie.cayley_exp(X) - cj.lie.expm(X))) < 1e-6 * 1.0
 
 
+@pytest.mark.slow  # op-by-op derivatives of expm; the marches that use it are checked by default
 def test_expm_matches_scipy_and_jax_scipy_derivatives():
     """`lie.expm` (Padé 13 with scaling and squaring in XLA operations) against SciPy's expm over
     sizes 3-9 and 1-norms from 1e-3 to ~50 (0 to 4 squarings), in a batch; its first and

@@ -58,7 +58,9 @@ def test_one_stage_is_the_midpoint_principle():
 VORTEX_DTS = {4: [0.2, 0.1, 0.05], 6: [0.4, 0.2, 0.1], 8: [0.5, 0.4, 0.25, 0.2]}
 
 
-@pytest.mark.parametrize("order", [4, pytest.param(6, marks=pytest.mark.slow), 8])  # 6: in CI's slow run
+@pytest.mark.parametrize(
+    "order", [4, *(pytest.param(k, marks=pytest.mark.slow) for k in (6, 8))]
+)  # 6, 8: in CI's slow run
 def test_point_vortex_orders_against_dop853(order):
     """Four vortices of mixed sign, Q(T) against SciPy DOP853 at rtol 1e-13; log-log fit within
     0.15 of the order."""

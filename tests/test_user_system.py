@@ -4,6 +4,7 @@ the same API and passes order and momentum checks. A free planar body on SE(2)."
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import clebsch_jax as cj
 from clebsch_jax import diagnostics as dg
@@ -48,6 +49,7 @@ def test_se2_body_converges_at_order_two_to_the_exact_solution():
     assert abs(dg.fit_order(dts, errs) - sol.order) < 0.15, errs
 
 
+@pytest.mark.slow  # its own long run; the SE(2) body's order-two convergence runs by default
 def test_se2_noether_momentum_and_group_structure_are_preserved():
     """l is left-invariant, so the momentum of the left SE(2) action is conserved exactly."""
     system = se2_system()
