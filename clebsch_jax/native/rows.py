@@ -364,23 +364,24 @@ def _reduce_rows(em: Emitter, eqn, a: Rows):
     dtype, out_dtype = a.dtype, np.dtype(eqn.outvars[0].aval.dtype)
     b = em.b
     pair = _aval((2,), dtype)
+    # the reduction's own rule, applied to (the result so far, the next row): a pair reduced
+    pair_eqn = types.SimpleNamespace(
+        primitive=eqn.primitive,
+        params=dict(eqn.params, axes=(0,)),
+        invars=[pair],
+        outvars=[_aval((), out_dtype)],
+        effects=eqn.effects,
+    )
     if name in ("argmax", "argmin"):
         best, where = em.alloca(em.vtype(dtype)), em.alloca(em.vtype(out_dtype))
         b.store(em.vec(row_at(em, a, 0)[()], dtype), best)
         b.store(em.const(0, out_dtype), where)
-        fake = types.SimpleNamespace(
-            primitive=eqn.primitive,
-            params=dict(eqn.params, axes=(0,)),
-            invars=[pair],
-            outvars=[_aval((), out_dtype)],
-            effects=eqn.effects,
-        )
 
         def step(i):
             x = row_at(em, a, i)[()]
             cur = b.load(best, typ=em.vtype(dtype))
             # the existing rule on (best so far, row i) decides with its own comparison: index 1 wins
-            pick = RULES[name](em, fake, [np.asarray([cur, x], object)])[()]
+            pick = RULES[name](em, pair_eqn, [np.asarray([cur, x], object)])[()]
             take = b.icmp_signed("==", em.vec(pick, out_dtype), em.const(1, out_dtype))
             b.store(b.select(take, x, cur), best)
             idx = row_at(em, Rows(a.n, (), out_dtype, "iota"), i)[()]
@@ -392,17 +393,10 @@ def _reduce_rows(em: Emitter, eqn, a: Rows):
         return out
     acc = em.alloca(em.vtype(out_dtype))
     b.store(em.vec(row_at(em, a, 0)[()], out_dtype), acc)
-    fake = types.SimpleNamespace(
-        primitive=eqn.primitive,
-        params=dict(eqn.params, axes=(0,)),
-        invars=[pair],
-        outvars=[_aval((), out_dtype)],
-        effects=eqn.effects,
-    )
 
     def step(i):
         x = row_at(em, a, i)[()]
-        value = RULES[name](em, fake, [np.asarray([b.load(acc, typ=em.vtype(out_dtype)), x], object)])[()]
+        value = RULES[name](em, pair_eqn, [np.asarray([b.load(acc, typ=em.vtype(out_dtype)), x], object)])[()]
         b.store(em.vec(value, out_dtype), acc)
 
     loop(em, a.n - 1, lambda i: step(b.add(i, _index(1))))
