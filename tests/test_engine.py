@@ -409,6 +409,7 @@ def test_positive_definite_solve_derivatives_up_to_third_order_match_jax_scipy()
         np.testing.assert_allclose(np.asarray(g), np.stack([w, w]), rtol=0, atol=1e-13 * scale)
 
 
+@pytest.mark.slow  # an implementation property (which kernels a batched march calls), checked in CI's slow run
 def test_batched_marches_call_no_lapack_kernel():
     """Batched marches (the peakons' Cholesky solve included), the exponential map's `expm` and
     the cotangent hand-over compile to XLA operations only: jaxlib's batched LAPACK kernels

@@ -328,7 +328,7 @@ _FOUR_BY_FOUR = pytest.mark.slow
     "name",
     [
         pytest.param("rigid body", marks=pytest.mark.slow),  # the heavy top covers SO(3) by default
-        "heavy top",
+        pytest.param("heavy top", marks=pytest.mark.slow),  # SE(2) checks the identity by default
         "SE(2)",
         pytest.param("SE(3) with potential", marks=_FOUR_BY_FOUR),
         pytest.param("SO(4)", marks=_FOUR_BY_FOUR),
