@@ -130,6 +130,17 @@ def refused(record: str | None, max_lines) -> None:
         raise TooLarge(reason, lines=lines)
 
 
+def _kernel(record: str | None, closed, **options):
+    """`Kernel(closed, **options)`; a refusal for its size is first recorded under `record`."""
+    from .kernel import Kernel
+
+    try:
+        return Kernel(closed, **options)
+    except TooLarge as err:
+        remember_refusal(record, err)
+        raise
+
+
 def remember_refusal(record: str | None, err: Exception) -> None:
     """Keep a `TooLarge` refusal under `record` (other exceptions are not recorded)."""
     if record is None or not isinstance(err, TooLarge):
@@ -166,7 +177,7 @@ class NativeFunction:
     def __init__(self, fun, *member_args, width=None, use_cache=True, in_axes=0, max_lines=None, key=None):
         import jax
 
-        from .kernel import Kernel, host_lanes
+        from .kernel import host_lanes
 
         self._in_tree = jax.tree_util.tree_structure(member_args)
         if not isinstance(in_axes, (tuple, list)):
@@ -181,13 +192,9 @@ class NativeFunction:
         refused(record, max_lines)  # a program refused for its size before: not traced again
         closed, out_shape = jax.make_jaxpr(fun, return_shape=True)(*member_args)
         self._out_tree = jax.tree_util.tree_structure(out_shape)
-        try:
-            self.kernel = Kernel(
-                closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, key=record
-            )
-        except TooLarge as err:
-            remember_refusal(record, err)
-            raise
+        self.kernel = _kernel(
+            record, closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, key=record
+        )
         if record is not None:
             self._save(record)
 
@@ -279,7 +286,7 @@ class NativeLoop:
         import jax
         import numpy as np
 
-        from .kernel import Kernel, host_lanes
+        from .kernel import host_lanes
 
         if not isinstance(in_axes, (tuple, list)):
             in_axes = (in_axes,) * len(member_args)
@@ -299,13 +306,9 @@ class NativeLoop:
         ):
             raise TypeError("compile_loop: the body must return a carry of its last argument's structure and shapes")
         n = self._carry_tree.num_leaves
-        try:
-            self.kernel = Kernel(
-                closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, carries=n
-            )
-        except TooLarge as err:
-            remember_refusal(record, err)
-            raise
+        self.kernel = _kernel(
+            record, closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, carries=n
+        )
 
     def __call__(self, *args, steps: int, capacity: int):
         import jax

@@ -29,6 +29,7 @@ import numpy as np
 from llvmlite import ir
 
 from .elementwise import ELEMENTWISE
+from .loops import for_range
 from .values import Emitter, is_known, llvm_type
 
 __all__ = ["ROWS_MIN", "Rows", "wants_rows", "apply", "row_at", "memory", "store_row", "materialize", "loop"]
@@ -124,21 +125,8 @@ def _scalar(e) -> np.ndarray:
 
 
 def loop(em: Emitter, n: int, body) -> None:
-    """Emit `for i in range(n): body(i)` (i an i64 value)."""
-    b, i64 = em.b, ir.IntType(64)
-    counter = em.alloca(i64)
-    b.store(ir.Constant(i64, 0), counter)
-    fn = b.function
-    head, inner, done = (fn.append_basic_block(f"rows.{s}") for s in ("head", "body", "done"))
-    b.branch(head)
-    b.position_at_end(head)
-    k = b.load(counter, typ=i64)
-    b.cbranch(b.icmp_signed("<", k, ir.Constant(i64, n)), inner, done)
-    b.position_at_end(inner)
-    body(k)
-    b.store(b.add(k, ir.Constant(i64, 1)), counter)
-    b.branch(head)
-    b.position_at_end(done)
+    """Emit `for i in range(n): body(i)` (i an i64 value): `loops.for_range` from 0."""
+    for_range(em, 0, n, body)
 
 
 def materialize(em: Emitter, r) -> np.ndarray:
