@@ -75,12 +75,10 @@ def xla_run():
     return _no_fallback(lambda: cj.batch(_march, backend="xla")(Q0, XI0, DTS))
 
 
-@pytest.mark.slow  # the interpreter's program of the march compiles in XLA for over 10 s
-def test_the_native_batch_equals_xla_on_every_leaf_of_the_solution(fast_runs, xla_run):
-    fast, xla = fast_runs[0], xla_run
-    assert (fast.form, fast.method, fast.order, fast.scheme) == (xla.form, xla.method, xla.order, xla.scheme)
-    assert jax.tree_util.tree_structure(fast) == jax.tree_util.tree_structure(xla)
-    for (name, a), (_, b) in zip(_leaves(fast), _leaves(xla)):
+def _assert_leaves_equal(native, xla):
+    """Every leaf of two Solutions: integers exactly, NaNs at the same places, floats to 1e-12
+    of the leaf's largest entry (residual norms to 1e-12 absolutely)."""
+    for (name, a), (_, b) in zip(_leaves(native), _leaves(xla)):
         assert a.shape == b.shape and a.dtype == b.dtype, name
         if a.dtype.kind != "f":  # statuses, iterations, failed steps, valid nodes: exactly
             np.testing.assert_array_equal(a, b, err_msg=name)
@@ -90,6 +88,14 @@ def test_the_native_batch_equals_xla_on_every_leaf_of_the_solution(fast_runs, xl
             continue
         atol = 1e-12 if "residual_norm" in name else 1e-12 * np.nanmax(np.abs(b))
         np.testing.assert_allclose(a, b, rtol=0, atol=atol, equal_nan=True, err_msg=name)
+
+
+@pytest.mark.slow  # the interpreter's program of the march compiles in XLA for over 10 s
+def test_the_native_batch_equals_xla_on_every_leaf_of_the_solution(fast_runs, xla_run):
+    fast, xla = fast_runs[0], xla_run
+    assert (fast.form, fast.method, fast.order, fast.scheme) == (xla.form, xla.method, xla.order, xla.scheme)
+    assert jax.tree_util.tree_structure(fast) == jax.tree_util.tree_structure(xla)
+    _assert_leaves_equal(fast, xla)
     # the failing members: the same statuses and steps
     np.testing.assert_array_equal(np.asarray(fast.result), np.asarray(xla.result))
     np.testing.assert_array_equal(np.asarray(fast.failed_step), np.asarray(xla.failed_step))
@@ -311,16 +317,7 @@ def test_a_long_march_runs_natively_under_auto(long_run):
 @pytest.mark.slow  # the interpreter's program of the march compiles in XLA for over 10 s
 def test_a_long_native_march_equals_xla(long_run):
     xla = _no_fallback(lambda: cj.batch(_long_march, backend="xla")(Q0, XI0, DTS_LONG))
-    for (name, a), (_, b) in zip(_leaves(long_run), _leaves(xla)):
-        assert a.shape == b.shape and a.dtype == b.dtype, name
-        if a.dtype.kind != "f":  # statuses, iterations, failed steps, valid nodes: exactly
-            np.testing.assert_array_equal(a, b, err_msg=name)
-            continue
-        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
-        if np.all(np.isnan(b)):
-            continue
-        atol = 1e-12 if "residual_norm" in name else 1e-12 * np.nanmax(np.abs(b))
-        np.testing.assert_allclose(a, b, rtol=0, atol=atol, equal_nan=True, err_msg=name)
+    _assert_leaves_equal(long_run, xla)
 
 
 def _rows_program(x, k, n=200):
