@@ -203,6 +203,7 @@ def _loop(em, closed, args, carries: int, steps, row) -> list:
     from llvmlite import ir
 
     from .lower import eval_closed
+    from .loops import for_range
 
     b, i64 = em.b, ir.IntType(64)
     consts, init = list(args[: len(args) - carries]), list(args[len(args) - carries :])
@@ -224,32 +225,23 @@ def _loop(em, closed, args, carries: int, steps, row) -> list:
             out.append(arr)
         return out
 
-    counter = em.alloca(i64)
-    b.store(ir.Constant(i64, 0), counter)
-    fn = b.function
-    head, body, done = (fn.append_basic_block(f"loop.{name}") for name in ("head", "body", "done"))
-    b.branch(head)
-    b.position_at_end(head)
-    k = b.load(counter, typ=i64)
-    b.cbranch(b.icmp_signed("<", k, steps), body, done)
-    b.position_at_end(body)
-    outs = eval_closed(em, closed, consts + load())
-    for s, new, dtype in zip(slots, outs[:carries], dtypes):
-        for idx in np.ndindex(s.shape):
-            b.store(em.vec(new[idx], dtype), s[idx])
-    for j, (v, rec) in enumerate(zip(closed.jaxpr.outvars[carries:], outs[carries:])):
-        dtype, size = np.dtype(v.aval.dtype), int(np.prod(v.aval.shape, dtype=int))
-        for e, idx in enumerate(np.ndindex(v.aval.shape)):
-            value = em.vec(rec[idx], dtype)
-            if dtype == np.bool_:
-                value = b.zext(value, ir.VectorType(ir.IntType(8), em.W))
-            # row k·size + e of record j: `row` of entry e, moved on by k·size rows
-            at = row(carries + j, e, dtype)
-            shift = b.mul(b.mul(k, ir.Constant(i64, size)), fn.args[1])
-            b.store(value, b.gep(at, [shift], source_etype=value.type.element), align=_storage(dtype).itemsize)
-    b.store(b.add(k, ir.Constant(i64, 1)), counter)
-    b.branch(head)
-    b.position_at_end(done)
+    def iteration(k):
+        outs = eval_closed(em, closed, consts + load())
+        for s, new, dtype in zip(slots, outs[:carries], dtypes):
+            for idx in np.ndindex(s.shape):
+                b.store(em.vec(new[idx], dtype), s[idx])
+        for j, (v, rec) in enumerate(zip(closed.jaxpr.outvars[carries:], outs[carries:])):
+            dtype, size = np.dtype(v.aval.dtype), int(np.prod(v.aval.shape, dtype=int))
+            for e, idx in enumerate(np.ndindex(v.aval.shape)):
+                value = em.vec(rec[idx], dtype)
+                if dtype == np.bool_:
+                    value = b.zext(value, ir.VectorType(ir.IntType(8), em.W))
+                # row k·size + e of record j: `row` of entry e, moved on by k·size rows
+                at = row(carries + j, e, dtype)
+                shift = b.mul(b.mul(k, ir.Constant(i64, size)), b.function.args[1])
+                b.store(value, b.gep(at, [shift], source_etype=value.type.element), align=_storage(dtype).itemsize)
+
+    for_range(em, 0, steps, iteration)
     return load()
 
 
