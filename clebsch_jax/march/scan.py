@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.jit import QUICK_COMPILE, filter_jit
+from ..core.manifold_checks import traced_first_step_check
 from ..core.validation import any_traced
 from ..discrete.legendre import explicit_nodal_velocity
 from ..discrete.residual import nodal_residual
@@ -319,6 +320,9 @@ def march(
     last, chunk = run_chunk(
         stepper, system, carry, dt, n_steps, n_total, rtol is not None, exact=True, first_step_check=probe
     )
+    # `integrate`'s check of the first step on the manifold, which cannot raise on traced values
+    leaves = traced_first_step_check(system, Q0, xi0) if chunk.nodes.Q is not None else None
+    off = None if leaves is None else leaves(chunk.nodes.Q[0], chunk.nodes.Q[1])
     sol = assemble(
         jnp,
         stepper,
@@ -333,6 +337,7 @@ def march(
         carry.alive,
         probe=chunk.probe,
         energy_rtol=rtol,
+        off_manifold=off,
     )
     return dataclasses.replace(sol, march_state=last)
 
