@@ -188,6 +188,18 @@ def _statuses(sol):
     return [cj.Status(int(r)) for r in np.asarray(sol.result)]
 
 
+def test_under_vmap_the_member_whose_first_step_leaves_the_circle_reports_it():
+    """check_Q with a traced form (`check_Q.traced`): the circle's translations leave it; one
+    member moving and one at rest give [OFF_MANIFOLD, SUCCESS], the first NaN after step 0."""
+    run = jax.vmap(lambda q, x: cj.integrate(CIRCLE, q, x, dt=0.1, n_steps=2, throw=False))
+    sol = run(np.array([[0.0, 1.0], [0.6, 0.8]]), np.array([[1.0, -0.5], [0.0, 0.0]]))
+    assert _statuses(sol) == [cj.Status.OFF_MANIFOLD, cj.Status.SUCCESS]
+    assert np.asarray(sol.failed_step).tolist() == [0, -1]
+    Q = np.asarray(sol.Q)
+    assert np.all(np.isnan(Q[0, 1:])) and np.all(Q[1] == [0.6, 0.8])
+
+
+@pytest.mark.slow  # compiles the heavy top's traced march; the circle's above is the default test of the traced check
 def test_under_vmap_the_member_whose_first_step_leaves_the_rotations_reports_it():
     """The heavy top with the forward difference and the left principle, one member spinning and
     one at rest: [OFF_MANIFOLD, SUCCESS], the first member NaN after step 0 and the second exact."""
@@ -212,15 +224,16 @@ def test_under_vmap_the_midpoint_step_and_a_rotation_that_only_just_passes_are_n
     assert sol.scheme == "midpoint" and _statuses(sol) == [cj.Status.SUCCESS] * 2
 
 
+@pytest.mark.slow  # compiles the traced march with its error callback; reported under vmap by default above
 def test_under_jit_a_first_step_off_the_circle_is_raised():
-    """check_Q with a traced form (`check_Q.traced`): the circle's translations leave it, and
-    with throw=True the program raises naming the status; a member at rest runs."""
+    """With throw=True the program raises naming the status; a member at rest runs."""
     run = jax.jit(lambda q, x: cj.integrate(CIRCLE, q, x, dt=0.1, n_steps=2).Q)
     with pytest.raises(jax.errors.JaxRuntimeError, match=r"step 0 of 2.*left the configuration.*OFF_MANIFOLD"):
         jax.block_until_ready(run(np.array([0.0, 1.0]), np.array([1.0, -0.5])))
     np.testing.assert_array_equal(run(np.array([0.0, 1.0]), np.zeros(2)), np.tile([0.0, 1.0], (3, 1)))
 
 
+@pytest.mark.slow  # compiles another traced march; test_the_traced_check_is_added_only_where_a_step_can_leave checks by default that none is added
 def test_a_check_q_without_a_traced_form_is_not_run_in_the_program():
     """A check_Q written with NumPy on concrete values cannot run in the program: the traced
     first step is not checked (documented), and the run neither crashes nor fails, where the same
