@@ -197,6 +197,9 @@ def test_under_vmap_the_member_whose_first_step_leaves_the_circle_reports_it():
     assert np.asarray(sol.failed_step).tolist() == [0, -1]
     Q = np.asarray(sol.Q)
     assert np.all(np.isnan(Q[0, 1:])) and np.all(Q[1] == [0.6, 0.8])
+    with pytest.raises(cj.IntegrationError, match=r"member 0, step 0 of 2 .*left the configuration manifold.*") as info:
+        sol.raise_if_failed()  # what throw=True raises: the status and the ways out
+    assert info.value.status == cj.Status.OFF_MANIFOLD and 'scheme="midpoint"' in str(info.value)
 
 
 @pytest.mark.slow  # compiles the heavy top's traced march; the circle's above is the default test of the traced check
