@@ -40,6 +40,7 @@ __all__ = [
     "ORDER_SLACK",
     "ROUNDOFF_FLOOR",
     "GAUSS_STAGE_SWEEP_COST",
+    "STEP_COST",
     "NEWTON_SOLVE_COST",
     "NEWTON_UPDATE_COST",
     "Measured",
@@ -68,15 +69,18 @@ the error constant from above."""
 GAUSS_STAGE_SWEEP_COST = 1.0
 """The unit of predicted work: one fixed-point sweep of one Gauss–Legendre stage."""
 
-NEWTON_SOLVE_COST = 1.8
-"""A Newton solve of a (sub-)step, in Gauss stage-sweeps, before its updates: the intercept of a
-least-squares fit of CPU time per step against (solves, updates) of the rigid-body compositions,
-over the fit of the Gauss points' CPU time per stage-sweep, both native
-(`benchmarks/results/work_precision_ensembles.json`, scene `rigid_body`;
-`tests/test_accuracy.py` refits them from that file)."""
+STEP_COST = 3.0
+"""The cost of a step apart from its solves (its nodal velocity, the energy check), in Gauss
+stage-sweeps. This and the two below are a least-squares fit, relative to each point's, of the
+CPU time per step of the native rigid-body points, Gauss–Legendre and compositions, of
+`benchmarks/results/work_precision_ensembles.json` (scene `rigid_body`) against (stage-sweeps,
+solves, updates, 1); `tests/test_accuracy.py` refits them from that file."""
 
-NEWTON_UPDATE_COST = 0.1
-"""A Newton update, in Gauss stage-sweeps: the slope of that fit (as `NEWTON_SOLVE_COST`)."""
+NEWTON_SOLVE_COST = 1.7
+"""A Newton solve of a (sub-)step, before its updates, in Gauss stage-sweeps (as `STEP_COST`)."""
+
+NEWTON_UPDATE_COST = 0.2
+"""A Newton update, in Gauss stage-sweeps (as `STEP_COST`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,12 +135,14 @@ def state_error(a, b, scales) -> np.ndarray:
 
 
 def work_per_step(stepper, system, iterations: float) -> float:
-    """Predicted work of one step, in Gauss stage-sweeps: `iterations` sweeps of its stages for
-    Gauss–Legendre; for a Newton-solved step, `NEWTON_SOLVE_COST` per solve (its sub-steps) and
-    `NEWTON_UPDATE_COST` per update (`iterations` counts those of all its solves)."""
+    """Predicted work of one step, in Gauss stage-sweeps: `STEP_COST`, and `iterations` sweeps
+    of its stages for Gauss–Legendre; for a Newton-solved step, `NEWTON_SOLVE_COST` per solve
+    (its sub-steps) and `NEWTON_UPDATE_COST` per update (`iterations` counts those of all its
+    solves)."""
     if isinstance(stepper, GaussLegendre):
-        return iterations * stepper.stages * GAUSS_STAGE_SWEEP_COST
-    return stepper.facts(system).solves_per_step * NEWTON_SOLVE_COST + iterations * NEWTON_UPDATE_COST
+        return STEP_COST + iterations * stepper.stages * GAUSS_STAGE_SWEEP_COST
+    solves = stepper.facts(system).solves_per_step
+    return STEP_COST + solves * NEWTON_SOLVE_COST + iterations * NEWTON_UPDATE_COST
 
 
 def _envelope(d, ts, t0) -> float:
