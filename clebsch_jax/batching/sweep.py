@@ -119,6 +119,10 @@ def sweep(
       `clebsch_jax.march.carry.input_ok`).
     - `dt`: the time step, a positive scalar or one per member, shape (B,).
     - `n_steps`: steps per member (an int >= 1).
+    - `t_final`, `accuracy`: instead of `dt` and `n_steps` (and the method options): one
+      `clebsch_jax.choose_step` plan, made on the first member (parameter row 0, initial
+      condition 0), run by every member; `SweepResult.accuracy_plan` records it. The other
+      members' errors are not measured: plan on a representative member.
     - `P0`: optional initial multipliers, shape of `Q0`. Default: `initial_multiplier` of each
       member, as `integrate` does.
     - `grid`: False (default): member m uses row m of `params` and of the initial data (n_p =

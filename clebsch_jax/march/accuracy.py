@@ -35,8 +35,9 @@ Compositions of orders 4–8 are left out: in both ensembles of
 `benchmarks/results/work_precision_ensembles.json` (64 rigid bodies to T = 10⁴, 16 four-vortex
 clusters to T = 10³) a Gauss–Legendre point reached each of their errors for less time. Gauss
 orders 12 and 16 (`benchmarks/results/work_precision_long.json`) can be added with
-`candidates=`. The relative costs of a sweep and a Newton update are those measured there on the
-rigid body (`NEWTON_SOLVE_COST`, `NEWTON_UPDATE_COST`): on other systems they are a guide.
+`candidates=`. The relative costs of a stage-sweep, a Newton solve, a Newton update and a step's other
+work are a fit to that file's native rigid-body points (`clebsch_jax.march.pilot`: `STEP_COST`,
+`NEWTON_SOLVE_COST`, `NEWTON_UPDATE_COST`): on other systems they are a guide.
 
 **Cost of the pilot.** Each candidate compiles one program (every step size reuses it) and
 marches $T_p$ at least three times (7 $T_p / h_0$ = 7 × 64 steps with the defaults; each further

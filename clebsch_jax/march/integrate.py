@@ -118,7 +118,14 @@ def integrate(
       (`clebsch_jax.core.isotropy.physical_part`, no warning) computed in the program, and a
       member of another isotropy reports `Status.INVALID_INPUT`; not for systems whose own arrays
       are traced.
-    - `dt`: time step (> 0). `n_steps`: number of steps (a Python int >= 1).
+    - `dt`: time step (> 0). `n_steps`: number of steps (a Python int >= 1). Both required,
+      unless `t_final` and `accuracy` choose them.
+    - `t_final`, `accuracy`: instead of `dt`, `n_steps` and the method (`method`, `scheme`,
+      `order`, `composition`, each refused with them): the run ends at `t_final` with a relative
+      error of at most `accuracy` there, by the plan of `clebsch_jax.choose_step` (a short pilot on
+      this system and state picks the method and step of least predicted work; the error measure,
+      the model and its limits are in `clebsch_jax.march.accuracy`). `Solution.accuracy_plan`
+      records the plan. Concrete arguments only (the pilot runs).
     - `P0`: optional initial multiplier (the canonical momentum at $Q^0$), shape of `Q0`.
     - `t0`: initial time (only used for `Solution.ts`).
     - `method`: a stepper, e.g. `clebsch_jax.Composed(clebsch_jax.SymmetricPair(
