@@ -32,7 +32,7 @@ Q0_KEPLER, V0_KEPLER = np.array([1.0, 0.0]), np.array([0.0, 1.1])  # eccentricit
 ABOVE = 2.0
 """Allowed factor above the accuracy: the error constant is a Richardson estimate on the pilot's
 horizon and the linear growth an envelope of it, so the error at t_final can exceed the
-prediction by what the pilot did not see; the plans here land at 0.5-0.9 of the accuracy."""
+prediction by what the pilot did not see."""
 
 BELOW = 1e-3
 """Not wastefully accurate: at least accuracy × BELOW. The model is an envelope (the error at

@@ -23,7 +23,9 @@ stays bounded, at $O(h^p)$, far below the global error of long runs (benchmarks/
    symplectic methods on integrable motion) is measured there, with its iterations per step.
 3. Each candidate's step is the largest that predicts `accuracy` at T, $h = (\texttt{accuracy}
    / (C (T - t_0)))^{1/p}$, never larger than the largest step of its asymptotic regime, rounded
-   down so that a whole number of steps ends at `t_final`.
+   down so that a whole number of steps ends at `t_final`. When that cap binds at the pilot's
+   first step, the pilot is run again from twice that step (at most `PILOT_DOUBLINGS` times,
+   while at least `PILOT_MIN_STEPS` steps cover $T_p$).
 4. The plan is the candidate of least **predicted work**: steps × its measured iterations per
    step × their cost (`work_per_step`), counted in fixed-point sweeps of one Gauss–Legendre stage
    — a count, not a time, so the plan does not depend on the machine's load: two calls give the
@@ -67,7 +69,15 @@ from ..core.system import ClebschSystem
 from ..core.validation import any_traced, float_array
 from ..steppers.base import AbstractStepper
 from ..steppers.choose import choose_method
-from .pilot import PILOT_FIRST_STEP, PILOT_TIME_SCALES, run_pilot, time_scale, work_per_step
+from .pilot import (
+    PILOT_DOUBLINGS,
+    PILOT_FIRST_STEP,
+    PILOT_MIN_STEPS,
+    PILOT_TIME_SCALES,
+    run_pilot,
+    time_scale,
+    work_per_step,
+)
 
 __all__ = ["AccuracyPlan", "Candidate", "choose_step", "plan_for_call", "DEFAULT_CANDIDATES", "MIN_ACCURACY"]
 
@@ -305,7 +315,7 @@ def choose_step(
     Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
     tau = float(time_scale) if time_scale is not None else _time_scale(system, Q0, xi0)
     pilot_horizon = min(horizon, PILOT_TIME_SCALES * tau)
-    h0 = pilot_horizon / max(8, math.ceil(pilot_horizon / (PILOT_FIRST_STEP * tau)))
+    h0 = pilot_horizon / max(PILOT_MIN_STEPS, math.ceil(pilot_horizon / (PILOT_FIRST_STEP * tau)))
     t0 = float(np.asarray(t0))
 
     def march(stepper, dt, n_steps):
@@ -341,6 +351,12 @@ def _time_scale(system, Q0, xi0) -> float:
     return tau
 
 
+def _step(measured, order, accuracy, horizon) -> float:
+    """The step at which the model predicts `accuracy` at the end of `horizon` (∞ for C = 0)."""
+    C = measured.constant
+    return math.inf if C == 0 else (accuracy / (C * horizon)) ** (1.0 / order)
+
+
 _NO_FIT = dict(constant=None, observed_order=None, max_step=None)
 _NO_RUN = dict(dt=None, n_steps=None, predicted_error=None, iterations_per_step=None, predicted_work=None)
 
@@ -358,12 +374,26 @@ def _plan_candidate(march, system, Q0, xi0, spec, options, t0, horizon, pilot_ho
             base = dict(name=str(spec), order=int(spec.get("order") or 2), options=key, pilot_work=0.0)
             return Candidate(**base, **_NO_FIT, **_NO_RUN, reason=f"not applicable: {err}"), None
     facts = stepper.facts(system)
-    measured = run_pilot(march, stepper, system, facts.order, t0, pilot_horizon, h0)
-    base = dict(name=facts.name, order=facts.order, options=key, pilot_work=measured.work)
+    p = facts.order
+    measured = run_pilot(march, stepper, system, p, t0, pilot_horizon, h0)
+    work = measured.work
+    for _ in range(PILOT_DOUBLINGS):  # the step wanted is above the regime's largest, which was the first tried
+        if measured.constant is None or measured.max_step < measured.steps[0]:
+            break
+        if _step(measured, p, accuracy, horizon) <= measured.max_step:
+            break
+        if 2 * measured.steps[0] > pilot_horizon / PILOT_MIN_STEPS:
+            break
+        larger = run_pilot(march, stepper, system, p, t0, pilot_horizon, 2 * measured.steps[0])
+        work += larger.work
+        if larger.constant is None or not larger.max_step > measured.max_step:
+            break
+        measured = larger
+    base = dict(name=facts.name, order=p, options=key, pilot_work=work)
     if measured.constant is None:
         return Candidate(**base, **_NO_FIT, **_NO_RUN, reason=measured.reason), None
-    p, C = facts.order, measured.constant
-    h = measured.max_step if C == 0 else min(measured.max_step, (accuracy / (C * horizon)) ** (1.0 / p))
+    C = measured.constant
+    h = min(measured.max_step, _step(measured, p, accuracy, horizon))
     n_steps = max(1, math.ceil(horizon / h * (1 - 1e-12)))
     fit = dict(constant=C, observed_order=measured.observed_order, max_step=measured.max_step)
     if n_steps > MAX_STEPS:

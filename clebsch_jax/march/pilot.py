@@ -37,6 +37,8 @@ __all__ = [
     "PILOT_TIME_SCALES",
     "PILOT_FIRST_STEP",
     "PILOT_HALVINGS",
+    "PILOT_MIN_STEPS",
+    "PILOT_DOUBLINGS",
     "ORDER_SLACK",
     "ROUNDOFF_FLOOR",
     "GAUSS_STAGE_SWEEP_COST",
@@ -55,6 +57,13 @@ PILOT_TIME_SCALES = 32
 
 PILOT_FIRST_STEP = 0.5
 """The pilot's first (largest) step, in time scales τ."""
+
+PILOT_MIN_STEPS = 8
+"""The fewest steps a pilot run makes over the pilot's horizon."""
+
+PILOT_DOUBLINGS = 2
+"""At most this many pilots again from twice the first step, when the step the accuracy allows is
+above the largest the pilot tried (`clebsch_jax.march.accuracy`)."""
 
 PILOT_HALVINGS = 5
 """At most this many halvings of the pilot's step per candidate beyond the first three runs."""
@@ -88,8 +97,9 @@ class Measured:
     """What the pilot measured of one candidate.
 
     - `constant`: C of the model $e(t) \\approx C (t - t_0) h^p$ (None: nothing resolved);
-    - `observed_order`: $\\log_2(d_k / d_{k+1})$ of the pair that settled the regime (None: at
-      round-off already);
+    - `observed_order`: $\\log_2(d_k / d_{k+1})$ of the pair that settled the regime (None: the
+      finer pair at round-off, so that the coarser run's error was measured against a run exact
+      to round-off, or, for the first pair, bounded by the floor);
     - `max_step`: the largest step of the asymptotic regime (the model is not used beyond it);
     - `steps`, `iterations`: each pilot run's step and its iterations per step (`stats.iterations`,
       mean over steps), largest step first;
@@ -184,10 +194,14 @@ def run_pilot(march, stepper, system, order: int, t0: float, horizon: float, h0:
         envelopes.append(_envelope(d, ts, t0))
         floor = ROUNDOFF_FLOOR * np.finfo(float).eps * math.sqrt(n) / horizon
         h_coarse = steps[-2]
-        if envelopes[-1] <= floor:  # at round-off: the coarser run's error is bounded by the floor
-            constant = max(envelopes[-1], floor) / (h_coarse**order * (1 - 2.0**-order))
+        if envelopes[-1] <= floor:  # at round-off
             if len(envelopes) >= 2:
-                constant = max(constant, envelopes[-2] / (steps[-3] ** order * (1 - 2.0**-order)))
+                # the pair before was resolved: its coarse run measured against one exact to round-off
+                return Measured(
+                    envelopes[-2] / steps[-3] ** order, None, steps[-3], tuple(steps), tuple(iterations), work
+                )
+            # the first pair: the coarse run's error is bounded by the floor
+            constant = floor / (h_coarse**order * (1 - 2.0**-order))
             return Measured(constant, None, h_coarse, tuple(steps), tuple(iterations), work)
         if len(envelopes) >= 2:
             observed = math.log2(envelopes[-2] / envelopes[-1])
