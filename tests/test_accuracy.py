@@ -184,6 +184,7 @@ def test_bad_accuracy_arguments_are_refused_before_compiling(case):
         (dict(time_scale=-1.0), "time_scale: expected a positive"),
         (dict(scheme="gauss"), "scheme: accuracy= chooses the method"),
         (dict(tolerance=1e-6), "tolerance: not an option"),
+        (dict(candidates=[{"scheme": "gauss", "composition": "Suzuki p4s5"}]), "no candidate .*not applicable"),
     ],
 )
 def test_bad_choose_step_arguments_are_refused_before_compiling(kwargs, message):

@@ -375,7 +375,11 @@ def _plan_candidate(march, system, Q0, xi0, spec, options, t0, horizon, pilot_ho
             return Candidate(**base, **_NO_FIT, **_NO_RUN, reason=f"not applicable: {err}"), None
     facts = stepper.facts(system)
     p = facts.order
-    measured = run_pilot(march, stepper, system, p, t0, pilot_horizon, h0)
+    try:
+        measured = run_pilot(march, stepper, system, p, t0, pilot_horizon, h0)
+    except ValueError as err:  # refused by integrate's checks (e.g. a stepper that does not apply)
+        base = dict(name=facts.name, order=p, options=key, pilot_work=0.0)
+        return Candidate(**base, **_NO_FIT, **_NO_RUN, reason=f"not applicable: {err}"), None
     work = measured.work
     for _ in range(PILOT_DOUBLINGS):  # the step wanted is above the regime's largest, which was the first tried
         if measured.constant is None or measured.max_step < measured.steps[0]:
