@@ -164,6 +164,7 @@ QUICK_ENSEMBLES = {
         "T": 2.0,
         "n_samples": 4,
         "ours": [("order2", {"order": 2}, (0.02,)), ("gauss8", {"scheme": "gauss", "order": 8}, (0.2,))],
+        "plans": (1e-6,),
         "heyoka": (1e-10, 1e-14),
         "tsit5": (),
         "dopri8": (1e-10,),
