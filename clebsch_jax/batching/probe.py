@@ -268,11 +268,16 @@ def _check_member(cfg: Config, *args):
 
     def checked():  # a fresh process finds a pass of the same configuration and shapes on disk
         leaves, tree = jax.tree_util.tree_flatten(args)
-        signature = [(np.shape(x), str(np.result_type(x)), getattr(x, "weak_type", False)) for x in leaves]
+        signature = [(np.shape(x), str(_dtype(x)), getattr(x, "weak_type", False)) for x in leaves]
         key = _record("member", cfg, fingerprint((tree, signature)))
         return once(key, run, load=pickle.loads, dump=pickle.dumps)
 
     return memo(_TRACES, ("check",) + trace_key(cfg, args), checked, _TRACES_MAX)
+
+
+def _dtype(x):
+    """A leaf's dtype: its own for an array (NumPy's `result_type` of a JAX array is deprecated)."""
+    return x.dtype if hasattr(x, "dtype") else np.result_type(x)
 
 
 def member_shapes(cfg: Config, members: Members, lean: bool = False) -> Shapes:
