@@ -49,7 +49,8 @@ from ..march.integrate import caller_backend, check_member, recording_calls
 from ..march.solution import member_offset, raised_in_callback
 from ..native import check_backend
 from .batch_native import member_key, native_program, traced_once, wants_native
-from .rules import batch_members, bind, eval_closed, flat_axes, to_batched
+from .rules import batch_members, eval_closed, flat_axes, to_batched
+from .walk import bind
 
 __all__ = ["batch"]
 
