@@ -40,6 +40,8 @@ __all__ = [
     "CONTROL",
     "Layout",
     "evaluate",
+    "evaluate_closed",
+    "call",
     "bind",
     "scan_carry_flags",
     "while_carry_flags",
