@@ -96,6 +96,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
     from . import rows as _rows
     from .lower import eval_closed
+    from .uniform import uniform_loops
     from .values import MAX_ENTRIES, Emitter, llvm_type
 
     module = ir.Module(name="clebsch_jax_native")
@@ -109,6 +110,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     em = Emitter(module, b, width, entry, MAX_ENTRIES if limit is None else limit)
     em.rows = carries is None and _rows.wants_rows(closed.jaxpr)  # long arrays as rows in memory
     em.unroll = _control.unroll_policy(closed.jaxpr, em.rows)
+    em.uniform = uniform_loops(closed, [True] * len(closed.jaxpr.invars) if batched is None else batched)
     counter = b.alloca(i64)
     b.store(first, counter)
     head, body, done = (
