@@ -481,8 +481,10 @@ class Kernel:
         for j, (rows, (shape, size, _), dtype) in enumerate(zip(outs, self._outs, self.out_dtypes)):
             if stride == 1:  # the rows in order are the member's entries, record after record
                 r = rows.reshape(((1,) if j < n_carry else (1, capacity)) + shape)
-            elif j < n_carry:
+            elif j < n_carry:  # a view of the rows: the next call's rows are copied from it row by row
                 r = rows[:, :B].T.reshape((B,) + shape)
+                result.append(r.astype(np.bool_) if dtype == np.bool_ else r)
+                continue
             else:  # (capacity·size, stride) -> (B, capacity, *shape)
                 r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
             result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))
