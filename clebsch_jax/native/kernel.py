@@ -98,6 +98,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
     from . import rows as _rows
     from .lower import eval_closed
+    from .uniform import uniform_loops
     from .values import MAX_ENTRIES, Emitter, llvm_type
 
     module = ir.Module(name="clebsch_jax_native")
@@ -111,6 +112,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     em = Emitter(module, b, width, entry, MAX_ENTRIES if limit is None else limit)
     em.rows = carries is None and _rows.wants_rows(closed.jaxpr)  # long arrays as rows in memory
     em.unroll = _control.unroll_policy(closed.jaxpr, em.rows)
+    em.uniform = uniform_loops(closed, [True] * len(closed.jaxpr.invars) if batched is None else batched)
     counter = b.alloca(i64)
     b.store(first, counter)
     head, body, done = (
@@ -486,8 +488,10 @@ class Kernel:
         for j, (rows, (shape, size, _), dtype) in enumerate(zip(outs, self._outs, self.out_dtypes)):
             if stride == 1:  # the rows in order are the member's entries, record after record
                 r = rows.reshape(((1,) if j < n_carry else (1, capacity)) + shape)
-            elif j < n_carry:
+            elif j < n_carry:  # a view of the rows: the next call's rows are copied from it row by row
                 r = rows[:, :B].T.reshape((B,) + shape)
+                result.append(r.astype(np.bool_) if dtype == np.bool_ else r)
+                continue
             else:  # (capacity·size, stride) -> (B, capacity, *shape)
                 r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
             result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))

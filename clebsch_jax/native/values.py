@@ -109,6 +109,7 @@ class Emitter:
         self.limit = limit  # the most entries translated (`entries_limit`)
         self.mask = None
         self.unroll = None  # which scans are unrolled (`control.unroll_policy`; None: the first)
+        self.uniform = frozenset()  # ids of the while loops every lane runs alike (`uniform.uniform_loops`)
         self._decls: dict = {}
         self._consts: dict = {}
         self.entries = 0
