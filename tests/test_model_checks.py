@@ -316,3 +316,22 @@ def test_batch_refuses_a_velocity_map_not_linear_in_xi_before_evaluating_the_bat
     # under the caller's jit the values are unknown: the batch is traced and evaluated unchecked
     with pytest.raises(_Marched):
         jax.jit(march)(Q0s, xi0s)
+
+
+def test_under_jit_and_vmap_a_velocity_map_not_linear_in_xi_fails_its_member_at_step_zero(monkeypatch):
+    """Under the caller's jit/vmap the check on values cannot run; its traced form
+    (`march.carry.velocity_map_linear`) fails a member whose map is not linear at step 0
+    (`INVALID_INPUT`) instead of reporting success with the body frozen. Per member: the map
+    ξ × Q + a ξ₁ (ξ × Q) is linear for a = 0 only, and a member with a = 0 runs."""
+    monkeypatch.setattr(_integrate, "_march_jit", _TRACED_MARCH)
+
+    def run(a, xi0):
+        system = _on_r3(lambda xi: 0.5 * jnp.sum(xi**2), lambda xi, Q: (1.0 + a * xi[0]) * jnp.cross(xi, Q))
+        sol = cj.integrate(system, E3, xi0, dt=0.1, n_steps=2, throw=False)
+        return sol.result, sol.failed_step
+
+    a, xi0 = jnp.array([0.0, 1.0, 1e-3]), jnp.stack([XI0, XI0, 0.5 * XI0])
+    result, failed_step = jax.jit(jax.vmap(run))(a, xi0)
+    assert [cj.Status(int(r)) for r in result] == [cj.Status.SUCCESS] + 2 * [cj.Status.INVALID_INPUT]
+    np.testing.assert_array_equal(failed_step, [-1, 0, 0])
+    assert "velocity map not linear in xi" in cj.Status.INVALID_INPUT.message
