@@ -653,6 +653,26 @@ def test_the_command_line_sweeps_into_a_store_and_resumes(reference, tmp_path, c
     assert "0 members computed in this run" in captured.out
 
 
+def test_the_command_line_clamps_a_batch_size_above_the_member_count(tmp_path, capsys):
+    """Two members with batch_size 10^6 (the issue's CLI case: 400 members, still running after
+    120 s) run as one batch of 2: the store, the program and the table of batch_size=2."""
+    from clebsch_jax.cli import main
+
+    two = CONFIG.replace("grid = true", "grid = false")
+    two = two.replace(f"batch_size = {KW['batch_size']}", "batch_size = 1000000")
+    two = two.replace(f"values = {INERTIAS.tolist()}", f"values = {INERTIAS[:2].tolist()}")
+    two = two.replace(f"xi0 = {OMEGAS.tolist()}", f"xi0 = {OMEGAS[:2].tolist()}")
+    config, path = tmp_path / "sweep.toml", tmp_path / "sweep.zarr"
+    config.write_text(two)
+    assert main(["sweep", str(config), "--store", str(path), "--quiet"]) == 0
+    assert f"2 members x {KW['n_steps']} steps in 1 batches of 2," in capsys.readouterr().out
+    assert zarr.open_group(str(path), mode="r").attrs["clebsch_jax_sweep"]["batch_size"] == 2
+    alone = cj.sweep(
+        rigid_body, INERTIAS[:2], EYES[:2], OMEGAS[:2], invariants={"casimir": casimir}, **{**KW, "grid": False}
+    )
+    assert_same_table(cj.open_sweep(path), alone)
+
+
 def test_the_command_line_help_documents_the_toml_format(capsys):
     from clebsch_jax.cli import main
 
