@@ -30,6 +30,18 @@ def _members():
     return Q0, Pi / INERTIA, P0
 
 
+def _same_statuses(res, sols):
+    """The sweep's statuses and failing steps are those of the `integrate` runs `sols`, in a scene
+    that is hard: members succeed, fail at step 0, and fail after a chunk boundary. Returns which
+    members succeeded."""
+    status = np.array([int(s.result) for s in sols])
+    failed_step = np.array([int(s.failed_step) for s in sols])
+    assert np.any(status == cj.Status.SUCCESS) and np.any(failed_step == 0) and np.any(failed_step >= CHUNK)
+    np.testing.assert_array_equal(res.status, status)
+    np.testing.assert_array_equal(res.failed_step, failed_step)
+    return status == cj.Status.SUCCESS
+
+
 @pytest.mark.slow  # two sweeps' and integrate's compiles of the Gauss-Legendre step; CI runs it
 @pytest.mark.parametrize("backend", ["xla", "native"])
 def test_sweep_members_are_integrate_runs_near_the_step_limit(backend):
@@ -48,13 +60,7 @@ def test_sweep_members_are_integrate_runs_near_the_step_limit(backend):
         backend=backend,
         **options,
     )
-    status = np.array([int(s.result) for s in sols])
-    failed_step = np.array([int(s.failed_step) for s in sols])
-    # the scene is hard: members succeed, fail at step 0, and fail after a chunk boundary
-    assert np.any(status == cj.Status.SUCCESS) and np.any(failed_step == 0) and np.any(failed_step >= CHUNK)
-    np.testing.assert_array_equal(res.status, status)
-    np.testing.assert_array_equal(res.failed_step, failed_step)
-    ok = status == cj.Status.SUCCESS
+    ok = _same_statuses(res, sols)
     final_Q = np.array([np.asarray(s.Q[-1]) for s in sols])
     final_p = np.array([np.asarray(s.p[-1]) for s in sols])
     # XLA runs integrate's own program, chunk after chunk: the same numbers. The native kernel
@@ -91,12 +97,7 @@ def test_sweep_members_are_integrate_runs_of_the_full_march_near_its_limit():
         backend="xla",
         **options,
     )
-    status = np.array([int(s.result) for s in sols])
-    failed_step = np.array([int(s.failed_step) for s in sols])
-    assert np.any(status == cj.Status.SUCCESS) and np.any(failed_step == 0) and np.any(failed_step >= CHUNK)
-    np.testing.assert_array_equal(res.status, status)
-    np.testing.assert_array_equal(res.failed_step, failed_step)
-    ok = status == cj.Status.SUCCESS
+    ok = _same_statuses(res, sols)
     # not to the bit, unlike the Gauss-Legendre case above: the sweep's batch solves the full
     # march's 21 unknowns in the batch-last layout, whose operations are ordered otherwise than a
     # single member's; over the 39 steps the two part by round-off (~1e-14 seen)
