@@ -226,9 +226,9 @@ def integrate(
     There the values are unknown before compiling: the shapes and the maps' output types are
     checked as above, and each member's values at step 0 inside the program (`dt`, `Q0`,
     `xi0`, `P0` and the parameters finite, `Q0` on the manifold through `check_Q.traced`, l
-    and the velocity map finite; a failing member reports `Status.INVALID_INPUT`). What needs
-    values is not checked: the model by autodiff (`check_model`: a singular Lagrangian, a
-    velocity map not linear in ξ), `Q0` against `check_Q` and the velocity map's group, the
+    and the velocity map finite and linear in ξ, `march.carry.velocity_map_linear`; a failing
+    member reports `Status.INVALID_INPUT`). What needs values is not checked: the Lagrangian by
+    autodiff (`check_model`: a singular Hessian), `Q0` against `check_Q` and the velocity map's group, the
     first step on the manifold (`check_first_step`), and the memory the `Solution`s of all
     members need (XLA reports that, when it runs out). `clebsch_jax.sweep`, and
     `clebsch_jax.batch` called on concrete arrays, make those checks on their first member
