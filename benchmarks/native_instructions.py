@@ -10,9 +10,13 @@ are replaced for this process, with an empty kernel cache). Two sweeps, of n₁ 
 one chunk each, give the instructions of the optimised IR executed per step and per block of
 W members, (count₂ − count₁) / ((n₂ − n₁) · blocks), which leaves out the chunk's entry and
 exit; phi nodes are not counted. Floating-point instructions (arithmetic, comparisons,
-conversions and the fabs/maximum/sqrt intrinsics) are counted apart. `--profile` lists the
-blocks by their instructions per step. Nothing is written; the numbers go to
-`benchmarks/README.md` by hand.
+conversions and the fabs/maximum/sqrt intrinsics) are counted apart. The same counters give
+the machine instructions per step: each block's instructions in the object's assembly (from
+its counter's increment to the next one's; the increments left out), weighted by the block's
+executions — what the IR's instructions become, with the register allocator's spills and
+reloads and the expansions of selects and NaN-propagating maxima. `--profile` lists the blocks
+by their instructions per step. Nothing is written; the numbers go to `benchmarks/README.md` by
+hand.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ FLOATING = re.compile(
     r"|@llvm\.(fma|fmuladd|sqrt|fabs|maxnum|minnum|maximum|minimum|copysign|floor|ceil|round|rint|trunc)\."
 )
 _BLOCKS: list = []  # (label, instructions, floating-point instructions) of the last kernel compiled
+_MACHINE: dict = {}  # block -> machine instructions, of the last kernel compiled
 _COUNTER: list = []  # the per-block execution counters of the last kernel loaded
 
 
@@ -96,7 +101,24 @@ def _compile_counted(text: str) -> bytes:
         pb.getModulePassManager().run(mod, pb)
         counted = llvm.parse_assembly(_instrument(str(mod)))
         counted.verify()
+        _MACHINE.clear()
+        _MACHINE.update(_machine(L["tm"].emit_assembly(counted)))
         return L["tm"].emit_object(counted)
+
+
+def _machine(assembly: str) -> dict:
+    """Machine instructions per block of the instrumented kernel's `assembly`: those after the
+    increment of block k's counter (`incq 8k(%reg)`) and before the next increment."""
+    per, block = {}, None
+    for line in assembly.split("\n"):
+        if not line.startswith("\t") or line.startswith("\t."):
+            continue
+        found = re.match(r"\tincq\t(\d*)\(%r\w+\)", line)
+        if found:
+            block = int(found.group(1) or 0) // 8
+        elif block is not None:
+            per[block] = per.get(block, 0) + 1
+    return per
 
 
 _LOAD = K._load  # the kernel module's loader, which `_load_counted` stands in for while counting
@@ -118,7 +140,7 @@ def counted_sweep(batch: int, n_steps: int):
     args = (cj.models.rigid_body, inertias, Q0, omega0)
     options = dict(dt=rigid.DT, n_steps=n_steps, chunk_steps=n_steps, reconstruct=False, backend="native")
     cj.sweep(*args, **options)
-    counter, blocks = _COUNTER[0], list(_BLOCKS)
+    counter, blocks = _COUNTER[0], [b + (_MACHINE.get(i, 0),) for i, b in enumerate(_BLOCKS)]
     for i in range(len(blocks)):
         counter[i] = 0
     result = cj.sweep(*args, **options)
@@ -145,16 +167,17 @@ def main(argv=None) -> dict:
         "cpu": K._binding()["cpu"],
         "instructions_per_step_and_block": round(per_step(1), 1),
         "floating_point": round(per_step(2), 1),
+        "machine_instructions": round(per_step(3), 1),
         "newton_updates_per_step": float(np.mean(result.newton_iterations)) / n2,
     }
     print(json.dumps(row))
     if args.profile:
         each = c2 / (n2 * blocks)
-        for cost, count, (label, n, _) in sorted(
+        for cost, count, (label, n, _, machine) in sorted(
             ((each[i] * b[1], each[i], b) for i, b in enumerate(b2)), reverse=True
         ):
             if cost >= 1:
-                print(f"{cost:8.1f}  {count:6.3f} x {n:5d}  {label}")
+                print(f"{cost:8.1f}  {count:6.3f} x {n:5d} (machine {machine:5d})  {label}")
     return row
 
 

@@ -119,6 +119,7 @@ ENSEMBLES = {
             # the best of the XLA path before (issue 41's baseline), on the same sweep
             ("vgauss16", {"model": "vector", "scheme": "gauss", "order": 16, "backend": "xla"}, (1.0,)),
         ],
+        "plans": (1e-4, 1e-6, 1e-8),  # cj.choose_step's method and step for these accuracies
         "heyoka": (1e-8, 1e-10, 1e-12, 1e-14, 1e-16),
         "tsit5": (1e-8, 1e-10),
         "dopri8": (1e-8, 1e-10, 1e-12),
@@ -137,6 +138,7 @@ ENSEMBLES = {
             ("gauss8", {"scheme": "gauss", "order": 8}, (0.5, 0.25, 0.125)),
             ("gauss12", {"scheme": "gauss", "order": 12}, (0.5, 0.25)),
         ],
+        "plans": (1e-4, 1e-6, 1e-8),
         "heyoka": (1e-8, 1e-10, 1e-12, 1e-14, 1e-16),
         "tsit5": (1e-8, 1e-10),
         "dopri8": (1e-8, 1e-10, 1e-12),
@@ -152,6 +154,7 @@ QUICK_ENSEMBLES = {
             ("gauss8", {"scheme": "gauss", "order": 8}, (0.2,)),
             ("vgauss8", {"model": "vector", "scheme": "gauss", "order": 8}, (0.2,)),
         ],
+        "plans": (1e-6,),
         "heyoka": (1e-10, 1e-14),
         "tsit5": (1e-8,),
         "dopri8": (1e-10,),
@@ -161,6 +164,7 @@ QUICK_ENSEMBLES = {
         "T": 2.0,
         "n_samples": 4,
         "ours": [("order2", {"order": 2}, (0.02,)), ("gauss8", {"scheme": "gauss", "order": 8}, (0.2,))],
+        "plans": (1e-6,),
         "heyoka": (1e-10, 1e-14),
         "tsit5": (),
         "dopri8": (1e-10,),
@@ -523,8 +527,56 @@ def run_ensemble(scene, cfg, run, hy) -> dict:
                     p.update(global_error(scene, scene.flat(scene.sweep_final(res)), y_ref))
                     p["energy_error"] = float(np.max(np.asarray(res.energy_error) / np.abs(e0)))
                 points.append(p)
+    points += ours_plans(scene, cfg, run, y_ref, E0, budget)
     out["points"] = points
     return out
+
+
+def ours_plans(scene, cfg, run, y_ref, E0, budget) -> list:
+    """Points of `cj.choose_step`'s plans (`cfg["plans"]`: accuracies at T): the plan made on the
+    first member, with the scene's sweep options, then the sweep of every member with the plan's
+    method and step (the other members' errors are not planned for). The pilot's wall time and
+    the plan's predicted error and work are recorded beside the point."""
+    points = []
+    for accuracy in cfg.get("plans", ()):
+        with run.case(f"{scene.name}: ours, the plan for accuracy {accuracy:g}"):
+            make_system, params, Q0, xi0, extra = scene.sweep_args()
+            P0 = extra.pop("P0", None)
+            first = dict(t_final=scene.T, accuracy=accuracy, P0=None if P0 is None else P0[0], **extra)
+            tic = time.perf_counter()
+            plan = cj.choose_step(make_system(params[0]), Q0[0], xi0[0], **first)
+            pilot_s = time.perf_counter() - tic
+            sweep = dict(P0=P0, grid=True, threads=1, **plan.integrate_options())
+            warm = _wall(lambda: cj.sweep(make_system, params, Q0, xi0, **sweep))  # its programs compiled
+            timing, res = time_calls(
+                run, lambda: cj.sweep(make_system, params, Q0, xi0, **sweep), f"plan {accuracy:g}", budget
+            )
+            e0 = np.asarray(res.initial["energy"])
+            p = {
+                "family": OURS,
+                "method": "plan",
+                "backend": "auto",
+                "sweep_method": res.method,
+                "form": res.form,
+                "param_name": "accuracy",
+                "param": accuracy,
+                "planned_dt": plan.dt,
+                "steps": plan.n_steps,
+                "predicted_error": plan.predicted_error,
+                "predicted_work": plan.predicted_work,
+                "pilot_work": plan.pilot_work,
+                "pilot_s": pilot_s,
+                "warm_up_s": warm,
+                "valid": bool(np.all(res.succeeded)),
+                "newton_per_step": float(np.mean(res.newton_iterations)) / plan.n_steps,
+                "energy0_mismatch": float(np.max(np.abs(e0 - E0) / np.abs(E0))),
+                **timing,
+            }
+            if p["valid"]:
+                p.update(global_error(scene, scene.flat(scene.sweep_final(res)), y_ref))
+                p["energy_error"] = float(np.max(np.asarray(res.energy_error) / np.abs(e0)))
+            points.append(p)
+    return points
 
 
 def _wall(call) -> float:

@@ -63,6 +63,7 @@ from .discrete.residual import (  # noqa: E402
     outgoing_momentum as outgoing_momentum,
     step_residual as step_residual,
 )
+from .march.accuracy import AccuracyPlan as AccuracyPlan, choose_step as choose_step  # noqa: E402
 from .march.continuation import Start as Start, continue_from as continue_from  # noqa: E402
 from .march.integrate import integrate as integrate, step_plan as step_plan  # noqa: E402
 from .march.solution import IntegrationError as IntegrationError, Solution as Solution  # noqa: E402

@@ -25,7 +25,7 @@ KNOWN_PRIVATE_IMPORTS: set = set()
 """(importer, module, name) of the private imports still to remove."""
 
 BATCHING_LAYERS = """
-rules prune batch_native batch_last rows scalarise member fast lean backends config probe chunks_xla chunks_native tables schedule
+walk rules prune batch_native batch_last rows scalarise member fast lean backends config probe chunks_xla chunks_native tables schedule
 store_layout store_lock store store_read distributed choose sweep
 """.split()
 """The modules of `clebsch_jax.batching` in the order of `docs/architecture.md`: each imports only

@@ -221,6 +221,38 @@ def test_ctrl_c_at_any_moment_of_the_start_exits_with_130_and_one_line(after, tm
     assert code == 130 and _one_line_error(rest) == "clebsch-jax: interrupted"
 
 
+SWEEP_CONFIG = """
+model = "rigid_body"
+dt = 0.05
+n_steps = 200000
+batch_size = 2
+
+[params]
+values = [[2.0, 1.0, 0.6]]
+
+[initial]
+Q0 = {identity = 3}
+xi0 = {normal = [4, 3], seed = 1}
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("after", [0.05, 0.3])
+def test_ctrl_c_at_the_start_of_a_sweep_exits_with_130_and_one_line(after, tmp_path):
+    """Variant of the issue's case on the other long command, `sweep` into a store: interrupted
+    while JAX is imported or the sweep starts, it exits with 130 and one line (the start-up
+    guard's, or the sweep's own, which says how to resume), never a swallowed interrupt."""
+    config = tmp_path / "sweep.toml"
+    config.write_text(SWEEP_CONFIG)
+    code, err = _interrupt(["sweep", str(config), "--store", str(tmp_path / "s.zarr"), "--quiet"], after)
+    rest = [line for line in err.splitlines() if not line.startswith("clebsch-jax sweep: 4 members")]
+    assert code == 130 and "Traceback" not in err, err[-2000:]
+    assert len(rest) == 1 and rest[0] in (
+        "clebsch-jax: interrupted",
+        f"clebsch-jax sweep: stopped; the finished batches are in {tmp_path / 's.zarr'}: run the same command to resume",
+    ), err
+
+
 def test_help_does_not_import_matplotlib():
     script = textwrap.dedent("""
         import sys

@@ -214,20 +214,15 @@ def test_trace_contexts_are_each_threads_own():
             assert in_undifferentiated()
         assert in_undifferentiated()
     assert not in_undifferentiated()
-    # the same for scalarise's state while it traces (loop depth, rows or stacked)
-    from clebsch_jax.batching import scalarise as sc
+    # scalarise's state while it traces (loop depth, rows or stacked) is its layout's, one per
+    # call: a layout inside a loop body leaves another (another thread's trace) as it was
+    from clebsch_jax.batching.scalarise import RowsLayout
 
-    state = []
-    t = threading.Thread(target=lambda: state.append((sc._TRACE.depth, list(sc._TRACE.in_loop))))
-    sc._TRACE.depth += 1
-    sc._TRACE.in_loop.append(True)
-    try:
-        t.start()
-        t.join()
-    finally:
-        sc._TRACE.depth -= 1
-        sc._TRACE.in_loop.pop()
-    assert state == [(0, [False])]
+    inside, other = RowsLayout(4), RowsLayout(4)
+    with inside.loop_body(scan=True):
+        assert (inside.depth, inside.in_loop) == (1, [False, True])
+        assert (other.depth, other.in_loop) == (0, [False])
+    assert (inside.depth, inside.in_loop) == (0, [False])
 
 
 def test_default_threads_follow_the_cores_and_the_batch(monkeypatch):

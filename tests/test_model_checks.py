@@ -316,3 +316,47 @@ def test_batch_refuses_a_velocity_map_not_linear_in_xi_before_evaluating_the_bat
     # under the caller's jit the values are unknown: the batch is traced and evaluated unchecked
     with pytest.raises(_Marched):
         jax.jit(march)(Q0s, xi0s)
+
+
+def test_the_traced_linearity_check_tells_linear_maps_from_others():
+    """`velocity_map_linear`, the per-member check a traced integrate call makes, under vmap:
+    linear maps pass (also at ξ⁰ = 0, and with a large ξ⁰), a quadratic, a cubic and an affine
+    map fail. The end-to-end march is the slow test below."""
+    from clebsch_jax.march.carry import velocity_map_linear
+
+    maps = {
+        "linear": (_cross, True),
+        "rotation": (lambda xi, Q: jnp.stack([xi[1] * Q[2] - 3.0 * xi[2] * Q[1], xi[0] * Q[0], xi[2]]), True),
+        "quadratic": (lambda xi, Q: xi[0] * jnp.cross(xi, Q), False),
+        "cubic": (lambda xi, Q: jnp.sum(xi**2) * jnp.cross(xi, Q), False),
+        "affine": (lambda xi, Q: jnp.cross(xi, Q) + 1e-3 * Q, False),
+    }
+    xi0s = jnp.stack([XI0, jnp.zeros(3), 1e6 * XI0])
+    for name, (velocity_map, linear) in maps.items():
+        system = _on_r3(lambda xi: 0.5 * jnp.sum(xi**2), velocity_map)
+        ok = jax.vmap(lambda x: velocity_map_linear(system, E3, x))(xi0s)
+        assert bool(ok[0]) is linear, name
+        # at rest only a constant term shows; at |ξ⁰| ~ 1e6 the affine map's offset of 1e-3 is
+        # round-off next to the velocities (relative to their size, as in the check on values)
+        assert bool(ok[1]) is (linear or name != "affine"), name
+        assert bool(ok[2]) is (linear or name == "affine"), name
+
+
+@pytest.mark.slow  # compiles a traced march under jit of vmap; the check itself is tested by default above
+def test_under_jit_and_vmap_a_velocity_map_not_linear_in_xi_fails_its_member_at_step_zero(monkeypatch):
+    """Under the caller's jit/vmap the check on values cannot run; its traced form
+    (`march.carry.velocity_map_linear`) fails a member whose map is not linear at step 0
+    (`INVALID_INPUT`) instead of reporting success with the body frozen. Per member: the map
+    ξ × Q + a ξ₁ (ξ × Q) is linear for a = 0 only, and a member with a = 0 runs."""
+    monkeypatch.setattr(_integrate, "_march_jit", _TRACED_MARCH)
+
+    def run(a, xi0):
+        system = _on_r3(lambda xi: 0.5 * jnp.sum(xi**2), lambda xi, Q: (1.0 + a * xi[0]) * jnp.cross(xi, Q))
+        sol = cj.integrate(system, E3, xi0, dt=0.1, n_steps=2, throw=False)
+        return sol.result, sol.failed_step
+
+    a, xi0 = jnp.array([0.0, 1.0, 1e-3]), jnp.stack([XI0, XI0, 0.5 * XI0])
+    result, failed_step = jax.jit(jax.vmap(run))(a, xi0)
+    assert [cj.Status(int(r)) for r in result] == [cj.Status.SUCCESS] + 2 * [cj.Status.INVALID_INPUT]
+    np.testing.assert_array_equal(failed_step, [-1, 0, 0])
+    assert "velocity map not linear in xi" in cj.Status.INVALID_INPUT.message

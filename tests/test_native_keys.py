@@ -145,6 +145,7 @@ def _fresh_process(monkeypatch):
     monkeypatch.setattr(probe, "_TRACES", {})
     monkeypatch.setattr(probe, "_PASSED", set())
     monkeypatch.setattr(probe, "_FINGERPRINTS", {})
+    monkeypatch.setattr(probe, "_SYSTEMS", {})
     monkeypatch.setattr(chunks_native, "_DISK_KEYS", {})
 
 
@@ -187,6 +188,65 @@ def test_a_sweep_from_the_disk_cache_traces_and_checks_nothing_and_a_changed_mod
     assert not np.allclose(doubled.final_momentum, first.final_momentum)
     xla = cj.sweep(model.factory(2.0), inertias, Q0, omegas, **{**RUN, "backend": "xla"})
     np.testing.assert_allclose(doubled.final_momentum, xla.final_momentum, rtol=1e-12, atol=1e-14)
+
+
+CHECKED = """
+import numpy as np
+import clebsch_jax as cj
+
+LIMIT = {limit}
+CALLS = []
+
+
+def check(Q):
+    CALLS.append(1)
+    return None if np.max(np.abs(np.asarray(Q))) <= LIMIT else "an entry past LIMIT"
+
+
+def make_system(inertia):
+    rigid = cj.models.rigid_body(inertia)
+    return cj.ClebschSystem(
+        lagrangian=rigid.lagrangian, velocity_map=rigid.velocity_map, derivative_map=cj.cayley, check_Q=check
+    )
+"""
+
+
+class _Checked(Exception):
+    """Raised right after a sweep's checks of its members: nothing is compiled."""
+
+
+def test_a_kept_configuration_check_misses_on_changed_values_and_a_changed_check(tmp_path, monkeypatch):
+    """The check of every Q0 is kept once it passed (per fingerprint of the configuration and
+    digest of the values checked): the same call does not run it again, and the same sweep
+    with one Q0 a reflection, or with a model whose check's global is changed so that it
+    fails, raises as a first call would."""
+    from clebsch_jax.batching import probe
+
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+    _fresh_process(monkeypatch)
+    monkeypatch.setattr(probe, "warn_isotropic_xi0", lambda *a: (_ for _ in ()).throw(_Checked()))
+    inertias, Q0, omegas = _members()
+    with pytest.raises(_Checked):
+        cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, **RUN)
+    flipped = np.array(Q0)
+    flipped[3, :, 0] *= -1.0
+    with pytest.raises(ValueError, match=r"Q0\[3\].*reflection"):
+        cj.sweep(cj.models.rigid_body, inertias, flipped, omegas, **RUN)
+
+    def module(limit):
+        m = types.ModuleType("checked_model")
+        exec(compile(CHECKED.format(limit=limit), "<checked_model>", "exec"), m.__dict__)
+        return m
+
+    m = module(2.0)
+    for _ in range(2):
+        with pytest.raises(_Checked):
+            cj.sweep(m.make_system, inertias, Q0, omegas, **RUN)
+        assert len(m.CALLS) == len(Q0)  # each Q0 once, by the first call
+    # the model's module made again with the check's global changed (in a process, as for the
+    # member's program, a function object is taken as the code it was when first fingerprinted)
+    with pytest.raises(ValueError, match=r"Q0\[0\]: an entry past LIMIT"):
+        cj.sweep(module(0.5).make_system, inertias, Q0, omegas, **RUN)
 
 
 _CHILD = """

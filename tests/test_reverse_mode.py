@@ -2,7 +2,7 @@ r"""Reverse-mode derivatives through `integrate`, checked against central finite
 of the march itself (an independent route: no derivative rule of the engine is used), on
 vector-space systems (an oscillator and a free particle with configurations of shape (2,),
 (1, 2) and (2, 1), Kepler in the plane) and on group systems (the rigid body and the heavy top
-on SO(3)), for the derivative maps, principles and steppers.
+on SO(3)), for every derivative map (forward difference, Cayley, exponential), principle and stepper.
 
 The reverse-mode derivative of a step is the implicit one (`clebsch_jax.roots.implicit`): its
 tangent solve with the step's Jacobian must be linear in the tangent as JAX sees it, or reverse
@@ -57,6 +57,7 @@ GROUP = {
     "rigid body, cayley": (cj.models.rigid_body(INERTIA), np.eye(3), W),
     "rigid body, forward difference": (cj.models.rigid_body(INERTIA, cj.forward_difference), np.eye(3), W),
     "heavy top, cayley": (cj.models.heavy_top(INERTIA, 0.7), np.eye(3), W),
+    "rigid body, exponential": (cj.models.rigid_body(INERTIA, cj.exponential), np.eye(3), W),
 }
 STEPPERS = {  # integrate options: the principles (full and reduced marches as chosen), and the other steppers
     "default": {},
@@ -129,6 +130,8 @@ CASES = (  # every stepper on one system of each kind, the principles on the oth
     # the forward difference leaves SO(3) with the left and right principles (refused): the
     # symmetric methods only
     + [("rigid body, forward difference", stepper) for stepper in ("default", "midpoint", "gauss 4")]
+    # the exact exponential pair of Definitions 23-24 (matrix log and exp): the reduced and full marches
+    + [("rigid body, exponential", stepper) for stepper in ("default", "left", "midpoint", "left, full march")]
 )
 
 

@@ -222,6 +222,25 @@ def test_the_gradient_of_a_member_with_invalid_input_is_nan():
     assert int(result) == cj.Status.SUCCESS and np.all(np.isfinite(grad))
 
 
+@pytest.mark.slow  # a compiled gradient program of the vortices' march; the eager gradient above runs by default
+def test_under_jit_and_vmap_the_gradient_of_an_invalid_member_is_nan_and_the_others_are_their_own():
+    """Variant of the issue's case (value_and_grad of one member with a negative inertia) on the
+    other paths: jit of vmap of the gradient, over members of which one has a zero circulation.
+    Its value and gradient are NaN; the valid member's gradient is the one it has alone."""
+    Q0 = jnp.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+
+    def final_x(gamma):
+        sol = cj.integrate(cj.models.point_vortices(gamma), Q0, jnp.zeros((3, 2)), dt=0.01, n_steps=2, throw=False)
+        return sol.Q[-1, :, 0].sum()
+
+    gammas = jnp.array([[1.0, 0.5, 1.0], [1.0, 0.0, 1.0]])
+    values, grads = jax.jit(jax.vmap(jax.value_and_grad(final_x)))(gammas)
+    assert np.isnan(values[1]) and np.all(np.isnan(grads[1]))
+    alone = jax.grad(final_x)(gammas[0])
+    assert np.all(np.isfinite(grads[0]))
+    np.testing.assert_allclose(grads[0], alone, rtol=1e-12, atol=1e-14)
+
+
 @pytest.mark.slow  # a second compiled gradient program (vmapped)
 def test_a_failed_member_does_not_poison_the_others_gradients():
     """Variant: a vmapped batch with one failing member: its gradient is NaN, the healthy
@@ -398,6 +417,11 @@ def test_a_batch_whose_outputs_cannot_fit_is_refused_with_the_estimate_before_ev
     with pytest.raises(ValueError, match=r"^batch: 10000 members would need about .* GB for the outputs") as info:
         march(jnp.zeros((10**4, 3)))
     assert "clebsch_jax.sweep" in str(info.value)
+    # variant: few members of long runs, on a machine of 100 MB
+    monkeypatch.setattr(validation, "memory_limit", lambda: 10**8)
+    long = cj.batch(lambda x: cj.integrate(RB, I3, x, dt=0.1, n_steps=10**5, throw=False).momentum)
+    with pytest.raises(ValueError, match=r"^batch: 64 members would need about .* GB for the outputs"):
+        long(jnp.zeros((64, 3)))
 
 
 def test_an_empty_batch_gives_an_empty_result_and_an_empty_sweep_says_so():

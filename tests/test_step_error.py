@@ -279,3 +279,83 @@ def test_a_gauge_fixed_lagrangian_is_not_blamed_for_an_isotropy_component():
         warnings.simplefilter("always")
         check_member(system, q0, np.array([0.0, 0.0, 1.0]) + 1.7 * q0, dt=0.01)
     assert not [w for w in _xi0_warnings(record) if "no initial multiplier" in str(w.message)]
+
+
+# a variant of the issue's case on another system: a body on the unit sphere moved by ξ × q,
+# with an anisotropic kinetic energy (not diagonal) and gravity, at a Q0 off the axes; its
+# momentum A ξ0 has a component along q0, which no multiplier gives
+
+A_SPHERE = np.array([[2.0, 0.3, 0.0], [0.3, 1.0, 0.2], [0.0, 0.2, 0.7]])
+Q0_SPHERE = np.array([0.6, 0.0, -0.8])
+XI0_SPHERE = np.array([1.0, 0.3, -0.6])
+
+
+def _sphere_body(xi, q):
+    return 0.5 * xi @ A_SPHERE @ xi + 0.9 * q[2]
+
+
+SPHERE_BODY = cj.ClebschSystem(
+    lagrangian=_sphere_body, velocity_map=lambda xi, q: jnp.cross(xi, q), derivative_map=cj.forward_difference
+)
+
+
+class _Reached(Exception):
+    """The batch was about to be traced or evaluated: the checks were made before it."""
+
+
+def _reached(*args, **kwargs):
+    raise _Reached
+
+
+@pytest.mark.slow  # a batch and integrate of a new system compiled; the rigid_body_vector case runs by default
+def test_sweeps_and_batches_warn_for_another_system_naming_the_size(monkeypatch):
+    """The sweep's check of its first member (both backends; the batch itself stubbed) and
+    cj.batch's (one member, two steps) warn, naming xi0 and the relative size."""
+    from clebsch_jax.batching import choose, probe
+
+    m = A_SPHERE @ XI0_SPHERE
+    defect = abs(m @ Q0_SPHERE) / np.linalg.norm(m)  # |q0| = 1: the isotropy is the line of q0
+    assert defect > 0.1
+    message = (
+        rf"^xi0: its momentum dl/dxi\(xi0, Q0\) has a component along the isotropy of Q0 .* {defect:.3g} of its size"
+    )
+    monkeypatch.setattr(probe, "member_shapes", _reached)
+    monkeypatch.setattr(choose, "native_config", _reached)
+    for backend in ("xla", "native"):
+        with pytest.warns(UserWarning, match=message), pytest.raises(_Reached):
+            cj.sweep(SPHERE_BODY, None, Q0_SPHERE[None], XI0_SPHERE[None], dt=0.05, n_steps=4, backend=backend)
+    march = cj.batch(lambda x: cj.integrate(SPHERE_BODY, Q0_SPHERE, x, dt=0.05, n_steps=2, throw=False).result)
+    with pytest.warns(UserWarning, match=message):
+        march(XI0_SPHERE[None])
+    # integrate takes xi0 as its physical velocity, whose momentum has a multiplier (one warning)
+    with pytest.warns(UserWarning, match="xi0: has a component along the isotropy"):
+        sol = cj.integrate(SPHERE_BODY, Q0_SPHERE, XI0_SPHERE, dt=0.05, n_steps=2, backend="xla")
+    assert abs(float(np.asarray(sol.momentum)[0] @ Q0_SPHERE)) < 1e-14
+    np.testing.assert_allclose(np.cross(np.asarray(sol.xi)[0], Q0_SPHERE), np.cross(XI0_SPHERE, Q0_SPHERE), atol=1e-14)
+
+
+def _wall(xi, q):
+    """A particle beside the line singularity q₀ = 5 (potential −1/|5 − q₀|)."""
+    return 0.5 * jnp.sum(xi**2) + 1.0 / jnp.abs(5.0 - q[0])
+
+
+WALL = cj.ClebschSystem(lagrangian=_wall, velocity_map=translation, derivative_map=cj.forward_difference)
+
+
+@pytest.mark.slow  # a sweep program per backend compiled; test_a_sweep_fails_the_same_member_at_the_same_step runs by default
+@pytest.mark.parametrize("backend", ["xla", "native"])
+def test_a_sweep_fails_a_gradual_fall_at_integrates_step_on_another_singularity(backend):
+    """The variant above (from rest into a line singularity, left principle) in a sweep: the
+    falling member fails with integrate's status at integrate's step, inside a chunk; the member
+    moving away from the wall succeeds with integrate's final state."""
+    if backend == "native":
+        pytest.importorskip("llvmlite")
+    Q0s, xi0s = np.zeros((2, 2)), np.array([[0.0, 0.0], [-3.0, 0.5]])
+    options = dict(dt=0.2, n_steps=80, scheme="left")
+    ref = [cj.integrate(WALL, q, x, throw=False, backend="xla", **options) for q, x in zip(Q0s, xi0s)]
+    assert [int(r.result) for r in ref] == [Status.ENERGY_JUMP, Status.SUCCESS]
+    res = cj.sweep(WALL, None, Q0s, xi0s, chunk_steps=7, backend=backend, **options)
+    np.testing.assert_array_equal(res.status, [int(r.result) for r in ref])
+    np.testing.assert_array_equal(res.failed_step, [int(r.failed_step) for r in ref])
+    assert int(ref[0].failed_step) % 7 not in (0, 6)  # inside a chunk
+    np.testing.assert_allclose(res.final_Q[1], np.asarray(ref[1].Q)[-1], rtol=1e-10, atol=1e-12)

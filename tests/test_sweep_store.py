@@ -149,6 +149,35 @@ def test_a_sweep_that_computes_something_else_under_the_same_names_is_refused(re
         cj.sweep(edited_model.model, INERTIAS, EYES, OMEGAS, store=str(edited), **KW)
 
 
+DERIVATIVE_MAP = cj.cayley  # read by _configured_body when it is called: a setting changed between runs
+
+
+def _configured_body(inertia):
+    return rigid_body(inertia, derivative_map=DERIVATIVE_MAP)
+
+
+@pytest.mark.slow  # traces and compiles a sweep of its own make_system; test_a_store_of_another_configuration_is_refused runs by default
+def test_a_resume_with_another_setting_of_the_model_or_tolerance_is_refused(reference, tmp_path, monkeypatch):
+    """Variants of the issue's cases (not a lambda, an edited body, an invariant or
+    check_energy=False): the same make_system whose module-level setting chose another
+    derivative map, and check_energy= another tolerance. Refused before anything is computed;
+    the store is kept as it was."""
+    path = tmp_path / "sweep.zarr"
+    first = cj.sweep(_configured_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, store=str(path), **KW)
+    assert_same_table(first, reference)
+    before = _tree(path)
+    monkeypatch.setattr(sys.modules[__name__], "DERIVATIVE_MAP", cj.exponential)
+    with pytest.raises(cj.SweepStoreError, match=r"another sweep configuration \(program_sha256: stored"):
+        cj.sweep(_configured_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, store=str(path), **KW)
+    monkeypatch.setattr(sys.modules[__name__], "DERIVATIVE_MAP", cj.cayley)
+    with pytest.raises(cj.SweepStoreError, match="another sweep configuration.*check_energy"):
+        cj.sweep(
+            _configured_body, INERTIAS, EYES, OMEGAS, invariants={"casimir": casimir}, store=str(path),
+            check_energy=1e-3, **KW,
+        )  # fmt: skip
+    assert _tree(path) == before
+
+
 def test_a_stored_sweep_from_three_threads_is_the_same_table(reference, tmp_path):
     # the store's groups are devices × threads batches, run side by side while the writer
     # thread stores the group before; the table and the store are the in-memory table's
@@ -257,6 +286,25 @@ def test_a_damaged_store_is_an_error_never_wiped(reference, tmp_path):
         ):
             stored(path, overwrite=overwrite)
     assert _tree(path) == before
+    # variants: the root metadata gone (a folder of our arrays without it), or readable but with
+    # its attributes lost (a Zarr group that does not say it is ours): refused and kept, also
+    # with overwrite=True, since nothing says the folder is a sweep's any more
+    import json
+
+    meta.unlink()
+    bare = _tree(path)
+    for overwrite in (False, True):
+        with pytest.raises(cj.SweepStoreError, match=f"store '{path}': .*Nothing was (written or )?removed"):
+            stored(path, overwrite=overwrite)
+    assert _tree(path) == bare
+    meta.write_text(json.dumps({"zarr_format": 3, "node_type": "group", "attributes": {}}))
+    stripped = _tree(path)
+    for overwrite in (False, True):
+        with pytest.raises(
+            cj.SweepStoreError, match=f"store '{path}': is a Zarr group not written by clebsch_jax.sweep"
+        ):
+            stored(path, overwrite=overwrite)
+    assert _tree(path) == stripped
 
 
 def test_an_empty_folder_or_an_interrupted_creation_is_used(reference, tmp_path):
@@ -299,6 +347,8 @@ def test_a_flipped_bit_is_found_and_only_its_batch_is_computed_again(reference, 
         "the same sweep with this store: it computes only the damaged",
     ):
         cj.open_sweep(path)
+    with pytest.raises(Exception, match="(?i)checksum"):  # xarray reads no changed number either
+        xarray.open_zarr(path)["final_t"].values
     capsys.readouterr()
     assert_same_table(stored(path), reference)
     err = capsys.readouterr().err
@@ -355,7 +405,7 @@ def _lock(path, host, pid, started="2026-11-28T23:00:00+00:00"):
     return path / LOCK_NAME
 
 
-def test_a_store_another_live_process_writes_is_refused_naming_it_even_with_overwrite(reference, tmp_path):
+def test_a_store_another_live_process_writes_is_refused_naming_it_even_with_overwrite(reference, tmp_path, capsys):
     """The writer lock: a store whose lock names a live process is neither resumed nor replaced
     (overwrite=True would wipe that process's batches); the message names the writer and the
     ways out. A writer on another host cannot be checked: refused too. Nothing is changed."""
@@ -377,6 +427,17 @@ def test_a_store_another_live_process_writes_is_refused_naming_it_even_with_over
                 ):
                     stored(path, overwrite=overwrite)
                 assert {p: p.read_bytes() for p in path.rglob("*") if p.is_file()} == before
+            # the command line: one line, exit code 2, the writer named (the issue's message told
+            # the second process to pass overwrite=True)
+            from clebsch_jax.cli import main
+
+            config = tmp_path / "sweep.toml"
+            config.write_text(CONFIG)
+            for extra in ([], ["--overwrite"]):
+                assert main(["sweep", str(config), "--store", str(path), "--quiet", *extra]) == 2
+                err = capsys.readouterr().err
+                assert f"is being written by process {alive.pid} on host {host}" in err and err.count("\n") == 1, err
+            assert {p: p.read_bytes() for p in path.rglob("*") if p.is_file()} == before
         finally:
             alive.kill()
     _lock(path, "node-17", 4242)
@@ -527,6 +588,11 @@ def test_a_sweep_killed_after_some_batches_resumes_with_the_same_table(reference
     done = np.asarray(zarr.open_group(str(path), mode="r")["batch_done"][:])
     assert 1 <= done.sum() < N_BATCHES, done
     written_before = done.copy()
+    # xarray on the killed sweep's store: its unwritten members read NOT_RUN, never SUCCESS
+    written = np.repeat(done, KW["batch_size"])[:N_MEMBERS]
+    status = xarray.open_zarr(path)["status"].values
+    np.testing.assert_array_equal(status[written], reference.status[written])
+    assert (status[~written] == cj.Status.NOT_RUN).all()
     # the killed writer's lock is left behind; its process is gone, so the next run takes it over
     from clebsch_jax.batching.store_lock import LOCK_NAME, writer_of
 
@@ -653,6 +719,26 @@ def test_the_command_line_sweeps_into_a_store_and_resumes(reference, tmp_path, c
     assert "0 members computed in this run" in captured.out
 
 
+def test_the_command_line_clamps_a_batch_size_above_the_member_count(tmp_path, capsys):
+    """Two members with batch_size 10^6 (the issue's CLI case: 400 members, still running after
+    120 s) run as one batch of 2: the store, the program and the table of batch_size=2."""
+    from clebsch_jax.cli import main
+
+    two = CONFIG.replace("grid = true", "grid = false")
+    two = two.replace(f"batch_size = {KW['batch_size']}", "batch_size = 1000000")
+    two = two.replace(f"values = {INERTIAS.tolist()}", f"values = {INERTIAS[:2].tolist()}")
+    two = two.replace(f"xi0 = {OMEGAS.tolist()}", f"xi0 = {OMEGAS[:2].tolist()}")
+    config, path = tmp_path / "sweep.toml", tmp_path / "sweep.zarr"
+    config.write_text(two)
+    assert main(["sweep", str(config), "--store", str(path), "--quiet"]) == 0
+    assert f"2 members x {KW['n_steps']} steps in 1 batches of 2," in capsys.readouterr().out
+    assert zarr.open_group(str(path), mode="r").attrs["clebsch_jax_sweep"]["batch_size"] == 2
+    alone = cj.sweep(
+        rigid_body, INERTIAS[:2], EYES[:2], OMEGAS[:2], invariants={"casimir": casimir}, **{**KW, "grid": False}
+    )
+    assert_same_table(cj.open_sweep(path), alone)
+
+
 def test_the_command_line_help_documents_the_toml_format(capsys):
     from clebsch_jax.cli import main
 
@@ -710,6 +796,12 @@ def test_the_command_line_help_documents_the_toml_format(capsys):
             "seed must be a whole number >= 0",
         ),
         (lambda c: c.replace("xi0 = [[", "xi0 = {normal = [4, 3], scale = 'big'}\n# [["), "scale must be a finite"),
+        # a run the sweep's schedule cannot hold: refused by cj.sweep with the estimate, before
+        # the store is created (the issue's case was a Python call of 10^12 steps in chunks of 100)
+        (
+            lambda c: c.replace(f"n_steps = {KW['n_steps']}", "n_steps = 400000000000"),
+            "n_steps: 400000000000 steps in 50000000000 chunks of 8",
+        ),
     ],
 )
 def test_the_command_line_names_a_bad_config_entry(tmp_path, capsys, edit, message):

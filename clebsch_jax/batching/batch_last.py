@@ -9,10 +9,11 @@ written with the bodies along the last axis runs much faster.
 `batch(fun)` has `jax.vmap`'s meaning (in_axes 0 or None, out_axes 0) but evaluates `fun`
 differently: it traces `fun` once for one member (`jax.make_jaxpr`) and evaluates that program
 with every batched value stored *batch-last*, shape (…member shape, B): each component of a
-member is a contiguous row of B numbers, which XLA vectorises across members. Each primitive
-is applied by a rule (`clebsch_jax.batching.rules`) that knows where the batch axis is — elementwise operations,
-broadcasts, reshapes, slices, reductions and small `dot_general`s keep it last at no cost;
-`scan`, `while` and `cond` are evaluated with batch-last bodies (a `while` whose predicate
+member is a contiguous row of B numbers, which XLA vectorises across members. The program is
+walked by `clebsch_jax.batching.walk` with the stacked layout: each primitive is applied by a
+rule (`clebsch_jax.batching.rules`) that knows where the batch axis is — elementwise
+operations, broadcasts, reshapes, slices, reductions and small `dot_general`s keep it last at
+no cost; `scan`, `while` and `cond` are evaluated with batch-last bodies (a `while` whose predicate
 differs between members runs until the last member stops, the others held by a select, as
 under `jax.vmap`); calls (`jit`, `custom_jvp_call`, …) are entered. Any other primitive (a
 gather, a callback, a large dot) falls back on `jax.vmap` of that one primitive with the batch
@@ -49,7 +50,8 @@ from ..march.integrate import caller_backend, check_member, recording_calls
 from ..march.solution import member_offset, raised_in_callback
 from ..native import check_backend
 from .batch_native import member_key, native_program, traced_once, wants_native
-from .rules import batch_members, bind, eval_closed, flat_axes, to_batched
+from .rules import batch_members, eval_closed, flat_axes, to_batched
+from .walk import bind
 
 __all__ = ["batch"]
 

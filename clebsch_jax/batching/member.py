@@ -104,6 +104,58 @@ def _node(system, finder, Q, mu, seed, ok):
     return unknown(xi), known, unknown(E), unknown(size)
 
 
+def _phases(stepper, system, reduce, dt, n: int, probes, steps0, state0, memory0, red0):
+    """The chunk's loop with `integrate`'s first-step probe (`probes`: 2 in the run's first
+    chunk, else 0): three phases of one loop over the step (`reduce` of `stepper.step`), the
+    program's single copy of it — the probe's half steps from the start (their last node is the
+    probe), step 0 from the start again (its node and outcome kept for the first-step check),
+    then steps 1 … n - 1. A phase's time step, step numbers and start are set between phases,
+    so that a step carries no select of them: every member runs the same phases (`first` is
+    the batch's), so that the inner loop is the same in every lane of a native kernel.
+
+    Returns (state, memory, reductions, the probe's `FirstStepProbe`, step 0's {Q, mu, ok,
+    iterations}); a half step's reductions are dropped, as are those of a phase of no steps."""
+    nan = lambda a: jnp.full_like(a, jnp.nan)  # noqa: E731
+    Q0, mu0, alive0 = red0["Q"], red0["mu"], red0["alive"]
+    counts = jnp.stack([probes, jnp.asarray(min(n, 1), jnp.int32), jnp.asarray(max(n - 1, 0), jnp.int32)])
+
+    def steps(c):
+        """The phase's steps: each from the last (the first from c's state) with the phase's
+        `dt`, numbers `index0 + i` (stepper) and `k0 + i` (reductions); `alive` the last
+        step's outcome, its node's in the probe."""
+        phase, state, memory, red, node, alive = c[:6]
+        in_probe = phase == 0
+        step_dt = jnp.where(in_probe, dt / 2, dt)
+        index0 = jnp.where(in_probe, 0, steps0 + phase - 1).astype(jnp.int32)
+        k0 = (phase - 1).astype(jnp.int32)
+
+        def one(i, s):
+            state_prev, memory, red, _, alive = s
+            stepped = stepper.step(system, state_prev, memory, step_dt, index0 + i, alive)
+            state, memory, red, node = reduce(k0 + i, state_prev, red, alive, stepped)
+            return state, memory, red, node, jnp.where(in_probe, node[2], red["alive"])
+
+        return jax.lax.fori_loop(0, counts[phase], one, (state, memory, red, node, alive))
+
+    def phase_body(c):
+        phase, _, _, _, _, _, probe, at0 = c
+        # the probe's half steps and step 0 start from the chunk's start, the reductions from red0
+        restart = phase < 2
+        start = jax.tree_util.tree_map(lambda a, b: jnp.where(restart, a, b), (state0, memory0, red0), c[1:4])
+        alive = jnp.where(phase == 0, probe[2], jnp.where(restart, alive0, c[5]))
+        state, memory, red, node, alive = steps((phase,) + start + (c[4], alive))
+        probe = _where(phase == 0, node, probe)
+        step0 = dict(Q=node[0], mu=node[1], ok=node[2] & ~red["jumped"], iterations=red["iterations"])
+        at0 = _where((phase == 1) & (counts[1] > 0), step0, at0)
+        return phase + 1, state, memory, red, node, alive, probe, at0
+
+    probe0 = (nan(Q0), nan(mu0), jnp.asarray(alive0))
+    at00 = dict(Q=nan(Q0), mu=nan(mu0), ok=jnp.asarray(False), iterations=red0["iterations"])
+    start = (jnp.zeros((), jnp.int32), state0, memory0, red0, probe0, alive0, probe0, at00)
+    _, state, memory, red, _, _, probe, at0 = jax.lax.while_loop(lambda c: c[0] < 3, phase_body, start)
+    return state, memory, red, FirstStepProbe(probe[0], probe[1], probe[2] & (probes > 0)), at0
+
+
 def member_chunk(
     stepper,
     system,
@@ -187,7 +239,6 @@ def member_chunk(
         reductions after it: (the state, the memory, the new reductions, and the node the step
         reaches with its outcome: (Q, momentum, ok))."""
         state, memory, out, stats = stepped
-        before = red
         ok = alive & (stats.status == Status.SUCCESS)
         state, out = _nan_unless(ok, (state, out))
         nodes = stepper.nodes(system, state_prev, _one(state), _one(out))
@@ -242,15 +293,6 @@ def member_chunk(
             jumped=jumped,
             p=p,
         )
-        if probes is not None:  # step 0's node and outcome, for the first-step check after the loop
-            at0 = k == 0
-            kept = lambda now, old: jnp.where(at0, now, old)  # noqa: E731
-            red.update(
-                Q1=kept(Qn, before["Q1"]),
-                mu1=kept(mun, before["mu1"]),
-                ok1=kept(ok & ~new_jump, before["ok1"]),
-                iterations1=kept(iterations, before["iterations1"]),
-            )
         return state, memory, red, (Qn, mun, ok)
 
     def body(k, c):
@@ -260,41 +302,21 @@ def member_chunk(
         state, memory, red, _ = reduce(k, state_prev, red, alive, stepped)
         return state, memory, red
 
-    def body_with_probe(j, c):
-        """Iteration j: a half step of the probe from (state, memory) while j < probes (their
-        node kept in `probe`, the reductions left as they are), then step j - probes of the
-        chunk, the first from the start again."""
-        state, memory, red, probe = c
-        in_probe = j < probes
-        restart = j == probes
-        state_prev, memory = _where(restart, state0, state), _where(restart, memory0, memory)
-        alive = jnp.where(in_probe, probe[2], red["alive"])
-        k = j - probes
-        step_dt, index = jnp.where(in_probe, dt / 2, dt), jnp.where(in_probe, j, steps0 + k)
-        stepped = stepper.step(system, state_prev, memory, step_dt, index, alive)
-        state, memory, new, node = reduce(k, state_prev, red, alive, stepped)
-        return state, memory, _where(in_probe, red, new), _where(in_probe, node, probe)
-
     if probes is None:
         state, memory, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
     else:
-        red0.update(Q1=jnp.full_like(Q0, jnp.nan), mu1=jnp.full_like(mu0, jnp.nan), ok1=jnp.asarray(False))
-        red0.update(iterations1=red0["iterations"])
-        probe0 = (jnp.full_like(Q0, jnp.nan), jnp.full_like(mu0, jnp.nan), jnp.asarray(ok_in))
-        start = (state0, memory0, red0, probe0)
-        state, memory, red, (probe_Q, probe_mu, probe_ok) = jax.lax.fori_loop(0, n + probes, body_with_probe, start)
-        probe = FirstStepProbe(probe_Q, probe_mu, probe_ok & (probes > 0))
+        state, memory, red, probe, at0 = _phases(stepper, system, reduce, dt, n, probes, steps0, state0, memory0, red0)
     if probes is not None and n > 0:
         # integrate's first-step check (after its energy check): step 0 converged, was not failed
         # by the energy check, and lies far from the half steps' node. It fails the member at
         # step 0 as a jump there would: what the loop reduced after step 0 is dropped. (Made
         # here, on the node recorded at step 0, rather than in every step of the loop.)
-        nodes0 = (jnp.stack([red0["Q"], red["Q1"]]), jnp.stack([mu0, red["mu1"]]))
-        spurious = first & red["ok1"] & first_step_failed(jnp, probe, *nodes0, Status.SUCCESS)
+        nodes0 = (jnp.stack([red0["Q"], at0["Q"]]), jnp.stack([mu0, at0["mu"]]))
+        spurious = first & at0["ok"] & first_step_failed(jnp, probe, *nodes0, Status.SUCCESS)
         red.update(
             status=jnp.where(spurious, Status.FIRST_STEP, red["status"]).astype(jnp.int32),
             step=jnp.where(spurious, 0, red["step"]).astype(jnp.int32),
-            iterations=jnp.where(spurious, red["iterations1"], red["iterations"]),
+            iterations=jnp.where(spurious, at0["iterations"], red["iterations"]),
             residual=jnp.where(spurious, red0["residual"], red["residual"]),
             drift=jnp.where(spurious, red0["drift"], red["drift"]),
             alive=red["alive"] & ~spurious,

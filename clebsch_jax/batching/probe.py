@@ -76,7 +76,10 @@ def check_first_member(cfg: Config, members: Members) -> tuple | None:
     Returns the isotropy gauge `integrate` fixes for that member, `(rank, kernel dimension,
     degenerate)` (`Config.isotropy`: every member's system gets it, with its own weight), or
     None (no gauge, or no member checked)."""
-    _check_configurations(system_of(cfg, first_row(members), members.shared), members.Q0, members.n_ic)
+    # a pass is kept per fingerprint and digest of the values checked (a failure raises: checked again)
+    check = lambda: _check_configurations(_first_system(cfg, members), members.Q0, members.n_ic)  # noqa: E731
+    key = _record("configurations", cfg, values_digest((first_row(members), members.shared, members.Q0)))
+    check() if key is None else memo(_SYSTEMS, key, check, _TRACES_MAX)
     finite = lambda a: np.all(np.isfinite(np.reshape(a, (len(a), -1))), axis=1)  # noqa: E731
     ok_ic = finite(members.Q0) & finite(members.xi0) & (True if members.P0 is None else finite(members.P0))
     ok = ok_ic[members.ic_index]
@@ -113,6 +116,19 @@ def check_first_member(cfg: Config, members: Members) -> tuple | None:
             where = (f"make_system(params[{i}]), " if members.builder is not None else "") + f"Q0[{j}], xi0[{j}]"
             raise type(err)(f"sweep: member {m} ({where}) is rejected by integrate's checks: {err}") from err
     return None
+
+
+def _first_system(cfg: Config, members: Members):
+    """`system_of` the first parameter row, whose configuration check every Q0 gets: built once
+    per fingerprint of the configuration's code and digest of the row's and shared values
+    (`_record`: a changed function, closure or global builds it again), else every call."""
+    row = first_row(members)
+    build = lambda: system_of(cfg, row, members.shared)  # noqa: E731
+    key = _record("first system", cfg, values_digest((row, members.shared)))
+    return build() if key is None else memo(_SYSTEMS, key, build, _TRACES_MAX)
+
+
+_SYSTEMS: dict = {}
 
 
 def _dump_gauge(gauge: tuple | None) -> bytes:
@@ -268,11 +284,16 @@ def _check_member(cfg: Config, *args):
 
     def checked():  # a fresh process finds a pass of the same configuration and shapes on disk
         leaves, tree = jax.tree_util.tree_flatten(args)
-        signature = [(np.shape(x), str(np.result_type(x)), getattr(x, "weak_type", False)) for x in leaves]
+        signature = [(np.shape(x), str(_dtype(x)), getattr(x, "weak_type", False)) for x in leaves]
         key = _record("member", cfg, fingerprint((tree, signature)))
         return once(key, run, load=pickle.loads, dump=pickle.dumps)
 
     return memo(_TRACES, ("check",) + trace_key(cfg, args), checked, _TRACES_MAX)
+
+
+def _dtype(x):
+    """A leaf's dtype: its own for an array (NumPy's `result_type` of a JAX array is deprecated)."""
+    return x.dtype if hasattr(x, "dtype") else np.result_type(x)
 
 
 def member_shapes(cfg: Config, members: Members, lean: bool = False) -> Shapes:

@@ -7,7 +7,7 @@ that returns part of what it computes — `cj.integrate(...).Q[-1]`, whose march
 nodes, their velocities and energies for every step — would translate all of it.
 
 `pruned(closed)` is a function that evaluates `closed` (a closed jaxpr) binding only the
-equations that its outputs need: calls (`clebsch_jax.batching.rules.CALLS`: `jit`,
+equations that its outputs need: calls (`clebsch_jax.batching.walk.CALLS`: `jit`,
 `custom_jvp_call`, `closed_call`, `checkpoint`, …) are entered, their unneeded outputs
 dropped in turn; loops and branches are bound whole when any output is needed; an equation
 with effects (a host callback) is always kept. Traced
@@ -23,7 +23,7 @@ import contextlib
 
 import jax.extend.core as jex
 
-from .rules import CALLS  # the call primitives entered, and the parameter holding the program
+from .walk import CALLS  # the call primitives entered, and the parameter holding the program
 
 __all__ = ["pruned"]
 

@@ -6,7 +6,8 @@ A value is (kind, x): `U` unbatched (an array of the member's shape), `S` stacke
 traced). The conversions between kinds, the folding of known values in NumPy
 (`numpy_fold`), and one rule per primitive on rows (`ROW_RULES`: elementwise operations map
 over the entries, re-indexing moves entries, reductions and small `dot_general`s are sums of
-products of rows). The loop over a jaxpr and its control flow: `clebsch_jax.batching.scalarise`.
+products of rows). The walk over a jaxpr and its control flow: `clebsch_jax.batching.walk`, with
+the layout of rows of `clebsch_jax.batching.scalarise`.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 from jax import lax
 
 from .rules import ELEMENTWISE
+from .walk import S, U
 
 MAX_ROWS = 32
 """Batched values with at most this many components per member are held as rows."""
@@ -28,10 +30,9 @@ MAX_PRODUCTS = 512
 """A `dot_general` (or reduction) of rows with more products than this is stacked instead."""
 
 
-# A value in the evaluator is (kind, x): U unbatched (an array of the member's shape), S stacked
-# batch-last (member shape + (B,)), R rows (a NumPy object array of the member's shape with
-# (B,) entries).
-U, S, R = "u", "s", "r"
+R = "r"
+"""The kind of rows (a NumPy object array of the member's shape with (B,) entries), besides the
+walk's U (unbatched) and S (stacked batch-last): `clebsch_jax.batching.walk`."""
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,24 +1,25 @@
-r"""The batch-last interpreter: a program of one member evaluated for B members at once.
+r"""The stacked layout: every batched value batch-last, a rule per primitive.
 
-A value is (array, batched); a batched array has shape member_shape + (B,), the batch axis
-last. `evaluate` walks a jaxpr and applies each primitive by its rule (`RULES`): elementwise
-operations, broadcasts, reshapes, slices, reductions and small `dot_general`s keep the batch
-axis last at no cost; `scan`, `while` and `cond` are evaluated with batch-last bodies (a
-`while` whose predicate differs between members runs until the last member stops, the others
-held by a select, as under `jax.vmap`); calls (`jit`, `custom_jvp_call`, …) are entered. Any
-other primitive falls back on `jax.vmap` of that one primitive with the batch axis moved last
-around it (`fallback`). `clebsch_jax.batch` (`batch_last.py`) and the scalarising evaluator
-(`scalarise.py`, for what it does not hold as rows) share these rules.
+A batched value is `(S, x)` with x of shape member_shape + (B,), the batch axis last; an
+unbatched one `(U, x)`. `Stacked` is the layout of `clebsch_jax.batching.walk.evaluate` that
+holds them so: elementwise operations, broadcasts, reshapes, slices, reductions and small
+`dot_general`s keep the batch axis last at no cost (`RULES`, each `rule(eqn, arrays, flags,
+B)`); the walk evaluates `scan`, `while` and `cond` with batch-last bodies and enters calls.
+Any other primitive falls back on `jax.vmap` of that one primitive with the batch axis moved
+last around it (`fallback`). `clebsch_jax.batch` (`batch_last.py`) walks a program with this
+layout, and the rows layout (`scalarise.py`) hands it what it does not hold as rows.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import jax
-import jax.extend.core as jex
 import jax.numpy as jnp
 from jax import lax
+
+from .walk import CONTROL, S, U, bind, evaluate_closed
 
 SMALL_DOT = 4096
 """A `dot_general` whose output times contraction size is at most this many products is
@@ -70,41 +71,6 @@ def _match(values, flags, wants, B):
     return [to_batched(x, f, B) if w else x for x, f, w in zip(values, flags, wants)]
 
 
-def eval_closed(closed, args, flags, B):
-    return evaluate(closed.jaxpr, closed.consts, args, flags, B)
-
-
-def evaluate(jaxpr, consts, args, flags, B):
-    env = {}
-
-    def read(v):
-        if isinstance(v, jex.Literal):
-            return v.val, False
-        return env[v]
-
-    for v, c in zip(jaxpr.constvars, consts):
-        env[v] = (c, False)
-    for v, a, f in zip(jaxpr.invars, args, flags):
-        env[v] = (a, bool(f))
-    for eqn in jaxpr.eqns:
-        vals, bs = zip(*(read(v) for v in eqn.invars)) if eqn.invars else ((), ())
-        prim = eqn.primitive
-        if not any(bs):
-            outs = bind(eqn, vals)
-            out_flags = [False] * len(outs)
-        else:
-            rule = RULES.get(prim.name)
-            if rule is None:
-                outs, out_flags = fallback(eqn, vals, bs, B)
-            else:
-                outs, out_flags = rule(eqn, list(vals), list(bs), B)
-        for v, o, f in zip(eqn.outvars, outs, out_flags):
-            if not isinstance(v, jex.DropVar):
-                env[v] = (o, f)
-    results = [read(v) for v in jaxpr.outvars]
-    return [r[0] for r in results], [r[1] for r in results]
-
-
 def fallback(eqn, vals, bs, B):
     """`jax.vmap` of the one primitive, the batch axis moved last around it."""
 
@@ -113,17 +79,6 @@ def fallback(eqn, vals, bs, B):
 
     outs = jax.vmap(f, in_axes=[-1 if b else None for b in bs], out_axes=-1, axis_size=B)(*vals)
     return outs, [True] * len(outs)
-
-
-def bind(eqn, vals, **changes):
-    """Apply the equation's primitive to `vals`, with some parameters changed."""
-    params = eqn.primitive.get_bind_params(eqn.params)
-    subfuns = ()
-    if isinstance(params, tuple):  # JAX < 0.8 returns (subfuns, params)
-        subfuns, params = params
-    with eqn.ctx.manager:
-        out = eqn.primitive.bind(*subfuns, *vals, **{**params, **changes})
-    return list(out) if eqn.primitive.multiple_results else [out]
 
 
 def _elementwise(eqn, vals, bs, B):
@@ -214,157 +169,6 @@ def _dot_general(eqn, vals, bs, B):
     return [out.astype(eqn.outvars[0].aval.dtype)], [True]
 
 
-# Calls: evaluate the called program with the same interpreter.
-
-
-def _call(key):
-    def rule(eqn, vals, bs, B):
-        inner = eqn.params[key]
-        if isinstance(inner, jex.ClosedJaxpr):
-            return evaluate(inner.jaxpr, inner.consts, vals, bs, B)
-        return evaluate(inner, (), vals, bs, B)
-
-    return rule
-
-
-# Control flow. `_flags` predicts which outputs of a program come out batched (the same rules
-# as the interpreter), so loop carries can be made batched before the loop.
-
-
-def _flags(closed, in_flags) -> list:
-    jaxpr = closed.jaxpr if isinstance(closed, jex.ClosedJaxpr) else closed
-    env = {v: bool(f) for v, f in zip(jaxpr.invars, in_flags)}
-    read = lambda v: False if isinstance(v, jex.Literal) else env.get(v, False)
-    for eqn in jaxpr.eqns:
-        bs = [read(v) for v in eqn.invars]
-        name = eqn.primitive.name
-        if name in CALLS:
-            out = _flags(eqn.params[CALLS[name]], bs)
-        elif not any(bs):
-            out = [False] * len(eqn.outvars)
-        elif name == "while":
-            out = while_carry_flags(eqn.params, bs)[0]
-        elif name == "scan":
-            out = scan_carry_flags(eqn.params, bs)[1]
-        elif name == "cond":
-            out = cond_flags(eqn.params, bs)
-        else:
-            out = [True] * len(eqn.outvars)
-        for v, f in zip(eqn.outvars, out):
-            env[v] = f
-    return [read(v) for v in jaxpr.outvars]
-
-
-def _stable_carry(body, consts, carry, xs=()):
-    """The batched flags of a loop's carries: a carry is batched once one pass of `body`
-    (inputs: consts, carries, xs; outputs: carries first) makes it so. Returns (carry flags,
-    the body's output flags)."""
-    while True:
-        out = _flags(body, list(consts) + carry + list(xs))
-        new = [a or b for a, b in zip(carry, out)]
-        if new == carry:
-            return carry, out
-        carry = new
-
-
-def while_carry_flags(p, bs):
-    nc, nb = p["cond_nconsts"], p["body_nconsts"]
-    carry, _ = _stable_carry(p["body_jaxpr"], bs[nc : nc + nb], list(bs[nc + nb :]))
-    pred = _flags(p["cond_jaxpr"], list(bs[:nc]) + carry)[0]
-    if pred:
-        carry = [True] * len(carry)
-    return carry, pred
-
-
-def scan_carry_flags(p, bs):
-    nc, nk = p["num_consts"], p["num_carry"]
-    carry, out = _stable_carry(p["jaxpr"], bs[:nc], list(bs[nc : nc + nk]), bs[nc + nk :])
-    return carry, carry + out[nk:]
-
-
-def cond_flags(p, bs):
-    if bs[0]:
-        return [True] * len(p["branches"][0].jaxpr.outvars)
-    per_branch = [_flags(br, bs[1:]) for br in p["branches"]]
-    return [any(fs) for fs in zip(*per_branch)]
-
-
-def _while(eqn, vals, bs, B):
-    p = eqn.params
-    nc, nb = p["cond_nconsts"], p["body_nconsts"]
-    carry_flags, pred_batched = while_carry_flags(p, bs)
-    cc, bc = vals[:nc], vals[nc : nc + nb]
-    ccf, bcf = bs[:nc], bs[nc : nc + nb]
-    init = _match(vals[nc + nb :], bs[nc + nb :], carry_flags, B)
-    cond_j, body_j = p["cond_jaxpr"], p["body_jaxpr"]
-
-    def pred(carry):
-        return eval_closed(cond_j, list(cc) + list(carry), list(ccf) + carry_flags, B)[0][0]
-
-    def body(carry):
-        outs, fs = eval_closed(body_j, list(bc) + list(carry), list(bcf) + carry_flags, B)
-        return _match(outs, fs, carry_flags, B)
-
-    # A `while` batched by `jax.vmap` inside `fun` has a predicate of shape S (its own batch)
-    # and carries with leading axes S: it runs while any entry is true and updates the
-    # entries whose predicate is true. Ours adds the batch axis, last, to the same rule.
-    pred_shape = tuple(cond_j.out_avals[0].shape)
-    if not pred_batched and not pred_shape:
-        out = lax.while_loop(pred, body, init)
-    else:
-
-        def select(go, new, old):
-            dims = tuple(range(len(pred_shape))) + ((new.ndim - 1,) if pred_batched else ())
-            return lax.select(lax.broadcast_in_dim(go, new.shape, dims), new, old)
-
-        def masked_body(carry):
-            go = pred(carry)
-            return [select(go, n, o) for n, o in zip(body(carry), carry)]
-
-        out = lax.while_loop(lambda c: jnp.any(pred(c)), masked_body, init)
-    return list(out), carry_flags
-
-
-def _scan(eqn, vals, bs, B):
-    p = eqn.params
-    nc, nk = p["num_consts"], p["num_carry"]
-    carry_flags, out_flags = scan_carry_flags(p, bs)
-    consts, cf = vals[:nc], bs[:nc]
-    init = _match(vals[nc : nc + nk], bs[nc : nc + nk], carry_flags, B)
-    xs, xf = vals[nc + nk :], bs[nc + nk :]
-    ys_flags = out_flags[nk:]
-
-    def body(carry, x):
-        outs, fs = eval_closed(p["jaxpr"], list(consts) + list(carry) + list(x), list(cf) + carry_flags + list(xf), B)
-        return _match(outs[:nk], fs[:nk], carry_flags, B), _match(outs[nk:], fs[nk:], ys_flags, B)
-
-    carry, ys = lax.scan(body, init, list(xs), length=p["length"], reverse=p["reverse"], unroll=p["unroll"])
-    return list(carry) + list(ys), out_flags
-
-
-def _cond(eqn, vals, bs, B):
-    branches = eqn.params["branches"]
-    index, ops, opf = vals[0], vals[1:], bs[1:]
-    out_flags = cond_flags(eqn.params, bs)
-
-    def branch(br):
-        def run(*xs):
-            outs, fs = eval_closed(br, list(xs), list(opf), B)
-            return _match(outs, fs, out_flags, B)
-
-        return run
-
-    if not bs[0]:
-        return list(lax.switch(index, [branch(br) for br in branches], *ops)), out_flags
-    results = [branch(br)(*ops) for br in branches]
-    outs = []
-    for k in range(len(out_flags)):
-        cases = [r[k] for r in results]
-        idx = lax.broadcast_in_dim(index, cases[0].shape, (cases[0].ndim - 1,))
-        outs.append(lax.select_n(idx if idx.dtype == jnp.bool_ else idx.astype(jnp.int32), *cases))
-    return outs, out_flags
-
-
 ELEMENTWISE = """
 abs acos acosh add add_any and asin asinh atan atan2 atanh cbrt ceil clamp conj convert_element_type
 copy copy_p cos cosh digamma div eq erf erf_inv erfc exp exp2 expm1 floor ge gt imag integer_pow
@@ -378,21 +182,9 @@ argmax argmin cumlogsumexp cummax cummin cumprod cumsum reduce_and reduce_max re
 reduce_prod reduce_sum reduce_xor rev split squeeze
 """.split()
 
-CALLS = {
-    "jit": "jaxpr",
-    "pjit": "jaxpr",
-    "closed_call": "call_jaxpr",
-    "core_call": "call_jaxpr",
-    "custom_jvp_call": "call_jaxpr",
-    "custom_vjp_call": "call_jaxpr",
-    "remat": "jaxpr",
-    "checkpoint": "jaxpr",
-}
-
 RULES = {
     **{name: _elementwise for name in ELEMENTWISE},
     **{name: _same_params for name in _SAME_PARAMS},
-    **{name: _call(key) for name, key in CALLS.items()},
     "broadcast_in_dim": _broadcast_in_dim,
     "reshape": _reshape,
     "slice": _slice,
@@ -402,7 +194,73 @@ RULES = {
     "concatenate": _same_params,
     "optimization_barrier": _as_is,
     "stack": _same_params,
-    "while": _while,
-    "scan": _scan,
-    "cond": _cond,
 }
+"""The rule of each primitive on stacked values (calls and control flow: the walk's)."""
+
+
+class Stacked:
+    """The layout of every batched value stacked batch-last (`clebsch_jax.batching.walk.Layout`)."""
+
+    def __init__(self, B: int):
+        self.B = B
+
+    def unbatched(self, eqn, xs) -> list:
+        return bind(eqn, xs)
+
+    def apply(self, eqn, vals) -> list:
+        name = eqn.primitive.name
+        if name in CONTROL:
+            return CONTROL[name](eqn, vals, self)
+        arrays, flags = [x for _, x in vals], [k != U for k, _ in vals]
+        rule = RULES.get(name)
+        outs, out_flags = fallback(eqn, arrays, flags, self.B) if rule is None else rule(eqn, arrays, flags, self.B)
+        return [(S if f else U, o) for o, f in zip(outs, out_flags)]
+
+    def kinds(self, avals, flags) -> list:
+        return [S if f else U for f in flags]
+
+    def canon(self, vals, kinds, avals) -> list:
+        return [(S, to_batched(x, False, self.B)) if w == S and k == U else (k, x) for (k, x), w in zip(vals, kinds)]
+
+    def pack(self, vals) -> list:
+        return [[x] for _, x in vals]
+
+    def unpack(self, packed, kinds, avals) -> list:
+        return [(k, p[0]) for p, k in zip(packed, kinds)]
+
+    def loop_body(self, scan: bool):
+        return contextlib.nullcontext()
+
+    def scan_inputs(self, vals, invars) -> tuple:
+        return [x for _, x in vals], [k for k, _ in vals]
+
+    def unroll(self, params) -> int:
+        return params["unroll"]
+
+    def series(self, ys, kinds, avals, length) -> list:
+        return [(k, y[0]) for y, k in zip(ys, kinds)]
+
+    def predicate(self, val):
+        return val[1]
+
+    def select(self, go, new, old, pred_shape, pred_batched):
+        dims = tuple(range(len(pred_shape))) + ((new.ndim - 1,) if pred_batched else ())
+        return lax.select(lax.broadcast_in_dim(go, new.shape, dims), new, old)
+
+    def index(self, val):
+        return val[1]
+
+    def choose(self, index, results, kinds, avals) -> list:
+        outs = []
+        for k, kind in enumerate(kinds):
+            cases = [r[k][0] for r in results]
+            idx = lax.broadcast_in_dim(index, cases[0].shape, (cases[0].ndim - 1,))
+            outs.append((kind, lax.select_n(idx if idx.dtype == jnp.bool_ else idx.astype(jnp.int32), *cases)))
+        return outs
+
+
+def eval_closed(closed, args, flags, B):
+    """`closed` walked with the stacked layout on `args` (batched where `flags`): (the output
+    arrays, their batched flags)."""
+    outs = evaluate_closed(closed, [(S if f else U, a) for a, f in zip(args, flags)], Stacked(B))
+    return [x for _, x in outs], [k != U for k, _ in outs]

@@ -60,6 +60,8 @@ class SweepResult:
       divided by `fast_chunks` × members per batch, the share of the work the general path
       redid. A table read from a store (`open_sweep`, also the result of a resumed or
       Dask-written stored sweep) does not keep these counts: 0.
+    - `accuracy_plan`: the `AccuracyPlan` of a sweep run with `accuracy=` (made on its first
+      member, `clebsch_jax.choose_step`); None otherwise.
     """
 
     param_index: np.ndarray
@@ -88,6 +90,7 @@ class SweepResult:
     fast_chunks: int = 0
     fallback_chunks: int = 0
     fallback_member_chunks: int = 0
+    accuracy_plan: object = None
 
     def __len__(self) -> int:
         return int(self.status.shape[0])
@@ -195,6 +198,7 @@ jax.tree_util.register_dataclass(
         "fast_chunks",
         "fallback_chunks",
         "fallback_member_chunks",
+        "accuracy_plan",
     ],
 )
 

@@ -281,6 +281,8 @@ def run(args) -> int:
         return fail('the progress bar needs tqdm: pip install "clebsch-jax[sweep]"', prog=prog)
     B = _n_members(kwargs)
     bs = kwargs["batch_size"]
+    if isinstance(bs, int) and bs > B > 0:  # clamped by cj.sweep: the batches it runs
+        bs = B
     n_batches = -(-B // bs) if isinstance(bs, int) and bs > 0 else 0
     done = _already_done(args.store, n_batches) if not args.overwrite else np.zeros(n_batches, bool)
     before = int(done.sum())

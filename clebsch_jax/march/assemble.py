@@ -21,6 +21,8 @@ __all__ = ["assemble"]
 
 def _join(xp, chunks, n_steps: int, node: bool):
     """The chunks' records of a field joined: N step entries, or N + 1 node entries."""
+    if len(chunks) == 1 and (not node or chunks[0].shape[0] == n_steps + 1):
+        return chunks[0][: n_steps + node]  # one chunk of exactly its records (native): no copy
     first = [c[:-1] if node else c for c in chunks]
     joined = xp.concatenate(first)[:n_steps] if len(first) > 1 else first[0][:n_steps]
     return xp.concatenate([joined, chunks[-1][-1:]]) if node else joined

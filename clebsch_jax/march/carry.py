@@ -9,13 +9,25 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..core.isotropy import IsotropyGauge, rank_holds
+from ..core.model_checks import DENSE_CHECK_MAX, LINEAR_RTOL
 from ..core.validation import nan_unless
 from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper, Nodes
 
-__all__ = ["Carry", "Chunk", "failed_to_nan", "gate", "input_ok", "start", "resume", "advance_step"]
+__all__ = [
+    "Carry",
+    "Chunk",
+    "failed_to_nan",
+    "gate",
+    "input_ok",
+    "velocity_map_linear",
+    "start",
+    "resume",
+    "advance_step",
+]
 
 
 class Carry(NamedTuple):
@@ -93,12 +105,37 @@ def input_ok(system, Q0, xi0, P0, dt):
     return ok
 
 
+def velocity_map_linear(system, Q0, xi0):
+    r"""Whether the velocity map is additive at $Q^0$, as a traced boolean: the traced form of
+    `integrate`'s check of Definition 1 on concrete values (`clebsch_jax.core.model_checks`),
+    for calls under `jax.jit`/`jax.vmap`/`jax.grad`, where that check cannot run.
+    $|\mathcal L_{2\xi^0 + d} - 2\mathcal L_{\xi^0} - \mathcal L_d| \le$ `LINEAR_RTOL` times the
+    sizes of the three, with d a fixed direction of the size of ξ⁰ (a pattern without symmetry
+    among the components; all ones above `DENSE_CHECK_MAX` components): a term nonlinear in ξ,
+    or a constant term, fails it; round-off of a linear map is far below it. Three evaluations
+    of the velocity map at step 0."""
+    if xi0.size <= DENSE_CHECK_MAX:  # a constant of the program, with no symmetry among components
+        pattern = np.sin(np.arange(1, xi0.size + 1, dtype=float)).reshape(xi0.shape)
+    else:  # large ξ (a fluid): no constant of its size in the program
+        pattern = np.ones((), float)
+    d = jnp.broadcast_to(pattern * (jnp.max(jnp.abs(xi0)) + 1.0), xi0.shape).astype(xi0.dtype)
+    v0, vd, v2 = (system.velocity_map(x, Q0) for x in (xi0, d, 2.0 * xi0 + d))
+    norm = lambda a: jnp.sqrt(jnp.sum(a**2))
+    return norm(v2 - 2.0 * v0 - vd) <= LINEAR_RTOL * (2.0 * norm(v0) + norm(vd) + norm(v2))
+
+
+def _checked(system, Q0, xi0, P0, dt):
+    """`input_ok` and `velocity_map_linear`: what a traced `integrate` call checks per member."""
+    return input_ok(system, Q0, xi0, P0, dt) & velocity_map_linear(system, Q0, xi0)
+
+
 def start(stepper: AbstractStepper, system, Q0, xi0, P0, dt, check_inputs: bool = False):
     """The stepper's initial state as a `Carry`, and the iterations its start-up took. With
-    `check_inputs` a member whose input is not valid (`input_ok`) starts failed: it makes no
-    step and its step 0 is reported `Status.INVALID_INPUT`."""
+    `check_inputs` a member whose input is not valid (`input_ok`) or whose velocity map is not
+    linear in ξ (`velocity_map_linear`) starts failed: it makes no step and its step 0 is
+    reported `Status.INVALID_INPUT`."""
     state0, startup_iterations = stepper.init(system, Q0, xi0, P0, dt)
-    alive = input_ok(system, Q0, xi0, P0, dt) if check_inputs else jnp.asarray(True)
+    alive = _checked(system, Q0, xi0, P0, dt) if check_inputs else jnp.asarray(True)
     carry = Carry(state0, stepper.init_memory(system, state0), jnp.asarray(0, jnp.int32), alive, jnp.zeros_like(xi0))
     return carry, jnp.asarray(startup_iterations, jnp.int32)
 
@@ -112,7 +149,7 @@ def resume(stepper: AbstractStepper, system, Q0, xi0, P0, dt, check_inputs: bool
     if march_state is None:
         carry, startup = start(stepper, system, Q0, xi0, P0, dt, check_inputs)
         return carry, startup, jnp.asarray(n_steps, jnp.int32)
-    alive = march_state.alive & input_ok(system, Q0, xi0, P0, dt) if check_inputs else march_state.alive
+    alive = march_state.alive & _checked(system, Q0, xi0, P0, dt) if check_inputs else march_state.alive
     carry = march_state._replace(alive=jnp.asarray(alive, bool))
     return carry, jnp.zeros((), jnp.int32), (carry.n + n_steps).astype(jnp.int32)
 

@@ -24,6 +24,7 @@ from ..core.validation import any_traced, float_array
 from ..steppers.base import AbstractStepper
 from ..steppers.choose import choose_method
 from ..steppers.composition import StepPlan, plan_of
+from .accuracy import plan_for_call
 from .arguments import prepare, warn_if_remade
 from .arguments import prepared_method, solution_bytes_per_step  # noqa: F401  (importable from here as before)
 from .carry import start
@@ -55,8 +56,8 @@ def integrate(
     Q0,
     xi0,
     *,
-    dt,
-    n_steps: int,
+    dt=None,
+    n_steps: int | None = None,
     P0=None,
     t0=0.0,
     method: AbstractStepper | None = None,
@@ -74,6 +75,8 @@ def integrate(
     check_energy: bool = True,
     march_state=None,
     backend: str = "auto",
+    t_final=None,
+    accuracy=None,
 ) -> Solution:
     r"""March the discrete Clebsch equations (Lemma 20) of `system` from $(Q^0, \xi^0)$.
 
@@ -115,7 +118,14 @@ def integrate(
       (`clebsch_jax.core.isotropy.physical_part`, no warning) computed in the program, and a
       member of another isotropy reports `Status.INVALID_INPUT`; not for systems whose own arrays
       are traced.
-    - `dt`: time step (> 0). `n_steps`: number of steps (a Python int >= 1).
+    - `dt`: time step (> 0). `n_steps`: number of steps (a Python int >= 1). Both required,
+      unless `t_final` and `accuracy` choose them.
+    - `t_final`, `accuracy`: instead of `dt`, `n_steps` and the method (`method`, `scheme`,
+      `order`, `composition`, each refused with them): the run ends at `t_final` with a relative
+      error of at most `accuracy` there, by the plan of `clebsch_jax.choose_step` (a short pilot on
+      this system and state picks the method and step of least predicted work; the error measure,
+      the model and its limits are in `clebsch_jax.march.accuracy`). `Solution.accuracy_plan`
+      records the plan. Concrete arguments only (the pilot runs).
     - `P0`: optional initial multiplier (the canonical momentum at $Q^0$), shape of `Q0`.
     - `t0`: initial time (only used for `Solution.ts`).
     - `method`: a stepper, e.g. `clebsch_jax.Composed(clebsch_jax.SymmetricPair(
@@ -216,14 +226,14 @@ def integrate(
     There the values are unknown before compiling: the shapes and the maps' output types are
     checked as above, and each member's values at step 0 inside the program (`dt`, `Q0`,
     `xi0`, `P0` and the parameters finite, `Q0` on the manifold through `check_Q.traced`, l
-    and the velocity map finite; a failing member reports `Status.INVALID_INPUT`), and the
-    first step on the manifold where a step can leave it (`traced_first_step_check`:
-    `check_first_step`'s test in the program, for a system with a `check_Q`; on a matrix group
-    read off the velocity map the step's $Q_0^{-1}Q_1$ against the group, elsewhere
-    `check_Q.traced` at $Q_1$, and nothing for a `check_Q` without a traced form; a failing
-    member reports `Status.OFF_MANIFOLD` at step 0). What needs values is not checked: the
-    model by autodiff (`check_model`: a singular Lagrangian, a velocity map not linear in ξ),
-    `Q0` against `check_Q` and the velocity map's group, and the memory the `Solution`s of all
+    and the velocity map finite and linear in ξ, `march.carry.velocity_map_linear`; a failing
+    member reports `Status.INVALID_INPUT`), and the first step on the manifold where a step can
+    leave it (`traced_first_step_check`: `check_first_step`'s test in the program, for a system
+    with a `check_Q`; on a matrix group read off the velocity map the step's $Q_0^{-1}Q_1$
+    against the group, elsewhere `check_Q.traced` at $Q_1$, and nothing for a `check_Q`
+    without a traced form; a failing member reports `Status.OFF_MANIFOLD` at step 0). What
+    needs values is not checked: the Lagrangian by autodiff (`check_model`: a singular
+    Hessian), `Q0` against `check_Q` and the velocity map's group, and the memory the `Solution`s of all
     members need (XLA reports that, when it runs out). `clebsch_jax.sweep`, and
     `clebsch_jax.batch` called on concrete arrays, make those checks on their first member
     before compiling (`check_member`), and estimate their memory.
@@ -233,6 +243,22 @@ def integrate(
     from ..native import check_backend, warn_once
 
     backend = check_backend(backend)
+    if accuracy is not None or t_final is not None:  # the method and step chosen by a pilot
+        given = dict(dt=dt, n_steps=n_steps, method=method, scheme=scheme, order=order, composition=composition)
+        given.update(march_state=march_state, reduce=reduce, need_P=need_P, reconstruct=reconstruct, rtol=rtol)
+        given.update(atol=atol, max_newton_iterations=max_newton_iterations, jacobian=jacobian)
+        plan = plan_for_call(
+            system, Q0, xi0, given, t_final=t_final, accuracy=accuracy, t0=t0, P0=P0, check_energy=check_energy,
+            backend=backend,
+        )  # fmt: skip
+        sol = integrate(
+            system, Q0, xi0, P0=P0, t0=t0, throw=throw, check_energy=check_energy, backend=backend,
+            **plan.integrate_options(),
+        )  # fmt: skip
+        return dataclasses.replace(sol, accuracy_plan=plan)
+    if dt is None or n_steps is None:
+        missing = " and ".join(name for name, v in (("dt", dt), ("n_steps", n_steps)) if v is None)
+        raise ValueError(f"{missing}: required, unless accuracy= and t_final= choose the step.")
     user_system = system
     given = (system, Q0, xi0, P0, dt, t0)
     stepper, (Q0, xi0, P0, dt, t0, closes), n_steps, system = prepare(

@@ -108,10 +108,12 @@ and copy buffers of `CHUNK_STEPS` nodes."""
 MIN_CHUNK_STEPS = 64
 """The fewest steps per chunk (`chunk_length`)."""
 
-NATIVE_CHUNK_FACTOR = 8
+NATIVE_CHUNK_FACTOR = 64
 """A chunk of a native march (`clebsch_jax.march.native_chunk`) is this many times
 `chunk_length`: its length compiles nothing (the kernel loops over a run-time count), and each
-chunk costs the host a fixed amount of work around the kernel's call."""
+chunk costs the host a fixed amount of work around the kernel's call and a copy of its records
+when the chunks are joined (a run of one chunk is not copied). Chunks stay bounded so that a
+long run can still be interrupted between them."""
 
 
 def run_chunk(

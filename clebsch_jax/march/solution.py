@@ -84,6 +84,8 @@ class Solution:
       and `integrate(..., march_state=...)` then makes exactly the steps the unbroken march
       would have made (`clebsch_jax.march.carry.resume`). A pytree of arrays whose structure
       depends on the method.
+    - `accuracy_plan`: the `AccuracyPlan` of a run made with `accuracy=` (`clebsch_jax.choose_step`:
+      the method, step, predicted error and work, and every candidate compared); None otherwise.
 
     With a composition (`integrate(..., order=k)`) the nodes are those of the whole steps;
     `xi_step` and `P` are those of each step's first sub-step, and `stats` combine the
@@ -112,6 +114,7 @@ class Solution:
     solves_per_step: int = 1
     isotropy: int = 0
     march_state: Any = None
+    accuracy_plan: Any = None
 
     @property
     def batch_ndim(self) -> int:
@@ -188,6 +191,7 @@ jax.tree_util.register_dataclass(
         "xi_ndim",
         "solves_per_step",
         "isotropy",
+        "accuracy_plan",
     ],
 )
 

@@ -5,7 +5,9 @@
   loop does; its body is emitted under the mask of the lanes still iterating, so that loops
   nested in it stop when those lanes are done. A condition with an entry per element of the
   carries' leading axes (`jax.vmap` of a loop inside the member's program) holds while any
-  entry does, and an element whose entry is false keeps its carry, as XLA's loop does.
+  entry does, and an element whose entry is false keeps its carry, as XLA's loop does. A loop
+  at the kernel's top level whose condition every lane computes alike (`uniform`) keeps no
+  carry per lane.
 - `scan`: a counted loop (the count is the same in every lane); the carry lives in allocas
   (promoted to registers by LLVM), the per-iteration inputs and outputs in arrays indexed by
   the counter. Short scans are unrolled, unless unrolling would take the program past
@@ -182,6 +184,14 @@ def _while(em: Emitter, eqn, args):
         b.branch(done)
         b.position_at_end(done)
         return list(init)
+    if em.mask is None and not elements.shape and id(eqn) in em.uniform:
+        # every lane runs the same iterations (`uniform.uniform_loops`): no lane keeps its carry
+        b.cbranch(b.extract_element(unknown[0], ir.Constant(ir.IntType(32), 0)), body, done)
+        b.position_at_end(body)
+        _store(em, slots, eval_closed(em, body_j, list(bconsts) + cur), cur, dtypes, None)
+        b.branch(head)
+        b.position_at_end(done)
+        return _load(em, slots, init, dtypes)
     anywhere = unknown[0]
     for e in unknown[1:]:  # a predicate per element (jax.vmap of a loop): while any holds
         anywhere = b.or_(anywhere, e)

@@ -2,10 +2,12 @@ r"""A jaxpr of one member compiled to a SIMD kernel over a batch, with LLVM (llv
 
 The kernel is one function
 
-    void kernel(void **arrays, int64 stride, int64 first_block, int64 end_block)
+    int64 kernel(void **arrays, int64 stride, int64 first_block, int64 end_block)
 
 that runs the member's program for the lane blocks `first_block … end_block - 1`: block `k`
-holds members `k·W … k·W + W - 1` in the `W` lanes of each vector. Every array (inputs, then
+holds members `k·W … k·W + W - 1` in the `W` lanes of each vector. It returns 0, or the
+bytes of the heap buffer it could not allocate (long arrays held as rows,
+`clebsch_jax.native.rows`), having run nothing: the call raises `MemoryError`. Every array (inputs, then
 outputs) is stored batch-last, one row of `stride` members per entry of the member's shape,
 so that an entry of a block is one vector load or store. Booleans are stored as bytes.
 
@@ -96,19 +98,21 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
     from . import rows as _rows
     from .lower import eval_closed
+    from .uniform import uniform_loops
     from .values import MAX_ENTRIES, Emitter, llvm_type
 
     module = ir.Module(name="clebsch_jax_native")
     module.triple = _binding()["triple"]
     ptr, i64 = ir.PointerType(), ir.IntType(64)
     params = [ptr, i64, i64, i64] + ([i64] if carries is not None else [])
-    fn = ir.Function(module, ir.FunctionType(ir.VoidType(), params), "kernel")
+    fn = ir.Function(module, ir.FunctionType(i64, params), "kernel")
     arrays, stride, first, end = fn.args[:4]
     entry = fn.append_basic_block("entry")
     b = ir.IRBuilder(entry)
     em = Emitter(module, b, width, entry, MAX_ENTRIES if limit is None else limit)
     em.rows = carries is None and _rows.wants_rows(closed.jaxpr)  # long arrays as rows in memory
     em.unroll = _control.unroll_policy(closed.jaxpr, em.rows)
+    em.uniform = uniform_loops(closed, [True] * len(closed.jaxpr.invars) if batched is None else batched)
     counter = b.alloca(i64)
     b.store(first, counter)
     head, body, done = (
@@ -116,8 +120,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
         fn.append_basic_block("block.body"),
         fn.append_basic_block("block.done"),
     )
-    b.branch(head)
-    b.position_at_end(head)
+    b.position_at_end(head)  # the entry block is ended last (`close_entry`): the heap buffer's check
     k = b.load(counter, typ=i64)
     b.cbranch(b.icmp_signed("<", k, end), body, done)
     b.position_at_end(body)
@@ -187,7 +190,8 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     b.branch(head)
     b.position_at_end(done)
     em.finish()
-    b.ret_void()
+    b.ret(ir.Constant(i64, 0))
+    em.close_entry(head)
     return str(module)
 
 
@@ -337,9 +341,9 @@ def _load(obj: bytes, globals_: tuple = ()) -> int | tuple:
     return (address, found) if globals_ else address
 
 
-_SIGNATURE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
+_SIGNATURE = ctypes.CFUNCTYPE(ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
 _LOOP_SIGNATURE = ctypes.CFUNCTYPE(
-    None, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64
+    ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64
 )
 
 
@@ -469,18 +473,25 @@ class Kernel:
         loop = () if self.carries is None else (int(steps),)
         threads = max(1, min(int(threads), blocks))
         if threads == 1:
-            self._fn(address, stride, 0, blocks, *loop)
+            status = [self._fn(address, stride, 0, blocks, *loop)]
         else:
             cuts = np.linspace(0, blocks, threads + 1).astype(int)
             with ThreadPoolExecutor(threads) as pool:
                 call = lambda i: self._fn(address, stride, int(cuts[i]), int(cuts[i + 1]), *loop)
-                list(pool.map(call, range(threads)))
+                status = list(pool.map(call, range(threads)))
+        if max(status):  # the heap buffer's size: it could not be allocated (`Emitter.close_entry`)
+            raise MemoryError(
+                f"a native kernel could not allocate its heap buffer of {max(status)} bytes (a long scan's arrays "
+                "held as rows, a buffer per thread): run fewer steps per call, fewer threads, or backend='xla'"
+            )
         result = []
         for j, (rows, (shape, size, _), dtype) in enumerate(zip(outs, self._outs, self.out_dtypes)):
             if stride == 1:  # the rows in order are the member's entries, record after record
                 r = rows.reshape(((1,) if j < n_carry else (1, capacity)) + shape)
-            elif j < n_carry:
+            elif j < n_carry:  # a view of the rows: the next call's rows are copied from it row by row
                 r = rows[:, :B].T.reshape((B,) + shape)
+                result.append(r.astype(np.bool_) if dtype == np.bool_ else r)
+                continue
             else:  # (capacity·size, stride) -> (B, capacity, *shape)
                 r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
             result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))

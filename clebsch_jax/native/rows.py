@@ -17,8 +17,10 @@ run-time index are loops or views of their own. Any other equation gets the entr
 The kernel writes `Rows` outputs in a loop (`clebsch_jax.native.kernel.build_ir`).
 
 Memory rows live in one buffer per kernel call (`Emitter.arena`, allocated on the heap: the
-records of 10⁴ steps outgrow a stack). The rows are the same numbers, in the same order of
-operations per entry, as the unrolled entries: only where they are held changes.
+records of 10⁴ steps outgrow a stack; when it cannot be allocated, the kernel runs nothing and
+returns its size, and the call raises `MemoryError`: `Emitter.close_entry`). The rows are the
+same numbers, in the same order of operations per entry, as the unrolled entries: only where
+they are held changes.
 """
 
 from __future__ import annotations

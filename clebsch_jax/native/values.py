@@ -109,6 +109,7 @@ class Emitter:
         self.limit = limit  # the most entries translated (`entries_limit`)
         self.mask = None
         self.unroll = None  # which scans are unrolled (`control.unroll_policy`; None: the first)
+        self.uniform = frozenset()  # ids of the while loops every lane runs alike (`uniform.uniform_loops`)
         self._decls: dict = {}
         self._consts: dict = {}
         self.entries = 0
@@ -186,6 +187,21 @@ class Emitter:
             size.constant = max(used, 1)
             free = ir.Function(self.module, ir.FunctionType(ir.VoidType(), [ir.PointerType()]), "free")
             self.b.call(free, [ptr])
+
+    def close_entry(self, first: ir.Block) -> None:
+        """End the entry block (left open while the kernel is emitted): on to `first`, or, when
+        the buffer of `arena` could not be allocated, return its size in bytes at once (the
+        kernel's status: 0 is success; `Kernel` raises `MemoryError` with it)."""
+        b = self.b
+        b.position_at_end(self.entry)
+        if self._arena is None:
+            b.branch(first)
+            return
+        ptr, size, _ = self._arena
+        failed = self.entry.parent.append_basic_block("arena.failed")
+        b.cbranch(b.icmp_unsigned("==", b.ptrtoint(ptr, ir.IntType(64)), ir.Constant(ir.IntType(64), 0)), failed, first)
+        b.position_at_end(failed)
+        b.ret(size)
 
     # -- lane operations --------------------------------------------------------------------
     def select(self, cond, a, b, dtype):

@@ -64,8 +64,9 @@ _MESSAGES = {
     "principle on SO(3)",
     Status.INVALID_INPUT: "this member's input is invalid, found under jit/vmap where it could not be refused "
     "before compiling: dt not finite and positive, Q0/xi0/P0 not finite, Q0 off the configuration manifold "
-    "(check_Q), or the Lagrangian or velocity map not finite at (xi0, Q0) (a model parameter out of range, "
-    "e.g. a non-positive inertia, makes the built-in models' Lagrangian NaN)",
+    "(check_Q), the Lagrangian or velocity map not finite at (xi0, Q0) (a model parameter out of range, "
+    "e.g. a non-positive inertia, makes the built-in models' Lagrangian NaN), or a velocity map not linear in xi "
+    "at Q0 (Definition 1)",
     Status.NOT_RUN: "not run yet: this member's batch is not written in the sweep's store (an interrupted "
     "sweep; run it again with the same store to finish it)",
 }
