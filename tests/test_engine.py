@@ -208,6 +208,76 @@ def test_programs_with_compiler_options_run_inside_a_callers_trace():
     np.testing.assert_allclose(np.asarray(jax.vmap(f)(jnp.arange(3.0))), np.sin(np.arange(3.0)) * np.arange(3.0))
 
 
+def test_the_group_inspection_is_one_program_also_inside_a_callers_jit():
+    """The velocity map's group is read by one compiled program (`evaluate_now`), run at once
+    also inside the caller's jit; the constants in the map (`lie.hat`'s zeros) are traced into
+    it, not evaluated one operation at a time (each an XLA compile of its own). Inside and
+    outside the jit, the basis is bit for bit the same, and a map that closes over a traced
+    value is not inspected."""
+    from clebsch_jax.core.jit import evaluate_now
+    from clebsch_jax.discrete.matrix_group import matrix_group_basis
+
+    from .helpers import compiles_recorded
+
+    system = cj.ClebschSystem(  # fresh functions: no program of theirs is compiled yet
+        lagrangian=lambda x: 0.5 * jnp.sum(x * x), velocity_map=lambda x, Q: Q @ cj.lie.hat(x), derivative_map=cj.cayley
+    )
+    seen = {}
+
+    def f(x0):
+        seen["jit"] = matrix_group_basis(system, jnp.eye(3), x0)
+        seen["closure"] = evaluate_now(lambda y: y * x0, np.ones(3))
+        return x0
+
+    with compiles_recorded(where=("jit.py", "lie.py")) as compiled:
+        jax.jit(f)(jnp.ones(3))
+    assert len(compiled) == 1, compiled  # the inspection (the caller's jit is compiled from jax's frames)
+    outside = matrix_group_basis(system, np.eye(3), np.ones(3))
+    assert seen["jit"].tobytes() == outside.tobytes() and seen["closure"] is None
+    np.testing.assert_array_equal(outside, np.asarray(jax.vmap(cj.lie.hat)(jnp.eye(3))))
+
+
+FIRST_CALLS = r"""
+import json, traceback
+import jax
+import numpy as np
+import clebsch_jax as cj
+where = []
+def listen(event, secs, **kw):
+    if "backend_compile" in event:
+        frames = [f for f in traceback.extract_stack() if "clebsch_jax" in f.filename]
+        where.append(frames[-1].filename.rsplit("clebsch_jax", 1)[-1] if frames else "?")
+jax.monitoring.register_event_duration_secs_listener(listen)
+counts = {}
+for name, make, xi0 in [
+    ("rigid body", lambda: cj.models.rigid_body(np.array([2.0, 1.0, 2.0 / 3.0])), [1.3, 0.8, -0.4]),
+    ("heavy top", lambda: cj.models.heavy_top(np.array([1.0, 1.0, 0.4]), 1.5), [0.3, -0.2, 6.0]),
+]:
+    system = make()
+    where.clear()
+    cj.integrate(system, np.eye(3), np.array(xi0), dt=0.05, n_steps=20, backend="xla")
+    counts[name] = list(where)
+print(json.dumps(counts))
+"""
+
+
+@pytest.mark.slow  # a fresh process (JAX caches its eager operations' programs process-wide) compiling two marches
+def test_the_first_calls_of_a_rigid_body_and_a_heavy_top_compile_their_programs_only():
+    """In a fresh process, the first `integrate` of the rigid body compiles five programs (the
+    model check, the momentum check, the group inspection, the march's start and chunk), and a
+    heavy top after it three (its group and momentum check are the rigid body's): no operation
+    run on its own, as `lie.hat`'s constants in the group inspection were (two more programs)."""
+    import json
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", FIRST_CALLS], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    counts = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert len(counts["rigid body"]) == 5 and len(counts["heavy top"]) == 3, counts
+    assert not any(f.endswith("lie.py") for f in counts["rigid body"] + counts["heavy top"]), counts
+
+
 @pytest.mark.slow  # CI runs it; reverse mode through the march is checked in the default run by test_gradients_through_the_march_match_finite_differences
 def test_reverse_mode_through_a_system_built_inside_grad():
     """A Lagrangian that closes over the differentiated parameter: integrate sees the closure

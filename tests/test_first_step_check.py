@@ -6,6 +6,7 @@ at what actually ran. Runs are two steps long, on systems shared by the tests.""
 
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ import clebsch_jax as cj
 from clebsch_jax.batching import batch_last as _batch_last
 from clebsch_jax.batching import choose as _choose
 from clebsch_jax.batching import probe as _probe
+from clebsch_jax.core.manifold_checks import traced_first_step_check
 
 from .systems import kinetic, translation, unit_vector
 
@@ -160,3 +162,111 @@ def test_batch_refuses_it_before_evaluating_the_batch(monkeypatch):
     march = cj.batch(lambda x: cj.integrate(TOP, jnp.eye(3), x, dt=0.05, n_steps=2, scheme="left", throw=False).Q[-1])
     with pytest.raises(ValueError, match=rf"^batch: member 0 is rejected by integrate's checks: {LEAVES}"):
         march(np.tile(TOP_XI0, (2, 1)))
+
+
+# --------------------------------------------------------------------------------------------
+# Under the caller's own jax.jit / jax.vmap of integrate the values are traced: the same test of
+# the first step runs inside the program (`traced_first_step_check`), and a member whose step
+# left the manifold reports Status.OFF_MANIFOLD at step 0 (NaN after it); the others run on.
+
+
+def unit_circle(Q):
+    """`unit_vector` with a traced form, which the program can run."""
+    return unit_vector(np.asarray(Q))
+
+
+unit_circle.traced = lambda Q: jnp.abs(jnp.sqrt(jnp.sum(Q**2)) - 1.0) <= 1e-12
+CIRCLE = cj.ClebschSystem(
+    lagrangian=kinetic, velocity_map=translation, derivative_map=cj.forward_difference, check_Q=unit_circle
+)
+NUMPY_CIRCLE = cj.ClebschSystem(
+    lagrangian=kinetic, velocity_map=translation, derivative_map=cj.forward_difference, check_Q=unit_vector
+)
+
+
+def _statuses(sol):
+    return [cj.Status(int(r)) for r in np.asarray(sol.result)]
+
+
+def test_under_vmap_the_member_whose_first_step_leaves_the_circle_reports_it():
+    """check_Q with a traced form (`check_Q.traced`): the circle's translations leave it; one
+    member moving and one at rest give [OFF_MANIFOLD, SUCCESS], the first NaN after step 0."""
+    run = jax.vmap(lambda q, x: cj.integrate(CIRCLE, q, x, dt=0.1, n_steps=2, throw=False))
+    sol = run(np.array([[0.0, 1.0], [0.6, 0.8]]), np.array([[1.0, -0.5], [0.0, 0.0]]))
+    assert _statuses(sol) == [cj.Status.OFF_MANIFOLD, cj.Status.SUCCESS]
+    assert np.asarray(sol.failed_step).tolist() == [0, -1]
+    Q = np.asarray(sol.Q)
+    assert np.all(np.isnan(Q[0, 1:])) and np.all(Q[1] == [0.6, 0.8])
+    with pytest.raises(cj.IntegrationError, match=r"member 0, step 0 of 2 .*left the configuration manifold.*") as info:
+        sol.raise_if_failed()  # what throw=True raises: the status and the ways out
+    assert info.value.status == cj.Status.OFF_MANIFOLD and 'scheme="midpoint"' in str(info.value)
+
+
+@pytest.mark.slow  # compiles the heavy top's traced march; the circle's above is the default test of the traced check
+def test_under_vmap_the_member_whose_first_step_leaves_the_rotations_reports_it():
+    """The heavy top with the forward difference and the left principle, one member spinning and
+    one at rest: [OFF_MANIFOLD, SUCCESS], the first member NaN after step 0 and the second exact."""
+    run = jax.vmap(lambda x: cj.integrate(TOP, jnp.eye(3), x, dt=0.05, n_steps=2, scheme="left", throw=False))
+    sol = run(np.stack([TOP_XI0, np.zeros(3)]))
+    assert _statuses(sol) == [cj.Status.OFF_MANIFOLD, cj.Status.SUCCESS]
+    assert np.asarray(sol.failed_step).tolist() == [0, -1]
+    Q = np.asarray(sol.Q)
+    assert np.all(np.isfinite(Q[0, 0])) and np.all(np.isnan(Q[0, 1:]))
+    np.testing.assert_array_equal(Q[1], np.broadcast_to(np.eye(3), (3, 3, 3)))
+
+
+@pytest.mark.slow  # compiles the heavy top's traced midpoint march; the left one is checked by default above
+def test_under_vmap_the_midpoint_step_and_a_rotation_that_only_just_passes_are_not_blamed():
+    """The midpoint principle keeps SO(3) (a Cayley step): not blamed, from the identity nor from
+    a Q0 just inside the rotation check's tolerance, whose own defect the step keeps (the test
+    measures Q0⁻¹Q1, the step's, not Q1's)."""
+    Q0 = np.asarray(cj.lie.so3_exp(jnp.array([0.3, 0.1, 0.2]))) * (1 + 0.7e-8)
+    assert 1.3e-8 < np.max(np.abs(Q0.T @ Q0 - np.eye(3))) < 1.5e-8
+    run = jax.vmap(lambda q: cj.integrate(TOP, q, TOP_XI0, dt=0.05, n_steps=2, throw=False))
+    sol = run(np.stack([np.eye(3), Q0]))
+    assert sol.scheme == "midpoint" and _statuses(sol) == [cj.Status.SUCCESS] * 2
+
+
+@pytest.mark.slow  # compiles the traced march with its error callback; reported under vmap by default above
+def test_under_jit_a_first_step_off_the_circle_is_raised():
+    """With throw=True the program raises naming the status; a member at rest runs."""
+    run = jax.jit(lambda q, x: cj.integrate(CIRCLE, q, x, dt=0.1, n_steps=2).Q)
+    with pytest.raises(jax.errors.JaxRuntimeError, match=r"step 0 of 2.*left the configuration.*OFF_MANIFOLD"):
+        jax.block_until_ready(run(np.array([0.0, 1.0]), np.array([1.0, -0.5])))
+    np.testing.assert_array_equal(run(np.array([0.0, 1.0]), np.zeros(2)), np.tile([0.0, 1.0], (3, 1)))
+
+
+@pytest.mark.slow  # compiles another traced march; test_the_traced_check_is_added_only_where_a_step_can_leave checks by default that none is added
+def test_a_check_q_without_a_traced_form_is_not_run_in_the_program():
+    """A check_Q written with NumPy on concrete values cannot run in the program: the traced
+    first step is not checked (documented), and the run neither crashes nor fails, where the same
+    system with a traced form of the check is reported (`test_under_jit_a_first_step_off_the_circle_is_raised`)."""
+    run = jax.vmap(lambda q, x: cj.integrate(NUMPY_CIRCLE, q, x, dt=0.1, n_steps=2, throw=False))
+    sol = run(np.array([[0.6, 0.8], [0.0, 1.0]]), np.array([[1.0, 1.0], [0.0, 0.0]]))
+    assert _statuses(sol) == [cj.Status.SUCCESS] * 2
+    assert abs(np.linalg.norm(np.asarray(sol.Q[0, 1])) - 1) > 1e-3  # it did leave the circle, unchecked
+
+
+def test_the_traced_check_is_added_only_where_a_step_can_leave():
+    """Decided from the maps and shapes at trace time: nothing for a derivative map of Definition
+    25's form on the velocity map's group (the built-in models' defaults), for a system with no
+    check_Q (SE(3) by hand: a concrete run only warns) or one whose check_Q has no traced form;
+    a test for the forward difference on SO(3) and for a traced check_Q."""
+    check = lambda system, Q0, xi0: traced_first_step_check(system, jnp.asarray(Q0), jnp.asarray(xi0))
+    assert check(cj.models.rigid_body(INERTIA), np.eye(3), XI0) is None
+    assert check(cj.models.heavy_top(jnp.array([1.0, 1.0, 0.4]), 1.5), np.eye(3), TOP_XI0) is None
+    assert check(SE3, SE3_Q0, SE3_XI0) is None
+    assert check(NUMPY_CIRCLE, np.array([0.6, 0.8]), np.ones(2)) is None
+    assert check(FORWARD, np.eye(3), XI0) is not None and check(CIRCLE, np.array([0.6, 0.8]), np.ones(2)) is not None
+
+
+def test_the_programs_logarithm_is_scipys():
+    """The traced test's logarithm (square roots, then the series) against SciPy's `logm`, for a
+    rotation by 2.9 rad (several square roots) and a rigid motion near the identity (none)."""
+    from scipy.linalg import logm
+
+    from clebsch_jax.core import manifold_checks
+
+    log = jax.jit(manifold_checks._traced_log)
+    for g in [np.asarray(cj.lie.so3_exp(jnp.array([2.0, -1.5, 1.4]))), np.eye(4) + 0.1 * np.asarray(_se3_hat(SE3_XI0))]:
+        np.testing.assert_allclose(np.asarray(log(g)), logm(g).real, rtol=0, atol=1e-12)

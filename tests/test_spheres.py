@@ -132,7 +132,8 @@ Q0_CONICAL = np.array([0.6, 0.0, -0.8])
 )  # the double pendulum covers the gauge by default
 def test_the_conical_pendulum_keeps_its_physical_initial_velocity(natural):
     """ξ0 = e₃ + c q0 is the physical velocity (0, 0.6, 0) for every c: the run is the conical orbit
-    whatever c, with one warning that ξ0 was changed (none when it has no isotropy component)."""
+    whatever c, with one warning that ξ0 was changed (none when it has no isotropy component),
+    second order, with the vertical angular momentum to round-off."""
     if natural:
         system = _spherical_pendulum(lambda xi, q: 0.5 * jnp.sum(jnp.cross(xi, q) ** 2) - CONICAL_G * q[2])
     else:
@@ -151,6 +152,12 @@ def test_the_conical_pendulum_keeps_its_physical_initial_velocity(natural):
         assert np.max(np.abs(np.asarray(sol.Q)[:, 2] + 0.8)) < 1e-3  # stays on its circle, O(dt²)
         assert np.max(np.abs(finals[-1] - exact)) < 1e-3  # the exact orbit, to O(dt²)
     np.testing.assert_allclose(finals[0], finals[1], atol=1e-13)  # c changes nothing
+    # the vertical angular momentum (μ_z: the momentum map of rotations about e₃) to round-off
+    assert np.ptp(np.asarray(sol.momentum)[:, 2]) < 1e-13
+    # second order against the exact orbit (the same compiled programs for the other dt)
+    coarse = _quiet(cj.integrate, system, Q0_CONICAL, xi0, dt=2 * dt, n_steps=n // 2)
+    slope = np.log2(np.max(np.abs(np.asarray(coarse.Q)[-1] - exact)) / np.max(np.abs(finals[-1] - exact)))
+    assert sol.order == 2 and abs(slope - 2) < 0.15, slope
     physical = np.array([0.48, 0.0, 0.36])  # already ⊥ q0: accepted silently
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)

@@ -14,6 +14,7 @@ from .validation import is_array
 __all__ = [
     "filter_jit",
     "jit_with_options",
+    "evaluate_now",
     "memo",
     "undifferentiated",
     "in_undifferentiated",
@@ -73,6 +74,19 @@ def jit_with_options(fun, compiler_options: dict | None, **jit_kwargs):
 
     call._cache_size = lambda: with_options._cache_size() + plain._cache_size()
     return call
+
+
+def evaluate_now(fun, *args, compiler_options: dict | None = QUICK_COMPILE):
+    """`fun(*args)` on concrete arrays, computed now as one compiled program, also where the
+    caller is inside a trace (its `jit`): traced, lowered and compiled ahead of time, whose call
+    runs the program rather than staging it into the caller's. Unlike a call inside
+    `jax.ensure_compile_time_eval`, the constants in `fun` (e.g. `lie.hat`'s zeros) are traced
+    into that program, not evaluated one operation at a time, each a compile of its own. None
+    when `fun` closes over a traced value (the trace then has inputs besides `args`)."""
+    traced = jax.jit(fun).trace(*args)
+    if len(traced.jaxpr.in_avals) != len(jax.tree_util.tree_leaves(args)):
+        return None
+    return traced.lower().compile(compiler_options)(*args)
 
 
 class _Contexts(threading.local):

@@ -1,20 +1,31 @@
 r"""Checks that the configurations stay on their manifold: before marching, $Q^0$ in the matrix
 group the velocity map acts on by right multiplication (`check_group_configuration`, a warning);
 after it, the first step the march made (`check_first_step`, and `first_step_may_leave`, whether
-there is anything for it to check). Whether a step stays on the manifold depends on the principle
-as well as on the derivative map, so the step that ran is looked at, not the map alone.
+there is anything for it to check), or, in a traced march, the same test inside the program
+(`traced_first_step_check`). Whether a step stays on the manifold depends on the principle as
+well as on the derivative map, so the step that ran is looked at, not the map alone.
 """
 
 from __future__ import annotations
 
 import warnings
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from . import linalg
 from .derivative_maps import MatrixGroupDifference
 from .validation import any_traced, runnable_check
 
-__all__ = ["check_first_step", "first_step_may_leave", "check_group_configuration", "GROUP_RTOL", "GROUP_CHECK_MAX_DIM"]
+__all__ = [
+    "check_first_step",
+    "first_step_may_leave",
+    "traced_first_step_check",
+    "check_group_configuration",
+    "GROUP_RTOL",
+    "GROUP_CHECK_MAX_DIM",
+]
 
 SQRT_TOL = 0.25
 r"""`_log` takes square roots of $g$ until $|g - I| \le$ this, then sums 60 terms of the series."""
@@ -112,6 +123,53 @@ def first_step_may_leave(system, Q0, xi0) -> bool:
     return checks or (square and _group_basis(system, Q0, xi0) is not None)
 
 
+def traced_first_step_check(system, Q0, xi0):
+    r"""`check_first_step` for a march whose values are traced (under the caller's `jax.jit` or
+    `jax.vmap`, where it cannot raise): a function `(Q0, Q1) -> traced bool`, True where the
+    first step left the manifold (`Status.OFF_MANIFOLD`), or None when there is nothing a
+    traced test can find, so that the program does not grow. Decided at trace time from the
+    maps and the shapes, as `first_step_may_leave` decides:
+
+    - the velocity map is right multiplication by a closed algebra X(V) (at most
+      `GROUP_CHECK_MAX_DIM` dimensions, not all of $\mathfrak{gl}(n)$) and the derivative map is
+      not of Definition 25's form: `check_first_step`'s criterion, the part of
+      $\log((Q^0)^{-1}Q^1)$ outside X(V) more than `GROUP_RTOL` of it, computed in the
+      program (`_traced_log`) — when the system has a `check_Q`; without one
+      `check_first_step` only warns, and nothing is checked here;
+    - a derivative map of Definition 25's form on such a group keeps Q there: None;
+    - otherwise the system's `check_Q` at $Q^1$ through its traced form `check_Q.traced(Q) ->
+      bool` (as `models.check_rotation` has); a `check_Q` without one (NumPy on concrete
+      values) cannot run in the program: None, the step is not checked.
+
+    The test sees no derivatives (`jax.lax.stop_gradient`): it gates a status."""
+    if system.check_Q is None:  # check_first_step would warn at most
+        return None
+    square = np.ndim(Q0) == 2 and np.shape(Q0)[0] == np.shape(Q0)[1]
+    small = np.size(xi0) <= GROUP_CHECK_MAX_DIM
+    basis = _group_basis(system, Q0, xi0) if square and small else None
+    if basis is not None:
+        if isinstance(system.derivative_map, MatrixGroupDifference):
+            return None
+        B = basis.reshape(basis.shape[0], -1).T
+        outside = np.eye(B.shape[0]) - B @ np.linalg.pinv(B)  # the projector off span X(V)
+        if not np.max(np.abs(outside)) > 1e-12:  # X(V) is every matrix: no step leaves it
+            return None
+        return lambda Q0, Q1: _leaves_group(outside, *jax.lax.stop_gradient((Q0, Q1)))
+    traced = getattr(system.check_Q, "traced", None)
+    if traced is None:
+        return None
+    return lambda Q0, Q1: ~jnp.asarray(traced(jax.lax.stop_gradient(Q1)), bool)
+
+
+def _leaves_group(outside: np.ndarray, Q0, Q1):
+    """`_outside_algebra(Q0⁻¹Q1) > GROUP_RTOL` in the program (`outside`: the projector off the
+    algebra); False where Q1 is not finite (a failed step, reported as such)."""
+    log = _traced_log(linalg.inv(Q0) @ Q1).reshape(-1)
+    size = jnp.sqrt(jnp.sum(log**2))
+    off = outside @ log
+    return jnp.sqrt(jnp.sum(off**2)) > GROUP_RTOL * size
+
+
 def check_group_configuration(system, Q0, xi0) -> None:
     r"""For a system without `check_Q` whose velocity map is right multiplication on a matrix
     group, $\mathcal L_\xi Q = Q X(\xi)$: warn when $Q^0$ is not in the group the engine reads off
@@ -181,6 +239,34 @@ def _outside_algebra(g: np.ndarray, basis: np.ndarray) -> float:
         return 0.0
     B = basis.reshape(basis.shape[0], -1).T
     return float(np.linalg.norm(log - B @ np.linalg.lstsq(B, log, rcond=None)[0]) / size)
+
+
+def _traced_log(g):
+    """`_log` in the program: square roots (a loop of as many as it needs; Denman–Beavers in its
+    product form, one inverse per iteration, `clebsch_jax.core.linalg.inv`: no LAPACK call) until
+    |g − I| <= `SQRT_TOL`, then the same series (a loop of its terms)."""
+    eye = jnp.eye(g.shape[0], dtype=g.dtype)
+    big = lambda g: jnp.sqrt(jnp.sum((g - eye) ** 2)) > SQRT_TOL
+
+    def db(_, c):  # M → I, Y → g^(1/2)
+        M, Y = c
+        M_inv = linalg.inv(M)
+        return 0.5 * (eye + 0.5 * (M + M_inv)), 0.5 * Y @ (eye + M_inv)
+
+    def root(c):  # scale: 2 to the number of roots taken (a float: no pow of mixed types)
+        g, roots, scale = c
+        return jax.lax.fori_loop(0, 30, db, (g, g))[1], roots + 1, 2.0 * scale
+
+    start = (g, jnp.asarray(0, jnp.int32), jnp.asarray(1.0, g.dtype))
+    g, _, scale = jax.lax.while_loop(lambda c: big(c[0]) & (c[1] < 30), root, start)
+    A = g - eye
+
+    def term(k, c):
+        power, log = c
+        power = power @ A
+        return power, log + jnp.where(k % 2 == 0, -1.0, 1.0) / k * power
+
+    return jax.lax.fori_loop(2, 61, term, (A, A))[1] * scale
 
 
 def _log(g: np.ndarray) -> np.ndarray:

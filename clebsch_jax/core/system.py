@@ -69,7 +69,9 @@ class ClebschSystem:
       the program instead, and a member off $M$ reports `Status.INVALID_INPUT` at step 0
       (`models.check_rotation.traced` is `models.rotation_ok`); without one it is skipped. `integrate`
       also runs it on one step of the derivative map from `Q0` and refuses a derivative map
-      that leaves $M$ (`clebsch_jax.core.model_checks.check_model`). The models
+      that leaves $M$ (`clebsch_jax.core.model_checks.check_first_step`; under `jax.jit`/`jax.vmap`
+      the traced form runs on that step inside the program, and a member whose step left $M$
+      reports `Status.OFF_MANIFOLD`). The models
       `rigid_body` and `heavy_top` set it to a rotation check ($Q^TQ = I$ to $\sqrt\varepsilon$,
       $\det Q = +1$). `cj.sweep` calls it on every row of its `Q0`; a check with an attribute
       `batched(stack) -> None | (row, sentence)` is called once on the whole stack instead

@@ -17,9 +17,9 @@ import numpy as np
 
 from ..core import linalg as _linalg
 from ..core.derivative_maps import MatrixGroupDifference
-from ..core.jit import QUICK_COMPILE, jit_with_options, memo
+from ..core.jit import evaluate_now, memo
 from ..core.system import ClebschSystem
-from ..core.validation import any_traced, is_traced
+from ..core.validation import any_traced
 from ..discrete.closure import CLOSURE_TOLERANCE
 
 __all__ = ["MatrixGroupReduction", "MatrixAlgebraReduction", "find_reduction", "matrix_group_basis"]
@@ -97,8 +97,8 @@ def _matrix_algebra(system: ClebschSystem, Q0, xi0) -> MatrixAlgebraReduction | 
     rng = np.random.default_rng(11)
     xis = rng.normal(size=(MATRIX_ALGEBRA_POINTS, n, n))
     Gs = np.eye(n) + 0.3 * rng.normal(size=(MATRIX_ALGEBRA_POINTS, n, n))
-    values = jit_with_options(jax.vmap(system.velocity_map), QUICK_COMPILE)(xis, Gs)
-    if not _concrete(values):
+    values = evaluate_now(jax.vmap(system.velocity_map), xis, Gs)
+    if values is None:
         return None
     values = np.asarray(values)
     expected = Gs @ xis
@@ -123,10 +123,6 @@ def _constant_map(C: np.ndarray, x, shape):
     return jnp.stack(rows).reshape(shape)
 
 
-def _concrete(x) -> bool:
-    return not is_traced(x)
-
-
 _CACHE: dict = {}
 """The reduction's inspections of a map (`clebsch_jax.core.jit.memo`, at most 256)."""
 
@@ -144,9 +140,8 @@ def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction
 
 
 def _find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | None, str]:
-    # Evaluate eagerly even inside a user's jit: only the maps and the shapes matter here.
-    with jax.ensure_compile_time_eval():
-        return _inspect(system, Q0, xi0)
+    # evaluated now even inside a user's jit (`evaluate_now`): only the maps and the shapes matter here
+    return _inspect(system, Q0, xi0)
 
 
 def _inspect(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | None, str]:
@@ -181,8 +176,7 @@ def matrix_group_basis(system: ClebschSystem, Q0, xi0) -> np.ndarray | None:
     on traced values). Cached like `find_reduction`: it depends only on the map and the shapes."""
     if any_traced(system.velocity_map):
         return None
-    with jax.ensure_compile_time_eval():
-        return _cached_group_basis(system, Q0, xi0)[0]
+    return _cached_group_basis(system, Q0, xi0)[0]
 
 
 def _cached_group_basis(system: ClebschSystem, Q0, xi0) -> tuple[np.ndarray | None, str]:
@@ -215,10 +209,10 @@ def _group_basis(system: ClebschSystem, Q0, xi0) -> tuple[np.ndarray | None, str
     E = np.concatenate([np.eye(m), rng.normal(size=(1, m))]).reshape((m + 1,) + xi_shape)
     # one compiled program for all evaluations (op-by-op evaluation compiles every operation)
     points = np.concatenate([np.eye(n)[None], Gs])
-    values = jit_with_options(
-        lambda E, Q: jax.vmap(lambda q: jax.vmap(lambda e: system.velocity_map(e, q))(E))(Q), QUICK_COMPILE
-    )(E, points)
-    if not _concrete(values):
+    values = evaluate_now(
+        lambda E, Q: jax.vmap(lambda q: jax.vmap(lambda e: system.velocity_map(e, q))(E))(Q), E, points
+    )
+    if values is None:
         return None, "the velocity map depends on traced values, so it cannot be inspected"
     values = np.asarray(values)  # split on the host (unstacking the device array compiles a program)
     basis, random = values[0, :m], values[:, m]

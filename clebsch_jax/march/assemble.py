@@ -74,12 +74,15 @@ def assemble(
     input_ok=None,
     probe: FirstStepProbe | None = None,
     energy_rtol: float | None = None,
+    off_manifold=None,
 ) -> Solution:
     """The `Solution` from the chunks' records (`xp`: `numpy` or `jax.numpy`, as they are).
     `input_ok` (traced runs with `check_inputs`): False makes step 0 `Status.INVALID_INPUT`.
-    `probe` (concrete runs with the energy check): step 0, unless the energy check failed it,
-    checked against two half steps (`first_step_failed`). `energy_rtol`: the energy check's
-    tolerance, for chunks that recorded their energies (default `ENERGY_STEP_RTOL`)."""
+    `probe` (runs with the energy check): step 0, unless the energy check failed it, checked
+    against two half steps (`first_step_failed`). `off_manifold` (traced runs whose first step
+    could leave the manifold: `clebsch_jax.core.manifold_checks.traced_first_step_check`): True
+    makes a step 0 that no other check failed `Status.OFF_MANIFOLD`. `energy_rtol`: the energy
+    check's tolerance, for chunks that recorded their energies (default `ENERGY_STEP_RTOL`)."""
 
     def join(get, node):
         fields = [get(c) for c in chunks]
@@ -111,16 +114,19 @@ def assemble(
     energy = join(lambda c: c.energy, True)
     rtol = ENERGY_STEP_RTOL if energy_rtol is None else energy_rtol
     jumped, step = energy_jump(xp, *energy, stats.status, rtol=rtol)[:2] if energy is not None else (False, None)
-    first = False
-    if probe is not None:  # after the energy check, which every path makes: a step 0 it fails keeps its status
-        first = first_step_failed(xp, probe, nodes.nodal_Q[:2], nodes.momentum[:2], stats.status[0])
-        if energy is not None:
-            first = first & ~(jumped & (step == 0))
-    # one pass for both checks: a first step failed by its check fails the run from step 0, which
+    first = off = False
+    # after the energy check, which every path makes: a step 0 it fails keeps its status
+    kept = ~(jumped & (step == 0)) if energy is not None else True
+    if probe is not None:
+        first = first_step_failed(xp, probe, nodes.nodal_Q[:2], nodes.momentum[:2], stats.status[0]) & kept
+    if off_manifold is not None:
+        off = off_manifold & (stats.status[0] == Status.SUCCESS) & kept & ~first
+    # one pass for the checks: a first step failed by its check fails the run from step 0, which
     # covers a later jump (the energy check's nodes up to step 0 are the ones the check reads)
-    if (energy is not None or probe is not None) and (xp is jnp or bool(jumped) or bool(first)):
-        fail = xp.where(first, 0, xp.where(jumped, step, n_steps) if energy is not None else n_steps)
-        code = xp.where(first, Status.FIRST_STEP, Status.ENERGY_JUMP)
+    checked = energy is not None or probe is not None or off_manifold is not None
+    if checked and (xp is jnp or bool(jumped) or bool(first)):
+        fail = xp.where(first | off, 0, xp.where(jumped, step, n_steps) if energy is not None else n_steps)
+        code = xp.where(first, Status.FIRST_STEP, xp.where(off, Status.OFF_MANIFOLD, Status.ENERGY_JUMP))
         stats, nodal, valid, out = _fail_from(xp, fail, code, stats, nodal, valid, fields_of())
         Qn, pn, mun, xin, xi_step, P = out
         nodes = nodes._replace(Q=Qn, p=pn, momentum=mun)

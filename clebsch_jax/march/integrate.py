@@ -227,9 +227,13 @@ def integrate(
     checked as above, and each member's values at step 0 inside the program (`dt`, `Q0`,
     `xi0`, `P0` and the parameters finite, `Q0` on the manifold through `check_Q.traced`, l
     and the velocity map finite and linear in ξ, `march.carry.velocity_map_linear`; a failing
-    member reports `Status.INVALID_INPUT`). What needs values is not checked: the Lagrangian by
-    autodiff (`check_model`: a singular Hessian), `Q0` against `check_Q` and the velocity map's group, the
-    first step on the manifold (`check_first_step`), and the memory the `Solution`s of all
+    member reports `Status.INVALID_INPUT`), and the first step on the manifold where a step can
+    leave it (`traced_first_step_check`: `check_first_step`'s test in the program, for a system
+    with a `check_Q`; on a matrix group read off the velocity map the step's $Q_0^{-1}Q_1$
+    against the group, elsewhere `check_Q.traced` at $Q_1$, and nothing for a `check_Q`
+    without a traced form; a failing member reports `Status.OFF_MANIFOLD` at step 0). What
+    needs values is not checked: the Lagrangian by autodiff (`check_model`: a singular
+    Hessian), `Q0` against `check_Q` and the velocity map's group, and the memory the `Solution`s of all
     members need (XLA reports that, when it runs out). `clebsch_jax.sweep`, and
     `clebsch_jax.batch` called on concrete arrays, make those checks on their first member
     before compiling (`check_member`), and estimate their memory.

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.jit import QUICK_COMPILE, filter_jit
+from ..core.manifold_checks import traced_first_step_check
 from ..core.validation import any_traced
 from ..discrete.legendre import explicit_nodal_velocity
 from ..discrete.residual import nodal_residual
@@ -212,16 +213,20 @@ def _probe_of(records, probes: int):
 def _scan_steps(advance, carry: Carry, dt, length: int, probes: int):
     """(last carry, records of `length` steps, half steps' record) as one `lax.scan`, of
     `length + probes` iterations: the first `probes` the first-step check's half steps (Δt/2),
-    after which the loop starts again from `carry`; their records are the half steps'."""
+    after which the loop starts again from `carry` (iteration `probes` steps from it); their
+    records are the half steps'. (The restart selects the step's input, not the carry a step
+    leaves: XLA then fuses the select into the step, a smaller program than a select of
+    every carry leaf after it; the iteration count is carried, not scanned over.)"""
     if not probes:
         last, records = jax.lax.scan(lambda c, _: advance(c, dt), carry, None, length=length)
         return last, records, None
 
-    def body(c, j):
-        new, y = advance(c, jnp.where(j < probes, dt / 2, dt))
-        return _where(j == probes - 1, carry, new), y
+    def body(state, _):
+        c, j = state
+        new, y = advance(_where(j == probes, carry, c), jnp.where(j < probes, dt / 2, dt))
+        return (new, j + 1), y
 
-    last, records = jax.lax.scan(body, carry, jnp.arange(length + probes, dtype=jnp.int32))
+    (last, _), records = jax.lax.scan(body, (carry, jnp.asarray(0, jnp.int32)), None, length=length + probes)
     return last, jax.tree_util.tree_map(lambda a: a[probes:], records), _probe_of(records, probes)
 
 
@@ -321,6 +326,9 @@ def march(
     last, chunk = run_chunk(
         stepper, system, carry, dt, n_steps, n_total, rtol is not None, exact=True, first_step_check=probe
     )
+    # `integrate`'s check of the first step on the manifold, which cannot raise on traced values
+    leaves = traced_first_step_check(system, Q0, xi0) if chunk.nodes.Q is not None else None
+    off = None if leaves is None else leaves(chunk.nodes.Q[0], chunk.nodes.Q[1])
     sol = assemble(
         jnp,
         stepper,
@@ -335,6 +343,7 @@ def march(
         carry.alive,
         probe=chunk.probe,
         energy_rtol=rtol,
+        off_manifold=off,
     )
     return dataclasses.replace(sol, march_state=last)
 

@@ -227,6 +227,13 @@ def failure_message(
             "near the state before this step, or try a smaller dt (one that resolves the motion there); "
             "integrate(..., check_energy=False) accepts the step."
         )
+    if code == Status.OFF_MANIFOLD:
+        return (
+            f"clebsch_jax.integrate: {where}step 0 of {n_steps} (t = {t:.6g}): {what}. Later states are marked "
+            'invalid (NaN). Use a method whose steps keep Q on M (e.g. scheme="midpoint"), or, on a matrix group '
+            "with L(xi, Q) = Q X(xi), the derivative map clebsch_jax.cayley or clebsch_jax.exponential; run "
+            "integrate on this member's values outside jit/vmap to have it explained."
+        )
     if code == Status.FIRST_STEP:
         return (
             f"clebsch_jax.integrate: {where}step 0 of {n_steps} (t = {t:.6g}): {what} (residual {residual:.3e}). "

@@ -34,6 +34,7 @@ class Status(enum.IntEnum):
     INVALID_INPUT = 8  # under jit/vmap: this member's arguments or model parameters are invalid
     NOT_RUN = -1  # a sweep store's member whose batch is not written yet (never produced by a march)
     FIRST_STEP = 9  # the first step converged far from where two half steps arrive (a spurious root)
+    OFF_MANIFOLD = 10  # under jit/vmap: the first step left the configuration manifold (the derivative map)
 
     @property
     def message(self) -> str:
@@ -57,6 +58,10 @@ _MESSAGES = {
     Status.FIRST_STEP: "the first step converged, but far from the node two half steps reach: a root of the "
     "step equations that is not the step of the motion (a spurious root), or a step too large for the motion "
     "at the start",
+    Status.OFF_MANIFOLD: "the first step left the configuration manifold, found under jit/vmap where it could "
+    "not be refused: the derivative map's step with this principle does not keep Q on M (check_Q's manifold, "
+    "or the matrix group the velocity map moves Q in), as the forward difference with the left or right "
+    "principle on SO(3)",
     Status.INVALID_INPUT: "this member's input is invalid, found under jit/vmap where it could not be refused "
     "before compiling: dt not finite and positive, Q0/xi0/P0 not finite, Q0 off the configuration manifold "
     "(check_Q), the Lagrangian or velocity map not finite at (xi0, Q0) (a model parameter out of range, "
