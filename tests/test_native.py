@@ -275,6 +275,20 @@ def test_indexing_by_values_agrees_with_xla():
     _agree(native, jax.vmap(f)(x, i, j, M), rtol=0, atol=0)
 
 
+def test_a_power_with_an_integer_exponent_agrees_with_xla():
+    """`x ** n` with a float base and an integer exponent that differs from lane to lane (JAX's
+    `pow` with operands of two types): the exponent is converted to the base's type and the
+    power taken, as XLA does, instead of crashing the translation."""
+
+    def f(x, n):
+        return x**n, 2.0**n, (-x) ** (n + 1)
+
+    rng = np.random.default_rng(6)
+    x, n = rng.uniform(0.5, 2.0, B), rng.integers(-3, 4, B).astype(np.int32)
+    native = compile_member(f, x[0], n[0], use_cache=False)(x, n)
+    _agree(native, jax.vmap(f)(x, n), rtol=1e-15, atol=0)  # libm's pow against XLA's: the last bit
+
+
 def test_a_primitive_without_a_rule_is_named():
     with pytest.raises(Unsupported, match="sort"):
         compile_member(lambda x: jnp.sort(x), np.zeros(3), use_cache=False)

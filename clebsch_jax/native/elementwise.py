@@ -253,6 +253,9 @@ def elementwise_rule(em: Emitter, eqn, args):
     result_dtype = out_dtype(eqn)
     shape = eqn.outvars[0].aval.shape
     args = [np.broadcast_to(a, shape) for a in args]
+    if name == "pow" and np.dtype(eqn.invars[1].aval.dtype) != dtype:
+        # an integer exponent: XLA converts it to the base's type and takes the power (JAX's pow lowering)
+        args[1] = convert_array(em, args[1], eqn.invars[1].aval.dtype, dtype)
     out = np.empty(shape, object)
     fold = FOLD.get(name)
     emit = emit_float if dtype.kind == "f" else emit_bool if dtype == np.bool_ else emit_int
