@@ -474,8 +474,9 @@ def _independent_invariants(name, setup, sol):
 
 # Peakons, landmarks and the fluid compile the largest scene programs: slow-marked (CI runs them).
 RUN_CASES = [
-    pytest.param(n, marks=pytest.mark.slow) if n in ("peakons", "landmarks", "euler-sphere") else n for n in SCENES
-]
+    pytest.param(n, marks=pytest.mark.slow) if n in ("peakons", "landmarks", "euler-sphere", "vortices") else n
+    for n in SCENES
+]  # the slow scenes each compile a program of their own; the rigid body and heavy top keep the command's path
 
 
 def _run_quick(name, out):

@@ -157,6 +157,8 @@ def _members(n=8):
 RUN = dict(dt=0.05, n_steps=20, backend="native")
 
 
+@pytest.mark.slow  # compiles two sweep kernels; test_a_kernel_named_by_its_key_loads_without_a_trace_and_what_changes_it_misses
+# and test_a_kept_configuration_check_misses_on_changed_values_and_a_changed_check cover the keys in the default run
 def test_a_sweep_from_the_disk_cache_traces_and_checks_nothing_and_a_changed_model_misses(tmp_path, monkeypatch):
     """A user's model swept once; then, with the in-process caches forgotten, the same sweep
     neither traces (no `make_jaxpr`, no `eval_shape`) nor runs `integrate`'s value checks,

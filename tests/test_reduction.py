@@ -175,7 +175,8 @@ def test_rodrigues_exponential_agrees_with_the_matrix_exponential():
     np.testing.assert_allclose(np.asarray(a.xi), np.asarray(b.xi), atol=1e-11)
 
 
-def test_reduce_switch():
+@pytest.mark.slow  # compiles the full and the reduced march with their multipliers; test_reduce_switch covers the switch
+def test_reduce_with_need_P_rebuilds_the_multipliers_of_the_full_march():
     system = cj.models.rigid_body(INERTIA)
     x0 = np.array([0.3, 1.0, 0.2])
     auto_P = cj.integrate(system, np.eye(3), x0, dt=0.1, n_steps=20, need_P=True)
@@ -184,6 +185,11 @@ def test_reduce_switch():
     red_P = cj.integrate(system, np.eye(3), x0, dt=0.1, n_steps=20, reduce=True, need_P=True)
     J = lambda sol: jax.vmap(lambda P, Q: cj.momentum_map(system, P, Q, x0))(sol.P, sol.Q[:-1])
     np.testing.assert_allclose(np.asarray(J(red_P)), np.asarray(J(auto_P)), atol=1e-12)
+
+
+def test_reduce_switch():
+    system = cj.models.rigid_body(INERTIA)
+    x0 = np.array([0.3, 1.0, 0.2])
     oscillator = cj.ClebschSystem(
         lagrangian=lambda x: 0.5 * jnp.sum(x**2), velocity_map=lambda x, Q: x, derivative_map=cj.forward_difference
     )
