@@ -80,6 +80,8 @@ def test_point_vortex_orders_against_dop853(order):
     assert abs(dg.fit_order(dts, errs) - order) < 0.15, errs
 
 
+@pytest.mark.slow  # compiles a Gauss march of two vortex pairs; test_point_vortex_orders_against_dop853[4] keeps
+# Gauss on vortices in the default run, and tests/test_vortices.py the impulses of the midpoint march
 def test_leapfrogging_keeps_impulses_to_roundoff_and_bounds_H():
     """Order 8 at Δt = 0.2 over T = 400 (about 70 leapfrogging cycles): the linear impulse
     (linear) and the angular impulse (quadratic) are kept to round-off, H stays bounded with no
