@@ -9,6 +9,7 @@ so the compiled programs are shared between the tests.
 from __future__ import annotations
 
 import functools
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -422,6 +423,25 @@ def test_a_batch_whose_outputs_cannot_fit_is_refused_with_the_estimate_before_ev
     long = cj.batch(lambda x: cj.integrate(RB, I3, x, dt=0.1, n_steps=10**5, throw=False).momentum)
     with pytest.raises(ValueError, match=r"^batch: 64 members would need about .* GB for the outputs"):
         long(jnp.zeros((64, 3)))
+
+
+def test_integrate_under_vmap_warns_when_all_members_solutions_would_not_fit(monkeypatch):
+    """Under the caller's jit(vmap(...)) integrate sees one member's shapes; the members' count is
+    read off the batching tracers (nested vmaps multiply). On a machine of 1 GB, 10⁴ members of
+    2000 steps (the issue's jit(vmap)) get a warning with the estimate and the ways out before
+    anything compiles; a warning, not a refusal, since XLA keeps only what the program uses
+    (here Q[-1]). 10 members, or one vmap of 100 inside another of 100 on 10 MB, are told apart."""
+    monkeypatch.setattr(validation, "memory_limit", lambda: 10**9)
+    run = lambda x: cj.integrate(RB, I3, x, dt=0.1, n_steps=2000, throw=False).Q[-1]
+    with pytest.warns(UserWarning, match=r"^integrate under jax.vmap: the Solutions of 10000 members x 2000 steps"):
+        jax.eval_shape(jax.jit(jax.vmap(run)), jnp.zeros((10**4, 3)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jax.eval_shape(jax.vmap(run), jnp.zeros((10, 3)))
+    monkeypatch.setattr(validation, "memory_limit", lambda: 10**7)
+    short = lambda x: cj.integrate(RB, I3, x, dt=0.1, n_steps=20, throw=False).Q[-1]
+    with pytest.warns(UserWarning, match=r"the Solutions of 10000 members x 20 steps .*clebsch_jax.batch"):
+        jax.eval_shape(jax.vmap(jax.vmap(short)), jnp.zeros((100, 100, 3)))
 
 
 def test_an_empty_batch_gives_an_empty_result_and_an_empty_sweep_says_so():

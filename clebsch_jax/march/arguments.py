@@ -26,6 +26,7 @@ from ..core.isotropy import (
 from ..core.manifold_checks import check_group_configuration
 from ..core.model_checks import check_model, traced_isotropy
 from ..core.system import ClebschSystem
+from ..core import validation
 from ..core.validation import (
     any_traced,
     check_configuration,
@@ -43,7 +44,7 @@ from .energy_check import energy_rtol
 from ..steppers.choose import check_scheme, choose_method
 from ..steppers.principles import check_particle_axis
 
-__all__ = ["prepare", "prepared_method", "solution_bytes_per_step", "warn_if_remade"]
+__all__ = ["prepare", "prepared_method", "solution_bytes_per_step", "vmapped_members", "warn_if_remade"]
 
 _LEGACY_DEFAULTS = dict(
     scheme=None,
@@ -235,10 +236,39 @@ def warn_if_remade(system) -> None:
         )
 
 
-def _check_size(Q0, xi0, n_steps: int):
+def vmapped_members(*trees) -> int:
+    """How many members the caller's `jax.vmap`s (nested ones multiplied) map a call over, read
+    off the batch sizes of the traced leaves of `trees`; 1 outside `vmap`. It reads JAX's
+    batching tracers (`batch_dim` and `val`); a leaf that does not look like one counts 1."""
+    most = 1
+    for leaf in jax.tree_util.tree_leaves(trees):
+        members, t = 1, leaf
+        try:
+            while isinstance(getattr(t, "batch_dim", None), int) and hasattr(t, "val"):
+                members, t = members * int(t.val.shape[t.batch_dim]), t.val
+        except (AttributeError, IndexError, TypeError):
+            members = 1
+        most = max(most, members)
+    return most
+
+
+def _check_size(Q0, xi0, n_steps: int, members: int = 1):
     """Refuse a run whose `Solution` could not fit in memory, before allocating it: every node
-    keeps Q, p, the momentum and ξ, every step P, ξ and four statistics (float64)."""
+    keeps Q, p, the momentum and ξ, every step P, ξ and four statistics (float64). Under the
+    caller's `vmap` of `members` members: a warning when all their `Solution`s would not fit
+    (not a refusal: XLA keeps only what the caller's program uses, which may be far less)."""
     per_step = solution_bytes_per_step(Q0, xi0)
+    need, limit = per_step * (n_steps + 1) * members, validation.memory_limit()
+    if members > 1 and limit and need > limit:
+        warnings.warn(
+            f"integrate under jax.vmap: the Solutions of {members} members x {n_steps} steps would need about "
+            f"{need / 1e9:.3g} GB ({per_step} bytes per step and member), more than this machine's "
+            f"{limit / 1e9:.3g} GB of memory; XLA runs out of memory if the program keeps them all. "
+            "clebsch_jax.batch(fun) keeps only what fun returns and refuses a batch that would not fit; "
+            "clebsch_jax.sweep keeps per-member reductions and every k-th node (save_every=k).",
+            UserWarning,
+            stacklevel=4,
+        )
     check_memory(
         "n_steps",
         f"{n_steps} steps",
@@ -297,7 +327,7 @@ def prepare(
     else:
         _check_method(method, locals())
     Q0, xi0, P0, dt, t0, closes, system = _check_arrays(system, Q0, xi0, P0, dt, t0, configuration)
-    _check_size(Q0, xi0, n_steps)
+    _check_size(Q0, xi0, n_steps, vmapped_members(system, Q0, xi0, P0, dt))
     if method is None:
         if jacobian == "blocks":
             check_particle_axis(Q0, xi0)

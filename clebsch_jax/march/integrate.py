@@ -233,8 +233,10 @@ def integrate(
     against the group, elsewhere `check_Q.traced` at $Q_1$, and nothing for a `check_Q`
     without a traced form; a failing member reports `Status.OFF_MANIFOLD` at step 0). What
     needs values is not checked: the Lagrangian by autodiff (`check_model`: a singular
-    Hessian), `Q0` against `check_Q` and the velocity map's group, and the memory the `Solution`s of all
-    members need (XLA reports that, when it runs out). `clebsch_jax.sweep`, and
+    Hessian), `Q0` against `check_Q` and the velocity map's group. The memory the `Solution`s of
+    all members of the caller's `vmap` need is estimated (`arguments.vmapped_members`) and,
+    beyond the machine's, said in a warning, not refused: XLA keeps only what the caller's
+    program uses. `clebsch_jax.sweep`, and
     `clebsch_jax.batch` called on concrete arrays, make those checks on their first member
     before compiling (`check_member`), and estimate their memory.
     Derivatives (forward and reverse mode) flow through the root finders by implicit
