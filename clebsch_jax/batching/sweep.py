@@ -46,7 +46,7 @@ import numpy as np
 from ..core.validation import positive_int
 from . import choose, probe, schedule
 from .backends import check_backend
-from ..march.accuracy import METHOD_OPTIONS, plan_for_call
+from ..march.accuracy import METHOD_OPTIONS, plan_for_call, require_step
 from .config import chunk_config, check_run, check_size, first_row, make_members
 from .schedule import Plan, run_batches
 from .tables import SweepProgress, SweepResult, allocate_tables, place, result
@@ -248,9 +248,7 @@ def sweep(
         arguments.update(store=store, client=client, overwrite=overwrite, fast=fast, threads=threads, backend=backend)
         res = sweep(make_system, params, Q0, xi0, P0=P0, **arguments, **kept, **plan.integrate_options())
         return dataclasses.replace(res, accuracy_plan=plan)
-    if dt is None or n_steps is None:
-        missing = " and ".join(name for name, v in (("dt", dt), ("n_steps", n_steps)) if v is None)
-        raise ValueError(f"{missing}: required, unless accuracy= and t_final= choose the step.")
+    require_step(dt, n_steps)
     run = check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, invariants, progress, devices)
     if store is not None or client is not None or overwrite is not False:
         from .store import check_arguments

@@ -79,7 +79,15 @@ from .pilot import (
     work_per_step,
 )
 
-__all__ = ["AccuracyPlan", "Candidate", "choose_step", "plan_for_call", "DEFAULT_CANDIDATES", "MIN_ACCURACY"]
+__all__ = [
+    "AccuracyPlan",
+    "Candidate",
+    "choose_step",
+    "plan_for_call",
+    "require_step",
+    "DEFAULT_CANDIDATES",
+    "MIN_ACCURACY",
+]
 
 DEFAULT_CANDIDATES = (
     {},
@@ -198,6 +206,14 @@ def check_accuracy(accuracy, t_final, t0=0.0) -> tuple[float, float]:
     if not float(t_final) > t0:
         raise ValueError(f"t_final: must be after t0 = {t0:g}, got {t_final!r}.")
     return accuracy, float(t_final) - t0
+
+
+def require_step(dt, n_steps) -> None:
+    """`integrate`'s and `sweep`'s refusal of a call with neither a step (`dt` and `n_steps`)
+    nor a plan (`accuracy=` and `t_final=`), naming what is missing."""
+    if dt is None or n_steps is None:
+        missing = " and ".join(name for name, v in (("dt", dt), ("n_steps", n_steps)) if v is None)
+        raise ValueError(f"{missing}: required, unless accuracy= and t_final= choose the step.")
 
 
 def plan_for_call(system, Q0, xi0, given: dict, **arguments) -> AccuracyPlan:

@@ -24,7 +24,7 @@ from ..core.validation import any_traced, float_array
 from ..steppers.base import AbstractStepper
 from ..steppers.choose import choose_method
 from ..steppers.composition import StepPlan, plan_of
-from .accuracy import plan_for_call
+from .accuracy import plan_for_call, require_step
 from .arguments import prepare, warn_if_remade
 from .arguments import prepared_method, solution_bytes_per_step  # noqa: F401  (importable from here as before)
 from .carry import start
@@ -258,9 +258,7 @@ def integrate(
             **plan.integrate_options(),
         )  # fmt: skip
         return dataclasses.replace(sol, accuracy_plan=plan)
-    if dt is None or n_steps is None:
-        missing = " and ".join(name for name, v in (("dt", dt), ("n_steps", n_steps)) if v is None)
-        raise ValueError(f"{missing}: required, unless accuracy= and t_final= choose the step.")
+    require_step(dt, n_steps)
     user_system = system
     given = (system, Q0, xi0, P0, dt, t0)
     stepper, (Q0, xi0, P0, dt, t0, closes), n_steps, system = prepare(
