@@ -11,7 +11,9 @@ Run: `python benchmarks/native.py` (`--quick` for a smoke run). Four parts, in o
    without a compiler) and NumPy RK4 of Euler's equations, at B = 10³ … 10⁵ (10⁶ with
    `--large`) × 200 steps. M body-steps/s, ratios, energy errors.
 2. **Threads** — the native sweep with `threads=1` and `threads=2` at the largest B: the kernels
-   release the GIL, so the sweep's threads run batches side by side.
+   release the GIL, so the sweep's threads run batches side by side. Beside it, the C kernel on
+   the batch's two halves from two threads against the whole batch on one: the machine's own
+   ceiling for two threads (a shared or virtual host may give less than 2).
 3. **Compile** — a fresh process's first sweep call minus its second (B = 10⁴ × 200), with an
    empty disk cache of native kernels (cold) and with the cache the first child wrote (warm).
 4. **Vortex clusters** — sweeps of 10³ clusters of N = 4 and 10 point vortices (default
@@ -30,6 +32,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -120,13 +123,36 @@ def threads_case(batch: int, n_steps: int, run: harness.Run) -> dict:
     inertias = np.broadcast_to(np.asarray(INERTIA), (batch, 3))
     Q0 = np.broadcast_to(np.eye(3), (batch, 3, 3))
     calls = {f"threads={k}": _sweep(inertias, Q0, omega0, n_steps, threads=k) for k in (1, 2)}
+    c_march, _ = throughput.c_kernel()
+    if c_march is not None:
+        calls |= {f"c_threads={k}": _c_threads(c_march, omega0, n_steps, k) for k in (1, 2)}
     timings, outs = run.time(calls, what=f"native sweep threads B={batch}", repeats=run.repeats or 3)
     row = {"part": "threads", "batch": batch, "n_steps": n_steps}
     for m in calls:
         row[m] = throughput._rates(timings[m], n_steps, batch, "body")
     assert np.array_equal(outs["threads=1"].final_momentum, outs["threads=2"].final_momentum)
     row["two_over_one"] = row["threads=2"]["body_steps_per_second"] / row["threads=1"]["body_steps_per_second"]
+    if c_march is not None:
+        # the machine's own ceiling for two threads: the C kernel (pure arithmetic, no Python
+        # inside the call, the GIL released by ctypes) on the two halves of the batch at once
+        row["c_two_over_one"] = (
+            row["c_threads=2"]["body_steps_per_second"] / row["c_threads=1"]["body_steps_per_second"]
+        )
     return row
+
+
+def _c_threads(c_march, omega0, n_steps: int, threads: int):
+    """The C kernel over the batch split into `threads` parts, each part on its own thread."""
+    parts = np.array_split(np.asarray(omega0), threads)
+
+    def call():
+        if threads == 1:
+            return c_march(np.asarray(INERTIA), rigid.DT, n_steps, parts[0])
+        with ThreadPoolExecutor(threads) as pool:
+            outs = list(pool.map(lambda x: c_march(np.asarray(INERTIA), rigid.DT, n_steps, x), parts))
+        return np.concatenate([o[0] for o in outs]), np.concatenate([o[1] for o in outs])
+
+    return call
 
 
 _CHILD = """
@@ -231,6 +257,7 @@ def print_report(summary: dict) -> None:
             f"\nThreads (B={r['batch']}): 1 thread {r['threads=1']['body_steps_per_second'] / 1e6:.3g}, "
             f"2 threads {r['threads=2']['body_steps_per_second'] / 1e6:.3g} M body-steps/s: "
             f"2/1 = {r['two_over_one']:.3g}"
+            + (f"; the C kernel on two threads: 2/1 = {r['c_two_over_one']:.3g}" if "c_two_over_one" in r else "")
         )
     for r in (r for r in summary["results"] if r["part"] == "compile"):
         print(
