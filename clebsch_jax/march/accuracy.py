@@ -329,6 +329,10 @@ def choose_step(
             "or grad); call clebsch_jax.choose_step outside and pass method=, dt= and n_steps= inside."
         )
     Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
+    resolved = [_resolve(system, Q0, xi0, spec, options) for spec in candidates]
+    if all(stepper is None for stepper, _ in resolved):  # refused before anything is evaluated
+        why = "; ".join(f"{r.name}: {r.reason}" for _, r in resolved)
+        raise ValueError(f"accuracy: no candidate method's pilot resolved its error ({why}).")
     tau = float(time_scale) if time_scale is not None else _time_scale(system, Q0, xi0)
     pilot_horizon = min(horizon, PILOT_TIME_SCALES * tau)
     h0 = pilot_horizon / max(PILOT_MIN_STEPS, math.ceil(pilot_horizon / (PILOT_FIRST_STEP * tau)))
@@ -341,8 +345,11 @@ def choose_step(
         )  # fmt: skip
 
     rows, best = [], None
-    for spec in candidates:
-        row, stepper = _plan_candidate(march, system, Q0, xi0, spec, options, t0, horizon, pilot_horizon, h0, accuracy)
+    for spec, (stepper, refused) in zip(candidates, resolved):
+        if stepper is None:
+            rows.append(refused)
+            continue
+        row, stepper = _plan_candidate(march, system, spec, stepper, t0, horizon, pilot_horizon, h0, accuracy)
         rows.append(row)
         if row.predicted_work is not None and (best is None or row.predicted_work < best[0].predicted_work):
             best = (row, stepper)
@@ -377,18 +384,25 @@ _NO_FIT = dict(constant=None, observed_order=None, max_step=None)
 _NO_RUN = dict(dt=None, n_steps=None, predicted_error=None, iterations_per_step=None, predicted_work=None)
 
 
-def _plan_candidate(march, system, Q0, xi0, spec, options, t0, horizon, pilot_horizon, h0, accuracy):
-    """(`Candidate`, stepper) of one candidate: its stepper by `choose_method` (the one place
-    options become a stepper), its pilot, and its step for `accuracy`."""
+def _key(spec) -> tuple:
+    return () if isinstance(spec, AbstractStepper) else tuple(sorted(spec.items()))
+
+
+def _resolve(system, Q0, xi0, spec, options):
+    """(stepper, None) of one candidate, by `choose_method` (the one place options become a
+    stepper), or (None, its `Candidate` row saying why it does not apply)."""
     if isinstance(spec, AbstractStepper):
-        stepper, key = spec, ()
-    else:
-        key = tuple(sorted(spec.items()))
-        try:
-            stepper = choose_method(system, Q0, xi0, **options, **spec)
-        except ValueError as err:  # not a method of this system (e.g. Gauss with jacobian="blocks")
-            base = dict(name=str(spec), order=int(spec.get("order") or 2), options=key, pilot_work=0.0)
-            return Candidate(**base, **_NO_FIT, **_NO_RUN, reason=f"not applicable: {err}"), None
+        return spec, None
+    try:
+        return choose_method(system, Q0, xi0, **options, **spec), None
+    except ValueError as err:  # not a method of this system (e.g. Gauss with jacobian="blocks")
+        base = dict(name=str(spec), order=int(spec.get("order") or 2), options=_key(spec), pilot_work=0.0)
+        return None, Candidate(**base, **_NO_FIT, **_NO_RUN, reason=f"not applicable: {err}")
+
+
+def _plan_candidate(march, system, spec, stepper, t0, horizon, pilot_horizon, h0, accuracy):
+    """(`Candidate`, stepper) of one applicable candidate: its pilot, and its step for `accuracy`."""
+    key = _key(spec)
     facts = stepper.facts(system)
     p = facts.order
     try:
