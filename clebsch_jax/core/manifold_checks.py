@@ -36,8 +36,9 @@ is more than this fraction of it (round-off for a step that stays on the group; 
 $\Delta t|\xi|$ for the forward difference with the left principle)."""
 
 GROUP_CHECK_MAX_DIM = 64
-"""`check_group_configuration` looks at algebras of at most this many dimensions (so(n) up to
-n = 11, se(n) up to n = 10): it forms their basis and its commutators."""
+"""`check_group_configuration` and the first step's checks look at algebras of at most this many
+dimensions (so(n) up to n = 11, se(n) up to n = 10): they form their basis and its commutators.
+Above it, the first step is tested by the system's `check_Q` alone."""
 
 
 def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
@@ -63,14 +64,9 @@ def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
         return
     Q0, Q1 = np.asarray(Q0), np.asarray(Q1)
     checks = runnable_check(system, Q0) is not None
-    if isinstance(system.derivative_map, MatrixGroupDifference):
-        # on a group it keeps Q there (Definition 25): the system's own check (if any) decides,
-        # with no need to find the group
-        basis = None
-    else:
-        basis = _group_basis(system, Q0, xi0) if Q0.ndim == 2 and Q0.shape[0] == Q0.shape[1] else None
-    if basis is not None:
-        defect = _outside_algebra(np.linalg.solve(Q0, Q1), basis)
+    test, basis = _first_step_test(system, Q0, xi0, checks)
+    if test == GROUP:
+        defect = _outside_algebra(np.linalg.solve(Q0, Q1), _off_algebra(basis))
         if not defect > GROUP_RTOL:
             return
         problem = system.check_Q(Q1) if checks else None
@@ -78,7 +74,9 @@ def check_first_step(system, method: str, Q0, xi0, Q1) -> None:
             f"(Q0^-1 Q1 is not in the group of the algebra X(V) by which velocity_map moves Q: the part of "
             f"its logarithm outside X(V) is {defect:.1e} of it.)"
         )
-    elif checks:
+    elif test == CHECK_Q or (test == STAYS and checks):
+        # on a group a Definition 25 map keeps Q there: the system's own check still looks at Q1
+        # (a cheap test that blames nothing on a step that stays)
         problem = system.check_Q(Q1)
         if not isinstance(problem, str):
             return
@@ -114,13 +112,7 @@ def first_step_may_leave(system, Q0, xi0) -> bool:
     if any_traced(Q0, xi0, system):
         return False
     checks = runnable_check(system, Q0) is not None
-    square = np.ndim(Q0) == 2 and np.shape(Q0)[0] == np.shape(Q0)[1]
-    if isinstance(system.derivative_map, MatrixGroupDifference):
-        if not checks:
-            return False  # check_first_step looks only at check_Q for these maps
-        small = np.size(xi0) <= GROUP_CHECK_MAX_DIM
-        return not (square and small and _group_basis(system, Q0, xi0) is not None)
-    return checks or (square and _group_basis(system, Q0, xi0) is not None)
+    return _first_step_test(system, Q0, xi0, checks)[0] in (GROUP, CHECK_Q)
 
 
 def traced_first_step_check(system, Q0, xi0):
@@ -144,21 +136,41 @@ def traced_first_step_check(system, Q0, xi0):
     The test sees no derivatives (`jax.lax.stop_gradient`): it gates a status."""
     if system.check_Q is None:  # check_first_step would warn at most
         return None
-    square = np.ndim(Q0) == 2 and np.shape(Q0)[0] == np.shape(Q0)[1]
-    small = np.size(xi0) <= GROUP_CHECK_MAX_DIM
-    basis = _group_basis(system, Q0, xi0) if square and small else None
-    if basis is not None:
-        if isinstance(system.derivative_map, MatrixGroupDifference):
-            return None
-        B = basis.reshape(basis.shape[0], -1).T
-        outside = np.eye(B.shape[0]) - B @ np.linalg.pinv(B)  # the projector off span X(V)
+    test, basis = _first_step_test(system, Q0, xi0, True)
+    if test == GROUP:
+        outside = _off_algebra(basis)
         if not np.max(np.abs(outside)) > 1e-12:  # X(V) is every matrix: no step leaves it
             return None
         return lambda Q0, Q1: _leaves_group(outside, *jax.lax.stop_gradient((Q0, Q1)))
     traced = getattr(system.check_Q, "traced", None)
-    if traced is None:
+    if test != CHECK_Q or traced is None:
         return None
     return lambda Q0, Q1: ~jnp.asarray(traced(jax.lax.stop_gradient(Q1)), bool)
+
+
+GROUP, CHECK_Q, STAYS = "group", "check_Q", "stays"
+
+
+def _first_step_test(system, Q0, xi0, checks: bool):
+    r"""What the first step is tested by — one decision for `check_first_step`,
+    `first_step_may_leave` and `traced_first_step_check`, from the maps and the shapes:
+    (`GROUP`, basis) when the velocity map is right multiplication by a closed algebra X(V) (Q
+    square, at most `GROUP_CHECK_MAX_DIM` dimensions) and the derivative map is not of
+    Definition 25's form; (`STAYS`, basis) when it is (its steps stay in $Q^0 G$ by
+    construction); (`CHECK_Q`, None) otherwise when the system checks its configurations
+    (`checks`); (None, None) when there is nothing to test."""
+    square = np.ndim(Q0) == 2 and np.shape(Q0)[0] == np.shape(Q0)[1]
+    small = np.size(xi0) <= GROUP_CHECK_MAX_DIM
+    basis = _group_basis(system, Q0, xi0) if square and small else None
+    if basis is not None:
+        return (STAYS if isinstance(system.derivative_map, MatrixGroupDifference) else GROUP), basis
+    return (CHECK_Q, None) if checks else (None, None)
+
+
+def _off_algebra(basis: np.ndarray) -> np.ndarray:
+    """The orthogonal projector off span X(V) (the basis's matrices flattened)."""
+    B = basis.reshape(basis.shape[0], -1).T
+    return np.eye(B.shape[0]) - B @ np.linalg.pinv(B)
 
 
 def _leaves_group(outside: np.ndarray, Q0, Q1):
@@ -231,14 +243,12 @@ def _group_basis(system, Q0, xi0):
     return matrix_group_basis(system, Q0, xi0)
 
 
-def _outside_algebra(g: np.ndarray, basis: np.ndarray) -> float:
-    """The part of log g outside span(basis), relative to |log g| (0 when g = I)."""
+def _outside_algebra(g: np.ndarray, outside: np.ndarray) -> float:
+    """The part of log g off the algebra (`outside`: the projector off it, `_off_algebra`),
+    relative to |log g| (0 when g = I): `_leaves_group`'s measure, on concrete values."""
     log = _log(g).reshape(-1)
     size = np.linalg.norm(log)
-    if not size > 0:
-        return 0.0
-    B = basis.reshape(basis.shape[0], -1).T
-    return float(np.linalg.norm(log - B @ np.linalg.lstsq(B, log, rcond=None)[0]) / size)
+    return float(np.linalg.norm(outside @ log) / size) if size > 0 else 0.0
 
 
 def _traced_log(g):
