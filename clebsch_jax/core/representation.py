@@ -46,6 +46,16 @@ class RealMatrices:
     `xi_shape`; these are the rest."""
 
     ambient_complex = False
+    skew_adjoint = False
+    r"""True when every $X(\xi)$ is anti-self-adjoint, $X(\xi)^\dagger = -X(\xi)$ (so(n),
+    u(n)): the Cayley step's sandwich is then a congruence (`X_adjoint_congruence`)."""
+
+    def X_adjoint_congruence(self, L, P):
+        r"""$X^T(L P L^\dagger)$: the adjoint of a congruence. The reduced Cayley step's
+        residual is $X^T(F_-^\dagger P F_+^\dagger)$, a congruence with $L = F_-^\dagger$ when the
+        algebra is `skew_adjoint`. Here as written; a representation may use that the result
+        lies in its algebra."""
+        return self.X_adjoint(self.matmul(self.matmul(L, P), self.dagger(L)))
 
     @staticmethod
     def dagger(A):
@@ -100,6 +110,7 @@ class UnitaryAlgebra(MatrixRepresentation):
     n: int
 
     ambient_complex = True
+    skew_adjoint = True
 
     def __post_init__(self):
         if isinstance(self.n, bool) or not isinstance(self.n, int) or self.n < 1:
@@ -126,6 +137,27 @@ class UnitaryAlgebra(MatrixRepresentation):
     @staticmethod
     def dagger(A):
         return jnp.conj(jnp.swapaxes(A, -1, -2))
+
+    @staticmethod
+    def matmul(A, B):
+        r"""$(a + ib)(c + id)$ by three real products (Gauss's; the "3M" method):
+        $ac - bd + i\,((a + b)(c + d) - ac - bd)$. XLA's CPU backend runs a complex product
+        as slowly as four real ones; three cost less (`benchmarks/README.md`, issue 43). The
+        imaginary part's rounding is bounded by $\varepsilon(|a| + |b|)(|c| + |d|)$ instead of
+        $\varepsilon(|a||d| + |b||c|)$: the same order."""
+        a, b, c, d = jnp.real(A), jnp.imag(A), jnp.real(B), jnp.imag(B)
+        ac, bd = _linalg.matmul(a, c), _linalg.matmul(b, d)
+        return jax.lax.complex(ac - bd, _linalg.matmul(a + b, c + d) - ac - bd)
+
+    def X_adjoint_congruence(self, L, P):
+        r"""$X^T(L P L^\dagger)$ for P in $\mathfrak u(n)$: $M = L P L^\dagger$ is skew-Hermitian,
+        so $X^T(M) = \mathrm{Re}\,M + \mathrm{Im}\,M$ (up to rounding), and with $A = LP =
+        a + ib$ and $L = l_r + i l_i$ that is $a(l_r^T - l_i^T) + b(l_r^T + l_i^T)$: two real
+        products after the three of $LP$, where the complex $M$ takes three more."""
+        A = self.matmul(L, P)
+        a, b = jnp.real(A), jnp.imag(A)
+        lr, li = jnp.swapaxes(jnp.real(L), -1, -2), jnp.swapaxes(jnp.imag(L), -1, -2)
+        return _linalg.matmul(a, lr - li) + _linalg.matmul(b, lr + li)
 
     @staticmethod
     def solve(A, B):

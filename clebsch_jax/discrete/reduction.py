@@ -198,7 +198,10 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True, gr
         r = mu - even - odd
     else:
         P = red.X_inv_adjoint(g)
-        r = mu - red.X_adjoint(mm(mm(dag(Fm), P), dag(eye + 0.5 * Y)))
+        if red.skew_adjoint:  # F₊† = F₋ when Y† = −Y: the sandwich is a congruence
+            r = mu - red.X_adjoint_congruence(dag(Fm), P)
+        else:
+            r = mu - red.X_adjoint(mm(mm(dag(Fm), P), dag(eye + 0.5 * Y)))
     if g_Q is not None and scheme == "left":
         r = r + dt * red.X_adjoint(mm(Q0.T, g_Q))
     if not outgoing:
