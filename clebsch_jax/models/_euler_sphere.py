@@ -219,22 +219,30 @@ class _Lagrangian(_Operator):
         return _kinetic(xi)
 
 
-@jax.custom_jvp
-def _kinetic(xi):
-    r"""$\tfrac\hbar2\langle\xi, K\xi\rangle$, with its derivative $\langle\hbar K\xi, \dot\xi\rangle$
-    stated (`_kinetic_jvp`): K is symmetric (an orthogonal projection onto $R(\mathfrak u(N))$,
-    $-\hat\Delta_N$ on it and κ on its complement), so $\nabla l = \hbar K\xi$ is one
+def _symmetric_quadratic(apply_K, weight):
+    r"""$x \mapsto c\,\langle x, Kx\rangle$ for a symmetric K (`apply_K`) and $c$ = `weight(x)` (a
+    function of x's shape), with its derivative $2c\langle Kx, \dot x\rangle$ stated: one
     application of K, where reverse mode through the quadratic form would apply K and its
     transpose (the pads and slices of the Laplacian transposed) and average them."""
-    return 0.5 * euler_sphere_hbar(xi.shape[-1] // 2) * jnp.sum(xi * _apply_K(xi, inverse=False))
+
+    @jax.custom_jvp
+    def quadratic(x):
+        return weight(x) * jnp.sum(x * apply_K(x))
+
+    @quadratic.defjvp
+    def _jvp(primals, tangents):
+        (x,), (x_dot,) = primals, tangents
+        c, K_x = weight(x), apply_K(x)
+        return c * jnp.sum(x * K_x), 2.0 * c * jnp.sum(K_x * x_dot)
+
+    return quadratic
 
 
-@_kinetic.defjvp
-def _kinetic_jvp(primals, tangents):
-    (xi,), (xi_dot,) = primals, tangents
-    hbar = euler_sphere_hbar(xi.shape[-1] // 2)
-    K_xi = _apply_K(xi, inverse=False)
-    return 0.5 * hbar * jnp.sum(xi * K_xi), hbar * jnp.sum(K_xi * xi_dot)
+_kinetic = _symmetric_quadratic(
+    lambda xi: _apply_K(xi, inverse=False), lambda xi: 0.5 * euler_sphere_hbar(xi.shape[-1] // 2)
+)
+r"""$\tfrac\hbar2\langle\xi, K\xi\rangle$ of the real form: K is symmetric (an orthogonal
+projection onto $R(\mathfrak u(N))$, $-\hat\Delta_N$ on it and κ on its complement)."""
 
 
 class _InverseLegendre(_Operator):
@@ -251,20 +259,8 @@ class _UnitaryLagrangian(_Operator):
         return _kinetic_unitary(xi)
 
 
-@jax.custom_jvp
-def _kinetic_unitary(S):
-    r"""$\hbar\langle S, -\hat\Delta_N S\rangle$, with its derivative
-    $\langle 2\hbar(-\hat\Delta_N S), \dot S\rangle$ stated ($-\hat\Delta_N$ is symmetric: one
-    application, as `_kinetic`)."""
-    return euler_sphere_hbar(S.shape[-1]) * jnp.sum(S * neg_laplacian_hat(S))
-
-
-@_kinetic_unitary.defjvp
-def _kinetic_unitary_jvp(primals, tangents):
-    (S,), (S_dot,) = primals, tangents
-    hbar = euler_sphere_hbar(S.shape[-1])
-    K_S = neg_laplacian_hat(S)
-    return hbar * jnp.sum(S * K_S), 2.0 * hbar * jnp.sum(K_S * S_dot)
+_kinetic_unitary = _symmetric_quadratic(neg_laplacian_hat, lambda S: euler_sphere_hbar(S.shape[-1]))
+r"""$\hbar\langle S, -\hat\Delta_N S\rangle$ of the unitary form ($-\hat\Delta_N$ is symmetric)."""
 
 
 class _UnitaryInverseLegendre(_Operator):
