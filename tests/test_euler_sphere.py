@@ -204,7 +204,7 @@ def test_lagrangian_gradient_is_the_symmetric_operator_and_agrees_with_autodiff(
     K = -np.real(dense_laplacian(Ns)) + Ns**2 * np.outer(np.eye(Ns).ravel(), np.eye(Ns).ravel()) / Ns
     S = np.random.default_rng(4).normal(size=(Ns, Ns))
     assert float(lu(jnp.asarray(S))) == pytest.approx(hbar * S.ravel() @ K @ S.ravel(), rel=1e-14)
-    Hu = jax.hessian(flat(lu))(jnp.asarray(S).ravel())
+    Hu = jax.hessian(lambda y: lu(y.reshape(S.shape)))(jnp.asarray(S).ravel())
     assert np.max(np.abs(Hu - 2 * hbar * K)) < 1e-13 * np.max(np.abs(K))
 
 
