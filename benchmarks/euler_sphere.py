@@ -12,8 +12,11 @@ the median of `--repeats` samples, the methods of a case sampled in turn, every 
 its energy near degree 10 and a root-mean-square vorticity of 1, `STEPS[N]` steps of Δt = 0.01:
 
 - **ours**: `integrate(euler_sphere(N), ..., reconstruct=False)` under `jax.jit` — the default
-  method (the reduced Cayley march, solved by matrix-free sweeps preconditioned with the
-  model's tridiagonal inverse Laplacian), to round-off; and **ours_quflow_tol**, the same
+  form (`form="unitary"`: N² unknowns, complex N×N products) and method (the reduced Cayley
+  march, solved by matrix-free sweeps preconditioned with the model's tridiagonal inverse
+  Laplacian), to round-off; **ours_real**, the same march in the real 2N×2N form
+  (`form="real"`, 4N² unknowns, real 2N×2N products), the paired measure of what the form
+  pays; and **ours_quflow_tol**, the same
   march with `atol=` quflow's default tolerance (`quflow_tolerance`), the equal-accuracy peer
   of quflow's default;
 - **numpy**: the isospectral midpoint method written directly in NumPy with complex N×N
@@ -182,8 +185,10 @@ def quflow_tolerance(W0, N: int) -> float:
     r"""quflow's default tolerance of `isomp` (its `tol="auto"`): $\sqrt\varepsilon\,\Delta t/\hbar\,
     \|W\|_\infty$, the largest row sum of |W|. Ours runs at it as `atol` (`ours_quflow_tol`): its
     updates are judged in the max-norm of the entries and its estimate of the remaining error
-    (θ/(1 − θ) times the update) must be below it, where quflow stops at an update below it."""
-    return float(np.sqrt(np.finfo(float).eps) * DT / cj.models.euler_sphere_hbar(N) * np.linalg.norm(W0, np.inf))
+    (θ/(1 − θ) times the update) must be below it, where quflow stops at an update below it.
+    Ours iterates on the momentum, 2(Re W + Im W) in the model's default (unitary) form: twice
+    the scale of W, so twice the tolerance."""
+    return float(2 * np.sqrt(np.finfo(float).eps) * DT / cj.models.euler_sphere_hbar(N) * np.linalg.norm(W0, np.inf))
 
 
 def quflow_calls(quflow, numba, W0, n_steps, tight_tol):
@@ -324,8 +329,14 @@ def run_case(N: int, n_steps: int, run: harness.Run) -> dict:
         )
         for name, options in (("ours", {}), ("ours_quflow_tol", {"atol": quflow_tolerance(W0, N)}))
     }
+    real_system = cj.models.euler_sphere(N, form="real")
+    Q0_real, xi0_real = cj.models.euler_sphere_start(W0, "real")
+    march_real = jax.jit(
+        lambda x: cj.integrate(real_system, Q0_real, x, dt=DT, n_steps=n_steps, reconstruct=False, throw=False)
+    )
     peer = NumpyIsospectralMidpoint(N, DT)
     calls = {name: (lambda m=m: jax.block_until_ready(m(xi0))) for name, m in marches.items()}
+    calls["ours_real"] = lambda: jax.block_until_ready(march_real(xi0_real))
     calls["numpy"] = lambda: peer.march(W0, n_steps)
     anchor, _ = _import_quflow()
     if anchor is not None:
@@ -356,9 +367,11 @@ def run_case(N: int, n_steps: int, run: harness.Run) -> dict:
         "timings": timings,
         "seconds_per_step": per_step,
         "ours_over_numpy": per_step["ours"] / per_step["numpy"],
+        "ours_over_ours_real": per_step["ours"] / per_step["ours_real"],
         "sweeps_per_step": {
             "ours": float(np.mean(np.asarray(sol.stats.iterations))),
             "ours_quflow_tol": float(np.mean(np.asarray(sol_loose.stats.iterations))),
+            "ours_real": float(np.mean(np.asarray(outs["ours_real"].stats.iterations))),
             "numpy": numpy_sweeps,
         },
         "max_difference_of_final_W_quflow_tol_from_ours": float(np.max(np.abs(W_loose - W_ours))),
@@ -396,6 +409,14 @@ def print_report(summary: dict) -> None:
         for r in summary["results"]
     ]
     harness.print_table(head, lines)
+    print(
+        "real form (form='real'): "
+        + "; ".join(
+            f"N={r['N']} {r['seconds_per_step']['ours_real']:.4g} s/step, {r['sweeps_per_step']['ours_real']:.2f} "
+            f"sweeps, ours/real {r['ours_over_ours_real']:.3f}"
+            for r in summary["results"]
+        )
+    )
     anchor = [(r, name, q) for r in summary["results"] for name, q in r["quflow"].items()]
     if anchor:
         head = (
@@ -419,7 +440,7 @@ def plot(summary: dict, path: Path) -> None:
     fig, ax = harness.figure([1], size=(6.5, 4.4))
     rows = summary["results"]
     N = np.array([r["N"] for r in rows])
-    markers = iter(("o-", "s--", "^-.", "v:", "d-", "x--"))
+    markers = iter(("o-", "s--", "^-.", "v:", "d-", "x--", "P-."))
     for key in summary["slopes"]:
         slope = summary["slopes"][key]
         ax.loglog(

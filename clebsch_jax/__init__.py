@@ -39,6 +39,10 @@ from .core.derivative_maps import (  # noqa: E402
     so3_exponential as so3_exponential,
 )
 from .core.isotropy import gauge_isotropy as gauge_isotropy  # noqa: E402
+from .core.representation import (  # noqa: E402
+    MatrixRepresentation as MatrixRepresentation,
+    UnitaryAlgebra as UnitaryAlgebra,
+)
 from .core.system import ClebschSystem as ClebschSystem, diamond as diamond, momentum_map as momentum_map  # noqa: E402
 from .discrete.action import (  # noqa: E402
     SCHEMES as SCHEMES,

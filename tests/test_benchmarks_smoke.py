@@ -399,7 +399,7 @@ def check_sweep_scaling(summary: dict) -> None:
 
 def check_euler_sphere(summary: dict) -> None:
     for row in summary["results"]:
-        for m in ("ours", "ours_quflow_tol", "numpy"):
+        for m in ("ours", "ours_quflow_tol", "ours_real", "numpy"):
             _check_timed(row["timings"][m], ("per_call_s",), m)
             assert _positive_finite(row["seconds_per_step"][m]) and row["sweeps_per_step"][m] >= 1
         # at quflow's sqrt(eps)-relative tolerance: agreement with the round-off run to that level

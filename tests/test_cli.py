@@ -465,8 +465,9 @@ def _independent_invariants(name, setup, sol):
             "angular_momentum": (ang, np.sum(np.linalg.norm(Q[:, 0], axis=-1) * np.linalg.norm(mu[:, 0], axis=-1), -1)),
         }
     if name == "euler-sphere":  # the spectrum of the vorticity matrix W (isospectral march)
-        n = mu.shape[-1] // 2
-        W = 0.5 * (mu[..., :n, :n] + mu[..., n:, n:]) + 0.5j * (mu[..., n:, :n] - mu[..., :n, n:])
+        # the default (unitary) form: μ = 2(Re W + Im W), Re W antisymmetric, Im W symmetric
+        mt = np.swapaxes(mu, -1, -2)
+        W = 0.25 * (mu - mt) + 0.25j * (mu + mt)
         spectra = np.linalg.eigvalsh(1j * W)
         return {"spectrum": (spectra, np.max(np.abs(spectra[:, 0]), axis=-1))}
     raise AssertionError(name)

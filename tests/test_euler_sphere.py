@@ -3,7 +3,9 @@ quantisation against their definitions and SciPy's spherical harmonics, the engi
 march (closure check, matrix-free sweeps), and the mathematics of the runs: Casimirs, energy,
 angular momentum, steady states, order 2 against an independent tight solve.
 
-One matrix size (N = 8) for the marches, so that one compiled program serves them all."""
+One matrix size (N = 10: 100 unknowns in the default unitary form, above the dense Newton limit
+`DENSE_NEWTON_MAX`, so that the default march sweeps) for the marches, so that one compiled
+program serves them all."""
 
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from clebsch_jax.discrete.reduction import MatrixAlgebraReduction, find_reductio
 from clebsch_jax.steppers.choose import choose_method
 
 models = cj.models
-N = 8
+N = 10
 
 
 def spin_matrices(N):
@@ -157,17 +159,25 @@ def test_commutator_quantises_the_poisson_bracket():
 # --- the engine takes the model to its reduced march -------------------------------------------
 
 
-def test_engine_closure_check_reduces_without_a_basis():
-    system = models.euler_sphere(N)
+@pytest.mark.parametrize("form", models.EULER_SPHERE_FORMS)
+def test_engine_closure_check_reduces_without_a_basis(form):
+    system = models.euler_sphere(N, form=form)
     W = models.euler_sphere_quantise(random_coefficients(N, 2))
-    Q0, xi0 = models.euler_sphere_start(W)
+    Q0, xi0 = models.euler_sphere_start(W, form)
     red, reason = find_reduction(system, Q0, xi0)
-    assert isinstance(red, MatrixAlgebraReduction) and reason == "applies"
+    # the unitary form declares its group (its velocity map is the representation); the real
+    # form's right multiplication by ξ is found by the engine, with no basis either way
+    expected = cj.UnitaryAlgebra if form == "unitary" else MatrixAlgebraReduction
+    assert isinstance(red, expected) and reason == "applies"
     method = choose_method(system, Q0, xi0)
     assert isinstance(method, cj.ReducedStep) and isinstance(method.root_finder, cj.FixedPoint)
-    # the Legendre map inverts: momentum of ξ0 is the real form of W
+    # the Legendre map inverts: the momentum of ξ0 is twice the coordinates of W (unitary:
+    # Re W + Im W) or its real form
     mu0 = jax.grad(system.lagrangian)(xi0)
-    assert np.max(np.abs(mu0 - models.euler_sphere_real_form(W))) < 1e-13
+    W = np.asarray(W)
+    expected_mu0 = 2 * (W.real + W.imag) if form == "unitary" else models.euler_sphere_real_form(W)
+    assert np.max(np.abs(mu0 - expected_mu0)) < 1e-13
+    assert np.max(np.abs(models.euler_sphere_vorticity(mu0, form) - W)) < 1e-13
 
 
 @pytest.mark.slow  # reverse-mode gradients and forward-over-reverse Hessians of the fluid's Lagrangian, each compiled
@@ -178,7 +188,7 @@ def test_lagrangian_gradient_is_the_symmetric_operator_and_agrees_with_autodiff(
     from clebsch_jax.models._euler_sphere import _apply_K
 
     Ns = 3
-    l = models.euler_sphere(Ns).lagrangian
+    l = models.euler_sphere(Ns, form="real").lagrangian
     hbar = models.euler_sphere_hbar(Ns)
     quadratic = lambda x: 0.5 * hbar * jnp.sum(x * _apply_K(x, inverse=False))
     xi = jnp.asarray(np.random.default_rng(3).normal(size=(2 * Ns, 2 * Ns)))
@@ -188,17 +198,27 @@ def test_lagrangian_gradient_is_the_symmetric_operator_and_agrees_with_autodiff(
     H, H_ref = jax.hessian(flat(l))(xi.ravel()), jax.hessian(flat(quadratic))(xi.ravel())
     assert np.max(np.abs(H - H_ref)) < 1e-14 * np.max(np.abs(H_ref))
     assert np.max(np.abs(H - H.T)) < 1e-14 * np.max(np.abs(H))
+    # the unitary form: l(S) = ħ⟨S, −Δ̂S⟩ with −Δ̂ written out here as the dense Hoppe–Yau
+    # matrix (tests' own construction) plus the centre's weight κ = N² on the trace
+    lu = models.euler_sphere(Ns).lagrangian
+    K = -np.real(dense_laplacian(Ns)) + Ns**2 * np.outer(np.eye(Ns).ravel(), np.eye(Ns).ravel()) / Ns
+    S = np.random.default_rng(4).normal(size=(Ns, Ns))
+    assert float(lu(jnp.asarray(S))) == pytest.approx(hbar * S.ravel() @ K @ S.ravel(), rel=1e-14)
+    Hu = jax.hessian(lambda y: lu(y.reshape(S.shape)))(jnp.asarray(S).ravel())
+    assert np.max(np.abs(Hu - 2 * hbar * K)) < 1e-13 * np.max(np.abs(K))
 
 
 def test_closure_check_of_the_velocity_map():
     """The general (dense) closure check agrees: right multiplication by ξ is closed."""
     Ns = 2
-    system = models.euler_sphere(Ns)
+    system = models.euler_sphere(Ns, form="real")
     assert cj.check_closure(system, jnp.eye(2 * Ns), jnp.zeros((2 * Ns, 2 * Ns))).closed
+    # the unitary form's velocity map, Q·R(Z(S)), spans R(u(N)): closed too
+    assert cj.check_closure(models.euler_sphere(Ns), jnp.eye(2 * Ns), jnp.zeros((Ns, Ns))).closed
 
 
 def test_matrix_free_model_checks_refuse_a_wrong_inverse_legendre_map(monkeypatch):
-    # the checks that form no Hessian, which run above DENSE_CHECK_MAX unknowns, here at N = 8
+    # the checks that form no Hessian, which run above DENSE_CHECK_MAX unknowns, here at N = 10
     monkeypatch.setattr(model_checks, "DENSE_CHECK_MAX", 0)
     Nl = N
     good = models.euler_sphere(Nl)
@@ -215,7 +235,7 @@ def test_matrix_free_model_checks_refuse_a_wrong_inverse_legendre_map(monkeypatc
         check_model(bad, Q0, xi0, 0.1)
     affine = cj.ClebschSystem(
         lagrangian=good.lagrangian,
-        velocity_map=lambda xi, Q: Q @ xi + Q,
+        velocity_map=lambda xi, Q: good.velocity_map(xi, Q) + Q,
         derivative_map=good.derivative_map,
         inverse_legendre=good.inverse_legendre,
     )

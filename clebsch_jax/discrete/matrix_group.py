@@ -16,8 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core import linalg as _linalg
-from ..core.derivative_maps import MatrixGroupDifference
+from ..core.derivative_maps import CayleyDifference, MatrixGroupDifference
 from ..core.jit import evaluate_now, memo
+from ..core.representation import MatrixRepresentation, RealMatrices
 from ..core.system import ClebschSystem
 from ..core.validation import any_traced
 from ..discrete.closure import CLOSURE_TOLERANCE
@@ -26,7 +27,7 @@ __all__ = ["MatrixGroupReduction", "MatrixAlgebraReduction", "find_reduction", "
 
 
 @dataclasses.dataclass(frozen=True)
-class MatrixGroupReduction:
+class MatrixGroupReduction(RealMatrices):
     """What the reduced march needs: the basis X(e_k) of the algebra and its pseudo-inverse.
 
     `basis` (m, n, n) and `pinv` (m, n·n) are NumPy constants (static: found once per system)."""
@@ -61,7 +62,7 @@ class MatrixGroupReduction:
 
 
 @dataclasses.dataclass(frozen=True)
-class MatrixAlgebraReduction:
+class MatrixAlgebraReduction(RealMatrices):
     r"""The reduction when ξ *is* the matrix: $\mathcal L_\xi Q = Q\xi$ with ξ of Q's shape
     (n, n), so $X$ is the identity and the algebra is all of $\mathfrak{gl}(n)$ — closed with
     no check (Theorem 12). Nothing of size $(\dim V)^2$ is formed: $X$, $X^{-1}$ and their
@@ -131,11 +132,20 @@ def _memo(key, compute):
     return memo(_CACHE, key, compute, 256)
 
 
-def find_reduction(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | MatrixAlgebraReduction | None, str]:
+def find_reduction(
+    system: ClebschSystem, Q0, xi0
+) -> tuple[MatrixGroupReduction | MatrixAlgebraReduction | MatrixRepresentation | None, str]:
     """`_find_reduction`, cached: the verdict depends only on the two maps and the shapes."""
     if any_traced(system.velocity_map):
         return _find_reduction(system, Q0, xi0)
-    key = ("reduction", system.velocity_map, system.derivative_map, tuple(np.shape(Q0)), tuple(np.shape(xi0)))
+    key = (
+        "reduction",
+        system.velocity_map,
+        system.derivative_map,
+        system.has_potential,
+        tuple(np.shape(Q0)),
+        tuple(np.shape(xi0)),
+    )
     return _memo(key, lambda: _find_reduction(system, Q0, xi0))
 
 
@@ -154,10 +164,13 @@ def _inspect(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | Non
     basis in its span), so that $X(V)$ is a Lie algebra. When ξ is itself the n×n matrix
     ($\mathcal L_\xi Q = Q\xi$, `_matrix_algebra`) (2) and (3) hold with $X$ the identity and no
     basis is formed: a `MatrixAlgebraReduction`, which scales to $\dim V = n^2$ in the
-    thousands.
+    thousands. A velocity map that is a `MatrixRepresentation` is not inspected: it states
+    (2) and (3) and is its own reduction (`_declared`).
     """
     if not isinstance(system.derivative_map, MatrixGroupDifference):
         return None, "the derivative map is not a matrix-group map (Definition 25)"
+    if isinstance(system.velocity_map, MatrixRepresentation):
+        return _declared(system, Q0, xi0)
     algebra = _matrix_algebra(system, Q0, xi0)
     if algebra is not None:
         return algebra, "applies"
@@ -167,6 +180,22 @@ def _inspect(system: ClebschSystem, Q0, xi0) -> tuple[MatrixGroupReduction | Non
     m = basis.shape[0]
     B = basis.reshape(m, -1).T
     return MatrixGroupReduction(basis=basis, pinv=np.linalg.pinv(B), xi_shape=tuple(np.shape(xi0))), "applies"
+
+
+def _declared(system: ClebschSystem, Q0, xi0) -> tuple[MatrixRepresentation | None, str]:
+    r"""A velocity map that is a `MatrixRepresentation` declares its group and how the reduced
+    step computes with it (closure is its own statement): checked here are only what the
+    reduced step written with it covers — the Cayley map for a representation in another form
+    than the real one (the other maps' logarithms are real), a Lagrangian without potential,
+    and ξ of the representation's shape."""
+    rep = system.velocity_map
+    if tuple(np.shape(xi0)) != tuple(rep.xi_shape):
+        return None, f"xi has shape {tuple(np.shape(xi0))}, the representation {rep!r} takes {tuple(rep.xi_shape)}"
+    if rep.ambient_complex and not isinstance(system.derivative_map, CayleyDifference):
+        return None, f"the representation {rep!r} computes in complex matrices, for the Cayley map only"
+    if system.has_potential:
+        return None, f"the representation {rep!r} takes a Lagrangian without potential, l(xi)"
+    return rep, "applies"
 
 
 def matrix_group_basis(system: ClebschSystem, Q0, xi0) -> np.ndarray | None:

@@ -99,7 +99,7 @@ def outgoing_body_momentum(system, red, scheme, dt, Q0, xi):
     return jax.grad(perturbed)(jnp.zeros_like(xi)), Q1
 
 
-def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True, need_Q1: bool = True):
+def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True, need_Q1: bool = True, gradient=None):
     r"""`reduced_residual` and `outgoing_body_momentum` of one step, sharing their work.
 
     Both are derivatives of $\ell_d(F, Q^a)$ at $F = \overline{\exp}(\Delta t X(\xi))$ along
@@ -117,9 +117,13 @@ def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True, 
     (`_exponential_step`), not traced through the logarithm's algorithm. Returns
     `(r, mu1, Q1)`; `mu1` is None unless `outgoing`, and `Q1` may be None when `outgoing` is
     False, or (for the Cayley map) when `need_Q1` is False: a march that does not carry Q skips
-    its solve."""
+    its solve.
+
+    `gradient`: $\nabla_\xi l(\xi)$ when the caller already has it, for an l without potential
+    (the fixed-point sweeps iterate on it, `ReducedStep._sweep`); the Cayley map's closed form
+    then uses it instead of differentiating l again. Other maps ignore it."""
     if isinstance(system.derivative_map, CayleyDifference):
-        return _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1)
+        return _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1, gradient)
     if getattr(system.derivative_map, "exponential_pair", False) and isinstance(red, MatrixGroupReduction):
         return _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing)
     F = system.derivative_map.exp(dt * red.X(xi))
@@ -140,7 +144,7 @@ def reduced_step(system, red, scheme, dt, mu, Q0, xi, *, outgoing: bool = True, 
     return r, mu1, Q1
 
 
-def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True):
+def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True, gradient=None):
     r"""`reduced_step` for the Cayley pair $\overline{\exp}(Y) = (I - Y/2)^{-1}(I + Y/2)$,
     $\overline{\log}(A) = 2(A + I)^{-1}(A - I)$ (Example 30), in closed form.
 
@@ -159,7 +163,10 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True):
     formed only for $Q^{n+1}$ (`outgoing`) or a potential evaluated at $Q^{n+1}$ (right scheme).
     The potential terms are those of `reduced_step`, with $G_Q = \Delta t\,\partial l/\partial Q$.
     Both momentum maps are evaluated as the polynomial `cayley_polynomial(red)` when the
-    algebra has one, else as the matrix products written here.
+    algebra has one, else as the matrix products written here, in the reduction's form
+    (`clebsch_jax.core.representation`): real matrices with ᵀ, or a declared representation's
+    own products and adjoint (complex n×n with ᴴ for `UnitaryAlgebra`, where the same
+    variations under the pairing Re tr(AᴴB) give the same formulas with ᵀ → ᴴ).
 
     **Round-off.** $\mu^{n+1}$ and $Q^{n+1}$ are formed as the old value plus an $O(\Delta t)$
     increment — $\mu^{n+1} = \mu^n + X^T(Y^TP - PY^T)$ (exact at the root, since
@@ -173,14 +180,16 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True):
     n = Y.shape[-1]
     eye = jnp.eye(n, dtype=Y.dtype)
     Fm = eye - 0.5 * Y
-    mm = _linalg.matmul
+    mm, dag = red.matmul, red.dagger  # the representation's products and adjoint (ᵀ or ᴴ)
     need_F = (outgoing and need_Q1) or (system.has_potential and scheme == "right")
     # F = lie.cayley_exp(Y), with its products written out for XLA to fuse
     # Q¹ = Q⁰F as Q⁰ + Q⁰(F − I), F − I = (I − Y/2)⁻¹Y: an O(Δt) increment (see the docstring)
-    Q1 = Q0 + mm(Q0, _linalg.solve(Fm, Y, unroll=True)) if need_F else None
+    Q1 = Q0 + red.from_ambient(mm(red.to_ambient(Q0), red.solve(Fm, Y))) if need_F else None
     Qa = Q0 if scheme == "left" else Q1
     if system.has_potential:
         g, g_Q = jax.grad(system.l, argnums=(0, 1))(xi, Qa)
+    elif gradient is not None:
+        g, g_Q = gradient, None
     else:
         g, g_Q = jax.grad(lambda x: system.l(x, Q0))(xi), None
     poly = cayley_polynomial(red)
@@ -189,14 +198,17 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True):
         r = mu - even - odd
     else:
         P = red.X_inv_adjoint(g)
-        r = mu - red.X_adjoint(mm(mm(Fm.T, P), (eye + 0.5 * Y).T))
+        if red.skew_adjoint:  # F₊† = F₋ when Y† = −Y: the sandwich is a congruence
+            r = mu - red.X_adjoint_congruence(dag(Fm), P)
+        else:
+            r = mu - red.X_adjoint(mm(mm(dag(Fm), P), dag(eye + 0.5 * Y)))
     if g_Q is not None and scheme == "left":
         r = r + dt * red.X_adjoint(mm(Q0.T, g_Q))
     if not outgoing:
         return r, None, Q1
     # μ¹ = Xᵀ(F₊ᵀPF₋ᵀ) as μ plus its increment: F₊ᵀPF₋ᵀ − F₋ᵀPF₊ᵀ = YᵀP − PYᵀ, and at the
-    # root Xᵀ(F₋ᵀPF₊ᵀ) = μ (+ the left potential term)
-    mu1 = mu - 2.0 * odd if poly is not None else mu + red.X_adjoint(mm(Y.T, P) - mm(P, Y.T))
+    # root Xᵀ(F₋ᵀPF₊ᵀ) = μ (+ the left potential term); ᵀ is the representation's adjoint
+    mu1 = mu - 2.0 * odd if poly is not None else mu + red.X_adjoint(mm(dag(Y), P) - mm(P, dag(Y)))
     if g_Q is not None and scheme == "left":
         mu1 = mu1 + dt * red.X_adjoint(mm(Q0.T, g_Q))
     if g_Q is not None and scheme == "right":

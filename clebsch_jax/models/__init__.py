@@ -20,6 +20,7 @@ from ._epdiff import landmark_momenta as landmark_momenta
 from ._epdiff import landmark_field as landmark_field
 from ._epdiff import landmark_angular_momentum as landmark_angular_momentum
 from ._euler_sphere import euler_sphere as euler_sphere
+from ._euler_sphere import EULER_SPHERE_FORMS as EULER_SPHERE_FORMS
 from ._euler_sphere import euler_sphere_hbar as euler_sphere_hbar
 from ._euler_sphere import euler_sphere_laplacian as euler_sphere_laplacian
 from ._euler_sphere import euler_sphere_inverse_laplacian as euler_sphere_inverse_laplacian
@@ -91,6 +92,7 @@ __all__ = [
     "landmark_field",
     "landmark_angular_momentum",
     "euler_sphere",
+    "EULER_SPHERE_FORMS",
     "euler_sphere_hbar",
     "euler_sphere_laplacian",
     "euler_sphere_inverse_laplacian",

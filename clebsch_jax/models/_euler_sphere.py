@@ -27,32 +27,42 @@ isospectral midpoint method of Modin & Viviani (J. Fluid Mech. 2020):
 $\mu^{n+1} = C\mu^nC^{-1}$ with $C$ a Cayley transform, so the Casimirs $\mathrm{tr}(W^k)$
 are conserved to round-off.
 
-**The real form.** The engine works with real arrays (its pairings are the real Frobenius
-product and its gradients `jax.grad` of real functions), so $\mathfrak{gl}(N, \mathbb C)$ is
-represented in $\mathfrak{gl}(2N, \mathbb R)$ by
+**Two forms.** The default, `form="unitary"`, declares the group by its velocity map,
+`clebsch_jax.UnitaryAlgebra(N)`: ξ is a real N×N matrix S of coordinates of
+$Z(S) = \tfrac12(S - S^T) + \tfrac i2(S + S^T) \in \mathfrak u(N)$ (dim V = N², the Frobenius
+product of S the pairing $\mathrm{Re\,tr}(Z_1^HZ_2)$), and the reduced step computes with
+complex N×N matrices. The Lagrangian is
+
+$$ l(S) = \hbar\,\langle S, -\hat\Delta_N S\rangle = \hbar\,\mathrm{Re\,tr}\big(Z^H(-\hat\Delta_N Z)\big), $$
+
+($\Delta_N$ has real coefficients and commutes with transposition, so it acts on S as on Z),
+with $-\hat\Delta_N M = -\Delta_N M + \kappa\tfrac{\mathrm{tr}\,M}{N}I$: $-\Delta_N$ on the
+trace-free part, κ on the centre ($\Delta_N$ is singular there), which makes the Legendre map
+invertible, $S = (-\hat\Delta_N)^{-1}\mu/(2\hbar)$ (`inverse_legendre`, by tridiagonal solves).
+Its momentum is $\mu = 2\,s(W)$, twice the coordinates of the vorticity matrix
+($W = \tfrac12 Z(\mu)$, `euler_sphere_vorticity`), and its energy is that of the real form.
+
+`form="real"` represents $\mathfrak{gl}(N, \mathbb C)$ in $\mathfrak{gl}(2N, \mathbb R)$ by
 
 $$ R(A + iB) = \begin{pmatrix} A & -B \\ B & A \end{pmatrix}, \qquad R(Z_1Z_2) = R(Z_1)R(Z_2),
-   \quad \langle R(Z_1), R(Z_2)\rangle = 2\,\mathrm{Re\,tr}(Z_1^HZ_2) . $$
+   \quad \langle R(Z_1), R(Z_2)\rangle = 2\,\mathrm{Re\,tr}(Z_1^HZ_2) , $$
 
-$Q$ and $\xi$ are real $2N\times2N$ matrices; the velocity map is $Q\xi$ on all of
-$\mathfrak{gl}(2N, \mathbb R)$ (closed: the engine's reduction takes it, `MatrixAlgebraReduction`),
-and the Lagrangian is
+with real 2N×2N matrices Q and ξ, the velocity map $Q\xi$ on all of
+$\mathfrak{gl}(2N, \mathbb R)$ (the engine finds the reduction itself,
+`MatrixAlgebraReduction`) and
 
-$$ l(\xi) = \tfrac\hbar2\big\langle \xi,\ K\xi \big\rangle, \qquad
-   K\xi = R\big(-\hat\Delta_N W(\xi)\big) + \big(\xi - R(W(\xi))\big) , $$
+$$ l(\xi) = \tfrac\hbar2\big\langle \xi,\ K\xi\big\rangle, \qquad
+   K\xi = R\big(-\hat\Delta_N W(\xi)\big) + \kappa\big(\xi - R(W(\xi))\big) , $$
 
-with $W(\xi)$ the skew-Hermitian part of the complex matrix $\xi$ represents and
-$-\hat\Delta_N W = -\Delta_NW + \tfrac{\mathrm{tr}\,W}{N}I$: $-\Delta_N$ on the trace-free part,
-the identity on the centre ($\Delta_N$ is singular there) and on the complement of
-$R(\mathfrak u(N))$. Both additions make the Legendre map invertible, $\xi = K^{-1}\mu/\hbar$
-(`inverse_legendre`, by tridiagonal solves). Data in $R(\mathfrak u(N))$ stay there (the
-gradient of l maps it to itself, and it is a subalgebra), the vorticity has zero mean
-(Gauss: $\int\omega = 0$ on a closed surface) and $\mathrm{tr}\,\mu$ is a Casimir, so the
-additions only fix the trace part of ξ, which in the Cayley step is of order $\Delta t^2$
-(Modin and Viviani take it zero, the limit κ → ∞; both are isospectral and of order 2).
+$W(\xi)$ the skew-Hermitian part of the complex matrix ξ represents: κ also on the complement
+of $R(\mathfrak u(N))$. Its momentum is $R(W)$. It carries 4N² numbers for the N² of
+$\mathfrak u(N)$ and its products cost twice the flops of complex ones; both forms step the
+same vorticity (the tests compare them).
 
-Matrix products cost twice what complex $N\times N$ products would (8 against 4 real
-multiplications per complex one).
+In both, data in $\mathfrak u(N)$ stay there, the vorticity has zero mean (Gauss:
+$\int\omega = 0$ on a closed surface) and $\mathrm{tr}\,\mu$ is a Casimir, so κ only fixes
+the trace part of ξ, which in the Cayley step is of order $\Delta t^2$ (Modin and Viviani take
+it zero, the limit κ → ∞; both are isospectral and of order 2).
 """
 
 from __future__ import annotations
@@ -63,11 +73,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.derivative_maps import DerivativeMap, cayley
+from ..core.derivative_maps import CayleyDifference, DerivativeMap, cayley
+from ..core.representation import UnitaryAlgebra
 from ..core.system import ClebschSystem
+from ._euler_sphere_laplacian import (
+    check_N,
+    euler_sphere_hbar,
+    neg_laplacian_hat,
+    neg_laplacian_hat_inverse,
+    outer_weight,
+)
 
 __all__ = [
     "euler_sphere",
+    "EULER_SPHERE_FORMS",
     "euler_sphere_hbar",
     "euler_sphere_laplacian",
     "euler_sphere_inverse_laplacian",
@@ -81,118 +100,14 @@ __all__ = [
 ]
 
 
-def euler_sphere_hbar(N: int) -> float:
-    r"""$\hbar = 2/\sqrt{N^2 - 1}$: the scale at which $\tfrac1\hbar[\hat f, \hat g]$ quantises the
-    Poisson bracket $\{f, g\}$ of the unit sphere."""
-    return 2.0 / np.sqrt(N * N - 1.0)
+EULER_SPHERE_FORMS = ("unitary", "real")
+"""The forms of `euler_sphere` (module docstring): the first is the default."""
 
 
-def check_N(N) -> int:
-    if isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2:
-        raise ValueError(f"N: expected an integer matrix size N >= 2, got {N!r}.")
-    return int(N)
-
-
-@functools.lru_cache(maxsize=16)
-def laplacian_data(N: int):
-    r"""NumPy constants of $\Delta_N$ for size N: the coefficients of its entrywise form, its
-    tridiagonal matrices along the diagonals 1..N−1 (skewed: row k holds diagonal k, padded with
-    identity rows) and the eigen-decomposition of its (singular) matrix on diagonal 0."""
-    s = 0.5 * (N - 1)
-    m = s - np.arange(N)  # J3's eigenvalues, row 0 the north pole
-    c = np.sqrt(np.maximum(s * (s + 1) - m * (m + 1), 0.0))  # (J+)_{i-1,i} = c_i, c_0 = 0
-    c_next = np.append(c[1:], 0.0)  # c_{i+1}, 0 past the last row
-    centre = -2 * s * (s + 1) + 2 * np.outer(m, m)
-    up = np.outer(c_next, c_next)  # coefficient of P[i+1, j+1]
-    down = np.outer(c, c)  # coefficient of P[i-1, j-1]
-    # along diagonal k (entries (i, i+k)): d_i = centre[i, i+k], coupling (i, i+1): up[i, i+k]
-    k, i = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
-    valid = i < N - k
-    j = np.where(valid, i + k, 0)
-    d = np.where(valid, centre[i, j], 1.0)
-    inner = valid & (i + 1 < N - k)
-    e = np.where(inner, up[i, j], 0.0)  # A[i, i+1] = A[i+1, i] on diagonal k
-    du, dl = e, np.concatenate([np.zeros((N, 1)), e[:, :-1]], axis=1)
-    # the singular diagonal 0: its eigenbasis, with -Δ̂'s eigenvalue κ on the constant
-    T0 = np.diag(d[0]) + np.diag(e[0, :-1], 1) + np.diag(e[0, :-1], -1)
-    lam, V0 = np.linalg.eigh(-T0)  # l(l+1) ascending, l = 0 first
-    lam_hat = np.concatenate([[_outer_weight(N)], lam[1:]])
-    # The Thomas factors of diagonals 1..N−1 (their matrices are constant): the elimination
-    # T = L U with unit upper U, U[i, i+1] = upper[i], and pivots pivot[i]. Diagonals k ≥ 1 hold
-    # only degrees l ≥ k ≥ 1, so these matrices are definite and need no pivoting.
-    pivot, upper = np.empty((N - 1, N)), np.empty((N - 1, N))
-    pivot[:, 0], upper[:, 0] = d[1:, 0], e[1:, 0] / d[1:, 0]
-    for r in range(1, N):
-        pivot[:, r] = d[1:, r] - e[1:, r - 1] * upper[:, r - 1]
-        upper[:, r] = e[1:, r] / pivot[:, r]
-    return dict(
-        centre=centre,
-        up=up,
-        down=down,
-        rows=np.where(valid, i, 0),
-        cols=j,
-        valid=valid,
-        d=d,
-        du=du,
-        dl=dl,
-        V0=V0,
-        inv0=(V0 / lam_hat) @ V0.T,
-        pivot=pivot,
-        upper=upper,
-        lower=dl[1:],
-    )
-
-
-def _neg_laplacian_hat(M):
-    r"""$-\hat\Delta_N M = -\Delta_N M + \kappa\tfrac{\mathrm{tr}\,M}{N}I$ for real (..., N, N) M (the real
-    and imaginary parts of a complex matrix separately: $\Delta_N$ has real coefficients)."""
-    N = M.shape[-1]
-    D = laplacian_data(N)
-    Mp = jnp.pad(M, [(0, 0)] * (M.ndim - 2) + [(0, 1), (0, 1)])
-    Mm = jnp.pad(M, [(0, 0)] * (M.ndim - 2) + [(1, 0), (1, 0)])
-    lap = D["centre"] * M + D["up"] * Mp[..., 1:, 1:] + D["down"] * Mm[..., :-1, :-1]
-    trace = jnp.trace(M, axis1=-2, axis2=-1)[..., None, None] / N
-    return -lap + _outer_weight(N) * trace * jnp.eye(N, dtype=M.dtype)
-
-
-def _neg_laplacian_hat_inverse(M):
-    r"""$(-\hat\Delta_N)^{-1}M$ for real (..., N, N) M: the upper diagonals of M and of $M^T$ are
-    solved along each diagonal (N − 1 tridiagonal systems each, batched), diagonal 0 in its
-    eigenbasis (where $\Delta_N$ is singular); O(N²) work per matrix."""
-    N = M.shape[-1]
-    D = laplacian_data(N)
-    both = jnp.stack([M, jnp.swapaxes(M, -1, -2)], axis=-3)  # (..., 2, N, N)
-    skewed = jnp.where(D["valid"], both[..., D["rows"], D["cols"]], 0.0)  # row k: diagonal k
-    sol = _thomas(D, -skewed[..., 1:, :])
-    diag0 = skewed[..., 0, :] @ jnp.asarray(D["inv0"], M.dtype)  # inv0 is symmetric
-    solved = jnp.concatenate([diag0[..., None, :], sol], axis=-2)  # (..., 2, N, N), row k: diagonal k
-    i, j = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
-    upper = solved[..., 0, np.clip(j - i, 0, None), i]  # P[i, j] = diagonal j−i at row i, j >= i
-    lower = solved[..., 1, np.clip(i - j, 0, None), j]  # from the transposed matrix, i > j
-    return jnp.where(j >= i, upper, lower)
-
-
-def _thomas(D, rhs):
-    r"""Solve $\Delta_N$'s tridiagonal systems of diagonals 1..N−1 for `rhs` (..., N − 1, N)
-    (row k: diagonal k), with the constant factors of `laplacian_data`: a forward and a
-    backward substitution, each one scan over the N entries of every diagonal at once."""
-    along = jnp.moveaxis(rhs, -1, 0)  # (N, ..., N − 1): entry i of every diagonal
-    factors = {name: jnp.asarray(D[name].T, rhs.dtype) for name in ("pivot", "upper", "lower")}
-
-    def forward(y, row):
-        b, lower, pivot = row
-        y = (b - lower * y) / pivot
-        return y, y
-
-    def backward(x, row):
-        y, upper = row
-        x = y - upper * x
-        return x, x
-
-    zero = jnp.zeros_like(along[0])
-    _, y = jax.lax.scan(forward, zero, (along, factors["lower"], factors["pivot"]))
-    _, x = jax.lax.scan(backward, zero, (y, factors["upper"]), reverse=True)
-    return jnp.moveaxis(x, 0, -1)
+def check_form(form) -> str:
+    if form not in EULER_SPHERE_FORMS:
+        raise ValueError(f"form: expected one of {EULER_SPHERE_FORMS}, got {form!r}.")
+    return form
 
 
 @jax.jit
@@ -201,10 +116,10 @@ def euler_sphere_laplacian(W):
     O(N²) work). Its eigenvalues are $-l(l+1)$, the spherical harmonics' degree l ≤ N − 1."""
     W = jnp.asarray(W)
     N = W.shape[-1]
-    trace = jnp.trace(W, axis1=-2, axis2=-1)[..., None, None] / N * jnp.eye(N) * _outer_weight(N)
+    trace = jnp.trace(W, axis1=-2, axis2=-1)[..., None, None] / N * jnp.eye(N) * outer_weight(N)
     if jnp.iscomplexobj(W):
-        return -(_neg_laplacian_hat(W.real) + 1j * _neg_laplacian_hat(W.imag)) + trace
-    return -_neg_laplacian_hat(W) + trace
+        return -(neg_laplacian_hat(W.real) + 1j * neg_laplacian_hat(W.imag)) + trace
+    return -neg_laplacian_hat(W) + trace
 
 
 @jax.jit
@@ -217,8 +132,8 @@ def euler_sphere_inverse_laplacian(W):
     eye = jnp.eye(N)
     centred = W - jnp.trace(W, axis1=-2, axis2=-1)[..., None, None] / N * eye
     if jnp.iscomplexobj(W):
-        return -(_neg_laplacian_hat_inverse(centred.real) + 1j * _neg_laplacian_hat_inverse(centred.imag))
-    return -_neg_laplacian_hat_inverse(centred)
+        return -(neg_laplacian_hat_inverse(centred.real) + 1j * neg_laplacian_hat_inverse(centred.imag))
+    return -neg_laplacian_hat_inverse(centred)
 
 
 @jax.jit
@@ -256,11 +171,19 @@ def euler_sphere_complex_form(X):
     return 0.5 * (X11 + X22) + 0.5j * (X21 - X12)
 
 
-@jax.jit
-def euler_sphere_vorticity(mu):
-    r"""The vorticity matrix $W \in \mathfrak u(N)$ (complex) of the model's momentum μ, real
-    (..., 2N, 2N): `Solution.momentum` → vorticity matrices."""
-    A, B = _skew_hermitian_parts(jnp.asarray(mu))
+def euler_sphere_vorticity(mu, form: str = "unitary"):
+    r"""The vorticity matrix $W \in \mathfrak u(N)$ (complex) of the model's momentum μ:
+    `Solution.momentum` → vorticity matrices. `form` is the model's (`euler_sphere`): for
+    "unitary", μ is real (..., N, N) and $W = \tfrac12 Z(\mu)$; for "real", μ is real
+    (..., 2N, 2N) and W is the skew-Hermitian part of the complex matrix it represents."""
+    return _vorticity(jnp.asarray(mu), check_form(form))
+
+
+@functools.partial(jax.jit, static_argnames="form")
+def _vorticity(mu, form):
+    if form == "unitary":
+        return 0.5 * UnitaryAlgebra(mu.shape[-1]).X(mu)
+    A, B = _skew_hermitian_parts(mu)
     return A + 1j * B
 
 
@@ -282,20 +205,11 @@ class _Operator:
 
 def _apply_K(X, inverse: bool):
     A, B = _skew_hermitian_parts(X)
-    op = _neg_laplacian_hat_inverse if inverse else _neg_laplacian_hat
+    op = neg_laplacian_hat_inverse if inverse else neg_laplacian_hat
     on_u = op(jnp.stack([A, B]))
     projected = _real(A, B)
-    kappa = _outer_weight(X.shape[-1] // 2)
+    kappa = outer_weight(X.shape[-1] // 2)
     return _real(on_u[0], on_u[1]) + (X - projected) * (1.0 / kappa if inverse else kappa)
-
-
-def _outer_weight(N: int) -> float:
-    r"""κ = N², the weight of l on the centre of $\mathfrak u(N)$ and on the complement of
-    $R(\mathfrak u(N))$: above every eigenvalue $l(l+1) \le N(N-1)$ of $-\Delta_N$, so that
-    the velocity of a stray component of the momentum there (round-off of the products) is
-    smaller than that of any mode of the fluid: the step's sweeps contract on it fastest, and
-    it does not feed back into the march."""
-    return float(N * N)
 
 
 class _Lagrangian(_Operator):
@@ -305,22 +219,30 @@ class _Lagrangian(_Operator):
         return _kinetic(xi)
 
 
-@jax.custom_jvp
-def _kinetic(xi):
-    r"""$\tfrac\hbar2\langle\xi, K\xi\rangle$, with its derivative $\langle\hbar K\xi, \dot\xi\rangle$
-    stated (`_kinetic_jvp`): K is symmetric (an orthogonal projection onto $R(\mathfrak u(N))$,
-    $-\hat\Delta_N$ on it and κ on its complement), so $\nabla l = \hbar K\xi$ is one
+def _symmetric_quadratic(apply_K, weight):
+    r"""$x \mapsto c\,\langle x, Kx\rangle$ for a symmetric K (`apply_K`) and $c$ = `weight(x)` (a
+    function of x's shape), with its derivative $2c\langle Kx, \dot x\rangle$ stated: one
     application of K, where reverse mode through the quadratic form would apply K and its
     transpose (the pads and slices of the Laplacian transposed) and average them."""
-    return 0.5 * euler_sphere_hbar(xi.shape[-1] // 2) * jnp.sum(xi * _apply_K(xi, inverse=False))
+
+    @jax.custom_jvp
+    def quadratic(x):
+        return weight(x) * jnp.sum(x * apply_K(x))
+
+    @quadratic.defjvp
+    def _jvp(primals, tangents):
+        (x,), (x_dot,) = primals, tangents
+        c, K_x = weight(x), apply_K(x)
+        return c * jnp.sum(x * K_x), 2.0 * c * jnp.sum(K_x * x_dot)
+
+    return quadratic
 
 
-@_kinetic.defjvp
-def _kinetic_jvp(primals, tangents):
-    (xi,), (xi_dot,) = primals, tangents
-    hbar = euler_sphere_hbar(xi.shape[-1] // 2)
-    K_xi = _apply_K(xi, inverse=False)
-    return 0.5 * hbar * jnp.sum(xi * K_xi), hbar * jnp.sum(K_xi * xi_dot)
+_kinetic = _symmetric_quadratic(
+    lambda xi: _apply_K(xi, inverse=False), lambda xi: 0.5 * euler_sphere_hbar(xi.shape[-1] // 2)
+)
+r"""$\tfrac\hbar2\langle\xi, K\xi\rangle$ of the real form: K is symmetric (an orthogonal
+projection onto $R(\mathfrak u(N))$, $-\hat\Delta_N$ on it and κ on its complement)."""
 
 
 class _InverseLegendre(_Operator):
@@ -330,28 +252,60 @@ class _InverseLegendre(_Operator):
         return _apply_K(mu, inverse=True) / euler_sphere_hbar(self.N)
 
 
+class _UnitaryLagrangian(_Operator):
+    r"""$l(S) = \hbar\langle S, -\hat\Delta_N S\rangle$ (the unitary form: module docstring)."""
+
+    def __call__(self, xi):
+        return _kinetic_unitary(xi)
+
+
+_kinetic_unitary = _symmetric_quadratic(neg_laplacian_hat, lambda S: euler_sphere_hbar(S.shape[-1]))
+r"""$\hbar\langle S, -\hat\Delta_N S\rangle$ of the unitary form ($-\hat\Delta_N$ is symmetric)."""
+
+
+class _UnitaryInverseLegendre(_Operator):
+    r"""$S = (-\hat\Delta_N)^{-1}\mu/(2\hbar)$: the velocity whose momentum is μ."""
+
+    def __call__(self, mu, Q=None):
+        return neg_laplacian_hat_inverse(mu) / (2.0 * euler_sphere_hbar(self.N))
+
+
 def _right_multiplication(xi, Q):
     return Q @ xi
 
 
-def euler_sphere(N: int, derivative_map: DerivativeMap = cayley) -> ClebschSystem:
+def euler_sphere(N: int, derivative_map: DerivativeMap = cayley, *, form: str = "unitary") -> ClebschSystem:
     r"""Incompressible Euler on the unit sphere, quantised at size N (Euler–Zeitlin), as a
-    Clebsch system on $U(N)$ in its real form (module docstring).
+    Clebsch system on $U(N)$ (module docstring).
 
-    - $Q \in U(N)$ and $\xi$ are real 2N×2N matrices, velocity map $\mathcal L_\xi Q = Q\xi$
-      (right multiplication: closed, so `integrate` runs the reduced march);
-    - $l(\xi) = \tfrac\hbar2\langle\xi, K\xi\rangle$, the kinetic energy
-      $\tfrac\hbar2\langle\xi, -\Delta_N\xi\rangle$ on $\mathfrak u(N)$;
-    - its momentum $\mu = \hbar K\xi$ is the real form $R(W)$ of the vorticity matrix
-      (`euler_sphere_vorticity`), and $\xi = R(-P)/\hbar$ with $\Delta_N P = W$;
-    - derivative map: `clebsch_jax.cayley` (default: the isospectral midpoint method) or
-      `clebsch_jax.exponential`;
-    - `inverse_legendre`: $\xi = K^{-1}\mu/\hbar$ by tridiagonal solves, which the reduced
-      march's fixed-point sweeps use as their preconditioner (no N²×N² matrix anywhere).
+    - `form="unitary"` (default): ξ and the momentum are real N×N matrices of coordinates of
+      $\mathfrak u(N)$, the velocity map `clebsch_jax.UnitaryAlgebra(N)` (right multiplication,
+      declared with its complex products), Q a real 2N×2N matrix (the real form of a unitary
+      one); $l(S) = \hbar\langle S, -\hat\Delta_N S\rangle$, the kinetic energy. The reduced
+      step computes with complex N×N matrices. Cayley map only (`derivative_map=cayley`).
+    - `form="real"`: Q and ξ real 2N×2N matrices, velocity map $Q\xi$,
+      $l(\xi) = \tfrac\hbar2\langle\xi, K\xi\rangle$; derivative map `clebsch_jax.cayley`
+      or `clebsch_jax.exponential`.
+    - In both, the momentum gives the vorticity matrix (`euler_sphere_vorticity(mu, form)`),
+      `integrate` runs the reduced march (the isospectral midpoint method for the Cayley map),
+      and `inverse_legendre` (tridiagonal solves) preconditions its fixed-point sweeps (no
+      N²×N² matrix anywhere).
 
-    Start from `euler_sphere_start(W)`, with W from `euler_sphere_quantise`.
+    Start from `euler_sphere_start(W, form)`, with W from `euler_sphere_quantise`.
     """
     N = check_N(N)
+    if check_form(form) == "unitary":
+        if not isinstance(derivative_map, CayleyDifference):
+            raise ValueError(
+                f"derivative_map: the unitary form computes the Cayley step in complex matrices; got "
+                f"{derivative_map!r}: use clebsch_jax.cayley, or form='real' for other maps."
+            )
+        return ClebschSystem(
+            lagrangian=_UnitaryLagrangian(N),
+            velocity_map=UnitaryAlgebra(N),
+            derivative_map=derivative_map,
+            inverse_legendre=_UnitaryInverseLegendre(N),
+        )
     return ClebschSystem(
         lagrangian=_Lagrangian(N),
         velocity_map=_right_multiplication,
@@ -360,22 +314,26 @@ def euler_sphere(N: int, derivative_map: DerivativeMap = cayley) -> ClebschSyste
     )
 
 
-def euler_sphere_start(W):
-    r"""`(Q0, xi0)` for `integrate(euler_sphere(N), Q0, xi0, ...)` from a vorticity matrix W
-    (complex N×N, skew-Hermitian and trace-free; e.g. `euler_sphere_quantise(coeffs)`):
-    $Q_0 = I$ (2N×2N) and $\xi_0 = R(-P)/\hbar$, $\Delta_N P = W$."""
+def euler_sphere_start(W, form: str = "unitary"):
+    r"""`(Q0, xi0)` for `integrate(euler_sphere(N, form=form), Q0, xi0, ...)` from a vorticity
+    matrix W (complex N×N, skew-Hermitian and trace-free; e.g. `euler_sphere_quantise(coeffs)`):
+    $Q_0 = I$ (2N×2N) and ξ0 the velocity of stream matrix P, $\Delta_N P = W$: the coordinates
+    S of $Z(S) = -P/\hbar$ (N×N, unitary form) or $R(-P)/\hbar$ (2N×2N, real form)."""
     W = jnp.asarray(W)
     if W.ndim != 2 or W.shape[0] != W.shape[1]:
         raise ValueError(f"W: expected a square N x N vorticity matrix, got shape {W.shape}.")
     N = W.shape[0]
     check_N(N)
-    return _start(W.astype(jnp.complex128))
+    return _start(W.astype(jnp.complex128), check_form(form))
 
 
-@jax.jit
-def _start(W):
+@functools.partial(jax.jit, static_argnames="form")
+def _start(W, form):
     N = W.shape[0]
-    xi0 = _InverseLegendre(N)(euler_sphere_real_form(W))
+    if form == "unitary":  # μ = 2 s(W), s(W) = Re W + Im W the coordinates of W
+        xi0 = _UnitaryInverseLegendre(N)(2.0 * (W.real + W.imag))
+    else:
+        xi0 = _InverseLegendre(N)(euler_sphere_real_form(W))
     return jnp.eye(2 * N, dtype=xi0.dtype), xi0
 
 

@@ -4,7 +4,7 @@ $T_{lm}$ (`euler_sphere_quantise`) and back (`euler_sphere_coefficients`), and t
 vorticity matrix on a grid or as an orthographic image, for initial conditions and plots.
 
 The $T_{lm}$ are the eigenvectors of the Hoppe–Yau Laplacian $\Delta_N$ along each diagonal
-(`_euler_sphere.laplacian_data`), normalised and phased as the spherical harmonics."""
+(`_euler_sphere_laplacian.laplacian_data`), normalised and phased as the spherical harmonics."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._euler_sphere import check_N, laplacian_data
+from ._euler_sphere_laplacian import check_N, laplacian_data
 
 __all__ = [
     "euler_sphere_quantise",

@@ -152,8 +152,8 @@ class ReducedStep(PrincipleStep):
         guess = xi_last + predict(n, jnp.zeros_like(xi_last), history, deg)
         if self._sweeps:
             reuse = False
-            xi, stats = self._sweep(system, residual, guess, Q)
-            _, (mu1, Q1) = finish(xi)
+            xi, g, stats = self._sweep(system, red, principle, h, mu, Q, guess)
+            _, mu1, Q1 = reduced_step(system, red, principle, h, mu, Q, xi, need_Q1=carry_Q, gradient=g)
         else:
             reuse = False if self._fresh(system) else (n > 0) | ~alive
             xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(
@@ -166,17 +166,27 @@ class ReducedStep(PrincipleStep):
         # the next step's choice of differences, carried (`degree`)
         return (mu1, Q1 if carry_Q else Q, xi), (history, H, degree(n + 1, history)), (xi, Q1), stats
 
-    def _sweep(self, system, residual, guess, Q):
+    def _sweep(self, system, red, principle, h, mu, Q, guess):
         r"""The step's root by sweeps (`FixedPoint`'s stopping rule and statuses), made on the
         momentum $g = \nabla l(\xi)$ rather than on ξ: $g \leftarrow g + r(G(g))$, then
         $\xi = G(g)$. The same iterates as $\xi \leftarrow G(\nabla l(\xi) + r(\xi))$, but the
         sizes the stopping rule judges are those of the momentum, whose round-off is that of
         the residual's terms; G (a solve with $\nabla^2 l$, e.g. an inverse Laplacian) would
-        amplify it unevenly across the components of ξ."""
+        amplify it unevenly across the components of ξ. Without a potential, the residual at
+        $\xi = G(g)$ takes g itself as $\nabla l(\xi)$ (equal up to the round-off of G and
+        ∇l): a sweep applies G once and not ∇l, and the outgoing momentum is formed from the
+        same g. **Returns:** `(xi, g, stats)`."""
         G = system.inverse_legendre
+        given = not system.has_potential
+
+        def sweep(g):
+            xi = G(g, Q)
+            r, _, _ = reduced_step(system, red, principle, h, mu, Q, xi, outgoing=False, gradient=g if given else None)
+            return g + r
+
         g0 = jax.grad(lambda y: system.l(y, Q))(guess)
-        g, stats = self.root_finder.solve(lambda g: g + residual(G(g, Q)), g0)
-        return G(g, Q), stats
+        g, stats = self.root_finder.solve(sweep, g0)
+        return G(g, Q), (g if given else None), stats
 
     def nodes(self, system, state0, states, outs) -> Nodes:
         mu0, Qc0, xi0 = state0
