@@ -3,6 +3,8 @@ its order against an independent solve, the structure it keeps, and how it fails
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -129,6 +131,45 @@ def test_high_orders_with_large_steps():
     assert errs[2] < 1e-11, errs
     low = cj.integrate(vec, Q0, PI0 / TEST_INERTIA, P0=P0, dt=0.5, n_steps=int(2 * T), scheme="gauss", order=8)
     assert np.max(np.abs(np.asarray(low.momentum[-1]) - Pi_ref)) > 1e4 * errs[2]
+
+
+@pytest.mark.slow  # compiles the native kernel of an 8-stage step (LLVM, tens of seconds); native Gauss
+# stays in the default run through test_native_integrate's order 4
+def test_order_16_sweep_runs_natively_under_auto(tmp_path, monkeypatch):
+    """Gauss–Legendre 16 on R³: the sweep's per-member program is within `backend="auto"`'s
+    compile budget (`native.AUTO_MAX_IR_LINES`), so the sweep compiles its native kernel (an
+    object file in the disk cache, no fallback warning), and its bodies' momenta after 20 steps
+    of Δt = 1 match DOP853 (measured ≤ 2.7e-14; the bound leaves room for the reference's own
+    error, rtol 2.5e-14 over 20 time units), with |Π|² kept to round-off (measured ≤ 9e-16)."""
+    pytest.importorskip("llvmlite")
+    from clebsch_jax.batching.backends import NativeFallbackWarning
+
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+    T = 20.0
+    Pis = np.array([PI0, [0.6, 0.8, 0.0], [0.0, -0.28, 0.96]])
+    Q0, P0 = jax.vmap(cj.models.rigid_body_vector_start)(jnp.asarray(Pis))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NativeFallbackWarning)
+        res = cj.sweep(
+            cj.models.rigid_body_vector,
+            TEST_INERTIA[None],
+            Q0,
+            Pis / TEST_INERTIA,
+            P0=P0,
+            grid=True,
+            dt=1.0,
+            n_steps=int(T),
+            scheme="gauss",
+            order=16,
+        )
+    assert list(tmp_path.rglob("*.o"))  # the native kernel was compiled
+    assert len(res.failed_members) == 0
+    for Pi, final in zip(Pis, np.asarray(res.final_momentum)):
+        _, w = rigid_body_reference(
+            TEST_INERTIA, np.eye(3), Pi / TEST_INERTIA, np.array([0.0, T]), rtol=2.5e-14, atol=2.5e-14
+        )
+        assert np.max(np.abs(final - w[-1] * TEST_INERTIA)) < 1e-12
+        assert abs(final @ final - Pi @ Pi) < 1e-14
 
 
 def test_first_step_from_substeps_and_steps_near_the_limit():

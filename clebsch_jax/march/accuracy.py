@@ -32,12 +32,13 @@ stays bounded, at $O(h^p)$, far below the global error of long runs (benchmarks/
    same plan.
 
 **Candidates** (`DEFAULT_CANDIDATES`): the system's second-order default (loose accuracies, short
-runs) and Gauss–Legendre of orders 4, 6 and 8 (the orders the native backend compiles).
+runs) and Gauss–Legendre of orders 4, 6 and 8 (the orders the committed ensemble runs measured
+natively).
 Compositions of orders 4–8 are left out: in both ensembles of
 `benchmarks/results/work_precision_ensembles.json` (64 rigid bodies to T = 10⁴, 16 four-vortex
 clusters to T = 10³) a Gauss–Legendre point reached each of their errors for less time. Gauss
-orders 12 and 16 (`benchmarks/results/work_precision_long.json`) can be added with
-`candidates=`. The relative costs of a stage-sweep, a Newton solve, a Newton update and a step's other
+orders 12 and 16 (`benchmarks/results/work_precision_long.json`; they compile natively too where
+the member's program is small, as for the body on R³) can be added with `candidates=`. The relative costs of a stage-sweep, a Newton solve, a Newton update and a step's other
 work are a fit to that file's native rigid-body points (`clebsch_jax.march.pilot`: `STEP_COST`,
 `NEWTON_SOLVE_COST`, `NEWTON_UPDATE_COST`): on other systems they are a guide.
 
