@@ -1,7 +1,8 @@
 """Native kernels (issue "Native kernels"): the documented sweep against the hardware's yardsticks.
 
-Run: `python benchmarks/native.py` (`--quick` for a smoke run). Four parts, in one process
-(the compile part in fresh child processes):
+Run: `python benchmarks/native.py` (`--quick` for a smoke run; `--threads-only` for the threads
+part alone, written to `native_threads.json`). Four parts, in one process (the compile part in
+fresh child processes):
 
 1. **Rigid-body sweep** — `cj.sweep(rigid_body, …, reconstruct=False)` with default options
    (`backend="auto"`: the per-member program as a native kernel, `clebsch_jax.native`), the same
@@ -224,15 +225,7 @@ def vortex_case(N: int, batch: int, n_steps: int, run: harness.Run) -> dict:
     return row
 
 
-def print_report(summary: dict) -> None:
-    harness.print_header(
-        summary,
-        "Native kernels",
-        f"Free rigid body {INERTIA}, reduced CAY march (reconstruct=False), dt = {rigid.DT}; "
-        "the sweep keeps final states and energy errors only.",
-    )
-    rows = [r for r in summary["results"] if r["part"] == "sweep"]
-    names = [m for m in ("sweep", "sweep_xla", HAND, C_SIMD, RK4) if rows and m in rows[0]]
+def _print_sweep(rows: list, names: list) -> None:
     print("\nM body-steps/s (compile s):")
     harness.print_table(
         f"{'B':>8}{'steps':>6} |" + "".join(f"{m:>22}" for m in names) + " | sweep/C | sweep/hand | sweep/xla",
@@ -252,6 +245,19 @@ def print_report(summary: dict) -> None:
         "native vs XLA sweep, max |final momentum difference|: "
         + "; ".join(f"B={r['batch']}: {r['sweep']['max_abs_final_momentum_diff_vs_xla']:.1e}" for r in rows)
     )
+
+
+def print_report(summary: dict) -> None:
+    harness.print_header(
+        summary,
+        "Native kernels",
+        f"Free rigid body {INERTIA}, reduced CAY march (reconstruct=False), dt = {rigid.DT}; "
+        "the sweep keeps final states and energy errors only.",
+    )
+    rows = [r for r in summary["results"] if r["part"] == "sweep"]
+    names = [m for m in ("sweep", "sweep_xla", HAND, C_SIMD, RK4) if rows and m in rows[0]]
+    if rows:
+        _print_sweep(rows, names)
     for r in (r for r in summary["results"] if r["part"] == "threads"):
         print(
             f"\nThreads (B={r['batch']}): 1 thread {r['threads=1']['body_steps_per_second'] / 1e6:.3g}, "
@@ -320,14 +326,32 @@ def plot(summary: dict, path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
+def _plot_threads(summary: dict, path: Path) -> None:
+    """`--threads-only`: two threads over one, the sweep's beside the C kernel's."""
+    fig, ax = harness.figure((1,), size=(5, 3.6))
+    r = next(r for r in summary["results"] if r["part"] == "threads")
+    bars = {"sweep": r["two_over_one"], "C kernel": r.get("c_two_over_one", float("nan"))}
+    ax.bar(list(bars), list(bars.values()), color=["C2", "k"])
+    ax.axhline(TARGETS["two_threads_over_one"], color="C3", ls="--", label="target")
+    ax.set_ylabel(f"2 threads / 1 thread (B = {r['batch']})")
+    ax.legend(fontsize=8)
+    fig.suptitle(harness.plot_title(summary, "native threads"), fontsize=9)
+    fig.savefig(path, dpi=120)
+
+
 def _add_arguments(parser) -> None:
     parser.add_argument("--large", action="store_true", help="add B = 10^6 to the rigid-body sweep")
+    parser.add_argument(
+        "--threads-only",
+        action="store_true",
+        help="the threads part alone, written to native_threads.json (the other parts' results are kept)",
+    )
 
 
 def main(argv=None) -> dict:
     argv = sys.argv[1:] if argv is None else argv
     run = harness.Run(
-        RESULTS_NAME,
+        RESULTS_NAME + ("_threads" if "--threads-only" in argv else ""),
         argv,
         description="Native kernels against the hand JAX and C kernels, "
         "XLA's sweep and NumPy RK4 (see module docstring).",
@@ -335,11 +359,17 @@ def main(argv=None) -> dict:
     )
     default = SWEEP_DEFAULT + (SWEEP_LARGE if run.args.large else ())
     with run:
+        largest = (SWEEP_QUICK if run.quick else default)[-1]
+        threads = lambda: run.measure(  # noqa: E731
+            (largest,), (largest,), lambda B, n: f"threads B={B}", lambda B, n: threads_case(B, n, run)
+        )
+        if run.args.threads_only:
+            summary = run.summary(config={"inertia": list(INERTIA), "dt": rigid.DT}, results=threads(), targets=TARGETS)
+            return run.finish(summary, print_report, _plot_threads)
         rows = run.measure(
             default, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}", lambda B, n: rigid_case(B, n, run)
         )
-        largest = (SWEEP_QUICK if run.quick else default)[-1]
-        rows += run.measure((largest,), (largest,), lambda B, n: f"threads B={B}", lambda B, n: threads_case(B, n, run))
+        rows += threads()
         rows += run.measure(
             (COMPILE_CASE,), (COMPILE_QUICK,), lambda B, n: f"compile B={B}", lambda B, n: compile_case(B, n, run)
         )

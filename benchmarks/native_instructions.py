@@ -147,19 +147,40 @@ def counted_sweep(batch: int, n_steps: int):
     return np.array(counter[:], dtype=float), blocks, result
 
 
+def counted_integrate(n_steps: int):
+    """One `integrate(backend="native")` of the heavy top of `native_integrate.py` (its default
+    method, one chunk, compiled by a first call): (executions per block, the blocks, the
+    Solution). The first-step check's call and the chunk's are counted together."""
+    import native_integrate as top
+
+    call = lambda: cj.integrate(top.TOP, top.Q0, top.XI0, dt=top.DT, n_steps=n_steps, backend="native")  # noqa: E731
+    call()
+    counter, blocks = _COUNTER[0], [b + (_MACHINE.get(i, 0),) for i, b in enumerate(_BLOCKS)]
+    for i in range(len(blocks)):
+        counter[i] = 0
+    sol = call()
+    return np.array(counter[:], dtype=float), blocks, sol
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=64)
     parser.add_argument("--steps", type=int, nargs=2, default=(40, 240), metavar=("N1", "N2"))
     parser.add_argument("--profile", action="store_true", help="list the blocks by instructions per step")
+    parser.add_argument(
+        "--integrate",
+        action="store_true",
+        help="the heavy top's integrate(backend='native') of native_integrate.py instead (one lane)",
+    )
     args = parser.parse_args(argv)
     os.environ["CLEBSCH_JAX_NATIVE_CACHE"] = tempfile.mkdtemp()  # compiled here, with the counters
     K.compile_ir, K._load = _compile_counted, _load_counted
-    width = K.host_lanes()
-    blocks = -(-args.batch // width)
+    width = 1 if args.integrate else K.host_lanes()
+    blocks = 1 if args.integrate else -(-args.batch // width)
     n1, n2 = args.steps
-    c1, b1, _ = counted_sweep(args.batch, n1)
-    c2, b2, result = counted_sweep(args.batch, n2)
+    count = (lambda n: counted_integrate(n)) if args.integrate else (lambda n: counted_sweep(args.batch, n))
+    c1, b1, _ = count(n1)
+    c2, b2, result = count(n2)
     size = lambda bs, i: np.array([b[i] for b in bs], float)
     per_step = lambda i: float((c2 @ size(b2, i) - c1 @ size(b1, i)) / ((n2 - n1) * blocks))
     row = {
@@ -168,7 +189,11 @@ def main(argv=None) -> dict:
         "instructions_per_step_and_block": round(per_step(1), 1),
         "floating_point": round(per_step(2), 1),
         "machine_instructions": round(per_step(3), 1),
-        "newton_updates_per_step": float(np.mean(result.newton_iterations)) / n2,
+        "newton_updates_per_step": (
+            float(np.sum(result.stats.iterations)) / n2
+            if args.integrate
+            else float(np.mean(result.newton_iterations)) / n2
+        ),
     }
     print(json.dumps(row))
     if args.profile:

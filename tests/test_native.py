@@ -247,6 +247,35 @@ def test_shared_inputs_threads_and_the_disk_cache(tmp_path, monkeypatch):
     _agree(one, jax.vmap(f, in_axes=(0, None))(x, M))
 
 
+def test_a_workspace_reuses_rows_and_reads_the_last_calls_outputs_in_place():
+    """With a `Workspace` a kernel's calls reuse rows, and an input that is an output of the
+    last call (a view of its rows) is passed in place, without a copy: a loop of calls feeding
+    each call's outputs to the next, and a batch that is not a whole number of blocks (its
+    padding lanes), give the bits of the calls without a workspace; a call's outputs stay
+    valid through the next call."""
+    from clebsch_jax.native.layout import Workspace
+
+    def f(x, y):
+        return jnp.tanh(x) + 0.5 * y, x * y
+
+    x, y = np.random.default_rng(2).standard_normal((2, 1001, 3))
+    g = compile_member(f, x[0], y[0], use_cache=False)
+    ws, taken = Workspace(), []
+    rows = ws.rows
+    ws.rows = lambda key, shape, dtype: taken.append(key[0]) or rows(key, shape, dtype)
+    plain, reused = (x, y), (x, y)
+    for k in range(4):
+        before, plain_before = reused, plain
+        plain, reused = g(*plain), g(*reused, workspace=ws)
+        for a, b in zip(plain, reused):
+            assert np.array_equal(a, b)
+        # the first call copies x and y into input rows, the others read the last outputs in place
+        assert taken == (["in", "in"] if k == 0 else []) + ["out", "out"]
+        taken.clear()
+    for a, b in zip(before, plain_before):  # the outputs of the call before the last one, still valid
+        assert np.array_equal(a, b)
+
+
 def test_indexing_by_values_agrees_with_xla():
     """Indices known while translating and indices that differ from lane to lane, in range and
     out of it (clamped or filled as XLA does), by selects (few places) and by lane loads
@@ -337,11 +366,15 @@ def test_native_sweep_of_rigid_bodies_equals_the_xla_sweep_with_failures_reporte
     again = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
     for a, b in zip(jax.tree_util.tree_leaves(native), jax.tree_util.tree_leaves(again)):
         assert np.array_equal(a, b, equal_nan=True)
-    # batches of 3 from two threads, each marching its batch through the chunks on its own
-    one = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", batch_size=3, threads=1, **RB)
-    two = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", batch_size=3, threads=2, **RB)
-    for a, b, c in zip(*(jax.tree_util.tree_leaves(r) for r in (native, one, two))):
-        assert np.array_equal(a, b, equal_nan=True) and np.array_equal(b, c, equal_nan=True)
+    # batches of 3 from two threads, each marching its batch through the chunks on its own;
+    # batches of 1 and 4 taken one after the other by two and three threads (each thread's rows
+    # reused from batch to batch); batches of 2 in groups, reporting progress after each chunk
+    sweep = lambda **kw: cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB, **kw)  # noqa: E731
+    tables = [sweep(batch_size=3, threads=1), sweep(batch_size=3, threads=2), sweep(batch_size=1, threads=2)]
+    tables += [sweep(batch_size=4, threads=3), sweep(batch_size=2, threads=2, progress=lambda info: None)]
+    for other in tables:
+        for a, b in zip(jax.tree_util.tree_leaves(native), jax.tree_util.tree_leaves(other)):
+            assert np.array_equal(a, b, equal_nan=True)
 
 
 @pytest.mark.slow  # two sweep programs compiled; the default run checks native statuses in test_sweep_checks

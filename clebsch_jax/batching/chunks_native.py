@@ -114,11 +114,15 @@ def _disk_key(cfg: Config) -> str | None:
     return memo(_DISK_KEYS, cfg, lambda: fingerprint(("sweep-member", cfg)), 64)
 
 
-def native_call(c: Config, one, st: int) -> Carry:
-    """One chunk of a batch (`schedule.Batch`) by its native kernel: the batch's carry after it (host arrays)."""
+def native_call(c: Config, one, st: int, workspace=None) -> Carry:
+    """One chunk of a batch (`schedule.Batch`) by its native kernel: the batch's carry after it
+    (host arrays; with a `workspace` of the calling thread, `clebsch_jax.native.layout`, views of
+    its rows, valid until its second call after this one)."""
     carry = as_member(one.carry)
     program = native_program(c, one.params, one.shared, carry, one.dt)
     shared = None if one.shared is None else [np.asarray(x) for x in one.shared]
     params = jax.tree_util.tree_map(np.asarray, one.params)
-    new = program(params, shared, carry, np.asarray(one.dt), np.asarray(st == 0), np.asarray(st, np.int32))
+    new = program(
+        params, shared, carry, np.asarray(one.dt), np.asarray(st == 0), np.asarray(st, np.int32), workspace=workspace
+    )
     return _from_member(new, one.carry.final_xi is not None)

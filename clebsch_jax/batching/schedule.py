@@ -14,6 +14,7 @@ import dataclasses
 import functools
 import os
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, NamedTuple
@@ -23,6 +24,7 @@ import numpy as np
 
 from ..core.jit import QUICK_COMPILE, jit_with_options
 from ..core.validation import positive_int
+from ..native.layout import Workspace
 from . import chunks_xla, tables
 from .chunks_native import native_call
 from .config import Carry, Config, Members, Run, member_slices
@@ -308,6 +310,34 @@ def reporter(progress, n_batches: int, n_steps: int, B: int, batch_size: int) ->
             progress(info)
 
     return report
+
+
+def run_native(plan: "Plan", n_batches: int, workers: int, table: Tables) -> None:
+    """Every batch of an in-process native sweep that reports no progress, into the sweep's
+    `table`: `workers` host threads each take the next batch no thread has taken, march it
+    through every chunk (`native_call`) and write its rows (`tables.collect`; the rows of two
+    batches are disjoint). A thread waits neither for another's batch nor for Python work between
+    groups of batches on the calling thread (starting the batches, the group's table and its
+    copy into the sweep's, as `run_batches` does), and a thread slowed by the machine's other
+    work takes fewer batches. Each batch's program and padded inputs are `run_batches`'s: the
+    rows are the same to the bit for any number of workers."""
+    cfg, members, shapes, run, bs = plan
+    local = threading.local()  # each thread's rows, reused from chunk to chunk and batch to batch
+
+    def march(b: int) -> None:
+        if not hasattr(local, "rows"):
+            local.rows = Workspace()
+        one = start_batch(cfg, members, shapes, b, bs, None)
+        for st, n in run.chunks:
+            one.carry = native_call(_steps(cfg, run, n), one, st, local.rows)
+        tables.collect(table, one, run)  # before the thread's next call overwrites the rows
+
+    if workers == 1 or n_batches == 1:
+        for b in range(n_batches):
+            march(b)
+        return
+    with ThreadPoolExecutor(min(workers, n_batches), thread_name_prefix="clebsch-jax-sweep") as pool:
+        list(pool.map(march, range(n_batches)))  # taken in order by the first free thread; raises a batch's error
 
 
 class Plan(NamedTuple):

@@ -304,6 +304,9 @@ def sweep(
     if store is not None or client is not None:
         return _run_stored(plan, run, tables, store=store, client=client, overwrite=overwrite, report=report)
     used, chunks, slots = set(), np.zeros(3, int), run.slots
+    if cfg.native and getattr(report, "silent", False):  # every thread takes batch after batch
+        schedule.run_native(plan, n_batches, len(slots), tables)
+        return result(plan, tables, 1, chunks)
     for g in range(0, n_batches, len(slots)):
         rows = run_batches(plan, list(range(g, min(g + len(slots), n_batches))), slots, report)
         used.update(rows.devices)

@@ -228,14 +228,15 @@ class NativeFunction:
             return
         write(record, ".member", data)
 
-    def __call__(self, *args, threads: int = 1):
+    def __call__(self, *args, threads: int = 1, workspace=None):
+        """`fun` for every member; `workspace`: see `clebsch_jax.native.kernel.Kernel`."""
         import jax
         import numpy as np
 
         leaves, tree = jax.tree_util.tree_flatten(args)
         if tree != self._in_tree:
             raise TypeError(f"arguments of structure {tree}, expected {self._in_tree}")
-        outs = self.kernel(*[np.asarray(x) for x in leaves], threads=threads)
+        outs = self.kernel(*[np.asarray(x) for x in leaves], threads=threads, workspace=workspace)
         return jax.tree_util.tree_unflatten(self._out_tree, outs)
 
 

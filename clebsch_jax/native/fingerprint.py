@@ -248,7 +248,7 @@ def values_digest(tree) -> str:
     for x in leaves:
         a = np.asarray(x)
         h.update(f"{a.dtype}{a.shape}".encode())
-        h.update(np.ascontiguousarray(a).tobytes())
+        h.update(np.ascontiguousarray(a).data)  # the bytes, without a copy of them (tobytes)
     return h.hexdigest()
 
 

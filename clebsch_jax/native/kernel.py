@@ -34,6 +34,7 @@ from . import TooLarge, refused, remember_refusal
 from .fingerprint import cache_dir
 from .fingerprint import read as _read
 from .fingerprint import write as _write
+from .layout import input_rows, output_rows, results
 
 __all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir", "cache_key"]
 
@@ -437,37 +438,19 @@ class Kernel:
         )
         return k
 
-    def __call__(self, *arrays, threads: int = 1, steps: int = 0, capacity: int = 0):
+    def __call__(self, *arrays, threads: int = 1, steps: int = 0, capacity: int = 0, workspace=None):
+        """`workspace` (`clebsch_jax.native.layout.Workspace`, optional): rows kept for this
+        thread's next calls; the outputs are then valid until its second call after this one."""
         if len(arrays) != len(self._ins):
             raise TypeError(f"expected {len(self._ins)} arrays, got {len(arrays)}")
         B = next(int(np.shape(a)[0]) for a, bat in zip(arrays, self.batched) if bat)
         blocks = -(-B // self.width)
         stride = blocks * self.width
-        buffers = []
-        for a, (shape, size, storage), bat in zip(arrays, self._ins, self.batched):
-            a = np.asarray(a)
-            if not bat:
-                if a.shape != shape:
-                    raise ValueError(f"expected a shared array of shape {shape}, got {a.shape}")
-                buffers.append(np.ascontiguousarray(a.reshape(-1), storage))
-                continue
-            if a.shape != (B,) + shape:
-                raise ValueError(f"expected an array of shape {(B,) + shape}, got {a.shape}")
-            if stride == 1:  # one member, one lane: its rows are its entries in order (the kernel only reads them)
-                buffers.append(np.ascontiguousarray(a, storage))
-                continue
-            rows = np.empty((size, stride), storage)
-            rows[:, :B] = a.reshape(B, size).T
-            rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
-            buffers.append(rows)
+        buffers = input_rows(arrays, self._ins, self.batched, B, stride, workspace)
         n_carry = len(self._outs) if self.carries is None else self.carries
         if self.carries is not None and not 0 <= steps <= capacity:
             raise ValueError(f"a loop kernel of {steps} steps with records for {capacity}")
-        outs = [np.empty((size, stride), storage) for _, size, storage in self._outs[:n_carry]]
-        for _, size, storage in self._outs[n_carry:]:  # the rows of the `steps` records are all written
-            rows = np.empty((capacity * size, stride), storage)
-            rows[steps * size :] = 0
-            outs.append(rows)
+        outs = output_rows(self._outs, n_carry, stride, steps, capacity, workspace)
         pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[x.ctypes.data for x in buffers + outs])
         address = ctypes.addressof(pointers)
         loop = () if self.carries is None else (int(steps),)
@@ -484,15 +467,4 @@ class Kernel:
                 f"a native kernel could not allocate its heap buffer of {max(status)} bytes (a long scan's arrays "
                 "held as rows, a buffer per thread): run fewer steps per call, fewer threads, or backend='xla'"
             )
-        result = []
-        for j, (rows, (shape, size, _), dtype) in enumerate(zip(outs, self._outs, self.out_dtypes)):
-            if stride == 1:  # the rows in order are the member's entries, record after record
-                r = rows.reshape(((1,) if j < n_carry else (1, capacity)) + shape)
-            elif j < n_carry:  # a view of the rows: the next call's rows are copied from it row by row
-                r = rows[:, :B].T.reshape((B,) + shape)
-                result.append(r.astype(np.bool_) if dtype == np.bool_ else r)
-                continue
-            else:  # (capacity·size, stride) -> (B, capacity, *shape)
-                r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
-            result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))
-        return result
+        return results(outs, self._outs, self.out_dtypes, n_carry, B, stride, capacity)

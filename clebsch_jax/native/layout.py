@@ -1,0 +1,121 @@
+r"""A kernel call's arrays laid out batch-last, and the rows reused from call to call.
+
+A kernel (`clebsch_jax.native.kernel.Kernel`) reads and writes every array as rows: one row
+of `stride` members per entry of the member's shape, `stride` the batch rounded up to whole
+blocks of lanes, the padding lanes repeating the last member. `input_rows` lays a call's
+arrays out so, `output_rows` makes the rows the kernel writes, `results` gives them back
+member-major.
+
+A `Workspace` keeps those rows for the calls one thread makes: without it every call takes
+fresh memory, whose first writes fault its pages in (inside the kernel, where two threads'
+faults also wait for each other). With it a call reuses the rows of the call before the last
+one, and an input that is a carry output of the last call (`results` returns those as views
+of its rows) is read in place instead of copied.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["Workspace", "input_rows", "output_rows", "results"]
+
+
+class Workspace:
+    """The rows of the kernel calls one thread makes, kept for its next calls. The outputs of
+    a call stay valid until the second call after it with the same workspace (the outputs
+    alternate between two sets of rows, so that a call can read the last call's in place); a
+    workspace must not be shared by two threads at once."""
+
+    def __init__(self):
+        self._rows: dict = {}
+        self._set = 0
+
+    def next_set(self) -> int:
+        """The set of output rows of the next call (the one the call before the last wrote)."""
+        self._set ^= 1
+        return self._set
+
+    def rows(self, key, shape: tuple, dtype) -> np.ndarray:
+        """The rows under `key`, made (uninitialised) on first use or when the shape changed."""
+        found = self._rows.get(key)
+        if found is None or found.shape != shape or found.dtype != dtype:
+            found = self._rows[key] = np.empty(shape, dtype)
+        return found
+
+    def written(self, which: int) -> dict:
+        """Output rows of set `which` by the address of their data."""
+        return {a.ctypes.data: a for k, a in self._rows.items() if k[0] == "out" and k[1] == which}
+
+
+def _fresh(key, shape: tuple, dtype) -> np.ndarray:
+    return np.empty(shape, dtype)
+
+
+def _rows_of(view: np.ndarray, rows: np.ndarray) -> bool:
+    """Whether `view` (entries, B) lies on `rows`' first B columns (the stride of an axis of
+    length 1 is any)."""
+    return view.strides[1] == rows.strides[1] and (view.shape[0] == 1 or view.strides[0] == rows.strides[0])
+
+
+def input_rows(arrays, layout: list, batched: list, B: int, stride: int, workspace: Workspace | None) -> list:
+    """The kernel's input buffers: a shared array flattened; a batched one (B, *shape) as
+    (entries, stride) rows, its padding lanes repeating member B − 1. With a `workspace`, the
+    rows are reused, and a carry output of its last call is passed as it is."""
+    take = _fresh if workspace is None else workspace.rows
+    last = {} if workspace is None else workspace.written(workspace._set)
+    buffers = []
+    for j, (a, (shape, size, storage), bat) in enumerate(zip(arrays, layout, batched)):
+        a = np.asarray(a)
+        if not bat:
+            if a.shape != shape:
+                raise ValueError(f"expected a shared array of shape {shape}, got {a.shape}")
+            buffers.append(np.ascontiguousarray(a.reshape(-1), storage))
+            continue
+        if a.shape != (B,) + shape:
+            raise ValueError(f"expected an array of shape {(B,) + shape}, got {a.shape}")
+        if stride == 1:  # one member, one lane: its rows are its entries in order (the kernel only reads them)
+            buffers.append(np.ascontiguousarray(a, storage))
+            continue
+        view = a.reshape(B, size).T
+        own = last.get(view.ctypes.data)
+        if own is not None and own.shape == (size, stride) and own.dtype == storage and _rows_of(view, own):
+            # rows the last call wrote: their padding lanes ran copies of member B − 1, so they
+            # hold its outputs, which the copy below would write there too
+            buffers.append(own)
+            continue
+        rows = take(("in", j), (size, stride), storage)
+        rows[:, :B] = view
+        rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
+        buffers.append(rows)
+    return buffers
+
+
+def output_rows(layout: list, n_carry: int, stride: int, steps: int, capacity: int, workspace) -> list:
+    """The rows the kernel writes: each carry output's (entries, stride), each record's
+    (capacity · entries, stride), zero after the `steps` records written."""
+    which = None if workspace is None else workspace.next_set()
+    take = _fresh if workspace is None else lambda j, shape, dtype: workspace.rows(("out", which, j), shape, dtype)
+    outs = [take(j, (size, stride), storage) for j, (_, size, storage) in enumerate(layout[:n_carry])]
+    for j, (_, size, storage) in enumerate(layout[n_carry:], n_carry):
+        rows = take(j, (capacity * size, stride), storage)
+        rows[steps * size :] = 0
+        outs.append(rows)
+    return outs
+
+
+def results(outs: list, layout: list, dtypes: list, n_carry: int, B: int, stride: int, capacity: int) -> list:
+    """The outputs member-major: a carry's (B, *shape), a view of its rows (a next call's
+    input rows are copied from it row by row, or read in place: `input_rows`); a record's
+    (B, capacity, *shape), a copy."""
+    result = []
+    for j, (rows, (shape, size, _), dtype) in enumerate(zip(outs, layout, dtypes)):
+        if stride == 1:  # the rows in order are the member's entries, record after record
+            r = rows.reshape(((1,) if j < n_carry else (1, capacity)) + shape)
+        elif j < n_carry:
+            r = rows[:, :B].T.reshape((B,) + shape)
+            result.append(r.astype(np.bool_) if dtype == np.bool_ else r)
+            continue
+        else:  # (capacity·size, stride) -> (B, capacity, *shape)
+            r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
+        result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))
+    return result
