@@ -404,31 +404,6 @@ def test_cayley_polynomial_is_the_matrix_form(name, monkeypatch):
         np.testing.assert_array_equal(Q1, Q1_m)  # formed the same way in both
 
 
-def test_the_cayley_increment_on_so3_is_the_closed_form_of_the_solve():
-    """On a basis of skew 3×3 matrices the step's increment (I − Y/2)⁻¹Y is formed in closed form,
-    (Y + Y²/2)/(1 + |y|²/4): it equals the solve with its refinement step to round-off of the
-    increment itself, for small and large Y and a rotated basis of so(3), and cayley_exp(Y) − I
-    to round-off of F; a basis that is not skew (se(2)) keeps the solve."""
-    from clebsch_jax.core.linalg import solve
-    from clebsch_jax.discrete import reduction as R
-
-    rng = np.random.default_rng(3)
-    so3, _ = R.find_reduction(cj.models.rigid_body(INERTIA), jnp.eye(3), jnp.zeros(3))
-    rotation = np.asarray(cj.lie.so3_exp(jnp.asarray([0.3, -1.1, 0.7])))
-    rotated = dataclasses.replace(so3, basis=np.einsum("ij,kjl,ml->kim", rotation, so3.basis, rotation))
-    for red in (so3, rotated):
-        assert R._skew3(red)
-        for scale in (1e-3, 0.1, 1.0, 30.0):
-            Y = jnp.asarray(red.X(jnp.asarray(scale * rng.normal(size=3))))
-            closed = R._cayley_increment(red, jnp.eye(3) - 0.5 * Y, Y)
-            solved = solve(jnp.eye(3) - 0.5 * Y, Y, unroll=True)
-            eps = np.finfo(float).eps
-            np.testing.assert_allclose(closed, solved, rtol=0, atol=8 * eps * float(jnp.max(jnp.abs(solved))))
-            np.testing.assert_allclose(closed, cj.lie.cayley_exp(Y) - jnp.eye(3), rtol=0, atol=8 * eps)
-    se2 = _reduced_case("SE(2)")[3]
-    assert not R._skew3(se2)
-
-
 def test_cayley_polynomial_gives_way_to_the_matrix_form_for_large_algebras(monkeypatch):
     from clebsch_jax.discrete import reduction as R
 
