@@ -184,7 +184,7 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True, gr
     need_F = (outgoing and need_Q1) or (system.has_potential and scheme == "right")
     # F = lie.cayley_exp(Y), with its products written out for XLA to fuse
     # Q¹ = Q⁰F as Q⁰ + Q⁰(F − I), F − I = (I − Y/2)⁻¹Y: an O(Δt) increment (see the docstring)
-    Q1 = Q0 + red.from_ambient(mm(red.to_ambient(Q0), _cayley_increment(red, Fm, Y))) if need_F else None
+    Q1 = Q0 + red.from_ambient(mm(red.to_ambient(Q0), red.solve(Fm, Y))) if need_F else None
     Qa = Q0 if scheme == "left" else Q1
     if system.has_potential:
         g, g_Q = jax.grad(system.l, argnums=(0, 1))(xi, Qa)
@@ -214,29 +214,6 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True, gr
     if g_Q is not None and scheme == "right":
         mu1 = mu1 + dt * red.X_adjoint(mm(Q1.T, g_Q))
     return r, mu1, Q1
-
-
-def _cayley_increment(red, Fm, Y):
-    r"""$(I - Y/2)^{-1}Y = \overline{\exp}(Y) - I$. On $\mathfrak{so}(3)$ (a basis of skew 3×3
-    matrices: $Y = \hat y$, $Y^2 = yy^T - |y|^2 I$, $Y^3 = -|y|^2 Y$) it is
-    $(Y + Y^2/2)/(1 + |y|^2/4)$ in closed form — a dozen products instead of a 3×3 solve with its
-    refinement (the heavy top forms it in both half steps' outgoing values); elsewhere the
-    representation's solve."""
-    if not _skew3(red):
-        return red.solve(Fm, Y)
-    y = [Y[2, 1], Y[0, 2], Y[1, 0]]
-    sq = [v * v for v in y]
-    size = sq[0] + sq[1] + sq[2]
-    Y2 = jnp.stack([jnp.stack([y[i] * y[j] if i != j else sq[i] - size for j in range(3)]) for i in range(3)])
-    return (Y + 0.5 * Y2) / (1.0 + 0.25 * size)
-
-
-@functools.lru_cache(maxsize=64)
-def _skew3(red) -> bool:
-    """Whether `red` is a `MatrixGroupReduction` of an algebra of skew 3×3 matrices (so(3))."""
-    if not isinstance(red, MatrixGroupReduction) or red.basis.shape[1:] != (3, 3):
-        return False
-    return bool(np.array_equal(red.basis, -np.swapaxes(red.basis, 1, 2)))
 
 
 def _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing):
