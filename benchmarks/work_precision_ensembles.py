@@ -633,7 +633,7 @@ def _row(peer, met, best, key):
         "peer_global": peer["global_error"],
         "peer_energy": peer["energy_error"],
         "met": met is not None,
-        "ours": None if o is None else f"{o['method']} dt {o['param']:g} ({o['backend']})",
+        "ours": None if o is None else f"{o['method']} {o['param_name']} {o['param']:g} ({o['backend']})",
         "ours_time_s": None if o is None else o[key],
         "ours_global": None if o is None else o["global_error"],
         "ours_energy": None if o is None else o["energy_error"],
