@@ -296,6 +296,15 @@ member (clusters of vortices) and dominated its compile, for a kernel only sligh
 (`benchmarks/README.md`)."""
 
 
+def optimise(mod) -> None:
+    """Optimise the parsed module `mod` in place, for the host (`compile_ir`'s pipeline; called
+    with `_LOCK` held, so it reads the initialised binding without `_binding()`)."""
+    L = _LLVM
+    llvm = L["llvm"]
+    pb = llvm.create_pass_builder(L["tm"], llvm.create_pipeline_tuning_options(speed_level=2))
+    pb.getModulePassManager().run(mod, pb)
+
+
 def compile_ir(text: str) -> bytes:
     """Object code of the IR `text` for the host, optimised by LLVM's O2 pipeline."""
     L = _binding()
@@ -305,8 +314,7 @@ def compile_ir(text: str) -> bytes:
         try:
             mod = llvm.parse_assembly(text)
             mod.verify()
-            pb = llvm.create_pass_builder(L["tm"], llvm.create_pipeline_tuning_options(speed_level=2))
-            pb.getModulePassManager().run(mod, pb)
+            optimise(mod)
             return L["tm"].emit_object(mod)
         finally:
             llvm.set_option("", "--regalloc=greedy")  # LLVM's default, which unoptimised code generation needs
