@@ -45,9 +45,9 @@ _LLVM: dict = {}
 CODEGEN_OPT = 1
 """LLVM's optimisation level of code generation (instruction selection, scheduling, register
 allocation; the IR's own pipeline is O2 whatever this is). Level 1 emits the rigid-body
-member's kernel faster than level 2, and that kernel ran faster too, with the same results to
-the bit (`benchmarks/README.md`, native section); level 0 needs LLVM's fast register
-allocator, whose spills slowed the kernels."""
+member's kernel faster than level 2; the kernels measured ran in the same time, with the same
+results to the bit (`benchmarks/README.md`, native section). Level 0 needs LLVM's fast
+register allocator, whose spills slowed the kernels."""
 
 
 def _binding():
@@ -316,7 +316,8 @@ def optimise(mod) -> None:
 
 
 def compile_ir(text: str) -> bytes:
-    """Object code of the IR `text` for the host, optimised by LLVM's O2 pipeline."""
+    """Object code of the IR `text` for the host: LLVM's O2 pipeline (`optimise`), code generation
+    at `CODEGEN_OPT`."""
     L = _binding()
     llvm = L["llvm"]
     with _LOCK:  # the register allocator is a process-wide LLVM option
