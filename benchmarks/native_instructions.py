@@ -97,8 +97,7 @@ def _compile_counted(text: str) -> bytes:
     llvm = L["llvm"]
     with K._LOCK:
         mod = llvm.parse_assembly(text)
-        pb = llvm.create_pass_builder(L["tm"], llvm.create_pipeline_tuning_options(speed_level=2))
-        pb.getModulePassManager().run(mod, pb)
+        K.optimise(mod)
         counted = llvm.parse_assembly(_instrument(str(mod)))
         counted.verify()
         _MACHINE.clear()

@@ -435,7 +435,8 @@ def check_member(system, Q0, xi0, *, configuration: bool = True, **options) -> C
     P0 = options.pop("P0", None)
     # the isotropy's adjustment of xi0 (and its warning) is integrate's, when P0 is not given:
     # a batch marches xi0 as given, so the checks see it as given
-    given = P0 if P0 is not None else jnp.zeros(np.shape(Q0))
+    # zeros made on the host: `jnp.zeros` would compile two XLA programs on a process's first call
+    given = P0 if P0 is not None else np.zeros(np.shape(Q0))
     stepper, (Q0, xi0, _, dt, t0, closes), _, system = prepare(
         system, Q0, xi0, n_steps=1, P0=given, configuration=configuration, **options
     )

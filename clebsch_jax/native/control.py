@@ -19,6 +19,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from llvmlite import ir
 
@@ -45,7 +47,7 @@ def _size(jaxpr) -> int:
 
     n = 0
     for eqn in jaxpr.eqns:
-        n += sum(int(np.prod(v.aval.shape, dtype=int)) for v in eqn.outvars if hasattr(v.aval, "shape")) or 1
+        n += sum(math.prod(v.aval.shape) for v in eqn.outvars if hasattr(v.aval, "shape")) or 1
         for v in eqn.params.values():
             for x in v if isinstance(v, (tuple, list)) else [v]:
                 if isinstance(x, jcore.ClosedJaxpr):
@@ -76,7 +78,7 @@ def _entries_held(shape, rows: bool) -> int:
     shape = tuple(shape)
     if rows and shape and shape[0] >= ROWS_MIN:
         shape = shape[1:]
-    return int(np.prod(shape, dtype=int))
+    return math.prod(shape)
 
 
 def entries(jaxpr, policy, rows: bool = False) -> int:

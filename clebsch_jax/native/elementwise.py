@@ -252,7 +252,8 @@ def elementwise_rule(em: Emitter, eqn, args):
     dtype = in_dtype(eqn)
     result_dtype = out_dtype(eqn)
     shape = eqn.outvars[0].aval.shape
-    args = [np.broadcast_to(a, shape) for a in args]
+    # broadcast only where needed (`np.broadcast_to` costs more than the rest of a scalar's rule)
+    args = [a if isinstance(a, np.ndarray) and a.shape == shape else np.broadcast_to(a, shape) for a in args]
     if name == "pow" and np.dtype(eqn.invars[1].aval.dtype) != dtype:
         # an integer exponent: XLA converts it to the base's type and takes the power (JAX's pow lowering)
         args[1] = convert_array(em, args[1], eqn.invars[1].aval.dtype, dtype)

@@ -12,7 +12,8 @@ outputs) is stored batch-last, one row of `stride` members per entry of the memb
 so that an entry of a block is one vector load or store. Booleans are stored as bytes.
 
 The IR is optimised by LLVM's default pipeline (O2, no fast-math: every floating-point
-operation is the one the jaxpr names, in its order) for the host's CPU and features, and the
+operation is the one the jaxpr names, in its order) and compiled to machine code at
+`CODEGEN_OPT` for the host's CPU and features, and the
 object code is cached on disk under the hash of the jaxpr (its text and constants), the
 lanes, the CPU, its features, the llvmlite version and the translation's own source
 (`cache_dir`): a program found there is neither translated nor compiled again, and a program
@@ -41,6 +42,13 @@ __all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir", "cache
 _LOCK = threading.Lock()
 _LLVM: dict = {}
 
+CODEGEN_OPT = 1
+"""LLVM's optimisation level of code generation (instruction selection, scheduling, register
+allocation; the IR's own pipeline is O2 whatever this is). Level 1 emits the rigid-body
+member's kernel faster than level 2; the kernels measured ran in the same time, with the same
+results to the bit (`benchmarks/README.md`, native section). Level 0 needs LLVM's fast
+register allocator, whose spills slowed the kernels."""
+
 
 def _binding():
     """llvmlite's binding, initialised once for the host."""
@@ -53,7 +61,9 @@ def _binding():
             llvm.initialize_native_asmprinter()
             cpu, features = llvm.get_host_cpu_name(), llvm.get_host_cpu_features().flatten()
             target = llvm.Target.from_triple(llvm.get_process_triple())
-            tm = target.create_target_machine(cpu=cpu, features=features, opt=2, codemodel="jitdefault", jit=True)
+            tm = target.create_target_machine(
+                cpu=cpu, features=features, opt=CODEGEN_OPT, codemodel="jitdefault", jit=True
+            )
             _LLVM.update(
                 llvm=llvm,
                 tm=tm,
@@ -296,8 +306,18 @@ member (clusters of vortices) and dominated its compile, for a kernel only sligh
 (`benchmarks/README.md`)."""
 
 
+def optimise(mod) -> None:
+    """Optimise the parsed module `mod` in place, for the host (`compile_ir`'s pipeline; called
+    with `_LOCK` held, so it reads the initialised binding without `_binding()`)."""
+    L = _LLVM
+    llvm = L["llvm"]
+    pb = llvm.create_pass_builder(L["tm"], llvm.create_pipeline_tuning_options(speed_level=2))
+    pb.getModulePassManager().run(mod, pb)
+
+
 def compile_ir(text: str) -> bytes:
-    """Object code of the IR `text` for the host, optimised by LLVM's O2 pipeline."""
+    """Object code of the IR `text` for the host: LLVM's O2 pipeline (`optimise`), code generation
+    at `CODEGEN_OPT`."""
     L = _binding()
     llvm = L["llvm"]
     with _LOCK:  # the register allocator is a process-wide LLVM option
@@ -305,8 +325,7 @@ def compile_ir(text: str) -> bytes:
         try:
             mod = llvm.parse_assembly(text)
             mod.verify()
-            pb = llvm.create_pass_builder(L["tm"], llvm.create_pipeline_tuning_options(speed_level=2))
-            pb.getModulePassManager().run(mod, pb)
+            optimise(mod)
             return L["tm"].emit_object(mod)
         finally:
             llvm.set_option("", "--regalloc=greedy")  # LLVM's default, which unoptimised code generation needs

@@ -13,6 +13,8 @@ without a rule raises `Unsupported` with its name.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from jax.extend import core as jcore
 
@@ -57,7 +59,7 @@ def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
         args = [read(v) for v in eqn.invars]
         outs = _rows.apply(em, eqn, args, RULES) if em.rows else None  # long arrays held as rows
         if outs is None:
-            em.count(sum(int(np.prod(v.aval.shape, dtype=int)) for v in eqn.outvars if hasattr(v.aval, "shape")))
+            em.count(sum(math.prod(v.aval.shape) for v in eqn.outvars if hasattr(v.aval, "shape")))
             outs = rule(em, eqn, args)
         if not eqn.primitive.multiple_results:
             outs = [outs]
