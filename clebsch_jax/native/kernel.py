@@ -42,12 +42,12 @@ __all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir", "cache
 _LOCK = threading.Lock()
 _LLVM: dict = {}
 
-CODEGEN_OPT = 1
+CODEGEN_OPT = 2
 """LLVM's optimisation level of code generation (instruction selection, scheduling, register
-allocation; the IR's own pipeline is O2 whatever this is). Level 1 emits the rigid-body
-member's kernel faster than level 2; the kernels measured ran in the same time, with the same
-results to the bit (`benchmarks/README.md`, native section). Level 0 needs LLVM's fast
-register allocator, whose spills slowed the kernels."""
+allocation; the IR's own pipeline is O2 whatever this is). Level 1 emits a kernel a little
+faster, but its machine code differs and its speed was measured only on a loaded machine
+(`benchmarks/README.md`, native section): level 2 stays until a quiet comparison says
+otherwise. Level 0 needs LLVM's fast register allocator, whose spills slowed the kernels."""
 
 
 def _binding():
