@@ -8,6 +8,7 @@ find its kernel, and the checks that passed, without tracing anything.
 
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -299,3 +300,49 @@ def test_fresh_processes_hit_the_disk_cache_without_tracing_and_miss_on_a_change
     other = child(OTHER_BODY, 1.0, False)  # the same numbers from another jaxpr: traced and compiled
     assert other["from_record"] == [False]
     np.testing.assert_allclose(other["out"], cold["out"], rtol=1e-13, atol=1e-15)
+
+
+_REFUSED_CHILD = """
+import json, sys
+import jax.numpy as jnp
+import numpy as np
+import clebsch_jax as cj
+
+def zero_moment_body(inertia):  # no constructor check: only integrate's checks refuse a zero moment
+    return cj.ClebschSystem(lagrangian=lambda xi: 0.5 * jnp.sum(inertia * xi**2),
+                            velocity_map=lambda xi, Q: Q @ cj.lie.hat(xi), derivative_map=cj.cayley)
+
+make, Q = {"rigid_body": (cj.models.rigid_body, 2.0 * np.eye(3)), "zero_moment": (zero_moment_body, np.eye(3))}[sys.argv[1]]
+params = np.array([[2.0, 1.0, 0.5 if sys.argv[1] == "rigid_body" else 0.0]] * 2)
+said = {}
+for backend in ("xla", "native"):
+    try:
+        cj.sweep(make, params, np.broadcast_to(Q, (2, 3, 3)), np.tile([0.3, 0.1, 1.0], (2, 1)), dt=0.05, n_steps=4,
+                 backend=backend)
+    except ValueError as err:
+        said[backend] = str(err)
+print(json.dumps(said))
+"""
+
+
+# two fresh processes, each importing JAX and compiling the first member's checks;
+# tests/test_first_step_check.py and tests/test_model_checks.py check by default that a refused
+# sweep with backend="native" stops before any native work
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "case, match", [("rigid_body", r"rotation"), ("zero_moment", r"rejected by integrate's checks: lagrangian")]
+)
+def test_a_refused_native_sweep_writes_no_kernel_and_says_what_xla_says(case, match, tmp_path):
+    """A sweep that `integrate`'s checks refuse (Q0 not a rotation: a check of values only; a
+    degenerate Lagrangian) is refused with backend="native" in XLA's words, and leaves no kernel
+    (object code, its record, a refusal for its size) in the disk cache — also none written
+    after the refusal, by work left running (the process has ended when the cache is read)."""
+    env = {**os.environ, "CLEBSCH_JAX_NATIVE_CACHE": str(tmp_path)}
+    out = subprocess.run(
+        [sys.executable, "-c", _REFUSED_CHILD, case], env=env, capture_output=True, text=True, check=True
+    )
+    said = json.loads(out.stdout.strip().splitlines()[-1])
+    assert set(said) == {"xla", "native"}, said
+    assert re.search(match, said["native"]) and said["native"] == said["xla"], said
+    kept = [name for _, _, names in os.walk(tmp_path) for name in names]
+    assert not [name for name in kept if name.endswith((".o", ".member", ".refused"))], kept
