@@ -8,7 +8,9 @@ What is bit-identical and what is not (measured with jax 0.10 on CPU; the tests 
   converged members with a select), so the tests assert equality to the bit.
 - Alone vs batched: the **reduced march** (rigid body) is bit-identical: its arithmetic is
   written as elementwise multiply-adds (`_linalg.matmul`, `matvec`, closed-form 3×3 solves)
-  that compile to the same scalar code per member. Its order-4 composition is bit-identical
+  that compile to the same scalar code per member. XLA contracts a product that feeds an
+  addition into a fused multiply-add, and when both operands are products which one depends on
+  the layout: the so(3) update of Q (`reduction._cayley_update`) is written without such sums. Its order-4 composition is bit-identical
   between a member traced alone (`jax.jit`) and batched; a plain call runs the chunked march,
   a `while_loop` that stops at n_steps, around the composition's scan over its stages, which
   XLA compiles into other code than the single scan of a traced march: last-bit differences

@@ -310,6 +310,32 @@ def test_a_loop_kernel_runs_its_body_and_writes_every_iteration(width, members):
             assert not np.any(rec[m, 7:])
 
 
+def test_a_loop_kernel_writes_its_records_into_a_runs_rows():
+    """`records=` views of a run's rows (`NativeLoop.record_rows`, aligned to 64 bytes): two
+    calls, the second from the first's carry, fill records 0–2 and 3–6 in place with what one
+    call of 7 iterations writes (how `integrate`'s native chunks fill a Solution without a
+    join); rows of another shape are refused, naming the record."""
+
+    def body(a, c):
+        x, n, ok = c
+        y = jnp.sin(x) * a + 0.1
+        return (y, n + 1, ok & jnp.all(y < 1.5)), (y, n, ok, jnp.stack([x, y]))
+
+    loop = native.compile_loop(body, jnp.ones(3), (jnp.ones(3), jnp.int32(0), jnp.asarray(True)), width=1)
+    a = np.array([[0.7, 1.1, 1.4]])
+    carry = (np.array([[0.2, 0.5, 0.9]]), np.zeros(1, np.int32), np.ones(1, bool))
+    _, whole = loop(a, carry, steps=7, capacity=7)
+    rows = loop.record_rows(7)
+    assert all(r.ctypes.data % 64 == 0 for r in rows)
+    mid, _ = loop(a, carry, steps=3, capacity=3, records=loop.record_views(rows, 0, 3))
+    loop(a, mid, steps=4, capacity=4, records=loop.record_views(rows, 3, 7))
+    for got, want in zip(jax.tree_util.tree_leaves(loop.records(rows, 7)), whole):
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want[0])
+    with pytest.raises(ValueError, match=r"records\[0\]: expected C-contiguous rows of shape \(9, 1\)"):
+        loop(a, carry, steps=3, capacity=3, records=loop.record_views(rows, 0, 2))
+
+
 def test_a_kernel_of_one_member_in_one_lane_leaves_its_inputs_as_they_were():
     """One member in a kernel of one lane (a single trajectory's layout): its arrays are passed
     as they are, not copied into row buffers; the kernel gives the function's values (booleans

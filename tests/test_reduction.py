@@ -404,6 +404,55 @@ def test_cayley_polynomial_is_the_matrix_form(name, monkeypatch):
         np.testing.assert_array_equal(Q1, Q1_m)  # formed the same way in both
 
 
+def _exact_cayley_update(Q0, Y):
+    """Q⁰ + Q⁰(I − Y/2)⁻¹Y in exact rational arithmetic (the adjugate of the 3×3 factor)."""
+    from fractions import Fraction
+
+    q = [[Fraction(float(v)) for v in row] for row in np.asarray(Q0)]
+    y = [[Fraction(float(v)) for v in row] for row in np.asarray(Y)]
+    A = [[(i == j) - y[i][j] / 2 for j in range(3)] for i in range(3)]
+    cof = [
+        [
+            A[(i + 1) % 3][(j + 1) % 3] * A[(i + 2) % 3][(j + 2) % 3]
+            - A[(i + 1) % 3][(j + 2) % 3] * A[(i + 2) % 3][(j + 1) % 3]
+            for j in range(3)
+        ]
+        for i in range(3)
+    ]
+    det = sum(A[0][j] * cof[0][j] for j in range(3))
+    inc = [[sum(cof[k][i] * y[k][j] for k in range(3)) / det for j in range(3)] for i in range(3)]
+    return np.array([[float(q[i][j] + sum(q[i][k] * inc[k][j] for k in range(3))) for j in range(3)] for i in range(3)])
+
+
+def test_the_cayley_update_on_so3_is_the_closed_form_of_the_solve():
+    """On a basis of skew 3×3 matrices Q¹ = Q⁰ + Q⁰(I − Y/2)⁻¹Y is formed in closed form (rows
+    q + (a + a × y/2)/(1 + |y|²/4), a = q × y): like the solve with its refinement step it is
+    the exact update to half an ulp of Q¹ plus round-off of the increment itself, for small
+    and large Y and a rotated basis of so(3); a basis that is not skew (se(2)) keeps the
+    solve."""
+    from clebsch_jax.core.linalg import solve
+    from clebsch_jax.discrete import reduction as R
+
+    rng = np.random.default_rng(3)
+    eps = np.finfo(float).eps
+    so3, _ = R.find_reduction(cj.models.rigid_body(INERTIA), jnp.eye(3), jnp.zeros(3))
+    rotation = np.asarray(cj.lie.so3_exp(jnp.asarray([0.3, -1.1, 0.7])))
+    rotated = dataclasses.replace(so3, basis=np.einsum("ij,kjl,ml->kim", rotation, so3.basis, rotation))
+    for red in (so3, rotated):
+        assert R._skew3(red)
+        for scale in (1e-3, 0.1, 1.0, 30.0):
+            Y = jnp.asarray(red.X(jnp.asarray(scale * rng.normal(size=3))))
+            Fm = jnp.eye(3) - 0.5 * Y
+            for Q0 in (cj.lie.so3_exp(jnp.asarray(rng.normal(size=3))), jnp.eye(3)):
+                exact = _exact_cayley_update(Q0, Y)
+                increment = np.max(np.abs(exact - np.asarray(Q0)))
+                # half an ulp of the result, plus a few roundings of the O(Δt) increment
+                bound = 0.5 * np.spacing(np.abs(exact)) + 8 * eps * increment
+                for Q1 in (R._cayley_update(red, Fm, Y, Q0), Q0 + Q0 @ solve(Fm, Y, unroll=True)):
+                    assert np.all(np.abs(np.asarray(Q1) - exact) <= bound), (scale, np.asarray(Q1) - exact)
+    assert not R._skew3(_reduced_case("SE(2)")[3])
+
+
 def test_cayley_polynomial_gives_way_to_the_matrix_form_for_large_algebras(monkeypatch):
     from clebsch_jax.discrete import reduction as R
 

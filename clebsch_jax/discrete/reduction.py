@@ -184,7 +184,7 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True, gr
     need_F = (outgoing and need_Q1) or (system.has_potential and scheme == "right")
     # F = lie.cayley_exp(Y), with its products written out for XLA to fuse
     # Q¹ = Q⁰F as Q⁰ + Q⁰(F − I), F − I = (I − Y/2)⁻¹Y: an O(Δt) increment (see the docstring)
-    Q1 = Q0 + red.from_ambient(mm(red.to_ambient(Q0), red.solve(Fm, Y))) if need_F else None
+    Q1 = _cayley_update(red, Fm, Y, Q0) if need_F else None
     Qa = Q0 if scheme == "left" else Q1
     if system.has_potential:
         g, g_Q = jax.grad(system.l, argnums=(0, 1))(xi, Qa)
@@ -214,6 +214,51 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True, gr
     if g_Q is not None and scheme == "right":
         mu1 = mu1 + dt * red.X_adjoint(mm(Q1.T, g_Q))
     return r, mu1, Q1
+
+
+def _cayley_update(red, Fm, Y, Q0):
+    r"""$Q^1 = Q^0 + Q^0(I - Y/2)^{-1}Y$, the increment $(I - Y/2)^{-1}Y = \overline{\exp}(Y) - I$.
+
+    On $\mathfrak{so}(3)$ (`_skew3`: $Y = \hat y$, $Y^2 = yy^T - |y|^2 I$, $Y^3 = -|y|^2 Y$) the
+    increment is $(Y + Y^2/2)/(1 + |y|^2/4)$, so a row $q$ of $Q^0$ moves by
+    $(a + \tfrac12\, a \times y)/(1 + |y|^2/4)$ with $a = q \times y = qY$ (and
+    $a \times y = qY^2$): a few dozen products instead of a 3×3 solve with its refinement step
+    (the heavy top forms $Q^1$ in both half steps' outgoing values and, with its potential, in
+    every residual). Elsewhere the representation's solve.
+
+    **The same bits in every layout.** XLA's CPU backend contracts a product that feeds an
+    addition into a fused multiply-add; when both operands of an addition are products, which
+    one it contracts depends on how LLVM orders and shares them, and that depends on the layout
+    of the fusion around the step (one trajectory, a `jax.vmap` batch, `cj.batch`'s batch-last
+    layout). Written as $(Y + Y^2/2)\,r$ with $|y|^2$ and $q\cdot y$ as sums of products, the
+    update rounded differently alone and in a batch. Here every addition has at most one
+    inexact product among its operands, or is a difference of two (the cross products, whose
+    order LLVM keeps): $1 + |y|^2/4$ is accumulated from 1 with the exact products $y_k^2/4$,
+    the ½ and ¼ are exact, and $Q^1 = Q^0 + r\,T$ adds one product to data. Every layout then
+    contracts the same products."""
+    if not _skew3(red):
+        return Q0 + red.from_ambient(red.matmul(red.to_ambient(Q0), red.solve(Fm, Y)))
+    y = [Y[..., 2, 1, None], Y[..., 0, 2, None], Y[..., 1, 0, None]]  # (…, 1): broadcast over rows
+    c = [Q0[..., :, j] for j in range(3)]  # the columns of Q⁰: component j of every row q
+
+    def cross(u):  # u × y, each component a difference of two products
+        return [u[(j + 1) % 3] * y[(j + 2) % 3] - u[(j + 2) % 3] * y[(j + 1) % 3] for j in range(3)]
+
+    a = cross(c)
+    b = cross(a)
+    d = 1.0
+    for v in y:  # 1 + |y|²/4, accumulated from 1: each term is an exact product (¼ of a square)
+        d = d + 0.25 * (v * v)
+    r = 1.0 / d
+    return jnp.stack([c[j] + r * (a[j] + 0.5 * b[j]) for j in range(3)], axis=-1)
+
+
+@functools.lru_cache(maxsize=64)
+def _skew3(red) -> bool:
+    """Whether `red` is a `MatrixGroupReduction` of an algebra of skew 3×3 matrices (so(3))."""
+    if not isinstance(red, MatrixGroupReduction) or red.basis.shape[1:] != (3, 3):
+        return False
+    return bool(np.array_equal(red.basis, -np.swapaxes(red.basis, 1, 2)))
 
 
 def _exponential_step(system, red, scheme, dt, mu, Q0, xi, outgoing):

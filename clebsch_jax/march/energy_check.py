@@ -105,6 +105,16 @@ def energy_jump(xp, energy, size, status, largest=0.0, size_max=0.0, rtol=ENERGY
     On NumPy arrays the running maxima are vectorised; traced, the check is one scan over the
     steps (XLA's cumulative max and sum on CPU, associative scans, cost several times more)."""
     change = xp.abs(energy[1:] - energy[:-1])
+    if xp is np and not np.any(change > rtol * np.fmax(size_max, size[:-1])):
+        # no step fails even against its own node's size, which its running maximum only
+        # raises (fmax: a NaN size counts as 0): no jump, and the maxima are plain reductions
+        # (the running ones below cost most of a long native run's assembly)
+        return (
+            np.False_,
+            np.int64(0),
+            np.maximum(largest, np.fmax.reduce(change, initial=0.0)),
+            np.maximum(size_max, np.fmax.reduce(size, initial=0.0)),
+        )
     if xp is np:
         running_change, running_size = _running_max(change), _running_max(size)
         size_before = np.maximum(size_max, running_size[:-1])

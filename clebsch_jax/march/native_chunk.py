@@ -21,7 +21,6 @@ A single trajectory is one member: the kernel is compiled with one lane (`LANES`
 
 from __future__ import annotations
 
-import functools
 import threading
 from typing import NamedTuple
 
@@ -37,7 +36,7 @@ from .carry import Carry, Chunk, advance_step
 from .energy_check import node_energy
 from .scan import nodal_velocity
 
-__all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program", "BoundLoop"]
+__all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program", "BoundLoop", "NativeChunks"]
 
 LANES = 1
 """Lanes of the kernel of one trajectory: a single member in a vector of one lane. Wider
@@ -191,6 +190,7 @@ def native_run_chunk(
     check_energy: bool = False,
     max_lines=None,
     bound: "BoundLoop | None" = None,
+    into=None,
 ) -> tuple[Carry, Chunk]:
     """`run_chunk` (concrete values, `exact=False`) as one call of the native kernel
     (`native_loop`, with its `max_lines`; or `bound`'s, when it was found for this stepper and
@@ -202,24 +202,40 @@ def native_run_chunk(
     `length`). `run_chunk` pads them to `length` (the steps not made zero, the nodes past the
     last one repeating it, their solves skipped), which `assemble` cuts off again: every chunk
     of a run but its last makes `length` steps, and of the last it keeps the steps made and
-    the last node. The first-step check (`first_step_probe`) reads the first two steps."""
-    if bound is not None and bound.takes(stepper, system, dt, check_energy):
-        kernel, arrays = bound.kernel, [*bound.arrays[:-1], np.asarray(dt)]
-    else:
-        kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, max_lines)
+    the last node. The first-step check (`first_step_probe`) reads the first two steps.
+    `into` (rows, start): the kernel writes its records into records start, start + 1, … of a
+    run's rows (`NativeLoop.record_rows`, `NativeChunks.run`) instead of new arrays."""
+    kernel, arrays = _kernel_of(stepper, system, carry, dt, check_energy, max_lines, bound)
     n = int(np.asarray(carry.n))
     made = int(np.clip(int(np.asarray(n_total)) - n, 0, length))
     host = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], carry)
+    records = None if into is None else kernel.record_views(into[0], into[1], into[1] + made + 1)
     (last, _), rec = kernel(
         [a[None] for a in arrays],
         np.asarray([n + made], np.int32),
         (host, np.asarray(carry.xi_last)[None]),
         steps=made + 1,
         capacity=made + 1,
+        records=records,
     )
     last = jax.tree_util.tree_map(lambda a: a[0], last)
-    rec = jax.tree_util.tree_map(lambda a: a[0], rec)
-    steps = lambda a: None if a is None else a[:made]  # the iteration after the last step made none
+    chunk = _chunk_of(jax.tree_util.tree_map(lambda a: a[0], rec), made)
+    xi_last = chunk.nodes.xi_step[made - 1] if made > 0 else np.asarray(carry.xi_last)
+    return last._replace(xi_last=xi_last), chunk
+
+
+def _kernel_of(stepper, system, carry, dt, check_energy, max_lines, bound):
+    """The kernel of a chunk and its arrays (the system's and Δt's): `bound`'s when it takes
+    these, else `native_loop`'s."""
+    if bound is not None and bound.takes(stepper, system, dt, check_energy):
+        return bound.kernel, [*bound.arrays[:-1], np.asarray(dt)]
+    return native_loop(stepper, system, carry, dt, check_energy, max_lines)
+
+
+def _chunk_of(rec: dict, made: int) -> Chunk:
+    """The `Chunk` of `made` steps' records (`made + 1` entries each, as the kernel writes them:
+    the last iteration made no step, its step entries are dropped)."""
+    steps = lambda a: None if a is None else a[:made]
     nodes = Nodes(
         Q=rec["Q"],
         p=rec["p"],
@@ -229,9 +245,38 @@ def native_run_chunk(
         nodal_Q=rec["nodal_Q"],
         xi_seed=None,
     )
-    xi_last = nodes.xi_step[made - 1] if made > 0 else np.asarray(carry.xi_last)
     stats = NewtonStats(*(steps(x) for x in rec["stats"]))
-    return last._replace(xi_last=xi_last), Chunk(nodes, stats, rec["xi"], rec["nodal"], rec["valid"], rec["energy"])
+    return Chunk(nodes, stats, rec["xi"], rec["nodal"], rec["valid"], rec["energy"])
+
+
+class NativeChunks(NamedTuple):
+    """`native_chunk_program`'s chunk program: called, one chunk (`native_run_chunk`, the
+    signature of XLA's `run_chunk`; the first-step check calls it so); `run`, all the chunks of
+    a march, written in place into the run's arrays."""
+
+    bound: BoundLoop
+    max_lines: object
+
+    def __call__(self, stepper, system, carry, dt, length, n_total, check_energy=False):
+        return native_run_chunk(stepper, system, carry, dt, length, n_total, check_energy, self.max_lines, self.bound)
+
+    def run(self, stepper, system, carry: Carry, dt, length: int, n_total, check_energy: bool, n_steps: int):
+        """The march's `n_steps` steps from `carry` (up to `n_total`) in chunks of `length`, as
+        `march_chunked`'s loop of chunks makes them, but the kernel writes every chunk's records
+        into one set of the run's rows (`NativeLoop.record_rows`: aligned, so that
+        `jax.device_put` takes them without a copy): returns (the carry, [one `Chunk` of all the
+        records]), which `assemble` reads without joining (a copy). A chunk's last node is the
+        next chunk's first, written again by it, as `assemble` joins them."""
+        if n_steps <= 0:
+            return carry, []
+        kernel = _kernel_of(stepper, system, carry, dt, check_energy, self.max_lines, self.bound)[0]
+        rows, start = kernel.record_rows(n_steps + 1), 0
+        for _ in range(-(-n_steps // length)):
+            carry, chunk = native_run_chunk(
+                stepper, system, carry, dt, length, n_total, check_energy, self.max_lines, self.bound, (rows, start)
+            )
+            start += chunk.stats.status.shape[0]
+        return carry, [_chunk_of(kernel.records(rows, start + 1), start)]
 
 
 def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, backend: str):
@@ -252,7 +297,7 @@ def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, che
         try:
             kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, limit)
             bound = BoundLoop(stepper, system, kernel, arrays, _aval(dt), bool(check_energy))
-            return functools.partial(native_run_chunk, max_lines=limit, bound=bound)
+            return NativeChunks(bound, limit)
         except Unsupported as err:
             why = f"the native translation does not cover the step: {err}"
     if backend == "native":

@@ -413,10 +413,13 @@ def march_chunked(
     else:  # a continued march: its first step is not a run's first step (it has its guesses)
         carry, startup = march_state, np.zeros((), np.int32)
         total = np.asarray(np.asarray(carry.n) + n_steps, np.int32)
-    chunks = []
-    for _ in range(-(-n_steps // chunk_steps)):
-        carry, chunk = chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
-        chunks.append(chunk)
+    if native is not None:  # the chunks write their records into the run's arrays: no join
+        carry, chunks = native.run(stepper, system, carry, dt, chunk_steps, total, check_energy, n_steps)
+    else:
+        chunks = []
+        for _ in range(-(-n_steps // chunk_steps)):
+            carry, chunk = chunk_jit(stepper, system, carry, dt, chunk_steps, total, check_energy)
+            chunks.append(chunk)
     if any_traced(chunks, startup, probe):
         # a function the map checks do not call closed over a traced value (the caller is
         # inside jit/vmap; integrate sends maps that close over one to `march`)

@@ -311,14 +311,38 @@ class NativeLoop:
             record, closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, carries=n
         )
 
-    def __call__(self, *args, steps: int, capacity: int):
+    def record_rows(self, capacity: int) -> list:
+        """Rows for `capacity` records of one member, one array per record leaf, aligned
+        (`layout.aligned_empty`): a run's records, which calls with `records=` views of them
+        (`record_views`) fill in place."""
+        from .layout import aligned_empty
+
+        return [aligned_empty((capacity * size, 1), storage) for _, size, storage, _ in self.kernel.record_layout()]
+
+    def record_views(self, rows: list, start: int, stop: int) -> list:
+        """Records `start` to `stop` of `record_rows`' arrays, as the rows of one call's records."""
+        return [r[start * size : stop * size] for r, (_, size, _, _) in zip(rows, self.kernel.record_layout())]
+
+    def records(self, rows: list, count: int):
+        """The first `count` records of `record_rows`' arrays as the record pytree, (count, …)
+        views (a bool record as a bool copy)."""
+        import jax
+        import numpy as np
+
+        out = []
+        for r, (shape, size, _, dtype) in zip(rows, self.kernel.record_layout()):
+            a = r[: count * size].reshape((count,) + tuple(shape))
+            out.append(a.astype(np.bool_) if dtype == np.bool_ else a)
+        return jax.tree_util.tree_unflatten(self._record_tree, out)
+
+    def __call__(self, *args, steps: int, capacity: int, records=None):
         import jax
         import numpy as np
 
         leaves, tree = jax.tree_util.tree_flatten(args)
         if tree != self._in_tree:
             raise TypeError(f"arguments of structure {tree}, expected {self._in_tree}")
-        outs = self.kernel(*[np.asarray(x) for x in leaves], steps=steps, capacity=capacity)
+        outs = self.kernel(*[np.asarray(x) for x in leaves], steps=steps, capacity=capacity, records=records)
         n = self._carry_tree.num_leaves
         carry = jax.tree_util.tree_unflatten(self._carry_tree, outs[:n])
         return carry, jax.tree_util.tree_unflatten(self._record_tree, outs[n:])

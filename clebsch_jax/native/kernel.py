@@ -457,9 +457,16 @@ class Kernel:
         )
         return k
 
-    def __call__(self, *arrays, threads: int = 1, steps: int = 0, capacity: int = 0, workspace=None):
+    def record_layout(self) -> list:
+        """(shape, entries, storage dtype, dtype) of each record output of a loop kernel."""
+        if self.carries is None:
+            return []
+        return [(*layout, d) for layout, d in zip(self._outs[self.carries :], self.out_dtypes[self.carries :])]
+
+    def __call__(self, *arrays, threads: int = 1, steps: int = 0, capacity: int = 0, workspace=None, records=None):
         """`workspace` (`clebsch_jax.native.layout.Workspace`, optional): rows kept for this
-        thread's next calls; the outputs are then valid until its second call after this one."""
+        thread's next calls; the outputs are then valid until its second call after this one.
+        `records` (a loop kernel's): the rows its records are written to (`output_rows`)."""
         if len(arrays) != len(self._ins):
             raise TypeError(f"expected {len(self._ins)} arrays, got {len(arrays)}")
         B = next(int(np.shape(a)[0]) for a, bat in zip(arrays, self.batched) if bat)
@@ -469,7 +476,7 @@ class Kernel:
         n_carry = len(self._outs) if self.carries is None else self.carries
         if self.carries is not None and not 0 <= steps <= capacity:
             raise ValueError(f"a loop kernel of {steps} steps with records for {capacity}")
-        outs = output_rows(self._outs, n_carry, stride, steps, capacity, workspace)
+        outs = output_rows(self._outs, n_carry, stride, steps, capacity, workspace, records)
         pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[x.ctypes.data for x in buffers + outs])
         address = ctypes.addressof(pointers)
         loop = () if self.carries is None else (int(steps),)

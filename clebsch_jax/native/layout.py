@@ -17,7 +17,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["Workspace", "input_rows", "output_rows", "results"]
+__all__ = ["Workspace", "aligned_empty", "input_rows", "output_rows", "results"]
+
+ALIGNMENT = 64
+"""Bytes: `jax.device_put` of a contiguous NumPy array aligned so takes its memory as it is (on
+CPU), where it copies one that is not (NumPy's large arrays start 16 bytes into their pages)."""
 
 
 class Workspace:
@@ -45,6 +49,15 @@ class Workspace:
     def written(self, which: int) -> dict:
         """Output rows of set `which` by the address of their data."""
         return {a.ctypes.data: a for k, a in self._rows.items() if k[0] == "out" and k[1] == which}
+
+
+def aligned_empty(shape: tuple, dtype) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data start on an `ALIGNMENT`-byte boundary."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=int)) * dtype.itemsize
+    raw = np.empty(nbytes + ALIGNMENT, np.uint8)
+    start = -raw.ctypes.data % ALIGNMENT
+    return raw[start : start + nbytes].view(dtype).reshape(shape)
 
 
 def _fresh(key, shape: tuple, dtype) -> np.ndarray:
@@ -90,14 +103,27 @@ def input_rows(arrays, layout: list, batched: list, B: int, stride: int, workspa
     return buffers
 
 
-def output_rows(layout: list, n_carry: int, stride: int, steps: int, capacity: int, workspace) -> list:
+def output_rows(layout: list, n_carry: int, stride: int, steps: int, capacity: int, workspace, records=None) -> list:
     """The rows the kernel writes: each carry output's (entries, stride), each record's
-    (capacity · entries, stride), zero after the `steps` records written."""
+    (capacity · entries, stride), zero after the `steps` records written. `records`: the
+    records' rows given by the caller (for example views of a longer run's arrays, which the
+    kernel then fills in place), checked for their shape and dtype."""
     which = None if workspace is None else workspace.next_set()
     take = _fresh if workspace is None else lambda j, shape, dtype: workspace.rows(("out", which, j), shape, dtype)
     outs = [take(j, (size, stride), storage) for j, (_, size, storage) in enumerate(layout[:n_carry])]
+    given = None if records is None else list(records)
+    if given is not None and len(given) != len(layout) - n_carry:
+        raise ValueError(f"records: expected {len(layout) - n_carry} arrays of rows, got {len(given)}")
     for j, (_, size, storage) in enumerate(layout[n_carry:], n_carry):
-        rows = take(j, (capacity * size, stride), storage)
+        if given is None:
+            rows = take(j, (capacity * size, stride), storage)
+        else:
+            rows = given[j - n_carry]
+            if rows.shape != (capacity * size, stride) or rows.dtype != storage or not rows.flags.c_contiguous:
+                raise ValueError(
+                    f"records[{j - n_carry}]: expected C-contiguous rows of shape {(capacity * size, stride)} and "
+                    f"dtype {storage}, got {rows.shape} {rows.dtype}"
+                )
         rows[steps * size :] = 0
         outs.append(rows)
     return outs
