@@ -79,6 +79,20 @@ def test_laplacian_is_hoppe_yau_and_its_inverse_solves_it():
     assert np.max(np.abs(L @ X.ravel() - W.ravel())) < 1e-12
 
 
+@pytest.mark.parametrize("n", [2, 3, 17])
+def test_inverse_laplacian_at_other_sizes(n):
+    """The solves along the packed diagonals (diagonal k and diagonal −(n + 1 − k) in one
+    column, the padding an identity row) at the smallest sizes and an odd one: Δ_n P = W to
+    round-off of the dense Laplacian's entries (|Δ_n| ~ n²), for a complex trace-free W."""
+    L = dense_laplacian(n)
+    rng = np.random.default_rng(n)
+    W = rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))
+    W -= np.trace(W) / n * np.eye(n)
+    P = np.asarray(models.euler_sphere_inverse_laplacian(W))
+    assert abs(np.trace(P)) < 1e-13
+    assert np.max(np.abs(L @ P.ravel() - W.ravel())) < 1e-14 * n * n
+
+
 def test_basis_is_orthogonal_eigenvectors_with_spherical_harmonic_phases():
     L = dense_laplacian(N)
     bases = models.euler_sphere_basis(N)
