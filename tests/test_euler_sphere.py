@@ -77,6 +77,11 @@ def test_laplacian_is_hoppe_yau_and_its_inverse_solves_it():
     X = np.asarray(models.euler_sphere_inverse_laplacian(W))
     assert abs(np.trace(X)) < 1e-13
     assert np.max(np.abs(L @ X.ravel() - W.ravel())) < 1e-12
+    # n = 3, the smallest size with every kind of column in the packed solves (diagonal k above
+    # diagonal −(n + 1 − k), the padding an identity row)
+    W3 = P[:3, :3] - np.trace(P[:3, :3]) / 3 * np.eye(3)
+    X3 = np.asarray(models.euler_sphere_inverse_laplacian(W3))
+    assert np.max(np.abs(dense_laplacian(3) @ X3.ravel() - W3.ravel())) < 1e-13
 
 
 def test_basis_is_orthogonal_eigenvectors_with_spherical_harmonic_phases():

@@ -13,6 +13,7 @@ import pytest
 
 import clebsch_jax as cj
 from clebsch_jax.discrete.matrix_group import find_reduction
+from clebsch_jax.march.carry import input_ok, velocity_map_linear
 
 models = cj.models
 N = 4  # the euler_sphere tests' vmap/grad size: programs shared where the shapes agree
@@ -144,3 +145,38 @@ def test_declared_representation_refusals():
     )
     with pytest.raises(ValueError, match="Cayley map only"):
         cj.ReducedStep().prepare(exp_system, Q0, xi0)
+
+
+class _BentUnitary(cj.UnitaryAlgebra):
+    """UnitaryAlgebra with a term quadratic in ξ in X: not a velocity map (Definition 1)."""
+
+    def X(self, xi):
+        return super().X(xi + 0.1 * xi * xi)
+
+
+@pytest.mark.slow  # ~1.5 s of compiling the traced checks; the default run covers input_ok and
+# velocity_map_linear on undeclared velocity maps (test_model_checks)
+def test_traced_checks_read_a_declared_representation_through_X():
+    """The checks a traced march makes at its start (`march.carry.input_ok`,
+    `velocity_map_linear`) evaluate a declared representation's factor X(ξ) instead of the
+    product Q⁰·R(X(ξ)) of the ambient size 2n: a nonlinear X still fails them, a NaN in ξ⁰ too,
+    and the linear UnitaryAlgebra passes."""
+    n = 3
+    Q0, xi0 = start(15, "unitary", n)
+    model = models.euler_sphere(n)
+
+    def system(velocity_map):
+        return cj.ClebschSystem(lagrangian=model.lagrangian, velocity_map=velocity_map, derivative_map=cj.cayley)
+
+    @jax.jit
+    def checks(xi):  # one program for the three systems' checks (not op by op)
+        good, bent = system(cj.UnitaryAlgebra(n)), system(_BentUnitary(n))
+        ok = lambda x: input_ok(good, Q0, x, None, 0.1)
+        return (
+            ok(xi),
+            velocity_map_linear(good, Q0, xi),
+            velocity_map_linear(bent, Q0, xi),
+            ok(xi.at[0, 0].set(jnp.nan)),
+        )
+
+    assert [bool(b) for b in checks(xi0)] == [True, True, False, False]

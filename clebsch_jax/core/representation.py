@@ -48,7 +48,8 @@ class RealMatrices:
     ambient_complex = False
     skew_adjoint = False
     r"""True when every $X(\xi)$ is anti-self-adjoint, $X(\xi)^\dagger = -X(\xi)$ (so(n),
-    u(n)): the Cayley step's sandwich is then a congruence (`X_adjoint_congruence`)."""
+    u(n)): the Cayley step's sandwich is then a congruence, and both its momentum maps follow
+    from one product $C = YP$ (`cayley_parts`)."""
 
     def X_adjoint_congruence(self, L, P):
         r"""$X^T(L P L^\dagger)$: the adjoint of a congruence. The reduced Cayley step's
@@ -56,6 +57,24 @@ class RealMatrices:
         algebra is `skew_adjoint`. Here as written; a representation may use that the result
         lies in its algebra."""
         return self.X_adjoint(self.matmul(self.matmul(L, P), self.dagger(L)))
+
+    def cayley_parts(self, Y, P):
+        r"""The reduced Cayley step's momentum maps for a `skew_adjoint` algebra, as the parts of
+        $X^T(F_-^\dagger P F_+^\dagger)$ even and odd in Δt ($Y = \Delta t X(\xi)$, $F_\mp = I
+        \mp Y/2$, so $F_-^\dagger = I + Y/2$ and $F_+^\dagger = I - Y/2$): with $C = YP$, and
+        $PY = C^\dagger$ when P is in the algebra too,
+
+        $$ (I + Y/2)P(I - Y/2) = P + \tfrac12(C - C^\dagger) - \tfrac14 CY , \qquad
+           \text{even} = X^T(P) - \tfrac14 X^T(CY), \quad \text{odd} = X^T(C) , $$
+
+        ($X^T(C^\dagger) = -X^T(C)$ for the pairings' adjoint of an anti-self-adjoint X). The
+        residual is $\mu - \text{even} - \text{odd}$ and the outgoing momentum's increment
+        $X^T(Y^\dagger P - PY^\dagger) = -2\,\text{odd}$ (`reduction._cayley_step`): the
+        step's O(Δt) terms are formed as products of the small Y, not recovered from products
+        of O(1) matrices. Here as written; a representation may compute $X^T(CY)$ knowing that
+        CY lies in its algebra. **Returns:** `(even, odd)`."""
+        C = self.matmul(Y, P)
+        return self.X_adjoint(P) - 0.25 * self.X_adjoint(self.matmul(C, Y)), self.X_adjoint(C)
 
     @staticmethod
     def dagger(A):
@@ -149,15 +168,15 @@ class UnitaryAlgebra(MatrixRepresentation):
         ac, bd = _linalg.matmul(a, c), _linalg.matmul(b, d)
         return jax.lax.complex(ac - bd, _linalg.matmul(a + b, c + d) - ac - bd)
 
-    def X_adjoint_congruence(self, L, P):
-        r"""$X^T(L P L^\dagger)$ for P in $\mathfrak u(n)$: $M = L P L^\dagger$ is skew-Hermitian,
-        so $X^T(M) = \mathrm{Re}\,M + \mathrm{Im}\,M$ (up to rounding), and with $A = LP =
-        a + ib$ and $L = l_r + i l_i$ that is $a(l_r^T - l_i^T) + b(l_r^T + l_i^T)$: two real
-        products after the three of $LP$, where the complex $M$ takes three more."""
-        A = self.matmul(L, P)
-        a, b = jnp.real(A), jnp.imag(A)
-        lr, li = jnp.swapaxes(jnp.real(L), -1, -2), jnp.swapaxes(jnp.imag(L), -1, -2)
-        return _linalg.matmul(a, lr - li) + _linalg.matmul(b, lr + li)
+    def cayley_parts(self, Y, P):
+        r"""`RealMatrices.cayley_parts` in five real n×n products, none of a transposed operand
+        (XLA's CPU backend runs a product $A^TB$ by a slower route than $AB$): $C = YP$ by
+        `matmul` (three), and $X^T(CY) = \mathrm{Re}(CY) + \mathrm{Im}(CY)$ (CY is
+        skew-Hermitian, up to rounding) $= c_r(y_r + y_i) + c_i(y_r - y_i)$ (two)."""
+        C = self.matmul(Y, P)
+        cr, ci, yr, yi = jnp.real(C), jnp.imag(C), jnp.real(Y), jnp.imag(Y)
+        CY = _linalg.matmul(cr, yr + yi) + _linalg.matmul(ci, yr - yi)
+        return self.X_adjoint(P) - 0.25 * CY, self.X_adjoint(C)
 
     @staticmethod
     def solve(A, B):

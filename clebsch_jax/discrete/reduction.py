@@ -196,19 +196,22 @@ def _cayley_step(system, red, scheme, dt, mu, Q0, xi, outgoing, need_Q1=True, gr
     if poly is not None:  # the same two maps as polynomials in (ξ, g): see `CayleyPolynomial`
         even, odd = poly(dt, xi, g)
         r = mu - even - odd
+    elif red.skew_adjoint:  # Y† = −Y: both maps from C = YP (`RealMatrices.cayley_parts`)
+        even, odd = red.cayley_parts(Y, red.X_inv_adjoint(g))
+        r = mu - even - odd
     else:
         P = red.X_inv_adjoint(g)
-        if red.skew_adjoint:  # F₊† = F₋ when Y† = −Y: the sandwich is a congruence
-            r = mu - red.X_adjoint_congruence(dag(Fm), P)
-        else:
-            r = mu - red.X_adjoint(mm(mm(dag(Fm), P), dag(eye + 0.5 * Y)))
+        r = mu - red.X_adjoint(mm(mm(dag(Fm), P), dag(eye + 0.5 * Y)))
     if g_Q is not None and scheme == "left":
         r = r + dt * red.X_adjoint(mm(Q0.T, g_Q))
     if not outgoing:
         return r, None, Q1
     # μ¹ = Xᵀ(F₊ᵀPF₋ᵀ) as μ plus its increment: F₊ᵀPF₋ᵀ − F₋ᵀPF₊ᵀ = YᵀP − PYᵀ, and at the
     # root Xᵀ(F₋ᵀPF₊ᵀ) = μ (+ the left potential term); ᵀ is the representation's adjoint
-    mu1 = mu - 2.0 * odd if poly is not None else mu + red.X_adjoint(mm(dag(Y), P) - mm(P, dag(Y)))
+    if poly is not None or red.skew_adjoint:
+        mu1 = mu - 2.0 * odd
+    else:
+        mu1 = mu + red.X_adjoint(mm(dag(Y), P) - mm(P, dag(Y)))
     if g_Q is not None and scheme == "left":
         mu1 = mu1 + dt * red.X_adjoint(mm(Q0.T, g_Q))
     if g_Q is not None and scheme == "right":

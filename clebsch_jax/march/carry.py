@@ -13,6 +13,7 @@ import numpy as np
 
 from ..core.isotropy import IsotropyGauge, rank_holds
 from ..core.model_checks import DENSE_CHECK_MAX, LINEAR_RTOL
+from ..core.representation import MatrixRepresentation
 from ..core.validation import nan_unless
 from ..roots.status import NewtonStats, Status, skip_stats
 from ..steppers.base import AbstractStepper, Nodes
@@ -95,7 +96,7 @@ def input_ok(system, Q0, xi0, P0, dt):
     for leaf in jax.tree_util.tree_leaves(system):  # the model's parameters
         if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.inexact):
             ok = ok & finite(leaf)
-    ok = ok & finite(system.l(xi0, Q0)) & finite(system.velocity_map(xi0, Q0))
+    ok = ok & finite(system.l(xi0, Q0)) & finite(_velocity(system, xi0, Q0))
     traced_check = getattr(system.check_Q, "traced", None)
     if traced_check is not None:
         ok = ok & jnp.asarray(traced_check(Q0), bool)
@@ -113,15 +114,25 @@ def velocity_map_linear(system, Q0, xi0):
     sizes of the three, with d a fixed direction of the size of ξ⁰ (a pattern without symmetry
     among the components; all ones above `DENSE_CHECK_MAX` components): a term nonlinear in ξ,
     or a constant term, fails it; round-off of a linear map is far below it. Three evaluations
-    of the velocity map at step 0."""
+    of the velocity map at step 0 (of its factor X for a declared representation: `_velocity`)."""
     if xi0.size <= DENSE_CHECK_MAX:  # a constant of the program, with no symmetry among components
         pattern = np.sin(np.arange(1, xi0.size + 1, dtype=float)).reshape(xi0.shape)
     else:  # large ξ (a fluid): no constant of its size in the program
         pattern = np.ones((), float)
     d = jnp.broadcast_to(pattern * (jnp.max(jnp.abs(xi0)) + 1.0), xi0.shape).astype(xi0.dtype)
-    v0, vd, v2 = (system.velocity_map(x, Q0) for x in (xi0, d, 2.0 * xi0 + d))
-    norm = lambda a: jnp.sqrt(jnp.sum(a**2))
+    v0, vd, v2 = (_velocity(system, x, Q0) for x in (xi0, d, 2.0 * xi0 + d))
+    norm = lambda a: jnp.sqrt(jnp.sum(jnp.abs(a) ** 2))  # X may be complex (`_velocity`)
     return norm(v2 - 2.0 * v0 - vd) <= LINEAR_RTOL * (2.0 * norm(v0) + norm(vd) + norm(v2))
+
+
+def _velocity(system, xi, Q0):
+    r"""What the traced checks evaluate of the velocity map at (ξ, Q⁰): the map itself, or for a
+    declared `MatrixRepresentation` ($\mathcal L_\xi Q = Q\,X(\xi)$) the factor $X(\xi)$ — the
+    map is finite where X is (Q⁰ is checked finite) and linear in ξ when X is (the stricter
+    check), and X costs O(dim V) where the product with Q⁰ costs a matrix product of the
+    ambient size (for the fluid, (2N)³)."""
+    vm = system.velocity_map
+    return vm.X(xi) if isinstance(vm, MatrixRepresentation) else vm(xi, Q0)
 
 
 def _checked(system, Q0, xi0, P0, dt):

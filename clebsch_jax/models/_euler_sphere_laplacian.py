@@ -17,6 +17,8 @@ __all__ = [
     "neg_laplacian_hat",
     "neg_laplacian_hat_inverse",
     "outer_weight",
+    "pack",
+    "unpack",
 ]
 
 
@@ -36,7 +38,8 @@ def check_N(N) -> int:
 def laplacian_data(N: int):
     r"""NumPy constants of $\Delta_N$ for size N: the coefficients of its entrywise form, its
     tridiagonal matrices along the diagonals 1..N−1 (skewed: row k holds diagonal k, padded with
-    identity rows) and the eigen-decomposition of its (singular) matrix on diagonal 0."""
+    identity rows), the Thomas factors of the same systems in the packed layout the inverse
+    solves in (`pack`) and the eigen-decomposition of its (singular) matrix on diagonal 0."""
     s = 0.5 * (N - 1)
     m = s - np.arange(N)  # J3's eigenvalues, row 0 the north pole
     c = np.sqrt(np.maximum(s * (s + 1) - m * (m + 1), 0.0))  # (J+)_{i-1,i} = c_i, c_0 = 0
@@ -56,14 +59,21 @@ def laplacian_data(N: int):
     T0 = np.diag(d[0]) + np.diag(e[0, :-1], 1) + np.diag(e[0, :-1], -1)
     lam, V0 = np.linalg.eigh(-T0)  # l(l+1) ascending, l = 0 first
     lam_hat = np.concatenate([[outer_weight(N)], lam[1:]])
-    # The Thomas factors of diagonals 1..N−1 (their matrices are constant): the elimination
-    # T = L U with unit upper U, U[i, i+1] = upper[i], and pivots pivot[i]. Diagonals k ≥ 1 hold
-    # only degrees l ≥ k ≥ 1, so these matrices are definite and need no pivoting.
-    pivot, upper = np.empty((N - 1, N)), np.empty((N - 1, N))
-    pivot[:, 0], upper[:, 0] = d[1:, 0], e[1:, 0] / d[1:, 0]
+    # The Thomas factors of the packed systems (`pack`): column k ≥ 1 of the packed matrix holds
+    # diagonal k (rows 0..N−k−1) and diagonal −(N+1−k) (rows N−k..N−2), two tridiagonal
+    # systems with no coupling between them (the coefficient `up` of an entry on the last
+    # column or row is 0), and an identity row for the padding; column 0, diagonal 0, is
+    # singular and is solved in its eigenbasis instead (an identity column here). T = L U with
+    # unit upper U, U[i, i+1] = upper[i], and pivots pivot[i]; the systems of diagonals k ≠ 0
+    # hold only degrees l ≥ |k| ≥ 1, so they are definite and need no pivoting.
+    d_packed = np.where(_pack_mask(N), _pack_np(centre), 1.0)
+    e_packed = np.where(_pack_mask(N), _pack_np(up), 0.0)
+    d_packed[:, 0], e_packed[:, 0] = 1.0, 0.0
+    pivot, upper = np.empty_like(d_packed), np.empty_like(d_packed)
+    pivot[0], upper[0] = d_packed[0], e_packed[0] / d_packed[0]
     for r in range(1, N):
-        pivot[:, r] = d[1:, r] - e[1:, r - 1] * upper[:, r - 1]
-        upper[:, r] = e[1:, r] / pivot[:, r]
+        pivot[r] = d_packed[r] - e_packed[r - 1] * upper[r - 1]
+        upper[r] = e_packed[r] / pivot[r]
     return dict(
         centre=centre,
         up=up,
@@ -78,8 +88,37 @@ def laplacian_data(N: int):
         inv0=(V0 / lam_hat) @ V0.T,
         pivot=pivot,
         upper=upper,
-        lower=dl[1:],
+        lower=np.concatenate([np.zeros((1, N + 1)), e_packed[:-1]]),
     )
+
+
+def pack(M):
+    r"""The (..., N, N + 1) packing of (..., N, N) matrices whose column k holds diagonal k of M
+    and, below it, diagonal −(N + 1 − k): entry (i, k) is M's entry of flat index
+    $i(N + 1) + k$, i.e. $M_{i, i+k}$ for $i + k < N$ and $M_{i+1, i+k-N}$ after it (zero
+    padding past the end). A pad and two reshapes, no gather; `unpack` inverts it. Along a
+    column, consecutive entries are neighbours (i, j), (i + 1, j + 1) of one diagonal."""
+    N = M.shape[-1]
+    lead = M.shape[:-2]
+    flat = jnp.pad(M.reshape(lead + (N * N,)), [(0, 0)] * len(lead) + [(0, N)])
+    return flat.reshape(lead + (N, N + 1))
+
+
+def unpack(S):
+    """The (..., N, N) matrices of packed (..., N, N + 1) arrays (`pack`'s inverse)."""
+    N = S.shape[-2]
+    lead = S.shape[:-2]
+    return S.reshape(lead + (N * (N + 1),))[..., : N * N].reshape(lead + (N, N))
+
+
+def _pack_np(M):
+    N = M.shape[-1]
+    return np.pad(M.reshape(N * N), (0, N)).reshape(N, N + 1)
+
+
+def _pack_mask(N: int):
+    """Where the packing holds an entry of the matrix (False on its padding)."""
+    return _pack_np(np.ones((N, N))) > 0
 
 
 def neg_laplacian_hat(M):
@@ -95,28 +134,24 @@ def neg_laplacian_hat(M):
 
 
 def neg_laplacian_hat_inverse(M):
-    r"""$(-\hat\Delta_N)^{-1}M$ for real (..., N, N) M: the upper diagonals of M and of $M^T$ are
-    solved along each diagonal (N − 1 tridiagonal systems each, batched), diagonal 0 in its
-    eigenbasis (where $\Delta_N$ is singular); O(N²) work per matrix."""
+    r"""$(-\hat\Delta_N)^{-1}M$ for real (..., N, N) M: the diagonals k ≠ 0 by tridiagonal
+    solves along the columns of M's packing (`pack`: all of them at once, with no gather),
+    diagonal 0 in its eigenbasis (where $\Delta_N$ is singular); O(N²) work per matrix."""
     N = M.shape[-1]
     D = laplacian_data(N)
-    both = jnp.stack([M, jnp.swapaxes(M, -1, -2)], axis=-3)  # (..., 2, N, N)
-    skewed = jnp.where(D["valid"], both[..., D["rows"], D["cols"]], 0.0)  # row k: diagonal k
-    sol = _thomas(D, -skewed[..., 1:, :])
-    diag0 = skewed[..., 0, :] @ jnp.asarray(D["inv0"], M.dtype)  # inv0 is symmetric
-    solved = jnp.concatenate([diag0[..., None, :], sol], axis=-2)  # (..., 2, N, N), row k: diagonal k
-    i, j = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
-    upper = solved[..., 0, np.clip(j - i, 0, None), i]  # P[i, j] = diagonal j−i at row i, j >= i
-    lower = solved[..., 1, np.clip(i - j, 0, None), j]  # from the transposed matrix, i > j
-    return jnp.where(j >= i, upper, lower)
+    packed = pack(M)
+    sol = _thomas(D, -packed)
+    diag0 = packed[..., :, 0] @ jnp.asarray(D["inv0"], M.dtype)  # inv0 is symmetric
+    first = jnp.arange(N + 1) == 0
+    return unpack(jnp.where(first, diag0[..., :, None], sol))
 
 
 def _thomas(D, rhs):
-    r"""Solve $\Delta_N$'s tridiagonal systems of diagonals 1..N−1 for `rhs` (..., N − 1, N)
-    (row k: diagonal k), with the constant factors of `laplacian_data`: a forward and a
-    backward substitution, each one scan over the N entries of every diagonal at once."""
-    along = jnp.moveaxis(rhs, -1, 0)  # (N, ..., N − 1): entry i of every diagonal
-    factors = {name: jnp.asarray(D[name].T, rhs.dtype) for name in ("pivot", "upper", "lower")}
+    r"""Solve $\Delta_N$'s packed tridiagonal systems (`laplacian_data`) for `rhs` (..., N, N + 1),
+    with their constant factors: a forward and a backward substitution, each one scan over the
+    N rows of every column at once."""
+    along = jnp.moveaxis(rhs, -2, 0)  # (N, ..., N + 1): row i of every column
+    factors = {name: jnp.asarray(D[name], rhs.dtype) for name in ("pivot", "upper", "lower")}
 
     def forward(y, row):
         b, lower, pivot = row
@@ -131,7 +166,7 @@ def _thomas(D, rhs):
     zero = jnp.zeros_like(along[0])
     _, y = jax.lax.scan(forward, zero, (along, factors["lower"], factors["pivot"]))
     _, x = jax.lax.scan(backward, zero, (y, factors["upper"]), reverse=True)
-    return jnp.moveaxis(x, 0, -1)
+    return jnp.moveaxis(x, 0, -2)
 
 
 def outer_weight(N: int) -> float:
