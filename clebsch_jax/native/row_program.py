@@ -255,6 +255,8 @@ def _plain(eqn, split, n):
         return _gather(p, split, n, shapes, len(_shape(eqn.outvars[0])))
     if name.startswith("scatter") and len(split) == 3:  # its update jaxpr: the primitive's combination of two entries
         return _scatter(p, split, n, shapes)
+    if name == "pad" and a is not None and split[1] is None and tuple(p["padding_config"][a]) == (0, 0, 0):
+        return dict(p, padding_config=_without(p["padding_config"], a)), [a]
     if a is None or any(x is None for x in split):  # below: every operand split on one axis
         return None
     if name == "reshape":
