@@ -23,6 +23,8 @@ import clebsch_jax as cj
 from clebsch_jax import native
 from clebsch_jax.native import NativeFallbackWarning
 
+from .helpers import assert_same_solution, solution_leaves
+
 pytestmark = pytest.mark.skipif(not native.available(), reason="llvmlite cannot be imported")
 
 
@@ -81,25 +83,6 @@ def test_a_loop_per_node_runs_as_a_loop_over_the_nodes_and_equals_vmap():
 N_LONG = 100
 
 
-def _leaves(sol):
-    return [(jax.tree_util.keystr(path), np.asarray(x)) for path, x in jax.tree_util.tree_flatten_with_path(sol)[0]]
-
-
-def _assert_same_solution(native, xla):
-    """Integers (statuses, failed steps, iterations, valid nodes) and NaNs exactly; floats to
-    1e-12 of the leaf's largest entry (Newton's residual norms, round-off, to 1e-12 absolutely)."""
-    for (name, a), (_, b) in zip(_leaves(native), _leaves(xla)):
-        assert a.shape == b.shape and a.dtype == b.dtype, name
-        if a.dtype.kind != "f":
-            np.testing.assert_array_equal(a, b, err_msg=name)
-            continue
-        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
-        if np.all(np.isnan(b)):
-            continue
-        atol = 1e-12 if "residual_norm" in name else 1e-12 * np.nanmax(np.abs(b))
-        np.testing.assert_allclose(a, b, rtol=0, atol=atol, equal_nan=True, err_msg=name)
-
-
 def _peakon_members():
     """A peakon–antipeakon pair colliding at t* = 3 (its step fails before), an overtaking
     pair, a NaN member (fails at step 0) and a pair running apart."""
@@ -142,10 +125,10 @@ def test_peakons_past_50_steps_run_natively_under_auto_and_equal_xla():
     assert lines < native.AUTO_MAX_IR_LINES
     run = lambda: _no_fallback(lambda: cj.batch(_peakon_march)(q0, xi0, dts))  # "auto": no fallback
     first, again = run(), run()
-    for (name, a), (_, b) in zip(_leaves(first), _leaves(again)):
+    for (name, a), (_, b) in zip(solution_leaves(first), solution_leaves(again)):
         np.testing.assert_array_equal(a, b, err_msg=name)  # the same bits, call after call
     xla = jax.jit(cj.batch(_peakon_march, backend="xla"))(q0, xi0, dts)
-    _assert_same_solution(first, xla)
+    assert_same_solution(first, xla)
     result, failed = np.asarray(first.result), np.asarray(first.failed_step)
     assert result[2] == cj.Status.INVALID_INPUT and failed[2] == 0
     assert result[0] != cj.Status.SUCCESS and 40 <= failed[0] < 60  # the collision, before t* = 3
@@ -174,6 +157,6 @@ def test_landmarks_past_50_steps_run_natively_and_equal_xla():
     assert _kernel_lines(_landmark_march, args, N_LONG) == _kernel_lines(_landmark_march, args, 10 * N_LONG)
     native_run = _no_fallback(lambda: cj.batch(_landmark_march, backend="native")(q0, xi0, dts))
     xla = jax.jit(cj.batch(_landmark_march, backend="xla"))(q0, xi0, dts)
-    _assert_same_solution(native_run, xla)
+    assert_same_solution(native_run, xla)
     result = np.asarray(native_run.result)
     assert result[2] == cj.Status.INVALID_INPUT and np.all(result[[0, 1, 3]] == cj.Status.SUCCESS)
