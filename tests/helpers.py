@@ -200,3 +200,24 @@ def sphere_euler_spectral(c0, T, L, rtol=1e-12):
     c = np.zeros((L + 1, L + 1), complex)
     c[lower] = y[: len(lower[0])] + 1j * y[len(lower[0]) :]
     return c
+
+
+def solution_leaves(sol):
+    """(path, NumPy array) of every leaf of a pytree (a `Solution`), in order."""
+    return [(jax.tree_util.keystr(path), np.asarray(x)) for path, x in jax.tree_util.tree_flatten_with_path(sol)[0]]
+
+
+def assert_same_solution(native, xla):
+    """Every leaf of two Solutions: integers (statuses, failed steps, iterations, valid nodes)
+    exactly, NaNs at the same places, floats to 1e-12 of the leaf's largest entry (Newton's
+    residual norms, round-off, to 1e-12 absolutely)."""
+    for (name, a), (_, b) in zip(solution_leaves(native), solution_leaves(xla)):
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        if a.dtype.kind != "f":
+            np.testing.assert_array_equal(a, b, err_msg=name)
+            continue
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
+        if np.all(np.isnan(b)):
+            continue
+        atol = 1e-12 if "residual_norm" in name else 1e-12 * np.nanmax(np.abs(b))
+        np.testing.assert_allclose(a, b, rtol=0, atol=atol, equal_nan=True, err_msg=name)

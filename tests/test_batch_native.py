@@ -25,6 +25,8 @@ from clebsch_jax import models, native
 from clebsch_jax.batching import batch_last, batch_native, prune
 from clebsch_jax.native import NativeFallbackWarning
 
+from .helpers import assert_same_solution, solution_leaves
+
 pytestmark = pytest.mark.skipif(not native.available(), reason="llvmlite cannot be imported")
 
 BODY = models.rigid_body(jnp.array([2.0, 1.0, 2.0 / 3.0]))
@@ -52,13 +54,9 @@ def fast_runs():
     return run(), run()
 
 
-def _leaves(sol):
-    return [(jax.tree_util.keystr(path), np.asarray(x)) for path, x in jax.tree_util.tree_flatten_with_path(sol)[0]]
-
-
 def test_two_native_runs_are_bitwise_equal_and_conserve_the_casimir(fast_runs):
     first, again = fast_runs
-    for (name, a), (_, b) in zip(_leaves(first), _leaves(again)):
+    for (name, a), (_, b) in zip(solution_leaves(first), solution_leaves(again)):
         np.testing.assert_array_equal(a, b, err_msg=name)
     result = np.asarray(first.result)
     assert result[2] == cj.Status.INVALID_INPUT and result[3] == cj.Status.INVALID_INPUT  # NaN ξ⁰, dt <= 0
@@ -75,27 +73,12 @@ def xla_run():
     return _no_fallback(lambda: cj.batch(_march, backend="xla")(Q0, XI0, DTS))
 
 
-def _assert_leaves_equal(native, xla):
-    """Every leaf of two Solutions: integers exactly, NaNs at the same places, floats to 1e-12
-    of the leaf's largest entry (residual norms to 1e-12 absolutely)."""
-    for (name, a), (_, b) in zip(_leaves(native), _leaves(xla)):
-        assert a.shape == b.shape and a.dtype == b.dtype, name
-        if a.dtype.kind != "f":  # statuses, iterations, failed steps, valid nodes: exactly
-            np.testing.assert_array_equal(a, b, err_msg=name)
-            continue
-        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
-        if np.all(np.isnan(b)):
-            continue
-        atol = 1e-12 if "residual_norm" in name else 1e-12 * np.nanmax(np.abs(b))
-        np.testing.assert_allclose(a, b, rtol=0, atol=atol, equal_nan=True, err_msg=name)
-
-
 @pytest.mark.slow  # the interpreter's program of the march compiles in XLA for over 10 s
 def test_the_native_batch_equals_xla_on_every_leaf_of_the_solution(fast_runs, xla_run):
     fast, xla = fast_runs[0], xla_run
     assert (fast.form, fast.method, fast.order, fast.scheme) == (xla.form, xla.method, xla.order, xla.scheme)
     assert jax.tree_util.tree_structure(fast) == jax.tree_util.tree_structure(xla)
-    _assert_leaves_equal(fast, xla)
+    assert_same_solution(fast, xla)
     # the failing members: the same statuses and steps
     np.testing.assert_array_equal(np.asarray(fast.result), np.asarray(xla.result))
     np.testing.assert_array_equal(np.asarray(fast.failed_step), np.asarray(xla.failed_step))
@@ -317,7 +300,7 @@ def test_a_long_march_runs_natively_under_auto(long_run):
 @pytest.mark.slow  # the interpreter's program of the march compiles in XLA for over 10 s
 def test_a_long_native_march_equals_xla(long_run):
     xla = _no_fallback(lambda: cj.batch(_long_march, backend="xla")(Q0, XI0, DTS_LONG))
-    _assert_leaves_equal(long_run, xla)
+    assert_same_solution(long_run, xla)
 
 
 def _rows_program(x, k, n=200):

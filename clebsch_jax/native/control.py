@@ -27,6 +27,7 @@ from llvmlite import ir
 from . import rows as _rows
 from .loops import extra_entries
 from .lower import RULES, eval_closed
+from .row_program import row_equation
 from .rows import ROWS_MIN
 from .values import MAX_ENTRIES, Emitter, Unsupported, is_known
 
@@ -91,12 +92,14 @@ def entries(jaxpr, policy, rows: bool = False) -> int:
 
     n = 0
     for eqn in jaxpr.eqns:
+        eqn = _one_row(eqn) if rows else eqn
         n += sum(_entries_held(v.aval.shape, rows) for v in eqn.outvars if hasattr(v.aval, "shape"))
         n += extra_entries(eqn)
         p = eqn.params
         if eqn.primitive.name == "scan":
             body = p["jaxpr"].jaxpr
-            n += entries(body, policy) * (p["length"] if _unrolled(p["length"], body, policy) else 1)
+            long = rows and p["length"] >= ROWS_MIN  # a loop keeping its records as rows (`_scan`)
+            n += entries(body, policy) * (p["length"] if not long and _unrolled(p["length"], body, policy) else 1)
             continue
         if eqn.primitive.name == "custom_linear_solve":
             n += entries(p["jaxprs"].solve.jaxpr, policy)
@@ -108,6 +111,23 @@ def entries(jaxpr, policy, rows: bool = False) -> int:
                 elif isinstance(x, jcore.Jaxpr):
                     n += entries(x, policy)
     return n
+
+
+def _one_row(eqn):
+    """`eqn`, or, where it is a loop, a branch or a solve that keeps the rows of its long
+    operands apart, its equation of one row (`row_program.row_equation`), which the translation
+    emits once in a loop over the rows (`rows.apply`); its outputs are then one row's."""
+    name = eqn.primitive.name
+    if name not in ("while", "scan", "cond", "custom_linear_solve") or (
+        name == "scan" and eqn.params["length"] >= ROWS_MIN
+    ):
+        return eqn
+    lead = [tuple(getattr(v.aval, "shape", ()))[:1] for v in eqn.invars]
+    n = next((s[0] for s in lead if s and s[0] >= ROWS_MIN), None)
+    found = None if n is None else row_equation(eqn, [0 if s == (n,) else None for s in lead], n)
+    if found is None or any(a not in (0, None) for a in found[1]):
+        return eqn
+    return found[0]
 
 
 def unroll_policy(jaxpr, rows: bool = False):

@@ -8,12 +8,15 @@ iterations (`wants_rows`), arrays with a leading axis of at least `ROWS_MIN` ent
 instead `Rows`: their rows (the entries of one index of the leading axis) live in memory (a
 scan's records, an array concatenated along the axis), are the same for every row (a
 broadcast), or are the row's index (an `iota`). An equation that computes each row of its
-result from the same row of its operands (`_row_plan`: elementwise primitives, selects,
-broadcasts, re-indexing and reductions of the other axes, contractions batched over the axis)
-is emitted as a loop over the rows, which evaluates the equation's rule (`RULES`) on one row;
-a reduction along the axis, a concatenation or a slice along it, and indexing a row at a
-run-time index are loops or views of their own. Any other equation gets the entries of its
-`Rows` operands written out (`materialize`), as before: the code then grows with the axis.
+result from the same row of its operands (`row_program.row_plan`: elementwise primitives,
+selects, broadcasts, re-indexing and reductions of the other axes, contractions batched over
+the axis) is emitted as a loop over the rows, which evaluates the equation's rule (`RULES`) on
+one row; so is an equation with nested programs whose every equation keeps the rows apart
+(`row_program.row_equation`: `jax.vmap` of a Newton loop, a solve or a short scan over the
+nodes of a trajectory), whose program for one row is emitted once, in the loop. A reduction
+along the axis, a concatenation or a slice along it, and indexing a row at a run-time index
+are loops or views of their own. Any other equation gets the entries of its `Rows` operands
+written out (`materialize`), as before: the code then grows with the axis.
 The kernel writes `Rows` outputs in a loop (`clebsch_jax.native.kernel.build_ir`).
 
 Memory rows live in one buffer per kernel call (`Emitter.arena`, allocated on the heap: the
@@ -30,8 +33,8 @@ import types
 import numpy as np
 from llvmlite import ir
 
-from .elementwise import ELEMENTWISE
 from .loops import for_range
+from .row_program import REDUCE, row_equation, row_plan
 from .values import Emitter, is_known, llvm_type
 
 __all__ = ["ROWS_MIN", "Rows", "wants_rows", "apply", "row_at", "memory", "store_row", "materialize", "loop"]
@@ -39,8 +42,6 @@ __all__ = ["ROWS_MIN", "Rows", "wants_rows", "apply", "row_at", "memory", "store
 ROWS_MIN = 32
 """The shortest leading axis held as `Rows` (and the shortest scan that turns them on)."""
 
-_ROWWISE = set(ELEMENTWISE) | {"select_n", "convert_element_type", "clamp", "erf_inv", "nextafter"}
-_REDUCE = {"reduce_sum", "reduce_max", "reduce_min", "reduce_and", "reduce_or", "reduce_prod", "argmax", "argmin"}
 _CALLS = {"pjit", "jit", "closed_call", "core_call", "custom_jvp_call", "custom_vjp_call", "remat", "checkpoint"}
 
 
@@ -159,62 +160,11 @@ def _aval(shape, dtype):
     return types.SimpleNamespace(aval=types.SimpleNamespace(shape=tuple(shape), dtype=np.dtype(dtype), ndim=len(shape)))
 
 
-def _row_plan(eqn, n: int):
-    """(params of one row's equation, which operands are split by rows) when `eqn` computes row
-    k of its output from row k of the operands flagged (the others whole), else None."""
-    name, p = eqn.primitive.name, eqn.params
-    shapes = [tuple(getattr(v.aval, "shape", ())) for v in eqn.invars]
-    lead = [len(s) > 0 and s[0] == n for s in shapes]
-    out = tuple(eqn.outvars[0].aval.shape) if len(eqn.outvars) == 1 else None
-    if out is None or not out or out[0] != n:
-        return None
-    if name in _ROWWISE:  # operands of the output's shape, or broadcast to it along axes of size 1
-        fits = lambda s: len(s) == len(out) and s[0] in (1, n) and all(a in (1, b) for a, b in zip(s[1:], out[1:]))
-        if any(len(s) > 0 and not fits(s) for s in shapes):
-            return None
-        return dict(p), [True if len(s) > 0 and s[0] == n else "one" if len(s) > 0 else False for s in shapes]
-    if name == "broadcast_in_dim":
-        dims = tuple(p["broadcast_dimensions"])
-        if dims and dims[0] == 0 and lead[0]:
-            row = dict(p, shape=tuple(p["shape"][1:]), broadcast_dimensions=tuple(d - 1 for d in dims[1:]))
-            return row, [True] + [False] * (len(shapes) - 1)
-        if 0 not in dims and len(shapes) == 1:
-            return dict(p, shape=tuple(p["shape"][1:]), broadcast_dimensions=tuple(d - 1 for d in dims)), [False]
-        return None
-    if not lead[0] or (any(lead[1:]) and name not in ("concatenate", "dot_general")):
-        return None
-    if name == "reshape" and p.get("dimensions") is None and p["new_sizes"][0] == n:
-        return dict(p, new_sizes=tuple(p["new_sizes"][1:])), lead
-    if name == "squeeze" and 0 not in p["dimensions"]:
-        return dict(p, dimensions=tuple(d - 1 for d in p["dimensions"])), lead
-    if name == "transpose" and p["permutation"][0] == 0:
-        return dict(p, permutation=tuple(d - 1 for d in p["permutation"][1:])), lead
-    if name == "slice" and p["start_indices"][0] == 0 and p["limit_indices"][0] == n:
-        if p["strides"] is None or p["strides"][0] == 1:
-            strides = None if p["strides"] is None else tuple(p["strides"][1:])
-            return dict(
-                p, start_indices=p["start_indices"][1:], limit_indices=p["limit_indices"][1:], strides=strides
-            ), lead
-    if name == "concatenate" and p["dimension"] != 0 and all(lead):
-        return dict(p, dimension=p["dimension"] - 1), lead
-    if name in _REDUCE and 0 not in p["axes"]:
-        return dict(p, axes=tuple(a - 1 for a in p["axes"])), lead
-    if name in ("cumsum", "cumprod", "cummax", "cummin", "cumlogsumexp") and p["axis"] != 0:
-        return dict(p, axis=p["axis"] - 1), lead
-    if name == "dot_general":
-        (lc, rc), (lb, rb) = p["dimension_numbers"]
-        sub = lambda ds: tuple(d - 1 for d in ds)
-        if all(lead) and lb and rb and lb[0] == 0 and rb[0] == 0:  # batched over the rows
-            return dict(p, dimension_numbers=((sub(lc), sub(rc)), (sub(lb[1:]), sub(rb[1:])))), lead
-        if not lb and not rb and 0 not in lc:  # the rows a free axis of the left operand, the right one whole
-            return dict(p, dimension_numbers=((sub(lc), tuple(rc)), ((), ()))), [True, False]
-    return None
-
-
 def apply(em: Emitter, eqn, args, rules):
     """The outputs of `eqn` where `Rows` are involved (made or read), else None (the caller
-    applies `rules` as usual). Equations it does not cover get their `Rows` operands written
-    out; those with nested programs other than calls are translated without `Rows`."""
+    applies `rules` as usual). An equation that keeps the rows apart runs in a loop over them
+    (`row_plan`, `_row_loop`); the others get their `Rows` operands written out, and the
+    programs nested in them are translated without `Rows`."""
     name = eqn.primitive.name
     has_rows = any(isinstance(a, Rows) for a in args)
     if not getattr(em, "rows", False):
@@ -223,6 +173,10 @@ def apply(em: Emitter, eqn, args, rules):
     n = next((a.n for a in args if isinstance(a, Rows)), out_shape[0] if out_shape else 0)
     if name in _CALLS and name in rules:  # entered: its equations see the rows (and count their entries)
         return rules[name](em, eqn, args)
+    if name == "scan" and has_rows and eqn.params["length"] < ROWS_MIN:  # a short scan of each row: a loop over them
+        looped = _row_loop(em, eqn, args, n, rules)
+        if looped is not None:
+            return looped
     if name == "scan" and (has_rows or eqn.params["length"] >= ROWS_MIN):  # records kept as rows: `control`
         nc, ncar = eqn.params["num_consts"], eqn.params["num_carry"]
         return rules["scan"](em, eqn, [materialize(em, a) if k < nc + ncar else a for k, a in enumerate(args)])
@@ -234,8 +188,11 @@ def apply(em: Emitter, eqn, args, rules):
     special = _special(em, eqn, args, n)
     if special is not None:
         return special
-    plan = _row_plan(eqn, n) if n >= ROWS_MIN else None
+    plan = row_plan(eqn, n) if n >= ROWS_MIN else None
     if plan is None:
+        looped = _row_loop(em, eqn, args, n, rules) if n >= ROWS_MIN else None
+        if looped is not None:
+            return looped
         return _nested(em, lambda: rules[name](em, eqn, [materialize(em, a) for a in args]))
     params, split = plan
     ins = [
@@ -268,6 +225,57 @@ def apply(em: Emitter, eqn, args, rules):
         ),
     )
     return result
+
+
+def _row_loop(em: Emitter, eqn, args, n: int, rules):
+    """An equation (a loop, a solve, …) each of whose outputs' rows is computed from the same
+    rows of its operands (`row_program.row_equation`), as a loop over the rows running its
+    program for one row; None where it is not such an equation. An output that is the same for
+    every row (a loop's counter) is kept from the rows' loop in allocas."""
+    split = [0 if isinstance(a, Rows) or (np.ndim(a) > 0 and np.shape(a)[0] == n) else None for a in args]
+    found = row_equation(eqn, split, n)
+    if found is None or any(a not in (0, None) for a in found[1]):  # rows held on the leading axis only
+        return None
+    row_eqn, axes = found
+    ins = [
+        materialize(em, a) if s is None else _as_rows(em, a, n, v.aval.dtype)
+        for a, s, v in zip(args, split, eqn.invars)
+    ]
+    outs = [
+        memory(em, n, tuple(v.aval.shape[1:]), v.aval.dtype) if a == 0 else _slots(em, v.aval)
+        for v, a in zip(eqn.outvars, axes)
+    ]
+    em.count(
+        sum(int(np.prod(v.aval.shape[1:] if a == 0 else v.aval.shape, dtype=int)) for v, a in zip(eqn.outvars, axes))
+    )
+
+    def body(i):
+        row = [row_at(em, a, i) if isinstance(a, Rows) else a for a in ins]
+        got = _nested(em, lambda: rules[eqn.primitive.name](em, row_eqn, row))
+        for r, g, v in zip(outs, got if eqn.primitive.multiple_results else [got], eqn.outvars):
+            if isinstance(r, Rows):
+                store_row(em, r, i, g)
+                continue
+            for idx in np.ndindex(r.shape):
+                em.b.store(em.vec(np.asarray(g, object)[idx], v.aval.dtype), r[idx])
+
+    loop(em, n, body)
+    outs = [r if isinstance(r, Rows) else _loaded(em, r, v.aval.dtype) for r, v in zip(outs, eqn.outvars)]
+    return outs if eqn.primitive.multiple_results else outs[0]
+
+
+def _slots(em: Emitter, aval) -> np.ndarray:
+    out = np.empty(tuple(aval.shape), object)
+    for idx in np.ndindex(out.shape):
+        out[idx] = em.alloca(em.vtype(aval.dtype))
+    return out
+
+
+def _loaded(em: Emitter, slots, dtype) -> np.ndarray:
+    out = np.empty(slots.shape, object)
+    for idx in np.ndindex(slots.shape):
+        out[idx] = em.b.load(slots[idx], typ=em.vtype(dtype))
+    return out
 
 
 def _nested(em: Emitter, run):
@@ -333,7 +341,7 @@ def _special(em: Emitter, eqn, args, n: int):
             at += x.shape[0]
         em.count(int(np.prod(result.row, dtype=int)))
         return result if total >= ROWS_MIN else materialize(em, result)
-    if name in _REDUCE and isinstance(a, Rows) and tuple(p["axes"]) == (0,) and not a.row:
+    if name in REDUCE and isinstance(a, Rows) and tuple(p["axes"]) == (0,) and not a.row:
         return _reduce_rows(em, eqn, a)
     if (
         name == "dynamic_slice"
