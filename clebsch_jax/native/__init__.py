@@ -12,6 +12,7 @@ names the primitive).
 
 from __future__ import annotations
 
+import copy
 import threading
 import warnings
 
@@ -362,8 +363,9 @@ def compile_loop(body, *member_args, width=None, use_cache=True, in_axes=0, max_
 
 def compiled_once(cache: dict, lock, limit: int, key, compile):
     """`compile()` (a native program), kept in `cache` under `key` behind `lock` (cleared when it
-    holds `limit` entries): an `Unsupported` it raises is kept too and raised again, so a program
-    the translation refuses is not translated again. A key that cannot be hashed compiles each
+    holds `limit` entries): an `Unsupported` it raises is kept too (a copy without its
+    traceback) and raised again as a new copy, so a program the translation refuses is not
+    translated again and no caller's values are kept. A key that cannot be hashed compiles each
     time (the disk cache may still spare LLVM's work)."""
     try:
         with lock:
@@ -375,12 +377,14 @@ def compiled_once(cache: dict, lock, limit: int, key, compile):
         try:
             found = compile()
         except Unsupported as err:
-            found = err
+            # kept without its traceback: the frames of a traceback reach the callers' frames
+            # and their values (a march's whole Solution), which the cache would keep alive
+            found = copy.copy(err)
         if hashable:
             with lock:
                 if len(cache) >= limit:
                     cache.clear()
                 cache[key] = found
     if isinstance(found, Exception):
-        raise found
+        raise copy.copy(found)  # a new one each time: the kept one never holds a traceback
     return found
