@@ -328,13 +328,13 @@ class NativeLoop:
         """The first `count` records of `record_rows`' arrays as the record pytree, (count, …)
         views (a bool record as a bool copy)."""
         import jax
-        import numpy as np
 
-        out = []
-        for r, (shape, size, _, dtype) in zip(rows, self.kernel.record_layout()):
-            a = r[: count * size].reshape((count,) + tuple(shape))
-            out.append(a.astype(np.bool_) if dtype == np.bool_ else a)
-        return jax.tree_util.tree_unflatten(self._record_tree, out)
+        from .layout import results
+
+        layout = self.kernel.record_layout()
+        cut = [r[: count * size] for r, (_, size, _, _) in zip(rows, layout)]
+        out = results(cut, [rec[:3] for rec in layout], [rec[3] for rec in layout], 0, 1, 1, count)
+        return jax.tree_util.tree_unflatten(self._record_tree, [a[0] for a in out])
 
     def __call__(self, *args, steps: int, capacity: int, records=None):
         import jax
