@@ -54,7 +54,7 @@ def laplacian_data(N: int):
     d = np.where(valid, centre[i, j], 1.0)
     inner = valid & (i + 1 < N - k)
     e = np.where(inner, up[i, j], 0.0)  # A[i, i+1] = A[i+1, i] on diagonal k
-    du, dl = e, np.concatenate([np.zeros((N, 1)), e[:, :-1]], axis=1)
+    du = e
     # the singular diagonal 0: its eigenbasis, with -Δ̂'s eigenvalue κ on the constant
     T0 = np.diag(d[0]) + np.diag(e[0, :-1], 1) + np.diag(e[0, :-1], -1)
     lam, V0 = np.linalg.eigh(-T0)  # l(l+1) ascending, l = 0 first
@@ -78,12 +78,8 @@ def laplacian_data(N: int):
         centre=centre,
         up=up,
         down=down,
-        rows=np.where(valid, i, 0),
-        cols=j,
-        valid=valid,
         d=d,
         du=du,
-        dl=dl,
         V0=V0,
         inv0=(V0 / lam_hat) @ V0.T,
         pivot=pivot,
