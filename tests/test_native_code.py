@@ -1,4 +1,5 @@
-"""The native translation's cheaper forms of an operation give the operation's own bits."""
+"""Cheaper forms in the sweep's per-member program and in its native translation: the same
+values as the forms they replace."""
 
 from __future__ import annotations
 
@@ -44,3 +45,19 @@ def test_a_maximum_of_sizes_is_an_integer_maximum_in_the_kernel():
     assert "llvm.maximum" not in text and "icmp sgt <4 x i64>" in text
     general = build_ir(jax.make_jaxpr(lambda a, b: jnp.maximum(jnp.abs(a), b))(1.0, 2.0), 4)
     assert "llvm.maximum" in general
+
+
+def test_a_failed_step_discards_what_it_computed_and_keeps_what_it_handed_on():
+    """The state after a failed step is NaN wherever the step computed it; a leaf the step
+    handed on unchanged (the reduced step's identity Q when Q is not carried) stays itself."""
+    from clebsch_jax.batching.member import _nan_unless_made
+
+    def step(ok, state):
+        mu, Q, n = state
+        return _nan_unless_made(ok, (2.0 * mu, Q, n + 1), state)
+
+    state = (jnp.ones(3), jnp.eye(3), jnp.asarray(4))
+    mu, Q, n = jax.jit(step)(False, state)
+    assert np.all(np.isnan(mu)) and np.array_equal(Q, np.eye(3)) and n == 5
+    mu, Q, n = jax.jit(step)(True, state)
+    assert np.array_equal(mu, [2.0, 2.0, 2.0]) and np.array_equal(Q, np.eye(3))
