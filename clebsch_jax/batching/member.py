@@ -257,7 +257,7 @@ def member_chunk(
         iterations = red["iterations"] + jnp.where(counted, stats.iterations, 0).astype(int_dtype)
         if energy_on:
             # the step leaves the node whose size red["size"] already holds (`jump_step`)
-            change, size_max, jump = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"], rtol)
+            change, size_max, jump = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), rtol=rtol)
             size_max = jnp.maximum(size_max, zero_nan(size))
             # checked up to the first failed step, as integrate does: a node's failure does not stop it
             jumped = red["jumped"] | (jump & ok)
