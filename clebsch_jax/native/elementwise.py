@@ -187,7 +187,7 @@ def sign_clear(v, depth: int = _SIGN_CLEAR_DEPTH) -> bool:
     if getattr(v, "sign_clear", False):
         return True
     if isinstance(v, ir.CallInstr):
-        return v.callee.name.startswith("llvm.fabs.")
+        return getattr(v.callee, "name", "").startswith("llvm.fabs.")
     if isinstance(v, ir.SelectInstr) and depth > 0:
         return sign_clear(v.operands[1], depth - 1) and sign_clear(v.operands[2], depth - 1)
     return False
