@@ -182,7 +182,7 @@ def _lean_chunk(stepper, system, carry, dt, n: int, first, derive_momentum):
         xin, nst = _nodal_velocity(system, finder, Qn, mun, guess)
         E, size = node_energy(system, Qn, xin)
         # red["size"] holds the sizes of the nodes up to the one this step leaves
-        change, _, jumped = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"])
+        change, _, jumped = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]))
         size_max = jnp.maximum(red["size"], zero_nan(size))
         good = (stats.status == Status.SUCCESS) & (nst.status == Status.SUCCESS) & ~jumped
         red = dict(

@@ -78,6 +78,14 @@ def _nan_unless(ok, tree):
     )
 
 
+def _nan_unless_made(ok, new, old):
+    """`_nan_unless(ok, new)` for a state `new` that a step made from `old`, except the leaves
+    it handed on unchanged (the very values of `old`: the reduced step's identity Q where it
+    does not carry Q): the step computed nothing there to discard, and a select would make
+    such a leaf a value of the loop's carry, a register or a spill slot in every step."""
+    return jax.tree_util.tree_map(lambda a, b: a if a is b else _nan_unless(ok, a), new, old)
+
+
 def _where(cond, a, b):
     """`jnp.where(cond, a, b)` leaf by leaf over two pytrees of one structure."""
     return jax.tree_util.tree_map(lambda x, y: jnp.where(cond, x, y), a, b)
@@ -240,7 +248,7 @@ def member_chunk(
         reaches with its outcome: (Q, momentum, ok))."""
         state, memory, out, stats = stepped
         ok = alive & (stats.status == Status.SUCCESS)
-        state, out = _nan_unless(ok, (state, out))
+        state, out = _nan_unless_made(ok, state, state_prev), _nan_unless(ok, out)
         nodes = stepper.nodes(system, state_prev, _one(state), _one(out))
         Qn = nodes.nodal_Q[1]
         mun, xi_step = nodes.momentum[1], nodes.xi_step[0]
@@ -249,7 +257,7 @@ def member_chunk(
         iterations = red["iterations"] + jnp.where(counted, stats.iterations, 0).astype(int_dtype)
         if energy_on:
             # the step leaves the node whose size red["size"] already holds (`jump_step`)
-            change, size_max, jump = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), red["size"], rtol)
+            change, size_max, jump = jump_step(red["change"], red["size"], jnp.abs(E - red["E"]), rtol=rtol)
             size_max = jnp.maximum(size_max, zero_nan(size))
             # checked up to the first failed step, as integrate does: a node's failure does not stop it
             jumped = red["jumped"] | (jump & ok)

@@ -153,11 +153,13 @@ def zero_nan(a):
     return jnp.where(jnp.isnan(a), 0.0, a)
 
 
-def jump_step(largest, size_max, change, size, rtol=ENERGY_STEP_RTOL):
+def jump_step(largest, size_max, change, size=None, rtol=ENERGY_STEP_RTOL):
     """One step of the energy check (tolerance `rtol`): (running largest change, running
     largest size after the step, whether the step failed it), for the step's energy change and
     the size at the node it leaves (`node_energies`); `size_max` holds the sizes of the nodes
-    before that one."""
-    size_max = jnp.maximum(size_max, zero_nan(size))
+    before that one — or, with `size` None, already that node's too (a march that takes each
+    node's size into the maximum as it reaches the node)."""
+    if size is not None:
+        size_max = jnp.maximum(size_max, zero_nan(size))
     jumped = change > rtol * size_max
     return jnp.maximum(largest, zero_nan(change)), size_max, jumped

@@ -5,7 +5,10 @@ operations; and the selects, conversions and clamps, entry by entry."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from llvmlite import ir
 
 from .values import Emitter, Unsupported, is_known
 
@@ -130,6 +133,8 @@ def emit_float(em: Emitter, name: str, dtype, xs, eqn):
     if name == "neg":
         return b.fneg(v[0])
     if name == "max":
+        if sign_clear(v[0]) and sign_clear(v[1]):
+            return _max_sign_clear(em, v[0], v[1], dtype)
         return em.call_intrinsic("llvm.maximum", dtype, *v)
     if name == "min":
         return em.call_intrinsic("llvm.minimum", dtype, *v)
@@ -165,6 +170,40 @@ def emit_float(em: Emitter, name: str, dtype, xs, eqn):
     if name in ("copy", "copy_p", "stop_gradient", "reduce_precision"):
         return v[0]
     raise Unsupported(f"primitive {name!r} on {dtype}")
+
+
+_SIGN_CLEAR_DEPTH = 4
+"""How many selects deep `sign_clear` looks through."""
+
+
+def sign_clear(v, depth: int = _SIGN_CLEAR_DEPTH) -> bool:
+    """Whether every lane of the float vector `v` has its sign bit clear, as the translation
+    can tell from how `v` was made: a constant of such lanes, an `llvm.fabs`, a maximum of such
+    values (`_max_sign_clear`), or a select between such values. (+0, a positive number, +inf or
+    a NaN whose sign bit is clear: NaNs made by the hardware, e.g. from ∞ − ∞, have it set.)"""
+    if isinstance(v, ir.Constant):
+        lanes = v.constant if isinstance(v.constant, list) else [v]
+        return all(isinstance(c.constant, float) and math.copysign(1.0, c.constant) > 0 for c in lanes)
+    if getattr(v, "sign_clear", False):
+        return True
+    if isinstance(v, ir.CallInstr):
+        return getattr(v.callee, "name", "").startswith("llvm.fabs.")
+    if isinstance(v, ir.SelectInstr) and depth > 0:
+        return sign_clear(v.operands[1], depth - 1) and sign_clear(v.operands[2], depth - 1)
+    return False
+
+
+def _max_sign_clear(em: Emitter, a, b, dtype):
+    """`llvm.maximum(a, b)` of two vectors whose lanes have the sign bit clear (`sign_clear`):
+    the larger bit pattern as a signed integer, which is the larger number, or the NaN where
+    either is one (a NaN's pattern, sign bit clear, is above +inf's). One integer maximum where
+    the floating-point one expands to a NaN test, a blend and the ordering of signed zeros."""
+    bld = em.b
+    it = ir.VectorType(ir.IntType(8 * np.dtype(dtype).itemsize), em.W)
+    x, y = bld.bitcast(a, it), bld.bitcast(b, it)
+    out = bld.bitcast(bld.select(bld.icmp_signed(">", x, y), x, y), a.type)
+    out.sign_clear = True
+    return out
 
 
 def _integer_pow(em: Emitter, x, y: int, dtype):

@@ -32,7 +32,7 @@ def predict(n, first, history, degree=None):
         degree = _degree(n, D)
     total = D[0]
     for j in range(1, D.shape[0]):
-        total = total + jnp.where(j <= degree, D[j], 0.0)
+        total = jnp.where(j <= degree, total + D[j], total)
     return jnp.where(n == 0, first, total.reshape(first.shape))
 
 
