@@ -406,11 +406,14 @@ def _cond(em: Emitter, eqn, args):
 
 def _looped_call(eqn, policy):
     """`row_calls.row_call(eqn)` where the call's rows run as a loop under the unrolling
-    `policy` (as a scan of as many iterations as rows would); else None (its entries written out)."""
-    found = row_calls.row_call(eqn) if eqn.primitive.name in row_calls.CALLS else None
+    `policy` (as a scan of as many iterations as rows would) and one row's program is not small
+    (`row_calls.MIN_ROW_SIZE`); else None (its entries written out)."""
+    if eqn.primitive.name not in row_calls.CALLS or _size(row_calls.row_body(eqn)) < 2 * row_calls.MIN_ROW_SIZE:
+        return None  # not a call, or too small to have two rows of `MIN_ROW_SIZE` (spares `row_call`'s walk)
+    found = row_calls.row_call(eqn)
     if found is None or _unrolled(found[1], row_calls.row_body(found[0]), policy):
         return None
-    return found
+    return found if _size(row_calls.row_body(found[0])) >= row_calls.MIN_ROW_SIZE else None
 
 
 def _call_rule(plain):

@@ -17,10 +17,15 @@ from __future__ import annotations
 
 from .row_program import row_equation
 
-__all__ = ["CALLS", "row_call", "row_body", "emit"]
+__all__ = ["CALLS", "MIN_ROW_SIZE", "row_call", "row_body", "emit"]
 
 CALLS = {"pjit": "jaxpr", "jit": "jaxpr", "closed_call": "call_jaxpr"}
 """Call primitives, by the parameter holding the program they call."""
+
+MIN_ROW_SIZE = 200
+"""A call runs as a loop over its rows only where one row's program computes at least this many
+entries (`control._size`): a smaller one (`jnp.where` over a vector, a call of a few entries
+per row) would cost more as a loop, its rows through memory, than written out."""
 
 
 def _shape(v) -> tuple:
