@@ -41,28 +41,27 @@ def _members():
 
 def _kernel(monkeypatch, policies):
     """The program's kernel with the unroll policies `policies` (`control.POLICIES`): its IR
-    text and its outputs on `_members()`."""
+    text, its outputs on `_members()` and the kernel."""
     from clebsch_jax.native import control
     from clebsch_jax.native.kernel import build_ir
 
     monkeypatch.setattr(control, "POLICIES", policies)
     Z = _members()
     text = build_ir(jax.make_jaxpr(_program)(Z[0]), 4)
-    outs = native.compile_member(_program, Z[0], use_cache=False)(Z)
-    return text, [np.asarray(x) for x in outs]
+    kernel = native.compile_member(_program, Z[0], use_cache=False)
+    return text, [np.asarray(x) for x in kernel(Z)], kernel
 
 
 def test_vmapped_calls_run_as_loops_over_their_rows_with_the_unrolled_numbers(monkeypatch):
-    looped_text, looped = _kernel(monkeypatch, ((0, 0),))  # every scan a loop: the calls' rows too
-    unrolled_text, unrolled = _kernel(monkeypatch, ((10**9, 10**9),))  # everything unrolled
+    looped_text, looped, kernel = _kernel(monkeypatch, ((0, 0),))  # every scan a loop: the calls' rows too
+    unrolled_text, unrolled, _ = _kernel(monkeypatch, ((10**9, 10**9),))  # everything unrolled
     loops = lambda text: sum(line.startswith("for.head") for line in text.splitlines())
     assert loops(looped_text) >= 2 and loops(unrolled_text) == 0  # the columns' call and the inverses'
     assert looped_text.count("\n") < unrolled_text.count("\n")
     for a, c in zip(looped, unrolled):
         np.testing.assert_array_equal(a, c)  # the same operations in the same order
-    again = native.compile_member(_program, _members()[0], use_cache=False)(_members())
-    for a, c in zip(looped, again):
-        np.testing.assert_array_equal(a, np.asarray(c))  # (the default policy) bit for bit, call to call
+    for a, c in zip(looped, kernel(_members())):
+        np.testing.assert_array_equal(a, np.asarray(c))  # bit for bit, call to call
     xla = jax.jit(jax.vmap(_program))(_members())
     for a, c in zip(looped[:3], xla[:3]):
         c = np.asarray(c)
