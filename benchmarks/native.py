@@ -1,7 +1,8 @@
 """Native kernels (issue "Native kernels"): the documented sweep against the hardware's yardsticks.
 
 Run: `python benchmarks/native.py` (`--quick` for a smoke run; `--threads-only` for the threads
-part alone, written to `native_threads.json`). Four parts, in one process (the compile part in
+part alone, written to `native_threads.json`; `--vortices-only` for the vortex clusters alone,
+written to `native_vortices.json`). Four parts, in one process (the compile part in
 fresh child processes):
 
 1. **Rigid-body sweep** — `cj.sweep(rigid_body, …, reconstruct=False)` with default options
@@ -346,12 +347,18 @@ def _add_arguments(parser) -> None:
         action="store_true",
         help="the threads part alone, written to native_threads.json (the other parts' results are kept)",
     )
+    parser.add_argument(
+        "--vortices-only",
+        action="store_true",
+        help="the vortex clusters alone, written to native_vortices.json (the other parts' results are kept)",
+    )
 
 
 def main(argv=None) -> dict:
     argv = sys.argv[1:] if argv is None else argv
+    part = "_threads" if "--threads-only" in argv else "_vortices" if "--vortices-only" in argv else ""
     run = harness.Run(
-        RESULTS_NAME + ("_threads" if "--threads-only" in argv else ""),
+        RESULTS_NAME + part,
         argv,
         description="Native kernels against the hand JAX and C kernels, "
         "XLA's sweep and NumPy RK4 (see module docstring).",
@@ -366,6 +373,15 @@ def main(argv=None) -> dict:
         if run.args.threads_only:
             summary = run.summary(config={"inertia": list(INERTIA), "dt": rigid.DT}, results=threads(), targets=TARGETS)
             return run.finish(summary, print_report, _plot_threads)
+        vortices = lambda: run.measure(  # noqa: E731
+            VORTEX_DEFAULT,
+            VORTEX_QUICK,
+            lambda N, B, n: f"vortex clusters N={N} B={B}",
+            lambda N, B, n: vortex_case(N, B, n, run),
+        )
+        config = {"inertia": list(INERTIA), "dt": rigid.DT, "vortex_dt": vortex.DT}
+        if run.args.vortices_only:
+            return run.finish(run.summary(config=config, results=vortices(), targets=TARGETS), print_report, plot)
         rows = run.measure(
             default, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}", lambda B, n: rigid_case(B, n, run)
         )
@@ -373,15 +389,8 @@ def main(argv=None) -> dict:
         rows += run.measure(
             (COMPILE_CASE,), (COMPILE_QUICK,), lambda B, n: f"compile B={B}", lambda B, n: compile_case(B, n, run)
         )
-        rows += run.measure(
-            VORTEX_DEFAULT,
-            VORTEX_QUICK,
-            lambda N, B, n: f"vortex clusters N={N} B={B}",
-            lambda N, B, n: vortex_case(N, B, n, run),
-        )
-    summary = run.summary(
-        config={"inertia": list(INERTIA), "dt": rigid.DT, "vortex_dt": vortex.DT}, results=rows, targets=TARGETS
-    )
+        rows += vortices()
+    summary = run.summary(config=config, results=rows, targets=TARGETS)
     return run.finish(summary, print_report, plot)
 
 

@@ -24,6 +24,7 @@ import math
 import numpy as np
 from llvmlite import ir
 
+from . import row_calls
 from . import rows as _rows
 from .loops import extra_entries
 from .lower import RULES, eval_closed
@@ -103,6 +104,12 @@ def entries(jaxpr, policy, rows: bool = False) -> int:
             continue
         if eqn.primitive.name == "custom_linear_solve":
             n += entries(p["jaxprs"].solve.jaxpr, policy)
+            continue
+        looped = _looped_call(eqn, policy)
+        if looped is not None and not (rows and looped[1] >= ROWS_MIN):  # one row's program, in a loop (`row_calls`)
+            row_eqn, _ = looped
+            n += entries(row_calls.row_body(row_eqn), policy)
+            n += sum(math.prod(v.aval.shape) for v in row_eqn.outvars)
             continue
         for v in p.values():
             for x in v if isinstance(v, (tuple, list)) else [v]:
@@ -397,4 +404,31 @@ def _cond(em: Emitter, eqn, args):
     return out
 
 
+def _looped_call(eqn, policy):
+    """`row_calls.row_call(eqn)` where the call's rows run as a loop under the unrolling
+    `policy` (as a scan of as many iterations as rows would) and one row's program is not small
+    (`row_calls.MIN_ROW_SIZE`); else None (its entries written out)."""
+    if eqn.primitive.name not in row_calls.CALLS or _size(row_calls.row_body(eqn)) < 2 * row_calls.MIN_ROW_SIZE:
+        return None  # not a call, or too small to have two rows of `MIN_ROW_SIZE` (spares `row_call`'s walk)
+    found = row_calls.row_call(eqn)
+    if found is None or _unrolled(found[1], row_calls.row_body(found[0]), policy):
+        return None
+    return found if _size(row_calls.row_body(found[0])) >= row_calls.MIN_ROW_SIZE else None
+
+
+def _call_rule(plain):
+    """The rule of a call: a call vmapped over its rows (`row_calls`) as a loop over them where
+    the unroll policy keeps such a scan a loop, else `plain` (its program entered)."""
+
+    def rule(em: Emitter, eqn, args):
+        if not any(isinstance(a, _rows.Rows) for a in args):  # rows of a long axis: `rows.apply`
+            looped = _looped_call(eqn, em.unroll or POLICIES[0])
+            if looped is not None:
+                return row_calls.emit(em, eqn, args, looped[1], RULES)
+        return plain(em, eqn, args)
+
+    return rule
+
+
 RULES.update({"while": _while, "scan": _scan, "cond": _cond})
+RULES.update({name: _call_rule(RULES[name]) for name in row_calls.CALLS})

@@ -187,16 +187,24 @@ def _dot(p, split, shapes):
 
 
 def _gather(p, split, n, shapes, out_rank):
-    """A gather whose operand's rows are a whole window, at indices the same for every row; or
-    one batched over the rows (`operand_batching_dims`), each row at its own indices."""
+    """A gather whose operand's rows are a whole window, at indices the same for every row; one
+    batched over the rows (`operand_batching_dims`), each row at its own indices; or one of a
+    whole operand at indices split by rows, each row at its own indices."""
     a, c = split
     dn = p["dimension_numbers"]
-    if a is None:
-        return None
+    batch_out = [d for d in range(out_rank) if d not in dn.offset_dims]
+    if a is None:  # a whole operand at indices split by rows (on a batch axis of theirs)
+        if c is None or c >= len(shapes[1]) - 1 or c in dn.start_indices_batching_dims:
+            return None
+        b = batch_out[c]
+        row = dn._replace(
+            offset_dims=_drop(dn.offset_dims, b),
+            start_indices_batching_dims=_drop(dn.start_indices_batching_dims, c),
+        )
+        return dict(p, dimension_numbers=row), [b]
     window = [
         d for d in range(len(shapes[0])) if d not in dn.collapsed_slice_dims and d not in dn.operand_batching_dims
     ]
-    batch_out = [d for d in range(out_rank) if d not in dn.offset_dims]
     if c is None and a in window and p["slice_sizes"][a] == n and a not in dn.start_index_map:
         b, offsets, index_batch = dn.offset_dims[window.index(a)], _without(dn.offset_dims, window.index(a)), None
     elif c is not None and a in dn.operand_batching_dims and c < len(shapes[1]) - 1:

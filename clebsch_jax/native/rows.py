@@ -37,7 +37,18 @@ from .loops import for_range
 from .row_program import REDUCE, row_equation, row_plan
 from .values import Emitter, is_known, llvm_type
 
-__all__ = ["ROWS_MIN", "Rows", "wants_rows", "apply", "row_at", "memory", "store_row", "materialize", "loop"]
+__all__ = [
+    "ROWS_MIN",
+    "Rows",
+    "wants_rows",
+    "apply",
+    "row_loop",
+    "row_at",
+    "memory",
+    "store_row",
+    "materialize",
+    "loop",
+]
 
 ROWS_MIN = 32
 """The shortest leading axis held as `Rows` (and the shortest scan that turns them on)."""
@@ -163,7 +174,7 @@ def _aval(shape, dtype):
 def apply(em: Emitter, eqn, args, rules):
     """The outputs of `eqn` where `Rows` are involved (made or read), else None (the caller
     applies `rules` as usual). An equation that keeps the rows apart runs in a loop over them
-    (`row_plan`, `_row_loop`); the others get their `Rows` operands written out, and the
+    (`row_plan`, `row_loop`); the others get their `Rows` operands written out, and the
     programs nested in them are translated without `Rows`."""
     name = eqn.primitive.name
     has_rows = any(isinstance(a, Rows) for a in args)
@@ -174,7 +185,7 @@ def apply(em: Emitter, eqn, args, rules):
     if name in _CALLS and name in rules:  # entered: its equations see the rows (and count their entries)
         return rules[name](em, eqn, args)
     if name == "scan" and has_rows and eqn.params["length"] < ROWS_MIN:  # a short scan of each row: a loop over them
-        looped = _row_loop(em, eqn, args, n, rules)
+        looped = row_loop(em, eqn, args, n, rules)
         if looped is not None:
             return looped
     if name == "scan" and (has_rows or eqn.params["length"] >= ROWS_MIN):  # records kept as rows: `control`
@@ -190,7 +201,7 @@ def apply(em: Emitter, eqn, args, rules):
         return special
     plan = row_plan(eqn, n) if n >= ROWS_MIN else None
     if plan is None:
-        looped = _row_loop(em, eqn, args, n, rules) if n >= ROWS_MIN else None
+        looped = row_loop(em, eqn, args, n, rules) if n >= ROWS_MIN else None
         if looped is not None:
             return looped
         return _nested(em, lambda: rules[name](em, eqn, [materialize(em, a) for a in args]))
@@ -227,7 +238,7 @@ def apply(em: Emitter, eqn, args, rules):
     return result
 
 
-def _row_loop(em: Emitter, eqn, args, n: int, rules):
+def row_loop(em: Emitter, eqn, args, n: int, rules):
     """An equation (a loop, a solve, …) each of whose outputs' rows is computed from the same
     rows of its operands (`row_program.row_equation`), as a loop over the rows running its
     program for one row; None where it is not such an equation. An output that is the same for

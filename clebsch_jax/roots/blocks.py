@@ -64,8 +64,18 @@ def lumped_blocks(lin: Callable, Z: jax.Array) -> jax.Array:
     """(N, b, b) blocks M_a[i, k] = Σ_b ∂F_{a,i}/∂Z_{b,k}, from b products of the linear map `lin`."""
     b = Z.shape[1]
     tangents = jnp.broadcast_to(jnp.eye(b, dtype=Z.dtype)[:, None, :], (b,) + Z.shape)
-    cols = jax.vmap(lin)(tangents)  # (k, N, i)
+    # one call of `lin` vmapped over the tangents (a `jit` inside the `vmap`): the same program
+    # for XLA, which inlines it, and for the native translation one column's program, which it
+    # can emit once in a loop over the columns (`clebsch_jax.native.row_calls`)
+    cols = jax.vmap(jax.jit(lin))(tangents)  # (k, N, i)
     return jnp.transpose(cols, (1, 2, 0))
+
+
+def inverse_blocks(M: jax.Array):
+    """The inverses of the (N, b, b) blocks `M` and their singularity flags (N,): one call of
+    `linalg.inverse` vmapped over the particles (a loop over them in a native kernel, as the
+    columns of `lumped_blocks`)."""
+    return jax.vmap(jax.jit(linalg.inverse))(M)
 
 
 def _block_tangent_solve(g, y):
@@ -73,7 +83,7 @@ def _block_tangent_solve(g, y):
     preconditioned iteration as the forward solve, x ← x + M⁻¹(y − g(x)), which contracts where
     the forward chord iterations did. A fixed number of sweeps: JAX transposes this map for
     reverse mode, which a data-dependent while loop would not allow."""
-    inv, _ = jax.vmap(linalg.inverse)(lumped_blocks(g, y))
+    inv, _ = inverse_blocks(lumped_blocks(g, y))
     apply = lambda r: jnp.einsum("nij,nj->ni", inv, r)
     return jax.lax.fori_loop(0, TANGENT_SWEEPS, lambda _, x: x + apply(y - g(x)), apply(y))
 
@@ -85,7 +95,7 @@ def lumped_matrix(shape) -> Matrix:
     def invert(f, z):
         Fz, lin = jax.linearize(f, z)
         M = lumped_blocks(lambda t: lin(t.reshape(-1)).reshape(shape), z.reshape(shape))
-        inv, singular = jax.vmap(linalg.inverse)(M)
+        inv, singular = inverse_blocks(M)
         return Fz, inv, jnp.any(singular)
 
     def apply(Hb, r):
