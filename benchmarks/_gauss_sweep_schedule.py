@@ -1,10 +1,12 @@
 r"""The schedule of a Gauss–Legendre step's fixed-point sweeps on the rigid-body ensemble of
 `work_precision_ensembles.py` (64 bodies on R³, `models.rigid_body_vector`), `cj.sweep` on one
 thread: CPU time per body and unit of simulated time, global error at T against heyoka's
-extended-precision reference, the largest relative energy error, and sweeps per step.
+extended-precision reference, the largest relative energy error, and sweeps per step. A
+measurement kept for the record of `benchmarks/README.md` (the sweeps' schedule, issue 41), not
+one of `clebsch-jax bench`'s scripts (no `--quick`, no JSON).
 
-    python benchmarks/gauss_sweep_schedule.py 16:1.0 16:1.0:untested=4:ahead=none
-    T=1000 REPS=5 BACKEND=xla python benchmarks/gauss_sweep_schedule.py 8:0.25
+    python benchmarks/_gauss_sweep_schedule.py 16:1.0 16:1.0:untested=4:ahead=none
+    T=1000 REPS=5 BACKEND=xla python benchmarks/_gauss_sweep_schedule.py 8:0.25
 
 Each argument is one point, `ORDER:DT[:untested=U][:per_test=K][:ahead=A|none]`: a
 `GaussLegendre(order=ORDER)` whose `FixedPoint` has those options (the others its defaults);
@@ -20,7 +22,6 @@ import os
 import sys
 import tempfile
 import time
-import warnings
 from pathlib import Path
 
 import jax
@@ -51,7 +52,6 @@ def main(argv) -> None:
         os.environ.get("BACKEND", "native"),
     )
     scene = wpe.RigidEnsemble({**wpe.ENSEMBLES["rigid_body"], "T": T})
-    make_system, params, Q0, xi0, extra = scene.sweep_args("vector")
     cache = Path(tempfile.gettempdir()) / f"gauss_sweep_schedule_reference_T{T:g}.npy"
     if cache.exists():
         ref = np.load(cache)
@@ -59,22 +59,8 @@ def main(argv) -> None:
         ref = wpe.heyoka_reference(wpe.heyoka_module(), scene, wpe.REF_TOL)
         np.save(cache, ref)
 
-    def run(method, dt):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return cj.sweep(
-                make_system,
-                params,
-                Q0,
-                xi0,
-                grid=True,
-                dt=dt,
-                n_steps=int(round(T / dt)),
-                threads=1,
-                backend=backend,
-                method=method,
-                **extra,
-            )
+    def run(method, dt):  # the scene's documented sweep, warnings aside
+        return wpe.ours_sweep(scene, {"model": "vector", "method": method}, dt, int(round(T / dt)), backend)[0]
 
     points = [point(a) for a in argv]
     for _, method, dt in points:
