@@ -119,6 +119,35 @@ def test_fixed_point_sweeps_stop_at_the_first_test_at_round_off(untested, per_te
     assert int(each.iterations) <= int(stats.iterations)
 
 
+def test_fixed_point_sweeps_from_the_previous_count():
+    """`FixedPoint.solve(..., previous=n)` on z = cos z: the sweeps before the first test come
+    from each member's own n under `vmap` (`tests_ahead` tests before it, at least `untested`),
+    the root is the same to round-off, the tests then stop at the same η rule (the count is
+    the untested sweeps and whole tests), a count past `max_iterations` still leaves one test
+    (MAX_ITERATIONS, not a silent stop), and the derivative is the implicit one."""
+    z0 = jnp.full(3, 1.0)
+    finder = cj.FixedPoint(untested=2, per_test=2, tests_ahead=1, max_iterations=120)
+    _, alone = finder.solve(jnp.cos, z0)  # about 90 sweeps: θ = 0.67
+    previous = jnp.array([0, 60, 100, 101], jnp.int32)  # below, and past, what the solve needs
+    zs, stats = jax.vmap(lambda n: finder.solve(jnp.cos, z0, previous=n))(previous)
+    theta = np.sin(DOTTIE)
+    assert np.all(np.asarray(stats.status) == cj.Status.SUCCESS)
+    assert np.max(np.abs(np.asarray(zs) - DOTTIE)) < (theta / (1 - theta) * 8 + 2) * np.finfo(float).eps
+    before = np.maximum(2, np.asarray(previous) - 4)  # n − (tests_ahead + 1)·per_test
+    its = np.asarray(stats.iterations)
+    # below the need the tests fall on the same sweeps as without a count; past it, one test
+    assert its[0] == its[1] == int(alone.iterations) < before[2]
+    assert list(its[2:]) == list(before[2:] + 2)
+
+    capped = cj.FixedPoint(untested=2, per_test=2, max_iterations=12)
+    _, stats = capped.solve(jnp.cos, z0, previous=jnp.asarray(1000, jnp.int32))
+    assert int(stats.status) == cj.Status.MAX_ITERATIONS and int(stats.iterations) == 12
+
+    # d z*/d a for z = a·cos z at a = 1: cos z*/(1 + sin z*)
+    dz = jax.grad(lambda a: finder.solve(lambda z: a * jnp.cos(z), z0, previous=jnp.asarray(9))[0][0])(1.0)
+    assert abs(float(dz) - np.cos(DOTTIE) / (1 + np.sin(DOTTIE))) < 1e-13
+
+
 def test_a_method_that_cannot_run_the_system_is_refused_before_compiling():
     with pytest.raises(ValueError, match=r"^method: a composition needs a symmetric second-order step"):
         cj.integrate(TOP, TOP_Q0, OMEGA0, dt=0.02, n_steps=3, method=cj.Composed(cj.FullStep(), cj.SUZUKI_4))

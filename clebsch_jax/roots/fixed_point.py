@@ -58,11 +58,14 @@ def fixed_point_solve(
     untested: int = 0,
     per_test: int = SWEEPS_PER_TEST,
     until_stalled: bool = False,
+    extra=None,
 ):
     r"""Solve $z = G(z)$ for a pytree z by the iteration $z \leftarrow G(z)$ (sweeps), for a
     contraction G with a good guess (a Gauss–Legendre step, `clebsch_jax.discrete.collocation`).
 
-    Runs `untested` sweeps (a static count), then tests convergence after every
+    Runs `untested` sweeps (a static count), then `extra` more (None: none; a traced count, so
+    under `jax.vmap` each member runs its own: a march's estimate from the solve of its previous
+    step, `FixedPoint.solve`'s `previous`), then tests convergence after every
     `per_test` sweeps (default `SWEEPS_PER_TEST`), on the size η of the last update, by `_converged` with the
     previous test's η and the stall rule `STALLED` (per sweep: `stall_pairs`) (with `rtol = atol = 0`: at round-off). Sizes are judged against `size`,
     the magnitude of the values the iterate is part of or added to (default: max|guess|),
@@ -102,8 +105,14 @@ def fixed_point_solve(
         scale = jnp.maximum(1.0, zmax)
         start_finite = jnp.isfinite(zmax)
 
+        if extra is None:
+            before = untested
+        else:  # every member keeps at least one test
+            more = jnp.clip(jnp.asarray(extra, jnp.int32), 0, max_iterations - per_test - untested)
+            before = untested + more
+
         def cond(state):
-            return (~state[3]) & (state[0] + untested < max_iterations)
+            return (~state[3]) & (state[0] + before < max_iterations)
 
         def body(state):
             k, z, previous, _, _ = state  # k: sweeps since the untested ones
@@ -127,6 +136,10 @@ def fixed_point_solve(
             return k + per_test, jnp.where(nonfinite, z, z_new), eta, done, status
 
         x0 = jax.lax.fori_loop(0, untested, lambda _, x: g(x), x0)
+        if extra is not None:
+            x0 = jax.lax.while_loop(
+                lambda c: c[0] < more, lambda c: (c[0] + 1, g(c[1])), (jnp.asarray(0, jnp.int32), x0)
+            )[1]
         init = (
             jnp.asarray(0, jnp.int32),
             x0,
@@ -138,7 +151,7 @@ def fixed_point_solve(
         status = jnp.where(done, status, Status.MAX_ITERATIONS).astype(jnp.int32)
         return (
             z,
-            NewtonStats(iterations=k + untested, residual_norm=eta, status=status, jacobians=jnp.asarray(0, jnp.int32)),
+            NewtonStats(iterations=k + before, residual_norm=eta, status=status, jacobians=jnp.asarray(0, jnp.int32)),
             None,
         )
 

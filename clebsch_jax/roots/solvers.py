@@ -173,6 +173,14 @@ class FixedPoint:
       that cost far more than a test (matrix products over n² unknowns) are tested after
       each one, `per_test=1`, with `untested=0`: a well-predicted solve then stops at the
       first sweep that reaches its tolerance, not at the next multiple of the test interval.
+    - `tests_ahead`: in a march that hands each solve the sweep count of its previous one
+      (`solve`'s `previous`, n; `GaussLegendre` does), sweep untested up to `tests_ahead`
+      tests before n — `n − (tests_ahead + 1)·per_test` sweeps, at least `untested` — so that
+      a solve needing about as many sweeps as the last makes a few tests, not one every
+      `per_test` sweeps from the start, and a count can fall by `tests_ahead` tests from one
+      step to the next (default 2; None: `untested` only). On the native backend the sweeps
+      of a convergence loop cost more than straight ones, since the loop keeps each lane's
+      carry and runs until the slowest lane of the vector is done (`benchmarks/README.md`).
     """
 
     rtol: float = 0.0
@@ -180,6 +188,7 @@ class FixedPoint:
     max_iterations: int = 100
     untested: int = 4
     per_test: int = SWEEPS_PER_TEST
+    tests_ahead: int | None = 2
 
     def __post_init__(self):
         object.__setattr__(self, "rtol", nonnegative(self.rtol, "rtol"))
@@ -187,10 +196,16 @@ class FixedPoint:
         object.__setattr__(self, "max_iterations", positive_int(self.max_iterations, "max_iterations"))
         object.__setattr__(self, "untested", positive_int(self.untested, "untested", minimum=0))
         object.__setattr__(self, "per_test", positive_int(self.per_test, "per_test"))
+        if self.tests_ahead is not None:
+            object.__setattr__(self, "tests_ahead", positive_int(self.tests_ahead, "tests_ahead", minimum=0))
 
-    def solve(self, G, guess, size=None, until_stalled: bool = False):
+    def solve(self, G, guess, size=None, until_stalled: bool = False, previous=None):
         """Solve z = G(z) from `guess`, sizes judged against `size`; with `until_stalled`, to the
-        round-off of z's own entries (`fixed_point_solve`). **Returns:** `(z, NewtonStats)`."""
+        round-off of z's own entries (`fixed_point_solve`); `previous`: the sweeps of the solve
+        before (an int array; `tests_ahead`). **Returns:** `(z, NewtonStats)`."""
+        extra = None
+        if previous is not None and self.tests_ahead is not None:
+            extra = previous - self.untested - (self.tests_ahead + 1) * self.per_test
         return fixed_point_solve(
             G,
             guess,
@@ -201,4 +216,5 @@ class FixedPoint:
             untested=self.untested,
             per_test=self.per_test,
             until_stalled=until_stalled,
+            extra=extra,
         )

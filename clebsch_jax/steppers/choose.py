@@ -37,7 +37,7 @@ from ..roots.solvers import BlockNewton, FixedPoint, Newton
 from .base import Principle
 from .composition import COMPOSITIONS, DEFAULT_COMPOSITIONS, Composed, Composition, SymmetricPair
 from .full import FullStep
-from .gauss import SWEEPS_PER_NEWTON_ITERATION, GaussLegendre
+from .gauss import SWEEPS_PER_NEWTON_ITERATION, UNTESTED_SWEEPS, GaussLegendre
 from .principles import check_principle, principle_facts
 from .reduced import ReducedStep
 
@@ -123,7 +123,12 @@ def _gauss(system, order, composition, rtol, atol, max_newton_iterations, jacobi
             "sweeps, without a Newton matrix; 'blocks' lumps the constraint matrix of a degenerate "
             f"one. Leave jacobian at 'dense', got {jacobian!r}."
         )
-    sweeps = FixedPoint(rtol=rtol, atol=atol, max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations)
+    sweeps = FixedPoint(
+        rtol=rtol,
+        atol=atol,
+        max_iterations=SWEEPS_PER_NEWTON_ITERATION * max_newton_iterations,
+        untested=UNTESTED_SWEEPS,
+    )
     return GaussLegendre(
         order=order,
         root_finder=sweeps,

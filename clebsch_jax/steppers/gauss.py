@@ -8,7 +8,9 @@ collocation polynomials continued over one step (step 0: of `FIRST_STEP_SUBSTEPS
 substeps); the inverse Hessians of l in ξ that the sweeps use are formed once per step, at
 that guess (for a degenerate l: the inverse of the constraint bracket matrix,
 `degenerate_sweep`). A sweep evaluates the model's gradients once per stage and forms no
-Jacobian.
+Jacobian. The march hands each step the sweep count of the step before (the stepper's
+memory), from which the sweeps judge how many to make before their first convergence test
+(`FixedPoint`'s `tests_ahead`).
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from .base import AbstractStepper, Facts, Nodes
 from .full import seed_velocity
 from .principles import check_particle_axis
 
-__all__ = ["GaussLegendre", "FIRST_STEP_SUBSTEPS", "SWEEPS_PER_NEWTON_ITERATION"]
+__all__ = ["GaussLegendre", "FIRST_STEP_SUBSTEPS", "SWEEPS_PER_NEWTON_ITERATION", "UNTESTED_SWEEPS"]
 
 FIRST_STEP_SUBSTEPS = 4
 """The first step has no previous step to extrapolate: its guess comes from this many substeps
@@ -51,6 +53,12 @@ SWEEPS_PER_NEWTON_ITERATION = 5
 """`integrate`'s `max_newton_iterations` read for sweeps: a step may take
 `SWEEPS_PER_NEWTON_ITERATION × max_newton_iterations` sweeps (100 by default), a sweep gaining
 about one digit where a Newton update gains many."""
+
+UNTESTED_SWEEPS = 6
+"""The sweeps of a step before its first convergence test, at least (`FixedPoint`'s
+`untested`; the step before can make it more, `tests_ahead`): with tests of two sweeps the
+first test comes after the eighth, and no step swept to the increments' round-off from its
+extrapolated guess stopped earlier in the runs of `benchmarks/README.md`."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,8 +72,9 @@ class GaussLegendre(AbstractStepper):
 
     - `order`: an even order from 2 to 16 (default 2).
     - `root_finder`: the `FixedPoint` sweeps that solve a step's stages (default
-      `FixedPoint()`: to round-off, at most 100 sweeps; a step too large for the iteration
-      fails with `Status.DIVERGED`).
+      `FixedPoint(untested=UNTESTED_SWEEPS)`: to round-off, at most 100 sweeps, the first test
+      a little before the sweep count of the step before (`tests_ahead`); a step too large for
+      the iteration fails with `Status.DIVERGED`).
     - `nodal_solver`: the `Newton` that recovers nodal velocities (default `Newton()`).
     - `constraint_blocks`: for a degenerate l (affine in ξ, as point vortices), lump the
       constraint bracket matrix into per-particle blocks (exact for point vortices) instead of
@@ -80,7 +89,7 @@ class GaussLegendre(AbstractStepper):
     """
 
     order: int = 2
-    root_finder: FixedPoint = FixedPoint()
+    root_finder: FixedPoint = FixedPoint(untested=UNTESTED_SWEEPS)
     nodal_solver: Newton = Newton()
     constraint_blocks: bool = False
     compensated: bool = True
@@ -125,9 +134,14 @@ class GaussLegendre(AbstractStepper):
             return degenerate_sweep(system, tab, h, Q, P, z, matrices)
         return gauss_sweep(system, tab, h, Q, P, z, matrices)
 
-    def _advance(self, system, tab, h, state, compensation=None):
+    def init_memory(self, system, state):
+        """The sweeps of the step before (none before the first)."""
+        return jnp.zeros((), jnp.int32)
+
+    def _advance(self, system, tab, h, state, compensation=None, previous=None):
         """One solved step: the next (Q, P, guess), its unknowns and statistics; with
-        `compensation` (`gauss_update`), the next compensation too."""
+        `compensation` (`gauss_update`), the next compensation too; `previous`: the sweeps of
+        the step before."""
         Q, P, guess = state
         mats = self._matrices(system, tab, Q, P, guess)
         # sizes are judged against the state the increments are added to, and ξ
@@ -138,6 +152,7 @@ class GaussLegendre(AbstractStepper):
             guess,
             size=size,
             until_stalled=compensation is not None,
+            previous=previous,
         )
         if compensation is None:
             Q1, P1 = gauss_update(Q, P, z)
@@ -175,11 +190,11 @@ class GaussLegendre(AbstractStepper):
     def step(self, system, state, memory, h, n, alive):
         tab = gauss_legendre(self.stages)
         Q, P, guess, xi0, compensation = state
-        advanced, z, stats = self._advance(system, tab, h, (Q, P, guess), compensation)
+        advanced, z, stats = self._advance(system, tab, h, (Q, P, guess), compensation, memory)
         Q1, P1, guess1 = advanced[:3]
         compensation = advanced[3] if compensation is not None else None
         xi_mean = jnp.tensordot(jnp.asarray(tab.b, z.xi.dtype), z.xi, axes=1)
-        return (Q1, P1, guess1, xi0, compensation), memory, xi_mean, stats
+        return (Q1, P1, guess1, xi0, compensation), stats.iterations, xi_mean, stats
 
     def nodes(self, system, state0, states, outs) -> Nodes:
         Q0, P0, _, xi0, _ = state0
