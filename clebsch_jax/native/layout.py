@@ -46,6 +46,12 @@ class Workspace:
             found = self._rows[key] = np.empty(shape, dtype)
         return found
 
+    def trim(self, keep: int) -> None:
+        """Let go of the rows when they take more than `keep` bytes (the next call makes them
+        again); the arrays a caller still holds stay valid."""
+        if sum(a.nbytes for a in self._rows.values()) > keep:
+            self._rows = {}
+
     def written(self, which: int) -> dict:
         """Output rows of set `which` by the address of their data."""
         return {a.ctypes.data: a for k, a in self._rows.items() if k[0] == "out" and k[1] == which}
