@@ -140,11 +140,12 @@ def test_a_kernel_named_by_its_key_loads_without_a_trace_and_what_changes_it_mis
 
 def _fresh_process(monkeypatch):
     """Forget what this process compiled, traced and checked, as a new process would."""
-    from clebsch_jax.batching import backends, chunks_native, probe
+    from clebsch_jax.batching import backends, choose, chunks_native, probe
 
     monkeypatch.setattr(backends, "_PROGRAMS", {})
+    monkeypatch.setattr(choose, "_COMPILED", {})
     monkeypatch.setattr(probe, "_TRACES", {})
-    monkeypatch.setattr(probe, "_PASSED", set())
+    monkeypatch.setattr(probe, "_PASSED", {})
     monkeypatch.setattr(probe, "_FINGERPRINTS", {})
     monkeypatch.setattr(probe, "_SYSTEMS", {})
     monkeypatch.setattr(chunks_native, "_DISK_KEYS", {})
