@@ -407,10 +407,12 @@ def _take_batches(plan: Plan, batches: list, threads: int, table: Tables, target
         raise errors[0]
 
 
-WORKSPACE_KEEP_BYTES = 1 << 24
+WORKSPACE_KEEP_BYTES = 1 << 26
 """A host thread's kernel rows (`Workspace`) kept after its native batches, at most: rows up to
-this size are reused by the thread's next sweep (no fresh memory, no first-touch page faults);
-larger ones — a sweep of many members — are let go, so that an idle process does not hold them."""
+this size are reused by the thread's next sweep — fresh rows cost page faults on their first
+writes, and freeing them gives their pages back (`benchmarks/README.md`: the faults were all of a
+warm sweep's system time) — larger ones, batches of large members, are let go, so that an idle
+process does not hold them."""
 
 _WORKERS: list = []  # [the pool, its threads]
 _WORKERS_LOCK = threading.Lock()
