@@ -1,7 +1,8 @@
 """Native kernels (issue "Native kernels"): the documented sweep against the hardware's yardsticks.
 
 Run: `python benchmarks/native.py` (`--quick` for a smoke run; `--threads-only` for the threads
-part alone, written to `native_threads.json`). Four parts, in one process (the compile part in
+part alone, written to `native_threads.json`; `--rigid-only` for parts 1 and 2, written to
+`native_rigid.json`). Four parts, in one process (the compile part in
 fresh child processes):
 
 1. **Rigid-body sweep** — `cj.sweep(rigid_body, …, reconstruct=False)` with default options
@@ -346,12 +347,18 @@ def _add_arguments(parser) -> None:
         action="store_true",
         help="the threads part alone, written to native_threads.json (the other parts' results are kept)",
     )
+    parser.add_argument(
+        "--rigid-only",
+        action="store_true",
+        help="the rigid-body sweep and threads parts alone, written to native_rigid.json (no compile children, "
+        "no vortex clusters; the other parts' results are kept)",
+    )
 
 
 def main(argv=None) -> dict:
     argv = sys.argv[1:] if argv is None else argv
     run = harness.Run(
-        RESULTS_NAME + ("_threads" if "--threads-only" in argv else ""),
+        RESULTS_NAME + ("_threads" if "--threads-only" in argv else "_rigid" if "--rigid-only" in argv else ""),
         argv,
         description="Native kernels against the hand JAX and C kernels, "
         "XLA's sweep and NumPy RK4 (see module docstring).",
@@ -370,6 +377,9 @@ def main(argv=None) -> dict:
             default, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}", lambda B, n: rigid_case(B, n, run)
         )
         rows += threads()
+        if run.args.rigid_only:
+            summary = run.summary(config={"inertia": list(INERTIA), "dt": rigid.DT}, results=rows, targets=TARGETS)
+            return run.finish(summary, print_report, plot)
         rows += run.measure(
             (COMPILE_CASE,), (COMPILE_QUICK,), lambda B, n: f"compile B={B}", lambda B, n: compile_case(B, n, run)
         )
