@@ -400,9 +400,13 @@ def _take_batches(plan: Plan, batches: list, threads: int, table: Tables, target
             workspace.trim(WORKSPACE_KEEP_BYTES)
 
     others = [workers(threads - 1).submit(take) for _ in range(min(threads, len(batches)) - 1)]
-    take()
-    for f in others:
-        f.result()
+    try:
+        take()
+        for f in others:
+            f.result()
+    except BaseException as err:  # e.g. Ctrl-C while waiting: the other threads take no more batches
+        errors.append(err)
+        raise
     if errors:
         raise errors[0]
 
