@@ -1,8 +1,9 @@
 """Native kernels (issue "Native kernels"): the documented sweep against the hardware's yardsticks.
 
 Run: `python benchmarks/native.py` (`--quick` for a smoke run; `--threads-only` for the threads
-part alone, written to `native_threads.json`; `--vortices-only` for the vortex clusters alone,
-written to `native_vortices.json`). Four parts, in one process (the compile part in
+part alone, written to `native_threads.json`; `--rigid-only` for parts 1 and 2, written to
+`native_rigid.json`; `--vortices-only` for the vortex clusters alone, written to
+`native_vortices.json`). Four parts, in one process (the compile part in
 fresh child processes):
 
 1. **Rigid-body sweep** — `cj.sweep(rigid_body, …, reconstruct=False)` with default options
@@ -352,11 +353,18 @@ def _add_arguments(parser) -> None:
         action="store_true",
         help="the vortex clusters alone, written to native_vortices.json (the other parts' results are kept)",
     )
+    parser.add_argument(
+        "--rigid-only",
+        action="store_true",
+        help="the rigid-body sweep and threads parts alone, written to native_rigid.json (no compile children, "
+        "no vortex clusters; the other parts' results are kept)",
+    )
 
 
 def main(argv=None) -> dict:
     argv = sys.argv[1:] if argv is None else argv
-    part = "_threads" if "--threads-only" in argv else "_vortices" if "--vortices-only" in argv else ""
+    only = {"--threads-only": "_threads", "--vortices-only": "_vortices", "--rigid-only": "_rigid"}
+    part = next((name for flag, name in only.items() if flag in argv), "")
     run = harness.Run(
         RESULTS_NAME + part,
         argv,
@@ -386,6 +394,9 @@ def main(argv=None) -> dict:
             default, SWEEP_QUICK, lambda B, n: f"sweep B={B} n_steps={n}", lambda B, n: rigid_case(B, n, run)
         )
         rows += threads()
+        if run.args.rigid_only:
+            summary = run.summary(config={"inertia": list(INERTIA), "dt": rigid.DT}, results=rows, targets=TARGETS)
+            return run.finish(summary, print_report, plot)
         rows += run.measure(
             (COMPILE_CASE,), (COMPILE_QUICK,), lambda B, n: f"compile B={B}", lambda B, n: compile_case(B, n, run)
         )

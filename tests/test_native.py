@@ -377,6 +377,55 @@ def test_native_sweep_of_rigid_bodies_equals_the_xla_sweep_with_failures_reporte
             assert np.array_equal(a, b, equal_nan=True)
 
 
+def test_kept_kernel_rows_give_the_fresh_rows_table_and_large_ones_are_let_go(monkeypatch):
+    """The sweep's threads keep their kernel rows from sweep to sweep (`schedule.workers`,
+    `WORKSPACE_KEEP_BYTES`): a sweep whose rows hold another sweep's values (other members, a
+    batch of another size) gives, to the bit, the table of threads with fresh rows; rows past
+    the limit are let go when the sweep ends."""
+    import threading
+
+    from clebsch_jax.batching import schedule
+
+    inertias, Q0, omegas = _rigid_body_members(9)
+    sweep = (
+        lambda n, **kw: cj.sweep(  # noqa: E731
+            cj.models.rigid_body, inertias[:n], Q0[:n], omegas[:n] * 0.5, backend="native", threads=2, **RB, **kw
+        )
+    )
+    cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", threads=2, **RB)
+    assert schedule._workspace()._rows  # the calling thread's rows, kept
+    kept = sweep(7, batch_size=3)
+    monkeypatch.setattr(schedule, "_ROWS", threading.local())
+    monkeypatch.setattr(schedule, "_WORKERS", [])
+    fresh = sweep(7, batch_size=3)
+    for a, b in zip(jax.tree_util.tree_leaves(kept), jax.tree_util.tree_leaves(fresh)):
+        assert np.array_equal(a, b, equal_nan=True)
+    monkeypatch.setattr(schedule, "WORKSPACE_KEEP_BYTES", 0)
+    sweep(7)
+    assert not schedule._workspace()._rows
+
+
+def test_a_native_batch_that_raises_stops_the_threads_and_its_error_is_raised(monkeypatch):
+    """A batch's error (here the table's writing of the second batch done) is raised by the
+    sweep once the threads stopped; no thread takes a batch after it (at most the one batch
+    another thread had started runs on)."""
+    from clebsch_jax.batching import tables
+
+    done, collect = [], tables.collect
+
+    def collect_or_fail(table, one, run):
+        done.append(one.rows.start)
+        if len(done) == 2:
+            raise RuntimeError("the second batch failed")
+        return collect(table, one, run)
+
+    monkeypatch.setattr(tables, "collect", collect_or_fail)
+    inertias, Q0, omegas = _rigid_body_members(8)
+    with pytest.raises(RuntimeError, match="the second batch failed"):
+        cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", batch_size=1, threads=2, **RB)
+    assert len(done) <= 3
+
+
 @pytest.mark.slow  # two sweep programs compiled; the default run checks native statuses in test_sweep_checks
 def test_native_sweep_reports_a_failure_in_a_later_chunk_at_the_step_xla_reports():
     """Peakons (the full march, midpoint scheme): a peakon–antipeakon pair collides at t* = 3,

@@ -140,11 +140,12 @@ def test_a_kernel_named_by_its_key_loads_without_a_trace_and_what_changes_it_mis
 
 def _fresh_process(monkeypatch):
     """Forget what this process compiled, traced and checked, as a new process would."""
-    from clebsch_jax.batching import backends, chunks_native, probe
+    from clebsch_jax.batching import backends, choose, chunks_native, probe
 
     monkeypatch.setattr(backends, "_PROGRAMS", {})
+    monkeypatch.setattr(choose, "_COMPILED", {})
     monkeypatch.setattr(probe, "_TRACES", {})
-    monkeypatch.setattr(probe, "_PASSED", set())
+    monkeypatch.setattr(probe, "_PASSED", {})
     monkeypatch.setattr(probe, "_FINGERPRINTS", {})
     monkeypatch.setattr(probe, "_SYSTEMS", {})
     monkeypatch.setattr(chunks_native, "_DISK_KEYS", {})
@@ -372,3 +373,25 @@ def test_a_kept_refusal_keeps_no_traceback_and_is_raised_again_without_compiling
         assert cache["key"].__traceback__ is None  # the kept one holds no frames
     assert len(compiles) == 1  # raised again from the cache, not compiled again
     assert len({id(e) for e in raised}) == 3
+
+
+def test_a_kept_refusal_keeps_no_traceback_where_exceptions_pickle_theirs():
+    """tblib's pickling support (installed by importing dask.distributed, as a Dask sweep does)
+    makes a copy of an exception carry its traceback: the kept refusal must not."""
+    import threading
+
+    pickling_support = pytest.importorskip("tblib.pickling_support")
+    from clebsch_jax.native import TooLarge, compiled_once
+
+    class Refusal(TooLarge):  # a class of its own: the installed pickling stays on it alone
+        pass
+
+    pickling_support.install(Refusal)
+
+    def refuse():
+        raise Refusal("a program of more than 60000 entries", entries=60001)
+
+    cache = {}
+    with pytest.raises(Refusal):
+        compiled_once(cache, threading.Lock(), 8, "key", refuse)
+    assert cache["key"].__traceback__ is None and cache["key"].entries == 60001

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import diagnostics as _diagnostics
+from ..core.jit import memo
 from ..core.validation import positive_int
 from ..roots.solvers import Newton
 from ..steppers.base import AbstractWrapper
@@ -167,9 +168,16 @@ def native_config(cfg: Config, run: Run, members: Members, backend: str):
         native = dataclasses.replace(cfg, native=True, native_max_lines=limit)
         # integrate's checks of a member, no march traced; the per-member program's march state
         shapes = probe.member_shapes(native, members, lean=True)
-        one = start_batch(native, members, shapes, 0, 1, None)
+
+        def compiled() -> bool:
+            one = start_batch(native, members, shapes, 0, 1, None)
+            chunks_native.native_program_of(native, one)
+            return True
+
         try:
-            chunks_native.native_program(native, one.params, one.shared, chunks_native.as_member(one.carry), one.dt)
+            # the program of this configuration and these member shapes (`_COMPILED`), compiled
+            # or found once per process
+            memo(_COMPILED, _member_key(native, members), compiled, 64)
             return native, shapes
         except Unsupported as err:
             why = f"the per-member program uses {err}, which the native translation does not cover"
@@ -177,6 +185,17 @@ def native_config(cfg: Config, run: Run, members: Members, backend: str):
         raise ValueError(f"backend='native': {why}.")
     _warn_once(why)
     return cfg, shapes
+
+
+_COMPILED: dict = {}
+
+
+def _member_key(cfg: Config, members: Members) -> tuple:
+    """What a sweep's native program depends on besides `cfg`: the first member's arrays'
+    shapes and dtypes (`probe.trace_key`; every member's are the same), and whether P0 is given."""
+    j = members.ic_index[0]
+    args = (first_row(members), members.shared, members.Q0[j], members.xi0[j], members.dt[0])
+    return (probe.trace_key(cfg, args), members.P0 is None)
 
 
 def batch_size(given, B: int, run: Run, cfg: Config) -> int:

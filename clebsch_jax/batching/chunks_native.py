@@ -114,12 +114,20 @@ def _disk_key(cfg: Config) -> str | None:
     return memo(_DISK_KEYS, cfg, lambda: fingerprint(("sweep-member", cfg)), 64)
 
 
-def native_call(c: Config, one, st: int, workspace=None) -> Carry:
+def native_program_of(c: Config, one):
+    """`native_program` of a batch (`schedule.Batch`) for the chunk configuration `c`: the same
+    for every batch and chunk of a run with `c` (their members' shapes are the same)."""
+    return native_program(c, one.params, one.shared, as_member(one.carry), one.dt)
+
+
+def native_call(c: Config, one, st: int, workspace=None, program=None) -> Carry:
     """One chunk of a batch (`schedule.Batch`) by its native kernel: the batch's carry after it
     (host arrays; with a `workspace` of the calling thread, `clebsch_jax.native.layout`, views of
-    its rows, valid until its second call after this one)."""
+    its rows, valid until its second call after this one). `program`: `native_program_of(c, one)`,
+    found before (else looked up)."""
     carry = as_member(one.carry)
-    program = native_program(c, one.params, one.shared, carry, one.dt)
+    if program is None:
+        program = native_program(c, one.params, one.shared, carry, one.dt)
     shared = None if one.shared is None else [np.asarray(x) for x in one.shared]
     params = jax.tree_util.tree_map(np.asarray, one.params)
     new = program(

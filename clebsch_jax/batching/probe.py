@@ -80,7 +80,7 @@ def check_first_member(cfg: Config, members: Members) -> tuple | None:
     check = lambda: _check_configurations(_first_system(cfg, members), members.Q0, members.n_ic)  # noqa: E731
     key = _record("configurations", cfg, values_digest((first_row(members), members.shared, members.Q0)))
     check() if key is None else memo(_SYSTEMS, key, check, _TRACES_MAX)
-    finite = lambda a: np.all(np.isfinite(np.reshape(a, (len(a), -1))), axis=1)  # noqa: E731
+    finite = _finite_rows
     ok_ic = finite(members.Q0) & finite(members.xi0) & (True if members.P0 is None else finite(members.P0))
     ok = ok_ic[members.ic_index]
     if members.builder is not None:
@@ -118,6 +118,15 @@ def check_first_member(cfg: Config, members: Members) -> tuple | None:
     return None
 
 
+def _finite_rows(a) -> np.ndarray:
+    """Whether each row of `a` (its leading axis) is finite: the whole array at once first (the
+    usual case, without a reduction per row), row by row only when that finds a non-finite value."""
+    a = np.asarray(a)
+    if np.isfinite(a).all():
+        return np.ones(len(a), bool)
+    return np.all(np.isfinite(np.reshape(a, (len(a), -1))), axis=1)
+
+
 def _first_system(cfg: Config, members: Members):
     """`system_of` the first parameter row, whose configuration check every Q0 gets: built once
     per fingerprint of the configuration's code and digest of the row's and shared values
@@ -141,7 +150,9 @@ def _load_gauge(data: bytes) -> tuple | None:
     return None if gauge is None else (int(gauge[0]), int(gauge[1]), bool(gauge[2]))
 
 
-_PASSED: set = set()
+_PASSED: dict = {}
+"""{key: (result,)} of the checks that passed in this process (`once`), so that a call finds its
+pass without reading the disk record."""
 _PASSED_MAX = 1024
 
 
@@ -165,8 +176,9 @@ def _found(key: str | None, load=None) -> tuple | None:
 
     if key is None:
         return None
-    if load is None and key in _PASSED:
-        return (None,)
+    found = _PASSED.get(key)
+    if found is not None:
+        return found
     data = read(key, ".passed")
     if data is None:
         return None
@@ -174,9 +186,14 @@ def _found(key: str | None, load=None) -> tuple | None:
         result = None if load is None else load(data)
     except Exception:  # a record of another version: check again
         return None
-    if load is None:
-        _PASSED.add(key)
+    _passed(key, result)
     return (result,)
+
+
+def _passed(key: str, result) -> None:
+    if len(_PASSED) >= _PASSED_MAX:
+        _PASSED.clear()
+    _PASSED[key] = (result,)
 
 
 def once(key: str | None, check, load=None, dump=None):
@@ -202,15 +219,12 @@ def once(key: str | None, check, load=None, dump=None):
         for w in caught:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
     if key is not None and not caught:
-        if load is None:
-            if len(_PASSED) >= _PASSED_MAX:
-                _PASSED.clear()
-            _PASSED.add(key)
         try:
             data = b"" if dump is None else dump(result)
         except Exception:  # a result that cannot be kept: checked again next time
             return result
         write(key, ".passed", data)
+        _passed(key, result)
     return result
 
 

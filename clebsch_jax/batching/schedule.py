@@ -1,15 +1,18 @@
 r"""A sweep's schedule: batches on devices and threads, chunk by chunk, with reruns and progress.
 
-`run_batches` is the one function behind an in-process sweep, a stored one and a Dask task: a
-group of batches (one per device and thread, `Plan`) marched side by side through every chunk
-of the run, each chunk by the backend the plan chose — a native kernel call
-(`clebsch_jax.batching.chunks_native`) or XLA's programs (`clebsch_jax.batching.chunks_xla`),
-whose fast path reruns the members whose check failed on the general path — and collected
-into table rows (`Rows`).
+`run_batches` is the one function behind an in-process sweep, a stored one and a Dask task. It
+runs batches in one of two ways. Native kernels that report no progress: each of the host
+threads (kept from call to call, `workers`) takes the next batch no thread has taken, marches it
+through every chunk and writes its rows. Otherwise a group of batches (one per device and
+thread) is marched side by side through every chunk, each chunk by the backend the plan chose —
+a native kernel call (`clebsch_jax.batching.chunks_native`) or XLA's programs
+(`clebsch_jax.batching.chunks_xla`), whose fast path reruns the members whose check failed on
+the general path — with progress reported after each.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import os
@@ -26,7 +29,7 @@ from ..core.jit import QUICK_COMPILE, jit_with_options
 from ..core.validation import positive_int
 from ..native.layout import Workspace
 from . import chunks_xla, tables
-from .chunks_native import native_call
+from .chunks_native import native_call, native_program_of
 from .config import Carry, Config, Members, Run, member_slices
 from .probe import Shapes
 from .tables import SweepProgress, Tables, allocate_tables
@@ -234,15 +237,6 @@ def _run_chunks(cfg: Config, group: list, run: Run, saved: dict | None, report: 
             return call(one)
 
     try:
-        if cfg.native and pool is not None and getattr(report, "silent", False):
-            # native kernels of a group share nothing and report nothing: each thread marches its
-            # batch through every chunk, without waiting for the others at each chunk's end
-            def march(one):
-                for st, n in run.chunks:
-                    _call(cfg, _steps(cfg, run, n), run, [(st, n)], st, n, saved, True, one)
-
-            list(pool.map(march, group))
-            return
         for chunks in _calls(run, cfg.lean):
             st, n = chunks[0][0], sum(k for _, k in chunks)
             c = _steps(cfg, run, n)
@@ -312,34 +306,6 @@ def reporter(progress, n_batches: int, n_steps: int, B: int, batch_size: int) ->
     return report
 
 
-def run_native(plan: "Plan", n_batches: int, workers: int, table: Tables) -> None:
-    """Every batch of an in-process native sweep that reports no progress, into the sweep's
-    `table`: `workers` host threads each take the next batch no thread has taken, march it
-    through every chunk (`native_call`) and write its rows (`tables.collect`; the rows of two
-    batches are disjoint). A thread waits neither for another's batch nor for Python work between
-    groups of batches on the calling thread (starting the batches, the group's table and its
-    copy into the sweep's, as `run_batches` does), and a thread slowed by the machine's other
-    work takes fewer batches. Each batch's program and padded inputs are `run_batches`'s: the
-    rows are the same to the bit for any number of workers."""
-    cfg, members, shapes, run, bs = plan
-    local = threading.local()  # each thread's rows, reused from chunk to chunk and batch to batch
-
-    def march(b: int) -> None:
-        if not hasattr(local, "rows"):
-            local.rows = Workspace()
-        one = start_batch(cfg, members, shapes, b, bs, None)
-        for st, n in run.chunks:
-            one.carry = native_call(_steps(cfg, run, n), one, st, local.rows)
-        tables.collect(table, one, run)  # before the thread's next call overwrites the rows
-
-    if workers == 1 or n_batches == 1:
-        for b in range(n_batches):
-            march(b)
-        return
-    with ThreadPoolExecutor(min(workers, n_batches), thread_name_prefix="clebsch-jax-sweep") as pool:
-        list(pool.map(march, range(n_batches)))  # taken in order by the first free thread; raises a batch's error
-
-
 class Plan(NamedTuple):
     """Everything a batch needs, built once by `sweep` (and sent once to each Dask worker)."""
 
@@ -361,24 +327,117 @@ class Rows(NamedTuple):
     # general one, and the (member, chunk) pairs rerun
 
 
-def run_batches(plan: Plan, batches: list, devices: list, report: Callable) -> Rows:
-    """Run batches side by side (batch i on `devices[i]`; None: JAX's default placement) → their
-    table rows. The one function behind an in-process sweep, a stored one and a Dask task: the
-    same program on the same padded inputs, so the rows are the same to the bit wherever they
-    are computed."""
+def run_batches(plan: Plan, batches: list, devices: list, report: Callable, table: Tables | None = None) -> Rows:
+    """Run batches (`devices`: the device of each of a group's batches, None for JAX's default
+    placement; their number is the batches run side by side) → their table rows. The one
+    function behind an in-process sweep, a stored one and a Dask task: the same program on the
+    same padded inputs, so the rows are the same to the bit wherever and however they are
+    computed. With `table` (the sweep's), each batch's rows are written at its own rows there;
+    without, into a table of these batches' rows one after the other (`Rows.tables`).
+
+    Native kernels with nothing to report (`reporter`'s silent one) run as `_take_batches`:
+    each thread takes the next batch no thread has taken. Otherwise the batches run in groups of
+    `len(devices)`, side by side chunk by chunk (`_run_chunks`), with progress after each."""
     cfg, members, shapes, run, bs = plan
-    group = [start_batch(cfg, members, shapes, b, bs, dev) for b, dev in zip(batches, devices)]
-    rows, at = [], 0
-    for one in group:  # each batch's rows in the group's own table
-        rows.append(one.rows)
-        one.rows = slice(at, at + one.n_real)
-        at += one.n_real
-    part = allocate_tables(at, shapes, run)
-    fell_back = []
-    _run_chunks(cfg, group, run, part.saved, report, fell_back)
-    used = set()
-    for one in group:
-        used.update(one.carry.status.devices() if hasattr(one.carry.status, "devices") else ["native"])
-        tables.collect(part, one, run)
+    n_real = [min(bs, members.B - b * bs) for b in batches]
+    rows = [slice(b * bs, b * bs + n) for b, n in zip(batches, n_real)]
+    if table is None:  # these batches' rows one after the other
+        ends = np.cumsum(n_real)
+        table, targets = allocate_tables(int(ends[-1]), shapes, run), [slice(e - n, e) for e, n in zip(ends, n_real)]
+    else:
+        targets = rows
+    if cfg.native and getattr(report, "silent", False):
+        _take_batches(plan, batches, len(devices), table, targets)
+        return Rows(list(batches), rows, table, {"native"})
+    used, fell_back = set(), []
+    for g in range(0, len(batches), len(devices)):
+        group = [start_batch(cfg, members, shapes, b, bs, dev) for b, dev in zip(batches[g:], devices)]
+        for one, target in zip(group, targets[g:]):
+            one.rows = target
+        _run_chunks(cfg, group, run, table.saved, report, fell_back)
+        for one in group:
+            used.update(one.carry.status.devices() if hasattr(one.carry.status, "devices") else ["native"])
+            tables.collect(table, one, run)
     fast = (sum(k for k, _ in fell_back), sum(k for k, m in fell_back if m), sum(k * m for k, m in fell_back))
-    return Rows(list(batches), rows, part, used, fast)
+    return Rows(list(batches), rows, table, used, fast)
+
+
+def _take_batches(plan: Plan, batches: list, threads: int, table: Tables, targets: list) -> None:
+    """Native batches without progress reports: `threads` host threads (the calling one and
+    `workers`') each take the next batch no thread has taken, march it through every chunk
+    (`native_call`, with the thread's kernel rows, `Workspace`) and write its rows to `targets`
+    in `table` (the rows of two batches are disjoint). No thread waits for another between
+    batches or chunks, and one the machine slows takes fewer batches. The kernel of a chunk's
+    length is looked up once per call, not once per chunk. A batch's error stops the threads
+    from taking more, and is raised once they stopped."""
+    cfg, members, shapes, run, bs = plan
+    pending, errors, lock = collections.deque(range(len(batches))), [], threading.Lock()
+    programs: dict = {}
+
+    def program(c: Config, one: Batch):
+        with lock:  # one look-up per chunk length, whichever thread needs it first
+            if c.n not in programs:
+                programs[c.n] = native_program_of(c, one)
+            return programs[c.n]
+
+    def take() -> None:
+        workspace = _workspace()
+        try:
+            while not errors:
+                try:
+                    k = pending.popleft()
+                except IndexError:
+                    return
+                one = start_batch(cfg, members, shapes, batches[k], bs, None)
+                for st, n in run.chunks:
+                    c = _steps(cfg, run, n)
+                    one.carry = native_call(c, one, st, workspace, program(c, one))
+                one.rows = targets[k]
+                tables.collect(table, one, run)  # before the thread's next call overwrites its rows
+        except BaseException as err:  # noqa: BLE001 -- raised by the calling thread below
+            errors.append(err)
+        finally:
+            workspace.trim(WORKSPACE_KEEP_BYTES)
+
+    others = [workers(threads - 1).submit(take) for _ in range(min(threads, len(batches)) - 1)]
+    try:
+        take()
+        for f in others:
+            f.result()
+    except BaseException as err:  # e.g. Ctrl-C while waiting: the other threads take no more batches
+        errors.append(err)
+        raise
+    if errors:
+        raise errors[0]
+
+
+WORKSPACE_KEEP_BYTES = 1 << 26
+"""A host thread's kernel rows (`Workspace`) kept after its native batches, at most: rows up to
+this size are reused by the thread's next sweep — fresh rows cost page faults on their first
+writes, and freeing them gives their pages back (`benchmarks/README.md`: the faults were all of a
+warm sweep's system time) — larger ones, batches of large members, are let go, so that an idle
+process does not hold them."""
+
+_WORKERS: list = []  # [the pool, its threads]
+_WORKERS_LOCK = threading.Lock()
+_ROWS = threading.local()
+
+
+def workers(n: int) -> ThreadPoolExecutor:
+    """A pool of at least `n` host threads kept for the process's native sweeps (`_take_batches`):
+    starting threads for each call costs more than a small sweep's batches, and kept threads
+    keep their kernel rows (`WORKSPACE_KEEP_BYTES`). Grown, never shrunk, when more are asked."""
+    with _WORKERS_LOCK:
+        if not _WORKERS or _WORKERS[1] < n:
+            if _WORKERS:
+                _WORKERS[0].shutdown(wait=False)  # its threads end once idle
+            _WORKERS[:] = [ThreadPoolExecutor(n, thread_name_prefix="clebsch-jax-sweep"), n]
+        return _WORKERS[0]
+
+
+def _workspace() -> Workspace:
+    """The calling thread's kernel rows, kept from call to call (`WORKSPACE_KEEP_BYTES`)."""
+    found = getattr(_ROWS, "rows", None)
+    if found is None:
+        found = _ROWS.rows = Workspace()
+    return found

@@ -303,18 +303,10 @@ def sweep(
     plan = Plan(cfg, members, shapes, run._replace(progress=False, devices=[None]), batch_size)
     if store is not None or client is not None:
         return _run_stored(plan, run, tables, store=store, client=client, overwrite=overwrite, report=report)
-    used, chunks, slots = set(), np.zeros(3, int), run.slots
-    if cfg.native and getattr(report, "silent", False):  # every thread takes batch after batch
-        schedule.run_native(plan, n_batches, len(slots), tables)
-        return result(plan, tables, 1, chunks)
-    for g in range(0, n_batches, len(slots)):
-        rows = run_batches(plan, list(range(g, min(g + len(slots), n_batches))), slots, report)
-        used.update(rows.devices)
-        chunks += rows.fast_chunks
-        place(tables, rows.tables, rows.rows)
+    rows = run_batches(plan, list(range(n_batches)), run.slots, report, table=tables)
     if run.progress is True:
         print(file=sys.stderr, flush=True)
-    return result(plan, tables, len(used), chunks)
+    return result(plan, tables, len(rows.devices), rows.fast_chunks)
 
 
 def _first_member_plan(make_system, params, Q0, xi0, P0, grid, given, t_final, accuracy, backend):

@@ -378,8 +378,11 @@ def compiled_once(cache: dict, lock, limit: int, key, compile):
             found = compile()
         except Unsupported as err:
             # kept without its traceback: the frames of a traceback reach the callers' frames
-            # and their values (a march's whole Solution), which the cache would keep alive
+            # and their values (a march's whole Solution), which the cache would keep alive;
+            # cleared after the copy, which keeps them where exceptions pickle their tracebacks
+            # (tblib's pickling support, which importing dask.distributed installs)
             found = copy.copy(err)
+            found.__traceback__ = found.__cause__ = found.__context__ = None
         if hashable:
             with lock:
                 if len(cache) >= limit:

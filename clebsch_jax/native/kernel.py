@@ -477,7 +477,8 @@ class Kernel:
         if self.carries is not None and not 0 <= steps <= capacity:
             raise ValueError(f"a loop kernel of {steps} steps with records for {capacity}")
         outs = output_rows(self._outs, n_carry, stride, steps, capacity, workspace, records)
-        pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[x.ctypes.data for x in buffers + outs])
+        address = (lambda x: x.ctypes.data) if workspace is None else workspace.address
+        pointers = (ctypes.c_void_p * (len(buffers) + len(outs)))(*[address(x) for x in buffers + outs])
         address = ctypes.addressof(pointers)
         loop = () if self.carries is None else (int(steps),)
         threads = max(1, min(int(threads), blocks))
@@ -493,4 +494,7 @@ class Kernel:
                 f"a native kernel could not allocate its heap buffer of {max(status)} bytes (a long scan's arrays "
                 "held as rows, a buffer per thread): run fewer steps per call, fewer threads, or backend='xla'"
             )
-        return results(outs, self._outs, self.out_dtypes, n_carry, B, stride, capacity)
+        found = results(outs, self._outs, self.out_dtypes, n_carry, B, stride, capacity)
+        if workspace is not None:
+            workspace.returned(found[:n_carry], outs[:n_carry])
+        return found

@@ -28,10 +28,13 @@ class Workspace:
     """The rows of the kernel calls one thread makes, kept for its next calls. The outputs of
     a call stay valid until the second call after it with the same workspace (the outputs
     alternate between two sets of rows, so that a call can read the last call's in place); a
-    workspace must not be shared by two threads at once."""
+    workspace must not be shared by two threads at once. It knows its rows' addresses and the
+    last call's carry outputs by identity, so that a call reads neither from NumPy again."""
 
     def __init__(self):
         self._rows: dict = {}
+        self._addresses: dict = {}  # id(rows) -> (rows, the address of their data)
+        self._returned: dict = {}  # id(output) -> (output, its rows): the last call's carry outputs
         self._set = 0
 
     def next_set(self) -> int:
@@ -43,12 +46,33 @@ class Workspace:
         """The rows under `key`, made (uninitialised) on first use or when the shape changed."""
         found = self._rows.get(key)
         if found is None or found.shape != shape or found.dtype != dtype:
+            old = self._rows.get(key)
+            if old is not None:
+                self._addresses.pop(id(old), None)
             found = self._rows[key] = np.empty(shape, dtype)
+            self._addresses[id(found)] = (found, found.ctypes.data)
         return found
 
-    def written(self, which: int) -> dict:
-        """Output rows of set `which` by the address of their data."""
-        return {a.ctypes.data: a for k, a in self._rows.items() if k[0] == "out" and k[1] == which}
+    def address(self, a: np.ndarray) -> int:
+        """The address of `a`'s data (kept for the workspace's rows)."""
+        found = self._addresses.get(id(a))
+        return found[1] if found is not None and found[0] is a else a.ctypes.data
+
+    def returned(self, outputs: list, rows: list) -> None:
+        """Record a call's carry outputs (`results`' views of their `rows`), which the next call
+        may be given back as inputs (`passed_back`)."""
+        self._returned = {id(a): (a, r) for a, r in zip(outputs, rows) if a.base is r}
+
+    def passed_back(self, a: np.ndarray) -> np.ndarray | None:
+        """The rows of `a` if it is one of the last call's carry outputs, else None."""
+        found = self._returned.get(id(a))
+        return found[1] if found is not None and found[0] is a else None
+
+    def trim(self, keep: int) -> None:
+        """Let go of the rows when they take more than `keep` bytes (the next call makes them
+        again); the arrays a caller still holds stay valid."""
+        if sum(a.nbytes for a in self._rows.values()) > keep:
+            self._rows, self._addresses, self._returned = {}, {}, {}
 
 
 def aligned_empty(shape: tuple, dtype) -> np.ndarray:
@@ -75,7 +99,6 @@ def input_rows(arrays, layout: list, batched: list, B: int, stride: int, workspa
     (entries, stride) rows, its padding lanes repeating member B − 1. With a `workspace`, the
     rows are reused, and a carry output of its last call is passed as it is."""
     take = _fresh if workspace is None else workspace.rows
-    last = {} if workspace is None else workspace.written(workspace._set)
     buffers = []
     for j, (a, (shape, size, storage), bat) in enumerate(zip(arrays, layout, batched)):
         a = np.asarray(a)
@@ -90,7 +113,7 @@ def input_rows(arrays, layout: list, batched: list, B: int, stride: int, workspa
             buffers.append(np.ascontiguousarray(a, storage))
             continue
         view = a.reshape(B, size).T
-        own = last.get(view.ctypes.data)
+        own = None if workspace is None else workspace.passed_back(a)
         if own is not None and own.shape == (size, stride) and own.dtype == storage and _rows_of(view, own):
             # rows the last call wrote: their padding lanes ran copies of member B − 1, so they
             # hold its outputs, which the copy below would write there too
