@@ -7,36 +7,29 @@ the points of ours that `work_precision_ensembles.py` found fastest at each of h
 
 Written as `work_precision_ceiling.{json,png}`. Needs heyoka (the `bench` extra) and valgrind.
 
-- **Scenes**: `work_precision_ensembles`' two (64 free rigid bodies to T = 1e4, 16 clusters of 4
-  vortices to T = 1e3), imported with their initial conditions and heyoka equations.
-- **Points of ours**: for each heyoka tolerance 1e-8 ... 1e-14, the fastest point of ours by CPU
-  time at no larger global error and an energy error no larger (or <= 1e-12), taken from the
-  committed `results/work_precision_ensembles.json` (`--points`); the plans' points are left out
-  (their steps come from a pilot; they chose Gauss 8, whose hand-picked steps are there too).
-  Where none is as accurate, the most accurate point of ours stands in (marked).
-- **The counted CPU**: valgrind presents an AVX2 CPU (no AVX-512) to what it runs, so LLVM
-  compiles for that CPU under callgrind. So that the counted code is the timed code, our kernels
-  are compiled for the CPU valgrind presents (its LLVM name and features, asked of llvmlite in a
-  process under `valgrind --tool=none`) in this process too, and heyoka runs in batches of 4
-  (AVX2's float64 lanes). On an AVX2 host that is the host's own setting; on a wider host the
-  counts are those of AVX2 code (heyoka compiles natively for the host itself, 4 lanes wide).
-- **Counts**: one process under `valgrind --tool=callgrind` (this script with `--count`), 8
-  members. A call of `math.lcm` ends each region (`--dump-before=math_lcm`: a dump per region;
-  all the process's instructions, Ir). heyoka: `propagate_until` from t = 0 to T1 and to T2 of
-  the members in batches of 4; ours: `cj.sweep(..., backend="native", threads=1)` of n1 and n2
-  steps. (count2 - count1) / (members * (T2 - T1)) leaves out compilation, setup and each call's
-  fixed cost. heyoka's steps are a batch's (the batch steps until its slowest lane is done).
-- **Timing** (this process, native): the whole ensembles, heyoka in batches of 4 and ours with
-  the same kernels as counted, by `work_precision_ensembles.time_calls`: ratios ours / heyoka of
-  wall and CPU time.
-- **Arithmetic from first principles** (floating-point operations per member). heyoka's Taylor
-  step of order p, from its decomposition of the right-hand side into elementary operations: a
-  product or quotient of two series costs sum_{n<p} (2n+1) = p^2 for the p orders (one division
-  per order for a quotient), a sum, difference or product with a constant p; each state variable
-  p for x_{n+1} = f_n/(n+1), 2p for the Horner update, 4 for the step size's norms. Ours: the
-  floating-point operations of the jaxpr of one sweep of one member (`GaussLegendre._sweep`: stage
-  values, velocities, increments), and per step those of the matrices formed once per step, the
-  compensated update and the extrapolated guess.
+- **Scenes**: `work_precision_ensembles`' two (64 rigid bodies, T = 1e4; 16 clusters of 4
+  vortices, T = 1e3), imported with their initial conditions and heyoka equations.
+- **Points of ours**: for each heyoka tolerance 1e-8 ... 1e-14, our fastest point by CPU time at no
+  larger global error and energy error no larger (or <= 1e-12) in the committed
+  `results/work_precision_ensembles.json` (`--points`; the plans' points left out: their steps come
+  from a pilot), else our most accurate point (marked).
+- **The counted CPU**: valgrind presents an AVX2 CPU (no AVX-512), and LLVM compiles for it under
+  callgrind. So that the timed code is the counted code, this process compiles our kernels for
+  that CPU too (its LLVM name and features, asked of llvmlite under `valgrind --tool=none`; 4
+  lanes) and runs heyoka in batches of 4 (which compiles for the host itself, 4 lanes wide).
+- **Counts**: this script with `--count` under `valgrind --tool=callgrind`, 8 members; a call of
+  `math.lcm` ends each region (`--dump-before=math_lcm`; all the process's instructions, Ir).
+  heyoka: `propagate_until` from t = 0 to T1 and to T2 in batches of 4; ours: `cj.sweep(...,
+  backend="native", threads=1)` of n1 and n2 steps; (count2 - count1) / (members (T2 - T1))
+  leaves out compilation, setup and each call's fixed cost. heyoka's steps are a batch's.
+- **Timing** (this process, natively): the whole ensembles, heyoka and ours (the counted
+  kernels), by `work_precision_ensembles.time_calls`; ratios ours / heyoka.
+- **Arithmetic from first principles** (flops per member). heyoka's step of order p, from its
+  decomposition of the right-hand side: a product or quotient of series costs sum_{n<p} (2n+1) =
+  p^2, a sum, difference or product with a constant p; each state variable p for x_{n+1} =
+  f_n/(n+1), 2p for the Horner update, 4 for the step size's norms. Ours: the floating-point
+  operations of the jaxpr of one member's sweep (`GaussLegendre._sweep`) and, per step, of the
+  matrices formed once per step, the compensated update and the extrapolated guess.
 """
 
 from __future__ import annotations
@@ -49,14 +42,11 @@ import sys
 import tempfile
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 import _timing as harness
-import clebsch_jax as cj
+from _arithmetic import sweep_flops, taylor_flops
 import work_precision_ensembles as wpe
-from clebsch_jax.discrete import collocation
 from clebsch_jax.native import kernel as K
 
 TOLS = (1e-8, 1e-10, 1e-12, 1e-14)
@@ -153,86 +143,6 @@ def make_scene(name: str, cfg: dict, members: int | None = None):
     if members is not None:
         scene.y0, scene.members = scene.y0[:members], members
     return scene
-
-
-# --------------------------------------------------------------------------------------------
-# Arithmetic from first principles.
-
-
-def taylor_flops(ta, n_state: int) -> dict:
-    """Floating-point operations per member of one Taylor step of `ta` (module docstring)."""
-    p, series, linear = ta.order, 0, 0
-    for expr, _ in ta.decomposition[n_state:-n_state]:
-        s = str(expr)
-        if s.startswith("div(") or (s.count("u_") == 2 and " * " in s):
-            series += 1  # a product or a quotient of two series (or a constant over a series)
-        elif s.startswith(("sub(", "(-")) or " + " in s or " * " in s:
-            linear += 1
-        else:
-            raise ValueError(f"no operation count for heyoka's {s}")
-    flops = series * p * p + (linear + 3 * n_state) * p + 4 * n_state
-    return {"order": p, "series_ops": series, "linear_ops": linear, "flops_per_step": flops}
-
-
-_ELEMENTWISE = {"add", "sub", "mul", "div", "neg", "max", "min", "abs", "sqrt", "rsqrt", "exp", "log", "sign"}
-
-
-def jaxpr_flops(jaxpr) -> int:
-    """Floating-point operations of a jaxpr: elementwise arithmetic one per output entry,
-    `integer_pow` y - 1, `dot_general` (2k - 1) per output entry, `reduce_sum` inputs - outputs;
-    sub-jaxprs (pjit, custom derivatives, loops) counted once, scans times their length, cond
-    its costliest branch."""
-    total = 0
-    for eqn in jaxpr.eqns:
-        out = eqn.outvars[0].aval
-        name = eqn.primitive.name
-        subs = [v for x in eqn.params.values() for v in (x if isinstance(x, tuple) else (x,)) if hasattr(v, "eqns")]
-        if subs:
-            inner = [jaxpr_flops(getattr(j, "jaxpr", j)) for j in subs]
-            total += max(inner) if name == "cond" else sum(inner) * eqn.params.get("length", 1)
-            continue
-        if not jnp.issubdtype(getattr(out, "dtype", jnp.int32), jnp.floating):
-            continue
-        size = math.prod(out.shape)
-        if name in _ELEMENTWISE:
-            total += size
-        elif name == "integer_pow":
-            total += size * (abs(eqn.params["y"]) - 1)
-        elif name == "dot_general":
-            (contract, _), _ = eqn.params["dimension_numbers"]
-            k = math.prod(eqn.invars[0].aval.shape[d] for d in contract)
-            total += size * (2 * k - 1)
-        elif name == "reduce_sum":
-            total += math.prod(eqn.invars[0].aval.shape) - size
-    return total
-
-
-def sweep_flops(scene, options: dict, dt: float) -> dict:
-    """Floating-point operations of one member's sweep and of its per-step work (module docstring)."""
-    options = dict(options)
-    make_system, params, Q0, xi0, extra = scene.sweep_args(options.pop("model", None))
-    system = make_system(params[0])
-    Q = jnp.asarray(Q0[0])
-    P = jnp.asarray(extra["P0"][0]) if "P0" in extra else jnp.zeros_like(Q)
-    stepper = cj.GaussLegendre(order=options["order"], constraint_blocks=options.get("jacobian") == "blocks")
-    tab = collocation.gauss_legendre(stepper.stages)
-    s = stepper.stages
-    z = collocation.GaussUnknowns(
-        xi=jnp.broadcast_to(jnp.asarray(xi0[0]), (s,) + xi0[0].shape), dQ=jnp.zeros((s,) + Q.shape),
-        dP=jnp.zeros((s,) + P.shape),
-    )  # fmt: skip
-    mats = stepper._matrices(system, tab, Q, P, z)
-    sweep = jax.make_jaxpr(lambda z: stepper._sweep(system, tab, dt, Q, P, z, mats))(z).jaxpr
-    comp = (jnp.zeros_like(Q), jnp.zeros_like(P))
-
-    def per_step(z):
-        return (
-            stepper._matrices(system, tab, Q, P, z),
-            collocation.gauss_update(Q, P, z, comp),
-            collocation.extrapolate(tab, z),
-        )
-
-    return {"stages": s, "sweep": jaxpr_flops(sweep), "per_step": jaxpr_flops(jax.make_jaxpr(per_step)(z).jaxpr)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -385,7 +295,8 @@ def breakdown(name, cfg, timed, counts, found, picks, n_steps) -> list:
         row = {
             "tol": tol, "point": f"{method} dt {dt:g}", "as_accurate": pick["as_accurate"], "errors": pick,
             "heyoka": {
-                "order": h["order"], "steps_per_unit_time": hy_steps, "instructions_per_step": hi / hy_steps,
+                "order": h["order"], "series_ops": h["series_ops"], "linear_ops": h["linear_ops"],
+                "steps_per_unit_time": hy_steps, "instructions_per_step": hi / hy_steps,
                 "instructions_per_unit_time": hi, "flops_per_step": h["flops_per_step"], "flops_per_unit_time": hy_flops,
                 "instructions_per_flop": hi / hy_flops, "wall_s": h["wall_s"], "cpu_s": h["cpu_s"],
             },
@@ -439,11 +350,9 @@ def print_report(summary) -> None:
                 for r in sc["rows"]
             ),
         )
-    print(
-        "columns: heyoka's order, batch steps, instructions and flops | ours: sweeps per step, instructions per "
-        "sweep, instructions and flops | ratios ours / heyoka | to match heyoka: sweeps per step, or instructions "
-        "per sweep. * no point of ours as accurate (the most accurate stands in)."
-    )
+    print("heyoka: order, batch steps, instructions, flops | ours: sweeps per step, instructions per sweep,")
+    print("instructions, flops | ours / heyoka | to match heyoka: sweeps per step, or instructions per sweep.")
+    print("* no point of ours as accurate (the most accurate stands in).")
 
 
 def plot(summary, path: Path) -> None:
@@ -457,8 +366,10 @@ def plot(summary, path: Path) -> None:
             flops = [r[who].get("flops_per_unit_time") for r in sc["rows"]]
             ax.plot(x + (k - 0.5) * 0.38, [np.nan if f is None else f for f in flops], "k_", ms=14)
         for xi, r in zip(x, sc["rows"]):
-            ax.annotate(f"{r['instructions_ratio']:.1f}x\n(wall {r['wall_ratio']:.1f}x)", (xi, 0), xytext=(0, 3),
-                        textcoords="offset points", ha="center", fontsize=7, color="w")  # fmt: skip
+            top = max(r[w]["instructions_per_unit_time"] for w in ("heyoka", "ours"))
+            ax.annotate(
+                f"{r['instructions_ratio']:.1f}x (wall {r['wall_ratio']:.1f}x)", (xi, top), ha="center", fontsize=7
+            )
         ax.set_xticks(x, [f"{r['tol']:.0e}\n{r['point']}" for r in sc["rows"]], fontsize=7)
         ax.set_yscale("log")
         ax.set_ylabel("per member and unit of simulated time")
