@@ -334,11 +334,12 @@ def time_calls(run, call, what: str, budget_s: float) -> tuple[dict, object]:
 
 class HeyokaEnsemble:
     """One `taylor_adaptive_batch` per tolerance; `run(tol)` propagates the ensemble group by group
-    over the sample times and returns the samples (n_samples + 1, B, n_eq)."""
+    over the sample times and returns the samples (n_samples + 1, B, n_eq). Groups of
+    `batch_size` members (default `recommended_simd_size()`)."""
 
-    def __init__(self, hy, scene, ts):
+    def __init__(self, hy, scene, ts, batch_size=None):
         self.hy, self.scene, self.ts = hy, scene, np.asarray(ts)
-        self.bs = int(hy.recommended_simd_size())
+        self.bs = int(batch_size or hy.recommended_simd_size())
         self.sys = scene.heyoka_system(hy)
         y0 = scene.flat(scene.y0)
         pad = (-len(y0)) % self.bs  # the last group padded with copies of the last member

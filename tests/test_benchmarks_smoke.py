@@ -281,6 +281,26 @@ def check_work_precision_ensembles(summary: dict) -> None:
             assert bool(tg["heyoka"]) == with_heyoka and tg["diffrax"]
 
 
+def check_work_precision_ceiling(summary: dict) -> None:
+    (sc,) = summary["results"]  # --quick: the rigid bodies only, one tolerance, one point of ours
+    assert sc["scene"] == "rigid_body" and sc["rows"]
+    for r in sc["rows"]:
+        hy, ours = r["heyoka"], r["ours"]
+        for who in (hy, ours):
+            for key in ("steps_per_unit_time", "instructions_per_unit_time", "flops_per_unit_time", "wall_s", "cpu_s"):
+                assert _positive_finite(who[key]), (key, who)
+            # a vector instruction of 4 lanes does at most 8 flops (a fused multiply-add): fewer
+            # instructions than flops / 8 per member would mean a miscounted region
+            assert who["instructions_per_flop"] > 1 / 8, who
+        # Euler's equations in heyoka's decomposition: 6 products of series, 5 linear operations
+        assert (hy["series_ops"], hy["linear_ops"]) == (6, 5) and hy["order"] >= 8
+        assert ours["valid"] and ours["stages"] == 4 and ours["sweeps_per_step"] >= 1  # Gauss 8
+        assert math.isclose(ours["instructions_per_unit_time"], ours["instructions_per_step"] / ours["dt"])
+        # the break-down: at the sweeps per step (or the cost per sweep) to match, the same count
+        assert math.isclose(r["sweeps_per_step_to_match"] * ours["instructions_per_sweep"] / ours["dt"],
+                            hy["instructions_per_unit_time"])  # fmt: skip
+
+
 def check_work_precision_sphere(summary: dict) -> None:
     (sc,) = summary["results"]
     assert sc["reference"]["valid"] and 0 <= sc["reference"]["check"] < 1e-8
@@ -456,6 +476,7 @@ CHECKS = {
     "work_precision_clusters": check_work_precision_clusters,
     "work_precision_ensembles": check_work_precision_ensembles,
     "work_precision_sphere": check_work_precision_sphere,
+    "work_precision_ceiling": check_work_precision_ceiling,
     "soak": check_soak,
     "defaults": check_defaults,
     "sweep_scaling": check_sweep_scaling,
@@ -483,6 +504,10 @@ def test_benchmark_quick(name, tmp_path):
     if name in ("sweep_scaling", "scale_out"):  # Dask and Zarr are the optional extra [sweep]
         pytest.importorskip("distributed", reason=f"{name} needs dask.distributed: pip install -e '.[sweep]'")
         pytest.importorskip("zarr", reason=f"{name} needs zarr: pip install -e '.[sweep]'")
+    if name == "work_precision_ceiling":  # heyoka (the [bench] extra) is the peer; callgrind counts
+        pytest.importorskip("heyoka", reason="work_precision_ceiling needs heyoka: pip install -e '.[bench]'")
+        if shutil.which("valgrind") is None:
+            pytest.skip("work_precision_ceiling counts instructions with valgrind's callgrind")
     if name == "scale_out" and shutil.which("taskset") is None:
         pytest.skip("scale_out pins workers with Linux's taskset")
     subprocess.run(
