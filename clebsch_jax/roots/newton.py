@@ -69,9 +69,7 @@ def jacobian(F: Callable, z: jax.Array, unroll: bool = False):
     eye = jnp.eye(z.shape[0], dtype=z.dtype)
     if unroll:
         return Fz, jnp.stack([lin(e) for e in eye], axis=-1)
-    # a `jit` inside the `vmap`: one call of `lin` batched over the columns, which XLA inlines
-    # and a native kernel can run as a loop over them (`clebsch_jax.native.row_calls`)
-    return Fz, jax.vmap(jax.jit(lin), out_axes=-1)(eye)
+    return Fz, jax.vmap(lin, out_axes=-1)(eye)
 
 
 def max_abs(v: jax.Array) -> jax.Array:
