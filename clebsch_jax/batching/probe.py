@@ -80,11 +80,11 @@ def check_first_member(cfg: Config, members: Members) -> tuple | None:
     check = lambda: _check_configurations(_first_system(cfg, members), members.Q0, members.n_ic)  # noqa: E731
     key = _record("configurations", cfg, values_digest((first_row(members), members.shared, members.Q0)))
     check() if key is None else memo(_SYSTEMS, key, check, _TRACES_MAX)
-    finite = _finite_rows
-    ok_ic = finite(members.Q0) & finite(members.xi0) & (True if members.P0 is None else finite(members.P0))
+    ok_ic = _finite_rows(members.Q0) & _finite_rows(members.xi0)
+    ok_ic &= True if members.P0 is None else _finite_rows(members.P0)
     ok = ok_ic[members.ic_index]
     if members.builder is not None:
-        rows = np.all([finite(leaf) for leaf in jax.tree_util.tree_leaves(members.params)], axis=0)
+        rows = np.all([_finite_rows(leaf) for leaf in jax.tree_util.tree_leaves(members.params)], axis=0)
         ok &= rows[members.param_index]
     options = {k: v for k, v in cfg.options if k != "check_energy"}
     for m in np.flatnonzero(ok)[:FIRST_MEMBER_TRIES]:

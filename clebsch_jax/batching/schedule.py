@@ -104,7 +104,7 @@ def start_batch(cfg: Config, members: Members, shapes: Shapes, b: int, batch_siz
     """Batch b on `device` (None: JAX's default placement); the last batch is padded with copies
     of the last member."""
     member = np.minimum(np.arange(b * batch_size, (b + 1) * batch_size), members.B - 1)
-    n_real = min(batch_size, members.B - b * batch_size)
+    rows = batch_rows(b, batch_size, members.B)
     ic = members.ic_index[member]
     # host arrays moved to the device as they are: a transfer each, no JAX operation to compile;
     # a native kernel reads host arrays, so they stay there
@@ -136,8 +136,12 @@ def start_batch(cfg: Config, members: Members, shapes: Shapes, b: int, batch_siz
         march_ok=None if shapes.march is None else zeros((), bool),
         gauge=None if cfg.isotropy is None else zeros(()),
     )
-    rows = slice(b * batch_size, b * batch_size + n_real)
-    return Batch(b, rows, n_real, params, put(members.dt[member]), shared, carry)
+    return Batch(b, rows, rows.stop - rows.start, params, put(members.dt[member]), shared, carry)
+
+
+def batch_rows(b: int, batch_size: int, B: int) -> slice:
+    """The rows of the sweep's table that batch b's members fill (its padding has none)."""
+    return slice(b * batch_size, min((b + 1) * batch_size, B))
 
 
 def _calls(run: Run, lean: bool) -> list:
@@ -317,7 +321,8 @@ class Plan(NamedTuple):
 
 
 class Rows(NamedTuple):
-    """The table rows of some batches: `tables` holds them one after the other."""
+    """The table rows of some batches: `tables` holds them one after the other, or at `rows` when
+    it is the sweep's own table (`run_batches`'s `table`)."""
 
     batches: list  # batch indices
     rows: list  # each batch's rows of the sweep's table (slices)
@@ -339,8 +344,8 @@ def run_batches(plan: Plan, batches: list, devices: list, report: Callable, tabl
     each thread takes the next batch no thread has taken. Otherwise the batches run in groups of
     `len(devices)`, side by side chunk by chunk (`_run_chunks`), with progress after each."""
     cfg, members, shapes, run, bs = plan
-    n_real = [min(bs, members.B - b * bs) for b in batches]
-    rows = [slice(b * bs, b * bs + n) for b, n in zip(batches, n_real)]
+    rows = [batch_rows(b, bs, members.B) for b in batches]
+    n_real = [r.stop - r.start for r in rows]
     if table is None:  # these batches' rows one after the other
         ends = np.cumsum(n_real)
         table, targets = allocate_tables(int(ends[-1]), shapes, run), [slice(e - n, e) for e, n in zip(ends, n_real)]

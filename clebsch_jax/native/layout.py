@@ -46,9 +46,8 @@ class Workspace:
         """The rows under `key`, made (uninitialised) on first use or when the shape changed."""
         found = self._rows.get(key)
         if found is None or found.shape != shape or found.dtype != dtype:
-            old = self._rows.get(key)
-            if old is not None:
-                self._addresses.pop(id(old), None)
+            if found is not None:
+                self._addresses.pop(id(found), None)
             found = self._rows[key] = np.empty(shape, dtype)
             self._addresses[id(found)] = (found, found.ctypes.data)
         return found

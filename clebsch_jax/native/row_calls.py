@@ -15,12 +15,13 @@ computes what its entries would, in the same order: only where the rows are held
 
 from __future__ import annotations
 
-from .row_program import row_equation
+from .row_program import CALL_PROGRAMS, row_equation
 
 __all__ = ["CALLS", "MIN_ROW_SIZE", "row_call", "row_body", "emit"]
 
-CALLS = {"pjit": "jaxpr", "jit": "jaxpr", "closed_call": "call_jaxpr"}
-"""Call primitives, by the parameter holding the program they call."""
+CALLS = {name: CALL_PROGRAMS[name] for name in ("pjit", "jit", "closed_call")}
+"""The call primitives a `jax.vmap` of a `jit` leaves, by the parameter holding the program they
+call."""
 
 MIN_ROW_SIZE = 200
 """A call runs as a loop over its rows only where one row's program computes at least this many

@@ -29,7 +29,7 @@ from jax.extend.core.primitives import squeeze_p
 
 from .elementwise import ELEMENTWISE
 
-__all__ = ["ROWWISE", "REDUCE", "row_plan", "row_equation", "row_jaxpr"]
+__all__ = ["ROWWISE", "REDUCE", "CALL_PROGRAMS", "row_plan", "row_equation", "row_jaxpr"]
 
 ROWWISE = set(ELEMENTWISE) | {"select_n", "convert_element_type", "clamp", "erf_inv", "nextafter"}
 """Primitives applied entry by entry: each row of the result from the same row of the operands."""
@@ -37,7 +37,7 @@ ROWWISE = set(ELEMENTWISE) | {"select_n", "convert_element_type", "clamp", "erf_
 REDUCE = {"reduce_sum", "reduce_max", "reduce_min", "reduce_and", "reduce_or", "reduce_prod", "argmax", "argmin"}
 """Reductions: row by row when they do not reduce the rows' axis."""
 
-_CALLS = {
+CALL_PROGRAMS = {
     "pjit": "jaxpr",
     "jit": "jaxpr",
     "closed_call": "call_jaxpr",
@@ -376,9 +376,9 @@ def row_equation(eqn, split: list, n: int):
     name, p = eqn.primitive.name, eqn.params
     if name in _NESTED:
         found = _NESTED[name](p, split, n)
-    elif name in _CALLS and p.get(_CALLS[name]) is not None:
-        inner = row_jaxpr(p[_CALLS[name]], split, n)
-        found = None if inner is None else (dict(p, **{_CALLS[name]: inner[0]}), inner[1])
+    elif name in CALL_PROGRAMS and p.get(CALL_PROGRAMS[name]) is not None:
+        inner = row_jaxpr(p[CALL_PROGRAMS[name]], split, n)
+        found = None if inner is None else (dict(p, **{CALL_PROGRAMS[name]: inner[0]}), inner[1])
     elif not name.startswith("scatter") and any(isinstance(v, (jcore.ClosedJaxpr, jcore.Jaxpr)) for v in p.values()):
         return None
     else:

@@ -34,7 +34,7 @@ import numpy as np
 from llvmlite import ir
 
 from .loops import for_range
-from .row_program import REDUCE, row_equation, row_plan
+from .row_program import CALL_PROGRAMS, REDUCE, row_equation, row_plan
 from .values import Emitter, is_known, llvm_type
 
 __all__ = [
@@ -52,8 +52,6 @@ __all__ = [
 
 ROWS_MIN = 32
 """The shortest leading axis held as `Rows` (and the shortest scan that turns them on)."""
-
-_CALLS = {"pjit", "jit", "closed_call", "core_call", "custom_jvp_call", "custom_vjp_call", "remat", "checkpoint"}
 
 
 class Rows:
@@ -182,7 +180,7 @@ def apply(em: Emitter, eqn, args, rules):
         return None
     out_shape = tuple(getattr(eqn.outvars[0].aval, "shape", ())) if eqn.outvars else ()
     n = next((a.n for a in args if isinstance(a, Rows)), out_shape[0] if out_shape else 0)
-    if name in _CALLS and name in rules:  # entered: its equations see the rows (and count their entries)
+    if name in CALL_PROGRAMS and name in rules:  # entered: its equations see the rows (and count their entries)
         return rules[name](em, eqn, args)
     if name == "scan" and has_rows and eqn.params["length"] < ROWS_MIN:  # a short scan of each row: a loop over them
         looped = row_loop(em, eqn, args, n, rules)
