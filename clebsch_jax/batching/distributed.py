@@ -29,7 +29,7 @@ import uuid
 
 import numpy as np
 
-from .schedule import Plan, run_batches
+from .schedule import Plan, batch_rows, run_batches
 from .store import open_group, store_name, write_rows, zarr_module
 from .tables import SweepProgress
 
@@ -66,7 +66,7 @@ def _batch_members(members, b: int, batch_size: int):
     a task carries its batch's inputs only, not the whole sweep's."""
     import jax
 
-    idx = np.arange(b * batch_size, min((b + 1) * batch_size, members.B))
+    idx = np.arange(members.B)[batch_rows(b, batch_size, members.B)]
     ic, n = members.ic_index[idx], len(idx)
     params = members.params
     if members.builder is not None:
@@ -134,7 +134,7 @@ def run_on_client(client, plan, batches: list, store, run_id: int, progress):
     from distributed import as_completed
 
     B, bs, n_steps = plan.members.B, plan.batch_size, plan.run.n_steps
-    n_batches = -(-B // bs)
+    n_batches = plan.n_batches
     token = uuid.uuid4().hex
     # the static part once per worker (broadcast): deserialised once, so its functions keep their
     # identity and jax.jit compiles once per worker; each task carries its own batch's inputs
@@ -153,12 +153,12 @@ def run_on_client(client, plan, batches: list, store, run_id: int, progress):
         )
         for b in batches
     ]
-    start, done = time.perf_counter(), B - sum(min(bs, B - b * bs) for b in batches)
+    start, done = time.perf_counter(), B - sum(plan.size(b) for b in batches)
     try:
         for future in as_completed(futures):
             result = future.result()
             b = result if isinstance(result, int) else result.batches[0]
-            done += min(bs, B - b * bs)
+            done += plan.size(b)
             info = SweepProgress(b, n_batches, n_steps, n_steps, done, B, time.perf_counter() - start)
             if progress is True:
                 print(

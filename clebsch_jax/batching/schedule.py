@@ -319,6 +319,20 @@ class Plan(NamedTuple):
     run: Run  # with progress False and devices [None]
     batch_size: int
 
+    @property
+    def n_batches(self) -> int:
+        """The number of batches: the last one may be short (it is padded when it runs)."""
+        return -(-self.members.B // self.batch_size)
+
+    def rows(self, b: int) -> slice:
+        """Batch b's rows of the sweep's table (`batch_rows`)."""
+        return batch_rows(b, self.batch_size, self.members.B)
+
+    def size(self, b: int) -> int:
+        """Batch b's number of members (its padding not counted)."""
+        rows = self.rows(b)
+        return rows.stop - rows.start
+
 
 class Rows(NamedTuple):
     """The table rows of some batches: `tables` holds them one after the other, or at `rows` when

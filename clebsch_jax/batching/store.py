@@ -319,8 +319,9 @@ def repair(root, plan, done: np.ndarray, name: str) -> np.ndarray:
     bs = plan.batch_size
     damaged = damaged_batches(root, np.flatnonzero(done).tolist(), bs)
     for b, (var, problem) in sorted(damaged.items()):
+        rows = plan.rows(b)
         print(
-            f"sweep: store {name!r}: batch {b} (members {b * bs}-{min((b + 1) * bs, plan.members.B) - 1}) is "
+            f"sweep: store {name!r}: batch {b} (members {rows.start}-{rows.stop - 1}) is "
             f"damaged ({var!r}: {problem}): computing it again.",
             file=sys.stderr,
             flush=True,

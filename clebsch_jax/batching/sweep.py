@@ -328,8 +328,7 @@ def _run_stored(plan: Plan, run, tables, *, store, client, overwrite: bool, repo
     from . import store as stores  # zarr, dask: the optional extra [sweep]
     from .distributed import run_on_client
 
-    B, bs = plan.members.B, plan.batch_size
-    n_batches = -(-B // bs)
+    n_batches = plan.n_batches
     if store is None:  # a Dask cluster, the table kept in memory
         chunks = np.zeros(3, int)
         for rows in run_on_client(client, plan, list(range(n_batches)), None, 0, run.progress):
@@ -348,8 +347,7 @@ def _run_in_store(plan: Plan, run, tables, store, client, overwrite: bool, repor
     from .distributed import run_on_client
     from .store_read import open_sweep
 
-    B, bs = plan.members.B, plan.batch_size
-    n_batches = -(-B // bs)
+    n_batches = plan.n_batches
     name = stores.store_name(store)
     root = stores.open_for_run(store, plan, overwrite)
     done = stores.done_batches(root, name)
@@ -357,9 +355,9 @@ def _run_in_store(plan: Plan, run, tables, store, client, overwrite: bool, repor
         done = stores.repair(root, plan, done, name)
     pending = [b for b in range(n_batches) if not done[b]]
     if len(pending) < n_batches:
-        skipped = B - sum(min(bs, B - b * bs) for b in pending)
+        skipped = plan.members.B - sum(plan.size(b) for b in pending)
         print(
-            f"sweep: store {name!r}: skipped {skipped} of {B} members already written "
+            f"sweep: store {name!r}: skipped {skipped} of {plan.members.B} members already written "
             f"({n_batches - len(pending)} of {n_batches} batches); computing the other {len(pending)} batches.",
             file=sys.stderr,
             flush=True,
