@@ -110,7 +110,7 @@ def start_batch(cfg: Config, members: Members, shapes: Shapes, b: int, batch_siz
     # a native kernel reads host arrays, so they stay there, as views where they can: the
     # kernel's call lays them out in its own rows (`clebsch_jax.native.layout`) and writes
     # none of them, so a batch of consecutive rows takes views of them and its zeros are one
-    # row broadcast (no copy, no fresh memory for the carry it replaces after its first chunk)
+    # entry broadcast (no copy, and no fresh memory for a carry its first chunk replaces)
     # (leaf by leaf: np.asarray of a tuple of parameter arrays would stack them into one array)
     if cfg.native:
         put, take, fill = _host, _host_rows, _broadcast
