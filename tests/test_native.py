@@ -358,11 +358,14 @@ def test_native_sweep_of_rigid_bodies_equals_the_xla_sweep_with_failures_reporte
     omegas[2, 0] = np.nan
     inertias = inertias.copy()
     inertias[4, 1] = -1.0
+    Q0 = Q0.copy()  # writable, like every input here: the sweep must write none of them
+    given = [a.copy() for a in (inertias, Q0, omegas)]
     native = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
     xla = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="xla", **RB)
     _compare(native, xla)
     assert list(native.failed_members) == [2, 4]
     assert np.all(native.status[[2, 4]] == Status.INVALID_INPUT)
+    assert np.all(np.isnan(native.final_momentum[[2, 4]])) and np.all(np.isfinite(native.final_momentum[[0, 1, 3, 5]]))
     again = cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, backend="native", **RB)
     for a, b in zip(jax.tree_util.tree_leaves(native), jax.tree_util.tree_leaves(again)):
         assert np.array_equal(a, b, equal_nan=True)
@@ -375,6 +378,9 @@ def test_native_sweep_of_rigid_bodies_equals_the_xla_sweep_with_failures_reporte
     for other in tables:
         for a, b in zip(jax.tree_util.tree_leaves(native), jax.tree_util.tree_leaves(other)):
             assert np.array_equal(a, b, equal_nan=True)
+    # a native batch of consecutive members reads their inputs as views (`start_batch`)
+    for before, after in zip(given, (inertias, Q0, omegas)):
+        assert np.array_equal(before, after, equal_nan=True)
 
 
 def test_kept_kernel_rows_give_the_fresh_rows_table_and_large_ones_are_let_go(monkeypatch):

@@ -30,7 +30,7 @@ from ..core.validation import positive_int
 from ..native.layout import Workspace
 from . import chunks_xla, tables
 from .chunks_native import native_call, native_program_of
-from .config import Carry, Config, Members, Run, member_slices
+from .config import Carry, Config, Members, Run
 from .probe import Shapes
 from .tables import SweepProgress, Tables, allocate_tables
 
@@ -107,23 +107,31 @@ def start_batch(cfg: Config, members: Members, shapes: Shapes, b: int, batch_siz
     rows = batch_rows(b, batch_size, members.B)
     ic = members.ic_index[member]
     # host arrays moved to the device as they are: a transfer each, no JAX operation to compile;
-    # a native kernel reads host arrays, so they stay there
+    # a native kernel reads host arrays, so they stay there, as views where they can: the
+    # kernel's call lays them out in its own rows (`clebsch_jax.native.layout`) and writes
+    # none of them, so a batch of consecutive rows takes views of them and its zeros are one
+    # entry broadcast (no copy, and no fresh memory for a carry its first chunk replaces)
     # (leaf by leaf: np.asarray of a tuple of parameter arrays would stack them into one array)
-    put_leaf = np.asarray if cfg.native else functools.partial(jax.device_put, device=device)
-    put = lambda tree: jax.tree_util.tree_map(put_leaf, tree)  # noqa: E731
-    params = None if members.builder is None else put(member_slices(members.params, members.param_index[member]))
-    Q, xi = put(members.Q0[ic]), put(members.xi0[ic])
+    if cfg.native:
+        put, take, fill = _host, _host_rows, _broadcast
+    else:
+        put = functools.partial(_on_device, device)
+        take, fill = (lambda a, idx: a[idx]), np.full
+    params = None if members.builder is None else put(_rows(take, members.params, members.param_index[member]))
+    Q, xi = put(take(members.Q0, ic)), put(take(members.xi0, ic))
     shared = None if members.shared is None else put(members.shared)
     # without P0, a placeholder that the first chunk's program replaces (`chunks_xla._with_start_P`)
-    P = put(np.zeros((len(ic),) + members.Q0.shape[1:], members.Q0.dtype) if members.P0 is None else members.P0[ic])
-    zeros = lambda shape, dtype=np.float64: put(np.zeros((batch_size,) + shape, dtype))
+    P = put(
+        fill((len(ic),) + members.Q0.shape[1:], 0, members.Q0.dtype) if members.P0 is None else take(members.P0, ic)
+    )
+    zeros = lambda shape, dtype=np.float64: put(fill((batch_size,) + shape, 0, dtype))
     carry = Carry(
         Q=Q,
         P=P,
         xi=xi,
         t=zeros(()),
         status=zeros((), np.int32),
-        failed_step=put(np.full((batch_size,), -1, np.int32)),
+        failed_step=put(fill((batch_size,), -1, np.int32)),
         iterations=zeros((), np.int64),
         max_residual=zeros(()),
         initial={k: zeros(v.shape[1:], v.dtype) for k, v in shapes.invariants.items()},
@@ -136,7 +144,32 @@ def start_batch(cfg: Config, members: Members, shapes: Shapes, b: int, batch_siz
         march_ok=None if shapes.march is None else zeros((), bool),
         gauge=None if cfg.isotropy is None else zeros(()),
     )
-    return Batch(b, rows, rows.stop - rows.start, params, put(members.dt[member]), shared, carry)
+    return Batch(b, rows, rows.stop - rows.start, params, put(take(members.dt, member)), shared, carry)
+
+
+def _rows(take, tree, idx):
+    return jax.tree_util.tree_map(lambda a: take(a, idx), tree)
+
+
+def _host(tree):
+    return jax.tree_util.tree_map(np.asarray, tree)
+
+
+def _on_device(device, tree):
+    return jax.tree_util.tree_map(functools.partial(jax.device_put, device=device), tree)
+
+
+def _host_rows(a, idx: np.ndarray):
+    """`a[idx]`, a view where `idx` is a run of consecutive rows (a batch without padding)."""
+    n = len(idx)
+    if n and np.array_equal(idx, np.arange(idx[0], idx[0] + n)):
+        return a[int(idx[0]) : int(idx[0]) + n]
+    return a[idx]
+
+
+def _broadcast(shape: tuple, value, dtype) -> np.ndarray:
+    """A read-only array of `shape` filled with `value`: one entry broadcast."""
+    return np.broadcast_to(np.asarray(value, dtype), shape)
 
 
 def batch_rows(b: int, batch_size: int, B: int) -> slice:

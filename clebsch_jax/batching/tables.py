@@ -255,29 +255,34 @@ def allocate_tables(B: int, shapes: Shapes, run: Run) -> Tables:
     return Tables(columns, initial, drift, saved)
 
 
+_STATE = ("final_Q", "final_p", "final_xi", "final_momentum")
+"""The columns of a member's final state, NaN for a failed member."""
+
+
 def collect(tables: Tables, one, run: Run):
     """A finished batch's carry into its rows of the host tables."""
     host = jax.device_get(one.carry)
     take = lambda a: np.asarray(a)[: one.n_real]
     failed = np.asarray(host.status) != Status.SUCCESS
-
-    def state(a):  # a failed member's final state is NaN (after a jump the chunk's march ran on)
-        return None if a is None else np.where(failed.reshape((-1,) + (1,) * (np.ndim(a) - 1)), np.nan, a)
-
+    # a failed member's final state is NaN (after a jump the chunk's march ran on): written over
+    # its copied row, not through a NaN-filled copy of the whole batch
+    lost = np.flatnonzero(take(failed)) + one.rows.start if failed.any() else None
     final = {
         "status": host.status,
         "failed_step": host.failed_step,
         "newton_iterations": host.iterations,
         "max_residual": host.max_residual,
         "final_t": host.t,
-        "final_Q": state(host.Q),
-        "final_p": state(host.P),
-        "final_xi": state(host.final_xi),
-        "final_momentum": state(host.momentum),
+        "final_Q": host.Q,
+        "final_p": host.P,
+        "final_xi": host.final_xi,
+        "final_momentum": host.momentum,
     }
     for key, column in tables.columns.items():
         if column is not None:
             column[one.rows] = take(final[key])
+            if lost is not None and key in _STATE:
+                column[lost] = np.nan
     for k in tables.drift:
         tables.initial[k][one.rows], tables.drift[k][one.rows] = take(host.initial[k]), take(host.drift[k])
     if tables.saved is None:
