@@ -12,15 +12,13 @@ this process. Per batch size, after two warm calls:
 
 CPU time of one thread moves little with the machine's load (the kernel's far less than its
 wall time); the spans are wall time, so read them with the load. Minimum and median over the
-rounds. Nothing is written; the numbers go to `benchmarks/README.md` by hand. `--quick` (as
-`clebsch-jax bench --quick` passes it): 64 members, two rounds, a smoke run; `--out` is accepted
-and unused.
+rounds. Outputs: `benchmarks/results/native_split.json` and `.png` (the kernel's and the rest's
+CPU per call, the serial spans). `--quick` (as `clebsch-jax bench --quick` passes it): 64
+members, two rounds, a smoke run.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import sys
 import threading
@@ -31,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import _timing as harness  # noqa: E402
 import rigid_body_step_cost as rigid  # noqa: E402
 import throughput  # noqa: E402
 
@@ -102,21 +101,57 @@ def split(batch: int, rounds: int) -> dict:
     }
 
 
-def main(argv=None) -> list:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def _arguments(parser) -> None:
     parser.add_argument("--batch", type=int, nargs="+", default=[10_000, 100_000])
     parser.add_argument("--rounds", type=int, default=15)
-    parser.add_argument("--quick", action="store_true", help="64 members, two rounds: a smoke run")
-    parser.add_argument("--out", help="accepted for `clebsch-jax bench`; nothing is written")
-    args = parser.parse_args(argv)
-    if args.quick:
-        args.batch, args.rounds = [64], 2
-    K.Kernel.__call__ = _timed_call
-    rows = []
-    for batch in args.batch:
-        rows.append(split(batch, args.rounds))
-        print(json.dumps(rows[-1]))
-    return rows
+
+
+def _report(summary: dict) -> None:
+    lines = []
+    for r in summary["results"]:
+        one, spans = r["threads=1"], r["default threads"]
+        lines.append(
+            f"{r['batch']:>8} {one['call_cpu']['min_ms']:>10.2f} {one['kernel_cpu']['min_ms']:>10.2f} "
+            f"{one['outside_cpu']['min_ms']:>10.2f} {spans['before_first_kernel']['min_ms']:>10.2f} "
+            f"{spans['after_last_kernel']['min_ms']:>10.2f}"
+        )
+    harness.print_table(
+        f"{'B':>8} {'call CPU':>10} {'kernel':>10} {'rest':>10} {'before':>10} {'after':>10}   (ms, minimum)", lines
+    )
+
+
+def _plot(summary: dict, path) -> None:
+    fig, (cpu, spans) = harness.figure((1, 1))
+    rows = summary["results"]
+    x = np.arange(len(rows))
+    kernel = [r["threads=1"]["kernel_cpu"]["min_ms"] for r in rows]
+    rest = [r["threads=1"]["outside_cpu"]["min_ms"] for r in rows]
+    cpu.bar(x, kernel, label="kernel's function")
+    cpu.bar(x, rest, bottom=kernel, label="the rest of the call")
+    cpu.set(xticks=x, xticklabels=[f"B = {r['batch']}" for r in rows], ylabel="thread CPU per call (ms)")
+    cpu.set_title("threads=1: CPU per call, minimum")
+    cpu.legend()
+    for key, offset in (("before_first_kernel", -0.2), ("after_last_kernel", 0.2)):
+        spans.bar(x + offset, [r["default threads"][key]["min_ms"] for r in rows], 0.4, label=key.replace("_", " "))
+    spans.set(xticks=x, xticklabels=[f"B = {r['batch']}" for r in rows], ylabel="wall time (ms)")
+    spans.set_title("default threads: serial spans, minimum")
+    spans.legend()
+    fig.suptitle(f"native sweep call split ({summary['machine']['cpu_count']} CPUs)")
+    fig.savefig(path, dpi=110)
+
+
+def main(argv=None) -> dict:
+    with harness.Run("native_split", argv, description=__doc__.splitlines()[0], add_arguments=_arguments) as run:
+        args = run.args
+        if run.quick:
+            args.batch, args.rounds = [64], 2
+        K.Kernel.__call__ = _timed_call
+        try:
+            results = [split(batch, args.rounds) for batch in args.batch]
+        finally:
+            K.Kernel.__call__ = _CALL
+        summary = run.summary(config={"batch": args.batch, "rounds": args.rounds, "n_steps": 200}, results=results)
+        return run.finish(summary, _report, _plot)
 
 
 if __name__ == "__main__":

@@ -468,6 +468,17 @@ def check_native_integrate(summary):
         assert _positive_finite(r["xla_over_native"]["median"])
 
 
+def check_native_split(summary):
+    """The sweep call's split: the kernel's CPU is part of the call's, every span recorded."""
+    for r in summary["results"]:
+        one = r["threads=1"]
+        assert (
+            _positive_finite(one["kernel_cpu"]["min_ms"]) and one["kernel_cpu"]["min_ms"] <= one["call_cpu"]["min_ms"]
+        )
+        for key in ("before_first_kernel", "after_last_kernel"):
+            assert _positive_finite(r["default threads"][key]["median_ms"]), key
+
+
 CHECKS = {
     "rigid_body_step_cost": check_rigid_body_step_cost,
     "vortex_step_cost": check_vortex_step_cost,
@@ -485,6 +496,7 @@ CHECKS = {
     "complex_products": check_complex_products,
     "native": check_native,
     "native_integrate": check_native_integrate,
+    "native_split": check_native_split,
 }
 
 
