@@ -103,7 +103,9 @@ def _stream_body(stepper: AbstractStepper, check_energy: bool, system, dt, stop,
         Q=at(nodes.Q),
         p=at(nodes.p),
         momentum=nodes.momentum[0],
-        nodal_Q=nodes.nodal_Q[0],
+        # the configuration again where the stepper's nodal configuration is it (a reduced
+        # march that carries Q): not stored twice, `_chunk_of` hands on `Q`'s records
+        nodal_Q=None if nodes.nodal_Q is nodes.Q else nodes.nodal_Q[0],
         xi=xi,
         nodal=nodal,
         valid=c.alive,
@@ -242,7 +244,7 @@ def _chunk_of(rec: dict, made: int) -> Chunk:
         P=steps(rec["P"]),
         momentum=rec["momentum"],
         xi_step=steps(rec["xi_step"]),
-        nodal_Q=rec["nodal_Q"],
+        nodal_Q=rec["Q"] if rec["nodal_Q"] is None else rec["nodal_Q"],
         xi_seed=None,
     )
     stats = NewtonStats(*(steps(x) for x in rec["stats"]))
