@@ -137,15 +137,27 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     b.position_at_end(body)
     offset = b.mul(k, ir.Constant(i64, width))
 
+    bases: dict = {}
+
+    def base(j: int):
+        """Array j's data pointer. A loop kernel reads it once, in the entry block (LLVM would read
+        it again after each store, which may for all it knows change `arrays`); other kernels
+        where it is used (held through the block, it would be spilled)."""
+        read = lambda: b.load(b.gep(arrays, [ir.Constant(i64, j)], source_etype=ptr), typ=ptr)  # noqa: E731
+        if carries is not None and j not in bases:
+            block = b.block
+            b.position_at_end(entry)
+            bases[j] = read()
+            b.position_at_end(block)
+        return bases[j] if carries is not None else read()
+
     def row(j: int, e: int, dtype):
-        base = b.load(b.gep(arrays, [ir.Constant(i64, j)], source_etype=ptr), typ=ptr)
         at = b.add(b.mul(ir.Constant(i64, e), stride), offset)
-        return b.gep(base, [at], source_etype=llvm_type(_storage(dtype)) if dtype != np.bool_ else ir.IntType(8))
+        return b.gep(base(j), [at], source_etype=llvm_type(_storage(dtype)) if dtype != np.bool_ else ir.IntType(8))
 
     def shared(j: int, e: int, dtype):
-        base = b.load(b.gep(arrays, [ir.Constant(i64, j)], source_etype=ptr), typ=ptr)
         st = llvm_type(_storage(dtype)) if dtype != np.bool_ else ir.IntType(8)
-        x = b.load(b.gep(base, [ir.Constant(i64, e)], source_etype=st), typ=st)
+        x = b.load(b.gep(base(j), [ir.Constant(i64, e)], source_etype=st), typ=st)
         if dtype == np.bool_:
             x = b.icmp_unsigned("!=", x, ir.Constant(st, 0))
         vt = ir.VectorType(x.type, width)
@@ -204,9 +216,6 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     b.ret(ir.Constant(i64, 0))
     em.close_entry(head)
     return str(module)
-
-
-_SOURCE: list = []
 
 
 def _loop(em, closed, args, carries: int, steps, row) -> list:
