@@ -278,7 +278,9 @@ class NativeChunks(NamedTuple):
                 stepper, system, carry, dt, length, n_total, check_energy, self.max_lines, self.bound, (rows, start)
             )
             start += chunk.stats.status.shape[0]
-        return carry, [_chunk_of(kernel.records(rows, start + 1), start)]
+        records = _chunk_of(kernel.records(rows, start + 1), start)
+        kernel.keep_rows(rows)  # for the next run, once this one's Solution is let go
+        return carry, [records]
 
 
 def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, backend: str):
