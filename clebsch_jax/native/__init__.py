@@ -289,7 +289,6 @@ class NativeLoop:
         import numpy as np
 
         from .kernel import host_lanes
-        from .layout import SpareRows
 
         if not isinstance(in_axes, (tuple, list)):
             in_axes = (in_axes,) * len(member_args)
@@ -309,7 +308,6 @@ class NativeLoop:
         ):
             raise TypeError("compile_loop: the body must return a carry of its last argument's structure and shapes")
         n = self._carry_tree.num_leaves
-        self._spare = SpareRows()
         self.kernel = _kernel(
             record, closed, width=width, use_cache=use_cache, batched=batched, max_lines=max_lines, carries=n
         )
@@ -319,15 +317,17 @@ class NativeLoop:
         (`layout.aligned_empty`): a run's records, which calls with `records=` views of them
         (`record_views`) fill in place. Those of the last run (`keep_rows`) when they fit and
         its records were let go (`layout.SpareRows`), else new ones."""
-        from .layout import aligned_empty
+        from .layout import SPARE_ROWS, aligned_empty
 
         specs = [((capacity * size, 1), storage) for _, size, storage, _ in self.kernel.record_layout()]
-        found = self._spare.take(specs)
+        found = SPARE_ROWS.take(specs)
         return found if found is not None else [aligned_empty(*spec) for spec in specs]
 
     def keep_rows(self, rows: list) -> None:
         """`record_rows`' rows, filled: a next run takes them again once nothing else holds them."""
-        self._spare.keep(rows)
+        from .layout import SPARE_ROWS
+
+        SPARE_ROWS.keep(rows)
 
     def record_views(self, rows: list, start: int, stop: int) -> list:
         """Records `start` to `stop` of `record_rows`' arrays, as the rows of one call's records."""
