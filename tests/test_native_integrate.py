@@ -336,6 +336,28 @@ def test_a_loop_kernel_writes_its_records_into_a_runs_rows():
         loop(a, carry, steps=3, capacity=3, records=loop.record_views(rows, 0, 2))
 
 
+def test_a_later_run_writes_into_a_runs_rows_only_once_nothing_holds_them():
+    """A run's record rows are taken again by the next run of the same length (their pages
+    already faulted in: `layout.SpareRows`), but never while a `Solution`, or a NumPy view of
+    one, still holds them: each run's values stay what they were, and a run that does reuse
+    rows gives the same bits as on fresh ones."""
+    run = lambda xi: cj.integrate(TOP, TOP_Q0, xi, dt=0.01, n_steps=300, backend="native")  # noqa: E731
+    first = run(TOP_XI0)
+    want = {name: np.array(getattr(first, name)) for name in ("Q", "xi", "momentum")}
+    view = np.asarray(first.Q)  # outlives `first`
+    held = run(1.1 * TOP_XI0)  # rows of its own: `first` holds the last run's
+    held_Q = np.array(held.Q)
+    del first
+    for scale in (1.2, 1.3, 1.2):  # each run after the first takes the rows of the one before
+        other = run(scale * TOP_XI0)
+        del other
+    np.testing.assert_array_equal(view, want["Q"])
+    np.testing.assert_array_equal(np.asarray(held.Q), held_Q)
+    again = run(TOP_XI0)
+    for name, values in want.items():
+        np.testing.assert_array_equal(np.asarray(getattr(again, name)), values, err_msg=name)
+
+
 def test_a_kernel_of_one_member_in_one_lane_leaves_its_inputs_as_they_were():
     """One member in a kernel of one lane (a single trajectory's layout): its arrays are passed
     as they are, not copied into row buffers; the kernel gives the function's values (booleans

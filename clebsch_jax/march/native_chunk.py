@@ -103,7 +103,9 @@ def _stream_body(stepper: AbstractStepper, check_energy: bool, system, dt, stop,
         Q=at(nodes.Q),
         p=at(nodes.p),
         momentum=nodes.momentum[0],
-        nodal_Q=nodes.nodal_Q[0],
+        # the configuration again where the stepper's nodal configuration is it (a reduced
+        # march that carries Q): not stored twice, `_chunk_of` hands on `Q`'s records
+        nodal_Q=None if nodes.nodal_Q is nodes.Q else nodes.nodal_Q[0],
         xi=xi,
         nodal=nodal,
         valid=c.alive,
@@ -242,7 +244,7 @@ def _chunk_of(rec: dict, made: int) -> Chunk:
         P=steps(rec["P"]),
         momentum=rec["momentum"],
         xi_step=steps(rec["xi_step"]),
-        nodal_Q=rec["nodal_Q"],
+        nodal_Q=rec["Q"] if rec["nodal_Q"] is None else rec["nodal_Q"],
         xi_seed=None,
     )
     stats = NewtonStats(*(steps(x) for x in rec["stats"]))
@@ -276,7 +278,9 @@ class NativeChunks(NamedTuple):
                 stepper, system, carry, dt, length, n_total, check_energy, self.max_lines, self.bound, (rows, start)
             )
             start += chunk.stats.status.shape[0]
-        return carry, [_chunk_of(kernel.records(rows, start + 1), start)]
+        records = _chunk_of(kernel.records(rows, start + 1), start)
+        kernel.keep_rows(rows)  # for the next run, once this one's Solution is let go
+        return carry, [records]
 
 
 def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, backend: str):

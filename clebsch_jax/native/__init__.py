@@ -315,10 +315,19 @@ class NativeLoop:
     def record_rows(self, capacity: int) -> list:
         """Rows for `capacity` records of one member, one array per record leaf, aligned
         (`layout.aligned_empty`): a run's records, which calls with `records=` views of them
-        (`record_views`) fill in place."""
-        from .layout import aligned_empty
+        (`record_views`) fill in place. Those of the last run (`keep_rows`) when they fit and
+        its records were let go (`layout.SpareRows`), else new ones."""
+        from .layout import SPARE_ROWS, aligned_empty
 
-        return [aligned_empty((capacity * size, 1), storage) for _, size, storage, _ in self.kernel.record_layout()]
+        specs = [((capacity * size, 1), storage) for _, size, storage, _ in self.kernel.record_layout()]
+        found = SPARE_ROWS.take(specs)
+        return found if found is not None else [aligned_empty(*spec) for spec in specs]
+
+    def keep_rows(self, rows: list) -> None:
+        """`record_rows`' rows, filled: a next run takes them again once nothing else holds them."""
+        from .layout import SPARE_ROWS
+
+        SPARE_ROWS.keep(rows)
 
     def record_views(self, rows: list, start: int, stop: int) -> list:
         """Records `start` to `stop` of `record_rows`' arrays, as the rows of one call's records."""

@@ -108,6 +108,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     from . import indexing as _indexing  # noqa: F401  (registers the indexing rules)
     from . import linalg as _linalg  # noqa: F401  (registers the linear algebra rules)
     from . import rows as _rows
+    from .loop_kernel import loop_iterations
     from .lower import eval_closed
     from .uniform import uniform_loops
     from .values import MAX_ENTRIES, Emitter, llvm_type
@@ -137,15 +138,27 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     b.position_at_end(body)
     offset = b.mul(k, ir.Constant(i64, width))
 
+    bases: dict = {}
+
+    def base(j: int):
+        """Array j's data pointer. A loop kernel reads it once, in the entry block (LLVM would read
+        it again after each store, which may for all it knows change `arrays`); other kernels
+        where it is used (held through the block, it would be spilled)."""
+        read = lambda: b.load(b.gep(arrays, [ir.Constant(i64, j)], source_etype=ptr), typ=ptr)  # noqa: E731
+        if carries is not None and j not in bases:
+            block = b.block
+            b.position_at_end(entry)
+            bases[j] = read()
+            b.position_at_end(block)
+        return bases[j] if carries is not None else read()
+
     def row(j: int, e: int, dtype):
-        base = b.load(b.gep(arrays, [ir.Constant(i64, j)], source_etype=ptr), typ=ptr)
         at = b.add(b.mul(ir.Constant(i64, e), stride), offset)
-        return b.gep(base, [at], source_etype=llvm_type(_storage(dtype)) if dtype != np.bool_ else ir.IntType(8))
+        return b.gep(base(j), [at], source_etype=llvm_type(_storage(dtype)) if dtype != np.bool_ else ir.IntType(8))
 
     def shared(j: int, e: int, dtype):
-        base = b.load(b.gep(arrays, [ir.Constant(i64, j)], source_etype=ptr), typ=ptr)
         st = llvm_type(_storage(dtype)) if dtype != np.bool_ else ir.IntType(8)
-        x = b.load(b.gep(base, [ir.Constant(i64, e)], source_etype=st), typ=st)
+        x = b.load(b.gep(base(j), [ir.Constant(i64, e)], source_etype=st), typ=st)
         if dtype == np.bool_:
             x = b.icmp_unsigned("!=", x, ir.Constant(st, 0))
         vt = ir.VectorType(x.type, width)
@@ -172,7 +185,7 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     if carries is None:
         outs = eval_closed(em, closed, args)
     else:  # the carry after the loop; the records are written in it
-        outs = _loop(em, closed, args, carries, fn.args[4], lambda j, e, dt: row(n_in + j, e, dt))
+        outs = loop_iterations(em, closed, args, carries, fn.args[4], lambda j, e, dt: row(n_in + j, e, dt))
 
     def write(j, e, value, dtype, shift=None):
         value = em.vec(value, dtype)
@@ -204,60 +217,6 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     b.ret(ir.Constant(i64, 0))
     em.close_entry(head)
     return str(module)
-
-
-_SOURCE: list = []
-
-
-def _loop(em, closed, args, carries: int, steps, row) -> list:
-    """`steps` iterations of the loop body `closed` (`build_ir`'s `carries`) from the carry in
-    the last `carries` entries of `args`: the carry lives in allocas (registers, after LLVM's
-    mem2reg), and each iteration's records are stored to their output arrays (`row(j, e,
-    dtype)`: a pointer to entry `e` of output `j`, for the block being run) at the iteration's
-    rows. Returns the carry after the last iteration."""
-    from llvmlite import ir
-
-    from .lower import eval_closed
-    from .loops import for_range
-
-    b, i64 = em.b, ir.IntType(64)
-    consts, init = list(args[: len(args) - carries]), list(args[len(args) - carries :])
-    dtypes = [np.dtype(v.aval.dtype) for v in closed.jaxpr.invars[len(consts) :]]
-    slots = []
-    for x, dtype in zip(init, dtypes):
-        arr = np.empty(x.shape, object)
-        for idx in np.ndindex(x.shape):
-            arr[idx] = em.alloca(em.vtype(dtype))
-            b.store(em.vec(x[idx], dtype), arr[idx])
-        slots.append(arr)
-
-    def load():
-        out = []
-        for s, dtype in zip(slots, dtypes):
-            arr = np.empty(s.shape, object)
-            for idx in np.ndindex(s.shape):
-                arr[idx] = b.load(s[idx], typ=em.vtype(dtype))
-            out.append(arr)
-        return out
-
-    def iteration(k):
-        outs = eval_closed(em, closed, consts + load())
-        for s, new, dtype in zip(slots, outs[:carries], dtypes):
-            for idx in np.ndindex(s.shape):
-                b.store(em.vec(new[idx], dtype), s[idx])
-        for j, (v, rec) in enumerate(zip(closed.jaxpr.outvars[carries:], outs[carries:])):
-            dtype, size = np.dtype(v.aval.dtype), int(np.prod(v.aval.shape, dtype=int))
-            for e, idx in enumerate(np.ndindex(v.aval.shape)):
-                value = em.vec(rec[idx], dtype)
-                if dtype == np.bool_:
-                    value = b.zext(value, ir.VectorType(ir.IntType(8), em.W))
-                # row k·size + e of record j: `row` of entry e, moved on by k·size rows
-                at = row(carries + j, e, dtype)
-                shift = b.mul(b.mul(k, ir.Constant(i64, size)), b.function.args[1])
-                b.store(value, b.gep(at, [shift], source_etype=value.type.element), align=_storage(dtype).itemsize)
-
-    for_range(em, 0, steps, iteration)
-    return load()
 
 
 _SOURCE: list = []

@@ -15,9 +15,12 @@ of its rows) is read in place instead of copied.
 
 from __future__ import annotations
 
+import sys
+import threading
+
 import numpy as np
 
-__all__ = ["Workspace", "aligned_empty", "input_rows", "output_rows", "results"]
+__all__ = ["Workspace", "SpareRows", "SPARE_ROWS", "aligned_empty", "input_rows", "output_rows", "results"]
 
 ALIGNMENT = 64
 """Bytes: `jax.device_put` of a contiguous NumPy array aligned so takes its memory as it is (on
@@ -72,6 +75,46 @@ class Workspace:
         again); the arrays a caller still holds stay valid."""
         if sum(a.nbytes for a in self._rows.values()) > keep:
             self._rows, self._addresses, self._returned = {}, {}, {}
+
+
+SPARE_MAX_BYTES = 1 << 25
+"""`SpareRows` keeps a run's rows for the next only up to this many bytes."""
+
+
+class SpareRows:
+    """The record rows of the last run of a loop kernel (`clebsch_jax.native.NativeLoop`'s
+    `record_rows`), taken again by a run of the same shapes once nothing else holds them: the
+    `Solution` made from them was dropped. Fresh rows fault their pages in as the kernel first
+    writes them, and the kernel (zeroing pages) pays that once per page, a good part of a long
+    run's time; rows already written are not faulted again. Whether another object holds them
+    is read from the reference counts of their memory (each array of `aligned_empty` is the one
+    view of its own buffer, and every other view of it refers to that buffer), under a lock, so
+    that two threads' runs never share them. The process keeps one set (`SPARE_ROWS`), of at
+    most `SPARE_MAX_BYTES`."""
+
+    def __init__(self):
+        self._rows: list | None = None
+        self._lock = threading.Lock()
+
+    def take(self, specs: list) -> list | None:
+        """The kept rows if they have these (shape, dtype) `specs` and no other object refers to
+        their memory, else None (they are let go)."""
+        with self._lock:
+            rows, self._rows = self._rows, None
+        if rows is None or [(r.shape, r.dtype) for r in rows] != specs:
+            return None
+        # a view of the buffer (`rows`' own) and getrefcount's argument: nothing else
+        return rows if all(sys.getrefcount(r.base) == 2 for r in rows) else None
+
+    def keep(self, rows: list) -> None:
+        """Keep a run's rows (`aligned_empty` arrays) for a next run, up to `SPARE_MAX_BYTES`."""
+        if sum(r.nbytes for r in rows) <= SPARE_MAX_BYTES:
+            with self._lock:
+                self._rows = rows
+
+
+SPARE_ROWS = SpareRows()
+"""The process's `SpareRows`."""
 
 
 def aligned_empty(shape: tuple, dtype) -> np.ndarray:
