@@ -32,7 +32,7 @@ from .elementwise import (
     out_dtype,
     select_n,
 )
-from . import loops
+from . import fused, loops
 from . import rows as _rows
 from .values import Emitter, Unsupported, is_known, known_array
 
@@ -41,6 +41,11 @@ __all__ = ["eval_jaxpr", "RULES", "copy_array"]
 
 def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
     """The outputs (entry arrays) of `jaxpr` (an open jaxpr) on entry arrays `consts`, `args`."""
+    with fused.enter(em):
+        return _eval(em, jaxpr, consts, args)
+
+
+def _eval(em: Emitter, jaxpr, consts, args) -> list:
     env: dict = {}
 
     def read(v):
@@ -57,6 +62,11 @@ def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
         if rule is None:
             raise Unsupported(f"primitive {eqn.primitive.name!r}")
         args = [read(v) for v in eqn.invars]
+        if not em.rows and fused.defers(eqn):  # emitted where it is used (a sum over an axis: a loop)
+            env[eqn.outvars[0]] = fused.Lazy(eqn, args)
+            continue
+        if em.rows or eqn.primitive.name not in _TAKES_LAZY:
+            args = [fused.materialize(em, a, RULES) for a in args]
         outs = _rows.apply(em, eqn, args, RULES) if em.rows else None  # long arrays held as rows
         if outs is None:
             em.count(sum(math.prod(v.aval.shape) for v in eqn.outvars if hasattr(v.aval, "shape")))
@@ -66,7 +76,7 @@ def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
         for v, x in zip(eqn.outvars, outs):
             if not isinstance(v, jcore.DropVar):
                 env[v] = x
-    return [read(v) for v in jaxpr.outvars]
+    return [fused.materialize(em, read(v), RULES) for v in jaxpr.outvars]
 
 
 def eval_closed(em: Emitter, closed, args) -> list:
@@ -404,3 +414,5 @@ RULES.update(
     checkpoint=_call_rule("jaxpr"),
     remat=_call_rule("jaxpr"),
 )
+RULES.update(reduce_sum=fused.reduce_rule(RULES["reduce_sum"], RULES), dot_general=fused.dot_rule(_dot_general, RULES))
+_TAKES_LAZY = frozenset({"reduce_sum", "dot_general"})  # rules that loop over a `fused.Lazy` operand

@@ -1,0 +1,483 @@
+r"""Sums over an axis of elementwise expressions, emitted as loops over that axis (`Lazy`).
+
+A model written with broadcasting over its particles — pairwise differences `x[:, None] - x[None,
+:]`, a kernel of them, its sum over one axis or both, and the same sums in its gradient by
+`jax.grad` — computes (N, N) arrays whose only use is to be summed. Written out entry by entry
+(`clebsch_jax.native.values`), each is N² instructions per evaluation. Here an elementwise
+equation (`DEFERRED`: elementwise primitives, selects, conversions, broadcasts, `iota`) with at
+least `MIN_ENTRIES` entries is not emitted where it stands: it is kept as a `Lazy` (the equation
+and its operands). A `reduce_sum` of a `Lazy` over an axis of at least `MIN_AXIS` entries, or a
+`dot_general` contracting one, is a loop over that axis carrying the running sums, whose body
+evaluates the expression's slice at the loop's index (one entry fewer axis: N instructions per
+(N, N) equation); any other use writes the `Lazy` out (`materialize`), where it is used, with
+the code it would have had. Operands of the expression that vary along the axis and are not
+themselves `Lazy` are stored before the loop into an array it indexes (`loops.Stack`).
+
+The sums keep the unrolled form's order: the entries of the reduced axes in C order (the loop
+over the first of them, the others summed inside its body in order), each sum from the additive
+identity -0.0, exact (-0.0 + x is x, bit for bit). So the results are the unrolled code's, bit
+for bit; the loop only recomputes the elementwise values of each slice where they are used.
+"""
+
+from __future__ import annotations
+
+import math
+import types
+
+import numpy as np
+from llvmlite import ir
+
+from .elementwise import ELEMENTWISE, emit_float, emit_int
+from .values import Emitter, is_known
+
+__all__ = ["MIN_ENTRIES", "MIN_AXIS", "DEFERRED", "Lazy", "defers", "materialize", "enter", "reduce_rule", "dot_rule"]
+
+MIN_ENTRIES = 64
+"""An elementwise equation is deferred (`Lazy`) from this many entries of its output on."""
+
+MIN_AXIS = 8
+"""A sum of a `Lazy` runs as a loop over an axis of at least this many entries; over a shorter
+axis the expression is written out and summed unrolled."""
+
+DEFERRED = frozenset(ELEMENTWISE) | {"select_n", "convert_element_type", "broadcast_in_dim", "iota"}
+
+
+class Lazy:
+    """The output of an equation not yet emitted: `eqn` applied to `args` (entry arrays or
+    `Lazy`); `value` its entries once written out."""
+
+    __slots__ = ("eqn", "args", "shape", "dtype", "value")
+
+    def __init__(self, eqn, args):
+        self.eqn, self.args = eqn, args
+        aval = eqn.outvars[0].aval
+        self.shape, self.dtype, self.value = tuple(aval.shape), np.dtype(aval.dtype), None
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+
+def defers(eqn) -> bool:
+    """Whether the translation keeps `eqn`'s output as a `Lazy`: a `DEFERRED` equation of one
+    output of at least `MIN_ENTRIES` entries whose operands are of its rank or scalars."""
+    if eqn.primitive.name not in DEFERRED or eqn.primitive.multiple_results or len(eqn.outvars) != 1:
+        return False
+    shape = tuple(getattr(eqn.outvars[0].aval, "shape", ()))
+    if math.prod(shape) < MIN_ENTRIES:
+        return False
+    if eqn.primitive.name == "broadcast_in_dim":
+        return len(eqn.invars) == 1
+    return all(len(getattr(v.aval, "shape", ())) in (0, len(shape)) for v in eqn.invars)
+
+
+def materialize(em: Emitter, x, rules):
+    """The entries of `x` (a `Lazy` written out where this is called, once; anything else as it is)."""
+    if not isinstance(x, Lazy):
+        return x
+    if x.value is None:
+        args = [materialize(em, a, rules) for a in x.args]
+        em.count(math.prod(x.shape))
+        x.value = rules[x.eqn.primitive.name](em, x.eqn, args)
+    return x.value
+
+
+def scopes(em: Emitter) -> list:
+    """The buffers stored by each jaxpr being translated, outermost first (`enter`)."""
+    if not hasattr(em, "fused_scopes"):
+        em.fused_scopes = [{}]
+    return em.fused_scopes
+
+
+class enter:
+    """`with enter(em):` around the translation of a jaxpr: the buffers it stores are found by
+    the equations after them and by the jaxprs nested in it, not after it (where its code may
+    not have run: a branch, a loop's body)."""
+
+    def __init__(self, em: Emitter):
+        self.em = em
+
+    def __enter__(self):
+        scopes(self.em).append({})
+
+    def __exit__(self, *exc):
+        scopes(self.em).pop()
+
+
+def _aval(shape, dtype):
+    return types.SimpleNamespace(aval=types.SimpleNamespace(shape=tuple(shape), dtype=np.dtype(dtype), ndim=len(shape)))
+
+
+_I64 = ir.IntType(64)
+DYN = "dyn"
+"""An axis fixed at the loop's index (while planning: `_Slices.prepare`)."""
+
+
+def _dynamic(f) -> bool:
+    return f is not None and not isinstance(f, int)
+
+
+def _varies(x, fix) -> bool:
+    """Whether `x` (with `fix`: per axis None, kept; 0, at index 0; else at a loop's index)
+    varies with the loops' indices."""
+    return np.ndim(x) > 0 and any(_dynamic(f) for f in fix)
+
+
+def _operand_fix(x, a, fix):
+    """`fix` of the operand `a` of the `Lazy` `x` (None: a scalar, taken as it is)."""
+    if np.ndim(a) == 0:
+        return None
+    shape = np.shape(a)
+    if x.eqn.primitive.name == "broadcast_in_dim":
+        dims = x.eqn.params["broadcast_dimensions"]
+        return tuple(None if fix[d] is None else 0 if shape[m] == 1 else fix[d] for m, d in enumerate(dims))
+    return tuple(None if f is None else 0 if n == 1 else f for f, n in zip(fix, shape))
+
+
+class _Buffer:
+    """An array's entries in an alloca of vectors (C order), loaded at indices that are Python
+    ints or loop counters."""
+
+    def __init__(self, em: Emitter, shape, dtype, entries=None):
+        self.em, self.shape, self.dtype = em, tuple(shape), np.dtype(dtype)
+        self.vt = em.vtype(dtype)
+        array = em.alloca(ir.ArrayType(self.vt, max(1, math.prod(self.shape))))
+        self.ptr = em.b.bitcast(array, self.vt.as_pointer())  # a pointer to its first vector
+        self.strides = [math.prod(self.shape[d + 1 :]) for d in range(len(self.shape))]
+        if entries is not None:
+            for idx in np.ndindex(self.shape):
+                self.store(em.vec(entries[idx], dtype), idx)
+
+    def reshaped(self, shape) -> "_Buffer":
+        """The same memory as an array of `shape` (as many entries, C order)."""
+        view = object.__new__(_Buffer)
+        view.em, view.shape, view.dtype, view.vt, view.ptr = self.em, tuple(shape), self.dtype, self.vt, self.ptr
+        view.strides = [math.prod(view.shape[d + 1 :]) for d in range(len(view.shape))]
+        return view
+
+    def _at(self, idx):
+        b = self.em.b
+        static = sum(i * s for i, s in zip(idx, self.strides) if isinstance(i, int))
+        flat = None
+        for i, s in zip(idx, self.strides):
+            if not isinstance(i, int):
+                term = i if s == 1 else b.mul(i, ir.Constant(_I64, s))
+                flat = term if flat is None else b.add(flat, term)
+        if flat is None:
+            flat = ir.Constant(_I64, static)
+        elif static:
+            flat = b.add(flat, ir.Constant(_I64, static))
+        return b.gep(self.ptr, [flat], source_etype=self.vt)
+
+    def load(self, idx):
+        return self.em.b.load(self._at(idx), typ=self.vt)
+
+    def store(self, value, idx) -> None:
+        self.em.b.store(value, self._at(idx))
+
+
+def _loop(em: Emitter, n: int, init: list, body) -> list:
+    """`carried = body(i, carried)` for i = 0 … n - 1, the counter and the carried vectors
+    phis of the loop's head; the carried values after the last iteration."""
+    b = em.b
+    fn, pre = b.function, b.block
+    head, block, done = (fn.append_basic_block(f"sum.{s}") for s in ("head", "body", "done"))
+    b.branch(head)
+    b.position_at_end(head)
+    i = b.phi(_I64)
+    i.add_incoming(ir.Constant(_I64, 0), pre)
+    phis = []
+    for v in init:
+        phis.append(b.phi(v.type))
+        phis[-1].add_incoming(v, pre)
+    b.cbranch(b.icmp_signed("<", i, ir.Constant(_I64, n)), block, done)
+    b.position_at_end(block)
+    new = body(i, phis)
+    latch = b.block
+    i.add_incoming(b.add(i, ir.Constant(_I64, 1)), latch)
+    for p, v in zip(phis, new):
+        p.add_incoming(v, latch)
+    b.branch(head)
+    b.position_at_end(done)
+    return phis
+
+
+class _Slices:
+    """The slices of an expression at the loops' indices: `prepare` (before the loops) writes
+    out what does not vary with them and stores the operands that vary and are not `Lazy`
+    (`_Buffer`); `at` (in the loops' body) emits each `Lazy`'s slice once."""
+
+    def __init__(self, em: Emitter, rules):
+        self.em, self.rules = em, rules
+        self.buffers: dict = {}  # id of an entry array -> its `_Buffer`
+        self.seen: set = set()
+        self.entries = 0  # entries the loops' body and the buffers count
+
+    def loops(self, x, fix) -> bool:
+        """Whether a loop pays for `x`: every operand that varies with the loops' indices and is
+        not `Lazy` has no known entry (the unrolled sums of known entries are known, and fold
+        into what follows; a loop's are not), and there is one."""
+        leaves: list = []
+        self._leaves(x, fix, leaves, set())
+        return bool(leaves) and not any(is_known(e) for leaf in leaves for e in np.asarray(leaf, object).reshape(-1))
+
+    def _leaves(self, x, fix, out: list, seen: set) -> None:
+        if fix is None or not _varies(x, fix) or (id(x), fix) in seen:
+            return
+        seen.add((id(x), fix))
+        if not isinstance(x, Lazy):
+            out.append(x)
+            return
+        for a in x.args if x.eqn.primitive.name != "iota" else ():
+            self._leaves(a, _operand_fix(x, a, fix), out, seen)
+
+    def prepare(self, x, fix, dtype) -> None:
+        if fix is None:
+            return
+        if not _varies(x, fix):
+            materialize(self.em, x, self.rules)
+            return
+        if (id(x), fix) in self.seen:
+            return
+        self.seen.add((id(x), fix))
+        if not isinstance(x, Lazy):
+            if id(x) not in self.buffers:
+                self.buffers[id(x)] = self._buffer(x, dtype)
+            return
+        self.entries += math.prod(n for n, f in zip(x.shape, fix) if f is None)
+        if x.eqn.primitive.name != "iota":
+            for a, v in zip(x.args, x.eqn.invars):
+                self.prepare(a, _operand_fix(x, a, fix), v.aval.dtype)
+
+    def _buffer(self, x, dtype) -> _Buffer:
+        """`x`'s entries in memory: stored where this equation stands, or found among those
+        stored earlier by the jaxprs being translated (`scopes`: each is emitted in order, after
+        the code of the jaxprs it is nested in, so those stores precede the loop)."""
+        flat = np.asarray(x, object).reshape(-1)
+        key = (np.dtype(dtype), tuple(map(id, flat)))
+        for scope in reversed(scopes(self.em)):
+            if key in scope:
+                return scope[key][1].reshaped(np.shape(x))
+        buffer = _Buffer(self.em, (flat.size,), dtype, flat)
+        scopes(self.em)[-1][key] = (flat, buffer)  # the entries kept alive: their ids stay theirs
+        self.entries += flat.size
+        return buffer.reshaped(np.shape(x))
+
+    def at(self, x, fix, memo: dict):
+        """The entries of `x` at `fix` (its kept axes, in order)."""
+        if fix is None or np.ndim(x) == 0:
+            return x
+        if not _varies(x, fix):
+            whole = np.asarray(x.value if isinstance(x, Lazy) else x, object)
+            return _array(whole[tuple(slice(None) if f is None else 0 for f in fix)])
+        kept = [n for n, f in zip(np.shape(x), fix) if f is None]
+        if not isinstance(x, Lazy):
+            buffer, out = self.buffers[id(x)], np.empty(kept, object)
+            for kidx in np.ndindex(*kept):
+                it = iter(kidx)
+                out[kidx] = buffer.load(tuple(next(it) if f is None else f for f in fix))
+            return out
+        key = (id(x), tuple(f if f is None or isinstance(f, int) else id(f) for f in fix))
+        if key not in memo:
+            memo[key] = self._slice(x, fix, kept, memo)
+        return memo[key]
+
+    def _slice(self, x: Lazy, fix, kept, memo: dict):
+        eqn, em = x.eqn, self.em
+        name = eqn.primitive.name
+        if name == "iota":
+            d = eqn.params["dimension"]
+            out = np.empty(kept, object)
+            if _dynamic(fix[d]):
+                out[...] = _splat(em, fix[d], x.dtype)
+                return out
+            at = [k for k in range(x.ndim) if fix[k] is None]
+            for kidx in np.ndindex(*kept):
+                out[kidx] = np.asarray(kidx[at.index(d)] if d in at else fix[d], x.dtype)[()]
+            return out
+        if name == "broadcast_in_dim":
+            (a,), dims = x.args, eqn.params["broadcast_dimensions"]
+            fa = _operand_fix(x, a, fix)
+            part = np.asarray(self.at(a, fa, memo), object)
+            at = [k for k in range(x.ndim) if fix[k] is None]
+            tmp = [1] * len(kept)
+            for m, d in enumerate(dims):
+                if fa[m] is None:
+                    tmp[at.index(d)] = np.shape(a)[m]
+            return _array(np.broadcast_to(part.reshape(tmp), kept))
+        args = [self.at(a, _operand_fix(x, a, fix), memo) for a in x.args]
+        row = types.SimpleNamespace(
+            primitive=eqn.primitive,
+            params=eqn.params,
+            invars=[_aval(np.shape(a), v.aval.dtype) for a, v in zip(args, eqn.invars)],
+            outvars=[_aval(kept, x.dtype)],
+            effects=eqn.effects,
+        )
+        return self.rules[name](em, row, args)
+
+
+def _array(a) -> np.ndarray:
+    out = np.empty(np.shape(a), object)
+    out[...] = a
+    return out
+
+
+def _splat(em: Emitter, i, dtype):
+    """The i64 counter `i` as a vector of `dtype` in every lane."""
+    b, vt = em.b, em.vtype(dtype)
+    if dtype.kind == "f":
+        x = b.sitofp(i, vt.element)
+    elif vt.element.width < 64:
+        x = b.trunc(i, vt.element)
+    else:
+        x = i
+    one = b.insert_element(ir.Constant(vt, ir.Undefined), x, ir.Constant(ir.IntType(32), 0))
+    return b.shuffle_vector(
+        one, ir.Constant(vt, ir.Undefined), ir.Constant(ir.VectorType(ir.IntType(32), em.W), [0] * em.W)
+    )
+
+
+def _add(em: Emitter, dtype, acc, x):
+    return (emit_float if dtype.kind == "f" else emit_int)(em, "add", dtype, [acc, em.vec(x, dtype)], None)
+
+
+def _sums(em: Emitter, out_shape, dtype, out_loops: list, sums) -> np.ndarray:
+    """The entries of an output of `out_shape` whose axes `out_loops` (`(axis, size)`) are
+    loops (the others computed in their body): `sums(fixes)` gives the body's entries (a list,
+    C order) for `fixes`, the outer loops' indices by axis."""
+    if not out_loops:
+        return _array(np.asarray(sums({}), object).reshape(out_shape))
+    result = _Buffer(em, out_shape, dtype)
+    looped = [d for d, _ in out_loops]
+
+    def outer(level, fixes):
+        if level == len(out_loops):
+            rest = [n for d, n in enumerate(out_shape) if d not in looped]
+            for kidx, v in zip(np.ndindex(*rest), sums(fixes)):
+                it = iter(kidx)
+                result.store(v, tuple(fixes[d] if d in fixes else next(it) for d in range(len(out_shape))))
+            return
+        d, n = out_loops[level]
+        _loop(em, n, [], lambda i, _: outer(level + 1, {**fixes, d: i}) or [])
+
+    outer(0, {})
+    out = np.empty(out_shape, object)
+    for idx in np.ndindex(*out_shape):
+        out[idx] = result.load(idx)
+    return out
+
+
+def _identity(dtype):
+    return np.asarray(-0.0 if dtype.kind == "f" else 0, dtype)[()]
+
+
+def reduce_rule(base, rules):
+    """`reduce_sum`: loops over the reduced axes of at least `MIN_AXIS` entries that come first
+    (the rest summed in the body, in order) and the kept axes of at least `MIN_AXIS` entries,
+    where the operand is a `Lazy` that varies along them; else `base` on the entries."""
+
+    def rule(em: Emitter, eqn, args):
+        (a,) = args
+        axes = sorted(eqn.params["axes"])
+        dtype = np.dtype(eqn.outvars[0].aval.dtype)
+        red = []
+        for d in axes:  # a prefix of the reduced axes: the sums keep their order
+            if not isinstance(a, Lazy) or a.shape[d] < MIN_AXIS:
+                break
+            red.append(d)
+        if not red or dtype == np.bool_:
+            return base(em, eqn, [materialize(em, a, rules)])
+        kept = [d for d in range(a.ndim) if d not in axes]
+        out_loops = [(m, a.shape[d]) for m, d in enumerate(kept) if a.shape[d] >= MIN_AXIS]
+        looped = set(red) | {kept[m] for m, _ in out_loops}
+        slices = _Slices(em, rules)
+        pattern = tuple(DYN if d in looped else None for d in range(a.ndim))
+        if not slices.loops(a, pattern):
+            return base(em, eqn, [materialize(em, a, rules)])
+        slices.prepare(a, pattern, a.dtype)
+        out_shape = tuple(eqn.outvars[0].aval.shape)
+        em.count(slices.entries + math.prod(out_shape))
+        body_axes = [d for d in range(a.ndim) if d not in looped]  # the slice's axes
+        order = [body_axes.index(d) for d in body_axes if d not in axes]
+        order += [body_axes.index(d) for d in body_axes if d in axes]
+        size = math.prod(a.shape[d] for d in body_axes if d not in axes)
+
+        def sums(fixes):
+            def run(level, fixed, accs):
+                if level == len(red):
+                    fix = tuple(fixed.get(d) for d in range(a.ndim))
+                    part = np.transpose(np.asarray(slices.at(a, fix, {}), object), order).reshape(size, -1)
+                    new = []
+                    for acc, xs in zip(accs, part):
+                        for x in xs:
+                            acc = _add(em, dtype, acc, x)
+                        new.append(acc)
+                    return new
+                d = red[level]
+                return _loop(em, a.shape[d], accs, lambda i, accs: run(level + 1, {**fixed, d: i}, accs))
+
+            init = [em.vec(_identity(dtype), dtype)] * size
+            return run(0, {kept[m]: i for m, i in fixes.items()}, init)
+
+        return _sums(em, out_shape, dtype, out_loops, sums)
+
+    return rule
+
+
+def dot_rule(base, rules):
+    """`dot_general` contracting one axis of at least `MIN_AXIS` entries along which a `Lazy`
+    operand varies (of one float type): a loop over that axis, each output entry Σ_k l·r from
+    the identity in k's order, as the unrolled form (a known factor 1 not multiplied, exact);
+    else `base` on the entries."""
+
+    def rule(em: Emitter, eqn, args):
+        lhs, rhs = args
+        (lc, rc), (lb, rb) = eqn.params["dimension_numbers"]
+        dtype = np.dtype(eqn.outvars[0].aval.dtype)
+        same = all(np.dtype(v.aval.dtype) == dtype for v in eqn.invars) and dtype.kind == "f"
+        lazy = len(lc) == 1 and any(
+            isinstance(x, Lazy) and x.shape[c[0]] >= MIN_AXIS for x, c in ((lhs, lc), (rhs, rc))
+        )
+        if not (same and lazy):
+            return base(em, eqn, [materialize(em, x, rules) for x in args])
+        n = np.shape(lhs)[lc[0]]
+        slices = _Slices(em, rules)
+        fixes = [tuple(DYN if d == c[0] else None for d in range(np.ndim(x))) for x, c in ((lhs, lc), (rhs, rc))]
+        if not all(slices.loops(x, f) for x, f in zip(args, fixes) if isinstance(x, Lazy)):
+            return base(em, eqn, [materialize(em, x, rules) for x in args])
+        for x, f in zip(args, fixes):
+            slices.prepare(x, f, dtype)
+        out_shape = tuple(eqn.outvars[0].aval.shape)
+        em.count(slices.entries + math.prod(out_shape))
+        nb = len(lb)
+
+        def arrange(part, c, batch, contract):  # a slice's axes as (batch, free)
+            ndim = np.ndim(part) + 1
+            free = [d for d in range(ndim) if d not in contract and d not in batch]
+            less = lambda ds: [d - (d > c) for d in ds]
+            return np.transpose(np.asarray(part, object), less(batch) + less(free))
+
+        def body(i, accs):
+            memo: dict = {}
+            at = lambda x, c: slices.at(x, tuple(i if d == c else None for d in range(np.ndim(x))), memo)
+            L = arrange(at(lhs, lc[0]), lc[0], lb, lc)
+            R = arrange(at(rhs, rc[0]), rc[0], rb, rc)
+            nl = L.ndim - nb
+            new = []
+            for idx, acc in zip(np.ndindex(*out_shape), accs):
+                l, r = L[idx[: nb + nl]], R[idx[:nb] + idx[nb + nl :]]
+                if is_known(l) and is_known(r):
+                    p = (np.asarray(l, dtype) * np.asarray(r, dtype))[()]
+                elif is_known(l) and float(l) == 1.0:
+                    p = r
+                elif is_known(r) and float(r) == 1.0:
+                    p = l
+                else:
+                    p = emit_float(em, "mul", dtype, [l, r], None)
+                new.append(_add(em, dtype, acc, p))
+            return new
+
+        init = [em.vec(_identity(dtype), dtype)] * math.prod(out_shape)
+        return _array(np.asarray(_loop(em, n, init, body), object).reshape(out_shape))
+
+    return rule
