@@ -39,6 +39,13 @@ MIN_AXIS = 8
 """A sum of a `Lazy` runs as a loop over an axis of at least this many entries; over a shorter
 axis the expression is written out and summed unrolled."""
 
+MIN_KEPT_AXIS = MIN_AXIS
+"""A kept axis of a sum of at least this many entries is a loop too (outside the sums' loops)."""
+
+SHARED_COST = 4
+"""A `Lazy` read by more than one equation whose slice evaluates at least this many equations is
+computed once into memory (`_Slices._stored`) rather than in the body of every sum that reads it."""
+
 DEFERRED = frozenset(ELEMENTWISE) | {"select_n", "convert_element_type", "broadcast_in_dim", "iota"}
 
 
@@ -46,10 +53,10 @@ class Lazy:
     """The output of an equation not yet emitted: `eqn` applied to `args` (entry arrays or
     `Lazy`); `value` its entries once written out."""
 
-    __slots__ = ("eqn", "args", "shape", "dtype", "value")
+    __slots__ = ("eqn", "args", "shape", "dtype", "value", "uses")
 
-    def __init__(self, eqn, args):
-        self.eqn, self.args = eqn, args
+    def __init__(self, eqn, args, uses: int = 1):
+        self.eqn, self.args, self.uses = eqn, args, uses  # `uses`: equations reading it
         aval = eqn.outvars[0].aval
         self.shape, self.dtype, self.value = tuple(aval.shape), np.dtype(aval.dtype), None
 
@@ -231,7 +238,7 @@ class _Slices:
         for a in x.args if x.eqn.primitive.name != "iota" else ():
             self._leaves(a, _operand_fix(x, a, fix), out, seen)
 
-    def prepare(self, x, fix, dtype) -> None:
+    def prepare(self, x, fix, dtype, root: bool = False) -> None:
         if fix is None:
             return
         if not _varies(x, fix):
@@ -243,6 +250,9 @@ class _Slices:
         if not isinstance(x, Lazy):
             if id(x) not in self.buffers:
                 self.buffers[id(x)] = self._buffer(x, dtype)
+            return
+        if not root and x.uses > 1 and _cost(x, set()) >= SHARED_COST:
+            self.buffers[id(x)] = self._stored(x)
             return
         self.entries += math.prod(n for n, f in zip(x.shape, fix) if f is None)
         if x.eqn.primitive.name != "iota":
@@ -263,6 +273,28 @@ class _Slices:
         self.entries += flat.size
         return buffer.reshaped(np.shape(x))
 
+    def _stored(self, x: Lazy) -> _Buffer:
+        """A `Lazy` read by more than one equation, and not cheap, in memory: computed once, in
+        loops over its axes of at least `MIN_AXIS` entries (found among those stored earlier,
+        as `_buffer`), so that the sums that read it do not each compute it."""
+        key = ("stored", id(x))
+        for scope in reversed(scopes(self.em)):
+            if key in scope:
+                return scope[key][1]
+        loops = [(d, n) for d, n in enumerate(x.shape) if n >= MIN_AXIS]
+        inner = _Slices(self.em, self.rules)
+        inner.prepare(x, tuple(DYN if n >= MIN_AXIS else None for n in x.shape), x.dtype, root=True)
+        buffer = _Buffer(self.em, x.shape, x.dtype)
+
+        def values(fixes):
+            fix = tuple(fixes.get(d) for d in range(x.ndim))
+            return np.asarray(inner.at(x, fix, {}), object).reshape(-1)
+
+        _fill(self.em, buffer, loops, values)
+        scopes(self.em)[-1][key] = (x, buffer)
+        self.entries += inner.entries + math.prod(x.shape)
+        return buffer
+
     def at(self, x, fix, memo: dict):
         """The entries of `x` at `fix` (its kept axes, in order)."""
         if fix is None or np.ndim(x) == 0:
@@ -271,7 +303,7 @@ class _Slices:
             whole = np.asarray(x.value if isinstance(x, Lazy) else x, object)
             return _array(whole[tuple(slice(None) if f is None else 0 for f in fix)])
         kept = [n for n, f in zip(np.shape(x), fix) if f is None]
-        if not isinstance(x, Lazy):
+        if not isinstance(x, Lazy) or id(x) in self.buffers:
             buffer, out = self.buffers[id(x)], np.empty(kept, object)
             for kidx in np.ndindex(*kept):
                 it = iter(kidx)
@@ -341,6 +373,34 @@ def _add(em: Emitter, dtype, acc, x):
     return (emit_float if dtype.kind == "f" else emit_int)(em, "add", dtype, [acc, em.vec(x, dtype)], None)
 
 
+def _fill(em: Emitter, result: _Buffer, loops: list, values) -> None:
+    """Store into `result` in loops over its axes `loops` (`(axis, size)`): `values(fixes)`
+    gives the entries of its other axes (C order) at the loops' indices `fixes` (by axis)."""
+    looped = [d for d, _ in loops]
+
+    def outer(level, fixes):
+        if level == len(loops):
+            rest = [n for d, n in enumerate(result.shape) if d not in looped]
+            for kidx, v in zip(np.ndindex(*rest), values(fixes)):
+                it = iter(kidx)
+                at = tuple(fixes[d] if d in fixes else next(it) for d in range(len(result.shape)))
+                result.store(em.vec(v, result.dtype), at)
+            return
+        d, n = loops[level]
+        _loop(em, n, [], lambda i, _: outer(level + 1, {**fixes, d: i}) or [])
+
+    outer(0, {})
+
+
+def _cost(x, seen: set) -> int:
+    """The equations a slice of `x` evaluates (broadcasts and `iota` free)."""
+    if not isinstance(x, Lazy) or id(x) in seen:
+        return 0
+    seen.add(id(x))
+    own = x.eqn.primitive.name not in ("broadcast_in_dim", "iota")
+    return own + sum(_cost(a, seen) for a in x.args)
+
+
 def _sums(em: Emitter, out_shape, dtype, out_loops: list, sums) -> np.ndarray:
     """The entries of an output of `out_shape` whose axes `out_loops` (`(axis, size)`) are
     loops (the others computed in their body): `sums(fixes)` gives the body's entries (a list,
@@ -348,19 +408,7 @@ def _sums(em: Emitter, out_shape, dtype, out_loops: list, sums) -> np.ndarray:
     if not out_loops:
         return _array(np.asarray(sums({}), object).reshape(out_shape))
     result = _Buffer(em, out_shape, dtype)
-    looped = [d for d, _ in out_loops]
-
-    def outer(level, fixes):
-        if level == len(out_loops):
-            rest = [n for d, n in enumerate(out_shape) if d not in looped]
-            for kidx, v in zip(np.ndindex(*rest), sums(fixes)):
-                it = iter(kidx)
-                result.store(v, tuple(fixes[d] if d in fixes else next(it) for d in range(len(out_shape))))
-            return
-        d, n = out_loops[level]
-        _loop(em, n, [], lambda i, _: outer(level + 1, {**fixes, d: i}) or [])
-
-    outer(0, {})
+    _fill(em, result, out_loops, sums)
     out = np.empty(out_shape, object)
     for idx in np.ndindex(*out_shape):
         out[idx] = result.load(idx)
@@ -388,7 +436,7 @@ def reduce_rule(base, rules):
         if not red or dtype == np.bool_:
             return base(em, eqn, [materialize(em, a, rules)])
         kept = [d for d in range(a.ndim) if d not in axes]
-        out_loops = [(m, a.shape[d]) for m, d in enumerate(kept) if a.shape[d] >= MIN_AXIS]
+        out_loops = [(m, a.shape[d]) for m, d in enumerate(kept) if a.shape[d] >= MIN_KEPT_AXIS]
         looped = set(red) | {kept[m] for m, _ in out_loops}
         slices = _Slices(em, rules)
         pattern = tuple(DYN if d in looped else None for d in range(a.ndim))

@@ -13,6 +13,7 @@ without a rule raises `Unsupported` with its name.
 
 from __future__ import annotations
 
+import collections
 import math
 
 import numpy as np
@@ -47,6 +48,9 @@ def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
 
 def _eval(em: Emitter, jaxpr, consts, args) -> list:
     env: dict = {}
+    eqns = _live(jaxpr)
+    uses = collections.Counter(v for e in eqns for v in e.invars if not isinstance(v, jcore.Literal))
+    uses.update(v for v in jaxpr.outvars if not isinstance(v, jcore.Literal))
 
     def read(v):
         if isinstance(v, jcore.Literal):
@@ -57,13 +61,13 @@ def _eval(em: Emitter, jaxpr, consts, args) -> list:
         env[v] = x
     for v, x in zip(jaxpr.invars, args):
         env[v] = x
-    for eqn in jaxpr.eqns:
+    for eqn in eqns:
         rule = RULES.get(eqn.primitive.name)
         if rule is None:
             raise Unsupported(f"primitive {eqn.primitive.name!r}")
         args = [read(v) for v in eqn.invars]
         if not em.rows and fused.defers(eqn):  # emitted where it is used (a sum over an axis: a loop)
-            env[eqn.outvars[0]] = fused.Lazy(eqn, args)
+            env[eqn.outvars[0]] = fused.Lazy(eqn, args, uses[eqn.outvars[0]])
             continue
         if em.rows or eqn.primitive.name not in _TAKES_LAZY:
             args = [fused.materialize(em, a, RULES) for a in args]
@@ -77,6 +81,19 @@ def _eval(em: Emitter, jaxpr, consts, args) -> list:
             if not isinstance(v, jcore.DropVar):
                 env[v] = x
     return [fused.materialize(em, read(v), RULES) for v in jaxpr.outvars]
+
+
+def _live(jaxpr) -> list:
+    """The equations of `jaxpr` that its outputs need, or with effects: the others are not
+    translated (a gradient's primal value left unused, summed in a loop whose libm calls LLVM
+    would keep, is not computed)."""
+    live = {v for v in jaxpr.outvars if not isinstance(v, jcore.Literal)}
+    kept = []
+    for eqn in reversed(jaxpr.eqns):
+        if eqn.effects or any(v in live for v in eqn.outvars if not isinstance(v, jcore.DropVar)):
+            kept.append(eqn)
+            live.update(v for v in eqn.invars if not isinstance(v, jcore.Literal))
+    return kept[::-1]
 
 
 def eval_closed(em: Emitter, closed, args) -> list:
