@@ -6,17 +6,22 @@ A model written with broadcasting over its particles — pairwise differences `x
 (`clebsch_jax.native.values`), each is N² instructions per evaluation. Here an elementwise
 equation (`DEFERRED`: elementwise primitives, selects, conversions, broadcasts, `iota`) with at
 least `MIN_ENTRIES` entries is not emitted where it stands: it is kept as a `Lazy` (the equation
-and its operands). A `reduce_sum` of a `Lazy` over an axis of at least `MIN_AXIS` entries, or a
-`dot_general` contracting one, is a loop over that axis carrying the running sums, whose body
-evaluates the expression's slice at the loop's index (one entry fewer axis: N instructions per
-(N, N) equation); any other use writes the `Lazy` out (`materialize`), where it is used, with
-the code it would have had. Operands of the expression that vary along the axis and are not
-themselves `Lazy` are stored before the loop into an array it indexes (`loops.Stack`).
+and its operands), and any use but a sum writes it out there (`materialize`), with the code it
+would have had. A `reduce_sum` of a `Lazy` over axes of at least `MIN_AXIS` entries is a loop nest
+(`axis_loops.loop`) over those of its reduced axes that come first and over its large kept axes;
+its body evaluates the expression at the loops' indices (`_Slices`: for an (N, N) sum over both
+axes, one entry per equation) and carries the running sums in phis; a `dot_general` contracting
+such an axis is a loop over it. Operands that vary with the loops' indices and are not `Lazy` are
+stored before the loops into an alloca they index (`axis_loops.Buffer`; once per jaxpr: later
+loops reuse the stores that precede them), and a `Lazy` read by more than one equation whose
+evaluation is not cheap (`SHARED_COST`) is computed once into memory by loops of its own, so that
+the forward values of a gradient are not recomputed by each of its sums.
 
-The sums keep the unrolled form's order: the entries of the reduced axes in C order (the loop
-over the first of them, the others summed inside its body in order), each sum from the additive
-identity -0.0, exact (-0.0 + x is x, bit for bit). So the results are the unrolled code's, bit
-for bit; the loop only recomputes the elementwise values of each slice where they are used.
+The sums keep the unrolled form's order: the entries of the reduced axes in C order (the loops
+over the first of them, the others summed inside the body in order), each sum from the additive
+identity -0.0, exact (-0.0 + x is x, bit for bit; a known factor 1 is not multiplied, as
+unrolled). So the results are the unrolled code's, bit for bit. A sum whose varying operands have
+known entries is written out, as its unrolled sums are known and fold into what follows.
 """
 
 from __future__ import annotations
@@ -25,12 +30,22 @@ import math
 import types
 
 import numpy as np
-from llvmlite import ir
 
 from .elementwise import ELEMENTWISE, emit_float, emit_int
+from .axis_loops import Buffer, as_array, fill, loop, scopes, splat
 from .values import Emitter, is_known
 
-__all__ = ["MIN_ENTRIES", "MIN_AXIS", "DEFERRED", "Lazy", "defers", "materialize", "enter", "reduce_rule", "dot_rule"]
+__all__ = [
+    "MIN_ENTRIES",
+    "MIN_AXIS",
+    "SHARED_COST",
+    "DEFERRED",
+    "Lazy",
+    "defers",
+    "materialize",
+    "reduce_rule",
+    "dot_rule",
+]
 
 MIN_ENTRIES = 64
 """An elementwise equation is deferred (`Lazy`) from this many entries of its output on."""
@@ -38,9 +53,6 @@ MIN_ENTRIES = 64
 MIN_AXIS = 8
 """A sum of a `Lazy` runs as a loop over an axis of at least this many entries; over a shorter
 axis the expression is written out and summed unrolled."""
-
-MIN_KEPT_AXIS = MIN_AXIS
-"""A kept axis of a sum of at least this many entries is a loop too (outside the sums' loops)."""
 
 SHARED_COST = 4
 """A `Lazy` read by more than one equation whose slice evaluates at least this many equations is
@@ -89,33 +101,10 @@ def materialize(em: Emitter, x, rules):
     return x.value
 
 
-def scopes(em: Emitter) -> list:
-    """The buffers stored by each jaxpr being translated, outermost first (`enter`)."""
-    if not hasattr(em, "fused_scopes"):
-        em.fused_scopes = [{}]
-    return em.fused_scopes
-
-
-class enter:
-    """`with enter(em):` around the translation of a jaxpr: the buffers it stores are found by
-    the equations after them and by the jaxprs nested in it, not after it (where its code may
-    not have run: a branch, a loop's body)."""
-
-    def __init__(self, em: Emitter):
-        self.em = em
-
-    def __enter__(self):
-        scopes(self.em).append({})
-
-    def __exit__(self, *exc):
-        scopes(self.em).pop()
-
-
 def _aval(shape, dtype):
     return types.SimpleNamespace(aval=types.SimpleNamespace(shape=tuple(shape), dtype=np.dtype(dtype), ndim=len(shape)))
 
 
-_I64 = ir.IntType(64)
 DYN = "dyn"
 """An axis fixed at the loop's index (while planning: `_Slices.prepare`)."""
 
@@ -141,82 +130,14 @@ def _operand_fix(x, a, fix):
     return tuple(None if f is None else 0 if n == 1 else f for f, n in zip(fix, shape))
 
 
-class _Buffer:
-    """An array's entries in an alloca of vectors (C order), loaded at indices that are Python
-    ints or loop counters."""
-
-    def __init__(self, em: Emitter, shape, dtype, entries=None):
-        self.em, self.shape, self.dtype = em, tuple(shape), np.dtype(dtype)
-        self.vt = em.vtype(dtype)
-        array = em.alloca(ir.ArrayType(self.vt, max(1, math.prod(self.shape))))
-        self.ptr = em.b.bitcast(array, self.vt.as_pointer())  # a pointer to its first vector
-        self.strides = [math.prod(self.shape[d + 1 :]) for d in range(len(self.shape))]
-        if entries is not None:
-            for idx in np.ndindex(self.shape):
-                self.store(em.vec(entries[idx], dtype), idx)
-
-    def reshaped(self, shape) -> "_Buffer":
-        """The same memory as an array of `shape` (as many entries, C order)."""
-        view = object.__new__(_Buffer)
-        view.em, view.shape, view.dtype, view.vt, view.ptr = self.em, tuple(shape), self.dtype, self.vt, self.ptr
-        view.strides = [math.prod(view.shape[d + 1 :]) for d in range(len(view.shape))]
-        return view
-
-    def _at(self, idx):
-        b = self.em.b
-        static = sum(i * s for i, s in zip(idx, self.strides) if isinstance(i, int))
-        flat = None
-        for i, s in zip(idx, self.strides):
-            if not isinstance(i, int):
-                term = i if s == 1 else b.mul(i, ir.Constant(_I64, s))
-                flat = term if flat is None else b.add(flat, term)
-        if flat is None:
-            flat = ir.Constant(_I64, static)
-        elif static:
-            flat = b.add(flat, ir.Constant(_I64, static))
-        return b.gep(self.ptr, [flat], source_etype=self.vt)
-
-    def load(self, idx):
-        return self.em.b.load(self._at(idx), typ=self.vt)
-
-    def store(self, value, idx) -> None:
-        self.em.b.store(value, self._at(idx))
-
-
-def _loop(em: Emitter, n: int, init: list, body) -> list:
-    """`carried = body(i, carried)` for i = 0 … n - 1, the counter and the carried vectors
-    phis of the loop's head; the carried values after the last iteration."""
-    b = em.b
-    fn, pre = b.function, b.block
-    head, block, done = (fn.append_basic_block(f"sum.{s}") for s in ("head", "body", "done"))
-    b.branch(head)
-    b.position_at_end(head)
-    i = b.phi(_I64)
-    i.add_incoming(ir.Constant(_I64, 0), pre)
-    phis = []
-    for v in init:
-        phis.append(b.phi(v.type))
-        phis[-1].add_incoming(v, pre)
-    b.cbranch(b.icmp_signed("<", i, ir.Constant(_I64, n)), block, done)
-    b.position_at_end(block)
-    new = body(i, phis)
-    latch = b.block
-    i.add_incoming(b.add(i, ir.Constant(_I64, 1)), latch)
-    for p, v in zip(phis, new):
-        p.add_incoming(v, latch)
-    b.branch(head)
-    b.position_at_end(done)
-    return phis
-
-
 class _Slices:
     """The slices of an expression at the loops' indices: `prepare` (before the loops) writes
     out what does not vary with them and stores the operands that vary and are not `Lazy`
-    (`_Buffer`); `at` (in the loops' body) emits each `Lazy`'s slice once."""
+    (`Buffer`); `at` (in the loops' body) emits each `Lazy`'s slice once."""
 
     def __init__(self, em: Emitter, rules):
         self.em, self.rules = em, rules
-        self.buffers: dict = {}  # id of an entry array -> its `_Buffer`
+        self.buffers: dict = {}  # id of an entry array -> its `Buffer`
         self.seen: set = set()
         self.entries = 0  # entries the loops' body and the buffers count
 
@@ -259,7 +180,7 @@ class _Slices:
             for a, v in zip(x.args, x.eqn.invars):
                 self.prepare(a, _operand_fix(x, a, fix), v.aval.dtype)
 
-    def _buffer(self, x, dtype) -> _Buffer:
+    def _buffer(self, x, dtype) -> Buffer:
         """`x`'s entries in memory: stored where this equation stands, or found among those
         stored earlier by the jaxprs being translated (`scopes`: each is emitted in order, after
         the code of the jaxprs it is nested in, so those stores precede the loop)."""
@@ -268,12 +189,12 @@ class _Slices:
         for scope in reversed(scopes(self.em)):
             if key in scope:
                 return scope[key][1].reshaped(np.shape(x))
-        buffer = _Buffer(self.em, (flat.size,), dtype, flat)
+        buffer = Buffer(self.em, (flat.size,), dtype, flat)
         scopes(self.em)[-1][key] = (flat, buffer)  # the entries kept alive: their ids stay theirs
         self.entries += flat.size
         return buffer.reshaped(np.shape(x))
 
-    def _stored(self, x: Lazy) -> _Buffer:
+    def _stored(self, x: Lazy) -> Buffer:
         """A `Lazy` read by more than one equation, and not cheap, in memory: computed once, in
         loops over its axes of at least `MIN_AXIS` entries (found among those stored earlier,
         as `_buffer`), so that the sums that read it do not each compute it."""
@@ -284,13 +205,13 @@ class _Slices:
         loops = [(d, n) for d, n in enumerate(x.shape) if n >= MIN_AXIS]
         inner = _Slices(self.em, self.rules)
         inner.prepare(x, tuple(DYN if n >= MIN_AXIS else None for n in x.shape), x.dtype, root=True)
-        buffer = _Buffer(self.em, x.shape, x.dtype)
+        buffer = Buffer(self.em, x.shape, x.dtype)
 
         def values(fixes):
             fix = tuple(fixes.get(d) for d in range(x.ndim))
             return np.asarray(inner.at(x, fix, {}), object).reshape(-1)
 
-        _fill(self.em, buffer, loops, values)
+        fill(self.em, buffer, loops, values)
         scopes(self.em)[-1][key] = (x, buffer)
         self.entries += inner.entries + math.prod(x.shape)
         return buffer
@@ -301,7 +222,7 @@ class _Slices:
             return x
         if not _varies(x, fix):
             whole = np.asarray(x.value if isinstance(x, Lazy) else x, object)
-            return _array(whole[tuple(slice(None) if f is None else 0 for f in fix)])
+            return as_array(whole[tuple(slice(None) if f is None else 0 for f in fix)])
         kept = [n for n, f in zip(np.shape(x), fix) if f is None]
         if not isinstance(x, Lazy) or id(x) in self.buffers:
             buffer, out = self.buffers[id(x)], np.empty(kept, object)
@@ -321,7 +242,7 @@ class _Slices:
             d = eqn.params["dimension"]
             out = np.empty(kept, object)
             if _dynamic(fix[d]):
-                out[...] = _splat(em, fix[d], x.dtype)
+                out[...] = splat(em, fix[d], x.dtype)
                 return out
             at = [k for k in range(x.ndim) if fix[k] is None]
             for kidx in np.ndindex(*kept):
@@ -336,7 +257,7 @@ class _Slices:
             for m, d in enumerate(dims):
                 if fa[m] is None:
                     tmp[at.index(d)] = np.shape(a)[m]
-            return _array(np.broadcast_to(part.reshape(tmp), kept))
+            return as_array(np.broadcast_to(part.reshape(tmp), kept))
         args = [self.at(a, _operand_fix(x, a, fix), memo) for a in x.args]
         row = types.SimpleNamespace(
             primitive=eqn.primitive,
@@ -348,48 +269,8 @@ class _Slices:
         return self.rules[name](em, row, args)
 
 
-def _array(a) -> np.ndarray:
-    out = np.empty(np.shape(a), object)
-    out[...] = a
-    return out
-
-
-def _splat(em: Emitter, i, dtype):
-    """The i64 counter `i` as a vector of `dtype` in every lane."""
-    b, vt = em.b, em.vtype(dtype)
-    if dtype.kind == "f":
-        x = b.sitofp(i, vt.element)
-    elif vt.element.width < 64:
-        x = b.trunc(i, vt.element)
-    else:
-        x = i
-    one = b.insert_element(ir.Constant(vt, ir.Undefined), x, ir.Constant(ir.IntType(32), 0))
-    return b.shuffle_vector(
-        one, ir.Constant(vt, ir.Undefined), ir.Constant(ir.VectorType(ir.IntType(32), em.W), [0] * em.W)
-    )
-
-
 def _add(em: Emitter, dtype, acc, x):
     return (emit_float if dtype.kind == "f" else emit_int)(em, "add", dtype, [acc, em.vec(x, dtype)], None)
-
-
-def _fill(em: Emitter, result: _Buffer, loops: list, values) -> None:
-    """Store into `result` in loops over its axes `loops` (`(axis, size)`): `values(fixes)`
-    gives the entries of its other axes (C order) at the loops' indices `fixes` (by axis)."""
-    looped = [d for d, _ in loops]
-
-    def outer(level, fixes):
-        if level == len(loops):
-            rest = [n for d, n in enumerate(result.shape) if d not in looped]
-            for kidx, v in zip(np.ndindex(*rest), values(fixes)):
-                it = iter(kidx)
-                at = tuple(fixes[d] if d in fixes else next(it) for d in range(len(result.shape)))
-                result.store(em.vec(v, result.dtype), at)
-            return
-        d, n = loops[level]
-        _loop(em, n, [], lambda i, _: outer(level + 1, {**fixes, d: i}) or [])
-
-    outer(0, {})
 
 
 def _cost(x, seen: set) -> int:
@@ -406,9 +287,9 @@ def _sums(em: Emitter, out_shape, dtype, out_loops: list, sums) -> np.ndarray:
     loops (the others computed in their body): `sums(fixes)` gives the body's entries (a list,
     C order) for `fixes`, the outer loops' indices by axis."""
     if not out_loops:
-        return _array(np.asarray(sums({}), object).reshape(out_shape))
-    result = _Buffer(em, out_shape, dtype)
-    _fill(em, result, out_loops, sums)
+        return as_array(np.asarray(sums({}), object).reshape(out_shape))
+    result = Buffer(em, out_shape, dtype)
+    fill(em, result, out_loops, sums)
     out = np.empty(out_shape, object)
     for idx in np.ndindex(*out_shape):
         out[idx] = result.load(idx)
@@ -436,7 +317,7 @@ def reduce_rule(base, rules):
         if not red or dtype == np.bool_:
             return base(em, eqn, [materialize(em, a, rules)])
         kept = [d for d in range(a.ndim) if d not in axes]
-        out_loops = [(m, a.shape[d]) for m, d in enumerate(kept) if a.shape[d] >= MIN_KEPT_AXIS]
+        out_loops = [(m, a.shape[d]) for m, d in enumerate(kept) if a.shape[d] >= MIN_AXIS]
         looped = set(red) | {kept[m] for m, _ in out_loops}
         slices = _Slices(em, rules)
         pattern = tuple(DYN if d in looped else None for d in range(a.ndim))
@@ -462,7 +343,7 @@ def reduce_rule(base, rules):
                         new.append(acc)
                     return new
                 d = red[level]
-                return _loop(em, a.shape[d], accs, lambda i, accs: run(level + 1, {**fixed, d: i}, accs))
+                return loop(em, a.shape[d], accs, lambda i, accs: run(level + 1, {**fixed, d: i}, accs))
 
             init = [em.vec(_identity(dtype), dtype)] * size
             return run(0, {kept[m]: i for m, i in fixes.items()}, init)
@@ -526,6 +407,6 @@ def dot_rule(base, rules):
             return new
 
         init = [em.vec(_identity(dtype), dtype)] * math.prod(out_shape)
-        return _array(np.asarray(_loop(em, n, init, body), object).reshape(out_shape))
+        return as_array(np.asarray(loop(em, n, init, body), object).reshape(out_shape))
 
     return rule

@@ -33,7 +33,7 @@ from .elementwise import (
     out_dtype,
     select_n,
 )
-from . import fused, loops
+from . import axis_loops, fused, loops
 from . import rows as _rows
 from .values import Emitter, Unsupported, is_known, known_array
 
@@ -42,7 +42,7 @@ __all__ = ["eval_jaxpr", "RULES", "copy_array"]
 
 def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
     """The outputs (entry arrays) of `jaxpr` (an open jaxpr) on entry arrays `consts`, `args`."""
-    with fused.enter(em):
+    with axis_loops.enter(em):  # the buffers its sums' loops store
         return _eval(em, jaxpr, consts, args)
 
 
