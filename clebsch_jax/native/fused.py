@@ -31,7 +31,7 @@ import types
 
 import numpy as np
 
-from .elementwise import ELEMENTWISE, emit_float, emit_int
+from .elementwise import ELEMENTWISE, emit_float, emit_int, product
 from .axis_loops import Buffer, as_array, fill, loop, scopes, splat
 from .values import Emitter, is_known
 
@@ -394,15 +394,7 @@ def dot_rule(base, rules):
             nl = L.ndim - nb
             new = []
             for idx, acc in zip(np.ndindex(*out_shape), accs):
-                l, r = L[idx[: nb + nl]], R[idx[:nb] + idx[nb + nl :]]
-                if is_known(l) and is_known(r):
-                    p = (np.asarray(l, dtype) * np.asarray(r, dtype))[()]
-                elif is_known(l) and float(l) == 1.0:
-                    p = r
-                elif is_known(r) and float(r) == 1.0:
-                    p = l
-                else:
-                    p = emit_float(em, "mul", dtype, [l, r], None)
+                p = product(em, L[idx[: nb + nl]], R[idx[:nb] + idx[nb + nl :]], dtype)
                 new.append(_add(em, dtype, acc, p))
             return new
 

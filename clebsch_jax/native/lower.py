@@ -31,6 +31,7 @@ from .elementwise import (
     emit_int,
     in_dtype,
     out_dtype,
+    product,
     select_n,
 )
 from . import axis_loops, fused, loops
@@ -227,18 +228,7 @@ def _sum_products(em: Emitter, pairs, dtype):
     """Σ a·b over `pairs` in order, with known products folded."""
     acc = None
     for a, c in pairs:
-        if is_known(a) and is_known(c):
-            p = (np.asarray(a, dtype) * np.asarray(c, dtype))[()]
-        elif is_known(a) and float(a) == 1.0:
-            p = c
-        elif is_known(c) and float(c) == 1.0:
-            p = a
-        else:
-            p = (
-                emit_float(em, "mul", dtype, [a, c], None)
-                if dtype.kind == "f"
-                else emit_int(em, "mul", dtype, [a, c], None)
-            )
+        p = product(em, a, c, dtype)
         if acc is None:
             acc = p
         elif is_known(acc) and is_known(p):
