@@ -60,7 +60,7 @@ def _unrolled(f, *args):
         fused.MIN_ENTRIES = saved
 
 
-@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(terms=_TERMS, n=st.sampled_from([8, 9]), seed=st.integers(0, 2**31 - 1))
 def test_random_pairwise_sums_agree_with_xla_and_the_unrolled_code(terms, n, seed):
     """XLA's values to 1e-12 of each output's size (its sums run in another order), and the
@@ -116,7 +116,7 @@ def test_a_sum_of_known_entries_stays_written_out_and_folded():
     assert "sum.head" not in text
 
 
-@pytest.mark.parametrize("axes", [(0,), (1,), (0, 1), (0, 2), (1, 2)])
+@pytest.mark.parametrize("axes", [(0,), (0, 2), (1, 2)])
 def test_sums_over_axes_of_a_three_dimensional_expression(axes):
     """A (N, N, 3) expression summed over any of its axes: the loops over the first reduced axis
     and the large kept ones, the rest in the body, in the unrolled order."""
