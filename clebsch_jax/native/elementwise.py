@@ -16,6 +16,7 @@ __all__ = [
     "out_dtype",
     "in_dtype",
     "FOLD",
+    "LIBM",
     "emit_float",
     "emit_int",
     "emit_bool",
@@ -116,6 +117,9 @@ _LIBM = {
     "atan2": "atan2",
     "pow": "pow",
 }
+LIBM = frozenset(_LIBM)
+"""The primitives emitted as calls of libm, lane by lane (LLVM keeps such a call whose value is
+unused: it may set `errno`)."""
 
 
 def emit_float(em: Emitter, name: str, dtype, xs, eqn):

@@ -22,6 +22,7 @@ from jax.extend import core as jcore
 from .elementwise import (
     ELEMENTWISE,
     FOLD,
+    LIBM,
     clamp,
     convert,
     convert_array,
@@ -49,8 +50,10 @@ def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
 
 def _eval(em: Emitter, jaxpr, consts, args) -> list:
     env: dict = {}
-    eqns = _live(jaxpr)
-    uses = collections.Counter(v for e in eqns for v in e.invars if not isinstance(v, jcore.Literal))
+    live = _live(jaxpr)
+    uses = collections.Counter(v for e in live for v in e.invars if not isinstance(v, jcore.Literal))
+    live = {id(e) for e in live}
+    dropped: set = set()  # outputs of unneeded equations not translated
     uses.update(v for v in jaxpr.outvars if not isinstance(v, jcore.Literal))
 
     def read(v):
@@ -62,11 +65,19 @@ def _eval(em: Emitter, jaxpr, consts, args) -> list:
         env[v] = x
     for v, x in zip(jaxpr.invars, args):
         env[v] = x
-    for eqn in eqns:
+    for eqn in jaxpr.eqns:
         rule = RULES.get(eqn.primitive.name)
         if rule is None:
             raise Unsupported(f"primitive {eqn.primitive.name!r}")
+        if id(eqn) not in live and (
+            eqn.primitive.name in LIBM or any(v in dropped for v in eqn.invars if not isinstance(v, jcore.Literal))
+        ):
+            dropped.update(eqn.outvars)
+            continue
         args = [read(v) for v in eqn.invars]
+        if id(eqn) not in live and any(isinstance(a, fused.Lazy) for a in args):
+            dropped.update(eqn.outvars)  # a sum the outputs do not need: its loop is not emitted
+            continue
         if not em.rows and fused.defers(eqn):  # emitted where it is used (a sum over an axis: a loop)
             env[eqn.outvars[0]] = fused.Lazy(eqn, args, uses[eqn.outvars[0]])
             continue
@@ -85,9 +96,10 @@ def _eval(em: Emitter, jaxpr, consts, args) -> list:
 
 
 def _live(jaxpr) -> list:
-    """The equations of `jaxpr` that its outputs need, or with effects: the others are not
-    translated (a gradient's primal value left unused, summed in a loop whose libm calls LLVM
-    would keep, is not computed)."""
+    """The equations of `jaxpr` that its outputs need, or with effects. Of the others, those
+    LLVM would keep are not translated, nor what follows from them: libm calls (they may set
+    `errno`) and sums of a `fused.Lazy` (loops, with such calls in them): a gradient's primal
+    value left unused. The rest is translated as before (LLVM deletes it)."""
     live = {v for v in jaxpr.outvars if not isinstance(v, jcore.Literal)}
     kept = []
     for eqn in reversed(jaxpr.eqns):
