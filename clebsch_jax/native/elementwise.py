@@ -16,9 +16,11 @@ __all__ = [
     "out_dtype",
     "in_dtype",
     "FOLD",
+    "LIBM",
     "emit_float",
     "emit_int",
     "emit_bool",
+    "product",
     "convert_array",
     "elementwise_rule",
     "ELEMENTWISE",
@@ -115,6 +117,9 @@ _LIBM = {
     "atan2": "atan2",
     "pow": "pow",
 }
+LIBM = frozenset(_LIBM)
+"""The primitives emitted as calls of libm, lane by lane (LLVM keeps such a call whose value is
+unused: it may set `errno`)."""
 
 
 def emit_float(em: Emitter, name: str, dtype, xs, eqn):
@@ -284,6 +289,18 @@ def emit_bool(em: Emitter, name: str, dtype, xs, eqn):
     if name in ("max", "min"):
         return (b.or_ if name == "max" else b.and_)(*v)
     raise Unsupported(f"primitive {name!r} on bool")
+
+
+def product(em: Emitter, a, c, dtype):
+    """a·c of two entries, folded when both are known, and not multiplied where one is a known
+    1 (exact): a term of a contraction."""
+    if is_known(a) and is_known(c):
+        return (np.asarray(a, dtype) * np.asarray(c, dtype))[()]
+    if is_known(a) and float(a) == 1.0:
+        return c
+    if is_known(c) and float(c) == 1.0:
+        return a
+    return (emit_float if np.dtype(dtype).kind == "f" else emit_int)(em, "mul", dtype, [a, c], None)
 
 
 def elementwise_rule(em: Emitter, eqn, args):

@@ -13,6 +13,7 @@ without a rule raises `Unsupported` with its name.
 
 from __future__ import annotations
 
+import collections
 import math
 
 import numpy as np
@@ -21,6 +22,7 @@ from jax.extend import core as jcore
 from .elementwise import (
     ELEMENTWISE,
     FOLD,
+    LIBM,
     clamp,
     convert,
     convert_array,
@@ -30,9 +32,10 @@ from .elementwise import (
     emit_int,
     in_dtype,
     out_dtype,
+    product,
     select_n,
 )
-from . import loops
+from . import axis_loops, fused, loops
 from . import rows as _rows
 from .values import Emitter, Unsupported, is_known, known_array
 
@@ -41,7 +44,17 @@ __all__ = ["eval_jaxpr", "RULES", "copy_array"]
 
 def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
     """The outputs (entry arrays) of `jaxpr` (an open jaxpr) on entry arrays `consts`, `args`."""
+    with axis_loops.enter(em):  # the buffers its sums' loops store
+        return _eval(em, jaxpr, consts, args)
+
+
+def _eval(em: Emitter, jaxpr, consts, args) -> list:
     env: dict = {}
+    live = _live(jaxpr)
+    uses = collections.Counter(v for e in live for v in e.invars if not isinstance(v, jcore.Literal))
+    live = {id(e) for e in live}
+    dropped: set = set()  # outputs of unneeded equations not translated
+    uses.update(v for v in jaxpr.outvars if not isinstance(v, jcore.Literal))
 
     def read(v):
         if isinstance(v, jcore.Literal):
@@ -56,7 +69,20 @@ def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
         rule = RULES.get(eqn.primitive.name)
         if rule is None:
             raise Unsupported(f"primitive {eqn.primitive.name!r}")
+        if id(eqn) not in live and (
+            eqn.primitive.name in LIBM or any(v in dropped for v in eqn.invars if not isinstance(v, jcore.Literal))
+        ):
+            dropped.update(eqn.outvars)
+            continue
         args = [read(v) for v in eqn.invars]
+        if id(eqn) not in live and any(isinstance(a, fused.Lazy) for a in args):
+            dropped.update(eqn.outvars)  # a sum the outputs do not need: its loop is not emitted
+            continue
+        if not em.rows and fused.defers(eqn):  # emitted where it is used (a sum over an axis: a loop)
+            env[eqn.outvars[0]] = fused.Lazy(eqn, args, uses[eqn.outvars[0]])
+            continue
+        if em.rows or eqn.primitive.name not in _TAKES_LAZY:
+            args = [fused.materialize(em, a, RULES) for a in args]
         outs = _rows.apply(em, eqn, args, RULES) if em.rows else None  # long arrays held as rows
         if outs is None:
             em.count(sum(math.prod(v.aval.shape) for v in eqn.outvars if hasattr(v.aval, "shape")))
@@ -66,7 +92,21 @@ def eval_jaxpr(em: Emitter, jaxpr, consts, args) -> list:
         for v, x in zip(eqn.outvars, outs):
             if not isinstance(v, jcore.DropVar):
                 env[v] = x
-    return [read(v) for v in jaxpr.outvars]
+    return [fused.materialize(em, read(v), RULES) for v in jaxpr.outvars]
+
+
+def _live(jaxpr) -> list:
+    """The equations of `jaxpr` that its outputs need, or with effects. Of the others, those
+    LLVM would keep are not translated, nor what follows from them: libm calls (they may set
+    `errno`) and sums of a `fused.Lazy` (loops, with such calls in them): a gradient's primal
+    value left unused. The rest is translated as before (LLVM deletes it)."""
+    live = {v for v in jaxpr.outvars if not isinstance(v, jcore.Literal)}
+    kept = []
+    for eqn in reversed(jaxpr.eqns):
+        if eqn.effects or any(v in live for v in eqn.outvars if not isinstance(v, jcore.DropVar)):
+            kept.append(eqn)
+            live.update(v for v in eqn.invars if not isinstance(v, jcore.Literal))
+    return kept[::-1]
 
 
 def eval_closed(em: Emitter, closed, args) -> list:
@@ -200,18 +240,7 @@ def _sum_products(em: Emitter, pairs, dtype):
     """Σ a·b over `pairs` in order, with known products folded."""
     acc = None
     for a, c in pairs:
-        if is_known(a) and is_known(c):
-            p = (np.asarray(a, dtype) * np.asarray(c, dtype))[()]
-        elif is_known(a) and float(a) == 1.0:
-            p = c
-        elif is_known(c) and float(c) == 1.0:
-            p = a
-        else:
-            p = (
-                emit_float(em, "mul", dtype, [a, c], None)
-                if dtype.kind == "f"
-                else emit_int(em, "mul", dtype, [a, c], None)
-            )
+        p = product(em, a, c, dtype)
         if acc is None:
             acc = p
         elif is_known(acc) and is_known(p):
@@ -404,3 +433,5 @@ RULES.update(
     checkpoint=_call_rule("jaxpr"),
     remat=_call_rule("jaxpr"),
 )
+RULES.update(reduce_sum=fused.reduce_rule(RULES["reduce_sum"], RULES), dot_general=fused.dot_rule(_dot_general, RULES))
+_TAKES_LAZY = frozenset({"reduce_sum", "dot_general"})  # rules that loop over a `fused.Lazy` operand
