@@ -214,30 +214,6 @@ def stage_values(tab: GaussLegendre, Q, P, z: GaussUnknowns):
     return Qi, Pi
 
 
-def _row_sum(row, d):
-    """Σⱼ rowⱼ d[..., j], left to right: `_combine`'s sum with the coefficients a traced row and
-    the stages on the last axis. μ has no entry 0 or ±1 (tested), so `_combine` multiplies every
-    term too: the same operations, the same numbers."""
-    acc = row[0] * d[..., 0]
-    for j in range(1, d.shape[-1]):
-        acc = acc + row[j] * d[..., j]
-    return acc
-
-
-def _at_stages(f, tab: GaussLegendre, Q, P, z: GaussUnknowns, *stacked):
-    """`f(Q_i, P_i, *stacked_i)` at each stage i of `z` (`stage_values`), as one call over the
-    stages (`_per_stage`) that forms the stage's values in its own row: a native loop over the
-    stages then forms them too, where `stage_values` writes out s² combinations. The increments
-    enter the call whole, their stages on the last axis (a leading axis of s would be taken for
-    the stages' rows)."""
-    dQ, dP = jnp.moveaxis(z.dQ, 0, -1), jnp.moveaxis(z.dP, 0, -1)
-
-    def one(row, *args):
-        return f(Q + _row_sum(row, dQ), P + _row_sum(row, dP), *args)
-
-    return _per_stage(one)(jnp.asarray(tab.mu, Q.dtype), *stacked)
-
-
 def stage_hessians(system: ClebschSystem, tab: GaussLegendre, Q, P, z: GaussUnknowns):
     """The inverse Hessians of l in ξ at the stage values of `z` (s, dim V, dim V): the matrix
     of the Newton updates of the Clebsch relations in `gauss_sweep`, formed once per step at the
@@ -263,15 +239,16 @@ def gauss_sweep(
     $\xi_i$. A contraction for small enough h (at moderate steps a sweep gains about one
     digit). Its fixed points are the solutions of the stage equations whatever the matrices,
     as long as they are invertible."""
+    Qi, Pi = stage_values(tab, Q, P, z)
     if inverse_hessians is None:
         inverse_hessians = stage_hessians(system, tab, Q, P, z)
 
-    def one(q, p, xi, hinv):
+    def one(xi, q, p, hinv):
         r = _constraint(system, xi, q, p)  # ∂ξ⟨p, L_ξ q⟩ − δl/δξ
         xi = xi + _linalg.matvec(hinv, r.ravel()).reshape(xi.shape)
         return (xi,) + _flow(system, xi, q, p)
 
-    xi, Qdot, Pdot = _at_stages(one, tab, Q, P, z, z.xi, inverse_hessians)
+    xi, Qdot, Pdot = _per_stage(one)(z.xi, Qi, Pi, inverse_hessians)
     w = jnp.asarray(tab.b, dtype=Qdot.dtype).reshape((-1,) + (1,) * (Qdot.ndim - 1)) * h
     return GaussUnknowns(xi=xi, dQ=w * Qdot, dP=w * Pdot)
 
@@ -328,11 +305,13 @@ def degenerate_sweep(
     Its fixed points are the Gauss–Legendre stage equations (δξ = 0 there, whatever M). For
     point vortices (C = P − θ(Q) linear) a sweep is exactly the fixed-point sweep of the Gauss
     collocation of the vortex ODE: step 3 returns $\xi_i = \dot Q(Q_i)$."""
+    Qi, Pi = stage_values(tab, Q, P, z)
     w = jnp.asarray(tab.b, dtype=Q.dtype).reshape((-1,) + (1,) * Q.ndim) * h
 
-    Qi, Pi, Qdot, Pdot = _at_stages(lambda q, p, xi: (q, p) + _flow(system, xi, q, p), tab, Q, P, z, z.xi)
+    Qdot, Pdot = _per_stage(lambda xi, q, p: _flow(system, xi, q, p))(z.xi, Qi, Pi)
     trial = GaussUnknowns(xi=z.xi, dQ=w * Qdot, dP=w * Pdot)
-    C = _at_stages(lambda q, p, xi: _constraint(system, xi, q, p), tab, Q, P, trial, z.xi)
+    Qt, Pt = stage_values(tab, Q, P, trial)
+    C = _per_stage(lambda xi, q, p: _constraint(system, xi, q, p))(z.xi, Qt, Pt)
     a_inv = np.linalg.inv(tab.a)
     mixed = jnp.stack([_combine(row, C) for row in a_inv])
     if constraint_inverse.ndim == 3:  # lumped blocks, one per particle
