@@ -136,13 +136,3 @@ def test_gauss_sweep_stages_run_as_a_loop_with_the_unrolled_numbers(monkeypatch,
     for a, c in zip(looped, xla):
         c = np.asarray(c)
         assert np.max(np.abs(a - c)) <= 1e-12 * np.max(np.abs(c))
-
-
-def test_gauss_stage_coefficients_multiply_every_term():
-    """`collocation._row_sum` forms a stage's value as `_combine` does only if no μ entry is 0
-    or ±1 (which `_combine`'s `weighted_sum` would not multiply)."""
-    from clebsch_jax.discrete import collocation as co
-
-    for order in co.GAUSS_ORDERS:
-        mu = co.gauss_legendre(order // 2).mu
-        assert not np.isin(np.abs(mu), (0.0, 1.0)).any()

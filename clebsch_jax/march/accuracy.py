@@ -34,10 +34,8 @@ stays bounded, at $O(h^p)$, far below the global error of long runs (benchmarks/
 **Candidates** (`DEFAULT_CANDIDATES`): the system's second-order default (loose accuracies, short
 runs) and Gauss–Legendre of orders 4, 6, 8, 12 and 16. Orders 12 and 16 were the fastest of ours
 at the tightest errors of both ensembles of `benchmarks/results/work_precision_ensembles.json`
-(64 rigid bodies to T = 10⁴, 16 four-vortex clusters to T = 10³). Their native kernels compile
-in a little more time than order 8's, since a sweep evaluates its stages in a loop over them
-(`clebsch_jax.discrete.collocation`), and so do their pilots (`benchmarks/README.md`).
-Compositions of orders 4–8 are left out: in both ensembles a Gauss–Legendre point reached each
+(64 rigid bodies to T = 10⁴, 16 four-vortex clusters to T = 10³); each of their pilots costs
+somewhat more than order 8's (`benchmarks/README.md`, branch `stageloops`). Compositions of orders 4–8 are left out: in both ensembles a Gauss–Legendre point reached each
 of their errors for less time. The relative costs of a stage-sweep, a Newton solve, a Newton
 update and a step's other work are a fit to that file's native rigid-body points
 (`clebsch_jax.march.pilot`: `STEP_COST`, `NEWTON_SOLVE_COST`, `NEWTON_UPDATE_COST`): on other
