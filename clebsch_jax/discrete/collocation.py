@@ -194,6 +194,14 @@ def _constraint_flow(system: ClebschSystem, xi, d, Q, P):
     return gp, -gq
 
 
+def _per_stage(f):
+    """`f` of one stage's values, mapped over the stages (leading axis s) as one call: a `jit`
+    inside the `vmap`. XLA inlines it (the same program as a plain `vmap`); the native
+    translation can emit one stage's program once, in a loop over the stages
+    (`clebsch_jax.native.row_calls`), where a plain `vmap` writes every stage's entries out."""
+    return jax.vmap(jax.jit(f))
+
+
 def _combine(row, d):
     """Σⱼ rowⱼ dⱼ for one row of constant (NumPy) coefficients and d stacked over stages."""
     return _linalg.weighted_sum(((float(c), dj) for c, dj in zip(row, d)), d.dtype)
@@ -240,7 +248,7 @@ def gauss_sweep(
         xi = xi + _linalg.matvec(hinv, r.ravel()).reshape(xi.shape)
         return (xi,) + _flow(system, xi, q, p)
 
-    xi, Qdot, Pdot = jax.vmap(one)(z.xi, Qi, Pi, inverse_hessians)
+    xi, Qdot, Pdot = _per_stage(one)(z.xi, Qi, Pi, inverse_hessians)
     w = jnp.asarray(tab.b, dtype=Qdot.dtype).reshape((-1,) + (1,) * (Qdot.ndim - 1)) * h
     return GaussUnknowns(xi=xi, dQ=w * Qdot, dP=w * Pdot)
 
@@ -300,10 +308,10 @@ def degenerate_sweep(
     Qi, Pi = stage_values(tab, Q, P, z)
     w = jnp.asarray(tab.b, dtype=Q.dtype).reshape((-1,) + (1,) * Q.ndim) * h
 
-    Qdot, Pdot = jax.vmap(lambda xi, q, p: _flow(system, xi, q, p))(z.xi, Qi, Pi)
+    Qdot, Pdot = _per_stage(lambda xi, q, p: _flow(system, xi, q, p))(z.xi, Qi, Pi)
     trial = GaussUnknowns(xi=z.xi, dQ=w * Qdot, dP=w * Pdot)
     Qt, Pt = stage_values(tab, Q, P, trial)
-    C = jax.vmap(lambda xi, q, p: _constraint(system, xi, q, p))(z.xi, Qt, Pt)
+    C = _per_stage(lambda xi, q, p: _constraint(system, xi, q, p))(z.xi, Qt, Pt)
     a_inv = np.linalg.inv(tab.a)
     mixed = jnp.stack([_combine(row, C) for row in a_inv])
     if constraint_inverse.ndim == 3:  # lumped blocks, one per particle
@@ -313,7 +321,7 @@ def degenerate_sweep(
         dxi = jax.vmap(lambda c: _linalg.matvec(constraint_inverse, c.ravel()))(mixed)
     dxi = -dxi.reshape(z.xi.shape) / h
 
-    cQ, cP = jax.vmap(lambda xi, d, q, p: _constraint_flow(system, xi, d, q, p))(z.xi, dxi, Qi, Pi)
+    cQ, cP = _per_stage(lambda xi, d, q, p: _constraint_flow(system, xi, d, q, p))(z.xi, dxi, Qi, Pi)
     return GaussUnknowns(xi=z.xi + dxi, dQ=trial.dQ + w * cQ, dP=trial.dP + w * cP)
 
 
