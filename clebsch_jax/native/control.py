@@ -220,7 +220,7 @@ def _while(em: Emitter, eqn, args):
         _store(em, slots, eval_closed(em, body_j, list(bconsts) + cur), cur, dtypes, None)
         b.branch(head)
         b.position_at_end(done)
-        return _load(em, slots, init, dtypes)
+        return cur
     anywhere = unknown[0]
     for e in unknown[1:]:  # a predicate per element (jax.vmap of a loop): while any holds
         anywhere = b.or_(anywhere, e)
@@ -235,7 +235,7 @@ def _while(em: Emitter, eqn, args):
     _store(em, slots, new, cur, dtypes, active)
     b.branch(head)
     b.position_at_end(done)
-    return _load(em, slots, init, dtypes)
+    return cur  # the head's loads: the head is the exit's only predecessor
 
 
 def _held(em: Emitter, elements, new, cur, dtype):
@@ -333,10 +333,10 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
     b.branch(head)
     b.position_at_end(head)
     k = b.load(counter, typ=i64)
+    cur = _load(em, slots, init, dtypes)  # in the head: also the loop's results, after it
     b.cbranch(b.icmp_signed("<", k, ir.Constant(i64, length)), body, done)
     b.position_at_end(body)
     i = b.sub(ir.Constant(i64, length - 1), k) if reverse else k
-    cur = _load(em, slots, init, dtypes)
     x_now = []
     for arr, dtype in zip(x_slots, x_dtypes):
         if isinstance(arr, _rows.Rows):
@@ -357,7 +357,7 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
     b.store(b.add(b.load(counter, typ=i64), ir.Constant(i64, 1)), counter)
     b.branch(head)
     b.position_at_end(done)
-    carry = _load(em, slots, init, dtypes)
+    carry = cur
     if long:
         return carry + y_slots
     ys = []
