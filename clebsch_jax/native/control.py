@@ -148,13 +148,64 @@ def unroll_policy(jaxpr, rows: bool = False):
     return POLICIES[-1]
 
 
+PHI_MIN_ENTRIES = 256
+"""A loop whose changing carries have at least this many entries holds them as phis in its
+head (`_heads`, `_back`): one instruction per entry and iteration's way in. Smaller ones keep
+an alloca per entry (`_slots`), stored before the loop and at the latch and loaded in the head
+and after the loop, which LLVM's mem2reg turns into phis: the same values, but four or five
+lines of IR per entry (LLVM's time grows with them, `AUTO_MAX_IR_LINES`) and, as phis made
+here, a different schedule of the same instructions (the rigid body's sweep kernel, whose
+loops are all smaller, is then the code it was measured with)."""
+
+
+def _as_phis(init, fixed) -> bool:
+    """Whether a loop holds its carries as phis (`PHI_MIN_ENTRIES`)."""
+    return sum(math.prod(np.shape(x)) for x, keep in zip(init, fixed) if not keep) >= PHI_MIN_ENTRIES
+
+
+def _slots(em: Emitter, values, dtypes, fixed):
+    """Allocas holding each entry of the carries that change (None for those that do not)."""
+    slots = []
+    for x, dtype, keep in zip(values, dtypes, fixed):
+        if keep:
+            slots.append(None)
+            continue
+        arr = np.empty(x.shape, object)
+        for idx in np.ndindex(x.shape):
+            arr[idx] = em.alloca(em.vtype(dtype))
+            em.b.store(em.vec(x[idx], dtype), arr[idx])
+        slots.append(arr)
+    return slots
+
+
+def _load(em: Emitter, slots, values, dtypes):
+    out = []
+    for s, x, dtype in zip(slots, values, dtypes):
+        if s is None:
+            out.append(x)
+            continue
+        arr = np.empty(s.shape, object)
+        for idx in np.ndindex(s.shape):
+            arr[idx] = em.b.load(s[idx], typ=em.vtype(dtype))
+        out.append(arr)
+    return out
+
+
+def _store(em: Emitter, slots, new, old, dtypes, where):
+    for s, n, o, dtype in zip(slots, new, old, dtypes):
+        if s is None:
+            continue
+        for idx in np.ndindex(s.shape):
+            value = n[idx] if where is None else em.select(where, n[idx], o[idx], dtype)
+            em.b.store(em.vec(value, dtype), s[idx])
+
+
 def _heads(em: Emitter, values, dtypes, fixed, pre):
     """The carries at the loop's head: a phi per entry of those that change, coming in from the
     block before the loop (`pre`) with the entry's value (`_back` adds the other way in); the
     values themselves for those that do not. Called first in the head; each phi goes before the
-    ones made before it (in that order the rigid body's sweep runs the machine instructions per
-    step it ran with allocas for the carries, `benchmarks/native_instructions.py`; in the
-    other order it ran more). Returns (phis, values)."""
+    ones made before it (in the other order the rigid body's sweep, had its loops phis, ran more
+    machine instructions per step, `benchmarks/native_instructions.py`). Returns (phis, values)."""
     phis, out = [], []
     for x, dtype, keep in zip(values, dtypes, fixed):
         if keep:
@@ -192,6 +243,8 @@ def _while(em: Emitter, eqn, args):
     body_in = body_j.jaxpr.invars[bc:]
     fixed = [o is i for o, i in zip(body_j.jaxpr.outvars, body_in)]
     dtypes = [np.dtype(v.aval.dtype) for v in body_in]
+    phi = _as_phis(init, fixed)
+    slots = None if phi else _slots(em, init, dtypes, fixed)
     b = em.b
     fn = b.function
     head, body, done = (
@@ -202,7 +255,7 @@ def _while(em: Emitter, eqn, args):
     pre = b.block
     b.branch(head)
     b.position_at_end(head)
-    phis, cur = _heads(em, init, dtypes, fixed, pre)
+    phis, cur = _heads(em, init, dtypes, fixed, pre) if phi else (None, _load(em, slots, init, dtypes))
     (pred,) = eval_closed(em, cond_j, list(cconsts) + cur)
     elements = np.asarray(pred, object)
     unknown = [e for e in elements.reshape(-1) if not is_known(e)]
@@ -216,10 +269,11 @@ def _while(em: Emitter, eqn, args):
         # every lane runs the same iterations (`uniform.uniform_loops`): no lane keeps its carry
         b.cbranch(b.extract_element(unknown[0], ir.Constant(ir.IntType(32), 0)), body, done)
         b.position_at_end(body)
-        _back(em, phis, eval_closed(em, body_j, list(bconsts) + cur), cur, dtypes, None)
+        new = eval_closed(em, body_j, list(bconsts) + cur)
+        _back(em, phis, new, cur, dtypes, None) if phi else _store(em, slots, new, cur, dtypes, None)
         b.branch(head)
         b.position_at_end(done)
-        return cur
+        return cur if phi else _load(em, slots, init, dtypes)
     anywhere = unknown[0]
     for e in unknown[1:]:  # a predicate per element (jax.vmap of a loop): while any holds
         anywhere = b.or_(anywhere, e)
@@ -231,10 +285,10 @@ def _while(em: Emitter, eqn, args):
     em.mask = outer
     if elements.shape:
         new = [_held(em, elements, n, c, dtype) for n, c, dtype in zip(new, cur, dtypes)]
-    _back(em, phis, new, cur, dtypes, active)
+    _back(em, phis, new, cur, dtypes, active) if phi else _store(em, slots, new, cur, dtypes, active)
     b.branch(head)
     b.position_at_end(done)
-    return cur  # the head's phis: the head is the exit's only predecessor
+    return cur if phi else _load(em, slots, init, dtypes)  # the phis: the head is the exit's only predecessor
 
 
 def _held(em: Emitter, elements, new, cur, dtype):
@@ -299,6 +353,8 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
     body_in = jaxpr.invars[nc : nc + ncar]
     fixed = [o is i for o, i in zip(jaxpr.outvars[:ncar], body_in)]
     dtypes = [np.dtype(v.aval.dtype) for v in body_in]
+    phi = _as_phis(init, fixed)
+    slots = None if phi else _slots(em, init, dtypes, fixed)
     b = em.b
     i64 = ir.IntType(64)
     # the inputs, stored in arrays indexed by the counter (known entries stay known when all
@@ -331,11 +387,14 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
     pre = b.block
     b.branch(head)
     b.position_at_end(head)
-    phis, cur = _heads(em, init, dtypes, fixed, pre)  # also the loop's results, after it
+    if phi:
+        phis, cur = _heads(em, init, dtypes, fixed, pre)  # also the loop's results, after it
     k = b.load(counter, typ=i64)
     b.cbranch(b.icmp_signed("<", k, ir.Constant(i64, length)), body, done)
     b.position_at_end(body)
     i = b.sub(ir.Constant(i64, length - 1), k) if reverse else k
+    if not phi:
+        cur = _load(em, slots, init, dtypes)
     x_now = []
     for arr, dtype in zip(x_slots, x_dtypes):
         if isinstance(arr, _rows.Rows):
@@ -346,6 +405,8 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
             v[idx] = b.load(_at(em, arr[idx], i), typ=em.vtype(dtype))
         x_now.append(v)
     outs = eval_closed(em, closed, consts + cur + x_now)
+    if not phi:
+        _store(em, slots, outs[:ncar], cur, dtypes, None)
     for arr, y, a in zip(y_slots, outs[ncar:], y_avals):
         if long:
             _rows.store_row(em, arr, i, y)
@@ -353,10 +414,11 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
         for idx in np.ndindex(arr.shape):
             b.store(em.vec(y[idx], a.dtype), _at(em, arr[idx], i))
     b.store(b.add(b.load(counter, typ=i64), ir.Constant(i64, 1)), counter)
-    _back(em, phis, outs[:ncar], cur, dtypes, None)  # from the block that branches back
+    if phi:
+        _back(em, phis, outs[:ncar], cur, dtypes, None)  # from the block that branches back
     b.branch(head)
     b.position_at_end(done)
-    carry = cur
+    carry = cur if phi else _load(em, slots, init, dtypes)
     if long:
         return carry + y_slots
     ys = []
