@@ -244,11 +244,12 @@ def test_integrate_remembers_a_march_refused_for_its_size_on_disk(tmp_path, monk
     np.testing.assert_array_equal(np.asarray(first.Q), np.asarray(second.Q))
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # compiles the clusters' kernel (LLVM, several seconds) and XLA's sweep
 def test_a_native_sweep_of_clusters_of_ten_vortices_equals_the_xla_sweep():
     """Clusters of ten point vortices (the block Newton matrix per particle; their pairwise sums
-    loops, `native.fused`): past the lines of IR of a kernel not asked for, so "auto" runs XLA;
-    asked for, the native kernel translates and gives XLA's values to 1e-12 relative."""
+    loops, `native.fused`; the loops' carries phis): within the lines of IR of a kernel not
+    asked for, so "auto" compiles it (no fallback warning), and its values are XLA's to 1e-12
+    relative and the same, bit for bit, as those of the kernel asked for."""
     import warnings
 
     from clebsch_jax.native import NativeFallbackWarning
@@ -260,11 +261,13 @@ def test_a_native_sweep_of_clusters_of_ten_vortices_equals_the_xla_sweep():
     xi0 = np.asarray(jax.vmap(cj.models.vortex_velocity)(jnp.asarray(G), jnp.asarray(Q0)))
     run = lambda backend: cj.sweep(cj.models.point_vortices, G, Q0, xi0, dt=0.01, n_steps=6, backend=backend)
     xla = run("xla")
-    native = run("native")
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings(record=True) as caught:  # first: the kernel is not cached yet
         warnings.simplefilter("always")
-        run("auto")
-    assert any(issubclass(w.category, NativeFallbackWarning) and "lines of LLVM IR" in str(w.message) for w in caught)
+        auto = run("auto")
+    native = run("native")
+    assert not [w for w in caught if issubclass(w.category, NativeFallbackWarning)]
+    for a, b in ((auto.final_Q, native.final_Q), (auto.final_p, native.final_p)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     np.testing.assert_array_equal(native.status, xla.status)
     for a, b in ((native.final_Q, xla.final_Q), (native.final_p, xla.final_p)):
         a, b = np.asarray(a), np.asarray(b)
@@ -272,3 +275,39 @@ def test_a_native_sweep_of_clusters_of_ten_vortices_equals_the_xla_sweep():
         assert np.nanmax(np.abs(a - b) / scale) < 1e-12
     # the energy error is a difference of energies of order one: round-off of them, absolutely
     assert np.nanmax(np.abs(np.asarray(native.energy_error) - np.asarray(xla.energy_error))) < 1e-12
+
+
+def _many_carries(x):
+    """A scan and a while loop (its iterations differ from member to member) whose carries
+    are a (16, 16) array: `control.PHI_MIN_ENTRIES` entries that change."""
+    y = jax.lax.fori_loop(0, 40, lambda i, y: 0.5 * jnp.sin(y) + 0.25 * y[::-1] + i, x)
+
+    def halve(c):
+        return 0.5 * c[0] + 1e-4 * jnp.cos(c[0]), c[1] + 1
+
+    z, k = jax.lax.while_loop(lambda c: (jnp.max(jnp.abs(c[0])) > 1.0) & (c[1] < 60), halve, (x, 0))
+    return y, z, k
+
+
+def test_loops_with_many_carries_hold_them_as_phis_with_the_values_of_allocas(monkeypatch):
+    """Loops whose changing carries have at least `PHI_MIN_ENTRIES` entries hold them as phis
+    in their head, smaller ones in allocas: both forms give the same values bit for bit, and
+    XLA's to 1e-12 relative."""
+    from clebsch_jax.native import control
+    from clebsch_jax.native.kernel import build_ir
+
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-1.0, 1.0, (B, 16, 16)) * 10.0 ** rng.uniform(0.5, 4.0, (B, 1, 1))
+    closed = jax.make_jaxpr(_many_carries)(x[0])
+    phis = compile_member(_many_carries, x[0], use_cache=False)(x)
+    assert build_ir(closed, 8).count(" = phi ") >= 2 * 256
+    monkeypatch.setattr(control, "PHI_MIN_ENTRIES", 10**6)
+    assert " = phi " not in build_ir(closed, 8)
+    slots = compile_member(_many_carries, x[0], use_cache=False)(x)
+    for a, b in zip(phis, slots):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    xla = jax.vmap(_many_carries)(x)
+    assert len(set(np.asarray(xla[2]).tolist())) > 1  # the members' loops end apart (masked lanes)
+    np.testing.assert_array_equal(np.asarray(phis[2]), np.asarray(xla[2]))
+    for a, b in zip(phis[:2], xla[:2]):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=0)

@@ -89,6 +89,7 @@ def min_norm_transpose_solve(A: jax.Array, b: jax.Array, *, unroll: bool = False
     forward substitution. A column whose part outside the earlier ones is below
     $\max(m, n)\,\varepsilon$ times the largest column is dependent: its column of $U$ and its
     equation are left out (the system is consistent when $b$ is a momentum $-p\diamond Q$). The
+    substitution's row $j$ is solved as column $j$ of $R$ is made, so $R$ is never stored. The
     error is that of a Householder QR, about $\kappa(A)\varepsilon$ (the normal equations would
     square the condition number).
 
@@ -105,7 +106,7 @@ def min_norm_transpose_solve(A: jax.Array, b: jax.Array, *, unroll: bool = False
         return _min_norm_straight(A, b, tol)
 
     def column(j, state):
-        U, R = state
+        U, c = state
         v = A @ (cols == j).astype(A.dtype)
         r = jnp.zeros(n, A.dtype)
         for _ in range(2):  # project out the earlier columns twice ("twice is enough")
@@ -115,18 +116,14 @@ def min_norm_transpose_solve(A: jax.Array, b: jax.Array, *, unroll: bool = False
         keep = norm > tol
         u = jnp.where(keep, v / jnp.where(keep, norm, 1.0), 0.0)
         U = jnp.where(cols == j, u[:, None], U)
-        R = jnp.where(cols == j, jnp.where(cols == j, jnp.where(keep, norm, 0.0), r)[:, None], R)
-        return U, R
+        # R^T c = b, row j, with R's column j (r above the diagonal, d on it) as it is made;
+        # c_j = 0 for a dependent column
+        d = jnp.where(keep, norm, 0.0)
+        cj = (b[j] - jnp.sum(jnp.where(cols < j, r * c, 0.0))) / jnp.where(d != 0, d, 1.0)
+        return U, jnp.where(cols == j, jnp.where(d != 0, cj, 0.0), c)
 
-    U, R = jax.lax.fori_loop(0, n, column, (jnp.zeros_like(A), jnp.zeros((n, n), A.dtype)))
-
-    def forward(j, c):  # R^T c = b, row j; c_j = 0 for a dependent column
-        rj = R[:, j]
-        d = rj[j]
-        cj = (b[j] - jnp.sum(jnp.where(cols < j, rj * c, 0.0))) / jnp.where(d != 0, d, 1.0)
-        return jnp.where(cols == j, jnp.where(d != 0, cj, 0.0), c)
-
-    return U @ jax.lax.fori_loop(0, n, forward, jnp.zeros(n, A.dtype))
+    U, c = jax.lax.fori_loop(0, n, column, (jnp.zeros_like(A), jnp.zeros(n, A.dtype)))
+    return U @ c
 
 
 STRAIGHT_MAX = 4

@@ -8,9 +8,9 @@
   entry does, and an element whose entry is false keeps its carry, as XLA's loop does. A loop
   at the kernel's top level whose condition every lane computes alike (`uniform`) keeps no
   carry per lane.
-- `scan`: a counted loop (the count is the same in every lane); the carry lives in allocas
-  (promoted to registers by LLVM), the per-iteration inputs and outputs in arrays indexed by
-  the counter. Short scans are unrolled, unless unrolling would take the program past
+- `scan`: a counted loop (the count is the same in every lane); the carry is phis in the
+  loop's head (as for `while`), the per-iteration inputs and outputs in arrays indexed by the
+  counter. Short scans are unrolled, unless unrolling would take the program past
   `MAX_ENTRIES` (`unroll_policy`): the stage loops of a composition and the solves of a
   Gauss–Legendre step then stay loops.
 - `cond`: a known index picks its branch; otherwise every branch is emitted under the mask of
@@ -148,6 +148,21 @@ def unroll_policy(jaxpr, rows: bool = False):
     return POLICIES[-1]
 
 
+PHI_MIN_ENTRIES = 256
+"""A loop whose changing carries have at least this many entries holds them as phis in its
+head (`_heads`, `_back`): one instruction per entry and iteration's way in. Smaller ones keep
+an alloca per entry (`_slots`), stored before the loop and at the latch and loaded in the head
+and after the loop, which LLVM's mem2reg turns into phis: the same values, but four or five
+lines of IR per entry (LLVM's time grows with them, `AUTO_MAX_IR_LINES`) and, as phis made
+here, a different schedule of the same instructions (the rigid body's sweep kernel, whose
+loops are all smaller, is then the code it was measured with)."""
+
+
+def _as_phis(init, fixed) -> bool:
+    """Whether a loop holds its carries as phis (`PHI_MIN_ENTRIES`)."""
+    return sum(math.prod(np.shape(x)) for x, keep in zip(init, fixed) if not keep) >= PHI_MIN_ENTRIES
+
+
 def _slots(em: Emitter, values, dtypes, fixed):
     """Allocas holding each entry of the carries that change (None for those that do not)."""
     slots = []
@@ -185,6 +200,41 @@ def _store(em: Emitter, slots, new, old, dtypes, where):
             em.b.store(em.vec(value, dtype), s[idx])
 
 
+def _heads(em: Emitter, values, dtypes, fixed, pre):
+    """The carries at the loop's head: a phi per entry of those that change, coming in from the
+    block before the loop (`pre`) with the entry's value (`_back` adds the other way in); the
+    values themselves for those that do not. Called first in the head; each phi goes before the
+    ones made before it (in the other order the rigid body's sweep, had its loops phis, ran more
+    machine instructions per step, `benchmarks/native_instructions.py`). Returns (phis, values)."""
+    phis, out = [], []
+    for x, dtype, keep in zip(values, dtypes, fixed):
+        if keep:
+            phis.append(None)
+            out.append(x)
+            continue
+        arr = np.empty(x.shape, object)
+        for idx in np.ndindex(x.shape):
+            head = em.b.block
+            em.b.position_at_start(head)
+            arr[idx] = em.b.phi(em.vtype(dtype))
+            em.b.position_at_end(head)
+            arr[idx].add_incoming(em.vec(x[idx], dtype), pre)
+        phis.append(arr)
+        out.append(arr)
+    return phis, out
+
+
+def _back(em: Emitter, phis, new, old, dtypes, where):
+    """The carries the next iteration starts from, coming into the head's phis from the current
+    block (which then branches back): the body's values, or where `where` is false the old ones."""
+    for ph, n, o, dtype in zip(phis, new, old, dtypes):
+        if ph is None:
+            continue
+        for idx in np.ndindex(ph.shape):
+            value = n[idx] if where is None else em.select(where, n[idx], o[idx], dtype)
+            ph[idx].add_incoming(em.vec(value, dtype), em.b.block)
+
+
 def _while(em: Emitter, eqn, args):
     p = eqn.params
     cc, bc = p["cond_nconsts"], p["body_nconsts"]
@@ -193,7 +243,8 @@ def _while(em: Emitter, eqn, args):
     body_in = body_j.jaxpr.invars[bc:]
     fixed = [o is i for o, i in zip(body_j.jaxpr.outvars, body_in)]
     dtypes = [np.dtype(v.aval.dtype) for v in body_in]
-    slots = _slots(em, init, dtypes, fixed)
+    phi = _as_phis(init, fixed)
+    slots = None if phi else _slots(em, init, dtypes, fixed)
     b = em.b
     fn = b.function
     head, body, done = (
@@ -201,9 +252,10 @@ def _while(em: Emitter, eqn, args):
         fn.append_basic_block("while.body"),
         fn.append_basic_block("while.done"),
     )
+    pre = b.block
     b.branch(head)
     b.position_at_end(head)
-    cur = _load(em, slots, init, dtypes)
+    phis, cur = _heads(em, init, dtypes, fixed, pre) if phi else (None, _load(em, slots, init, dtypes))
     (pred,) = eval_closed(em, cond_j, list(cconsts) + cur)
     elements = np.asarray(pred, object)
     unknown = [e for e in elements.reshape(-1) if not is_known(e)]
@@ -217,10 +269,11 @@ def _while(em: Emitter, eqn, args):
         # every lane runs the same iterations (`uniform.uniform_loops`): no lane keeps its carry
         b.cbranch(b.extract_element(unknown[0], ir.Constant(ir.IntType(32), 0)), body, done)
         b.position_at_end(body)
-        _store(em, slots, eval_closed(em, body_j, list(bconsts) + cur), cur, dtypes, None)
+        new = eval_closed(em, body_j, list(bconsts) + cur)
+        _back(em, phis, new, cur, dtypes, None) if phi else _store(em, slots, new, cur, dtypes, None)
         b.branch(head)
         b.position_at_end(done)
-        return _load(em, slots, init, dtypes)
+        return cur if phi else _load(em, slots, init, dtypes)
     anywhere = unknown[0]
     for e in unknown[1:]:  # a predicate per element (jax.vmap of a loop): while any holds
         anywhere = b.or_(anywhere, e)
@@ -232,10 +285,10 @@ def _while(em: Emitter, eqn, args):
     em.mask = outer
     if elements.shape:
         new = [_held(em, elements, n, c, dtype) for n, c, dtype in zip(new, cur, dtypes)]
-    _store(em, slots, new, cur, dtypes, active)
+    _back(em, phis, new, cur, dtypes, active) if phi else _store(em, slots, new, cur, dtypes, active)
     b.branch(head)
     b.position_at_end(done)
-    return _load(em, slots, init, dtypes)
+    return cur if phi else _load(em, slots, init, dtypes)  # the phis: the head is the exit's only predecessor
 
 
 def _held(em: Emitter, elements, new, cur, dtype):
@@ -300,7 +353,8 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
     body_in = jaxpr.invars[nc : nc + ncar]
     fixed = [o is i for o, i in zip(jaxpr.outvars[:ncar], body_in)]
     dtypes = [np.dtype(v.aval.dtype) for v in body_in]
-    slots = _slots(em, init, dtypes, fixed)
+    phi = _as_phis(init, fixed)
+    slots = None if phi else _slots(em, init, dtypes, fixed)
     b = em.b
     i64 = ir.IntType(64)
     # the inputs, stored in arrays indexed by the counter (known entries stay known when all
@@ -330,13 +384,17 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
         fn.append_basic_block("scan.body"),
         fn.append_basic_block("scan.done"),
     )
+    pre = b.block
     b.branch(head)
     b.position_at_end(head)
+    if phi:
+        phis, cur = _heads(em, init, dtypes, fixed, pre)  # also the loop's results, after it
     k = b.load(counter, typ=i64)
     b.cbranch(b.icmp_signed("<", k, ir.Constant(i64, length)), body, done)
     b.position_at_end(body)
     i = b.sub(ir.Constant(i64, length - 1), k) if reverse else k
-    cur = _load(em, slots, init, dtypes)
+    if not phi:
+        cur = _load(em, slots, init, dtypes)
     x_now = []
     for arr, dtype in zip(x_slots, x_dtypes):
         if isinstance(arr, _rows.Rows):
@@ -347,7 +405,8 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
             v[idx] = b.load(_at(em, arr[idx], i), typ=em.vtype(dtype))
         x_now.append(v)
     outs = eval_closed(em, closed, consts + cur + x_now)
-    _store(em, slots, outs[:ncar], cur, dtypes, None)
+    if not phi:
+        _store(em, slots, outs[:ncar], cur, dtypes, None)
     for arr, y, a in zip(y_slots, outs[ncar:], y_avals):
         if long:
             _rows.store_row(em, arr, i, y)
@@ -355,9 +414,11 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
         for idx in np.ndindex(arr.shape):
             b.store(em.vec(y[idx], a.dtype), _at(em, arr[idx], i))
     b.store(b.add(b.load(counter, typ=i64), ir.Constant(i64, 1)), counter)
+    if phi:
+        _back(em, phis, outs[:ncar], cur, dtypes, None)  # from the block that branches back
     b.branch(head)
     b.position_at_end(done)
-    carry = _load(em, slots, init, dtypes)
+    carry = cur if phi else _load(em, slots, init, dtypes)
     if long:
         return carry + y_slots
     ys = []
