@@ -117,7 +117,7 @@ def test_the_plan_is_deterministic_and_recorded(monkeypatch):
     assert "left principle" in plan.summary()
 
 
-@pytest.mark.slow  # compiles the six default candidates per system, a minute or more under load;
+@pytest.mark.slow  # compiles four methods (the default candidates) per system, ~40 s under load;
 # the default run covers the step's choice with one candidate (test_the_step_follows_the_accuracy_asked_for)
 @pytest.mark.parametrize("scene", sorted(SCENES))
 def test_the_default_candidates_reach_the_accuracy(scene):
