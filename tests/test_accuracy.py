@@ -117,7 +117,7 @@ def test_the_plan_is_deterministic_and_recorded(monkeypatch):
     assert "left principle" in plan.summary()
 
 
-@pytest.mark.slow  # compiles four methods (the default candidates) per system, ~40 s under load;
+@pytest.mark.slow  # compiles the six default candidates per system, a minute or more under load;
 # the default run covers the step's choice with one candidate (test_the_step_follows_the_accuracy_asked_for)
 @pytest.mark.parametrize("scene", sorted(SCENES))
 def test_the_default_candidates_reach_the_accuracy(scene):
@@ -223,3 +223,20 @@ def test_the_cost_model_follows_the_committed_measurements():
     assert len(predicted) >= 8  # both families, several steps each
     ratio = np.log(np.asarray(measured) / np.asarray(predicted))
     assert np.max(np.abs(ratio - np.mean(ratio))) <= math.log(1.5)
+
+
+@pytest.mark.parametrize("kappa", [0.05, 0.3, 0.9])
+def test_the_contraction_margin_finds_the_step_of_a_known_contraction(kappa):
+    """Sweep counts of a fixed-point iteration contracting by ρ(h) = κh to a tolerance ε,
+    N(h) = log ε / log ρ(h), at the pilot's steps h and h/2: the step returned is the one at
+    which κh = MAX_CONTRACTION, whichever side of it the pilot's steps lie; counts that do not
+    fall with the step give no limit."""
+    from clebsch_jax.march.pilot import MAX_CONTRACTION, Measured, contraction_step
+
+    h = 0.6
+    counts = tuple(math.log(1e-16) / math.log(kappa * s) for s in (h, h / 2))
+    measured = Measured(1.0, 8.0, h, (h, h / 2), counts, 0.0)
+    assert contraction_step(measured) == pytest.approx(MAX_CONTRACTION / kappa, rel=1e-12)
+    flat = Measured(1.0, 8.0, h, (h, h / 2), (5.0, 5.0), 0.0)
+    assert contraction_step(flat) == math.inf
+    assert contraction_step(Measured(1.0, 8.0, h, (h,), (5.0,), 0.0)) == math.inf

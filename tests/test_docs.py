@@ -26,7 +26,7 @@ SLOW_PAGES = {
     "docs/guide/integrate.md",  # Gauss–Legendre of order 16, an order-8 composition, 1000-step marches
     "docs/guide/models.md",  # 20 000 steps of leapfrogging vortices
     "docs/guide/batches.md",  # a batch of 256 bodies through cj.batch (its own compilation)
-    "docs/how-to/choose-by-accuracy.md",  # pilots of the default candidates: four methods compiled
+    "docs/how-to/choose-by-accuracy.md",  # pilots of the default candidates: six methods compiled
     "docs/how-to/control.md",  # shooting by L-BFGS through the landmarks' march
     "docs/how-to/failures.md",  # the full march's compilation, for a failure to read
     "docs/how-to/sweeps.md",  # a sweep of 2000 members, then the same on a two-worker Dask cluster

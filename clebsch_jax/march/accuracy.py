@@ -32,19 +32,17 @@ stays bounded, at $O(h^p)$, far below the global error of long runs (benchmarks/
    same plan.
 
 **Candidates** (`DEFAULT_CANDIDATES`): the system's second-order default (loose accuracies, short
-runs) and Gauss–Legendre of orders 4, 6 and 8 (the orders the committed ensemble runs measured
-natively).
-Compositions of orders 4–8 are left out: in both ensembles of
-`benchmarks/results/work_precision_ensembles.json` (64 rigid bodies to T = 10⁴, 16 four-vortex
-clusters to T = 10³) a Gauss–Legendre point reached each of their errors for less time. Gauss
-orders 12 and 16 (`benchmarks/results/work_precision_long.json`; they compile natively too where
-the member's program is small, as for the body on R³) can be added with `candidates=`: they are
-faster at tight errors, but the steps they win with sit near the largest at which their stage
-sweeps still contract, a limit the pilot measures on one trajectory only, so that the plan made
-on one member of an ensemble failed on others at their first step (`benchmarks/README.md`,
-"Gauss–Legendre 12 and 16 out of the defaults again"). The relative costs of a stage-sweep, a Newton solve, a Newton update and a step's other
-work are a fit to that file's native rigid-body points (`clebsch_jax.march.pilot`: `STEP_COST`,
-`NEWTON_SOLVE_COST`, `NEWTON_UPDATE_COST`): on other systems they are a guide.
+runs) and Gauss–Legendre of orders 4, 6, 8, 12 and 16. Orders 12 and 16 were the fastest of ours
+at the tightest errors of both ensembles of `benchmarks/results/work_precision_ensembles.json`
+(64 rigid bodies to T = 10⁴, 16 four-vortex clusters to T = 10³). Their accuracy allows steps
+near the largest at which their stage sweeps still contract, a limit the pilot sees on one
+trajectory: a Gauss–Legendre plan keeps the sweeps' contraction factor, estimated from the
+pilot's sweep counts, at most `clebsch_jax.march.pilot.MAX_CONTRACTION` (`contraction_step`),
+so that members of an ensemble moving faster than the pilot's still converge. Compositions of
+orders 4–8 are left out: in both ensembles a Gauss–Legendre point reached each of their errors
+for less time. The relative costs of a stage-sweep, a Newton solve, a Newton update and a
+step's other work are a fit to that file's native rigid-body points (`clebsch_jax.march.pilot`:
+`STEP_COST`, `NEWTON_SOLVE_COST`, `NEWTON_UPDATE_COST`): on other systems they are a guide.
 
 **Cost of the pilot.** Each candidate compiles one program (every step size reuses it) and
 marches $T_p$ at least three times (7 $T_p / h_0$ = 7 × 64 steps with the defaults; each further
@@ -79,6 +77,7 @@ from .pilot import (
     PILOT_FIRST_STEP,
     PILOT_MIN_STEPS,
     PILOT_TIME_SCALES,
+    contraction_step,
     run_pilot,
     time_scale,
     work_per_step,
@@ -99,6 +98,8 @@ DEFAULT_CANDIDATES = (
     {"scheme": "gauss", "order": 4},
     {"scheme": "gauss", "order": 6},
     {"scheme": "gauss", "order": 8},
+    {"scheme": "gauss", "order": 12},
+    {"scheme": "gauss", "order": 16},
 )
 """The methods `choose_step` compares by default, as `integrate`'s options (module docstring)."""
 
@@ -433,6 +434,8 @@ def _plan_candidate(march, system, spec, stepper, t0, horizon, pilot_horizon, h0
         return Candidate(**base, **_NO_FIT, **_NO_RUN, reason=measured.reason), None
     C = measured.constant
     h = min(measured.max_step, _step(measured, p, accuracy, horizon))
+    if facts.scheme == "gauss":  # stage sweeps: a margin from where they stop contracting
+        h = min(h, contraction_step(measured))
     n_steps = max(1, math.ceil(horizon / h * (1 - 1e-12)))
     fit = dict(constant=C, observed_order=measured.observed_order, max_step=measured.max_step)
     if n_steps > MAX_STEPS:

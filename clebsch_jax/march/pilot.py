@@ -45,7 +45,9 @@ __all__ = [
     "STEP_COST",
     "NEWTON_SOLVE_COST",
     "NEWTON_UPDATE_COST",
+    "MAX_CONTRACTION",
     "Measured",
+    "contraction_step",
     "time_scale",
     "state_error",
     "work_per_step",
@@ -64,6 +66,12 @@ PILOT_MIN_STEPS = 8
 PILOT_DOUBLINGS = 2
 """At most this many pilots again from twice the first step, when the step the accuracy allows is
 above the largest the pilot tried (`clebsch_jax.march.accuracy`)."""
+
+MAX_CONTRACTION = 0.25
+"""The largest contraction factor of a Gauss–Legendre step's stage sweeps that a plan steps at
+(`contraction_step`). The factor grows like the step times how fast the state moves, and the
+sweeps diverge from 1: a quarter leaves room for members of an ensemble, or later parts of the
+run, that move up to four times faster than the pilot's trajectory."""
 
 PILOT_HALVINGS = 5
 """At most this many halvings of the pilot's step per candidate beyond the first three runs."""
@@ -119,6 +127,22 @@ class Measured:
         the step shrinks, so smaller steps are charged no less than they need)."""
         hs, its = np.log(np.asarray(self.steps[::-1])), np.asarray(self.iterations[::-1])
         return float(np.interp(math.log(h), hs, its))
+
+
+def contraction_step(measured: "Measured") -> float:
+    r"""The step at which the stage sweeps' contraction factor ρ reaches `MAX_CONTRACTION`, read
+    from the pilot's sweeps per step at its largest step h and at h/2 (∞ without such a pair, or
+    where the counts do not fall). A fixed-point iteration contracting by ρ(h) = κh needs about
+    N(h) = a / (−log ρ(h)) sweeps to reach a given tolerance, so N(h) / N(h/2) = R gives
+    ρ(h) = 2^{−1/(R−1)}, and ρ reaches ρ_max at h ρ_max / ρ(h). The predictor's error also falls
+    with the step, which makes R larger and the step returned smaller: on the safe side."""
+    if len(measured.steps) < 2 or not measured.iterations[1] > 0:
+        return math.inf
+    ratio = measured.iterations[0] / measured.iterations[1]
+    if not ratio > 1.0:
+        return math.inf
+    rho = 2.0 ** (-1.0 / (ratio - 1.0))
+    return measured.steps[0] * MAX_CONTRACTION / rho
 
 
 def time_scale(system, Q0, xi0) -> float:
