@@ -26,8 +26,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..roots.solvers import Newton
 from ..roots.status import NewtonStats
 from .base import AbstractStepper, AbstractWrapper, Facts
+from .reduced import ReducedStep
 
 __all__ = [
     "Composition",
@@ -197,14 +199,35 @@ class SymmetricPair(AbstractWrapper):
     Remarks 21–22). Composing a first-order map with its adjoint, rather than with itself, is
     what makes the step symmetric (McLachlan 1995).
 
-    **Arguments:** `base`: a `FullStep` or `ReducedStep`.
+    **Arguments:**
+
+    - `base`: a `FullStep` or `ReducedStep`.
+    - `shared_jacobian`: the second half step's solve starts from the inverse Jacobian the
+      first half step's solve ended with, by chord updates, and forms a fresh one only when
+      they contract by less than `REUSE_MAX_CONTRACTION` per update (True), or each half step
+      solves as `base` alone would (False: with the Cayley map, a fresh Jacobian at each half
+      step's guess). The two half steps' Jacobians at one state differ by O(Δt), so with a
+      good guess the chord updates reach round-off in about as many updates as Newton from a
+      fresh Jacobian: one Jacobian per step instead of two. None (default) is True for a
+      `ReducedStep` solved by `Newton()`, False otherwise; True needs such a base.
 
     Each half step keeps its own memory (predictor history, carried matrix); the step's
     statistics add up those of both solves, and its output is that of the first half step."""
 
+    shared_jacobian: bool | None = None
+
     def __post_init__(self):
         if not callable(getattr(self.base, "adjoint", None)):
             raise TypeError(f"base: expected a stepper with an adjoint (FullStep, ReducedStep), got {self.base!r}.")
+        if self.shared_jacobian and not _shares(self.base):
+            raise TypeError(
+                f"shared_jacobian: only a ReducedStep solved by clebsch_jax.Newton() hands its Jacobian "
+                f"to its adjoint's half step, got {self.base!r}."
+            )
+
+    @property
+    def _shared(self) -> bool:
+        return _shares(self.base) if self.shared_jacobian is None else bool(self.shared_jacobian)
 
     @property
     def members(self) -> tuple:
@@ -227,10 +250,19 @@ class SymmetricPair(AbstractWrapper):
 
     def step(self, system, state, memory, h, n, alive):
         memories, stats, outs = [], [], []
+        H = None
         for member, mem in zip(self.members, memory):
-            state, mem, out, st = member.step(system, state, mem, 0.5 * h, n, alive)
+            if self._shared:
+                state, mem, out, st, H = member.step_sharing(system, state, mem, 0.5 * h, n, alive, H)
+            else:
+                state, mem, out, st = member.step(system, state, mem, 0.5 * h, n, alive)
             memories.append(mem), stats.append(st), outs.append(out)
         return state, tuple(memories), outs[0], NewtonStats.combine(stats)
+
+
+def _shares(base) -> bool:
+    """Whether `base`'s half steps can share their Jacobian (`SymmetricPair.shared_jacobian`)."""
+    return isinstance(base, ReducedStep) and type(base.root_finder) is Newton
 
 
 @dataclasses.dataclass(frozen=True)

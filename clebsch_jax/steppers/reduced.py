@@ -134,6 +134,14 @@ class ReducedStep(PrincipleStep):
         return history, H, degree(0, history)
 
     def step(self, system, state, memory, h, n, alive):
+        return self.step_sharing(system, state, memory, h, n, alive)[:4]
+
+    def step_sharing(self, system, state, memory, h, n, alive, shared=None):
+        """`step`, and the inverse Jacobian its solve ended with (for the next solve of the same
+        step: `SymmetricPair`'s second half step). With `shared`, such a matrix from the step's
+        previous solve, the solve starts with chord updates on it instead of this slot's own
+        (a fresh one only when they stop contracting, as for a carried matrix); the slot's
+        memory is handed on as `step` would. **Returns:** `step`'s four values and the matrix."""
         mu, Q, xi_last = state
         history, H, deg = memory
         red, principle = self.reduction, self.principle
@@ -156,15 +164,18 @@ class ReducedStep(PrincipleStep):
             _, mu1, Q1 = reduced_step(system, red, principle, h, mu, Q, xi, need_Q1=carry_Q, gradient=g)
         else:
             reuse = False if self._fresh(system) else (n > 0) | ~alive
+            start, use = (H, reuse) if shared is None else (shared, True)
             xi, stats, H_new, (mu1, Q1) = self.root_finder.solve_reusing(
-                residual, guess, H, reuse, finish=finish, step=n
+                residual, guess, start, use, finish=finish, step=n
             )
         # a fresh Jacobian every solve: the carried matrix is never read, so it is handed on
         # unchanged (a loop-invariant placeholder rather than a new value per step)
+        H_out = H_new if not self._sweeps else H
         H = H if reuse is False else H_new
         history = push(history, xi - xi_last)
         # the next step's choice of differences, carried (`degree`)
-        return (mu1, Q1 if carry_Q else Q, xi), (history, H, degree(n + 1, history)), (xi, Q1), stats
+        memory = (history, H, degree(n + 1, history))
+        return (mu1, Q1 if carry_Q else Q, xi), memory, (xi, Q1), stats, H_out
 
     def _sweep(self, system, red, principle, h, mu, Q, guess):
         r"""The step's root by sweeps (`FixedPoint`'s stopping rule and statuses), made on the
