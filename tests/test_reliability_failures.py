@@ -242,3 +242,33 @@ def test_sweep_reports_each_fault_at_its_global_step():
     np.testing.assert_allclose(res.final_Q[~failing], N_STEPS * DT * xi0s[~failing], rtol=1e-14)
     with pytest.raises(cj.IntegrationError, match=r"3 of 5 members failed: member 1 at step 7 .*smaller dt"):
         res.raise_if_failed()
+
+
+@pytest.mark.slow  # two more compiled marches (~15 s); the default run checks the pair's schedule in test_composition
+def test_a_shared_jacobian_reports_each_fault_as_the_unshared_pair():
+    """The reduced left step and its adjoint over half steps (`order=2`), the second half
+    step's solve starting from the first one's Jacobian (`SymmetricPair.shared_jacobian`,
+    the default) or not: for every fault kind the same status at the same step of the same
+    member, the later nodes NaN and invalid, and a message naming member and step."""
+    make, Q0, xi0s, _, _ = MARCHES["reduced"]
+    thresholds = jnp.full(3, threshold_of("reduced"))
+
+    def batch(shared, kind):
+        method = cj.SymmetricPair(cj.ReducedStep(root_finder=cj.Newton(max_iterations=1)), shared_jacobian=shared)
+        march = lambda xi0, kind, threshold: cj.integrate(  # noqa: E731
+            make((kind, threshold)), Q0, xi0, dt=DT, n_steps=N_STEPS, method=method, throw=False
+        )
+        return jax.vmap(march)(jnp.asarray(xi0s), jnp.asarray([HEALTHY, kind, HEALTHY]), thresholds)
+
+    for kind in FAULTS:
+        shared, alone = batch(None, kind), batch(False, kind)
+        assert shared.method == "right(h/2) o left(h/2)"
+        np.testing.assert_array_equal(np.asarray(shared.result), [Status.SUCCESS, kind, Status.SUCCESS])
+        np.testing.assert_array_equal(np.asarray(shared.failed_step), np.asarray(alone.failed_step))
+        np.testing.assert_array_equal(np.asarray(shared.stats.status), np.asarray(alone.stats.status))
+        np.testing.assert_array_equal(np.asarray(shared.valid), np.asarray(alone.valid))
+        k = int(shared.failed_step[1])
+        bad = _member(shared, 1)
+        assert 0 < k < N_STEPS and np.all(np.isnan(bad.Q[k + 1 :])) and np.all(np.isfinite(bad.Q[: k + 1]))
+        with pytest.raises(cj.IntegrationError, match=rf"batch member 1, step {k} of {N_STEPS}"):
+            shared.raise_if_failed()
