@@ -12,7 +12,9 @@ operations XLA runs (each with a fixed cost on the CPU) and the number of Newton
   sub-step made in earlier steps (`predictor`);
 - for the Cayley map every solve forms the exact Jacobian at that guess, from the cheap
   closed-form residual: Newton converges quadratically from the good guess, so one update
-  reaches round-off and a second confirms it, and a batch pays its slowest member's updates;
+  reaches round-off and a second confirms it, and a batch pays its slowest member's updates
+  (the second half step of a `SymmetricPair` starts from the first one's instead:
+  `step_sharing`);
 - for other maps, whose residual costs more (the exponential pair: the derivative of the
   logarithm as φ₁(ad)⁻¹ from a matrix exponential; any other pair: autodiff of exp̄ and loḡ)
   and makes a Jacobian expensive, the inverse Jacobian is carried from step to step: formed
