@@ -88,6 +88,7 @@ __all__ = [
     "Candidate",
     "choose_step",
     "plan_for_call",
+    "plan_members",
     "require_step",
     "DEFAULT_CANDIDATES",
     "MIN_ACCURACY",
@@ -152,7 +153,9 @@ class AccuracyPlan:
     - `predicted_work`: the run's work in Gauss stage-sweeps (`clebsch_jax.march.pilot`);
       `pilot_work`: the pilot's, in the same unit;
     - `time_scale`, `pilot_horizon`: τ and the pilot's horizon;
-    - `candidates`: every `Candidate`, in the order compared.
+    - `candidates`: every `Candidate`, in the order compared;
+    - `piloted`: the members of an ensemble the pilot marched (`clebsch_jax.choose_sweep_step`:
+      their indices in the sweep, the first member first), None for one trajectory.
 
     `plan.integrate_options()` gives `method`, `dt` and `n_steps` for `integrate` or `sweep`."""
 
@@ -170,6 +173,7 @@ class AccuracyPlan:
     time_scale: float
     pilot_horizon: float
     candidates: tuple
+    piloted: tuple | None = None
 
     def integrate_options(self) -> dict:
         """`method`, `dt` and `n_steps`, to pass to `integrate` or `sweep`."""
@@ -226,10 +230,16 @@ def plan_for_call(system, Q0, xi0, given: dict, **arguments) -> AccuracyPlan:
     """`integrate`'s or `sweep`'s plan: `given` (their options) checked against `accuracy=`
     (`check_replaced`), those of `METHOD_OPTIONS` not at their defaults passed on to
     `choose_step` with `arguments`."""
+    return choose_step(system, Q0, xi0, **arguments, **method_options(given, arguments))
+
+
+def method_options(given: dict, arguments: dict) -> dict:
+    """The accuracy arguments checked, `given` (`integrate`'s or `sweep`'s options) checked
+    against `accuracy=` (`check_replaced`), and those of `METHOD_OPTIONS` not at their defaults:
+    what the plan passes on to the candidates."""
     check_accuracy(arguments.get("accuracy"), arguments.get("t_final"), arguments.get("t0", 0.0))
     check_replaced(given)
-    options = {k: v for k, v in given.items() if k in METHOD_OPTIONS and not _is_default(v, METHOD_OPTIONS[k])}
-    return choose_step(system, Q0, xi0, **arguments, **options)
+    return {k: v for k, v in given.items() if k in METHOD_OPTIONS and not _is_default(v, METHOD_OPTIONS[k])}
 
 
 def _is_default(value, default) -> bool:
@@ -311,7 +321,33 @@ def choose_step(
       `need_P`, `reconstruct`, `rtol`, `atol`, `max_newton_iterations`, `jacobian`).
 
     **Returns:** an `AccuracyPlan`. Raises a `ValueError` when no candidate's pilot resolved an
-    error constant (each one's reason is in the message)."""
+    error constant (each one's reason is in the message). For an ensemble, plan on a sample of
+    its members with `clebsch_jax.choose_sweep_step`."""
+    return plan_members(
+        [(system, Q0, xi0, P0)], t_final=t_final, accuracy=accuracy, t0=t0, candidates=candidates,
+        time_scale=time_scale, check_energy=check_energy, backend=backend, **options,
+    )  # fmt: skip
+
+
+def plan_members(
+    members,
+    *,
+    t_final,
+    accuracy,
+    t0=0.0,
+    candidates=None,
+    time_scale: float | None = None,
+    check_energy=True,
+    backend: str = "auto",
+    piloted: tuple | None = None,
+    **options,
+) -> AccuracyPlan:
+    """`choose_step`'s plan made on several trajectories at once, so that its step holds for
+    each: `members` a sequence of (system, Q0, xi0, P0), the candidates resolved on the first.
+    τ is the smallest of the members' time scales; at every pilot step each member is marched
+    with the same stepper (one compiled program), and the worst member's differences,
+    iterations and contraction decide (`clebsch_jax.march.pilot.run_pilot`). `piloted` (the
+    members' indices in an ensemble) is recorded on the plan."""
     from .integrate import integrate  # the pilot marches with integrate, which imports this module
 
     accuracy, horizon = check_accuracy(accuracy, t_final, t0)
@@ -327,28 +363,34 @@ def choose_step(
         isinstance(time_scale, bool) or not isinstance(time_scale, numbers.Real) or not time_scale > 0
     ):
         raise ValueError(f"time_scale: expected a positive number, got {time_scale!r}.")
-    if not isinstance(system, ClebschSystem):
-        raise TypeError(f"system: expected a clebsch_jax.ClebschSystem, got {type(system).__name__}.")
-    if any_traced(system, Q0, xi0, P0):
-        raise ValueError(
-            "accuracy: the plan runs a pilot and needs concrete Q0, xi0 and system (not inside jit, vmap "
-            "or grad); call clebsch_jax.choose_step outside and pass method=, dt= and n_steps= inside."
-        )
-    Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
+    checked = []
+    for system, Q0, xi0, P0 in members:
+        if not isinstance(system, ClebschSystem):
+            raise TypeError(f"system: expected a clebsch_jax.ClebschSystem, got {type(system).__name__}.")
+        if any_traced(system, Q0, xi0, P0):
+            raise ValueError(
+                "accuracy: the plan runs a pilot and needs concrete Q0, xi0 and system (not inside jit, vmap "
+                "or grad); call clebsch_jax.choose_step outside and pass method=, dt= and n_steps= inside."
+            )
+        checked.append((system, float_array(Q0, "Q0"), float_array(xi0, "xi0"), P0))
+    system, Q0, xi0, _ = checked[0]
     resolved = [_resolve(system, Q0, xi0, spec, options) for spec in candidates]
     if all(stepper is None for stepper, _ in resolved):  # refused before anything is evaluated
         why = "; ".join(f"{r.name}: {r.reason}" for _, r in resolved)
         raise ValueError(f"accuracy: no candidate method's pilot resolved its error ({why}).")
-    tau = float(time_scale) if time_scale is not None else _time_scale(system, Q0, xi0)
+    tau = float(time_scale) if time_scale is not None else min(_time_scale(*m[:3]) for m in checked)
     pilot_horizon = min(horizon, PILOT_TIME_SCALES * tau)
     h0 = pilot_horizon / max(PILOT_MIN_STEPS, math.ceil(pilot_horizon / (PILOT_FIRST_STEP * tau)))
     t0 = float(np.asarray(t0))
 
     def march(stepper, dt, n_steps):
-        return integrate(
-            system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, method=stepper,
-            throw=False, check_energy=check_energy, backend=backend,
-        )  # fmt: skip
+        return [
+            integrate(
+                system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, method=stepper,
+                throw=False, check_energy=check_energy, backend=backend,
+            )
+            for system, Q0, xi0, P0 in checked
+        ]  # fmt: skip
 
     rows, best = [], None
     for spec, (stepper, refused) in zip(candidates, resolved):
@@ -366,7 +408,7 @@ def choose_step(
     row, stepper = best
     return AccuracyPlan(
         stepper, row.name, row.order, row.dt, row.n_steps, t0, t0 + horizon, accuracy,
-        row.predicted_error, row.predicted_work, pilot_work, tau, pilot_horizon, tuple(rows),
+        row.predicted_error, row.predicted_work, pilot_work, tau, pilot_horizon, tuple(rows), piloted,
     )  # fmt: skip
 
 
