@@ -1,5 +1,7 @@
 r"""Accuracy-driven choice of method and step: `choose_step`, and the `AccuracyPlan` it returns,
-which `integrate(..., t_final=T, accuracy=tol)` and `sweep(..., t_final=T, accuracy=tol)` run.
+which `integrate(..., t_final=T, accuracy=tol)` runs; `plan_members`, the same plan made on
+several trajectories at once, which `sweep(..., t_final=T, accuracy=tol)` runs on a sample of its
+members (`clebsch_jax.choose_sweep_step`, `clebsch_jax.batching.ensemble_plan`).
 
 **What `accuracy` means.** The relative max-norm error of the state at `t_final`,
 $$\max\Big(\frac{\|Q_h(T) - Q(T)\|_\infty}{\|Q^0\|_\infty},
@@ -37,8 +39,9 @@ at the tightest errors of both ensembles of `benchmarks/results/work_precision_e
 (64 rigid bodies to T = 10⁴, 16 four-vortex clusters to T = 10³). Their accuracy allows steps
 near the largest at which their stage sweeps still contract, a limit the pilot sees on one
 trajectory: a Gauss–Legendre plan keeps the sweeps' contraction factor, estimated from the
-pilot's sweep counts, at most `clebsch_jax.march.pilot.MAX_CONTRACTION` (`contraction_step`),
-so that members of an ensemble moving faster than the pilot's still converge. Compositions of
+pilot's sweep counts (the worst piloted member's), at most
+`clebsch_jax.march.pilot.MAX_CONTRACTION` (`contraction_step`), so that members of an ensemble
+moving faster than the piloted ones, and later parts of the run, still converge. Compositions of
 orders 4–8 are left out: in both ensembles a Gauss–Legendre point reached each of their errors
 for less time. The relative costs of a stage-sweep, a Newton solve, a Newton update and a
 step's other work are a fit to that file's native rigid-body points (`clebsch_jax.march.pilot`:
@@ -49,6 +52,12 @@ marches $T_p$ at least three times (7 $T_p / h_0$ = 7 × 64 steps with the defau
 halving doubles the last); the plan records its work (`pilot_work`) beside the run's. For runs
 much longer than $T_p$ it is a small fraction of the run; for a run as short as $T_p$ it costs
 more than the run: make the plan once (`choose_step`) and reuse it.
+
+**Several members** (`plan_members`): the candidates are resolved on the first; τ is the
+smallest of theirs; at each pilot step every member is marched with the same stepper (its
+compiled program reused) and the worst decides — the largest difference at each node, the most
+iterations per step, any failure — so the step holds for each member piloted. The pilot's work
+is the sum of theirs.
 
 **Limits.** The linear growth holds for integrable and near-integrable motion (rigid bodies,
 Kepler, regular vortex motion) up to $t \sim h^{-p}$. In chaotic motion errors grow
