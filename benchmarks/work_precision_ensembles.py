@@ -6,8 +6,11 @@ initial conditions. Run through `work_precision.py`:
     python benchmarks/work_precision.py --long-horizon    # energy error over T = 1e5 for a few bodies
     python benchmarks/work_precision.py --long-horizon --horizon 1e6
     python benchmarks/work_precision.py --ensembles --quick   # smoke test (not a measurement)
+    python benchmarks/work_precision.py --ensembles --plans-only  # the accuracy plans alone
 
-written as `work_precision_ensembles.{json,png}` and `work_precision_long_horizon.{json,png}`.
+written as `work_precision_ensembles.{json,png}` and `work_precision_long_horizon.{json,png}`
+(`--plans-only`: `work_precision_ensemble_plans.{json,png}`: the reference and, per accuracy,
+the ensemble plan beside the plan piloted on the first member alone).
 
 **Scenes** (`work_precision.RigidBody` and `work_precision.VortexClusters`, their initial
 conditions and diagnostics):

@@ -163,6 +163,7 @@ def test_the_ensemble_plan_holds_for_a_faster_member():
     assert first == dataclasses.replace(cj.choose_step(RIGID, Q0_BODY, OMEGA0, **run), piloted=(0,))
     ensemble = cj.choose_sweep_step(RIGID, None, Q0s, omegas, **run)
     assert ensemble.piloted == (0, 1) and ensemble.predicted_error <= accuracy * (1 + 1e-12)
+    assert "piloted members: 0, 1" in ensemble.summary()
 
     def error(plan, omega):
         sol = cj.integrate(RIGID, Q0_BODY, omega, backend="xla", **plan.integrate_options())
@@ -189,6 +190,11 @@ def test_the_pilot_samples_the_first_member_and_the_fastest():
     assert pilot_members(rates, 3) == (0, 2, 1)
     assert pilot_members(rates, 1) == (0,)
     assert pilot_members(rates) == (0, 2, 1, 4, 3)
+    with compiles_recorded() as compiled, pytest.raises(ValueError, match="members: expected indices"):
+        cj.choose_sweep_step(
+            cj.models.rigid_body, inertias, members.Q0, omegas, t_final=10.0, accuracy=1e-6, members=[0, 5]
+        )
+    assert compiled == []
 
 
 _BAD = {

@@ -53,11 +53,8 @@ halving doubles the last); the plan records its work (`pilot_work`) beside the r
 much longer than $T_p$ it is a small fraction of the run; for a run as short as $T_p$ it costs
 more than the run: make the plan once (`choose_step`) and reuse it.
 
-**Several members** (`plan_members`): the candidates are resolved on the first; τ is the
-smallest of theirs; at each pilot step every member is marched with the same stepper (its
-compiled program reused) and the worst decides — the largest difference at each node, the most
-iterations per step, any failure — so the step holds for each member piloted. The pilot's work
-is the sum of theirs.
+**Several members** (`plan_members`): τ is the smallest of theirs, and at each pilot step the
+worst member decides (`clebsch_jax.march.pilot.run_pilot`); the pilot's work is their sum.
 
 **Limits.** The linear growth holds for integrable and near-integrable motion (rigid bodies,
 Kepler, regular vortex motion) up to $t \sim h^{-p}$. In chaotic motion errors grow
@@ -189,7 +186,8 @@ class AccuracyPlan:
         return {"method": self.method, "dt": self.dt, "n_steps": self.n_steps}
 
     def summary(self) -> str:
-        """A table of the candidates: order, constant, step, steps, predicted error and work."""
+        """A table of the candidates: order, constant, step, steps, predicted error and work (and
+        the members piloted, for an ensemble's plan)."""
         rows = [f"{'candidate':<34} {'p':>2} {'C':>9} {'dt':>9} {'steps':>9} {'error':>9} {'work':>10}"]
         for c in self.candidates:
             if c.predicted_work is None:
@@ -200,6 +198,8 @@ class AccuracyPlan:
                 f"{c.name:<34} {c.order:>2} {c.constant:9.2e} {c.dt:9.3g} {c.n_steps:9d} "
                 f"{c.predicted_error:9.2e} {c.predicted_work:10.4g}{mark}"
             )
+        if self.piloted is not None:
+            rows.append(f"piloted members: {', '.join(map(str, self.piloted))}")
         return "\n".join(rows)
 
 
@@ -351,12 +351,10 @@ def plan_members(
     piloted: tuple | None = None,
     **options,
 ) -> AccuracyPlan:
-    """`choose_step`'s plan made on several trajectories at once, so that its step holds for
-    each: `members` a sequence of (system, Q0, xi0, P0), the candidates resolved on the first.
-    τ is the smallest of the members' time scales; at every pilot step each member is marched
-    with the same stepper (one compiled program), and the worst member's differences,
-    iterations and contraction decide (`clebsch_jax.march.pilot.run_pilot`). `piloted` (the
-    members' indices in an ensemble) is recorded on the plan."""
+    """`choose_step`'s plan made on several trajectories at once, its step to hold for each:
+    `members` a sequence of (system, Q0, xi0, P0), the candidates resolved on the first, τ the
+    smallest of theirs; each marched with the same stepper (one compiled program) at every
+    pilot step, the worst deciding (`run_pilot`). `piloted` is recorded on the plan."""
     from .integrate import integrate  # the pilot marches with integrate, which imports this module
 
     accuracy, horizon = check_accuracy(accuracy, t_final, t0)
