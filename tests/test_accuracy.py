@@ -190,6 +190,11 @@ def test_the_pilot_samples_the_first_member_and_the_fastest():
     assert pilot_members(rates, 3) == (0, 2, 1)
     assert pilot_members(rates, 1) == (0,)
     assert pilot_members(rates) == (0, 2, 1, 4, 3)
+    bad = make_members(
+        cj.models.rigid_body, inertias[:2], members.Q0[:2], np.array([[0.1, 0, 0], [np.nan, 1, 0]]), None, 1.0, False
+    )
+    assert np.isnan(member_rates(cj.models.rigid_body, bad)[1])
+    assert pilot_members(np.array([1.0, np.nan, 3.0, 0.0])) == (0, 2, 3)  # non-finite data: not piloted
     with compiles_recorded() as compiled, pytest.raises(ValueError, match="members: expected indices"):
         cj.choose_sweep_step(
             cj.models.rigid_body, inertias, members.Q0, omegas, t_final=10.0, accuracy=1e-6, members=[0, 5]

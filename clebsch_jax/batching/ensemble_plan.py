@@ -104,7 +104,8 @@ def plan_for_sweep(make_system, params, Q0, xi0, P0, grid, given: dict, **argume
 
 def member_rates(make_system, ensemble) -> np.ndarray:
     r"""(B,) each member's rate $1/\tau_m$ (module docstring), from its own system: the velocity
-    map of every member in one `jax.vmap`; 0 for a member at rest or with non-finite data."""
+    map of every member in one `jax.vmap`; 0 for a member at rest, NaN for one whose data are
+    not finite (such a member fails in the sweep, and is not piloted)."""
     Q0 = ensemble.Q0[ensemble.ic_index]
     xi0 = ensemble.xi0[ensemble.ic_index]
     axes = tuple(range(1, Q0.ndim))
@@ -114,8 +115,7 @@ def member_rates(make_system, ensemble) -> np.ndarray:
         rows = jax.tree_util.tree_map(lambda a: a[ensemble.param_index], ensemble.params)
         speed = jax.vmap(lambda p, q, x: _speed(ensemble.builder(p), q, x))(rows, Q0, xi0)
     size = np.max(np.abs(Q0), axis=axes)
-    rates = np.asarray(speed) / np.where(size > 0, size, 1.0)
-    return np.where(np.isfinite(rates), rates, 0.0)
+    return np.asarray(speed) / np.where(size > 0, size, 1.0)
 
 
 def _speed(system: ClebschSystem, Q0, xi0):
@@ -123,10 +123,11 @@ def _speed(system: ClebschSystem, Q0, xi0):
 
 
 def pilot_members(rates, k: int = PILOT_MEMBERS) -> tuple:
-    """The members to pilot: the first, then the k − 1 others of largest rate (the earlier one
-    first among equal rates), as indices in the sweep."""
-    rates = np.asarray(rates)
-    others = np.argsort(-rates[1:], kind="stable")[: max(0, k - 1)] + 1
+    """The members to pilot: the first, then the k − 1 others of largest finite rate (the
+    earlier one first among equal rates), as indices in the sweep."""
+    rates = np.asarray(rates, dtype=float)
+    others = np.flatnonzero(np.isfinite(rates[1:])) + 1
+    others = others[np.argsort(-rates[others], kind="stable")][: max(0, k - 1)]
     return (0, *(int(m) for m in others))
 
 

@@ -385,7 +385,7 @@ def plan_members(
     if all(stepper is None for stepper, _ in resolved):  # refused before anything is evaluated
         why = "; ".join(f"{r.name}: {r.reason}" for _, r in resolved)
         raise ValueError(f"accuracy: no candidate method's pilot resolved its error ({why}).")
-    tau = float(time_scale) if time_scale is not None else min(_time_scale(*m[:3]) for m in checked)
+    tau = float(time_scale) if time_scale is not None else _time_scale(checked)
     pilot_horizon = min(horizon, PILOT_TIME_SCALES * tau)
     h0 = pilot_horizon / max(PILOT_MIN_STEPS, math.ceil(pilot_horizon / (PILOT_FIRST_STEP * tau)))
     t0 = float(np.asarray(t0))
@@ -419,8 +419,8 @@ def plan_members(
     )  # fmt: skip
 
 
-def _time_scale(system, Q0, xi0) -> float:
-    tau = time_scale(system, Q0, xi0)
+def _time_scale(members) -> float:
+    tau = min(time_scale(system, Q0, xi0) for system, Q0, xi0, _ in members)  # members at rest: ∞
     if not math.isfinite(tau):
         raise ValueError(
             "time_scale: the initial velocity does not move the configuration (L_xi0 Q0 = 0), so the "
