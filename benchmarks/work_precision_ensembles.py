@@ -6,8 +6,11 @@ initial conditions. Run through `work_precision.py`:
     python benchmarks/work_precision.py --long-horizon    # energy error over T = 1e5 for a few bodies
     python benchmarks/work_precision.py --long-horizon --horizon 1e6
     python benchmarks/work_precision.py --ensembles --quick   # smoke test (not a measurement)
+    python benchmarks/work_precision.py --ensembles --plans-only  # the accuracy plans alone
 
-written as `work_precision_ensembles.{json,png}` and `work_precision_long_horizon.{json,png}`.
+written as `work_precision_ensembles.{json,png}` and `work_precision_long_horizon.{json,png}`
+(`--plans-only`: `work_precision_ensemble_plans.{json,png}`: the reference and, per accuracy,
+the ensemble plan beside the plan piloted on the first member alone).
 
 **Scenes** (`work_precision.RigidBody` and `work_precision.VortexClusters`, their initial
 conditions and diagnostics):
@@ -472,6 +475,10 @@ def run_ensemble(scene, cfg, run, hy) -> dict:
             out["reference"] = {"method": f"diffrax Dopri8, rtol {wp.REFERENCE_RTOL:g}", "floor": None}
         out["reference"]["wall_s"] = time.perf_counter() - tic
 
+    if run.args.plans_only:
+        out["points"] = ours_plans(scene, cfg, run, y_ref, E0, budget)
+        return out
+
     if hy is not None:
         ens = HeyokaEnsemble(hy, scene, ts)
         out["heyoka_batch_size"] = ens.bs
@@ -541,58 +548,75 @@ def run_ensemble(scene, cfg, run, hy) -> dict:
 
 
 def ours_plans(scene, cfg, run, y_ref, E0, budget) -> list:
-    """Points of `cj.choose_step`'s plans (`cfg["plans"]`: accuracies at T): the plan made on the
-    first member, with the scene's sweep options, then the sweep of every member with the plan's
-    method and step (the other members' errors are not planned for). The pilot's wall time and
-    the plan's predicted error and work are recorded beside the point."""
+    """Points of the ensemble plans (`cfg["plans"]`: accuracies at T): `cj.choose_sweep_step` on
+    the scene's members with its sweep options (the pilot on the first member and the fastest
+    others), then the sweep of every member with the plan's method and step. With
+    `--plans-only` also the plan piloted on the first member alone (`members=[0]`, what
+    `choose_step` on member 0 gives; method label `plan_first`), for comparison. The pilot's wall
+    time, the members piloted and the plan's predicted error and work are recorded beside the
+    point, whose `global_error` is the worst member's."""
     points = []
+    kinds = (("plan", None), ("plan_first", [0])) if run.args.plans_only else (("plan", None),)
     for accuracy in cfg.get("plans", ()):
-        with run.case(f"{scene.name}: ours, the plan for accuracy {accuracy:g}"):
-            make_system, params, Q0, xi0, extra = scene.sweep_args()
-            P0 = extra.pop("P0", None)
-            first = dict(t_final=scene.T, accuracy=accuracy, P0=None if P0 is None else P0[0], **extra)
-            tic = time.perf_counter()
-            plan = cj.choose_step(make_system(params[0]), Q0[0], xi0[0], **first)
-            pilot_s = time.perf_counter() - tic
-            sweep = dict(P0=P0, grid=True, threads=1, **plan.integrate_options())
-            # native where the sweep takes the plan's method, as for the other points (the warm-up)
-            backend, why, tic = "native", None, time.perf_counter()
-            try:
-                cj.sweep(make_system, params, Q0, xi0, backend="native", **sweep)
-            except ValueError as err:
-                backend, why = "xla", str(err)
-                cj.sweep(make_system, params, Q0, xi0, backend="xla", **sweep)
-            warm, sweep["backend"] = time.perf_counter() - tic, backend
-            timing, res = time_calls(
-                run, lambda: cj.sweep(make_system, params, Q0, xi0, **sweep), f"plan {accuracy:g}", budget
-            )
-            e0 = np.asarray(res.initial["energy"])
-            p = {
-                "family": OURS,
-                "method": "plan",
-                "backend": backend,
-                "not_native_because": why,
-                "sweep_method": res.method,
-                "form": res.form,
-                "param_name": "accuracy",
-                "param": accuracy,
-                "planned_dt": plan.dt,
-                "steps": plan.n_steps,
-                "predicted_error": plan.predicted_error,
-                "predicted_work": plan.predicted_work,
-                "pilot_work": plan.pilot_work,
-                "pilot_s": pilot_s,
-                "warm_up_s": warm,
-                "valid": bool(np.all(res.succeeded)),
-                "newton_per_step": float(np.mean(res.newton_iterations)) / plan.n_steps,
-                "energy0_mismatch": float(np.max(np.abs(e0 - E0) / np.abs(E0))),
-                **timing,
-            }
-            if p["valid"]:
-                p.update(global_error(scene, scene.flat(scene.sweep_final(res)), y_ref))
-                p["energy_error"] = float(np.max(np.asarray(res.energy_error) / np.abs(e0)))
-            points.append(p)
+        for label, members in kinds:
+            with run.case(f"{scene.name}: ours, {label} for accuracy {accuracy:g}"):
+                points.append(_plan_point(scene, run, y_ref, E0, budget, accuracy, label, members))
     return points
+
+
+def _plan_point(scene, run, y_ref, E0, budget, accuracy, label, members) -> dict:
+    make_system, params, Q0, xi0, extra = scene.sweep_args()
+    P0 = extra.pop("P0", None)
+    ensemble = dict(P0=P0, grid=True)
+    pilot_s = []  # the first call compiles (or loads) the candidates' kernels, the second finds them
+    for _ in range(2):
+        tic = time.perf_counter()
+        plan = cj.choose_sweep_step(
+            make_system, params, Q0, xi0, t_final=scene.T, accuracy=accuracy, members=members, **ensemble, **extra
+        )
+        pilot_s.append(time.perf_counter() - tic)
+    load_after_pilot = load3()
+    sweep = dict(threads=1, **ensemble, **plan.integrate_options())
+    # native where the sweep takes the plan's method, as for the other points (the warm-up)
+    backend, why, tic = "native", None, time.perf_counter()
+    try:
+        cj.sweep(make_system, params, Q0, xi0, backend="native", **sweep)
+    except ValueError as err:
+        backend, why = "xla", str(err)
+        cj.sweep(make_system, params, Q0, xi0, backend="xla", **sweep)
+    warm, sweep["backend"] = time.perf_counter() - tic, backend
+    timing, res = time_calls(
+        run, lambda: cj.sweep(make_system, params, Q0, xi0, **sweep), f"{label} {accuracy:g}", budget
+    )
+    e0 = np.asarray(res.initial["energy"])
+    p = {
+        "family": OURS,
+        "method": label,
+        "backend": backend,
+        "not_native_because": why,
+        "sweep_method": res.method,
+        "form": res.form,
+        "param_name": "accuracy",
+        "param": accuracy,
+        "planned_dt": plan.dt,
+        "steps": plan.n_steps,
+        "piloted": list(plan.piloted),
+        "predicted_error": plan.predicted_error,
+        "predicted_work": plan.predicted_work,
+        "pilot_work": plan.pilot_work,
+        "pilot_s": pilot_s[0],
+        "pilot_warm_s": pilot_s[1],
+        "load_after_pilot": load_after_pilot,
+        "warm_up_s": warm,
+        "valid": bool(np.all(res.succeeded)),
+        "newton_per_step": float(np.mean(res.newton_iterations)) / plan.n_steps,
+        "energy0_mismatch": float(np.max(np.abs(e0 - E0) / np.abs(E0))),
+        **timing,
+    }
+    if p["valid"]:
+        p.update(global_error(scene, scene.flat(scene.sweep_final(res)), y_ref))
+        p["energy_error"] = float(np.max(np.asarray(res.energy_error) / np.abs(e0)))
+    return p
 
 
 def _wall(call) -> float:
@@ -800,6 +824,20 @@ def print_report(summary) -> None:
                 for p in sc["points"]
             ),
         )
+        plans = [p for p in sc["points"] if "piloted" in p]
+        if plans:
+            harness.print_table(
+                f"{'plan':<11}{'accuracy':>9}{'method':>26}{'dt':>8}{'predicted':>10}{'worst':>9}{'pilot [s]':>10}"
+                f"{'warm [s]':>10}  piloted",
+                (
+                    f"{p['method']:<11}{p['param']:>9.0e}{p['sweep_method'][:25]:>26}{p['planned_dt']:>8.3g}"
+                    f"{_e(p['predicted_error'], 10)}{_e(p.get('global_error'))}{p['pilot_s']:>10.3g}"
+                    f"{p['pilot_warm_s']:>10.3g}  {p['piloted']}"
+                    for p in plans
+                ),
+            )
+        if summary["config"].get("plans_only"):
+            continue  # no peers: no targets
         for tg in (summary["targets"][sc["scene"]], summary["targets_cpu"][sc["scene"]]):
             _print_targets(sc["scene"], tg)
 
@@ -957,6 +995,13 @@ def add_arguments(parser) -> None:
         "--scenes", nargs="+", choices=list(ENSEMBLES), default=None, help="run only these ensembles (default: both)"
     )
     parser.add_argument(
+        "--plans-only",
+        action="store_true",
+        dest="plans_only",
+        help="the reference and ours' accuracy plans only, each ensemble plan beside the plan piloted on "
+        "the first member (written as work_precision_ensemble_plans.{json,png})",
+    )
+    parser.add_argument(
         "--point-budget",
         type=float,
         default=None,
@@ -978,6 +1023,8 @@ def _horizon(argv) -> float:
 def main(argv) -> dict:
     long_horizon = "--long-horizon" in argv
     name = "work_precision_long_horizon" if long_horizon else "work_precision_ensembles"
+    if "--plans-only" in argv and not long_horizon:  # not the full run's files
+        name = "work_precision_ensemble_plans"
     horizon = _horizon(argv)
     if long_horizon and horizon != DEFAULT_HORIZON:  # another horizon does not replace the default's files
         name += f"_T{horizon:g}"
@@ -1020,6 +1067,7 @@ def main(argv) -> dict:
             tg = {r["scene"]: targets(r) for r in results}
             tg_cpu = {r["scene"]: targets(r, "cpu_s") for r in results}
             config = {"mode": "quick ensembles" if run.quick else "ensembles", "scenes": config}
+            config["plans_only"] = args.plans_only
     summary = run.summary(
         config={
             **config,

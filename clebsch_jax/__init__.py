@@ -27,6 +27,7 @@ from .batching.batch_last import batch as batch  # noqa: E402
 from .batching.sweep import SweepProgress as SweepProgress, SweepResult as SweepResult, sweep as sweep  # noqa: E402
 from .batching.store import SweepStoreError as SweepStoreError  # noqa: E402
 from .batching.store_read import open_sweep as open_sweep  # noqa: E402
+from .batching.ensemble_plan import choose_sweep_step as choose_sweep_step  # noqa: E402
 from .core.compilation_cache import enable_compilation_cache as enable_compilation_cache  # noqa: E402
 from .core.derivative_maps import (  # noqa: E402
     CayleyDifference as CayleyDifference,

@@ -6,6 +6,7 @@ committed measurements."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pathlib
@@ -40,12 +41,12 @@ t_final may sit in a trough of its oscillation), and a step is never taken beyon
 largest step of the asymptotic regime, which can leave a loose accuracy far undercut."""
 
 
-def _rigid_error(sol, T):
+def _rigid_error(sol, T, omega0=OMEGA0):
     """The plan's error measure at t_final against DOP853 (rtol 1e-13) of Euler's equations."""
-    Q_ref, omega_ref = rigid_body_reference(INERTIA, Q0_BODY, OMEGA0, np.array([0.0, T]))
+    Q_ref, omega_ref = rigid_body_reference(INERTIA, Q0_BODY, omega0, np.array([0.0, T]))
     mu, mu_ref = np.asarray(sol.momentum[-1]), INERTIA * omega_ref[-1]
     q_err = np.max(np.abs(np.asarray(sol.Q[-1]) - Q_ref[-1])) / np.max(np.abs(Q0_BODY))
-    return max(q_err, np.max(np.abs(mu - mu_ref)) / np.max(np.abs(INERTIA * OMEGA0)))
+    return max(q_err, np.max(np.abs(mu - mu_ref)) / np.max(np.abs(INERTIA * omega0)))
 
 
 def _kepler_exact(q0, v0, t):
@@ -135,15 +136,70 @@ def test_the_default_candidates_reach_the_accuracy(scene):
     assert tight.predicted_work == min(c.predicted_work for c in tight.candidates if c.predicted_work)
 
 
-@pytest.mark.slow  # compiles the sweep's program; the default run covers the plan through integrate
-def test_sweep_runs_the_plan_of_its_first_member(monkeypatch):
+@pytest.mark.slow  # compiles the sweep's program; the default run covers the plan through choose_sweep_step
+def test_sweep_runs_the_plan_of_its_ensemble(monkeypatch):
     monkeypatch.setattr(accuracy_module, "DEFAULT_CANDIDATES", ({},))
     omegas = np.stack([OMEGA0, [0.3, 0.2, 1.0]])
-    res = cj.sweep(RIGID, None, np.broadcast_to(Q0_BODY, (2, 3, 3)), omegas, t_final=100.0, accuracy=1e-3)
+    Q0s = np.broadcast_to(Q0_BODY, (2, 3, 3))
+    res = cj.sweep(RIGID, None, Q0s, omegas, t_final=100.0, accuracy=1e-3)
     plan = res.accuracy_plan
-    assert plan == cj.choose_step(RIGID, Q0_BODY, OMEGA0, t_final=100.0, accuracy=1e-3)
+    assert plan == cj.choose_sweep_step(RIGID, None, Q0s, omegas, t_final=100.0, accuracy=1e-3)
+    assert plan.piloted == (0, 1)
     assert res.n_steps == plan.n_steps and np.all(res.succeeded)
     np.testing.assert_allclose(res.final_t, 100.0, rtol=1e-12)
+
+
+def test_the_ensemble_plan_holds_for_a_faster_member():
+    """Member 1 is member 0's motion three times faster (ω → 3ω: the same orbit in a third of the
+    time, and a step h on it is the step 3h on member 0's), so a second-order method's error
+    constant is 3³ times member 0's. The plan piloted on the first member alone misses
+    `accuracy` on member 1 (against DOP853 at rtol 1e-13); the plan piloted on both meets it
+    on both, and the first member alone makes the same plan as `choose_step` on it."""
+    T, accuracy = 100.0, 1e-2
+    omegas = np.stack([OMEGA0, 3.0 * OMEGA0])
+    Q0s = np.broadcast_to(Q0_BODY, (2, 3, 3))
+    run = dict(t_final=T, accuracy=accuracy, candidates=({},), backend="xla")
+    first = cj.choose_sweep_step(RIGID, None, Q0s, omegas, members=[0], **run)
+    assert first == dataclasses.replace(cj.choose_step(RIGID, Q0_BODY, OMEGA0, **run), piloted=(0,))
+    ensemble = cj.choose_sweep_step(RIGID, None, Q0s, omegas, **run)
+    assert ensemble.piloted == (0, 1) and ensemble.predicted_error <= accuracy * (1 + 1e-12)
+    assert "piloted members: 0, 1" in ensemble.summary()
+
+    def error(plan, omega):
+        sol = cj.integrate(RIGID, Q0_BODY, omega, backend="xla", **plan.integrate_options())
+        return _rigid_error(sol, T, omega)
+
+    assert error(first, omegas[1]) > 5 * accuracy  # 3³ times the constant the plan was made for
+    for omega in omegas:
+        assert accuracy * BELOW <= error(ensemble, omega) <= accuracy, ensemble.summary()
+
+
+def test_the_pilot_samples_the_first_member_and_the_fastest():
+    """The rate of a body at Q = I is ‖L_ξ Q‖∞ / ‖Q‖∞ = max |ω_i| (L_ξ Q = Q ξ^), each member's
+    with its own inertia; the sample is the first member and the fastest others, in order."""
+    from clebsch_jax.batching.config import make_members
+    from clebsch_jax.batching.ensemble_plan import member_rates, pilot_members
+
+    omegas = np.array([[0.1, 0.2, 0.3], [1.0, 0.0, 0.0], [0.0, -2.0, 0.5], [0.0, 0.0, 0.2], [0.5, 0.5, 0.5]])
+    inertias = np.stack([INERTIA * (1 + k) for k in range(5)])
+    members = make_members(
+        cj.models.rigid_body, inertias, np.broadcast_to(Q0_BODY, (5, 3, 3)), omegas, None, 1.0, False
+    )
+    rates = member_rates(cj.models.rigid_body, members)
+    np.testing.assert_allclose(rates, np.max(np.abs(omegas), axis=1), rtol=1e-15)
+    assert pilot_members(rates, 3) == (0, 2, 1)
+    assert pilot_members(rates, 1) == (0,)
+    assert pilot_members(rates) == (0, 2, 1, 4, 3)
+    bad = make_members(
+        cj.models.rigid_body, inertias[:2], members.Q0[:2], np.array([[0.1, 0, 0], [np.nan, 1, 0]]), None, 1.0, False
+    )
+    assert np.isnan(member_rates(cj.models.rigid_body, bad)[1])
+    assert pilot_members(np.array([1.0, np.nan, 3.0, 0.0])) == (0, 2, 3)  # non-finite data: not piloted
+    with compiles_recorded() as compiled, pytest.raises(ValueError, match="members: expected indices"):
+        cj.choose_sweep_step(
+            cj.models.rigid_body, inertias, members.Q0, omegas, t_final=10.0, accuracy=1e-6, members=[0, 5]
+        )
+    assert compiled == []
 
 
 _BAD = {

@@ -26,7 +26,7 @@ KNOWN_PRIVATE_IMPORTS: set = set()
 
 BATCHING_LAYERS = """
 walk rules prune batch_native batch_last rows scalarise member fast lean backends config probe chunks_xla chunks_native tables schedule
-store_layout store_lock store store_read distributed choose sweep
+store_layout store_lock store store_read distributed choose ensemble_plan sweep
 """.split()
 """The modules of `clebsch_jax.batching` in the order of `docs/architecture.md`: each imports only
 modules before it."""

@@ -46,8 +46,9 @@ import numpy as np
 from ..core.validation import positive_int
 from . import choose, probe, schedule
 from .backends import check_backend
-from ..march.accuracy import METHOD_OPTIONS, plan_for_call, require_step
-from .config import chunk_config, check_run, check_size, first_row, make_members
+from ..march.accuracy import METHOD_OPTIONS, require_step
+from .config import chunk_config, check_run, check_size, make_members
+from .ensemble_plan import plan_for_sweep
 from .schedule import Plan, run_batches
 from .tables import SweepProgress, SweepResult, allocate_tables, place, result
 
@@ -120,9 +121,11 @@ def sweep(
     - `dt`: the time step, a positive scalar or one per member, shape (B,).
     - `n_steps`: steps per member (an int >= 1).
     - `t_final`, `accuracy`: instead of `dt` and `n_steps` (and the method options): one
-      `clebsch_jax.choose_step` plan, made on the first member (parameter row 0, initial
-      condition 0), run by every member; `SweepResult.accuracy_plan` records it. The other
-      members' errors are not measured: plan on a representative member.
+      plan (`clebsch_jax.choose_sweep_step`), its pilot run on the first member and the
+      `PILOT_MEMBERS` − 1 others that move fastest relative to their size, its step the one the
+      worst of them allows, run by every member; `SweepResult.accuracy_plan` records it and
+      which members were piloted (`piloted`). The other members' errors are not measured
+      (`clebsch_jax.batching.ensemble_plan` says what the sample sees and what not).
     - `P0`: optional initial multipliers, shape of `Q0`. Default: `initial_multiplier` of each
       member, as `integrate` does.
     - `grid`: False (default): member m uses row m of `params` and of the initial data (n_p =
@@ -239,9 +242,10 @@ def sweep(
     `invariants`, `options`, `n_steps`, `chunk_steps`, `save_every`: changing them recompiles,
     changing array values does not.
     """
-    if accuracy is not None or t_final is not None:  # one plan for all members, made on the first
+    if accuracy is not None or t_final is not None:  # one plan for all members, piloted on a sample of them
         given = dict(options, dt=dt, n_steps=n_steps)
-        plan = _first_member_plan(make_system, params, Q0, xi0, P0, grid, given, t_final, accuracy, backend)
+        arguments = dict(t_final=t_final, accuracy=accuracy, check_energy=options.get("check_energy", True))
+        plan = plan_for_sweep(make_system, params, Q0, xi0, P0, grid, given, **arguments, backend=backend)
         kept = {k: v for k, v in options.items() if k not in METHOD_OPTIONS}  # the stepper's fields now
         arguments = dict(grid=grid, invariants=invariants, chunk_steps=chunk_steps, batch_size=batch_size)
         arguments.update(save_every=save_every, member_chunk=member_chunk, devices=devices, progress=progress)
@@ -307,18 +311,6 @@ def sweep(
     if run.progress is True:
         print(file=sys.stderr, flush=True)
     return result(plan, tables, len(rows.devices), rows.fast_chunks)
-
-
-def _first_member_plan(make_system, params, Q0, xi0, P0, grid, given, t_final, accuracy, backend):
-    """`sweep`'s `AccuracyPlan` (`clebsch_jax.choose_step`), made on its first member."""
-    members = make_members(make_system, params, Q0, xi0, P0, 1.0, grid)  # the step is the plan's
-    row = first_row(members)
-    system = make_system if row is None else members.builder(row)
-    j = int(members.ic_index[0])
-    P0 = None if members.P0 is None else members.P0[j]
-    check_energy = given.get("check_energy", True)
-    arguments = dict(t_final=t_final, accuracy=accuracy, P0=P0, check_energy=check_energy, backend=backend)
-    return plan_for_call(system, members.Q0[j], members.xi0[j], given, **arguments)
 
 
 def _run_stored(plan: Plan, run, tables, *, store, client, overwrite: bool, report) -> SweepResult:

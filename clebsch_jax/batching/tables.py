@@ -60,8 +60,8 @@ class SweepResult:
       divided by `fast_chunks` × members per batch, the share of the work the general path
       redid. A table read from a store (`open_sweep`, also the result of a resumed or
       Dask-written stored sweep) does not keep these counts: 0.
-    - `accuracy_plan`: the `AccuracyPlan` of a sweep run with `accuracy=` (made on its first
-      member, `clebsch_jax.choose_step`); None otherwise.
+    - `accuracy_plan`: the `AccuracyPlan` of a sweep run with `accuracy=` (piloted on a sample
+      of its members, `accuracy_plan.piloted`: `clebsch_jax.choose_sweep_step`); None otherwise.
     """
 
     param_index: np.ndarray

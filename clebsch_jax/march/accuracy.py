@@ -1,5 +1,7 @@
 r"""Accuracy-driven choice of method and step: `choose_step`, and the `AccuracyPlan` it returns,
-which `integrate(..., t_final=T, accuracy=tol)` and `sweep(..., t_final=T, accuracy=tol)` run.
+which `integrate(..., t_final=T, accuracy=tol)` runs; `plan_members`, the same plan made on
+several trajectories at once, which `sweep(..., t_final=T, accuracy=tol)` runs on a sample of its
+members (`clebsch_jax.choose_sweep_step`, `clebsch_jax.batching.ensemble_plan`).
 
 **What `accuracy` means.** The relative max-norm error of the state at `t_final`,
 $$\max\Big(\frac{\|Q_h(T) - Q(T)\|_\infty}{\|Q^0\|_\infty},
@@ -37,8 +39,9 @@ at the tightest errors of both ensembles of `benchmarks/results/work_precision_e
 (64 rigid bodies to T = 10⁴, 16 four-vortex clusters to T = 10³). Their accuracy allows steps
 near the largest at which their stage sweeps still contract, a limit the pilot sees on one
 trajectory: a Gauss–Legendre plan keeps the sweeps' contraction factor, estimated from the
-pilot's sweep counts, at most `clebsch_jax.march.pilot.MAX_CONTRACTION` (`contraction_step`),
-so that members of an ensemble moving faster than the pilot's still converge. Compositions of
+pilot's sweep counts (the worst piloted member's), at most
+`clebsch_jax.march.pilot.MAX_CONTRACTION` (`contraction_step`), so that members of an ensemble
+moving faster than the piloted ones, and later parts of the run, still converge. Compositions of
 orders 4–8 are left out: in both ensembles a Gauss–Legendre point reached each of their errors
 for less time. The relative costs of a stage-sweep, a Newton solve, a Newton update and a
 step's other work are a fit to that file's native rigid-body points (`clebsch_jax.march.pilot`:
@@ -49,6 +52,9 @@ marches $T_p$ at least three times (7 $T_p / h_0$ = 7 × 64 steps with the defau
 halving doubles the last); the plan records its work (`pilot_work`) beside the run's. For runs
 much longer than $T_p$ it is a small fraction of the run; for a run as short as $T_p$ it costs
 more than the run: make the plan once (`choose_step`) and reuse it.
+
+**Several members** (`plan_members`): τ is the smallest of theirs, and at each pilot step the
+worst member decides (`clebsch_jax.march.pilot.run_pilot`); the pilot's work is their sum.
 
 **Limits.** The linear growth holds for integrable and near-integrable motion (rigid bodies,
 Kepler, regular vortex motion) up to $t \sim h^{-p}$. In chaotic motion errors grow
@@ -88,6 +94,7 @@ __all__ = [
     "Candidate",
     "choose_step",
     "plan_for_call",
+    "plan_members",
     "require_step",
     "DEFAULT_CANDIDATES",
     "MIN_ACCURACY",
@@ -152,7 +159,9 @@ class AccuracyPlan:
     - `predicted_work`: the run's work in Gauss stage-sweeps (`clebsch_jax.march.pilot`);
       `pilot_work`: the pilot's, in the same unit;
     - `time_scale`, `pilot_horizon`: τ and the pilot's horizon;
-    - `candidates`: every `Candidate`, in the order compared.
+    - `candidates`: every `Candidate`, in the order compared;
+    - `piloted`: the members of an ensemble the pilot marched (`clebsch_jax.choose_sweep_step`:
+      their indices in the sweep, the first member first), None for one trajectory.
 
     `plan.integrate_options()` gives `method`, `dt` and `n_steps` for `integrate` or `sweep`."""
 
@@ -170,13 +179,15 @@ class AccuracyPlan:
     time_scale: float
     pilot_horizon: float
     candidates: tuple
+    piloted: tuple | None = None
 
     def integrate_options(self) -> dict:
         """`method`, `dt` and `n_steps`, to pass to `integrate` or `sweep`."""
         return {"method": self.method, "dt": self.dt, "n_steps": self.n_steps}
 
     def summary(self) -> str:
-        """A table of the candidates: order, constant, step, steps, predicted error and work."""
+        """A table of the candidates: order, constant, step, steps, predicted error and work (and
+        the members piloted, for an ensemble's plan)."""
         rows = [f"{'candidate':<34} {'p':>2} {'C':>9} {'dt':>9} {'steps':>9} {'error':>9} {'work':>10}"]
         for c in self.candidates:
             if c.predicted_work is None:
@@ -187,6 +198,8 @@ class AccuracyPlan:
                 f"{c.name:<34} {c.order:>2} {c.constant:9.2e} {c.dt:9.3g} {c.n_steps:9d} "
                 f"{c.predicted_error:9.2e} {c.predicted_work:10.4g}{mark}"
             )
+        if self.piloted is not None:
+            rows.append(f"piloted members: {', '.join(map(str, self.piloted))}")
         return "\n".join(rows)
 
 
@@ -226,10 +239,16 @@ def plan_for_call(system, Q0, xi0, given: dict, **arguments) -> AccuracyPlan:
     """`integrate`'s or `sweep`'s plan: `given` (their options) checked against `accuracy=`
     (`check_replaced`), those of `METHOD_OPTIONS` not at their defaults passed on to
     `choose_step` with `arguments`."""
+    return choose_step(system, Q0, xi0, **arguments, **method_options(given, arguments))
+
+
+def method_options(given: dict, arguments: dict) -> dict:
+    """The accuracy arguments checked, `given` (`integrate`'s or `sweep`'s options) checked
+    against `accuracy=` (`check_replaced`), and those of `METHOD_OPTIONS` not at their defaults:
+    what the plan passes on to the candidates."""
     check_accuracy(arguments.get("accuracy"), arguments.get("t_final"), arguments.get("t0", 0.0))
     check_replaced(given)
-    options = {k: v for k, v in given.items() if k in METHOD_OPTIONS and not _is_default(v, METHOD_OPTIONS[k])}
-    return choose_step(system, Q0, xi0, **arguments, **options)
+    return {k: v for k, v in given.items() if k in METHOD_OPTIONS and not _is_default(v, METHOD_OPTIONS[k])}
 
 
 def _is_default(value, default) -> bool:
@@ -311,7 +330,31 @@ def choose_step(
       `need_P`, `reconstruct`, `rtol`, `atol`, `max_newton_iterations`, `jacobian`).
 
     **Returns:** an `AccuracyPlan`. Raises a `ValueError` when no candidate's pilot resolved an
-    error constant (each one's reason is in the message)."""
+    error constant (each one's reason is in the message). For an ensemble, plan on a sample of
+    its members with `clebsch_jax.choose_sweep_step`."""
+    return plan_members(
+        [(system, Q0, xi0, P0)], t_final=t_final, accuracy=accuracy, t0=t0, candidates=candidates,
+        time_scale=time_scale, check_energy=check_energy, backend=backend, **options,
+    )  # fmt: skip
+
+
+def plan_members(
+    members,
+    *,
+    t_final,
+    accuracy,
+    t0=0.0,
+    candidates=None,
+    time_scale: float | None = None,
+    check_energy=True,
+    backend: str = "auto",
+    piloted: tuple | None = None,
+    **options,
+) -> AccuracyPlan:
+    """`choose_step`'s plan made on several trajectories at once, its step to hold for each:
+    `members` a sequence of (system, Q0, xi0, P0), the candidates resolved on the first, τ the
+    smallest of theirs; each marched with the same stepper (one compiled program) at every
+    pilot step, the worst deciding (`run_pilot`). `piloted` is recorded on the plan."""
     from .integrate import integrate  # the pilot marches with integrate, which imports this module
 
     accuracy, horizon = check_accuracy(accuracy, t_final, t0)
@@ -327,28 +370,34 @@ def choose_step(
         isinstance(time_scale, bool) or not isinstance(time_scale, numbers.Real) or not time_scale > 0
     ):
         raise ValueError(f"time_scale: expected a positive number, got {time_scale!r}.")
-    if not isinstance(system, ClebschSystem):
-        raise TypeError(f"system: expected a clebsch_jax.ClebschSystem, got {type(system).__name__}.")
-    if any_traced(system, Q0, xi0, P0):
-        raise ValueError(
-            "accuracy: the plan runs a pilot and needs concrete Q0, xi0 and system (not inside jit, vmap "
-            "or grad); call clebsch_jax.choose_step outside and pass method=, dt= and n_steps= inside."
-        )
-    Q0, xi0 = float_array(Q0, "Q0"), float_array(xi0, "xi0")
+    checked = []
+    for system, Q0, xi0, P0 in members:
+        if not isinstance(system, ClebschSystem):
+            raise TypeError(f"system: expected a clebsch_jax.ClebschSystem, got {type(system).__name__}.")
+        if any_traced(system, Q0, xi0, P0):
+            raise ValueError(
+                "accuracy: the plan runs a pilot and needs concrete Q0, xi0 and system (not inside jit, vmap "
+                "or grad); call clebsch_jax.choose_step outside and pass method=, dt= and n_steps= inside."
+            )
+        checked.append((system, float_array(Q0, "Q0"), float_array(xi0, "xi0"), P0))
+    system, Q0, xi0, _ = checked[0]
     resolved = [_resolve(system, Q0, xi0, spec, options) for spec in candidates]
     if all(stepper is None for stepper, _ in resolved):  # refused before anything is evaluated
         why = "; ".join(f"{r.name}: {r.reason}" for _, r in resolved)
         raise ValueError(f"accuracy: no candidate method's pilot resolved its error ({why}).")
-    tau = float(time_scale) if time_scale is not None else _time_scale(system, Q0, xi0)
+    tau = float(time_scale) if time_scale is not None else _time_scale(checked)
     pilot_horizon = min(horizon, PILOT_TIME_SCALES * tau)
     h0 = pilot_horizon / max(PILOT_MIN_STEPS, math.ceil(pilot_horizon / (PILOT_FIRST_STEP * tau)))
     t0 = float(np.asarray(t0))
 
     def march(stepper, dt, n_steps):
-        return integrate(
-            system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, method=stepper,
-            throw=False, check_energy=check_energy, backend=backend,
-        )  # fmt: skip
+        return [
+            integrate(
+                system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, method=stepper,
+                throw=False, check_energy=check_energy, backend=backend,
+            )
+            for system, Q0, xi0, P0 in checked
+        ]  # fmt: skip
 
     rows, best = [], None
     for spec, (stepper, refused) in zip(candidates, resolved):
@@ -366,12 +415,12 @@ def choose_step(
     row, stepper = best
     return AccuracyPlan(
         stepper, row.name, row.order, row.dt, row.n_steps, t0, t0 + horizon, accuracy,
-        row.predicted_error, row.predicted_work, pilot_work, tau, pilot_horizon, tuple(rows),
+        row.predicted_error, row.predicted_work, pilot_work, tau, pilot_horizon, tuple(rows), piloted,
     )  # fmt: skip
 
 
-def _time_scale(system, Q0, xi0) -> float:
-    tau = time_scale(system, Q0, xi0)
+def _time_scale(members) -> float:
+    tau = min(time_scale(system, Q0, xi0) for system, Q0, xi0, _ in members)  # members at rest: ∞
     if not math.isfinite(tau):
         raise ValueError(
             "time_scale: the initial velocity does not move the configuration (L_xi0 Q0 = 0), so the "

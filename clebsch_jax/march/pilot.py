@@ -187,34 +187,37 @@ def _envelope(d, ts, t0) -> float:
 
 
 def run_pilot(march, stepper, system, order: int, t0: float, horizon: float, h0: float) -> Measured:
-    """March `stepper` over `horizon` at h0, h0/2, h0/4, … (`march(stepper, dt, n_steps)` → a
-    `Solution`, not raising) until a pair of differences shows the asymptotic regime (observed
-    order ≥ `order` − `ORDER_SLACK`) or reaches round-off; a failed run at the largest step is
-    dropped and the next halving taken. Returns what it measured (`Measured`)."""
+    """March `stepper` over `horizon` at h0, h0/2, h0/4, … (`march(stepper, dt, n_steps)` → one
+    `Solution` per member piloted, not raising) until a pair of differences shows the asymptotic
+    regime (observed order ≥ `order` − `ORDER_SLACK`) or reaches round-off; a run in which a
+    member failed at the largest step is dropped and the next halving taken. With several
+    members the worst one decides at every node and step: the differences are the largest of
+    the members' (each relative to its own sizes), the iterations per step the largest mean,
+    and the work their sum. Returns what it measured (`Measured`)."""
     n0 = max(1, round(horizon / h0))
     runs, steps, iterations, work = [], [], [], 0.0
     envelopes, reason, scales = [], "", None
     for k in range(PILOT_HALVINGS + 3):
         n = n0 * 2**k
         h = horizon / n
-        sol = march(stepper, h, n)
-        its = float(np.mean(np.asarray(sol.stats.iterations)))
-        work += n * work_per_step(stepper, system, its)
-        if int(np.asarray(sol.result)) != Status.SUCCESS:
+        sols = march(stepper, h, n)
+        its = [float(np.mean(np.asarray(sol.stats.iterations))) for sol in sols]
+        work += sum(n * work_per_step(stepper, system, i) for i in its)
+        if any(int(np.asarray(sol.result)) != Status.SUCCESS for sol in sols):
             if runs:  # a failure at a smaller step than one that succeeded: the method breaks down here
                 return Measured(None, None, None, tuple(steps), tuple(iterations), work, f"failed at step {h:.3g}")
             continue  # too large a step: halve it
-        nodes = (None if sol.Q is None else np.asarray(sol.Q), np.asarray(sol.momentum))
+        nodes = [(None if sol.Q is None else np.asarray(sol.Q), np.asarray(sol.momentum)) for sol in sols]
         stride = n // n0
-        if scales is None:  # the sizes of Q⁰ and μ⁰
-            scales = (1.0 if nodes[0] is None else _scale(nodes[0][0]), _scale(nodes[1][0]))
-        runs.append(tuple(None if x is None else x[::stride] for x in nodes))
+        if scales is None:  # the sizes of each member's Q⁰ and μ⁰
+            scales = [(1.0 if Q is None else _scale(Q[0]), _scale(m[0])) for Q, m in nodes]
+        runs.append([tuple(None if x is None else x[::stride] for x in member) for member in nodes])
         steps.append(h)
-        iterations.append(its)
+        iterations.append(max(its))
         if len(runs) < 2:
             continue
         ts = t0 + np.arange(n0 + 1) * (horizon / n0)
-        d = state_error(runs[-2], runs[-1], scales)
+        d = np.max([state_error(a, b, s) for a, b, s in zip(runs[-2], runs[-1], scales)], axis=0)
         envelopes.append(_envelope(d, ts, t0))
         floor = ROUNDOFF_FLOOR * np.finfo(float).eps * math.sqrt(n) / horizon
         h_coarse = steps[-2]
