@@ -9,8 +9,9 @@ member-major.
 A `Workspace` keeps those rows for the calls one thread makes: without it every call takes
 fresh memory, whose first writes fault its pages in (inside the kernel, where two threads'
 faults also wait for each other). With it a call reuses the rows of the call before the last
-one, and an input that is a carry output of the last call (`results` returns those as views
-of its rows) is read in place instead of copied.
+one, an input that is a carry output of the last call (`results` returns those as views
+of its rows) is read in place instead of copied, and an input that repeats one member (a
+broadcast view) is not written again into rows that hold that member already.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ class Workspace:
         self._rows: dict = {}
         self._addresses: dict = {}  # id(rows) -> (rows, the address of their data)
         self._returned: dict = {}  # id(output) -> (output, its rows): the last call's carry outputs
+        self._filled: dict = {}  # key -> what its input rows hold, where they repeat one member
         self._set = 0
 
     def next_set(self) -> int:
@@ -51,6 +53,7 @@ class Workspace:
         if found is None or found.shape != shape or found.dtype != dtype:
             if found is not None:
                 self._addresses.pop(id(found), None)
+            self._filled.pop(key, None)
             found = self._rows[key] = np.empty(shape, dtype)
             self._addresses[id(found)] = (found, found.ctypes.data)
         return found
@@ -70,11 +73,23 @@ class Workspace:
         found = self._returned.get(id(a))
         return found[1] if found is not None and found[0] is a else None
 
+    def holds(self, key, member) -> bool:
+        """Whether the input rows under `key` hold `member` (see `fill`) in every lane."""
+        return self._filled.get(key) == member
+
+    def fill(self, key, member) -> None:
+        """Record that the input rows under `key` now hold `member` in every lane (None: other
+        values). Only `input_rows` writes input rows, so they keep it until it writes them again."""
+        if member is None:
+            self._filled.pop(key, None)
+        else:
+            self._filled[key] = member
+
     def trim(self, keep: int) -> None:
         """Let go of the rows when they take more than `keep` bytes (the next call makes them
         again); the arrays a caller still holds stay valid."""
         if sum(a.nbytes for a in self._rows.values()) > keep:
-            self._rows, self._addresses, self._returned = {}, {}, {}
+            self._rows, self._addresses, self._returned, self._filled = {}, {}, {}, {}
 
 
 SPARE_MAX_BYTES = 1 << 25
@@ -162,8 +177,14 @@ def input_rows(arrays, layout: list, batched: list, B: int, stride: int, workspa
             buffers.append(own)
             continue
         rows = take(("in", j), (size, stride), storage)
-        rows[:, :B] = view
-        rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
+        # one member repeated (a broadcast view, e.g. a carry's zeros): rows that hold it already,
+        # from this thread's last batch or call, are not written again
+        member = (B, stride, a.dtype.str, a[0].tobytes()) if workspace is not None and a.strides[0] == 0 else None
+        if member is None or not workspace.holds(("in", j), member):
+            rows[:, :B] = view
+            rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
+            if workspace is not None:
+                workspace.fill(("in", j), member)
         buffers.append(rows)
     return buffers
 
