@@ -160,8 +160,12 @@ def _on_device(device, tree):
 
 
 def _host_rows(a, idx: np.ndarray):
-    """`a[idx]`, a view where `idx` is a run of consecutive rows (a batch without padding)."""
+    """`a[idx]`, a view where `idx` is a run of consecutive rows (a batch without padding) or
+    `a` repeats one row (a broadcast view: so does any choice of its rows)."""
     n = len(idx)
+    a = np.asarray(a)
+    if n and a.ndim and len(a) and a.strides[0] == 0:
+        return np.broadcast_to(a[:1], (n,) + a.shape[1:])
     if n and np.array_equal(idx, np.arange(idx[0], idx[0] + n)):
         return a[int(idx[0]) : int(idx[0]) + n]
     return a[idx]
