@@ -35,7 +35,7 @@ from . import TooLarge, refused, remember_refusal
 from .fingerprint import cache_dir
 from .fingerprint import read as _read
 from .fingerprint import write as _write
-from .layout import input_rows, output_rows, results
+from .layout import input_rows, output_rows, prefetch_next_block, results
 
 __all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir", "cache_key"]
 
@@ -168,8 +168,12 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
         )
 
     batched = [True] * len(closed.jaxpr.invars) if batched is None else list(batched)
-    if carries is None and width > 1:
-        _prefetch_next_block(module, b, entry, arrays, stride, offset, closed.jaxpr, batched, em.rows, width)
+    if carries is None and width > 1:  # the next block's rows, asked for while this block runs
+        n_in = len(closed.jaxpr.invars)
+        spec = lambda j, v: (j, int(np.prod(v.aval.shape, dtype=int)), _storage(v.aval.dtype).itemsize)  # noqa: E731
+        ins = [spec(j, v) for j, v in enumerate(closed.jaxpr.invars) if batched[j]]
+        outs = [] if em.rows else [spec(n_in + j, v) for j, v in enumerate(closed.jaxpr.outvars)]  # not `Rows`
+        prefetch_next_block(b, entry, arrays, stride, b.add(offset, ir.Constant(i64, width)), ins, outs)
     args = []
     for j, v in enumerate(closed.jaxpr.invars):
         dtype = np.dtype(v.aval.dtype)
@@ -219,72 +223,6 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
     b.ret(ir.Constant(i64, 0))
     em.close_entry(head)
     return str(module)
-
-
-def _prefetch_next_block(
-    module, b, entry, arrays, stride, offset, jaxpr, batched: list, has_rows: bool, width: int
-) -> None:
-    """Ask the CPU for the next block's entries of every batched input (to read) and output (to
-    write) while this block runs. Each entry is a row of its own, so a block touches one cache
-    line in each of many rows far apart: too many streams for the hardware's prefetchers, and
-    every line missed would stall the block's first loads and last stores. A prefetch changes no
-    value; past the last block it reads nothing (prefetches do not fault). The prefetches are
-    two loops over a table of the arrays (index, entries, bytes per entry), so the IR does not
-    grow with the member's entries. Skipped for outputs where they may be `Rows` (written in
-    loops of their own)."""
-    from llvmlite import ir
-
-    i8, i32, i64 = ir.IntType(8), ir.IntType(32), ir.IntType(64)
-    fn = module.globals.get("llvm.prefetch.p0") or ir.Function(
-        module, ir.FunctionType(ir.VoidType(), [ir.PointerType(), i32, i32, i32]), "llvm.prefetch.p0"
-    )
-    n_in = len(jaxpr.invars)
-    spec = lambda j, v: (j, int(np.prod(v.aval.shape, dtype=int)), _storage(v.aval.dtype).itemsize)  # noqa: E731
-    ins = [spec(j, v) for j, v in enumerate(jaxpr.invars) if batched[j]]
-    outs = [] if has_rows else [spec(n_in + j, v) for j, v in enumerate(jaxpr.outvars)]
-    ahead = b.add(offset, ir.Constant(i64, width))
-    for write, specs in ((0, ins), (1, outs)):
-        specs = [s for s in specs if s[1]]
-        if not specs:
-            continue
-        table_type = ir.ArrayType(i64, 3 * len(specs))
-        table = ir.GlobalVariable(module, table_type, f"prefetch.table.{write}")
-        table.global_constant, table.linkage = True, "private"
-        table.initializer = ir.Constant(table_type, [x for s in specs for x in s])
-
-        def at(i, k, table=table, table_type=table_type):
-            """Entry k of the table's row i."""
-            k = b.add(b.mul(i, ir.Constant(i64, 3)), ir.Constant(i64, k))
-            return b.load(b.gep(table, [ir.Constant(i64, 0), k], source_etype=table_type), typ=i64)
-
-        body = b.block
-        b.position_at_end(entry)  # counters as allocas of the entry block (LLVM makes them registers)
-        i_at, e_at = b.alloca(i64), b.alloca(i64)
-        b.position_at_end(body)
-        outer, inner, next_, done = (
-            b.append_basic_block(f"prefetch.{write}.{x}") for x in ("array", "entry", "next", "done")
-        )
-        b.store(ir.Constant(i64, 0), i_at)
-        b.branch(outer)
-        b.position_at_end(outer)
-        i = b.load(i_at, typ=i64)
-        j, size, itemsize = at(i, 0), at(i, 1), at(i, 2)
-        data = b.load(b.gep(arrays, [j], source_etype=ir.PointerType()), typ=ir.PointerType())
-        b.store(ir.Constant(i64, 0), e_at)
-        b.branch(inner)
-        b.position_at_end(inner)
-        e = b.load(e_at, typ=i64)
-        byte = b.mul(b.add(b.mul(e, stride), ahead), itemsize)
-        b.call(
-            fn,
-            [b.gep(data, [byte], source_etype=i8), ir.Constant(i32, write), ir.Constant(i32, 3), ir.Constant(i32, 1)],
-        )
-        b.store(b.add(e, ir.Constant(i64, 1)), e_at)
-        b.cbranch(b.icmp_signed("<", b.add(e, ir.Constant(i64, 1)), size), inner, next_)
-        b.position_at_end(next_)
-        b.store(b.add(i, ir.Constant(i64, 1)), i_at)
-        b.cbranch(b.icmp_signed("<", b.add(i, ir.Constant(i64, 1)), ir.Constant(i64, len(specs))), outer, done)
-        b.position_at_end(done)
 
 
 _SOURCE: list = []

@@ -12,6 +12,10 @@ faults also wait for each other). With it a call reuses the rows of the call bef
 one, an input that is a carry output of the last call (`results` returns those as views
 of its rows) is read in place instead of copied, and an input that repeats one member (a
 broadcast view) is not written again into rows that hold that member already.
+
+`prefetch_next_block` emits, in a kernel's loop over blocks, the prefetches of the next block's
+rows (a block reads one cache line of each of its inputs' rows and writes one of each
+output's).
 """
 
 from __future__ import annotations
@@ -21,7 +25,16 @@ import threading
 
 import numpy as np
 
-__all__ = ["Workspace", "SpareRows", "SPARE_ROWS", "aligned_empty", "input_rows", "output_rows", "results"]
+__all__ = [
+    "Workspace",
+    "SpareRows",
+    "SPARE_ROWS",
+    "aligned_empty",
+    "input_rows",
+    "output_rows",
+    "results",
+    "prefetch_next_block",
+]
 
 ALIGNMENT = 64
 """Bytes: `jax.device_put` of a contiguous NumPy array aligned so takes its memory as it is (on
@@ -231,3 +244,64 @@ def results(outs: list, layout: list, dtypes: list, n_carry: int, B: int, stride
             r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
         result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))
     return result
+
+
+def prefetch_next_block(b, entry, arrays, stride, ahead, ins: list, outs: list) -> None:
+    """Emit, with the IR builder `b` in a kernel's block body (`clebsch_jax.native.kernel`), the
+    prefetches of the next block's entries: of the inputs `ins` to read, of the outputs `outs`
+    to write, each a list of (array index, entries, bytes per entry); `ahead` is the next
+    block's first member. Each entry is a row of its own, so a block touches one cache line in
+    each of many rows far apart: too many streams for the hardware's prefetchers, and every
+    line missed would stall the block's first loads and last stores. A prefetch changes no
+    value, and past the last block it reads nothing (prefetches do not fault). Two loops over a
+    constant table of the arrays, so the IR does not grow with the member's entries; their
+    counters are allocas of the `entry` block (LLVM makes them registers)."""
+    from llvmlite import ir
+
+    i8, i32, i64 = ir.IntType(8), ir.IntType(32), ir.IntType(64)
+    module = b.module
+    fn = module.globals.get("llvm.prefetch.p0") or ir.Function(
+        module, ir.FunctionType(ir.VoidType(), [ir.PointerType(), i32, i32, i32]), "llvm.prefetch.p0"
+    )
+    for write, specs in ((0, ins), (1, outs)):
+        specs = [s for s in specs if s[1]]
+        if not specs:
+            continue
+        table_type = ir.ArrayType(i64, 3 * len(specs))
+        table = ir.GlobalVariable(module, table_type, f"prefetch.table.{write}")
+        table.global_constant, table.linkage = True, "private"
+        table.initializer = ir.Constant(table_type, [x for s in specs for x in s])
+
+        def at(i, k, table=table, table_type=table_type):
+            """Entry k of the table's row i."""
+            k = b.add(b.mul(i, ir.Constant(i64, 3)), ir.Constant(i64, k))
+            return b.load(b.gep(table, [ir.Constant(i64, 0), k], source_etype=table_type), typ=i64)
+
+        body = b.block
+        b.position_at_end(entry)
+        i_at, e_at = b.alloca(i64), b.alloca(i64)
+        b.position_at_end(body)
+        outer, inner, next_, done = (
+            b.append_basic_block(f"prefetch.{write}.{x}") for x in ("array", "entry", "next", "done")
+        )
+        b.store(ir.Constant(i64, 0), i_at)
+        b.branch(outer)
+        b.position_at_end(outer)
+        i = b.load(i_at, typ=i64)
+        j, size, itemsize = at(i, 0), at(i, 1), at(i, 2)
+        data = b.load(b.gep(arrays, [j], source_etype=ir.PointerType()), typ=ir.PointerType())
+        b.store(ir.Constant(i64, 0), e_at)
+        b.branch(inner)
+        b.position_at_end(inner)
+        e = b.load(e_at, typ=i64)
+        byte = b.mul(b.add(b.mul(e, stride), ahead), itemsize)
+        b.call(
+            fn,
+            [b.gep(data, [byte], source_etype=i8), ir.Constant(i32, write), ir.Constant(i32, 3), ir.Constant(i32, 1)],
+        )
+        b.store(b.add(e, ir.Constant(i64, 1)), e_at)
+        b.cbranch(b.icmp_signed("<", b.add(e, ir.Constant(i64, 1)), size), inner, next_)
+        b.position_at_end(next_)
+        b.store(b.add(i, ir.Constant(i64, 1)), i_at)
+        b.cbranch(b.icmp_signed("<", b.add(i, ir.Constant(i64, 1)), ir.Constant(i64, len(specs))), outer, done)
+        b.position_at_end(done)
