@@ -253,55 +253,41 @@ def prefetch_next_block(b, entry, arrays, stride, ahead, ins: list, outs: list) 
     block's first member. Each entry is a row of its own, so a block touches one cache line in
     each of many rows far apart: too many streams for the hardware's prefetchers, and every
     line missed would stall the block's first loads and last stores. A prefetch changes no
-    value, and past the last block it reads nothing (prefetches do not fault). Two loops over a
-    constant table of the arrays, so the IR does not grow with the member's entries; their
-    counters are allocas of the `entry` block (LLVM makes them registers)."""
+    value, and past the last block it reads nothing (prefetches do not fault). Two loops over
+    constant tables of the rows (array, entry, bytes per entry), so the IR does not grow with
+    the member's entries; their counters are allocas of the `entry` block (LLVM makes them
+    registers)."""
     from llvmlite import ir
 
     i8, i32, i64 = ir.IntType(8), ir.IntType(32), ir.IntType(64)
-    module = b.module
+    module, triple = b.module, ir.ArrayType(i64, 3)
     fn = module.globals.get("llvm.prefetch.p0") or ir.Function(
         module, ir.FunctionType(ir.VoidType(), [ir.PointerType(), i32, i32, i32]), "llvm.prefetch.p0"
     )
     for write, specs in ((0, ins), (1, outs)):
-        specs = [s for s in specs if s[1]]
-        if not specs:
+        rows = [(j, e, itemsize) for j, size, itemsize in specs for e in range(size)]
+        if not rows:
             continue
-        table_type = ir.ArrayType(i64, 3 * len(specs))
-        table = ir.GlobalVariable(module, table_type, f"prefetch.table.{write}")
+        table_type = ir.ArrayType(triple, len(rows))
+        table = ir.GlobalVariable(module, table_type, f"prefetch.rows.{write}")
         table.global_constant, table.linkage = True, "private"
-        table.initializer = ir.Constant(table_type, [x for s in specs for x in s])
-
-        def at(i, k, table=table, table_type=table_type):
-            """Entry k of the table's row i."""
-            k = b.add(b.mul(i, ir.Constant(i64, 3)), ir.Constant(i64, k))
-            return b.load(b.gep(table, [ir.Constant(i64, 0), k], source_etype=table_type), typ=i64)
-
+        table.initializer = ir.Constant(table_type, [ir.Constant(triple, list(r)) for r in rows])
         body = b.block
         b.position_at_end(entry)
-        i_at, e_at = b.alloca(i64), b.alloca(i64)
+        at = b.alloca(i64)
         b.position_at_end(body)
-        outer, inner, next_, done = (
-            b.append_basic_block(f"prefetch.{write}.{x}") for x in ("array", "entry", "next", "done")
+        loop, done = b.append_basic_block(f"prefetch.{write}"), b.append_basic_block(f"prefetch.{write}.done")
+        b.store(ir.Constant(i64, 0), at)
+        b.branch(loop)
+        b.position_at_end(loop)
+        r = b.load(at, typ=i64)
+        j, e, itemsize = (
+            b.load(b.gep(table, [ir.Constant(i64, 0), r, ir.Constant(i32, k)], source_etype=table_type), typ=i64)
+            for k in range(3)
         )
-        b.store(ir.Constant(i64, 0), i_at)
-        b.branch(outer)
-        b.position_at_end(outer)
-        i = b.load(i_at, typ=i64)
-        j, size, itemsize = at(i, 0), at(i, 1), at(i, 2)
         data = b.load(b.gep(arrays, [j], source_etype=ir.PointerType()), typ=ir.PointerType())
-        b.store(ir.Constant(i64, 0), e_at)
-        b.branch(inner)
-        b.position_at_end(inner)
-        e = b.load(e_at, typ=i64)
         byte = b.mul(b.add(b.mul(e, stride), ahead), itemsize)
-        b.call(
-            fn,
-            [b.gep(data, [byte], source_etype=i8), ir.Constant(i32, write), ir.Constant(i32, 3), ir.Constant(i32, 1)],
-        )
-        b.store(b.add(e, ir.Constant(i64, 1)), e_at)
-        b.cbranch(b.icmp_signed("<", b.add(e, ir.Constant(i64, 1)), size), inner, next_)
-        b.position_at_end(next_)
-        b.store(b.add(i, ir.Constant(i64, 1)), i_at)
-        b.cbranch(b.icmp_signed("<", b.add(i, ir.Constant(i64, 1)), ir.Constant(i64, len(specs))), outer, done)
+        b.call(fn, [b.gep(data, [byte], source_etype=i8), *(ir.Constant(i32, x) for x in (write, 3, 1))])
+        b.store(b.add(r, ir.Constant(i64, 1)), at)
+        b.cbranch(b.icmp_signed("<", b.add(r, ir.Constant(i64, 1)), ir.Constant(i64, len(rows))), loop, done)
         b.position_at_end(done)
