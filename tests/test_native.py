@@ -276,6 +276,31 @@ def test_a_workspace_reuses_rows_and_reads_the_last_calls_outputs_in_place():
         assert np.array_equal(a, b)
 
 
+def test_a_workspace_writes_a_repeated_member_again_only_when_it_changed():
+    """An input that repeats one member (a broadcast view, as a sweep's zeros and shared Q0) is
+    not copied again into rows that hold it already: calls with a workspace on a sequence of
+    broadcast members — the same one again, another value, 0.0 after -0.0, another batch size,
+    an array that is not a broadcast, then the first member again — give the bits of the same
+    calls without a workspace (1/x tells -0.0 from 0.0)."""
+    from clebsch_jax.native.layout import Workspace
+
+    def f(x, y):
+        return 1.0 / x + y, x * y
+
+    y = np.random.default_rng(3).standard_normal((1001, 3))
+    u, v = np.array([0.5, -2.0, 3.0]), np.array([0.5, -2.0, 3.5])
+    g = compile_member(f, u, y[0], use_cache=False)
+    ws = Workspace()
+    wide = lambda m, n=1001: np.broadcast_to(m, (n, 3))  # noqa: E731
+    calls = [wide(u), wide(u), wide(v), wide(-0.0 * u), wide(0.0 * u), wide(u, 999), y + 1.0, wide(u)]
+    for x in calls:
+        n = len(x)
+        plain, reused = g(x, y[:n]), g(x, y[:n], workspace=ws)
+        for a, b in zip(plain, reused):
+            assert np.array_equal(a, b, equal_nan=True)
+            assert np.array_equal(np.signbit(a), np.signbit(b))
+
+
 def test_indexing_by_values_agrees_with_xla():
     """Indices known while translating and indices that differ from lane to lane, in range and
     out of it (clamped or filled as XLA does), by selects (few places) and by lane loads

@@ -29,7 +29,7 @@ from ..march.carry import start as march_start
 from ..march.energy_check import node_energy
 from ..march.integrate import check_member as _check_member_eagerly
 from ..march.arguments import prepared_method
-from ..native.fingerprint import fingerprint, values_digest
+from ..native.fingerprint import fingerprint, stored_entries, values_digest
 from .config import Config, Members, chunk_integrate, first_row, member_slices, system_of
 from .lean import carries_Q as _lean_carries_Q
 from .member import march_start_values
@@ -120,9 +120,10 @@ def check_first_member(cfg: Config, members: Members) -> tuple | None:
 
 def _finite_rows(a) -> np.ndarray:
     """Whether each row of `a` (its leading axis) is finite: the whole array at once first (the
-    usual case, without a reduction per row), row by row only when that finds a non-finite value."""
+    usual case, without a reduction per row; a broadcast view by the entries it stores), row by
+    row only when that finds a non-finite value."""
     a = np.asarray(a)
-    if np.isfinite(a).all():
+    if np.isfinite(stored_entries(a)[1]).all():
         return np.ones(len(a), bool)
     return np.all(np.isfinite(np.reshape(a, (len(a), -1))), axis=1)
 

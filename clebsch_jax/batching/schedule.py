@@ -25,7 +25,7 @@ from typing import Callable, NamedTuple
 import jax
 import numpy as np
 
-from ..core.jit import QUICK_COMPILE, jit_with_options
+from ..core.jit import QUICK_COMPILE, jit_with_options, memo
 from ..core.validation import positive_int
 from ..native.layout import Workspace
 from . import chunks_xla, tables
@@ -160,16 +160,20 @@ def _on_device(device, tree):
 
 
 def _host_rows(a, idx: np.ndarray):
-    """`a[idx]`, a view where `idx` is a run of consecutive rows (a batch without padding)."""
+    """`a[idx]`, a view where `idx` is a run of consecutive rows (no padding) or `a` repeats one row."""
     n = len(idx)
+    a = np.asarray(a)
+    if n and a.ndim and len(a) and a.strides[0] == 0:
+        return np.broadcast_to(a[:1], (n,) + a.shape[1:])
     if n and np.array_equal(idx, np.arange(idx[0], idx[0] + n)):
         return a[int(idx[0]) : int(idx[0]) + n]
     return a[idx]
 
 
 def _broadcast(shape: tuple, value, dtype) -> np.ndarray:
-    """A read-only array of `shape` filled with `value`: one entry broadcast."""
-    return np.broadcast_to(np.asarray(value, dtype), shape)
+    """A read-only array of `shape` filled with `value`: one entry broadcast, one view for every batch."""
+    make = lambda: np.broadcast_to(np.asarray(value, dtype), shape)  # noqa: E731
+    return memo(_BROADCASTS, (shape, value, np.dtype(dtype).str), make, 256)
 
 
 def batch_rows(b: int, batch_size: int, B: int) -> slice:
@@ -471,6 +475,7 @@ warm sweep's system time) — larger ones, batches of large members, are let go,
 process does not hold them."""
 
 _WORKERS: list = []  # [the pool, its threads]
+_BROADCASTS: dict = {}  # `_broadcast`'s views
 _WORKERS_LOCK = threading.Lock()
 _ROWS = threading.local()
 

@@ -238,6 +238,17 @@ def fingerprint(obj) -> str | None:
         return None
 
 
+def stored_entries(a: np.ndarray) -> tuple:
+    """`(axes, view)`: the axes along which `a` repeats its entries (a broadcast view,
+    `np.broadcast_to`: stride 0 and length > 1) and `a` cut to one entry along them, a view of
+    the entries it stores. Whatever holds for every entry of the view holds for every entry of
+    `a`."""
+    repeated = tuple(k for k, (n, stride) in enumerate(zip(a.shape, a.strides)) if n > 1 and stride == 0)
+    if not repeated:
+        return repeated, a
+    return repeated, a[tuple(slice(0, 1) if k in repeated else slice(None) for k in range(a.ndim))]
+
+
 def values_digest(tree) -> str:
     """A hex digest of the leaves of a pytree of concrete arrays: dtypes, shapes and bytes. Equal
     digests mean equal values; a broadcast view and a copy of it have different ones."""
@@ -249,12 +260,11 @@ def values_digest(tree) -> str:
     for x in leaves:
         a = np.asarray(x)
         h.update(f"{a.dtype}{a.shape}".encode())
-        # a broadcast view (`np.broadcast_to`: stride 0 along some axes) by the entries it
-        # repeats and those axes: the same values, without copying and hashing the repeats
-        repeated = tuple(k for k, (n, stride) in enumerate(zip(a.shape, a.strides)) if n > 1 and stride == 0)
+        # a broadcast view by the entries it repeats and those axes: the same values, without
+        # copying and hashing the repeats
+        repeated, a = stored_entries(a)
         if repeated:
             h.update(f"repeated along {repeated}".encode())
-            a = a[tuple(slice(0, 1) if k in repeated else slice(None) for k in range(a.ndim))]
         h.update(np.ascontiguousarray(a).data)  # the bytes, without a copy of them (tobytes)
     return h.hexdigest()
 

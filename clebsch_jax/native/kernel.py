@@ -35,7 +35,7 @@ from . import TooLarge, refused, remember_refusal
 from .fingerprint import cache_dir
 from .fingerprint import read as _read
 from .fingerprint import write as _write
-from .layout import input_rows, output_rows, results
+from .layout import input_rows, output_rows, prefetch_next_block, results
 
 __all__ = ["Kernel", "build_ir", "compile_ir", "host_lanes", "cache_dir", "cache_key"]
 
@@ -168,6 +168,12 @@ def build_ir(closed, width: int, batched=None, carries: int | None = None, limit
         )
 
     batched = [True] * len(closed.jaxpr.invars) if batched is None else list(batched)
+    if carries is None and width > 1:  # the next block's rows, asked for while this block runs
+        n_in = len(closed.jaxpr.invars)
+        spec = lambda j, v: (j, int(np.prod(v.aval.shape, dtype=int)), _storage(v.aval.dtype).itemsize)  # noqa: E731
+        ins = [spec(j, v) for j, v in enumerate(closed.jaxpr.invars) if batched[j]]
+        outs = [] if em.rows else [spec(n_in + j, v) for j, v in enumerate(closed.jaxpr.outvars)]  # not `Rows`
+        prefetch_next_block(b, entry, arrays, stride, b.add(offset, ir.Constant(i64, width)), ins, outs)
     args = []
     for j, v in enumerate(closed.jaxpr.invars):
         dtype = np.dtype(v.aval.dtype)

@@ -9,8 +9,13 @@ member-major.
 A `Workspace` keeps those rows for the calls one thread makes: without it every call takes
 fresh memory, whose first writes fault its pages in (inside the kernel, where two threads'
 faults also wait for each other). With it a call reuses the rows of the call before the last
-one, and an input that is a carry output of the last call (`results` returns those as views
-of its rows) is read in place instead of copied.
+one, an input that is a carry output of the last call (`results` returns those as views
+of its rows) is read in place instead of copied, and an input that repeats one member (a
+broadcast view) is not written again into rows that hold that member already.
+
+`prefetch_next_block` emits, in a kernel's loop over blocks, the prefetches of the next block's
+rows (a block reads one cache line of each of its inputs' rows and writes one of each
+output's).
 """
 
 from __future__ import annotations
@@ -20,7 +25,16 @@ import threading
 
 import numpy as np
 
-__all__ = ["Workspace", "SpareRows", "SPARE_ROWS", "aligned_empty", "input_rows", "output_rows", "results"]
+__all__ = [
+    "Workspace",
+    "SpareRows",
+    "SPARE_ROWS",
+    "aligned_empty",
+    "input_rows",
+    "output_rows",
+    "results",
+    "prefetch_next_block",
+]
 
 ALIGNMENT = 64
 """Bytes: `jax.device_put` of a contiguous NumPy array aligned so takes its memory as it is (on
@@ -38,6 +52,7 @@ class Workspace:
         self._rows: dict = {}
         self._addresses: dict = {}  # id(rows) -> (rows, the address of their data)
         self._returned: dict = {}  # id(output) -> (output, its rows): the last call's carry outputs
+        self._filled: dict = {}  # key -> what its input rows hold, where they repeat one member
         self._set = 0
 
     def next_set(self) -> int:
@@ -51,6 +66,7 @@ class Workspace:
         if found is None or found.shape != shape or found.dtype != dtype:
             if found is not None:
                 self._addresses.pop(id(found), None)
+            self._filled.pop(key, None)
             found = self._rows[key] = np.empty(shape, dtype)
             self._addresses[id(found)] = (found, found.ctypes.data)
         return found
@@ -70,11 +86,23 @@ class Workspace:
         found = self._returned.get(id(a))
         return found[1] if found is not None and found[0] is a else None
 
+    def holds(self, key, member) -> bool:
+        """Whether the input rows under `key` hold `member` (see `fill`) in every lane."""
+        return self._filled.get(key) == member
+
+    def fill(self, key, member) -> None:
+        """Record that the input rows under `key` now hold `member` in every lane (None: other
+        values). Only `input_rows` writes input rows, so they keep it until it writes them again."""
+        if member is None:
+            self._filled.pop(key, None)
+        else:
+            self._filled[key] = member
+
     def trim(self, keep: int) -> None:
         """Let go of the rows when they take more than `keep` bytes (the next call makes them
         again); the arrays a caller still holds stay valid."""
         if sum(a.nbytes for a in self._rows.values()) > keep:
-            self._rows, self._addresses, self._returned = {}, {}, {}
+            self._rows, self._addresses, self._returned, self._filled = {}, {}, {}, {}
 
 
 SPARE_MAX_BYTES = 1 << 25
@@ -162,8 +190,14 @@ def input_rows(arrays, layout: list, batched: list, B: int, stride: int, workspa
             buffers.append(own)
             continue
         rows = take(("in", j), (size, stride), storage)
-        rows[:, :B] = view
-        rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
+        # one member repeated (a broadcast view, e.g. a carry's zeros): rows that hold it already,
+        # from this thread's last batch or call, are not written again
+        member = (B, stride, a.dtype.str, a[0].tobytes()) if workspace is not None and a.strides[0] == 0 else None
+        if member is None or not workspace.holds(("in", j), member):
+            rows[:, :B] = view
+            rows[:, B:] = rows[:, B - 1 : B]  # padding lanes repeat the last member
+            if workspace is not None:
+                workspace.fill(("in", j), member)
         buffers.append(rows)
     return buffers
 
@@ -210,3 +244,50 @@ def results(outs: list, layout: list, dtypes: list, n_carry: int, B: int, stride
             r = rows[:, :B].reshape(capacity, size, B).transpose(2, 0, 1).reshape((B, capacity) + shape)
         result.append(r.astype(np.bool_) if dtype == np.bool_ else np.ascontiguousarray(r))
     return result
+
+
+def prefetch_next_block(b, entry, arrays, stride, ahead, ins: list, outs: list) -> None:
+    """Emit, with the IR builder `b` in a kernel's block body (`clebsch_jax.native.kernel`), the
+    prefetches of the next block's entries: of the inputs `ins` to read, of the outputs `outs`
+    to write, each a list of (array index, entries, bytes per entry); `ahead` is the next
+    block's first member. Each entry is a row of its own, so a block touches one cache line in
+    each of many rows far apart: too many streams for the hardware's prefetchers, and every
+    line missed would stall the block's first loads and last stores. A prefetch changes no
+    value, and past the last block it reads nothing (prefetches do not fault). Two loops over
+    constant tables of the rows (array, entry, bytes per entry), so the IR does not grow with
+    the member's entries; their counters are allocas of the `entry` block (LLVM makes them
+    registers)."""
+    from llvmlite import ir
+
+    i8, i32, i64 = ir.IntType(8), ir.IntType(32), ir.IntType(64)
+    module, triple = b.module, ir.ArrayType(i64, 3)
+    fn = module.globals.get("llvm.prefetch.p0") or ir.Function(
+        module, ir.FunctionType(ir.VoidType(), [ir.PointerType(), i32, i32, i32]), "llvm.prefetch.p0"
+    )
+    for write, specs in ((0, ins), (1, outs)):
+        rows = [(j, e, itemsize) for j, size, itemsize in specs for e in range(size)]
+        if not rows:
+            continue
+        table_type = ir.ArrayType(triple, len(rows))
+        table = ir.GlobalVariable(module, table_type, f"prefetch.rows.{write}")
+        table.global_constant, table.linkage = True, "private"
+        table.initializer = ir.Constant(table_type, [ir.Constant(triple, list(r)) for r in rows])
+        body = b.block
+        b.position_at_end(entry)
+        at = b.alloca(i64)
+        b.position_at_end(body)
+        loop, done = b.append_basic_block(f"prefetch.{write}"), b.append_basic_block(f"prefetch.{write}.done")
+        b.store(ir.Constant(i64, 0), at)
+        b.branch(loop)
+        b.position_at_end(loop)
+        r = b.load(at, typ=i64)
+        j, e, itemsize = (
+            b.load(b.gep(table, [ir.Constant(i64, 0), r, ir.Constant(i32, k)], source_etype=table_type), typ=i64)
+            for k in range(3)
+        )
+        data = b.load(b.gep(arrays, [j], source_etype=ir.PointerType()), typ=ir.PointerType())
+        byte = b.mul(b.add(b.mul(e, stride), ahead), itemsize)
+        b.call(fn, [b.gep(data, [byte], source_etype=i8), *(ir.Constant(i32, x) for x in (write, 3, 1))])
+        b.store(b.add(r, ir.Constant(i64, 1)), at)
+        b.cbranch(b.icmp_signed("<", b.add(r, ir.Constant(i64, 1)), ir.Constant(i64, len(rows))), loop, done)
+        b.position_at_end(done)
