@@ -115,6 +115,7 @@ class Emitter:
         self.entries = 0
         self.rows = False  # whether long arrays are held as `clebsch_jax.native.rows.Rows`
         self._arena = None  # (pointer, size constant patched by `finish`, bytes used)
+        self.stored: dict = {}  # arrays stored for lane loads, by block and entries (`indexing.stored`)
 
     def count(self, entries: int) -> None:
         """Entries translated so far: a program past `limit` is refused (`TooLarge`)."""
