@@ -116,7 +116,8 @@ def attribute(closed, width, batched) -> dict:
                 total, inner = inserted[0] - start, stack.pop()
                 if stack:
                     stack[-1] += total
-                where = (name, source_info_util.summarize(eqn.source_info).replace(ROOT, ""))
+                info = getattr(eqn, "source_info", None)  # a fused loop's row equation has none
+                where = (name, "" if info is None else source_info_util.summarize(info).replace(ROOT, ""))
                 own[where] += total - inner
                 held[where] += total
 
@@ -137,11 +138,14 @@ def attribute(closed, width, batched) -> dict:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("cases", nargs="*", default=list(CASES), choices=list(CASES))
+    parser.add_argument("cases", nargs="*", help=f"some of {', '.join(CASES)} (default: all)")
     parser.add_argument("--top", type=int, default=25, help="rows of each table")
     args = parser.parse_args(argv)
+    unknown = [c for c in args.cases if c not in CASES]
+    if unknown:
+        parser.error(f"unknown cases {unknown}: choose from {list(CASES)}")
     found = {}
-    for case in args.cases:
+    for case in args.cases or list(CASES):
         closed, width, batched = member_program(case)
         r = found[case] = attribute(closed, width, batched)
         print(f"\n== {case}: {r['lines']} lines of IR ({width} lanes)")
