@@ -335,6 +335,34 @@ def test_lane_gathers_read_one_stored_copy_per_block_and_agree_with_xla():
     assert three - one < 2 * n * n
 
 
+def test_a_loops_invariant_operand_is_stored_once_before_the_loop_and_agrees_with_xla():
+    """Rows of a matrix computed before a `while` loop, read in its body at run-time rows that
+    differ from lane to lane, for a number of iterations that differs too (a triangular solve's
+    rows against its fixed matrix): the matrix is stored for the lanes' gathers before the loop,
+    not in every iteration, and the values are XLA's bit for bit."""
+    from clebsch_jax.native.kernel import build_ir
+
+    n = 12
+
+    def f(M, x, start, count):
+        A = M * 2.0  # computed before the loop
+
+        def body(c):
+            i, y = c
+            return i + 1, y * 0.5 + A[(start + 5 * i) % n]
+
+        return jax.lax.while_loop(lambda c: c[0] < count, body, (jnp.int32(0), x))[1]
+
+    rng = np.random.default_rng(8)
+    M, x = rng.standard_normal((B, n, n)), rng.standard_normal((B, n))
+    start, count = rng.integers(0, n, B).astype(np.int32), rng.integers(0, 9, B).astype(np.int32)
+    native = compile_member(f, M[0], x[0], start[0], count[0], use_cache=False)(M, x, start, count)
+    _agree(native, jax.vmap(f)(M, x, start, count), rtol=0, atol=0)
+    text = build_ir(jax.make_jaxpr(f)(M[0], x[0], start[0], count[0]), 4)
+    before, loop = text.split("while.head:", 1)
+    assert before.count(" store ") >= n * n and loop.count(" store ") < n * n  # the carries: a few
+
+
 def test_a_power_with_an_integer_exponent_agrees_with_xla():
     """`x ** n` with a float base and an integer exponent that differs from lane to lane (JAX's
     `pow` with operands of two types): the exponent is converted to the base's type and the

@@ -245,6 +245,14 @@ def _while(em: Emitter, eqn, args):
     dtypes = [np.dtype(v.aval.dtype) for v in body_in]
     phi = _as_phis(init, fixed)
     slots = None if phi else _slots(em, init, dtypes, fixed)
+    em.enter_loop(em.b.block)
+    try:
+        return _while_emit(em, eqn, cconsts, bconsts, init, cond_j, body_j, fixed, dtypes, phi, slots)
+    finally:
+        em.exit_loop()
+
+
+def _while_emit(em, eqn, cconsts, bconsts, init, cond_j, body_j, fixed, dtypes, phi, slots):
     b = em.b
     fn = b.function
     head, body, done = (
@@ -379,6 +387,7 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
     counter = em.alloca(i64)
     b.store(ir.Constant(i64, 0), counter)
     fn = b.function
+    em.enter_loop(b.block)  # until its exit, after the loop
     head, body, done = (
         fn.append_basic_block("scan.head"),
         fn.append_basic_block("scan.body"),
@@ -418,6 +427,7 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
         _back(em, phis, outs[:ncar], cur, dtypes, None)  # from the block that branches back
     b.branch(head)
     b.position_at_end(done)
+    em.exit_loop()
     carry = cur if phi else _load(em, slots, init, dtypes)
     if long:
         return carry + y_slots

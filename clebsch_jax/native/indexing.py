@@ -6,10 +6,11 @@ positions, computed once, and costs no code. Indices computed at run time differ
 lane; two forms, by the number of places an index vector can reach:
 
 - a few places (`SELECT_STARTS`): each place's value, selected lane by lane;
-- more: the operand is stored to a lane-major array on the stack, once per block
-  (`stored`), and each entry read is one gather of every lane's own place
-  (`llvm.masked.gather`): a few lines of IR per entry, not a load and an insert per lane.
-  Loads are copies, so the values are those of any other form bit for bit.
+- more: the operand is stored to a lane-major array on the stack once (`stored`: before the
+  outermost loop being emitted that computes none of it, else once per block), and each
+  entry read is one gather of every lane's own place (`llvm.masked.gather`): a few lines of
+  IR per entry, not a load and an insert per lane. Loads are copies, so the values are those
+  of any other form bit for bit.
 
 Indices are clamped (`CLIP`, `PROMISE_IN_BOUNDS`, dynamic slices) or out-of-range entries
 filled (`FILL_OR_DROP`) as XLA does.
@@ -68,17 +69,23 @@ class _Stored:
     lane's entry read by one masked gather (`llvm.masked.gather`, all lanes on), or, for
     booleans (i1 vectors are stored packed), by a scalar load per lane."""
 
-    def __init__(self, em: Emitter, a: np.ndarray, dtype):
+    def __init__(self, em: Emitter, a: np.ndarray, dtype, before: ir.Block | None = None):
+        """`before`: a block (ended) at whose end, before its branch, `a` is stored; else here."""
         self.em, self.dtype, self.flat = em, np.dtype(dtype), a.reshape(-1)
         self.scalar = em.vtype(dtype).element
         self.type = ir.ArrayType(self.scalar, self.flat.size * em.W)
         self.ptr = em.alloca(self.type)
         self._scaled: dict = {}
+        here = em.b.block
+        if before is not None:
+            em.b.position_before(before.terminator)
         zero = ir.Constant(ir.IntType(64), 0)
         for k, e in enumerate(self.flat):
             at = em.b.gep(self.ptr, [zero, ir.Constant(ir.IntType(64), k * em.W)], source_etype=self.type)
             at = em.b.bitcast(at, em.vtype(dtype).as_pointer())
             em.b.store(em.vec(e, dtype), at, align=self.dtype.itemsize)
+        if before is not None:
+            em.b.position_at_end(here)
 
     def load(self, flat_index, offset: int = 0):
         """Each lane's entry at its own flat index (an i64 vector, in range) plus `offset`."""
@@ -89,11 +96,12 @@ class _Stored:
                 flat_index = b.add(flat_index, _ivec(em, i64, offset))
             return self._scalar_loads(flat_index)
         # lane l of entry i sits at i·W + l: the lanes' scaled base, once per index vector
-        scaled = self._scaled.get(id(flat_index))
+        key = (b.block, id(flat_index))  # computed where it is used (the copy may be before a loop)
+        scaled = self._scaled.get(key)
         if scaled is None:
             lanes = ir.Constant(ir.VectorType(i64, em.W), [ir.Constant(i64, lane) for lane in range(em.W)])
             scaled = b.add(b.mul(flat_index, _ivec(em, i64, em.W)), lanes)
-            self._scaled[id(flat_index)] = (scaled, flat_index)
+            self._scaled[key] = (scaled, flat_index)
         else:
             scaled = scaled[0]
         at = b.add(scaled, _ivec(em, i64, offset * em.W)) if offset else scaled
@@ -138,15 +146,23 @@ def _gather_intrinsic(em: Emitter, dtype):
 
 
 def stored(em: Emitter, a: np.ndarray, dtype) -> _Stored:
-    """`a` stored for lane loads (`_Stored`), once per block: an array stored before in the
-    block being emitted (whose store then precedes every load here) is read again from there."""
+    """`a` stored for lane loads (`_Stored`), once: before the outermost loop being emitted
+    (`Emitter.loops`) whose blocks compute none of its entries (a loop's invariant operand,
+    the matrix of a triangular solve's rows), else in the block being emitted; an array stored
+    before at that place (which precedes every load here) is read again from there."""
     dtype = np.dtype(dtype)
-    key = (em.b.block, dtype, a.shape) + tuple(
-        ("known", np.asarray(e).dtype.str, np.asarray(e).tobytes()) if is_known(e) else id(e) for e in a.reshape(-1)
+    flat = a.reshape(-1)
+    at, before = em.b.block, None
+    for pre, outside in em.loops:
+        if all(not isinstance(e, ir.Instruction) or id(e.parent) in outside for e in flat):
+            at = before = pre
+            break
+    key = (at, dtype, a.shape) + tuple(
+        ("known", np.asarray(e).dtype.str, np.asarray(e).tobytes()) if is_known(e) else id(e) for e in flat
     )
     found = em.stored.get(key)
     if found is None:
-        found = em.stored[key] = _Stored(em, a, dtype)  # holds the entries: their ids stay theirs
+        found = em.stored[key] = _Stored(em, a, dtype, before)  # holds the entries: their ids stay theirs
     return found
 
 
