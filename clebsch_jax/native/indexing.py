@@ -65,12 +65,11 @@ def _clamp(em: Emitter, x, lo: int, hi: int):
 
 
 class _Stored:
-    """An entry array stored lane-major on the stack ([size · W] scalars), for lane loads: each
-    lane's entry read by one masked gather (`llvm.masked.gather`, all lanes on), or, for
-    booleans (i1 vectors are stored packed), by a scalar load per lane."""
+    """An entry array stored lane-major on the stack ([size · W] scalars), read by one masked
+    gather per entry (all lanes on), or a scalar load per lane for booleans (stored packed)."""
 
     def __init__(self, em: Emitter, a: np.ndarray, dtype, before: ir.Block | None = None):
-        """`before`: a block (ended) at whose end, before its branch, `a` is stored; else here."""
+        """`before`: a block (ended) where `a` is stored, before its branch; else here."""
         self.em, self.dtype, self.flat = em, np.dtype(dtype), a.reshape(-1)
         self.scalar = em.vtype(dtype).element
         self.type = ir.ArrayType(self.scalar, self.flat.size * em.W)
@@ -113,7 +112,7 @@ class _Stored:
                 pointers,
                 ir.Constant(ir.IntType(32), self.dtype.itemsize),
                 em.const(True, np.bool_),
-                _undef(em, self.dtype),
+                ir.Constant(em.vtype(self.dtype), ir.Undefined),
             ],
         )
 
@@ -127,10 +126,6 @@ class _Stored:
             x = b.load(b.gep(self.ptr, [zero, at], source_etype=self.type), typ=self.scalar)
             out = b.insert_element(out, x, ir.Constant(ir.IntType(32), lane))
         return out
-
-
-def _undef(em: Emitter, dtype):
-    return ir.Constant(em.vtype(dtype), ir.Undefined)
 
 
 def _gather_intrinsic(em: Emitter, dtype):
