@@ -329,6 +329,65 @@ def test_indexing_by_values_agrees_with_xla():
     _agree(native, jax.vmap(f)(x, i, j, M), rtol=0, atol=0)
 
 
+def test_lane_gathers_read_one_stored_copy_per_block_and_agree_with_xla():
+    """Indices reaching more places than `SELECT_STARTS` are lane gathers from one stored copy
+    of the operand (the row swap and pivot rows of an LU step at run-time rows): XLA's values
+    bit for bit, clamped as XLA clamps, floats and integers; three slices of one matrix in one
+    block store it once."""
+    from clebsch_jax.native.indexing import SELECT_STARTS
+    from clebsch_jax.native.kernel import build_ir
+
+    n = 16
+    assert n > SELECT_STARTS
+
+    def step(M, perm, p, k):
+        swap = jnp.where(jnp.arange(n) == k, p, jnp.where(jnp.arange(n) == p, k, jnp.arange(n)))
+        return M[swap], perm[swap], M[p], M[:, k], M[(p + 1) % n, k]
+
+    rng = np.random.default_rng(9)
+    M = rng.standard_normal((B, n, n))
+    perm = np.stack([rng.permutation(n) for _ in range(B)]).astype(np.int32)
+    p, k = rng.integers(-2, n + 2, B).astype(np.int32), rng.integers(0, n, B).astype(np.int32)
+    native = compile_member(step, M[0], perm[0], p[0], k[0], use_cache=False)(M, perm, p, k)
+    _agree(native, jax.vmap(step)(M, perm, p, k), rtol=0, atol=0)
+
+    lines = lambda f: build_ir(jax.make_jaxpr(f)(M[0], p[0]), 4).count("\n")
+    one = lines(lambda M, p: M[p])
+    three = lines(lambda M, p: (M[p], M[:, p], M[(p + 1) % n]))
+    assert "llvm.masked.gather" in build_ir(jax.make_jaxpr(lambda M, p: M[p])(M[0], p[0]), 4)
+    # each more copy would store n² entries (a few lines each); loads from the first copy cost
+    # lines per entry read, n of them per slice
+    assert three - one < 2 * n * n
+
+
+def test_a_loops_invariant_operand_is_stored_once_before_the_loop_and_agrees_with_xla():
+    """Rows of a matrix computed before a `while` loop, read in its body at run-time rows that
+    differ from lane to lane, for a number of iterations that differs too (a triangular solve's
+    rows against its fixed matrix): the matrix is stored for the lanes' gathers before the loop,
+    not in every iteration, and the values are XLA's bit for bit."""
+    from clebsch_jax.native.kernel import build_ir
+
+    n = 12
+
+    def f(M, x, start, count):
+        A = M * 2.0  # computed before the loop
+
+        def body(c):
+            i, y = c
+            return i + 1, y * 0.5 + A[(start + 5 * i) % n]
+
+        return jax.lax.while_loop(lambda c: c[0] < count, body, (jnp.int32(0), x))[1]
+
+    rng = np.random.default_rng(8)
+    M, x = rng.standard_normal((B, n, n)), rng.standard_normal((B, n))
+    start, count = rng.integers(0, n, B).astype(np.int32), rng.integers(0, 9, B).astype(np.int32)
+    native = compile_member(f, M[0], x[0], start[0], count[0], use_cache=False)(M, x, start, count)
+    _agree(native, jax.vmap(f)(M, x, start, count), rtol=0, atol=0)
+    text = build_ir(jax.make_jaxpr(f)(M[0], x[0], start[0], count[0]), 4)
+    before, loop = text.split("while.head:", 1)
+    assert before.count(" store ") >= n * n and loop.count(" store ") < n * n  # the carries: a few
+
+
 def test_a_power_with_an_integer_exponent_agrees_with_xla():
     """`x ** n` with a float base and an integer exponent that differs from lane to lane (JAX's
     `pow` with operands of two types): the exponent is converted to the base's type and the
@@ -650,21 +709,32 @@ def test_a_scatter_at_a_run_time_column_agrees_with_xla():
     _agree(native, jax.vmap(f)(M, v, k), rtol=0, atol=0)
 
 
-@pytest.mark.slow  # LLVM compiles this kernel in tens of seconds; the default run covers the
-# rolled loops and the run-time scatters it needs with the two tests above
-def test_native_sweep_of_landmarks_equals_the_xla_sweep():
+@pytest.mark.slow  # XLA compiles the landmarks' sweep in about ten seconds; the default run covers
+# the looped LU's lane gathers and run-time scatters with test_lane_gathers_read_one_stored_copy_per_block_and_agree_with_xla
+# and test_a_scatter_at_a_run_time_column_agrees_with_xla
+def test_landmarks_sweep_runs_natively_under_auto_and_equals_the_xla_sweep():
     """Three landmarks in the plane (the full march, 18 unknowns: its LU factorisations run as
-    loops with column updates at run-time indices) on both backends."""
+    loops with row swaps by lane gathers and column updates at run-time indices): "auto"
+    compiles the kernel (within `AUTO_MAX_IR_LINES`, no fallback), the same table bit for bit
+    as `backend="native"`, and XLA's to 1e-12 relative with the same statuses."""
     from clebsch_jax.models import landmark_velocity
 
     rng = np.random.default_rng(1)
     q0 = rng.standard_normal((3, 3, 2))
     xi0 = np.asarray(jax.vmap(landmark_velocity)(q0, 0.3 * rng.standard_normal((3, 3, 2))))
     kw = dict(dt=0.02, n_steps=20, chunk_steps=10)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NativeFallbackWarning)
+        auto = cj.sweep(cj.models.landmarks, np.ones(3), q0, xi0, backend="auto", **kw)
     native = cj.sweep(cj.models.landmarks, np.ones(3), q0, xi0, backend="native", **kw)
+    for key in ("final_Q", "final_p", "final_xi", "energy_error", "newton_iterations", "status"):
+        assert np.asarray(getattr(auto, key)).tobytes() == np.asarray(getattr(native, key)).tobytes(), key
     xla = cj.sweep(cj.models.landmarks, np.ones(3), q0, xi0, backend="xla", **kw)
-    _compare(native, xla)
-    assert np.all(native.succeeded)
+    _compare(auto, xla)
+    for key in ("final_Q", "final_p", "final_xi"):
+        a, b = np.asarray(getattr(auto, key)), np.asarray(getattr(xla, key))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.max(np.abs(b)), err_msg=key)
+    assert np.all(auto.succeeded)
 
 
 def test_a_placement_inside_the_program_is_the_identity():

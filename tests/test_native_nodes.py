@@ -159,8 +159,8 @@ def _landmark_march(q0, xi0, dt, n_steps=N_LONG):
 @pytest.mark.slow  # LLVM compiles the landmarks' kernel in tens of seconds, XLA its batch; the
 # default run covers the nodes' loops with test_a_loop_per_node_runs_as_a_loop_over_the_nodes
 def test_landmarks_past_50_steps_run_natively_and_equal_xla():
-    """Three landmarks in the plane: the kernel does not grow with the steps; its step alone is
-    past "auto"'s budget of IR lines, so the kernel is asked for (`backend="native"`)."""
+    """Three landmarks in the plane: the kernel does not grow with the steps (asked for with
+    `backend="native"`; within "auto"'s budget of IR lines too)."""
     from clebsch_jax.models import landmark_velocity
 
     from .test_epdiff import LANDMARK_P0, LANDMARK_Q0

@@ -5,9 +5,8 @@
   loop does; its body is emitted under the mask of the lanes still iterating, so that loops
   nested in it stop when those lanes are done. A condition with an entry per element of the
   carries' leading axes (`jax.vmap` of a loop inside the member's program) holds while any
-  entry does, and an element whose entry is false keeps its carry, as XLA's loop does. A loop
-  at the kernel's top level whose condition every lane computes alike (`uniform`) keeps no
-  carry per lane.
+  entry does, and an element whose entry is false keeps its carry, as XLA's loop does; one at
+  the kernel's top level whose condition every lane computes alike (`uniform`) keeps none.
 - `scan`: a counted loop (the count is the same in every lane); the carry is phis in the
   loop's head (as for `while`), the per-iteration inputs and outputs in arrays indexed by the
   counter. Short scans are unrolled, unless unrolling would take the program past
@@ -247,6 +246,7 @@ def _while(em: Emitter, eqn, args):
     slots = None if phi else _slots(em, init, dtypes, fixed)
     b = em.b
     fn = b.function
+    em.enter_loop(b.block)  # until its exit, after the loop
     head, body, done = (
         fn.append_basic_block("while.head"),
         fn.append_basic_block("while.body"),
@@ -264,6 +264,7 @@ def _while(em: Emitter, eqn, args):
     if not unknown:
         b.branch(done)
         b.position_at_end(done)
+        em.exit_loop()
         return list(init)
     if em.mask is None and not elements.shape and id(eqn) in em.uniform:
         # every lane runs the same iterations (`uniform.uniform_loops`): no lane keeps its carry
@@ -273,6 +274,7 @@ def _while(em: Emitter, eqn, args):
         _back(em, phis, new, cur, dtypes, None) if phi else _store(em, slots, new, cur, dtypes, None)
         b.branch(head)
         b.position_at_end(done)
+        em.exit_loop()
         return cur if phi else _load(em, slots, init, dtypes)
     anywhere = unknown[0]
     for e in unknown[1:]:  # a predicate per element (jax.vmap of a loop): while any holds
@@ -288,6 +290,7 @@ def _while(em: Emitter, eqn, args):
     _back(em, phis, new, cur, dtypes, active) if phi else _store(em, slots, new, cur, dtypes, active)
     b.branch(head)
     b.position_at_end(done)
+    em.exit_loop()
     return cur if phi else _load(em, slots, init, dtypes)  # the phis: the head is the exit's only predecessor
 
 
@@ -379,6 +382,7 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
     counter = em.alloca(i64)
     b.store(ir.Constant(i64, 0), counter)
     fn = b.function
+    em.enter_loop(b.block)  # until its exit, after the loop
     head, body, done = (
         fn.append_basic_block("scan.head"),
         fn.append_basic_block("scan.body"),
@@ -418,6 +422,7 @@ def _scan_emit(em, closed, length, nc, ncar, reverse, order, consts, init, xs, l
         _back(em, phis, outs[:ncar], cur, dtypes, None)  # from the block that branches back
     b.branch(head)
     b.position_at_end(done)
+    em.exit_loop()
     carry = cur if phi else _load(em, slots, init, dtypes)
     if long:
         return carry + y_slots

@@ -6,8 +6,11 @@ positions, computed once, and costs no code. Indices computed at run time differ
 lane; two forms, by the number of places an index vector can reach:
 
 - a few places (`SELECT_STARTS`): each place's value, selected lane by lane;
-- more: the operand is stored to a lane-major array on the stack and each lane loads its own
-  entry (`_lane_load`).
+- more: the operand is stored to a lane-major array on the stack once (`stored`: before the
+  outermost loop being emitted that computes none of it, else once per block), and each
+  entry read is one gather of every lane's own place (`llvm.masked.gather`): a few lines of
+  IR per entry, not a load and an insert per lane. Loads are copies, so the values are those
+  of any other form bit for bit.
 
 Indices are clamped (`CLIP`, `PROMISE_IN_BOUNDS`, dynamic slices) or out-of-range entries
 filled (`FILL_OR_DROP`) as XLA does.
@@ -28,7 +31,7 @@ __all__ = ["SELECT_STARTS", "SCATTER_SELECTS"]
 
 SELECT_STARTS = 8
 """Index vectors that can reach at most this many places are resolved by selects; beyond,
-each lane loads its entry from memory."""
+each entry is gathered from memory, each lane at its own place."""
 
 SCATTER_SELECTS = 4096
 """A scatter whose indices reach more than `SELECT_STARTS` places is still resolved by selects
@@ -62,21 +65,58 @@ def _clamp(em: Emitter, x, lo: int, hi: int):
 
 
 class _Stored:
-    """An entry array stored lane-major on the stack ([size · W] scalars), for lane loads."""
+    """An entry array stored lane-major on the stack ([size · W] scalars), read by one masked
+    gather per entry (all lanes on), or a scalar load per lane for booleans (stored packed)."""
 
-    def __init__(self, em: Emitter, a: np.ndarray, dtype):
+    def __init__(self, em: Emitter, a: np.ndarray, dtype, before: ir.Block | None = None):
+        """`before`: a block (ended) where `a` is stored, before its branch; else here."""
         self.em, self.dtype, self.flat = em, np.dtype(dtype), a.reshape(-1)
         self.scalar = em.vtype(dtype).element
         self.type = ir.ArrayType(self.scalar, self.flat.size * em.W)
         self.ptr = em.alloca(self.type)
+        self._scaled: dict = {}
+        here = em.b.block
+        if before is not None:
+            em.b.position_before(before.terminator)
         zero = ir.Constant(ir.IntType(64), 0)
         for k, e in enumerate(self.flat):
             at = em.b.gep(self.ptr, [zero, ir.Constant(ir.IntType(64), k * em.W)], source_etype=self.type)
             at = em.b.bitcast(at, em.vtype(dtype).as_pointer())
             em.b.store(em.vec(e, dtype), at, align=self.dtype.itemsize)
+        if before is not None:
+            em.b.position_at_end(here)
 
-    def load(self, flat_index):
-        """Each lane's entry at its own flat index (an i64 vector, in range)."""
+    def load(self, flat_index, offset: int = 0):
+        """Each lane's entry at its own flat index (an i64 vector, in range) plus `offset`."""
+        em, b = self.em, self.em.b
+        i64 = ir.IntType(64)
+        if self.dtype == np.bool_:
+            if offset:
+                flat_index = b.add(flat_index, _ivec(em, i64, offset))
+            return self._scalar_loads(flat_index)
+        # lane l of entry i sits at i·W + l: the lanes' scaled base, once per index vector
+        key = (b.block, id(flat_index))  # computed where it is used (the copy may be before a loop)
+        scaled = self._scaled.get(key)
+        if scaled is None:
+            lanes = ir.Constant(ir.VectorType(i64, em.W), [ir.Constant(i64, lane) for lane in range(em.W)])
+            scaled = b.add(b.mul(flat_index, _ivec(em, i64, em.W)), lanes)
+            self._scaled[key] = (scaled, flat_index)
+        else:
+            scaled = scaled[0]
+        at = b.add(scaled, _ivec(em, i64, offset * em.W)) if offset else scaled
+        pointers = b.gep(self.ptr, [at], source_etype=self.scalar)
+        pointers.type = ir.VectorType(ir.PointerType(), em.W)  # a vector index: a vector of pointers
+        return b.call(
+            _gather_intrinsic(em, self.dtype),
+            [
+                pointers,
+                ir.Constant(ir.IntType(32), self.dtype.itemsize),
+                em.const(True, np.bool_),
+                ir.Constant(em.vtype(self.dtype), ir.Undefined),
+            ],
+        )
+
+    def _scalar_loads(self, flat_index):
         em, b = self.em, self.em.b
         zero = ir.Constant(ir.IntType(64), 0)
         out = ir.Constant(em.vtype(self.dtype), ir.Undefined)
@@ -86,6 +126,39 @@ class _Stored:
             x = b.load(b.gep(self.ptr, [zero, at], source_etype=self.type), typ=self.scalar)
             out = b.insert_element(out, x, ir.Constant(ir.IntType(32), lane))
         return out
+
+
+def _gather_intrinsic(em: Emitter, dtype):
+    """`llvm.masked.gather` of `dtype`'s vectors (declared once per kernel)."""
+    vt = em.vtype(dtype)
+    dtype = np.dtype(dtype)
+    name = f"llvm.masked.gather.v{em.W}{'f' if dtype.kind == 'f' else 'i'}{8 * dtype.itemsize}.v{em.W}p0"
+    fn = em.module.globals.get(name)
+    if fn is None:
+        args = [ir.VectorType(ir.PointerType(), em.W), ir.IntType(32), em.vtype(np.bool_), vt]
+        fn = ir.Function(em.module, ir.FunctionType(vt, args), name)
+    return fn
+
+
+def stored(em: Emitter, a: np.ndarray, dtype) -> _Stored:
+    """`a` stored for lane loads (`_Stored`), once: before the outermost loop being emitted
+    (`Emitter.loops`) whose blocks compute none of its entries (a loop's invariant operand,
+    the matrix of a triangular solve's rows), else in the block being emitted; an array stored
+    before at that place (which precedes every load here) is read again from there."""
+    dtype = np.dtype(dtype)
+    flat = a.reshape(-1)
+    at, before = em.b.block, None
+    for pre, outside in em.loops:
+        if all(not isinstance(e, ir.Instruction) or id(e.parent) in outside for e in flat):
+            at = before = pre
+            break
+    key = (at, dtype, a.shape) + tuple(
+        ("known", np.asarray(e).dtype.str, np.asarray(e).tobytes()) if is_known(e) else id(e) for e in flat
+    )
+    found = em.stored.get(key)
+    if found is None:
+        found = em.stored[key] = _Stored(em, a, dtype, before)  # holds the entries: their ids stay theirs
+    return found
 
 
 def _strides(shape) -> list:
@@ -155,14 +228,13 @@ def _dynamic_slice(em: Emitter, eqn, args):
                 for idx in np.ndindex(piece.shape):
                     out[idx] = em.select(cond, piece[idx], out[idx], dtype)
         return out
-    stored = _Stored(em, a, dtype)
+    stored_a = stored(em, a, dtype)
     strides = _strides(a.shape)
     clamped = [_clamp(em, _i64(em, s), 0, hi) for s, hi in zip(starts, his)]
     base = _offset(em, clamped, range(a.ndim), strides)
     out = np.empty(tuple(sizes), object)
     for idx in np.ndindex(tuple(sizes)):
-        at = em.b.add(base, _ivec(em, ir.IntType(64), sum(i * st for i, st in zip(idx, strides))))
-        out[idx] = stored.load(at)
+        out[idx] = stored_a.load(base, sum(i * st for i, st in zip(idx, strides)))
     return out
 
 
@@ -183,7 +255,7 @@ def _dynamic_update_slice(em: Emitter, eqn, args):
             out[region] = sub
         return out
     # each operand entry: the update's entry at (its position − start) where that is inside
-    stored = _Stored(em, update, dtype)
+    stored_u = stored(em, update, dtype)
     ustrides = _strides(update.shape)
     b = em.b
     i64 = ir.IntType(64)
@@ -197,7 +269,7 @@ def _dynamic_update_slice(em: Emitter, eqn, args):
             rel = _clamp(em, rel, 0, k - 1)
             term = b.mul(rel, _ivec(em, i64, ustrides[d]))
             at = term if at is None else b.add(at, term)
-        out[pos] = em.select(inside, stored.load(at), a[pos], dtype)
+        out[pos] = em.select(inside, stored_u.load(at), a[pos], dtype)
     return out
 
 
@@ -295,7 +367,7 @@ def _gather(em: Emitter, eqn, args):
     dims = list(dnums.start_index_map)
     his = [a.shape[d] - sizes[d] for d in dims]
     strides = _strides(a.shape)
-    stored = None
+    stored_a = None
     # where each output entry comes from when every start is 0; a start c_j moves the window
     # by c_j along operand dimension start_index_map[j] (windows are contiguous)
     zero = np.zeros(indices.shape, idx_dtype)
@@ -315,8 +387,8 @@ def _gather(em: Emitter, eqn, args):
                     )
             continue
         # memory: the entry at the window's position plus the (clamped) start's offset
-        if stored is None:
-            stored = _Stored(em, a, dtype)
+        if stored_a is None:
+            stored_a = stored(em, a, dtype)
         starts = [_i64(em, c) for c in comps]
         inside = None
         if not clip:
@@ -327,7 +399,7 @@ def _gather(em: Emitter, eqn, args):
         clamped = [_clamp(em, s, 0, hi) for s, hi in zip(starts, his)]
         base = _offset(em, clamped, dims, strides)
         for o in mine:
-            value = stored.load(em.b.add(base, _ivec(em, ir.IntType(64), int(where0[o]))))
+            value = stored_a.load(base, int(where0[o]))
             out[o] = value if inside is None else em.select(inside, value, fill, dtype)
     return out
 

@@ -115,6 +115,17 @@ class Emitter:
         self.entries = 0
         self.rows = False  # whether long arrays are held as `clebsch_jax.native.rows.Rows`
         self._arena = None  # (pointer, size constant patched by `finish`, bytes used)
+        self.stored: dict = {}  # arrays stored for lane loads, by block and entries (`indexing.stored`)
+        self.loops: list = []  # the loops being emitted, outermost first (`enter_loop`)
+
+    def enter_loop(self, pre: ir.Block):
+        """Say that a loop is emitted next (its head is the next block), entered from `pre`, and
+        until `exit_loop`: a value of a block made before is computed outside the loop
+        (`outside`), where what only reads it may be done once (`indexing.stored`)."""
+        self.loops.append((pre, {id(block) for block in self.b.function.blocks}))
+
+    def exit_loop(self) -> None:
+        self.loops.pop()
 
     def count(self, entries: int) -> None:
         """Entries translated so far: a program past `limit` is refused (`TooLarge`)."""
