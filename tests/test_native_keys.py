@@ -395,3 +395,29 @@ def test_a_kept_refusal_keeps_no_traceback_where_exceptions_pickle_theirs():
     with pytest.raises(Refusal):
         compiled_once(cache, threading.Lock(), 8, "key", refuse)
     assert cache["key"].__traceback__ is None and cache["key"].entries == 60001
+
+
+def test_one_kernel_serves_every_n_steps_and_chunk_length(tmp_path, monkeypatch):
+    """The native kernel takes a chunk's steps as an argument: sweeps of other `n_steps` and
+    `chunk_steps` (a short last chunk included) compile one kernel, and a run cut into chunks
+    makes the steps of the unbroken run — the same state, momentum, iterations and statuses to
+    the bit (node energies at a chunk's start are evaluated again: `drift` may move in its last
+    bit) — and agrees with XLA."""
+    from clebsch_jax.batching import backends
+    from clebsch_jax.native import kernel
+
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+    _fresh_process(monkeypatch)
+    compiled, real = [], kernel.compile_ir
+    monkeypatch.setattr(kernel, "compile_ir", lambda text: compiled.append(1) or real(text))
+    inertias, Q0, omegas = _members()
+    run = lambda n, **k: cj.sweep(cj.models.rigid_body, inertias, Q0, omegas, **{**RUN, "n_steps": n, **k})  # noqa: E731
+    whole, chunked = run(23), run(23, chunk_steps=5)
+    shorter = run(9)
+    assert len(compiled) == 1 and len(backends._PROGRAMS) == 1
+    assert whole.chunk_steps == 23 and chunked.chunk_steps == 5
+    for key in ("status", "failed_step", "final_Q", "final_p", "final_momentum", "final_xi", "newton_iterations"):
+        np.testing.assert_array_equal(getattr(whole, key), getattr(chunked, key))
+    xla = run(9, backend="xla")
+    np.testing.assert_allclose(shorter.final_momentum, xla.final_momentum, rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(shorter.status, xla.status)

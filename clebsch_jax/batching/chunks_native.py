@@ -3,11 +3,13 @@ r"""A chunk of a batch as one call of a native kernel (`clebsch_jax.native`).
 The per-member program (`clebsch_jax.batching.member`) of a sweep's configuration, compiled
 once per process (`native_program`, from the disk cache when another process compiled it),
 and called on a batch's host arrays (`native_call`), with the sweep's carry converted to the
-program's and back.
+program's and back. The chunk's number of steps is an argument of the kernel, not part of
+its program: one kernel serves every chunk length and every `n_steps`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -21,16 +23,19 @@ from .member import MemberCarry, member_chunk
 from .probe import trace_key
 
 
-def _native_member(cfg: Config, params, shared, carry: MemberCarry, dt, first, offset) -> MemberCarry:
-    """One member's chunk as the per-member program (`clebsch_jax.batching.member`): the method
-    `integrate` chooses for it, its solves to their own stopping rule, the reductions in the loop."""
+def _native_member(cfg: Config, params, shared, carry: MemberCarry, dt, first, offset, n) -> MemberCarry:
+    """One member's chunk of `n` steps (an int32 of the program) as the per-member program
+    (`clebsch_jax.batching.member`): the method `integrate` chooses for it, its solves to their
+    own stopping rule, the reductions in the loop."""
     system, xi, gauge = member_system(cfg, params, shared, carry.Q, carry.xi, carry.gauge, first)
     carry = carry._replace(xi=xi, gauge=gauge)
+    # the method does not depend on the number of steps (`integrate` checks it, and the memory
+    # of a stored trajectory, which this program does not keep): one step stands for any
     stepper, _, _ = prepared_method(
-        system, carry.Q, carry.xi, dt=dt, n_steps=cfg.n, P0=carry.P, t0=carry.t, **dict(cfg.options)
+        system, carry.Q, carry.xi, dt=dt, n_steps=1, P0=carry.P, t0=carry.t, **dict(cfg.options)
     )
     return member_chunk(
-        stepper, system, carry, dt, cfg.n, first, offset, check_energy=cfg.check_energy, derive_P=cfg.derive_P
+        stepper, system, carry, dt, n, first, offset, check_energy=cfg.check_energy, derive_P=cfg.derive_P
     )
 
 
@@ -77,12 +82,14 @@ def _from_member(m: MemberCarry, has_xi: bool) -> Carry:
     )
 
 
-_NATIVE_AXES = (0, None, 0, 0, None, None)
+_NATIVE_AXES = (0, None, 0, 0, None, None, None)
 
 
 def native_program(cfg: Config, params, shared, carry: MemberCarry, dt):
     """The native kernel of `_native_member` for this configuration and these shapes (compiled
-    once per process; from the disk cache when another process compiled it)."""
+    once per process; from the disk cache when another process compiled it), for every chunk
+    length (`cfg.n` is not read: the kernel's last argument)."""
+    cfg = any_length(cfg)
     row = lambda tree: jax.tree_util.tree_map(lambda a: np.asarray(a)[0], tree)
     args = (
         row(params),
@@ -91,6 +98,7 @@ def native_program(cfg: Config, params, shared, carry: MemberCarry, dt):
         row(dt),
         np.asarray(True),
         np.asarray(0, np.int32),
+        np.asarray(1, np.int32),
     )
     fun = functools.partial(_native_member, cfg)
 
@@ -102,12 +110,17 @@ def native_program(cfg: Config, params, shared, carry: MemberCarry, dt):
     return NativeProgram.get(key, traced, args, _NATIVE_AXES, cfg.native_max_lines, disk_key=_disk_key(cfg))
 
 
+def any_length(cfg: Config) -> Config:
+    """`cfg` without its chunk length: what the native kernel of a chunk is made from."""
+    return dataclasses.replace(cfg, n=0)
+
+
 _DISK_KEYS: dict = {}
 
 
 def _disk_key(cfg: Config) -> str | None:
     """The fingerprint of the per-member program of `cfg` (`clebsch_jax.native.fingerprint`):
-    `make_system`, the options, the steps of a chunk, the energy check; None where it cannot be
+    `make_system`, the options, the energy check (not the steps of a chunk); None where it cannot be
     read (the kernel is then found by its jaxpr, traced). Kept per configuration in a process."""
     from ..native.fingerprint import fingerprint
 
@@ -121,7 +134,7 @@ def native_program_of(c: Config, one):
 
 
 def native_call(c: Config, one, st: int, workspace=None, program=None) -> Carry:
-    """One chunk of a batch (`schedule.Batch`) by its native kernel: the batch's carry after it
+    """One chunk of `c.n` steps of a batch (`schedule.Batch`) by its native kernel: the batch's carry after it
     (host arrays; with a `workspace` of the calling thread, `clebsch_jax.native.layout`, views of
     its rows, valid until its second call after this one). `program`: `native_program_of(c, one)`,
     found before (else looked up)."""
@@ -131,6 +144,13 @@ def native_call(c: Config, one, st: int, workspace=None, program=None) -> Carry:
     shared = None if one.shared is None else [np.asarray(x) for x in one.shared]
     params = jax.tree_util.tree_map(np.asarray, one.params)
     new = program(
-        params, shared, carry, np.asarray(one.dt), np.asarray(st == 0), np.asarray(st, np.int32), workspace=workspace
+        params,
+        shared,
+        carry,
+        np.asarray(one.dt),
+        np.asarray(st == 0),
+        np.asarray(st, np.int32),
+        np.asarray(c.n, np.int32),
+        workspace=workspace,
     )
     return _from_member(new, one.carry.final_xi is not None)

@@ -77,6 +77,7 @@ class Run(NamedTuple):
     progress: bool | Callable
     devices: list  # the devices batches are dealt to ([None]: JAX's default placement)
     threads: int = 1  # batches run side by side on each device, each from a host thread of its own
+    chunk_default: bool = False  # chunk_steps not given: the default chose it (`whole_run_chunks`)
 
     @property
     def slots(self) -> list:
@@ -103,6 +104,7 @@ def check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, inv
     save_every = positive_int(save_every, "save_every", allow_none=True)
     member_chunk = positive_int(member_chunk, "member_chunk", allow_none=True)
     chunk_steps = positive_int(chunk_steps, "chunk_steps", allow_none=True)
+    chunk_default = chunk_steps is None
     if chunk_steps is None:
         chunk_steps = _DEFAULT_CHUNK
         if save_every is not None:
@@ -124,7 +126,22 @@ def check_run(n_steps, grid, options, chunk_steps, save_every, member_chunk, inv
         {"energy": _diagnostics.energy, **invariants},
         progress,
         _devices(devices),
+        chunk_default=chunk_default,
     )
+
+
+def whole_run_chunks(run: Run) -> Run:
+    """`run` as one chunk of `n_steps` where its chunk length is the default and nothing needs a
+    chunk's end: for the native per-member program (`clebsch_jax.batching.chunks_native`),
+    whose kernel takes the chunk's steps as an argument (one kernel for every length) and
+    keeps nothing per step (a chunk's memory does not grow with its length), without
+    `progress` (reported at each chunk's end) or `save_every`. Each chunk has its own start and
+    end (node 0's velocity and energy, the multiplier, the march's state), so one chunk makes
+    the fewest; the boundary's node energy is evaluated again from the handed-over state, which
+    moves `drift` in its last bit where it is the maximum (`benchmarks/README.md`)."""
+    if run.chunk_default and run.progress is False and run.save_every is None:
+        return run._replace(chunk_steps=run.n_steps)
+    return run
 
 
 class Members(NamedTuple):

@@ -112,7 +112,7 @@ def _node(system, finder, Q, mu, seed, ok):
     return unknown(xi), known, unknown(E), unknown(size)
 
 
-def _phases(stepper, system, reduce, dt, n: int, probes, steps0, state0, memory0, red0):
+def _phases(stepper, system, reduce, dt, n, probes, steps0, state0, memory0, red0):
     """The chunk's loop with `integrate`'s first-step probe (`probes`: 2 in the run's first
     chunk, else 0): three phases of one loop over the step (`reduce` of `stepper.step`), the
     program's single copy of it — the probe's half steps from the start (their last node is the
@@ -125,7 +125,7 @@ def _phases(stepper, system, reduce, dt, n: int, probes, steps0, state0, memory0
     iterations}); a half step's reductions are dropped, as are those of a phase of no steps."""
     nan = lambda a: jnp.full_like(a, jnp.nan)  # noqa: E731
     Q0, mu0, alive0 = red0["Q"], red0["mu"], red0["alive"]
-    counts = jnp.stack([probes, jnp.asarray(min(n, 1), jnp.int32), jnp.asarray(max(n - 1, 0), jnp.int32)])
+    counts = jnp.stack([probes, jnp.minimum(n, 1), jnp.maximum(n - 1, 0)]).astype(jnp.int32)
 
     def steps(c):
         """The phase's steps: each from the last (the first from c's state) with the phase's
@@ -169,7 +169,7 @@ def member_chunk(
     system,
     carry: MemberCarry,
     dt,
-    n: int,
+    n,
     first,
     offset,
     *,
@@ -179,7 +179,8 @@ def member_chunk(
     r"""`n` steps of one member from `carry`, with the sweep's reductions made in the loop.
 
     **Arguments:** `stepper`, prepared for `system` (`integrate`'s choice: `prepared_method`);
-    `carry` the member's `MemberCarry`; `dt`; `n` the chunk's steps (static); `first` (bool)
+    `carry` the member's `MemberCarry`; `dt`; `n` the chunk's steps (static, or an int32
+    scalar ≥ 1 of the program: one program for every chunk length); `first` (bool)
     whether this is the run's first chunk; `offset` (int) the run's step number of the chunk's
     first step; `check_energy` `integrate`'s energy check (True, False or its tolerance); `derive_P` whether the carry's P is
     a placeholder to be replaced, in the first chunk, by the minimum-norm multiplier of
@@ -314,7 +315,8 @@ def member_chunk(
         state, memory, red = jax.lax.fori_loop(0, n, body, (state0, memory0, red0))
     else:
         state, memory, red, probe, at0 = _phases(stepper, system, reduce, dt, n, probes, steps0, state0, memory0, red0)
-    if probes is not None and n > 0:
+    made = not isinstance(n, int) or n > 0  # a chunk of steps (a traced n is at least 1)
+    if probes is not None and made:
         # integrate's first-step check (after its energy check): step 0 converged, was not failed
         # by the energy check, and lies far from the half steps' node. It fails the member at
         # step 0 as a jump there would: what the loop reduced after step 0 is dropped. (Made
@@ -329,7 +331,7 @@ def member_chunk(
             drift=jnp.where(spurious, red0["drift"], red["drift"]),
             alive=red["alive"] & ~spurious,
         )
-    if n > 0:  # the state the last step kept (`alive`: no failure or jump up to it), else NaN
+    if made:  # the state the last step kept (`alive`: no failure or jump up to it), else NaN
         red.update(_nan_unless(red["alive"], {k: red[k] for k in ("Q", "mu", "xin", "p")}))
     Qn, mun = red["Q"], red["mu"]
     # the reduced march carries μ, not p: the minimum-norm cotangent with that momentum map
@@ -345,7 +347,7 @@ def member_chunk(
         Q=jnp.where(alive0, Qn, jnp.nan),
         P=jnp.where(alive0, Pn, jnp.nan),
         xi=jnp.where(alive0, xin, jnp.nan),
-        t=carry.t + dt * n,
+        t=carry.t + dt * jnp.asarray(n, dt.dtype),
         status=status,
         failed_step=failed_step,
         iterations=carry.iterations + jnp.where(alive0, red["iterations"], 0),

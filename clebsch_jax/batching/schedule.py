@@ -423,18 +423,18 @@ def _take_batches(plan: Plan, batches: list, threads: int, table: Tables, target
     `workers`') each take the next batch no thread has taken, march it through every chunk
     (`native_call`, with the thread's kernel rows, `Workspace`) and write its rows to `targets`
     in `table` (the rows of two batches are disjoint). No thread waits for another between
-    batches or chunks, and one the machine slows takes fewer batches. The kernel of a chunk's
-    length is looked up once per call, not once per chunk. A batch's error stops the threads
-    from taking more, and is raised once they stopped."""
+    batches or chunks, and one the machine slows takes fewer batches. The kernel (one for every
+    chunk length) is looked up once per call, not once per chunk. A batch's error stops the
+    threads from taking more, and is raised once they stopped."""
     cfg, members, shapes, run, bs = plan
     pending, errors, lock = collections.deque(range(len(batches))), [], threading.Lock()
-    programs: dict = {}
+    programs: list = []
 
     def program(c: Config, one: Batch):
-        with lock:  # one look-up per chunk length, whichever thread needs it first
-            if c.n not in programs:
-                programs[c.n] = native_program_of(c, one)
-            return programs[c.n]
+        with lock:  # one look-up, whichever thread needs it first
+            if not programs:
+                programs.append(native_program_of(c, one))
+            return programs[0]
 
     def take() -> None:
         workspace = _workspace()

@@ -47,7 +47,7 @@ from ..core.validation import positive_int
 from . import choose, probe, schedule
 from .backends import check_backend
 from ..march.accuracy import METHOD_OPTIONS, require_step
-from .config import chunk_config, check_run, check_size, make_members
+from .config import chunk_config, check_run, check_size, make_members, whole_run_chunks
 from .ensemble_plan import plan_for_sweep
 from .schedule import Plan, run_batches
 from .tables import SweepProgress, SweepResult, allocate_tables, place, result
@@ -136,9 +136,13 @@ def sweep(
       have this form: `"energy": cj.diagnostics.energy` is always included). For a function of
       one node, `lambda s, sol: jax.vmap(g)(sol.Q, sol.momentum)`.
     - `chunk_steps`: steps per `integrate` call (default min(n_steps, 100), a multiple of
-      `save_every`). Memory is about `batch_size · chunk_steps` nodes; a chunk size that divides
-      `n_steps` compiles one program (otherwise a second one for the last chunk). Chunks of
-      tens of steps cost little over one unchunked run (see `clebsch_jax.batching.sweep`).
+      `save_every`; on the native backend without `progress`, `store` or `client`: n_steps,
+      one kernel call per batch, `config.whole_run_chunks`). Memory is about
+      `batch_size · chunk_steps` nodes on XLA's general path; a chunk size that divides
+      `n_steps` compiles one program there (otherwise a second one for the last chunk). The
+      native kernel takes a chunk's steps as an argument: one kernel for every `chunk_steps`
+      and `n_steps`. Chunks of tens of steps cost little over one unchunked run (see
+      `clebsch_jax.batching.sweep`).
       The lean chunk of `fast` records nothing and runs up to `LEAN_CHUNKS` chunks per call
       (as many as divide the number of chunks); a rerun is made chunk by chunk.
     - `batch_size`: members per compiled call (default min(⌈B / (devices × threads)⌉, 1024); for
@@ -239,8 +243,9 @@ def sweep(
     What is batched (by `clebsch_jax.batch`, with `jax.vmap`'s meaning): `params` rows (so the
     system's array leaves — inertias, circulations, widths — are traced), `Q0`, `xi0`, `P0` and
     `dt`. What is static: `make_system` itself, the Python callables inside the system,
-    `invariants`, `options`, `n_steps`, `chunk_steps`, `save_every`: changing them recompiles,
-    changing array values does not.
+    `invariants`, `options`, `n_steps`, `chunk_steps`, `save_every`: changing them recompiles
+    XLA's programs (not the native kernel, which takes the steps as an argument), changing
+    array values does not.
     """
     if accuracy is not None or t_final is not None:  # one plan for all members, piloted on a sample of them
         given = dict(options, dt=dt, n_steps=n_steps)
@@ -290,6 +295,9 @@ def sweep(
     shapes, general = None, cfg
     if backend != "xla":
         cfg, shapes = choose.native_config(cfg, run, members, backend)
+    if cfg.native and store is None and client is None:  # a store keeps the length it records
+        run = whole_run_chunks(run)
+        cfg = dataclasses.replace(cfg, n=run.chunk_steps)
     if not cfg.native and (fast is True or (fast == "auto" and choose.auto_lean(B, run.n_steps))):
         shapes = probe.member_shapes(cfg, members, lean=True)  # the member checked before a method is chosen on it
         method = choose.fast_method_of(cfg, members)
