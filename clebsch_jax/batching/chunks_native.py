@@ -120,8 +120,9 @@ _DISK_KEYS: dict = {}
 
 def _disk_key(cfg: Config) -> str | None:
     """The fingerprint of the per-member program of `cfg` (`clebsch_jax.native.fingerprint`):
-    `make_system`, the options, the energy check (not the steps of a chunk); None where it cannot be
-    read (the kernel is then found by its jaxpr, traced). Kept per configuration in a process."""
+    `make_system`, the options, the energy check (not the steps of a chunk: `any_length`); None
+    where it cannot be read (the kernel is then found by its jaxpr, traced). Kept per
+    configuration in a process."""
     from ..native.fingerprint import fingerprint
 
     return memo(_DISK_KEYS, cfg, lambda: fingerprint(("sweep-member", cfg)), 64)
@@ -134,10 +135,10 @@ def native_program_of(c: Config, one):
 
 
 def native_call(c: Config, one, st: int, workspace=None, program=None) -> Carry:
-    """One chunk of `c.n` steps of a batch (`schedule.Batch`) by its native kernel: the batch's carry after it
-    (host arrays; with a `workspace` of the calling thread, `clebsch_jax.native.layout`, views of
-    its rows, valid until its second call after this one). `program`: `native_program_of(c, one)`,
-    found before (else looked up)."""
+    """One chunk of `c.n` steps of a batch (`schedule.Batch`) by its native kernel: the batch's
+    carry after it (host arrays; with a `workspace` of the calling thread,
+    `clebsch_jax.native.layout`, views of its rows, valid until its second call after this
+    one). `program`: `native_program_of(c, one)`, found before (else looked up)."""
     carry = as_member(one.carry)
     if program is None:
         program = native_program(c, one.params, one.shared, carry, one.dt)
