@@ -6,12 +6,11 @@ members (`clebsch_jax.choose_sweep_step`, `clebsch_jax.batching.ensemble_plan`).
 **What `accuracy` means.** The relative max-norm error of the state at `t_final`,
 $$\max\Big(\frac{\|Q_h(T) - Q(T)\|_\infty}{\|Q^0\|_\infty},
 \frac{\|\mu_h(T) - \mu(T)\|_\infty}{\|\mu^0\|_\infty}\Big) \le \texttt{accuracy},$$
-of the configuration Q and the momentum map μ (`Solution.momentum`, which for a regular
-Lagrangian determines the velocity: $\mu = \delta l/\delta\xi$), each relative to its size at
-the start (absolute where that is 0; the momentum alone without Q). The model below predicts an
-envelope that grows at least linearly, so the bound holds at every time before `t_final` too. The energy
-is not a separate target: the candidates are symplectic and symmetric, and their energy error
-stays bounded, at $O(h^p)$, far below the global error of long runs (benchmarks/README.md).
+of the configuration Q and the momentum map μ (`Solution.momentum`; $\mu = \delta l/\delta\xi$),
+each relative to its size at the start (absolute where that is 0; μ alone without Q). The model
+predicts an envelope growing at least linearly, so the bound holds before `t_final` too. The
+energy is no separate target: the candidates are symplectic and symmetric, their energy error
+bounded at $O(h^p)$, far below the global error of long runs (benchmarks/README.md).
 
 **How the plan is made** (`clebsch_jax.march.pilot` has the model and the measurement):
 
@@ -29,13 +28,11 @@ stays bounded, at $O(h^p)$, far below the global error of long runs (benchmarks/
    first step, the pilot is run again from twice that step (at most `PILOT_DOUBLINGS` times,
    while at least `PILOT_MIN_STEPS` steps cover $T_p$).
 4. The plan is the candidate of least **predicted work**: steps × its measured iterations per
-   step × their cost (`work_per_step`), counted in fixed-point sweeps of one Gauss–Legendre stage
-   — a count, not a time, so the plan does not depend on the machine's load: two calls give the
-   same plan.
-5. Its step is **checked** (`clebsch_jax.march.check`): marched at h and h/2 over $T_p$, the
-   error's growth $e \propto (t - t_0)^q$ measured (q in [1, 2]) and extrapolated to T; the step
-   is reduced while that misses `accuracy` (near a step-size resonance C hᵖ from the pilot's steps
-   is short). `AccuracyPlan.check` says what the check found, `growth` the q it measured.
+   step × their cost (`work_per_step`), in sweeps of one Gauss–Legendre stage — a count, not a
+   time: two calls give the same plan, whatever the machine's load.
+5. Its step is **checked** (`clebsch_jax.march.check`: at h and h/2 over $T_p$, the growth
+   $e \propto (t - t_0)^q$ measured and extrapolated to T) and reduced while it misses `accuracy`
+   (near a step-size resonance); `AccuracyPlan.check` and `growth` record what was found.
 
 **Candidates** (`DEFAULT_CANDIDATES`): the system's second-order default (loose accuracies, short
 runs) and Gauss–Legendre of orders 4, 6, 8, 12 and 16 (12 and 16 the fastest of ours at the
@@ -53,8 +50,8 @@ halving doubles the last); the check adds $3 T_p / h$ steps per step checked. Th
 this work (`pilot_work`) beside the run's: for runs much longer than $T_p$ a small fraction of
 it; for a run as short as $T_p$ more than the run: make the plan once and reuse it.
 
-**Several members** (`plan_members`): τ is the smallest of theirs, and at each pilot step (and
-the check's) the worst member decides (`clebsch_jax.march.pilot.run_pilot`).
+**Several members** (`plan_members`): τ is the smallest of theirs; at each step of the pilot
+and the check the worst member decides (`clebsch_jax.march.pilot.run_pilot`).
 
 **Limits.** The linear growth holds for integrable and near-integrable motion (rigid bodies,
 Kepler, regular vortex motion) up to $t \sim h^{-p}$; the check measures growth up to quadratic,
@@ -127,11 +124,11 @@ _NAMING = ("method", "scheme", "order", "composition")
 
 @dataclasses.dataclass(frozen=True)
 class Candidate:
-    """One candidate method as the pilot measured it and the plan would run it: `name`,
-    `order`, `options` (as `integrate`'s, sorted pairs), `constant` (C of $e \\approx C(t-t_0)h^p$,
-    None when the pilot resolved none: `reason` says why), `observed_order`, `max_step`, and
-    for the run: `dt`, `n_steps`, `predicted_error`, `iterations_per_step`, `predicted_work`
-    (None when not planned), `pilot_work`."""
+    """One candidate as the pilot measured it and the plan would run it: `name`, `order`,
+    `options` (as `integrate`'s, sorted pairs), `constant` (C of $e \\approx C(t-t_0)h^p$, None
+    when the pilot resolved none: `reason` says why), `observed_order`, `max_step`; for the run
+    `dt`, `n_steps`, `predicted_error`, `iterations_per_step`, `predicted_work` (None when not
+    planned); `pilot_work` (the pilot's, and the check's for the one chosen)."""
 
     name: str
     order: int
@@ -158,7 +155,7 @@ class AccuracyPlan:
     - `predicted_error`: the error at `t_final` the check predicts (≤ `accuracy` unless `check`
       says "not met"; the pilot's model's where the check resolved nothing);
     - `predicted_work`: the run's work in Gauss stage-sweeps (`clebsch_jax.march.pilot`);
-      `pilot_work`: the pilot's, in the same unit;
+      `pilot_work`: the pilot's and the check's, in the same unit;
     - `time_scale`, `pilot_horizon`: τ and the pilot's horizon;
     - `candidates`: every `Candidate`, in the order compared;
     - `piloted`: the members of an ensemble the pilot marched (`clebsch_jax.choose_sweep_step`:
@@ -205,11 +202,8 @@ class AccuracyPlan:
             )
         if self.piloted is not None:
             rows.append(f"piloted members: {', '.join(map(str, self.piloted))}")
-        rows.append(
-            f"checked at dt {self.dt:.4g}: {self.check}"
-            + ("" if self.growth is None else f", growth t^{self.growth:.2f}")
-        )
-        return "\n".join(rows)
+        growth = f", growth t^{self.growth:.2f}" if self.growth else ""
+        return "\n".join([*rows, f"checked at dt {self.dt:.4g}: {self.check}{growth}"])
 
 
 def check_accuracy(accuracy, t_final, t0=0.0) -> tuple[float, float]:
@@ -360,10 +354,9 @@ def plan_members(
     piloted: tuple | None = None,
     **options,
 ) -> AccuracyPlan:
-    """`choose_step`'s plan made on several trajectories at once, its step to hold for each:
-    `members` a sequence of (system, Q0, xi0, P0), the candidates resolved on the first, τ the
-    smallest of theirs; each marched with the same stepper (one compiled program) at every
-    pilot step, the worst deciding (`run_pilot`). `piloted` is recorded on the plan."""
+    """`choose_step`'s plan made on several trajectories at once (`members`, a sequence of
+    (system, Q0, xi0, P0)), its step to hold for each (module docstring); the candidates resolved
+    on the first; `piloted` recorded on the plan."""
     from .integrate import integrate  # the pilot marches with integrate, which imports this module
 
     accuracy, horizon = check_accuracy(accuracy, t_final, t0)
@@ -417,17 +410,16 @@ def plan_members(
         rows.append(row)
         if row.predicted_work is not None and (best is None or row.predicted_work < best[0].predicted_work):
             best = (row, stepper)
-    pilot_work = sum(r.pilot_work for r in rows)
     if best is None:
         why = "; ".join(f"{r.name}: {r.reason}" for r in rows)
         raise ValueError(f"accuracy: no candidate method's pilot resolved its error ({why}).")
     row, stepper = best
-    checked, work, growth, check = check_plan(march, stepper, system, row, t0, horizon, pilot_horizon, accuracy)
+    checked, growth, check = check_plan(march, stepper, system, row, t0, horizon, pilot_horizon, accuracy)
     rows = [checked if r is row else r for r in rows]
     return AccuracyPlan(
         stepper, checked.name, checked.order, checked.dt, checked.n_steps, t0, t0 + horizon, accuracy,
-        checked.predicted_error, checked.predicted_work, pilot_work + work, tau, pilot_horizon, tuple(rows),
-        piloted, growth, check,
+        checked.predicted_error, checked.predicted_work, sum(r.pilot_work for r in rows), tau, pilot_horizon,
+        tuple(rows), piloted, growth, check,
     )  # fmt: skip
 
 

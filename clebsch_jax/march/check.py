@@ -63,10 +63,10 @@ def growth_exponent(ts, err, t0: float) -> float:
 
 
 def check_plan(march, stepper, system, row, t0: float, horizon: float, pilot_horizon: float, accuracy: float):
-    """(row, work, growth, check) for the chosen candidate's `Candidate` `row` (its `dt`,
-    `n_steps`, `predicted_error`, `predicted_work` replaced by the checked step's), the check's
-    work in stage-sweeps, the growth exponent measured at the last step checked (None if no check
-    ran) and what the check found: "met", "at round-off", "not met" or "not run: ..."."""
+    """(row, growth, check) for the chosen candidate's `Candidate` `row`: its `dt`, `n_steps`,
+    `predicted_error`, `predicted_work` replaced by the checked step's and the check's work added
+    to its `pilot_work`; the growth exponent measured at the last step checked (None if no check
+    ran); what the check found: "met", "at round-off", "not met" or "not run: ..."."""
     p, dt, n_steps = row.order, row.dt, row.n_steps
     work, growth, found, predicted = 0.0, None, "not run", row.predicted_error
     for attempt in range(CHECK_TRIES):
@@ -99,7 +99,7 @@ def check_plan(march, stepper, system, row, t0: float, horizon: float, pilot_hor
         )
     if found in ("met", "not met"):
         row = dataclasses.replace(row, predicted_error=predicted)
-    return row, work, growth, found
+    return dataclasses.replace(row, pilot_work=row.pilot_work + work), growth, found
 
 
 def _difference(a, b) -> np.ndarray:
