@@ -6,22 +6,25 @@ measured there, and the step reduced while the error predicted at `t_final` exce
 h₀, h₀/2, … and the plan extrapolates it to the planned step as C hᵖ. On near-integrable motion
 that fails near a **step-size resonance**: when a multiple of h times a frequency of the motion
 comes near a multiple of 2π, the error constant of a symmetric or symplectic method jumps
-(Hairer, Lubich & Wanner, *Geometric Numerical Integration*, §XI.3, §X.6: the small denominators
-of the modified equation's perturbation series). The steps of the pilot and the planned one are
-then on different sides of a resonance, and C hᵖ can be short by an order of magnitude
-(benchmarks/README.md: the leapfrogging clusters).
+(numerical resonances: the small denominators of the perturbation series behind the modified
+equations, Hairer, Lubich & Wanner, *Geometric Numerical Integration*, chapters X and XIII).
+A pilot step and the planned one can lie on different sides of a resonance, and C hᵖ is then
+short by an order of magnitude or more (benchmarks/README.md: the leapfrogging clusters). The
+error's growth in time is measured too, so that growth faster than linear over the window is
+extrapolated as such.
 
 **The measurement.** The runs at h and h/2 over $T_c = k h \approx T_p$ give Richardson's
 estimate of the error at h, $\hat e(t) = d(t)/(1 - 2^{-p})$, the worst member's at each node
 (`clebsch_jax.march.pilot.state_error`). Its running maximum $E(t) = \max_{s \le t}\hat e(s)$ (an
 envelope: a phase error oscillates along an orbit) is fitted as $E(t) \approx c\,(t - t_0)^q$ by
-least squares in log-log over the second half of $T_c$, with q held in
-[1, `GROWTH_CAP`]: linear growth (integrable and near-integrable motion, §X.3) at least, and at
-most quadratic, the growth of a phase error whose frequency error itself drifts. The error
-predicted at T is
+least squares in log-log over the second half of $T_c$, with q held in [1, `GROWTH_CAP`]:
+linear growth (integrable and near-integrable motion, the model of `clebsch_jax.march.pilot`)
+at least, and at most quadratic, the growth of a phase error whose frequency error itself
+drifts. The error predicted at T is
 $$e(T) \approx E(T_c)\,\Big(\frac{T - t_0}{T_c}\Big)^{q}.$$
-If it exceeds `accuracy`, the step is reduced to $h\,(\texttt{accuracy}/e(T))^{1/p}$ (whole steps
-ending at T) and checked again, at most `CHECK_TRIES` times in all.
+If it exceeds `accuracy`, the step is reduced to $h\,(\texttt{accuracy}/e(T))^{1/p}$ (whole
+steps ending at T) and checked again, at most `CHECK_TRIES` times in all. Runs at fixed steps
+and a fit: two calls give the same plan.
 
 **Limits.** The fit sees only $[t_0, t_0 + T_c]$: growth that starts later (a close encounter,
 chaotic divergence beyond the Lyapunov time, where errors grow exponentially) is not seen, and
