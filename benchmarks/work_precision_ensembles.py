@@ -602,6 +602,8 @@ def _plan_point(scene, run, y_ref, E0, budget, accuracy, label, members) -> dict
         "steps": plan.n_steps,
         "piloted": list(plan.piloted),
         "predicted_error": plan.predicted_error,
+        "plan_check": plan.check,  # what the check at the planned step found, and its growth exponent
+        "growth": plan.growth,
         "predicted_work": plan.predicted_work,
         "pilot_work": plan.pilot_work,
         "pilot_s": pilot_s[0],

@@ -116,6 +116,8 @@ def test_the_plan_is_deterministic_and_recorded(monkeypatch):
     assert first.method == plan.name and len(first.ts) == plan.n_steps + 1
     assert plan.t_final == 100.0 and plan.candidates[0].pilot_work == plan.pilot_work > 0
     assert "left principle" in plan.summary()
+    # the planned step was checked (clebsch_jax.march.check) and its growth measured
+    assert plan.check == "met" and 1.0 <= plan.growth <= 2.0 and "checked at dt" in plan.summary()
 
 
 @pytest.mark.slow  # compiles the six default candidates per system, a minute or more under load;

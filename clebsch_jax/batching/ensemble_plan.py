@@ -19,8 +19,8 @@ the smallest τ of the sample; at each pilot step every sampled member is marche
 candidate's stepper — one compiled program, every member after the first only its steps — and
 the worst member decides: the largest difference at each node (each member relative to its own
 sizes), the most iterations per step (and so the stage sweeps' contraction margin), any
-member's failure. `AccuracyPlan.piloted` records the members piloted, by their index in the
-sweep.
+member's failure; the check of the chosen step (`clebsch_jax.march.check`) runs on them too.
+`AccuracyPlan.piloted` records the members piloted, by their index in the sweep.
 
 **Limits.** Members outside the sample are not measured: the rate is a guess from the initial
 state, and a member whose motion is harder in another way (nearer a separatrix, a close

@@ -6,12 +6,11 @@ members (`clebsch_jax.choose_sweep_step`, `clebsch_jax.batching.ensemble_plan`).
 **What `accuracy` means.** The relative max-norm error of the state at `t_final`,
 $$\max\Big(\frac{\|Q_h(T) - Q(T)\|_\infty}{\|Q^0\|_\infty},
 \frac{\|\mu_h(T) - \mu(T)\|_\infty}{\|\mu^0\|_\infty}\Big) \le \texttt{accuracy},$$
-of the configuration Q and the momentum map μ (`Solution.momentum`, which for a regular
-Lagrangian determines the velocity: $\mu = \delta l/\delta\xi$), each relative to its size at
-the start (absolute where that is 0; the momentum alone without Q). The model below predicts an
-envelope that grows linearly, so the bound holds at every time before `t_final` too. The energy
-is not a separate target: the candidates are symplectic and symmetric, and their energy error
-stays bounded, at $O(h^p)$, far below the global error of long runs (benchmarks/README.md).
+of the configuration Q and the momentum map μ (`Solution.momentum`; $\mu = \delta l/\delta\xi$),
+each relative to its size at the start (absolute where that is 0; μ alone without Q). The model
+predicts an envelope growing at least linearly, so the bound holds before `t_final` too. The
+energy is no separate target: the candidates are symplectic and symmetric, their energy error
+bounded at $O(h^p)$, far below the global error of long runs (benchmarks/README.md).
 
 **How the plan is made** (`clebsch_jax.march.pilot` has the model and the measurement):
 
@@ -29,41 +28,38 @@ stays bounded, at $O(h^p)$, far below the global error of long runs (benchmarks/
    first step, the pilot is run again from twice that step (at most `PILOT_DOUBLINGS` times,
    while at least `PILOT_MIN_STEPS` steps cover $T_p$).
 4. The plan is the candidate of least **predicted work**: steps × its measured iterations per
-   step × their cost (`work_per_step`), counted in fixed-point sweeps of one Gauss–Legendre stage
-   — a count, not a time, so the plan does not depend on the machine's load: two calls give the
-   same plan.
+   step × their cost (`work_per_step`), in sweeps of one Gauss–Legendre stage — a count, not a
+   time: two calls give the same plan, whatever the machine's load.
+5. Its step is **checked** (`clebsch_jax.march.check`: at h and h/2 over $T_p$, the growth
+   $e \propto (t - t_0)^q$ measured and extrapolated to T) and reduced while it misses `accuracy`
+   (near a step-size resonance); `AccuracyPlan.check` and `growth` record what was found.
 
 **Candidates** (`DEFAULT_CANDIDATES`): the system's second-order default (loose accuracies, short
-runs) and Gauss–Legendre of orders 4, 6, 8, 12 and 16. Orders 12 and 16 were the fastest of ours
-at the tightest errors of both ensembles of `benchmarks/results/work_precision_ensembles.json`
-(64 rigid bodies to T = 10⁴, 16 four-vortex clusters to T = 10³). Their accuracy allows steps
-near the largest at which their stage sweeps still contract, a limit the pilot sees on one
-trajectory: a Gauss–Legendre plan keeps the sweeps' contraction factor, estimated from the
-pilot's sweep counts (the worst piloted member's), at most
-`clebsch_jax.march.pilot.MAX_CONTRACTION` (`contraction_step`), so that members of an ensemble
-moving faster than the piloted ones, and later parts of the run, still converge. Compositions of
-orders 4–8 are left out: in both ensembles a Gauss–Legendre point reached each of their errors
-for less time. The relative costs of a stage-sweep, a Newton solve, a Newton update and a
-step's other work are a fit to that file's native rigid-body points (`clebsch_jax.march.pilot`:
-`STEP_COST`, `NEWTON_SOLVE_COST`, `NEWTON_UPDATE_COST`): on other systems they are a guide.
+runs) and Gauss–Legendre of orders 4, 6, 8, 12 and 16 (12 and 16 the fastest of ours at the
+tightest errors of both ensembles of `benchmarks/results/work_precision_ensembles.json`;
+compositions of orders 4–8 never were). A Gauss–Legendre plan keeps its stage sweeps'
+contraction factor, estimated from the pilot's sweep counts (the worst piloted member's), at most
+`clebsch_jax.march.pilot.MAX_CONTRACTION` (`contraction_step`), so that faster members and later
+parts of the run still converge. The relative costs of a stage-sweep, a Newton solve, a Newton
+update and a step's other work are a fit to that file's native rigid-body points
+(`clebsch_jax.march.pilot`: `STEP_COST`, …): on other systems they are a guide.
 
 **Cost of the pilot.** Each candidate compiles one program (every step size reuses it) and
 marches $T_p$ at least three times (7 $T_p / h_0$ = 7 × 64 steps with the defaults; each further
-halving doubles the last); the plan records its work (`pilot_work`) beside the run's. For runs
-much longer than $T_p$ it is a small fraction of the run; for a run as short as $T_p$ it costs
-more than the run: make the plan once (`choose_step`) and reuse it.
+halving doubles the last); the check adds $3 T_p / h$ steps per step checked. The plan records
+this work (`pilot_work`) beside the run's: for runs much longer than $T_p$ a small fraction of
+it; for a run as short as $T_p$ more than the run: make the plan once and reuse it.
 
-**Several members** (`plan_members`): τ is the smallest of theirs, and at each pilot step the
-worst member decides (`clebsch_jax.march.pilot.run_pilot`); the pilot's work is their sum.
+**Several members** (`plan_members`): τ is the smallest of theirs; at each step of the pilot
+and the check the worst member decides (`clebsch_jax.march.pilot.run_pilot`).
 
 **Limits.** The linear growth holds for integrable and near-integrable motion (rigid bodies,
-Kepler, regular vortex motion) up to $t \sim h^{-p}$. In chaotic motion errors grow
-exponentially: the pilot sees only its first $T_p$ and the plan is then too optimistic beyond the
-Lyapunov time (no method reaches a fixed accuracy there for long). Close encounters and events
-that the pilot does not see (a vortex pair meeting late in the run, a body passing near a
-separatrix) are not in its constant. τ is a guess from the initial state; a configuration far
-from the origin of a vector space makes it too large (give `time_scale=`). Round-off bounds what
-can be reached: `accuracy` below `MIN_ACCURACY` is refused.
+Kepler, regular vortex motion) up to $t \sim h^{-p}$; the check measures growth up to quadratic,
+on $T_p$ only. In chaotic motion errors grow exponentially: the plan is then too optimistic
+beyond the Lyapunov time (no method reaches a fixed accuracy there for long). Close encounters
+and events after $T_p$ (a vortex pair meeting late, a body passing near a separatrix) are not
+seen. τ is a guess from the initial state; a configuration far from the origin of a vector space
+makes it too large (give `time_scale=`). `accuracy` below `MIN_ACCURACY` is refused (round-off).
 """
 
 from __future__ import annotations
@@ -78,6 +74,7 @@ from ..core.system import ClebschSystem
 from ..core.validation import any_traced, float_array
 from ..steppers.base import AbstractStepper
 from ..steppers.choose import choose_method
+from .check import check_plan
 from .pilot import (
     PILOT_DOUBLINGS,
     PILOT_FIRST_STEP,
@@ -127,11 +124,11 @@ _NAMING = ("method", "scheme", "order", "composition")
 
 @dataclasses.dataclass(frozen=True)
 class Candidate:
-    """One candidate method as the pilot measured it and the plan would run it: `name`,
-    `order`, `options` (as `integrate`'s, sorted pairs), `constant` (C of $e \\approx C(t-t_0)h^p$,
-    None when the pilot resolved none: `reason` says why), `observed_order`, `max_step`, and
-    for the run: `dt`, `n_steps`, `predicted_error`, `iterations_per_step`, `predicted_work`
-    (None when not planned), `pilot_work`."""
+    """One candidate as the pilot measured it and the plan would run it: `name`, `order`,
+    `options` (as `integrate`'s, sorted pairs), `constant` (C of $e \\approx C(t-t_0)h^p$, None
+    when the pilot resolved none: `reason` says why), `observed_order`, `max_step`; for the run
+    `dt`, `n_steps`, `predicted_error`, `iterations_per_step`, `predicted_work` (None when not
+    planned); `pilot_work` (the pilot's, and the check's for the one chosen)."""
 
     name: str
     order: int
@@ -155,13 +152,16 @@ class AccuracyPlan:
     - `method`: the stepper to run (`integrate(..., method=plan.method)`), `name`, `order`;
     - `dt`, `n_steps`: the step and how many end at `t_final` (`t0 + n_steps · dt`);
     - `t0`, `t_final`, `accuracy`: what was asked;
-    - `predicted_error`: the model's error at `t_final` (≤ `accuracy`);
+    - `predicted_error`: the error at `t_final` the check predicts (≤ `accuracy` unless `check`
+      says "not met"; the pilot's model's where the check resolved nothing);
     - `predicted_work`: the run's work in Gauss stage-sweeps (`clebsch_jax.march.pilot`);
-      `pilot_work`: the pilot's, in the same unit;
+      `pilot_work`: the pilot's and the check's, in the same unit;
     - `time_scale`, `pilot_horizon`: τ and the pilot's horizon;
     - `candidates`: every `Candidate`, in the order compared;
     - `piloted`: the members of an ensemble the pilot marched (`clebsch_jax.choose_sweep_step`:
-      their indices in the sweep, the first member first), None for one trajectory.
+      their indices in the sweep, the first member first), None for one trajectory;
+    - `growth`, `check`: the error's growth exponent q measured at the planned step and what the
+      check there found (`clebsch_jax.march.check`: "met", "at round-off", "not met", "not run: …").
 
     `plan.integrate_options()` gives `method`, `dt` and `n_steps` for `integrate` or `sweep`."""
 
@@ -180,6 +180,8 @@ class AccuracyPlan:
     pilot_horizon: float
     candidates: tuple
     piloted: tuple | None = None
+    growth: float | None = None
+    check: str = ""
 
     def integrate_options(self) -> dict:
         """`method`, `dt` and `n_steps`, to pass to `integrate` or `sweep`."""
@@ -200,7 +202,8 @@ class AccuracyPlan:
             )
         if self.piloted is not None:
             rows.append(f"piloted members: {', '.join(map(str, self.piloted))}")
-        return "\n".join(rows)
+        growth = f", growth t^{self.growth:.2f}" if self.growth else ""
+        return "\n".join([*rows, f"checked at dt {self.dt:.4g}: {self.check}{growth}"])
 
 
 def check_accuracy(accuracy, t_final, t0=0.0) -> tuple[float, float]:
@@ -351,10 +354,9 @@ def plan_members(
     piloted: tuple | None = None,
     **options,
 ) -> AccuracyPlan:
-    """`choose_step`'s plan made on several trajectories at once, its step to hold for each:
-    `members` a sequence of (system, Q0, xi0, P0), the candidates resolved on the first, τ the
-    smallest of theirs; each marched with the same stepper (one compiled program) at every
-    pilot step, the worst deciding (`run_pilot`). `piloted` is recorded on the plan."""
+    """`choose_step`'s plan made on several trajectories at once (`members`, a sequence of
+    (system, Q0, xi0, P0)), its step to hold for each (module docstring); the candidates resolved
+    on the first; `piloted` recorded on the plan."""
     from .integrate import integrate  # the pilot marches with integrate, which imports this module
 
     accuracy, horizon = check_accuracy(accuracy, t_final, t0)
@@ -408,14 +410,16 @@ def plan_members(
         rows.append(row)
         if row.predicted_work is not None and (best is None or row.predicted_work < best[0].predicted_work):
             best = (row, stepper)
-    pilot_work = sum(r.pilot_work for r in rows)
     if best is None:
         why = "; ".join(f"{r.name}: {r.reason}" for r in rows)
         raise ValueError(f"accuracy: no candidate method's pilot resolved its error ({why}).")
     row, stepper = best
+    checked, growth, check = check_plan(march, stepper, system, row, t0, horizon, pilot_horizon, accuracy)
+    rows = [checked if r is row else r for r in rows]
     return AccuracyPlan(
-        stepper, row.name, row.order, row.dt, row.n_steps, t0, t0 + horizon, accuracy,
-        row.predicted_error, row.predicted_work, pilot_work, tau, pilot_horizon, tuple(rows), piloted,
+        stepper, checked.name, checked.order, checked.dt, checked.n_steps, t0, t0 + horizon, accuracy,
+        checked.predicted_error, checked.predicted_work, sum(r.pilot_work for r in rows), tau, pilot_horizon,
+        tuple(rows), piloted, growth, check,
     )  # fmt: skip
 
 
