@@ -206,6 +206,44 @@ def test_the_energy_check_fails_the_same_step():
     _same_solution(fast, xla)
 
 
+def test_one_kernel_serves_every_n_steps(tmp_path, monkeypatch):
+    """The loop kernel takes its iterations as an argument and is keyed without the number of
+    steps (`native_chunk.native_loop`): runs of 20, 45 and 60 steps (native chunks of 16, so
+    short last chunks of 4, 13 and 12 steps) trace and compile one kernel. The shorter run is
+    the longer one's beginning to the bit, and the two runs past the energy check's failure at
+    step 30 report it alike (the falling particle of
+    `test_the_energy_check_fails_the_same_step`), as XLA does."""
+    from clebsch_jax.march import native_chunk, scan
+    from clebsch_jax.native import kernel
+
+    monkeypatch.setenv("CLEBSCH_JAX_NATIVE_CACHE", str(tmp_path))
+    monkeypatch.setattr(native_chunk, "_LOOPS", {})
+    monkeypatch.setattr(scan, "CHUNK_STEPS", 16)
+    monkeypatch.setattr(scan, "NATIVE_CHUNK_FACTOR", 1)
+    compiled, traced = [], []
+    real, body = kernel.compile_ir, native_chunk._stream_body
+    monkeypatch.setattr(kernel, "compile_ir", lambda text: compiled.append(1) or real(text))
+    monkeypatch.setattr(native_chunk, "_stream_body", lambda *a: traced.append(1) or body(*a))
+    system = cj.ClebschSystem(lagrangian=kepler, velocity_map=translation, derivative_map=cj.forward_difference)
+    args = (system, np.array([2.0, 0.0]), np.array([0.0, 0.1]))
+    run = lambda n: cj.integrate(*args, dt=0.1, n_steps=n, scheme="left", backend="native", throw=False)  # noqa: E731
+    short, failed, longer = run(20), run(45), run(60)
+    assert len(compiled) == 1 and len(traced) == 1 and len(native_chunk._LOOPS) == 1
+    assert int(short.result) == cj.Status.SUCCESS
+    assert (int(failed.result), int(failed.failed_step)) == (int(longer.result), int(longer.failed_step))
+    _same_solution(failed, cj.integrate(*args, dt=0.1, n_steps=45, scheme="left", backend="xla", throw=False))
+    for name in ("Q", "p", "xi", "momentum", "valid"):
+        np.testing.assert_array_equal(np.asarray(getattr(short, name)), np.asarray(getattr(longer, name))[:21])
+    for name in ("xi_step", "P"):
+        np.testing.assert_array_equal(np.asarray(getattr(short, name)), np.asarray(getattr(longer, name))[:20])
+    for a, b in zip(jax.tree_util.tree_leaves(short.stats), jax.tree_util.tree_leaves(longer.stats)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[:20])
+    for name in FIELDS + ("valid", "ts"):  # past the failure the two failed runs agree too
+        a, b = getattr(failed, name), getattr(longer, name)
+        if a is not None:
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b)[: np.shape(a)[0]], err_msg=name)
+
+
 def test_the_first_step_probe_runs_on_the_native_chunk():
     """Kepler at the perihelion of e = 0.95 with a step far longer than the passage: step 0
     converges to a spurious root that only the two half steps reveal (tests/test_spheres.py)."""
