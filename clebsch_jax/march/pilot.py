@@ -86,17 +86,17 @@ the error constant from above."""
 GAUSS_STAGE_SWEEP_COST = 1.0
 """The unit of predicted work: one fixed-point sweep of one Gauss–Legendre stage."""
 
-STEP_COST = 1.3
+STEP_COST = 0.25
 """The cost of a step apart from its solves (its nodal velocity, the energy check), in Gauss
 stage-sweeps. This and the two below are a least-squares fit, relative to each point's, of the
 CPU time per step of the native rigid-body points, Gauss–Legendre and compositions, of
 `benchmarks/results/work_precision_ensembles.json` (scene `rigid_body`) against (stage-sweeps,
 solves, updates, 1); `tests/test_accuracy.py` refits them from that file."""
 
-NEWTON_SOLVE_COST = 1.0
+NEWTON_SOLVE_COST = 1.24
 """A Newton solve of a (sub-)step, before its updates, in Gauss stage-sweeps (as `STEP_COST`)."""
 
-NEWTON_UPDATE_COST = 0.27
+NEWTON_UPDATE_COST = 0.42
 """A Newton update, in Gauss stage-sweeps (as `STEP_COST`)."""
 
 
