@@ -75,6 +75,7 @@ from ..core.validation import any_traced, float_array
 from ..steppers.base import AbstractStepper
 from ..steppers.choose import choose_method
 from .check import check_plan
+from .members import MemberMarch
 from .pilot import (
     PILOT_DOUBLINGS,
     PILOT_FIRST_STEP,
@@ -357,8 +358,6 @@ def plan_members(
     """`choose_step`'s plan made on several trajectories at once (`members`, a sequence of
     (system, Q0, xi0, P0)), its step to hold for each (module docstring); the candidates resolved
     on the first; `piloted` recorded on the plan."""
-    from .integrate import integrate  # the pilot marches with integrate, which imports this module
-
     accuracy, horizon = check_accuracy(accuracy, t_final, t0)
     candidates = _candidates(candidates)
     for name in options:
@@ -392,14 +391,7 @@ def plan_members(
     h0 = pilot_horizon / max(PILOT_MIN_STEPS, math.ceil(pilot_horizon / (PILOT_FIRST_STEP * tau)))
     t0 = float(np.asarray(t0))
 
-    def march(stepper, dt, n_steps):
-        return [
-            integrate(
-                system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, method=stepper,
-                throw=False, check_energy=check_energy, backend=backend,
-            )
-            for system, Q0, xi0, P0 in checked
-        ]  # fmt: skip
+    march = MemberMarch(checked, t0, check_energy, backend)  # every member's pilot run, together
 
     rows, best = [], None
     for spec, (stepper, refused) in zip(candidates, resolved):

@@ -36,7 +36,15 @@ from .carry import Carry, Chunk, advance_step
 from .energy_check import node_energy
 from .scan import nodal_velocity
 
-__all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program", "BoundLoop", "NativeChunks"]
+__all__ = [
+    "LANES",
+    "native_run_chunk",
+    "run_members",
+    "native_loop",
+    "native_chunk_program",
+    "BoundLoop",
+    "NativeChunks",
+]
 
 LANES = 1
 """Lanes of the kernel of one trajectory: a single member in a vector of one lane. Wider
@@ -212,18 +220,24 @@ def native_run_chunk(
     made = int(np.clip(int(np.asarray(n_total)) - n, 0, length))
     host = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], carry)
     records = None if into is None else kernel.record_views(into[0], into[1], into[1] + made + 1)
+    last, rec = run_members(kernel, [a[None] for a in arrays], host, made, records)
+    first = lambda tree: jax.tree_util.tree_map(lambda a: a[0], tree)
+    return first(last), _chunk_of(first(rec), made)
+
+
+def run_members(kernel, arrays: list, carry: Carry, made: int, records=None):
+    """`made` steps of B members' marches from `carry` (host leaves with a leading member axis,
+    every member at the same step), `arrays` the members' system and Δt arrays (a leading
+    member axis too), and the node each leaves, then the last node: one call of the loop
+    kernel, each member in its own block. Returns (the carries after them, `xi_last` the last
+    step's velocity; the records, (B, made + 1, …) leaves)."""
+    B = int(np.shape(carry.n)[0])
+    stop = np.full(B, int(np.asarray(carry.n)[0]) + made, np.int32)
     (last, _), rec = kernel(
-        [a[None] for a in arrays],
-        np.asarray([n + made], np.int32),
-        (host, np.asarray(carry.xi_last)[None]),
-        steps=made + 1,
-        capacity=made + 1,
-        records=records,
+        arrays, stop, (carry, np.asarray(carry.xi_last)), steps=made + 1, capacity=made + 1, records=records
     )
-    last = jax.tree_util.tree_map(lambda a: a[0], last)
-    chunk = _chunk_of(jax.tree_util.tree_map(lambda a: a[0], rec), made)
-    xi_last = chunk.nodes.xi_step[made - 1] if made > 0 else np.asarray(carry.xi_last)
-    return last._replace(xi_last=xi_last), chunk
+    xi_last = rec["xi_step"][:, made - 1] if made > 0 else np.asarray(carry.xi_last)
+    return last._replace(xi_last=xi_last), rec
 
 
 def _kernel_of(stepper, system, carry, dt, check_energy, max_lines, bound):
