@@ -51,7 +51,9 @@ this work (`pilot_work`) beside the run's: for runs much longer than $T_p$ a sma
 it; for a run as short as $T_p$ more than the run: make the plan once and reuse it.
 
 **Several members** (`plan_members`): τ is the smallest of theirs; at each step of the pilot
-and the check the worst member decides (`clebsch_jax.march.pilot.run_pilot`).
+and the check the worst member decides (`clebsch_jax.march.pilot.run_pilot`). They are marched
+together (`clebsch_jax.march.members.MemberMarch`: each member's run the one `integrate` makes,
+to the bit; one native kernel call for all of them where they share the kernel).
 
 **Limits.** The linear growth holds for integrable and near-integrable motion (rigid bodies,
 Kepler, regular vortex motion) up to $t \sim h^{-p}$; the check measures growth up to quadratic,
