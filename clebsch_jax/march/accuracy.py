@@ -53,7 +53,7 @@ it; for a run as short as $T_p$ more than the run: make the plan once and reuse 
 **Several members** (`plan_members`): τ is the smallest of theirs; at each step of the pilot
 and the check the worst member decides (`clebsch_jax.march.pilot.run_pilot`). They are marched
 together (`clebsch_jax.march.members.MemberMarch`: each member's run the one `integrate` makes,
-to the bit; one native kernel call for all of them where they share the kernel).
+to the bit; one call of a native kernel with the members in its lanes where they share it).
 
 **Limits.** The linear growth holds for integrable and near-integrable motion (rigid bodies,
 Kepler, regular vortex motion) up to $t \sim h^{-p}$; the check measures growth up to quadratic,

@@ -7,10 +7,12 @@ value: the same checks of the arguments (made once per member and stepper: they 
 on the step), the same start, first-step probe, steps and nodes, the same assembly and check
 of the first step on the manifold. Where every member runs the same native loop kernel
 (`clebsch_jax.march.native_chunk`: the stepper, the system's structure and the shapes alike),
-the members are marched by one call of it per chunk, each in its own block of one lane — the
-program each member's own call would run, so the same arithmetic to the bit — instead of a
-call per member with its host work around it. Elsewhere (XLA's chunk, members of different
-structures) each member is marched by `integrate`, as before.
+that kernel is compiled with the host's lanes and the members are marched in its lanes by one
+call per chunk, instead of a call per member with its host work around it. A lane makes the
+operations a one-lane kernel makes, in the same order (a masked loop keeps a finished lane's
+carry, as a one-lane loop stops), so each member's numbers are those of its own call, to the
+bit (`tests/test_member_march.py`). Elsewhere (XLA's chunk, members of different structures)
+each member is marched by `integrate`.
 """
 
 from __future__ import annotations
@@ -72,15 +74,20 @@ class MemberMarch:
 
     def _shared_kernel(self, found, dt):
         """(prepared members, kernel, stacked system arrays) when every member runs one native
-        loop kernel (`native_chunk_program`: the same compiled object), else None."""
+        loop kernel (`native_chunk_program` with the host's lanes: the same compiled object),
+        else None."""
+        from ..native import native_unavailable
+        from ..native.kernel import host_lanes
+
         if self.backend == "xla" or any(closes for *_, closes in found):
             return None
+        # the members in the lanes of the host's vectors (one member: one lane, integrate's kernel)
+        width = 1 if len(found) == 1 or native_unavailable() is not None else host_lanes()
         bounds = []
         for method, system, Q0, xi0, P0, _, _ in found:
             carry = _PROGRAMS[bool(method.quick_compile)][0](method, system, Q0, xi0, P0, dt)[0]
-            native = native_chunk_program(
-                method, system, carry, dt, energy_rtol(self.check_energy) is not None, self.backend
-            )
+            check = energy_rtol(self.check_energy) is not None
+            native = native_chunk_program(method, system, carry, dt, check, self.backend, width)
             if native is None or (bounds and native.bound.kernel is not bounds[0].kernel):
                 return None
             bounds.append(native.bound)
