@@ -27,9 +27,8 @@ from .arguments import prepare, warn_if_remade
 from .assemble import assemble
 from .energy_check import energy_rtol
 from .first_step import FirstStepProbe
-from .native_chunk import native_chunk_program, run_members
-from .native_chunk import _chunk_of  # noqa: PLC2701  (the records of a chunk, as the kernel writes them)
-from .scan import NATIVE_CHUNK_FACTOR, _PROGRAMS, chunk_length  # noqa: PLC2701
+from .native_chunk import member_chunks, native_chunk_program, run_members
+from .scan import NATIVE_CHUNK_FACTOR, chunk_length, start_program
 
 __all__ = ["MemberMarch"]
 
@@ -85,7 +84,7 @@ class MemberMarch:
         width = 1 if len(found) == 1 or native_unavailable() is not None else host_lanes()
         bounds = []
         for method, system, Q0, xi0, P0, _, _ in found:
-            carry = _PROGRAMS[bool(method.quick_compile)][0](method, system, Q0, xi0, P0, dt)[0]
+            carry = start_program(method)(method, system, Q0, xi0, P0, dt)[0]
             check = energy_rtol(self.check_energy) is not None
             native = native_chunk_program(method, system, carry, dt, check, self.backend, width)
             if native is None or (bounds and native.bound.kernel is not bounds[0].kernel):
@@ -98,14 +97,14 @@ class MemberMarch:
         """`march_chunked`'s native march of every member, each kernel call for all of them."""
         found, kernel, system_arrays = ready
         dt, rtol = positive_scalar(dt, "dt"), energy_rtol(self.check_energy)
-        starts = [_PROGRAMS[bool(m.quick_compile)][0](m, s, Q0, xi0, P0, dt) for m, s, Q0, xi0, P0, *_ in found]
+        starts = [start_program(m)(m, s, Q0, xi0, P0, dt) for m, s, Q0, xi0, P0, *_ in found]
         carry = jax.tree_util.tree_map(lambda *a: np.stack([np.asarray(x) for x in a]), *[c for c, _ in starts])
         per_member = lambda a: np.stack([a] * len(found))
         probes = [None] * len(found)
         if rtol is not None:  # the first-step check: two steps of dt/2 from the start (`first_step_probe`)
             half = np.asarray(np.asarray(dt) / 2)
             rec = run_members(kernel, [*system_arrays, per_member(half)], carry, 2)[1]
-            for m, chunk in enumerate(_chunks(rec, 2)):
+            for m, chunk in enumerate(member_chunks(rec, 2)):
                 ok = np.all(np.asarray(chunk.stats.status)[:2] == Status.SUCCESS)
                 probes[m] = FirstStepProbe(chunk.nodes.nodal_Q[2], chunk.nodes.momentum[2], ok)
         arrays = [*system_arrays, per_member(np.asarray(dt))]
@@ -114,7 +113,7 @@ class MemberMarch:
         for _ in range(-(-n_steps // length)):
             made = int(np.clip(n_steps - int(carry.n[0]), 0, length))
             carry, rec = run_members(kernel, arrays, carry, made)
-            for own, chunk in zip(chunks, _chunks(rec, made)):
+            for own, chunk in zip(chunks, member_chunks(rec, made)):
                 own.append(chunk)
         sols = []
         for (method, system, Q0, xi0, _, t0, _), (_, startup), own, probe in zip(found, starts, chunks, probes):
@@ -126,9 +125,3 @@ class MemberMarch:
                 check_first_step(system, sol.method, Q0, xi0, np.asarray(sol.Q)[1])
             sols.append(sol)
         return sols
-
-
-def _chunks(records, made: int) -> list:
-    """Each member's `Chunk` of `made` steps from records with a leading member axis."""
-    B = len(records["valid"])
-    return [_chunk_of(jax.tree_util.tree_map(lambda a, m=m: a[m], records), made) for m in range(B)]

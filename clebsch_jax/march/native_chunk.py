@@ -40,6 +40,7 @@ __all__ = [
     "LANES",
     "native_run_chunk",
     "run_members",
+    "member_chunks",
     "native_loop",
     "native_chunk_program",
     "BoundLoop",
@@ -242,6 +243,11 @@ def run_members(kernel, arrays: list, carry: Carry, made: int, records=None):
     )
     xi_last = rec["xi_step"][:, made - 1] if made > 0 else np.asarray(carry.xi_last)
     return last._replace(xi_last=xi_last), rec
+
+
+def member_chunks(records, made: int) -> list:
+    """Each member's `Chunk` of `made` steps from `run_members`' records (a leading member axis)."""
+    return [_chunk_of(jax.tree_util.tree_map(lambda a, m=m: a[m], records), made) for m in range(len(records["valid"]))]
 
 
 def _kernel_of(stepper, system, carry, dt, check_energy, max_lines, bound):
