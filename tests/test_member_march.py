@@ -1,6 +1,6 @@
 """The ensemble pilot's members marched together (`clebsch_jax.march.members.MemberMarch`): each
 member's run the one `integrate` makes alone, to the bit, a failing member's failure included,
-and the plan the same as the plan piloted member by member."""
+and the plan the same as the plan piloted member by member (each by its own `integrate`)."""
 
 from __future__ import annotations
 
@@ -52,11 +52,3 @@ def test_the_batched_pilot_makes_the_member_by_member_plan(monkeypatch):
     assert together == alone
     assert sorted(together.piloted) == [0, 1, 2]
     assert together.check in ("met", "at round-off")
-
-
-def test_xla_members_are_marched_by_integrate():
-    """On XLA's chunk each member is marched by its own `integrate` call."""
-    march = MemberMarch(_members(), 0.0, True, "xla")
-    sols = march(cj.GaussLegendre(order=4), 0.3, 10)
-    assert march._ready[cj.GaussLegendre(order=4)] is None
-    assert all(int(s.result) == Status.SUCCESS for s in sols)
