@@ -16,8 +16,8 @@ step makes, as far as their trajectories are alike.
 
 **The plan** (`clebsch_jax.march.accuracy.plan_members`): the pilot's horizon and steps come from
 the smallest τ of the sample; at each pilot step every sampled member is marched with the
-candidate's stepper — one compiled program, every member after the first only its steps — and
-the worst member decides: the largest difference at each node (each member relative to its own
+candidate's stepper — one compiled program, and where it is a native kernel one call of it with
+the members in its lanes (`clebsch_jax.march.members.MemberMarch`) — and the worst member decides: the largest difference at each node (each member relative to its own
 sizes), the most iterations per step (and so the stage sweeps' contraction margin), any
 member's failure; the check of the chosen step (`clebsch_jax.march.check`) runs on them too.
 `AccuracyPlan.piloted` records the members piloted, by their index in the sweep.

@@ -51,7 +51,9 @@ this work (`pilot_work`) beside the run's: for runs much longer than $T_p$ a sma
 it; for a run as short as $T_p$ more than the run: make the plan once and reuse it.
 
 **Several members** (`plan_members`): τ is the smallest of theirs; at each step of the pilot
-and the check the worst member decides (`clebsch_jax.march.pilot.run_pilot`).
+and the check the worst member decides (`clebsch_jax.march.pilot.run_pilot`). They are marched
+together (`clebsch_jax.march.members.MemberMarch`: each member's run the one `integrate` makes,
+to the bit; one call of a native kernel with the members in its lanes where they share it).
 
 **Limits.** The linear growth holds for integrable and near-integrable motion (rigid bodies,
 Kepler, regular vortex motion) up to $t \sim h^{-p}$; the check measures growth up to quadratic,
@@ -75,6 +77,7 @@ from ..core.validation import any_traced, float_array
 from ..steppers.base import AbstractStepper
 from ..steppers.choose import choose_method
 from .check import check_plan
+from .members import MemberMarch
 from .pilot import (
     PILOT_DOUBLINGS,
     PILOT_FIRST_STEP,
@@ -357,8 +360,6 @@ def plan_members(
     """`choose_step`'s plan made on several trajectories at once (`members`, a sequence of
     (system, Q0, xi0, P0)), its step to hold for each (module docstring); the candidates resolved
     on the first; `piloted` recorded on the plan."""
-    from .integrate import integrate  # the pilot marches with integrate, which imports this module
-
     accuracy, horizon = check_accuracy(accuracy, t_final, t0)
     candidates = _candidates(candidates)
     for name in options:
@@ -392,14 +393,7 @@ def plan_members(
     h0 = pilot_horizon / max(PILOT_MIN_STEPS, math.ceil(pilot_horizon / (PILOT_FIRST_STEP * tau)))
     t0 = float(np.asarray(t0))
 
-    def march(stepper, dt, n_steps):
-        return [
-            integrate(
-                system, Q0, xi0, P0=P0, t0=t0, dt=dt, n_steps=n_steps, method=stepper,
-                throw=False, check_energy=check_energy, backend=backend,
-            )
-            for system, Q0, xi0, P0 in checked
-        ]  # fmt: skip
+    march = MemberMarch(checked, t0, check_energy, backend)  # every member's pilot run, together
 
     rows, best = [], None
     for spec, (stepper, refused) in zip(candidates, resolved):

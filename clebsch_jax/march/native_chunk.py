@@ -36,7 +36,16 @@ from .carry import Carry, Chunk, advance_step
 from .energy_check import node_energy
 from .scan import nodal_velocity
 
-__all__ = ["LANES", "native_run_chunk", "native_loop", "native_chunk_program", "BoundLoop", "NativeChunks"]
+__all__ = [
+    "LANES",
+    "native_run_chunk",
+    "run_members",
+    "member_chunks",
+    "native_loop",
+    "native_chunk_program",
+    "BoundLoop",
+    "NativeChunks",
+]
 
 LANES = 1
 """Lanes of the kernel of one trajectory: a single member in a vector of one lane. Wider
@@ -114,14 +123,17 @@ def _stream_body(stepper: AbstractStepper, check_energy: bool, system, dt, stop,
     return (jax.tree_util.tree_map(keep, new, c), keep(nodes.xi_step[0], arriving)), records
 
 
-def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, max_lines=None):
+def native_loop(
+    stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, max_lines=None, width: int = LANES
+):
     """The native loop kernel of `_stream_body` for this stepper, system structure, shapes and
     energy check (compiled once per process, from the disk cache when another process compiled
     it), and the system's and Δt's arrays it takes. Raises `clebsch_jax.native.Unsupported`
     (and remembers it) for a step the translation does not cover, or, with `max_lines`, whose
     kernel would be larger; a refusal for its size is remembered on disk too, under the
     fingerprint of the stepper and the system's structure (`clebsch_jax.native.TooLarge`), so
-    that a new process does not trace the step again."""
+    that a new process does not trace the step again. `width`: members per vector (`LANES` for
+    one trajectory; the host's lanes for several marched together, `clebsch_jax.march.members`)."""
     from ..native import compile_loop, compiled_once
 
     treedef, static, arrays = _split((system, dt))
@@ -135,6 +147,7 @@ def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy
         jax.tree_util.tree_structure(loop),
         tuple(_aval(a) for a in jax.tree_util.tree_leaves(loop)),
         max_lines,
+        width,
     )
 
     def body(dynamic, stop, c):
@@ -150,7 +163,7 @@ def native_loop(stepper: AbstractStepper, system, carry: Carry, dt, check_energy
         from ..native.fingerprint import fingerprint
 
         disk = fingerprint(("integrate-loop", stepper, bool(check_energy), treedef, static))
-        return compile_loop(body, arrays, np.zeros((), np.int32), loop, width=LANES, max_lines=max_lines, key=disk)
+        return compile_loop(body, arrays, np.zeros((), np.int32), loop, width=width, max_lines=max_lines, key=disk)
 
     found = compiled_once(_LOOPS, _LOOPS_LOCK, _LOOPS_MAX, key, compile)
     return found, arrays
@@ -212,18 +225,29 @@ def native_run_chunk(
     made = int(np.clip(int(np.asarray(n_total)) - n, 0, length))
     host = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], carry)
     records = None if into is None else kernel.record_views(into[0], into[1], into[1] + made + 1)
+    last, rec = run_members(kernel, [a[None] for a in arrays], host, made, records)
+    first = lambda tree: jax.tree_util.tree_map(lambda a: a[0], tree)
+    return first(last), _chunk_of(first(rec), made)
+
+
+def run_members(kernel, arrays: list, carry: Carry, made: int, records=None):
+    """`made` steps of B members' marches from `carry` (host leaves with a leading member axis,
+    every member at the same step), `arrays` the members' system and Δt arrays (a leading
+    member axis too), and the node each leaves, then the last node: one call of the loop
+    kernel, the members in its lanes. Returns (the carries after them, `xi_last` the last
+    step's velocity; the records, (B, made + 1, …) leaves)."""
+    B = int(np.shape(carry.n)[0])
+    stop = np.full(B, int(np.asarray(carry.n)[0]) + made, np.int32)
     (last, _), rec = kernel(
-        [a[None] for a in arrays],
-        np.asarray([n + made], np.int32),
-        (host, np.asarray(carry.xi_last)[None]),
-        steps=made + 1,
-        capacity=made + 1,
-        records=records,
+        arrays, stop, (carry, np.asarray(carry.xi_last)), steps=made + 1, capacity=made + 1, records=records
     )
-    last = jax.tree_util.tree_map(lambda a: a[0], last)
-    chunk = _chunk_of(jax.tree_util.tree_map(lambda a: a[0], rec), made)
-    xi_last = chunk.nodes.xi_step[made - 1] if made > 0 else np.asarray(carry.xi_last)
-    return last._replace(xi_last=xi_last), chunk
+    xi_last = rec["xi_step"][:, made - 1] if made > 0 else np.asarray(carry.xi_last)
+    return last._replace(xi_last=xi_last), rec
+
+
+def member_chunks(records, made: int) -> list:
+    """Each member's `Chunk` of `made` steps from `run_members`' records (a leading member axis)."""
+    return [_chunk_of(jax.tree_util.tree_map(lambda a, m=m: a[m], records), made) for m in range(len(records["valid"]))]
 
 
 def _kernel_of(stepper, system, carry, dt, check_energy, max_lines, bound):
@@ -283,7 +307,9 @@ class NativeChunks(NamedTuple):
         return carry, [records]
 
 
-def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, backend: str):
+def native_chunk_program(
+    stepper: AbstractStepper, system, carry: Carry, dt, check_energy: bool, backend: str, width: int = LANES
+):
     """The chunk program of a concrete march for `backend` ("auto", "native" or "xla"):
     `native_run_chunk` where the native kernel applies, else None (XLA's `run_chunk`).
     `"auto"` says once why not (`clebsch_jax.native.warn_once`, a `NativeFallbackWarning`
@@ -299,7 +325,7 @@ def native_chunk_program(stepper: AbstractStepper, system, carry: Carry, dt, che
     if why is None:
         limit = AUTO_MAX_IR_LINES if backend == "auto" else None
         try:
-            kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, limit)
+            kernel, arrays = native_loop(stepper, system, carry, dt, check_energy, limit, width)
             bound = BoundLoop(stepper, system, kernel, arrays, _aval(dt), bool(check_energy))
             return NativeChunks(bound, limit)
         except Unsupported as err:

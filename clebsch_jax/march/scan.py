@@ -69,6 +69,7 @@ __all__ = [
     "nodal_velocities",
     "nodal_velocity",
     "chunk_length",
+    "start_program",
     "CHUNK_STEPS",
     "CHUNK_VALUES",
     "MIN_CHUNK_STEPS",
@@ -356,6 +357,11 @@ _PROGRAMS = {
     for quick in (False, True)
 }
 """The compiled start and chunk of `march_chunked`, by the stepper's `quick_compile`."""
+
+
+def start_program(stepper: AbstractStepper):
+    """The compiled `start` of `march_chunked` for this stepper (by its `quick_compile`)."""
+    return _PROGRAMS[bool(stepper.quick_compile)][0]
 
 
 def chunk_length(Q0, xi0) -> int:
