@@ -414,4 +414,9 @@ def chunk_config(run: Run, members: Members, options: dict) -> Config:
 def first_row(members: Members):
     """The first member's parameter row (None without `make_system`): the choices made on one
     member (method, fast path, defaults) hold for all, which share the system's facts."""
-    return None if members.builder is None else member_slices(members.params, int(members.param_index[0]))
+    return member_row(members, 0)
+
+
+def member_row(members: Members, m: int):
+    """Member m's parameter row (None without `make_system`)."""
+    return None if members.builder is None else member_slices(members.params, int(members.param_index[m]))

@@ -31,12 +31,11 @@ encounter later in the run) is not seen unless it is sampled; name the members t
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from ..core.system import ClebschSystem
 from ..march.accuracy import AccuracyPlan, method_options, plan_members
-from .config import make_members, member_slices
+from ..march.pilot import motion
+from .config import make_members, member_row
 
 __all__ = ["PILOT_MEMBERS", "choose_sweep_step", "member_rates", "pilot_members", "plan_for_sweep"]
 
@@ -108,18 +107,12 @@ def member_rates(make_system, ensemble) -> np.ndarray:
     not finite (such a member fails in the sweep, and is not piloted)."""
     Q0 = ensemble.Q0[ensemble.ic_index]
     xi0 = ensemble.xi0[ensemble.ic_index]
-    axes = tuple(range(1, Q0.ndim))
     if ensemble.builder is None:
-        speed = jax.vmap(lambda q, x: _speed(make_system, q, x))(Q0, xi0)
+        speed, size = jax.vmap(lambda q, x: motion(make_system, q, x))(Q0, xi0)
     else:
         rows = jax.tree_util.tree_map(lambda a: a[ensemble.param_index], ensemble.params)
-        speed = jax.vmap(lambda p, q, x: _speed(ensemble.builder(p), q, x))(rows, Q0, xi0)
-    size = np.max(np.abs(Q0), axis=axes)
-    return np.asarray(speed) / np.where(size > 0, size, 1.0)
-
-
-def _speed(system: ClebschSystem, Q0, xi0):
-    return jnp.max(jnp.abs(system.velocity_map(xi0, Q0)))
+        speed, size = jax.vmap(lambda p, q, x: motion(ensemble.builder(p), q, x))(rows, Q0, xi0)
+    return np.asarray(speed) / np.asarray(size)
 
 
 def pilot_members(rates, k: int = PILOT_MEMBERS) -> tuple:
@@ -133,10 +126,7 @@ def pilot_members(rates, k: int = PILOT_MEMBERS) -> tuple:
 
 def _member(make_system, ensemble, m: int) -> tuple:
     """(system, Q0, xi0, P0) of member m, as `integrate` takes them."""
-    j = int(ensemble.ic_index[m])
-    if ensemble.builder is None:
-        system = make_system
-    else:
-        system = ensemble.builder(member_slices(ensemble.params, int(ensemble.param_index[m])))
+    j, row = int(ensemble.ic_index[m]), member_row(ensemble, m)
+    system = make_system if row is None else ensemble.builder(row)
     P0 = None if ensemble.P0 is None else ensemble.P0[j]
     return system, ensemble.Q0[j], ensemble.xi0[j], P0

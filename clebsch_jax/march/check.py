@@ -40,8 +40,7 @@ import math
 
 import numpy as np
 
-from ..roots.status import Status
-from .pilot import PILOT_MIN_STEPS, ROUNDOFF_FLOOR, state_error, work_per_step
+from .pilot import PILOT_MIN_STEPS, ROUNDOFF_FLOOR, nodes, run_record, sizes, state_error, work_per_step
 
 __all__ = ["CHECK_TRIES", "GROWTH_CAP", "check_plan", "growth_exponent"]
 
@@ -79,11 +78,11 @@ def check_plan(march, stepper, system, row, t0: float, horizon: float, pilot_hor
             dt = horizon / n_steps
         k = max(PILOT_MIN_STEPS, round(pilot_horizon / dt))
         coarse, fine = march(stepper, dt, k), march(stepper, dt / 2, 2 * k)
+        failed = False
         for sols, n in ((coarse, k), (fine, 2 * k)):
-            work += sum(
-                n * work_per_step(stepper, system, float(np.mean(np.asarray(s.stats.iterations)))) for s in sols
-            )
-        if any(int(np.asarray(s.result)) != Status.SUCCESS for s in coarse + fine):
+            _, cost, failed_here = run_record(stepper, system, sols, n)
+            work, failed = work + cost, failed or failed_here
+        if failed:
             found = f"not run: a member failed at step {dt:.3g}"
             break
         d = np.max([_difference(a, b) for a, b in zip(coarse, fine)], axis=0) / (1 - 2.0**-p)
@@ -107,7 +106,5 @@ def check_plan(march, stepper, system, row, t0: float, horizon: float, pilot_hor
 
 def _difference(a, b) -> np.ndarray:
     """The error measure between a run at h and one at h/2, at the first's nodes."""
-    nodes = [(None if s.Q is None else np.asarray(s.Q), np.asarray(s.momentum)) for s in (a, b)]
-    (Qa, ma), (Qb, mb) = nodes
-    scales = (1.0 if Qa is None else float(np.max(np.abs(Qa[0]))) or 1.0, float(np.max(np.abs(ma[0]))) or 1.0)
-    return state_error((Qa, ma), (None if Qb is None else Qb[::2], mb[::2]), scales)
+    coarse, (Qb, mb) = nodes(a), nodes(b)
+    return state_error(coarse, (None if Qb is None else Qb[::2], mb[::2]), sizes(coarse))

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax.numpy as jnp
 import numpy as np
 
 from ..roots.status import Status
@@ -48,7 +49,11 @@ __all__ = [
     "MAX_CONTRACTION",
     "Measured",
     "contraction_step",
+    "motion",
     "time_scale",
+    "nodes",
+    "sizes",
+    "run_record",
     "state_error",
     "work_per_step",
     "run_pilot",
@@ -145,16 +150,42 @@ def contraction_step(measured: "Measured") -> float:
     return measured.steps[0] * MAX_CONTRACTION / rho
 
 
+def motion(system, Q0, xi0):
+    r"""(‖L_{ξ⁰}Q⁰‖∞, ‖Q⁰‖∞ or 1 where it is 0): the speed and the size `time_scale` compares,
+    as JAX scalars (so that `jax.vmap` gives them for many members at once)."""
+    size = jnp.max(jnp.abs(jnp.asarray(Q0)))
+    return jnp.max(jnp.abs(system.velocity_map(xi0, Q0))), jnp.where(size > 0, size, 1.0)
+
+
 def time_scale(system, Q0, xi0) -> float:
-    r"""τ = ‖Q⁰‖∞ / ‖L_{ξ⁰}Q⁰‖∞: the time in which the configuration moves by its own size at the
-    initial velocity (∞ at rest, 1 for a configuration at the origin)."""
-    size = float(np.max(np.abs(np.asarray(Q0)))) or 1.0
-    speed = float(np.max(np.abs(np.asarray(system.velocity_map(xi0, Q0)))))
+    r"""τ = ‖Q⁰‖∞ / ‖L_{ξ⁰}Q⁰‖∞ (`motion`): the time in which the configuration moves by its own
+    size at the initial velocity (∞ at rest, 1 for a configuration at the origin)."""
+    speed, size = (float(x) for x in motion(system, Q0, xi0))
     return size / speed if speed > 0 else math.inf
 
 
 def _scale(x) -> float:
     return float(np.max(np.abs(x))) or 1.0
+
+
+def nodes(sol) -> tuple:
+    """(Q or None, momentum) of a `Solution`'s nodes, as arrays: what `state_error` compares."""
+    return None if sol.Q is None else np.asarray(sol.Q), np.asarray(sol.momentum)
+
+
+def sizes(node) -> tuple:
+    """(size of Q⁰, size of μ⁰) of a `nodes` pair: the scales of `state_error` (1 for Q without Q
+    or for a size of 0)."""
+    Q, m = node
+    return 1.0 if Q is None else _scale(Q[0]), _scale(m[0])
+
+
+def run_record(stepper, system, sols, n_steps: int) -> tuple:
+    """(each member's mean iterations per step, the work of the run, whether a member failed) of
+    one pilot run of `n_steps` steps, `sols` its members' `Solution`s."""
+    its = [float(np.mean(np.asarray(sol.stats.iterations))) for sol in sols]
+    work = sum(n_steps * work_per_step(stepper, system, i) for i in its)
+    return its, work, any(int(np.asarray(sol.result)) != Status.SUCCESS for sol in sols)
 
 
 def state_error(a, b, scales) -> np.ndarray:
@@ -201,17 +232,17 @@ def run_pilot(march, stepper, system, order: int, t0: float, horizon: float, h0:
         n = n0 * 2**k
         h = horizon / n
         sols = march(stepper, h, n)
-        its = [float(np.mean(np.asarray(sol.stats.iterations))) for sol in sols]
-        work += sum(n * work_per_step(stepper, system, i) for i in its)
-        if any(int(np.asarray(sol.result)) != Status.SUCCESS for sol in sols):
+        its, cost, failed = run_record(stepper, system, sols, n)
+        work += cost
+        if failed:
             if runs:  # a failure at a smaller step than one that succeeded: the method breaks down here
                 return Measured(None, None, None, tuple(steps), tuple(iterations), work, f"failed at step {h:.3g}")
             continue  # too large a step: halve it
-        nodes = [(None if sol.Q is None else np.asarray(sol.Q), np.asarray(sol.momentum)) for sol in sols]
+        run = [nodes(sol) for sol in sols]
         stride = n // n0
         if scales is None:  # the sizes of each member's Q⁰ and μ⁰
-            scales = [(1.0 if Q is None else _scale(Q[0]), _scale(m[0])) for Q, m in nodes]
-        runs.append([tuple(None if x is None else x[::stride] for x in member) for member in nodes])
+            scales = [sizes(member) for member in run]
+        runs.append([tuple(None if x is None else x[::stride] for x in member) for member in run])
         steps.append(h)
         iterations.append(max(its))
         if len(runs) < 2:
